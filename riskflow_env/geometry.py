@@ -1,0 +1,202 @@
+"""Oriented vehicle boxes: corners, footprint samples and box-box overlap.
+
+A vehicle is a closed rectangle given by its centre ``xy`` (..., 2) [m], heading
+``yaw`` (...) [rad], ``length`` (...) [m] along the heading and ``width`` (...) [m]
+across it. Leading dimensions broadcast, so the same call serves one step
+``(A,)``, a rollout ``(T, A)`` or a batch ``(B, T, A)``. Zero length or width is
+allowed: the box degenerates to a segment or a point and every function still
+holds.
+
+Overlap uses the separating axis theorem (SAT) on the four box axes (heading and
+its normal for each box). For rectangles, including degenerate ones, these axes
+are complete: two boxes are disjoint iff their projections are disjoint on one
+of them. Everything is written once against the array API (numpy or torch).
+"""
+
+from __future__ import annotations
+
+from array_api_compat import device
+
+from riskflow_env._array import Array, asarray_like, namespace
+
+FOOTPRINT_NAMES = (
+    "front_right",
+    "front_left",
+    "rear_left",
+    "rear_right",
+    "front",
+    "left",
+    "rear",
+    "right",
+    "centre",
+)
+NUM_FOOTPRINT_POINTS = 9
+FRONT_RIGHT, FRONT_LEFT, REAR_LEFT, REAR_RIGHT = 0, 1, 2, 3
+FRONT, LEFT, REAR, RIGHT, CENTRE = 4, 5, 6, 7, 8
+CORNERS = slice(0, 4)  # index of the 4 corners in the footprint
+
+# Footprint point k sits at (_ALONG[k] * length/2, _ACROSS[k] * width/2) in the
+# vehicle frame (x forward, y to the left).
+_ALONG = (1.0, 1.0, -1.0, -1.0, 1.0, 0.0, -1.0, 0.0, 0.0)
+_ACROSS = (-1.0, 1.0, 1.0, -1.0, 0.0, 1.0, 0.0, -1.0, 0.0)
+
+
+def footprint_points(xy: Array, yaw: Array, length: Array, width: Array) -> Array:
+    """Samples of a vehicle's footprint in world coordinates.
+
+    Args:
+        xy: (..., 2) box centres [m].
+        yaw: (...) headings [rad], counter-clockwise from the world x axis.
+        length: (...) box lengths along the heading [m] (array or float).
+        width: (...) box widths across the heading [m] (array or float).
+
+    Returns:
+        (..., 9, 2) points [m] in ``FOOTPRINT_NAMES`` order: the 4 corners
+        counter-clockwise from front-right (FR, FL, RL, RR), the 4 edge midpoints
+        (front, left, rear, right), then the centre.
+    """
+    xp = namespace(xy, yaw, length, width)
+    along = 0.5 * asarray_like(length, yaw)[..., None] * asarray_like(_ALONG, xy)  # (..., 9)
+    across = 0.5 * asarray_like(width, yaw)[..., None] * asarray_like(_ACROSS, xy)
+    cos, sin = xp.cos(yaw)[..., None], xp.sin(yaw)[..., None]
+    x = xy[..., 0:1] + along * cos - across * sin
+    y = xy[..., 1:2] + along * sin + across * cos
+    return xp.stack((x, y), axis=-1)
+
+
+def box_corners(xy: Array, yaw: Array, length: Array, width: Array) -> Array:
+    """Corners of oriented boxes.
+
+    Args: as ``footprint_points``.
+
+    Returns:
+        (..., 4, 2) corners [m], counter-clockwise from front-right: FR, FL, RL, RR
+        (so the shoelace area is ``+length * width``).
+    """
+    return footprint_points(xy, yaw, length, width)[..., CORNERS, :]
+
+
+def separation(
+    xy_a: Array,
+    yaw_a: Array,
+    length_a: Array,
+    width_a: Array,
+    xy_b: Array,
+    yaw_b: Array,
+    length_b: Array,
+    width_b: Array,
+) -> Array:
+    """Largest gap between the projections of box a and box b on the 4 SAT axes.
+
+    On each axis k (heading and normal of a, heading and normal of b) the gap is
+    ``|(c_b - c_a) . k| - r_a(k) - r_b(k)``, with r the box's projected half-extent.
+    The result is the maximum over the 4 axes:
+
+    * ``> 0``: disjoint. It is a lower bound on the Euclidean distance d between
+      the boxes, and at least d / sqrt(2).
+    * ``<= 0``: the closed boxes intersect (``0`` exactly when they touch). Then
+      ``-separation`` is the penetration depth: the shortest translation of one
+      box that makes them only touch.
+
+    Args:
+        xy_a: (..., 2) centres of boxes a [m].
+        yaw_a: (...) headings of a [rad].
+        length_a: (...) lengths of a [m] (array or float).
+        width_a: (...) widths of a [m] (array or float).
+        xy_b, yaw_b, length_b, width_b: the same for boxes b; all broadcast.
+
+    Returns:
+        (...) signed separation [m], same dtype as the inputs. Symmetric in a, b
+        bit for bit. Differentiable almost everywhere under torch.
+    """
+    xp = namespace(xy_a, yaw_a, xy_b, yaw_b)
+    cos_a, sin_a = xp.cos(yaw_a), xp.sin(yaw_a)
+    cos_b, sin_b = xp.cos(yaw_b), xp.sin(yaw_b)
+    dx = xy_b[..., 0] - xy_a[..., 0]
+    dy = xy_b[..., 1] - xy_a[..., 1]
+    half_len_a, half_wid_a = 0.5 * length_a, 0.5 * width_a
+    half_len_b, half_wid_b = 0.5 * length_b, 0.5 * width_b
+    # |heading_a . heading_b| = |normal_a . normal_b| and |heading_a . normal_b| =
+    # |normal_a . heading_b|: two numbers describe the relative orientation.
+    cos_ab = xp.abs(cos_a * cos_b + sin_a * sin_b)
+    sin_ab = xp.abs(cos_a * sin_b - sin_a * cos_b)
+    gaps = (
+        xp.abs(dx * cos_a + dy * sin_a) - half_len_a - (half_len_b * cos_ab + half_wid_b * sin_ab),
+        xp.abs(dy * cos_a - dx * sin_a) - half_wid_a - (half_len_b * sin_ab + half_wid_b * cos_ab),
+        xp.abs(dx * cos_b + dy * sin_b) - half_len_b - (half_len_a * cos_ab + half_wid_a * sin_ab),
+        xp.abs(dy * cos_b - dx * sin_b) - half_wid_b - (half_len_a * sin_ab + half_wid_a * cos_ab),
+    )
+    return xp.maximum(xp.maximum(gaps[0], gaps[1]), xp.maximum(gaps[2], gaps[3]))
+
+
+def pair_overlap(
+    xy_a: Array,
+    yaw_a: Array,
+    length_a: Array,
+    width_a: Array,
+    xy_b: Array,
+    yaw_b: Array,
+    length_b: Array,
+    width_b: Array,
+    tolerance: float = 0.0,
+) -> Array:
+    """Elementwise overlap of box a with box b (arguments as ``separation``).
+
+    A pair overlaps when ``separation <= tolerance``, i.e. when on every one of the
+    4 SAT axes the gap between the projections is at most ``tolerance`` [m].
+
+    * ``tolerance = 0``: exact intersection of closed boxes; touching counts
+      (shapely ``intersects``).
+    * ``tolerance > 0``: also near misses. Every pair closer than ``tolerance``
+      overlaps, and no pair farther than ``sqrt(2) * tolerance`` does.
+    * ``tolerance < 0``: only pairs whose penetration depth is at least
+      ``-tolerance`` overlap.
+
+    Returns:
+        (...) bool.
+    """
+    args = (xy_a, yaw_a, length_a, width_a, xy_b, yaw_b, length_b, width_b)
+    return separation(*args) <= tolerance
+
+
+def pairwise_overlap(
+    xy: Array,
+    yaw: Array,
+    length: Array,
+    width: Array,
+    valid: Array | None = None,
+    tolerance: float = 0.0,
+) -> Array:
+    """Overlap of every pair among A agents, vectorised (no loop over pairs).
+
+    Args:
+        xy: (..., A, 2) box centres [m].
+        yaw: (..., A) headings [rad].
+        length: (..., A) lengths [m] (array or float).
+        width: (..., A) widths [m] (array or float).
+        valid: optional (..., A) bool; pairs involving an invalid agent are False.
+        tolerance: overlap threshold [m] on the SAT separation, see ``pair_overlap``.
+
+    Returns:
+        (..., A, A) bool, symmetric, with a False diagonal. Entry [i, j] is True
+        when agents i and j (both valid) overlap.
+    """
+    xp = namespace(xy, yaw, length, width)
+    length = asarray_like(length, yaw)
+    width = asarray_like(width, yaw)
+    overlap = pair_overlap(
+        xy[..., :, None, :],
+        yaw[..., :, None],
+        length[..., :, None] if length.ndim else length,
+        width[..., :, None] if width.ndim else width,
+        xy[..., None, :, :],
+        yaw[..., None, :],
+        length[..., None, :] if length.ndim else length,
+        width[..., None, :] if width.ndim else width,
+        tolerance,
+    )
+    num_agents = xy.shape[-2]
+    overlap = overlap & ~xp.eye(num_agents, dtype=xp.bool, device=device(xy))
+    if valid is not None:
+        overlap = overlap & valid[..., :, None] & valid[..., None, :]
+    return overlap
