@@ -1,0 +1,30 @@
+"""Drivable-area maps: raster + signed distance field + lane centrelines (DESIGN.md section 4).
+
+Public names:
+
+* :class:`Lane` — centreline polyline with width, id, speed limit and successors.
+* :class:`DrivableMap` — boolean raster, SDF [m] (negative on the road), lanes;
+  ``sdf_at`` / ``is_drivable`` / ``crop`` work on numpy arrays and torch tensors.
+* Builders: :func:`from_polygons`, :func:`from_lanes`, :func:`from_highway_env`
+  (families in :data:`FAMILIES`).
+"""
+
+from __future__ import annotations
+
+from riskflow_env.maps.builders import from_lanes, from_polygons
+from riskflow_env.maps.drivable_map import DrivableMap
+from riskflow_env.maps.highway import FAMILIES, from_highway_env, highway_env_lanes
+from riskflow_env.maps.lanes import Lane
+from riskflow_env.maps.surface import lane_polygon, road_polygons
+
+__all__ = [
+    "FAMILIES",
+    "DrivableMap",
+    "Lane",
+    "from_highway_env",
+    "from_lanes",
+    "from_polygons",
+    "highway_env_lanes",
+    "lane_polygon",
+    "road_polygons",
+]

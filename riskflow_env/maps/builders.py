@@ -1,0 +1,92 @@
+"""Builders of :class:`DrivableMap` from plain polygons and from lane centrelines."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import shapely
+
+from riskflow_env.maps._validate import finite_number
+from riskflow_env.maps.drivable_map import DrivableMap
+from riskflow_env.maps.lanes import Lane
+from riskflow_env.maps.rasterize import grid_for_bounds, rasterize
+from riskflow_env.maps.surface import road_polygons
+
+
+def from_polygons(
+    polygons: shapely.Geometry | Iterable[shapely.Geometry],
+    resolution: float = 0.5,
+    margin: float = 5.0,
+    lanes: Iterable[Lane] = (),
+    name: str = "",
+) -> DrivableMap:
+    """Map whose drivable area is the union of ``polygons``.
+
+    The raster covers the union's bounding box plus ``margin`` on every side. A pixel
+    is drivable when its centre lies in the union or on its boundary
+    (``shapely.intersects_xy``).
+
+    Args:
+        polygons: one shapely (Multi)Polygon or an iterable of them [m].
+        resolution: pixel size [m/px], > 0.
+        margin: off-road border around the polygons [m], >= 0.
+        lanes: lane centrelines to keep on the map.
+        name: label of the map.
+    """
+    resolution = finite_number("resolution", resolution, "m/px")
+    margin = finite_number("margin", margin, "m", allow_zero=True)
+    geometries = [polygons] if isinstance(polygons, shapely.Geometry) else list(polygons)
+    for i, geometry in enumerate(geometries):
+        if not isinstance(geometry, (shapely.Polygon, shapely.MultiPolygon)):
+            raise ValueError(
+                f"polygons[{i}] must be a shapely Polygon or MultiPolygon, "
+                f"got {type(geometry).__name__}"
+            )
+    union = shapely.union_all(geometries) if geometries else shapely.Polygon()
+    if union.is_empty or union.area <= 0:
+        raise ValueError("polygons must cover a non-empty area")
+    origin, shape = grid_for_bounds(union.bounds, resolution, margin)
+    drivable = rasterize(union, origin, shape, resolution)
+    if not drivable.any():
+        raise ValueError(
+            f"polygons are thinner than the resolution {resolution} m/px: no pixel centre is inside"
+        )
+    return DrivableMap(drivable, resolution, origin, lanes=tuple(lanes), name=name)
+
+
+def from_lanes(
+    lanes: Iterable[Lane],
+    resolution: float = 0.5,
+    margin: float = 5.0,
+    name: str = "",
+    entry_apron: float = 0.0,
+) -> DrivableMap:
+    """Map whose drivable area is the union of the lanes' surfaces; keeps the lanes.
+
+    The surface (:func:`~riskflow_env.maps.surface.road_polygons`) is each lane's
+    centreline offset by +-width/2 along its normals with flat ends (not a
+    round-capped buffer, so lanes do not bulge past their ends), plus a patch
+    joining each lane's end to its successors' starts (closes gaps and kinks at
+    junctions), plus optional entry aprons.
+
+    Args:
+        lanes: at least one :class:`Lane`, unique ids.
+        resolution: pixel size [m/px], > 0.
+        margin: off-road border around the lanes [m], >= 0.
+        name: label of the map.
+        entry_apron: length [m], >= 0, of a straight stub of road added before the
+            start of every lane that has no predecessor; none when 0.
+    """
+    lanes = tuple(lanes)
+    if not lanes:
+        raise ValueError("lanes must hold at least one Lane")
+    if not all(isinstance(lane, Lane) for lane in lanes):
+        raise ValueError("lanes must hold Lane objects")
+    entry_apron = finite_number("entry_apron", entry_apron, "m", allow_zero=True)
+    return from_polygons(
+        road_polygons(lanes, entry_apron),
+        resolution=resolution,
+        margin=margin,
+        lanes=lanes,
+        name=name,
+    )

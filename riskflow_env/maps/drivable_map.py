@@ -1,0 +1,244 @@
+"""DrivableMap: a boolean drivable-area raster, its signed distance field, and lanes.
+
+Conventions (DESIGN.md section 4):
+
+* World frame in metres; ``origin`` is the world (x, y) of the lower-left corner of
+  pixel [0, 0]; row ``i`` covers y in [oy + i*res, oy + (i+1)*res), column ``j``
+  covers x in [ox + j*res, ox + (j+1)*res). Rows follow +y, columns follow +x.
+* ``sdf`` [m] is negative inside the drivable area, positive outside, zero on the
+  boundary; beyond the raster everything is off-road.
+* Lookups (``sdf_at``, ``is_drivable``, ``crop``) take numpy arrays or torch tensors
+  (any device, differentiable wrt the query) through one implementation; the torch
+  copy of each raster is made once per (device, dtype) and kept on the map.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from riskflow_env._array import Array, is_torch, namespace
+from riskflow_env.maps._validate import finite_number
+from riskflow_env.maps.lanes import Lane, as_query
+from riskflow_env.maps.rasterize import signed_distance
+from riskflow_env.maps.sampling import bilinear, constant_like, crop_points
+
+CropLayer = Literal["drivable", "sdf"]
+
+
+@dataclass(frozen=True, eq=False)
+class DrivableMap:
+    """Drivable-area raster with a signed distance field and optional lane centrelines.
+
+    Inputs are copied and made read-only. Equality is identity.
+
+    Attributes:
+        drivable: (H, W) bool, True where driving is allowed; H, W >= 2 and at least
+            one True pixel.
+        resolution: pixel size [m/px], > 0.
+        origin: (2,) [m] world (x, y) of the lower-left corner of pixel [0, 0].
+        sdf: (H, W) float32 [m] signed distance to the drivable boundary, negative
+            inside; computed from ``drivable`` when None. A given one must agree in
+            sign (``sdf <= 0`` exactly where ``drivable``).
+        lanes: lane centrelines of the map, unique ids.
+        name: free-form label, e.g. the highway-env family.
+    """
+
+    drivable: np.ndarray
+    resolution: float
+    origin: np.ndarray
+    sdf: np.ndarray | None = None
+    lanes: tuple[Lane, ...] = ()
+    name: str = ""
+    _lane_index: dict[str, int] = field(init=False, repr=False)
+    _tables: dict[Any, Any] = field(init=False, repr=False, default_factory=dict)
+
+    def __post_init__(self) -> None:
+        drivable = np.array(self.drivable)
+        if drivable.ndim != 2 or drivable.dtype != np.bool_:
+            raise ValueError(
+                "DrivableMap.drivable must be a 2-D bool array (H, W), "
+                f"got shape {drivable.shape} dtype {drivable.dtype}"
+            )
+        if min(drivable.shape) < 2:
+            raise ValueError(f"DrivableMap.drivable needs H, W >= 2, got {drivable.shape}")
+        if not drivable.any():
+            raise ValueError("DrivableMap.drivable has no drivable (True) pixel")
+        resolution = finite_number("DrivableMap.resolution", self.resolution, "m/px")
+        origin = np.array(self.origin, dtype=np.float64)
+        if origin.shape != (2,) or not np.all(np.isfinite(origin)):
+            raise ValueError(f"DrivableMap.origin must be finite (2,) [m], got {self.origin!r}")
+        if self.sdf is None:
+            sdf = signed_distance(drivable, resolution)
+        else:
+            sdf = np.array(self.sdf, dtype=np.float32)
+            if sdf.shape != drivable.shape:
+                raise ValueError(
+                    f"DrivableMap.sdf must have drivable's shape {drivable.shape}, got {sdf.shape}"
+                )
+            if not np.all(np.isfinite(sdf)):
+                raise ValueError("DrivableMap.sdf must be finite")
+            if np.any((sdf <= 0) != drivable):
+                raise ValueError("DrivableMap.sdf must be <= 0 exactly where drivable is True")
+        lanes = tuple(self.lanes)
+        if not all(isinstance(lane, Lane) for lane in lanes):
+            raise ValueError("DrivableMap.lanes must hold Lane objects")
+        index = {lane.lane_id: i for i, lane in enumerate(lanes)}
+        if len(index) != len(lanes):
+            raise ValueError("DrivableMap.lanes must have unique lane_id values")
+        if not isinstance(self.name, str):
+            raise ValueError(f"DrivableMap.name must be a string, got {self.name!r}")
+        for array in (drivable, origin, sdf):
+            array.setflags(write=False)
+        for name, value in (
+            ("drivable", drivable),
+            ("resolution", resolution),
+            ("origin", origin),
+            ("sdf", sdf),
+            ("lanes", lanes),
+            ("_lane_index", index),
+        ):
+            object.__setattr__(self, name, value)
+
+    def __repr__(self) -> str:
+        return (
+            f"DrivableMap(name={self.name!r}, shape={self.shape}, resolution={self.resolution}, "
+            f"bounds={tuple(round(b, 3) for b in self.bounds)}, lanes={len(self.lanes)})"
+        )
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state["_tables"] = {}  # device copies are rebuilt on demand
+        return state
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Raster shape (H, W) [px]."""
+        return self.drivable.shape
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(xmin, ymin, xmax, ymax) [m] covered by the raster."""
+        height, width = self.shape
+        ox, oy = (float(v) for v in self.origin)
+        return ox, oy, ox + width * self.resolution, oy + height * self.resolution
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """Same as :attr:`bounds`: (xmin, ymin, xmax, ymax) [m]."""
+        return self.bounds
+
+    def sdf_at(self, xy: Array) -> Array:
+        """Signed distance [m] at world points, bilinear over pixel centres.
+
+        Beyond the outermost pixel centres the value is the nearest border value plus
+        the distance to it, so it keeps growing away from the map.
+
+        Args:
+            xy: (..., 2) [m], numpy or torch (differentiable wrt ``xy``).
+
+        Returns:
+            (...) [m], negative on the road.
+        """
+        xy = as_query(xy, "xy", last_dim=2)
+        return bilinear(self._table("sdf", xy), xy, self._origin, self.resolution, extend=True)
+
+    def is_drivable(self, xy: Array) -> Array:
+        """(...) bool: ``sdf_at(xy) <= 0`` for world points ``xy`` (..., 2) [m]."""
+        return self.sdf_at(xy) <= 0
+
+    def crop(
+        self,
+        xy: Array,
+        yaw: Array,
+        size: int = 64,
+        resolution: float | None = None,
+        layer: CropLayer = "drivable",
+    ) -> Array:
+        """Agent-centred, heading-aligned crops, sampled bilinearly.
+
+        The agent sits at the crop centre; columns increase along its heading and
+        rows increase to its left (see :func:`~riskflow_env.maps.sampling.crop_points`).
+
+        Args:
+            xy: (N, 2) [m] agent positions, numpy or torch.
+            yaw: (N,) [rad] agent headings, same backend as ``xy``.
+            size: crop side [px], >= 1.
+            resolution: crop pixel size [m/px]; the map's when None.
+            layer: "drivable" gives the drivable fraction in [0, 1] (0 beyond the
+                raster); "sdf" gives the signed distance [m].
+
+        Returns:
+            (N, size, size) in ``xy``'s backend, dtype and device.
+        """
+        xy = as_query(xy, "xy", last_dim=2)
+        yaw = as_query(yaw, "yaw")
+        if xy.ndim != 2 or yaw.shape != xy.shape[:1]:
+            raise ValueError(
+                f"crop needs xy (N, 2) and yaw (N,), got {tuple(xy.shape)} and {tuple(yaw.shape)}"
+            )
+        if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 1:
+            raise ValueError(f"crop size must be an int >= 1 [px], got {size!r}")
+        if resolution is not None:
+            resolution = finite_number("crop resolution", resolution, "m/px")
+        points = crop_points(xy, yaw, int(size), resolution or self.resolution)
+        if layer == "sdf":
+            return bilinear(self._table("sdf", xy), points, self._origin, self.resolution, True)
+        if layer == "drivable":
+            ox, oy = self._origin
+            padded_origin = (ox - self.resolution, oy - self.resolution)
+            table = self._table("drivable_padded", xy)
+            return bilinear(table, points, padded_origin, self.resolution, extend=False)
+        raise ValueError(f"crop layer must be 'drivable' or 'sdf', got {layer!r}")
+
+    def lane_by_id(self, lane_id: str) -> Lane:
+        """The lane with id ``lane_id``; KeyError naming the known ids otherwise."""
+        try:
+            return self.lanes[self._lane_index[lane_id]]
+        except KeyError:
+            known = ", ".join(sorted(self._lane_index)) or "none"
+            raise KeyError(f"unknown lane_id {lane_id!r}; map {self.name!r} has: {known}") from None
+
+    def nearest_lane(self, xy: Array) -> tuple[Array, Array, Array]:
+        """Closest lane centreline to each point (Euclidean distance to the polyline).
+
+        Args:
+            xy: (..., 2) [m], numpy or torch.
+
+        Returns:
+            index: (...) int64 index into ``lanes``.
+            s: (...) [m] arclength of the nearest point on that lane.
+            lateral: (...) [m] signed offset from it, positive to the left.
+        """
+        if not self.lanes:
+            raise ValueError(f"map {self.name!r} has no lanes")
+        xy = as_query(xy, "xy", last_dim=2)
+        xp = namespace(xy)
+        projections = [lane.project(xy) for lane in self.lanes]
+        s_all = xp.stack([s for s, _ in projections], axis=-1)
+        lateral_all = xp.stack([lat for _, lat in projections], axis=-1)
+        best = xp.argmin(xp.abs(lateral_all), axis=-1)[..., None]
+        s = xp.take_along_axis(s_all, best, axis=-1)[..., 0]
+        lateral = xp.take_along_axis(lateral_all, best, axis=-1)[..., 0]
+        return best[..., 0], s, lateral
+
+    @property
+    def _origin(self) -> tuple[float, float]:
+        return float(self.origin[0]), float(self.origin[1])
+
+    def _table(self, name: str, like: Array) -> Array:
+        """Raster ``name`` in ``like``'s backend (torch copies cached per device/dtype)."""
+        if name not in self._tables:
+            if name == "sdf":
+                self._tables[name] = self.sdf
+            else:  # drivable as float with a one-pixel off-road ring
+                self._tables[name] = np.pad(self.drivable.astype(np.float32), 1)
+        base = self._tables[name]
+        if not is_torch(like):
+            return base
+        key = (name, str(like.device), like.dtype)
+        if key not in self._tables:
+            self._tables[key] = constant_like(base, like)
+        return self._tables[key]

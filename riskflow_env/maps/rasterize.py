@@ -1,0 +1,97 @@
+"""Geometry -> raster: the pixel grid, polygon rasterisation and the signed distance field.
+
+Grid convention (shared with :class:`~riskflow_env.maps.DrivableMap`): ``origin`` is
+the world (x, y) of the lower-left corner of pixel [0, 0]; row ``i`` covers
+y in [oy + i*res, oy + (i+1)*res) and column ``j`` covers x in
+[ox + j*res, ox + (j+1)*res). A pixel is sampled at its centre.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import shapely
+from scipy import ndimage
+
+MAX_PIXELS = 50_000_000  # [-] largest raster a builder will allocate (H * W)
+
+
+def grid_for_bounds(
+    bounds: tuple[float, float, float, float], resolution: float, margin: float
+) -> tuple[np.ndarray, tuple[int, int]]:
+    """Origin and shape of a raster covering ``bounds`` plus ``margin`` on every side.
+
+    Args:
+        bounds: (xmin, ymin, xmax, ymax) [m] of the geometry.
+        resolution: pixel size [m/px], > 0.
+        margin: free border added around ``bounds`` [m], >= 0.
+
+    Returns:
+        origin: (2,) [m] lower-left corner of pixel [0, 0].
+        shape: (H, W) [px], each at least 2.
+    """
+    xmin, ymin, xmax, ymax = bounds
+    width = max(int(math.ceil((xmax - xmin + 2.0 * margin) / resolution)), 2)
+    height = max(int(math.ceil((ymax - ymin + 2.0 * margin) / resolution)), 2)
+    if height * width > MAX_PIXELS:
+        raise ValueError(
+            f"raster of {height} x {width} px exceeds MAX_PIXELS={MAX_PIXELS}; "
+            f"use a coarser resolution (got {resolution} m/px) or a smaller geometry"
+        )
+    return np.array([xmin - margin, ymin - margin], dtype=np.float64), (height, width)
+
+
+def pixel_centres(origin: np.ndarray, shape: tuple[int, int], resolution: float) -> tuple:
+    """World coordinates of all pixel centres.
+
+    Returns:
+        x, y: two (H, W) [m] arrays.
+    """
+    height, width = shape
+    xs = origin[0] + (np.arange(width) + 0.5) * resolution
+    ys = origin[1] + (np.arange(height) + 0.5) * resolution
+    x, y = np.meshgrid(xs, ys)  # (H, W), rows follow y
+    return x, y
+
+
+def rasterize(
+    geometry: shapely.Geometry, origin: np.ndarray, shape: tuple[int, int], resolution: float
+) -> np.ndarray:
+    """Boolean raster of the pixels whose centre lies in ``geometry``.
+
+    Points on the boundary count as inside (``shapely.intersects_xy``), so a pixel
+    centre exactly on a lane edge is drivable.
+
+    Returns:
+        (H, W) bool.
+    """
+    x, y = pixel_centres(origin, shape, resolution)
+    shapely.prepare(geometry)
+    return np.asarray(shapely.intersects_xy(geometry, x, y), dtype=bool)
+
+
+def signed_distance(drivable: np.ndarray, resolution: float) -> np.ndarray:
+    """Signed distance [m] from each pixel centre to the drivable boundary.
+
+    Negative inside the drivable area, positive outside. Both sides come from
+    ``scipy.ndimage.distance_transform_edt`` (distance between pixel centres); the
+    boundary lies half a pixel beyond the last pixel of a side, so each side's
+    distance is reduced by 0.5 px. Everything beyond the raster counts as not
+    drivable (the raster is padded with one non-drivable pixel first).
+
+    Args:
+        drivable: (H, W) bool, at least one True pixel.
+        resolution: pixel size [m/px].
+
+    Returns:
+        (H, W) float32 [m]; |value| >= resolution / 2 everywhere.
+    """
+    padded = np.pad(drivable, 1, constant_values=False)
+    inside = ndimage.distance_transform_edt(padded)[1:-1, 1:-1]
+    if np.all(drivable):
+        outside = np.zeros(drivable.shape)
+    else:
+        outside = ndimage.distance_transform_edt(~drivable)
+    sdf = np.where(drivable, -(inside - 0.5), outside - 0.5) * resolution
+    return sdf.astype(np.float32)

@@ -1,0 +1,94 @@
+"""Bilinear raster lookups and agent-centred crop grids, one implementation for numpy and torch.
+
+The functions take the raster ("table") already in the query's backend, dtype and
+device; :class:`~riskflow_env.maps.DrivableMap` keeps those copies.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from riskflow_env._array import Array, asarray_like, is_torch, namespace
+
+
+def bilinear(
+    table: Array, xy: Array, origin: tuple[float, float], resolution: float, extend: bool
+) -> Array:
+    """Bilinear interpolation of ``table`` over pixel centres at world points ``xy``.
+
+    Args:
+        table: (H, W) values at pixel centres, same backend/dtype as ``xy``; H, W >= 2.
+        xy: (..., 2) [m] world points (differentiable in torch).
+        origin: (x, y) [m] lower-left corner of pixel [0, 0].
+        resolution: pixel size [m/px].
+        extend: beyond the outermost pixel centres the query is clamped onto them;
+            with ``extend`` the distance [m] from the clamped point to the query is
+            added (right for a signed distance field: it keeps growing outside).
+
+    Returns:
+        (...) interpolated values.
+    """
+    xp = namespace(xy, table)
+    height, width = table.shape
+    col = (xy[..., 0] - origin[0]) / resolution - 0.5
+    row = (xy[..., 1] - origin[1]) / resolution - 0.5
+    col_c = xp.clip(col, 0.0, float(width - 1))
+    row_c = xp.clip(row, 0.0, float(height - 1))
+    col0 = xp.clip(xp.astype(xp.floor(col_c), xp.int64), 0, width - 2)
+    row0 = xp.clip(xp.astype(xp.floor(row_c), xp.int64), 0, height - 2)
+    fc = col_c - xp.astype(col0, col_c.dtype)
+    fr = row_c - xp.astype(row0, row_c.dtype)
+    flat = xp.reshape(table, (-1,))
+    base = row0 * width + col0
+    v00, v01 = flat[base], flat[base + 1]
+    v10, v11 = flat[base + width], flat[base + width + 1]
+    top = v00 * (1 - fc) + v01 * fc
+    bottom = v10 * (1 - fc) + v11 * fc
+    value = top * (1 - fr) + bottom * fr
+    if extend:
+        value = value + safe_norm(xp, col - col_c, row - row_c) * resolution
+    return value
+
+
+def crop_points(xy: Array, yaw: Array, size: int, resolution: float) -> Array:
+    """World coordinates of the pixel centres of agent-centred, heading-aligned crops.
+
+    Crop pixel (r, c) sits at forward offset ``(c - (size-1)/2) * resolution`` and
+    leftward offset ``(r - (size-1)/2) * resolution`` from the agent: the agent is at
+    the crop centre, columns increase along the heading, rows increase to its left
+    (so a crop shown with the row axis pointing up is the agent's view, nose right).
+
+    Args:
+        xy: (N, 2) [m] agent positions.
+        yaw: (N,) [rad] agent headings.
+        size: crop side [px].
+        resolution: crop pixel size [m/px].
+
+    Returns:
+        (N, size, size, 2) [m] world points.
+    """
+    xp = namespace(xy, yaw)
+    offsets = (np.arange(size, dtype=np.float64) - (size - 1) / 2.0) * resolution
+    offsets = asarray_like(offsets, xy)
+    forward = offsets[None, None, :]  # varies along columns
+    left = offsets[None, :, None]  # varies along rows
+    cos = xp.cos(yaw)[:, None, None]
+    sin = xp.sin(yaw)[:, None, None]
+    x = xy[:, 0, None, None] + forward * cos - left * sin
+    y = xy[:, 1, None, None] + forward * sin + left * cos
+    return xp.stack([x, y], axis=-1)
+
+
+def safe_norm(xp, dx: Array, dy: Array) -> Array:
+    """sqrt(dx^2 + dy^2) with a zero (not NaN) gradient at the origin."""
+    sq = dx * dx + dy * dy
+    positive = sq > 0
+    return xp.where(positive, xp.sqrt(xp.where(positive, sq, xp.ones_like(sq))), xp.zeros_like(sq))
+
+
+def constant_like(array: np.ndarray, like: Array) -> Array:
+    """Read-only numpy constant ``array`` in ``like``'s backend, dtype and device.
+
+    Torch gets a copy (torch does not share read-only numpy memory).
+    """
+    return asarray_like(np.array(array) if is_torch(like) else array, like)

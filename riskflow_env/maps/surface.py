@@ -1,0 +1,97 @@
+"""Drivable surface of a set of lanes: lane polygons, junction patches and entry aprons.
+
+* Lane polygon: the centreline offset by +-width/2 along its normals, flat ends
+  (not a round-capped buffer, which would bulge past lane ends).
+* Junction patch: the convex hull of a lane's end edge and each successor's start
+  edge. Where the two meet exactly it has no area; where a source leaves a small
+  gap or a kink between them (highway-env's racetrack does), it closes the notch
+  that would otherwise put vehicles driving through the junction off-road.
+* Entry apron: a straight stub of the lane's width before the start of every lane
+  that has no predecessor, for vehicles spawned at s = 0 of an entry lane.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import shapely
+from shapely.geometry import Polygon
+
+from riskflow_env.maps.lanes import Lane
+
+MITER_LIMIT = 4.0  # [-] longest corner offset of lane_polygon, in half-widths
+
+
+def road_polygons(lanes: tuple[Lane, ...], entry_apron: float = 0.0) -> list[shapely.Geometry]:
+    """Polygons [m] whose union is the drivable surface of ``lanes``.
+
+    Args:
+        lanes: the lanes; successors naming lanes outside the set are ignored.
+        entry_apron: length [m], >= 0, of the stub added before each lane without
+            predecessor in the set; none when 0.
+    """
+    by_id = {lane.lane_id: lane for lane in lanes}
+    polygons = [lane_polygon(lane) for lane in lanes]
+    for lane in lanes:
+        for successor in lane.successors:
+            if successor in by_id:
+                polygons.append(junction_polygon(lane, by_id[successor]))
+    if entry_apron > 0:
+        has_predecessor = {succ for lane in lanes for succ in lane.successors}
+        for lane in lanes:
+            if lane.lane_id not in has_predecessor:
+                polygons.append(lane_polygon(_entry_stub(lane, entry_apron)))
+    return [p for p in polygons if p.area > 0]
+
+
+def junction_polygon(lane: Lane, successor: Lane) -> shapely.Geometry:
+    """Convex hull [m] of ``lane``'s end edge and ``successor``'s start edge."""
+    end_left, end_right = _edge(lane, lane.length)
+    start_left, start_right = _edge(successor, 0.0)
+    return shapely.MultiPoint([end_left, end_right, start_left, start_right]).convex_hull
+
+
+def lane_polygon(lane: Lane) -> shapely.Geometry:
+    """Drivable surface of ``lane``: the centreline offset by +-width/2, flat ends.
+
+    Each vertex moves along the bisector of its neighbouring segment normals by
+    ``width/2 / cos(half turn angle)`` (a miter join, capped at ``MITER_LIMIT``
+    half-widths), so straight stretches keep their exact width and sampled arcs
+    keep their vertices on the offset arc. Self-intersections on the inside of very
+    tight turns are repaired with ``shapely.make_valid``.
+
+    Returns:
+        A shapely Polygon (or MultiPolygon after repair) [m].
+    """
+    points = lane.centerline
+    direction = np.diff(points, axis=0)
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    normal_seg = np.stack([-direction[:, 1], direction[:, 0]], axis=1)
+    normal = np.empty_like(points)
+    normal[0], normal[-1] = normal_seg[0], normal_seg[-1]
+    bisector = normal_seg[:-1] + normal_seg[1:]
+    norm = np.linalg.norm(bisector, axis=1, keepdims=True)
+    cos_half = np.maximum(norm / 2.0, 1.0 / MITER_LIMIT)
+    safe = np.where(norm > 1e-12, norm, 1.0)
+    normal[1:-1] = np.where(norm > 1e-12, bisector / safe, normal_seg[:-1]) / cos_half
+    half = 0.5 * lane.width
+    left = points + half * normal
+    right = points - half * normal
+    polygon = Polygon(np.concatenate([left, right[::-1]]))
+    if polygon.is_valid:
+        return polygon
+    parts = shapely.get_parts(shapely.make_valid(polygon))
+    return shapely.MultiPolygon([p for p in parts if isinstance(p, Polygon) and p.area > 0])
+
+
+def _edge(lane: Lane, s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Left and right lane-edge points (2,) [m] across the lane at arclength ``s``."""
+    xy, heading = lane.position(np.array(s))
+    left = 0.5 * lane.width * np.array([-np.sin(heading), np.cos(heading)])
+    return xy + left, xy - left
+
+
+def _entry_stub(lane: Lane, length: float) -> Lane:
+    """Straight lane of ``length`` [m] ending where ``lane`` starts, along its heading."""
+    xy, heading = lane.position(np.array(0.0))
+    back = xy - length * np.array([np.cos(heading), np.sin(heading)])
+    return Lane(np.stack([back, xy]), lane.width, f"{lane.lane_id}/entry")
