@@ -1,0 +1,42 @@
+"""RiskFlow-Env: safety-critical multi-agent traffic simulation.
+
+``parallel_env(...)`` builds the PettingZoo ``ParallelEnv`` (``riskflow_v0``); ``env(...)``
+the AEC view of the same env. See :mod:`riskflow_env.env` for agents, spaces and options.
+"""
+
+from __future__ import annotations
+
+from importlib.metadata import PackageNotFoundError, version
+
+from riskflow_env.config import DynamicsConfig, EnvConfig, ObservationConfig, RewardConfig
+from riskflow_env.env import RiskFlowParallelEnv
+
+try:
+    __version__ = version("riskflow-env")
+except PackageNotFoundError:  # running from a source tree that is not installed
+    __version__ = "0.0.0"
+
+
+def parallel_env(**kwargs) -> RiskFlowParallelEnv:
+    """The ``riskflow_v0`` PettingZoo ``ParallelEnv``; keyword arguments as
+    :class:`RiskFlowParallelEnv` (``config``, ``scenarios``, ``render_mode``)."""
+    return RiskFlowParallelEnv(**kwargs)
+
+
+def env(**kwargs):
+    """The AEC (turn-by-turn) view of :func:`parallel_env`, for AEC-only libraries."""
+    from pettingzoo.utils.conversions import parallel_to_aec
+
+    return parallel_to_aec(parallel_env(**kwargs))
+
+
+__all__ = [
+    "DynamicsConfig",
+    "EnvConfig",
+    "ObservationConfig",
+    "RewardConfig",
+    "RiskFlowParallelEnv",
+    "__version__",
+    "env",
+    "parallel_env",
+]

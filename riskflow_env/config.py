@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 
 def _require(condition: bool, message: str) -> None:
@@ -56,3 +56,132 @@ class DynamicsConfig:
             "DynamicsConfig needs 0 <= speed_min < speed_max [m/s], "
             f"got speed_min={self.speed_min}, speed_max={self.speed_max}",
         )
+
+
+AGENT_GROUPS = ("all", "ego", "none")
+
+
+@dataclass(frozen=True)
+class ObservationConfig:
+    """What each agent observes (identical layout for every agent).
+
+    Attributes:
+        num_neighbors: nearest other vehicles observed, in the agent's frame.
+        ray_directions: number of equally spaced directions of map SDF samples.
+        ray_distances: distances of the SDF samples along each direction [m].
+    """
+
+    num_neighbors: int = 8
+    ray_directions: int = 12
+    ray_distances: tuple[float, ...] = (2.0, 5.0, 10.0, 20.0)
+
+    def __post_init__(self) -> None:
+        _require(self.num_neighbors >= 0, "ObservationConfig.num_neighbors must be >= 0")
+        _require(self.ray_directions >= 0, "ObservationConfig.ray_directions must be >= 0")
+        _require(
+            all(math.isfinite(d) and d > 0 for d in self.ray_distances),
+            f"ObservationConfig.ray_distances must be positive metres, got {self.ray_distances}",
+        )
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Per-step reward terms (each reported separately in ``info["reward_terms"]``).
+
+    reward = speed * min(v, target_speed) / target_speed
+           + collision * [in collision] + offroad * [footprint off the road]
+           + risk * max_j risk_ij + comfort * ((a / accel_max)^2 + (omega / yaw_rate_max)^2)
+
+    Attributes:
+        target_speed: speed at which the speed term saturates [m/s].
+        speed: weight of the normalised speed term [reward / step].
+        collision: reward while overlapping another vehicle [reward / step] (negative).
+        offroad: reward while any footprint point is off the road [reward / step] (negative).
+        risk: weight of the largest TTC risk weight towards any other vehicle (negative).
+        comfort: weight of the normalised squared action (negative).
+    """
+
+    target_speed: float = 25.0
+    speed: float = 0.1
+    collision: float = -5.0
+    offroad: float = -5.0
+    risk: float = -0.05
+    comfort: float = -0.01
+
+    def __post_init__(self) -> None:
+        for name in ("target_speed", "speed", "collision", "offroad", "risk", "comfort"):
+            _finite(f"RewardConfig.{name}", getattr(self, name))
+        _require(self.target_speed > 0, "RewardConfig.target_speed must be > 0 m/s")
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Configuration of :class:`riskflow_env.env.RiskFlowParallelEnv`.
+
+    Attributes:
+        max_agents: number of agent slots, the ego included (``possible_agents``).
+        episode_steps: steps before truncation (100 steps of 0.1 s = 10 s).
+        terminate_on_collision: which agents terminate when they collide: "all", "ego",
+            "none", or a tuple of agent names.
+        terminate_on_offroad: same, for driving off the road.
+        end_with_ego: when the ego is done, truncate every other agent too.
+        clip_actions: clip actions to the action space (the dynamics bounds); when False,
+            an out-of-bounds action raises ValueError instead.
+        dynamics: unicycle bounds and time step.
+        observation: observation layout.
+        reward: reward weights.
+    """
+
+    max_agents: int = 32
+    episode_steps: int = 100
+    terminate_on_collision: str | tuple[str, ...] = "ego"
+    terminate_on_offroad: str | tuple[str, ...] = "ego"
+    end_with_ego: bool = True
+    clip_actions: bool = True
+    dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
+    observation: ObservationConfig = field(default_factory=ObservationConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+
+    def __post_init__(self) -> None:
+        _require(
+            isinstance(self.max_agents, int) and self.max_agents >= 1,
+            f"EnvConfig.max_agents must be an int >= 1, got {self.max_agents!r}",
+        )
+        _require(
+            isinstance(self.episode_steps, int) and self.episode_steps >= 1,
+            f"EnvConfig.episode_steps must be an int >= 1, got {self.episode_steps!r}",
+        )
+        names = set(agent_names(self.max_agents))
+        for option in ("terminate_on_collision", "terminate_on_offroad"):
+            value = getattr(self, option)
+            if isinstance(value, str):
+                _require(
+                    value in AGENT_GROUPS,
+                    f"EnvConfig.{option} must be one of {AGENT_GROUPS} or a tuple of agent "
+                    f"names, got {value!r}",
+                )
+            else:
+                unknown = sorted(set(value) - names)
+                _require(not unknown, f"EnvConfig.{option} names unknown agents {unknown}")
+
+    @property
+    def agent_names(self) -> tuple[str, ...]:
+        """Fixed agent names: ``ego`` then ``agent_1`` ... ``agent_{max_agents - 1}``."""
+        return agent_names(self.max_agents)
+
+    def selects(self, option: str) -> tuple[bool, ...]:
+        """Per-slot mask of the agents selected by a termination option."""
+        value = getattr(self, option)
+        names = self.agent_names
+        if value == "all":
+            return (True,) * len(names)
+        if value == "none":
+            return (False,) * len(names)
+        if value == "ego":
+            return (True,) + (False,) * (len(names) - 1)
+        return tuple(name in value for name in names)
+
+
+def agent_names(max_agents: int) -> tuple[str, ...]:
+    """``("ego", "agent_1", ..., "agent_{max_agents - 1}")``."""
+    return ("ego",) + tuple(f"agent_{i}" for i in range(1, max_agents))

@@ -1,0 +1,376 @@
+"""RiskFlow traffic env (``riskflow_v0``): a PettingZoo ``ParallelEnv``.
+
+Vehicles with unicycle dynamics drive on a rasterised drivable-area map. Each step
+detects box-box collisions and off-road footprints, computes TTC risk features, and
+returns per-agent observations and rewards. The game logic lives in pure functions
+(:mod:`~riskflow_env.simulator`, :mod:`~riskflow_env.events`,
+:mod:`~riskflow_env.observations`, :mod:`~riskflow_env.rewards`); this class is plumbing.
+
+==================  ==============================================================
+Import              ``riskflow_env.parallel_env(...)``
+Agents              ``ego``, ``agent_1`` ... ``agent_{max_agents-1}`` (``possible_agents``,
+                    fixed); each scene fills a subset, the ego always
+Action space        ``Box([accel_min, -yaw_rate_max], [accel_max, yaw_rate_max])``:
+                    (acceleration [m/s^2], yaw rate [rad/s]), default
+                    [-8, 5] x [-1, 1]; identical for every agent
+Observation space   ``Box(-inf, inf, (D,), float32)``, identical for every agent;
+                    D = 142 by default (layout in :mod:`riskflow_env.observations`)
+State space         ``Box(-inf, inf, (9 * max_agents,), float32)``: per slot
+                    (present, active, x - x_ego, y - y_ego, v, cos psi, sin psi,
+                    length, width)
+Time step           0.1 s; episodes truncate after ``episode_steps`` (100 = 10 s)
+==================  ==============================================================
+
+Arguments (``parallel_env(config=None, scenarios=None, render_mode=None)``):
+
+* ``config``: :class:`~riskflow_env.config.EnvConfig` (slots, episode length,
+  termination rules, action clipping, dynamics bounds, observation and reward settings).
+* ``scenarios``: a :class:`~riskflow_env.scenarios.Scenario`, a sequence of them, or a
+  ``ScenarioSource``; default: seeded synthetic traffic on highway-env road networks
+  (:class:`~riskflow_env.scenarios.HighwayTrafficSource`). ``reset(options={"scenario":
+  s})`` starts from a given scene instead.
+* ``render_mode``: ``None``, ``"rgb_array"`` or ``"human"``.
+
+Termination: an agent terminates when it collides (or drives off the road) and
+``config.terminate_on_collision`` (``terminate_on_offroad``) selects it; a done vehicle
+stops where it is and stays on the map as an obstacle. With ``end_with_ego`` the whole
+episode ends when the ego is done. ``info[agent]["reward_terms"]`` breaks each reward
+into its terms.
+
+Version history:
+
+* v0: initial release.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import gymnasium
+import numpy as np
+from pettingzoo import ParallelEnv
+
+from riskflow_env import events as event_detection
+from riskflow_env import simulator
+from riskflow_env.config import EnvConfig
+from riskflow_env.dynamics import YAW
+from riskflow_env.maps import DrivableMap
+from riskflow_env.observations import observation_size, observe
+from riskflow_env.rewards import reward_terms
+from riskflow_env.risk import pairwise_features
+from riskflow_env.scenarios import HighwayTrafficSource, Scenario, ScenarioSource, as_source
+from riskflow_env.state import SceneState
+from riskflow_env.view import SceneView
+
+RISK_INDEX = -1  # the risk weight is the last pair feature
+STATE_FEATURES = 9
+
+
+class RiskFlowParallelEnv(ParallelEnv):
+    """Multi-agent traffic on a drivable-area raster (see the module docstring)."""
+
+    metadata = {
+        "name": "riskflow_v0",
+        "render_modes": ["rgb_array", "human"],
+        "render_fps": 10,
+        "is_parallelizable": True,
+    }
+
+    def __init__(
+        self,
+        config: EnvConfig | None = None,
+        scenarios: ScenarioSource | Sequence[Scenario] | Scenario | None = None,
+        render_mode: str | None = None,
+    ) -> None:
+        if config is not None and not isinstance(config, EnvConfig):
+            raise TypeError(f"config must be an EnvConfig, got {type(config).__name__}")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(
+                f"render_mode must be None or one of {self.metadata['render_modes']}, "
+                f"got {render_mode!r}"
+            )
+        self.config = config or EnvConfig()
+        self.render_mode = render_mode
+        self.source = as_source(scenarios) if scenarios is not None else HighwayTrafficSource()
+        self.possible_agents = list(self.config.agent_names)
+        self._slot = {name: index for index, name in enumerate(self.possible_agents)}
+        self._terminate_on_collision = np.array(self.config.selects("terminate_on_collision"))
+        self._terminate_on_offroad = np.array(self.config.selects("terminate_on_offroad"))
+
+        dynamics = self.config.dynamics
+        self._action_low = np.array([dynamics.accel_min, -dynamics.yaw_rate_max])
+        self._action_high = np.array([dynamics.accel_max, dynamics.yaw_rate_max])
+        size = observation_size(self.config.observation)
+        self.observation_spaces = {
+            agent: gymnasium.spaces.Box(-np.inf, np.inf, (size,), np.float32)
+            for agent in self.possible_agents
+        }
+        self.action_spaces = {
+            agent: gymnasium.spaces.Box(
+                self._action_low.astype(np.float32), self._action_high.astype(np.float32)
+            )
+            for agent in self.possible_agents
+        }
+        self.state_space = gymnasium.spaces.Box(
+            -np.inf, np.inf, (STATE_FEATURES * self.config.max_agents,), np.float32
+        )
+
+        self.agents: list[str] = []
+        self._rng = np.random.default_rng()
+        self._scene: SceneState | None = None
+        self._scenario: Scenario | None = None
+        self._events: event_detection.FrameEvents | None = None
+        self._scenario_rows = np.full(self.config.max_agents, -1)
+        self._renderer: Any = None
+
+    # ------------------------------------------------------------------ spaces
+    def observation_space(self, agent: str) -> gymnasium.spaces.Box:
+        """Observation space of ``agent`` (the same Box for every agent)."""
+        return self.observation_spaces[self._check_agent(agent)]
+
+    def action_space(self, agent: str) -> gymnasium.spaces.Box:
+        """Action space of ``agent``: (accel [m/s^2], yaw rate [rad/s])."""
+        return self.action_spaces[self._check_agent(agent)]
+
+    # ------------------------------------------------------------- read-only views
+    @property
+    def scene(self) -> SceneState:
+        """The current :class:`SceneState` (frozen; never mutated in place)."""
+        if self._scene is None:
+            raise RuntimeError("the env has not been reset yet: call reset() first")
+        return self._scene
+
+    @property
+    def scenario(self) -> Scenario:
+        """The scenario the current episode started from."""
+        if self._scenario is None:
+            raise RuntimeError("the env has not been reset yet: call reset() first")
+        return self._scenario
+
+    @property
+    def map(self) -> DrivableMap:
+        """The current episode's drivable map."""
+        return self.scenario.map
+
+    def view(self) -> SceneView:
+        """A read-only :class:`SceneView` of the current scene, for scene policies."""
+        return SceneView.from_state(
+            self.scene,
+            self.scenario,
+            self._scenario_rows,
+            tuple(self.possible_agents),
+            self.config.dynamics.dt,
+        )
+
+    @property
+    def last_events(self) -> event_detection.FrameEvents:
+        """Collisions and off-road flags at the current step."""
+        if self._events is None:
+            raise RuntimeError("the env has not been reset yet: call reset() first")
+        return self._events
+
+    # ------------------------------------------------------------------- API
+    def reset(
+        self, seed: int | None = None, options: Mapping[str, Any] | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
+        """Start an episode.
+
+        Args:
+            seed: seeds the env's generator (scenario draws); the same seed gives the
+                same episode.
+            options: ``{"scenario": Scenario}`` starts from that scene.
+        """
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        options = dict(options or {})
+        unknown = sorted(set(options) - {"scenario"})
+        if unknown:  # tolerated (the PettingZoo API test passes extra keys), but reported
+            gymnasium.logger.warn(f"reset(options=...) ignores unknown keys {unknown}")
+        scenario = options.get("scenario")
+        if scenario is None:
+            scenario = self.source.sample(self._rng, self.config.max_agents)
+        if not isinstance(scenario, Scenario):
+            raise TypeError(
+                "reset(options={'scenario': ...}) needs a Scenario, "
+                f"got {type(scenario).__name__}"
+            )
+        self._scenario = scenario
+        rows = simulator.select_agents(scenario, self.config.max_agents)
+        self._scenario_rows = np.full(self.config.max_agents, -1)
+        self._scenario_rows[: rows.size] = rows
+        self._scene = simulator.reset(scenario, self.config.max_agents, rows)
+        self.agents = [self.possible_agents[i] for i in np.flatnonzero(self._scene.present)]
+        observations, _, infos = self._evaluate(self._scene)
+        if self._renderer is not None:
+            self._renderer.reset(self)
+        return observations, infos
+
+    def step(self, actions: Mapping[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        """Advance every live agent by 0.1 s.
+
+        Args:
+            actions: ``{agent: (accel [m/s^2], yaw_rate [rad/s])}`` for exactly the live
+                agents (``env.agents``).
+        """
+        if self._scene is None:
+            raise RuntimeError("step() called before reset(): call reset() first")
+        if not self.agents:
+            raise RuntimeError("step() called after the episode ended: call reset() first")
+        action_array = self._action_array(actions)
+        scene = simulator.step(self._scene, action_array, self.config.dynamics)
+        observations, rewards, infos = self._evaluate(scene)
+
+        events = self._events
+        live = scene.active
+        terminated = live & (
+            (events.collided & self._terminate_on_collision)
+            | (events.offroad & self._terminate_on_offroad)
+        )
+        truncated = live & ~terminated & (scene.step >= self.config.episode_steps)
+        if self.config.end_with_ego and (terminated[0] or truncated[0]):
+            truncated = live & ~terminated
+        done = terminated | truncated
+        self._scene = scene.replace(active=live & ~done)
+
+        agents = self.agents
+        terminations = {agent: bool(terminated[self._slot[agent]]) for agent in agents}
+        truncations = {agent: bool(truncated[self._slot[agent]]) for agent in agents}
+        step_output = (
+            {agent: observations[agent] for agent in agents},
+            {agent: rewards[agent] for agent in agents},
+            terminations,
+            truncations,
+            {agent: infos[agent] for agent in agents},
+        )
+        self.agents = [agent for agent in agents if not done[self._slot[agent]]]
+        if self._renderer is not None:
+            self._renderer.record(self)
+        if self.render_mode == "human":
+            self.render()
+        return step_output
+
+    def state(self) -> np.ndarray:
+        """Global state for centralised critics: (9 * max_agents,) float32, ego-centred."""
+        scene = self.scene
+        current = scene.current
+        ego_xy = current[0, :2]
+        features = np.stack(
+            [
+                scene.present,
+                scene.active,
+                current[:, 0] - ego_xy[0],
+                current[:, 1] - ego_xy[1],
+                current[:, 2],
+                np.cos(current[:, YAW]),
+                np.sin(current[:, YAW]),
+                scene.length,
+                scene.width,
+            ],
+            axis=-1,
+        )
+        return np.where(scene.present[:, None], features, 0.0).astype(np.float32).reshape(-1)
+
+    def render(self) -> np.ndarray | None:
+        """Draw the scene: an RGB array for ``"rgb_array"``, a window for ``"human"``."""
+        if self.render_mode is None:
+            gymnasium.logger.warn("render() called without a render_mode; returning None")
+            return None
+        from riskflow_env.render import SceneRenderer
+
+        if self._renderer is None:
+            self._renderer = SceneRenderer(self.render_mode)
+            self._renderer.reset(self)
+        return self._renderer.render(self)
+
+    def close(self) -> None:
+        """Release the renderer's window, if any."""
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    # --------------------------------------------------------------- internals
+    def _check_agent(self, agent: str) -> str:
+        if agent not in self._slot:
+            raise ValueError(
+                f"unknown agent id {agent!r}; possible agents are 'ego' and "
+                f"'agent_1'..'agent_{self.config.max_agents - 1}'"
+            )
+        return agent
+
+    def _action_array(self, actions: Mapping[str, Any]) -> np.ndarray:
+        if not isinstance(actions, Mapping):
+            raise TypeError(
+                f"actions must be a dict {{agent: action}}, got {type(actions).__name__}"
+            )
+        for agent in actions:
+            self._check_agent(agent)
+        live = set(self.agents)
+        not_live = sorted(set(actions) - live)
+        if not_live:
+            raise ValueError(f"actions given for agents that are not live: {not_live}")
+        missing = [agent for agent in self.agents if agent not in actions]
+        if missing:
+            raise ValueError(f"actions missing for live agents: {missing}")
+        array = np.zeros((self.config.max_agents, 2))
+        for agent, action in actions.items():
+            value = np.asarray(action, dtype=np.float64)
+            if value.shape != (2,):
+                raise ValueError(
+                    f"actions[{agent!r}] must have shape (2,) = (accel, yaw_rate), "
+                    f"got shape {value.shape}"
+                )
+            array[self._slot[agent]] = value
+        if not np.all(np.isfinite(array)):
+            bad = [agent for agent in actions if not np.all(np.isfinite(array[self._slot[agent]]))]
+            raise ValueError(f"actions must be finite; got NaN or inf for {bad}")
+        if not self.config.clip_actions:
+            outside = np.any((array < self._action_low) | (array > self._action_high), axis=-1)
+            if np.any(outside):
+                bad = [agent for agent in actions if outside[self._slot[agent]]]
+                raise ValueError(
+                    f"actions out of bounds for {bad}: accel must be in "
+                    f"[{self._action_low[0]}, {self._action_high[0]}] m/s^2 and yaw rate in "
+                    f"[{self._action_low[1]}, {self._action_high[1]}] rad/s "
+                    "(EnvConfig(clip_actions=True) clips instead)"
+                )
+        return array
+
+    def _evaluate(self, scene: SceneState) -> tuple[dict, dict, dict]:
+        """Events, observations, rewards and infos of ``scene`` for every present slot."""
+        features, mask = pairwise_features(scene.current, scene.length, scene.width, scene.present)
+        events = event_detection.detect(scene, self.map)
+        self._events = events
+        observation_rows = observe(scene, features, mask, self.map, self.config.observation)
+        terms = reward_terms(
+            scene, events, features[..., RISK_INDEX], self.config.reward, self.config.dynamics
+        )
+        total = sum(terms.values())
+        names = self.possible_agents
+        present = np.flatnonzero(scene.present)
+        term_lists = {name: values.tolist() for name, values in terms.items()}
+        collided = events.collided.tolist()
+        offroad = events.offroad_fraction.tolist()
+        depth = events.sdf_depth.tolist()
+        partners = _collision_partners(events.collisions, names)
+        observations = {names[i]: observation_rows[i] for i in present}
+        rewards = {names[i]: float(total[i]) for i in present}
+        infos = {
+            names[i]: {
+                "reward_terms": {name: values[i] for name, values in term_lists.items()},
+                "collided": collided[i],
+                "collided_with": partners.get(i, []),
+                "offroad_fraction": offroad[i],
+                "sdf_depth": depth[i],
+            }
+            for i in present
+        }
+        return observations, rewards, infos
+
+
+def _collision_partners(collisions: np.ndarray, names: Sequence[str]) -> dict[int, list[str]]:
+    """slot -> names of the vehicles it overlaps (only slots that collide appear)."""
+    partners: dict[int, list[str]] = {}
+    for i, j in np.argwhere(collisions).tolist():
+        partners.setdefault(i, []).append(names[j])
+    return partners

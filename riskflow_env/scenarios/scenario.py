@@ -1,0 +1,98 @@
+"""``Scenario``: what an episode starts from.
+
+A scenario is a map, the agents' sizes, which agent is the ego, and a recorded (or
+synthesised) track of every agent: ``history_steps`` states up to and including the
+current one, then a reference future, each with a per-step validity mask.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from riskflow_env.dynamics import STATE_DIM
+from riskflow_env.maps import DrivableMap
+from riskflow_env.state import HISTORY_STEPS
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """One scene: map, agents and their tracks at 10 Hz.
+
+    Attributes:
+        map: the drivable area (with lane centrelines where the source has them).
+        states: (N, T, 4) float64 tracks (x [m], y [m], v [m/s], psi [rad]); the first
+            ``history_steps`` entries are the history (the last of them is the current
+            state), the rest is the reference future.
+        valid: (N, T) bool, whether each track state was observed.
+        length: (N,) vehicle lengths [m].
+        width: (N,) vehicle widths [m].
+        ego_index: row of ``states`` that is the ego (the agent under test).
+        agent_ids: (N,) names of the agents in the source data (for traceability).
+        name: a short identifier of the scene (source, family, seed...).
+        dt: track time step [s].
+        history_steps: number of history states, the current one included.
+    """
+
+    map: DrivableMap
+    states: np.ndarray
+    valid: np.ndarray
+    length: np.ndarray
+    width: np.ndarray
+    ego_index: int = 0
+    agent_ids: tuple[str, ...] = field(default=())
+    name: str = ""
+    dt: float = 0.1
+    history_steps: int = HISTORY_STEPS
+
+    def __post_init__(self) -> None:
+        states = self.states
+        if not isinstance(states, np.ndarray) or states.ndim != 3 or states.shape[2] != STATE_DIM:
+            got = getattr(states, "shape", type(states).__name__)
+            raise ValueError(f"Scenario.states must have shape (N, T, {STATE_DIM}), got {got}")
+        num_agents, num_steps = states.shape[:2]
+        if num_agents == 0:
+            raise ValueError("Scenario.states holds no agent (N = 0)")
+        for name, shape in (
+            ("valid", (num_agents, num_steps)),
+            ("length", (num_agents,)),
+            ("width", (num_agents,)),
+        ):
+            value = getattr(self, name)
+            if not isinstance(value, np.ndarray) or value.shape != shape:
+                got = getattr(value, "shape", type(value).__name__)
+                raise ValueError(f"Scenario.{name} must have shape {shape}, got {got}")
+        if not 0 < self.history_steps <= num_steps:
+            raise ValueError(
+                f"Scenario.history_steps must be in [1, {num_steps}], got {self.history_steps}"
+            )
+        if not 0 <= self.ego_index < num_agents:
+            raise ValueError(
+                f"Scenario.ego_index must be in [0, {num_agents}), got {self.ego_index}"
+            )
+        if not self.valid[self.ego_index, self.history_steps - 1]:
+            raise ValueError("Scenario: the ego must be valid at the current step")
+        if not np.all(np.isfinite(states[self.valid])):
+            raise ValueError("Scenario.states has NaN or inf at valid steps")
+        if np.any(self.length <= 0) or np.any(self.width <= 0):
+            raise ValueError("Scenario.length and Scenario.width must be > 0 m")
+        if self.agent_ids and len(self.agent_ids) != num_agents:
+            raise ValueError(
+                f"Scenario.agent_ids must name all {num_agents} agents, got {len(self.agent_ids)}"
+            )
+
+    @property
+    def num_agents(self) -> int:
+        """Number of agents N."""
+        return self.states.shape[0]
+
+    @property
+    def current_index(self) -> int:
+        """Index of the current step in ``states``."""
+        return self.history_steps - 1
+
+    @property
+    def future_steps(self) -> int:
+        """Length of the reference future."""
+        return self.states.shape[1] - self.history_steps
