@@ -1,0 +1,1 @@
+"""The RiskFlow adversary: window data, encoder, MeanFlow generator, guidance, policy."""

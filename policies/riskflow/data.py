@@ -1,0 +1,327 @@
+"""Scene-centric training windows as a torch ``Dataset``, batching, action normalisation.
+
+Windows follow docs/WINDOWS.md and are built by
+:func:`riskflow_env.scenarios.windows.window_from_scenario`, once, when the dataset is
+made; they are packed into a few flat arrays (agents of all windows end to end), so
+``__getitem__`` only slices. ``cache_path`` keeps the packed arrays in an ``.npz`` file,
+rebuilt when the scenes, the config or the stride change.
+
+Normalisation statistics (per-channel mean and std of the valid ``actions``) are computed
+once over the training split and kept as ``norm_stats.json`` beside the data
+(:func:`load_or_compute_stats`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from riskflow_env._array import Array, asarray_like
+from riskflow_env.dynamics import ACTION_DIM
+from riskflow_env.scenarios.scenario import Scenario
+from riskflow_env.scenarios.windows import (
+    AGENT_KEYS,
+    PAD_INDEX,
+    PAIR_KEYS,
+    WindowConfig,
+    window_from_scenario,
+)
+
+STATS_FILENAME = "norm_stats.json"
+WINDOW_KEYS = AGENT_KEYS + PAIR_KEYS
+_CACHE_VERSION = 1
+
+
+def window_indices(scenario: Scenario, config: WindowConfig, stride: int) -> np.ndarray:
+    """Current steps of the windows cut from ``scenario``.
+
+    From ``history_steps - 1`` to ``T - future_steps - 1`` (full history and future fit)
+    every ``stride`` steps, where the ego is valid.
+
+    Returns:
+        (W,) int64 indices into ``scenario.states``' time axis.
+    """
+    stop = scenario.states.shape[1] - config.future_steps
+    steps = np.arange(config.history_steps - 1, stop, stride, dtype=np.int64)
+    return steps[scenario.valid[scenario.ego_index, steps]]
+
+
+def _scenes(
+    source: Sequence[Scenario] | str | os.PathLike, cache_path: str | os.PathLike | None
+) -> tuple[list[Any], Iterator]:
+    """(fingerprint parts, iterator over scenes) of an in-memory list or a directory."""
+    if isinstance(source, (str, os.PathLike)):
+        from riskflow_env.scenarios.io import list_scenarios, load_scenario  # lazy: optional
+
+        cache = Path(cache_path).resolve() if cache_path is not None else None
+        paths = [p for p in list_scenarios(source) if Path(p).resolve() != cache]
+        parts = [[p.name, p.stat().st_size, p.stat().st_mtime_ns] for p in map(Path, paths)]
+        return parts, (load_scenario(path) for path in paths)
+    scenes = list(source)
+    if not all(isinstance(scene, Scenario) for scene in scenes):
+        raise TypeError("source must be a directory or a sequence of Scenario objects")
+    parts = [
+        [s.name, hashlib.sha1(s.states.tobytes() + s.valid.tobytes()).hexdigest()] for s in scenes
+    ]
+    return parts, iter(scenes)
+
+
+def _pack(windows: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Windows end to end: agent keys along A, pair keys flattened to (A * A, ...)."""
+    counts = np.array([w["history"].shape[0] for w in windows], dtype=np.int64)
+    packed = {key: np.concatenate([w[key] for w in windows]) for key in AGENT_KEYS}
+    for key in PAIR_KEYS:
+        packed[key] = np.concatenate([w[key].reshape(-1, *w[key].shape[2:]) for w in windows])
+    packed["agent_offsets"] = np.concatenate([[0], np.cumsum(counts)])
+    packed["pair_offsets"] = np.concatenate([[0], np.cumsum(counts**2)])
+    return packed
+
+
+class WindowDataset(Dataset):
+    """Training windows of a set of scenes, several per scene.
+
+    Args:
+        source: scenes in memory, or a directory read with
+            ``riskflow_env.scenarios.io.list_scenarios`` / ``load_scenario``.
+        config: window options (sizes, agent selection).
+        stride: steps between the current steps of consecutive windows of a scene.
+        cache_path: optional ``.npz`` file holding the packed windows; used when it
+            matches the scenes, config and stride, written otherwise (it may sit in the
+            scene directory: it is not read as a scene).
+
+    Items are dicts of torch tensors keyed as in docs/WINDOWS.md (future keys included,
+    plus ``agent_index``), A varying per item; they share memory with the dataset, so do
+    not modify them in place. ``index[i] = (scene position, current step)`` of item i.
+    """
+
+    def __init__(
+        self,
+        source: Sequence[Scenario] | str | os.PathLike,
+        config: WindowConfig | None = None,
+        stride: int = 5,
+        cache_path: str | os.PathLike | None = None,
+    ) -> None:
+        if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+            raise ValueError(f"stride must be an int >= 1 [steps], got {stride!r}")
+        self.config = config or WindowConfig()
+        self.stride = stride
+        parts, scenes = _scenes(source, cache_path)
+        settings = [_CACHE_VERSION, dataclasses.asdict(self.config), stride, parts]
+        fingerprint = hashlib.sha256(json.dumps(settings).encode()).hexdigest()
+        packed = _load_cache(cache_path, fingerprint) if cache_path is not None else None
+        if packed is None:
+            packed = self._build(scenes)
+            if cache_path is not None:
+                np.savez(Path(cache_path), fingerprint=np.array(fingerprint), **packed)
+        self.index = packed.pop("index")
+        self._agent_offsets = packed.pop("agent_offsets")
+        self._pair_offsets = packed.pop("pair_offsets")
+        self._arrays = packed
+
+    def _build(self, scenes: Iterator[Scenario]) -> dict[str, np.ndarray]:
+        windows, index = [], []
+        for position, scenario in enumerate(scenes):
+            for current in window_indices(scenario, self.config, self.stride):
+                windows.append(window_from_scenario(scenario, int(current), self.config))
+                index.append((position, int(current)))
+        if not windows:
+            raise ValueError(
+                "WindowDataset: no window fits (scenes need history_steps + future_steps "
+                f"= {self.config.history_steps + self.config.future_steps} steps with the "
+                "ego valid at the current step)"
+            )
+        packed = _pack(windows)
+        packed["index"] = np.array(index, dtype=np.int64).reshape(-1, 2)
+        return packed
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def window(self, item: int) -> dict[str, np.ndarray]:
+        """Window ``item`` as numpy arrays (views into the packed arrays)."""
+        if not -len(self) <= item < len(self):
+            raise IndexError(f"window index {item} out of range for {len(self)} windows")
+        item %= len(self)
+        a0, a1 = self._agent_offsets[item : item + 2]
+        p0, p1 = self._pair_offsets[item : item + 2]
+        window = {key: self._arrays[key][a0:a1] for key in AGENT_KEYS}
+        for key in PAIR_KEYS:
+            array = self._arrays[key][p0:p1]
+            window[key] = array.reshape(a1 - a0, a1 - a0, *array.shape[1:])
+        return window
+
+    def __getitem__(self, item: int) -> dict[str, torch.Tensor]:
+        return {key: torch.from_numpy(value) for key, value in self.window(item).items()}
+
+    def valid_actions(self) -> np.ndarray:
+        """(M, 2) float32 every valid action of every window (for statistics)."""
+        return self._arrays["actions"][self._arrays["actions_valid"]]
+
+
+def _load_cache(path: str | os.PathLike, fingerprint: str) -> dict[str, np.ndarray] | None:
+    path = Path(path)
+    if not path.is_file():
+        return None
+    with np.load(path, allow_pickle=False) as data:
+        if "fingerprint" not in data or str(data["fingerprint"]) != fingerprint:
+            return None
+        return {key: data[key] for key in data.files if key != "fingerprint"}
+
+
+def collate_windows(items: Sequence[Mapping[str, Array]]) -> dict[str, torch.Tensor]:
+    """Stack windows into a batch, padding the agent axis to the largest A in the batch.
+
+    Padded slots are 0 / False (``agent_index``: -1), so every mask is False there.
+
+    Args:
+        items: windows (dicts of torch tensors or numpy arrays) with the same keys.
+
+    Returns:
+        dict of tensors with a leading batch axis B: agent keys (B, A_max, ...), pair
+        keys (B, A_max, A_max, ...), any other key stacked as is.
+    """
+    if not items:
+        raise ValueError("collate_windows needs at least one window")
+    keys = set(items[0])
+    if any(set(item) != keys for item in items):
+        raise ValueError("collate_windows: all windows must have the same keys")
+    counts = [int(item["agent_mask"].shape[0]) for item in items]
+    size = max(counts)
+    batch = {}
+    for key in items[0]:
+        tensors = [torch.as_tensor(item[key]) for item in items]
+        if key not in WINDOW_KEYS:
+            batch[key] = torch.stack(tensors)
+            continue
+        pad_axes = 2 if key in PAIR_KEYS else 1
+        shape = (len(items),) + (size,) * pad_axes + tuple(tensors[0].shape[pad_axes:])
+        fill = PAD_INDEX if key == "agent_index" else 0
+        out = torch.full(shape, fill, dtype=tensors[0].dtype)
+        for row, (tensor, count) in enumerate(zip(tensors, counts, strict=True)):
+            out[(row,) + (slice(0, count),) * pad_axes] = tensor
+        batch[key] = out
+    return batch
+
+
+@dataclass(frozen=True)
+class ActionNormalizer:
+    """Per-channel affine normalisation of actions: ``z = (a - mean) / std``.
+
+    Attributes:
+        mean: (accel [m/s^2], yaw rate [rad/s]) means of the valid training actions.
+        std: their standard deviations (> 0; floored when computed).
+        count: number of actions the statistics come from.
+    """
+
+    mean: tuple[float, float]
+    std: tuple[float, float]
+    count: int = 0
+
+    def __post_init__(self) -> None:
+        mean, std = tuple(map(float, self.mean)), tuple(map(float, self.std))
+        if len(mean) != ACTION_DIM or len(std) != ACTION_DIM:
+            raise ValueError(f"ActionNormalizer needs {ACTION_DIM} means and stds, got {mean, std}")
+        if not all(map(math.isfinite, mean + std)) or min(std) <= 0:
+            raise ValueError(f"ActionNormalizer: mean must be finite, std > 0; got {mean, std}")
+        object.__setattr__(self, "mean", mean)
+        object.__setattr__(self, "std", std)
+
+    def _params(self, like: Array) -> tuple[Array, Array]:
+        if like.shape[-1] != ACTION_DIM:
+            raise ValueError(f"actions must have shape (..., {ACTION_DIM}), got {like.shape}")
+        return asarray_like(self.mean, like), asarray_like(self.std, like)
+
+    def normalize(self, actions: Array) -> Array:
+        """``(..., 2)`` actions [m/s^2, rad/s] -> normalised, numpy or torch."""
+        mean, std = self._params(actions)
+        return (actions - mean) / std
+
+    def denormalize(self, normalized: Array) -> Array:
+        """Inverse of :meth:`normalize`: ``(..., 2)`` -> actions [m/s^2, rad/s]."""
+        mean, std = self._params(normalized)
+        return normalized * std + mean
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict."""
+        return {"mean": list(self.mean), "std": list(self.std), "count": self.count}
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> ActionNormalizer:
+        """From :meth:`to_dict`'s output."""
+        missing = {"mean", "std"} - set(data)
+        if missing:
+            raise ValueError(f"action statistics miss {sorted(missing)}")
+        return cls(tuple(data["mean"]), tuple(data["std"]), int(data.get("count", 0)))
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the statistics as JSON."""
+        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> ActionNormalizer:
+        """Read statistics written by :meth:`save`."""
+        try:
+            return cls.from_dict(json.loads(Path(path).read_text()))
+        except (json.JSONDecodeError, TypeError, ValueError) as err:
+            raise ValueError(f"malformed action statistics file {path}: {err}") from None
+
+
+def compute_action_stats(
+    dataset: WindowDataset | Sequence[Mapping[str, Array]], min_std: float = 1e-3
+) -> ActionNormalizer:
+    """Per-channel mean and std of the valid actions of ``dataset`` (float64 sums).
+
+    Args:
+        dataset: a :class:`WindowDataset` (read from its packed arrays) or any sequence of
+            windows with ``actions`` (A, T, 2) and ``actions_valid`` (A, T).
+        min_std: floor on the std (a channel that never varies, e.g. accel of
+            constant-speed traffic, would otherwise divide by ~0) [m/s^2, rad/s].
+    """
+    if isinstance(dataset, WindowDataset):
+        actions = dataset.valid_actions()
+    else:
+        chunks = [np.asarray(w["actions"])[np.asarray(w["actions_valid"])] for w in dataset]
+        actions = np.concatenate(chunks) if chunks else np.zeros((0, ACTION_DIM))
+    if actions.shape[0] == 0:
+        raise ValueError("compute_action_stats: the dataset has no valid action")
+    actions = actions.astype(np.float64)
+    std = np.maximum(actions.std(axis=0), min_std)
+    return ActionNormalizer(tuple(actions.mean(axis=0)), tuple(std), int(actions.shape[0]))
+
+
+def load_or_compute_stats(
+    directory: str | os.PathLike, dataset: WindowDataset | Sequence[Mapping[str, Array]]
+) -> ActionNormalizer:
+    """``directory/norm_stats.json`` if present, else computed over ``dataset`` and saved.
+
+    Pass the training split: the statistics are computed once and then reused.
+    """
+    path = Path(directory) / STATS_FILENAME
+    if path.is_file():
+        return ActionNormalizer.load(path)
+    normalizer = compute_action_stats(dataset)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    normalizer.save(path)
+    return normalizer
+
+
+__all__ = [
+    "STATS_FILENAME",
+    "ActionNormalizer",
+    "WindowDataset",
+    "collate_windows",
+    "compute_action_stats",
+    "load_or_compute_stats",
+    "window_indices",
+]
