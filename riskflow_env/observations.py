@@ -19,8 +19,11 @@ map rays (K x D)            the map SDF [m] at distances D along K directions sp
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
+from riskflow_env._array import Array, asarray_like, namespace
 from riskflow_env.config import ObservationConfig
 from riskflow_env.dynamics import YAW
 from riskflow_env.maps import DrivableMap
@@ -45,67 +48,86 @@ def ray_offsets(config: ObservationConfig) -> np.ndarray:
     return (unit[:, None, :] * distances[None, :, None]).reshape(-1, 2)
 
 
+@functools.lru_cache(maxsize=16)
+def _sample_offsets(config: ObservationConfig) -> np.ndarray:
+    """(2, 1 + K * D) read-only SDF sample offsets (x row, y row) [m]: centre, then rays."""
+    offsets = np.concatenate([np.zeros((1, 2)), ray_offsets(config)]).T.copy()
+    offsets.setflags(write=False)
+    return offsets
+
+
 def observe(
     state: SceneState,
-    pair_features: np.ndarray,
-    pair_mask: np.ndarray,
+    pair_features: Array,
+    pair_mask: Array,
     drivable_map: DrivableMap,
     config: ObservationConfig,
-) -> np.ndarray:
+) -> Array:
     """Observations of all slots at once.
 
+    Works on one scene (a :class:`SceneState`, leading dims ``(A,)``) and on a batch of
+    scenes sharing one map (any object with the same ``current``, ``last_action``,
+    ``length``, ``width`` and ``present`` arrays, leading dims ``(..., A)``), with numpy
+    arrays or torch tensors.
+
     Args:
-        state: the scene state.
-        pair_features: (A, A, 8) from :func:`riskflow_env.risk.pairwise_features`.
-        pair_mask: (A, A) bool, which pairs are observed (see ``pairwise_features``).
+        state: the scene state: ``current`` (..., A, 4), ``last_action`` (..., A, 2),
+            ``length``, ``width`` (..., A) [m], ``present`` (..., A) bool.
+        pair_features: (..., A, A, 8) from :func:`riskflow_env.risk.pairwise_features`.
+        pair_mask: (..., A, A) bool, which pairs are observed (see ``pairwise_features``).
         drivable_map: the scene's map.
         config: observation layout.
 
     Returns:
-        (A, observation_size(config)) float32; rows of empty slots are zeros.
+        (..., A, observation_size(config)) float32; rows of empty slots are zeros.
     """
     current = state.current
-    num_agents = state.num_agents
-    xy, yaw = current[:, :2], current[:, YAW]
-    cos, sin = np.cos(yaw), np.sin(yaw)
-    rotation = np.stack([np.stack([cos, -sin], -1), np.stack([sin, cos], -1)], -2)  # (A, 2, 2)
+    xp = namespace(current)
+    num_agents = current.shape[-2]
+    x, y, yaw = current[..., 0, None], current[..., 1, None], current[..., YAW, None]
+    cos, sin = xp.cos(yaw), xp.sin(yaw)
+    offsets = asarray_like(_sample_offsets(config), current)
+    forward, left = offsets[0], offsets[1]  # (P,) each, centre first
+    world = xp.stack([x + (cos * forward - sin * left), y + (sin * forward + cos * left)], axis=-1)
+    sdf = drivable_map.sdf_at(world)  # (..., A, 1 + K*D)
 
-    offsets = ray_offsets(config)
-    points = np.concatenate([np.zeros((1, 2)), offsets])  # centre first
-    world = xy[:, None, :] + np.einsum("aij,kj->aki", rotation, points)
-    sdf = drivable_map.sdf_at(world)  # (A, 1 + K*D)
-
-    own = np.stack(
+    length, width = state.length, state.width
+    own = xp.stack(
         [
-            current[:, 2],
-            state.last_action[:, 0],
-            state.last_action[:, 1],
-            state.length,
-            state.width,
-            sdf[:, 0],
+            current[..., 2],
+            state.last_action[..., 0],
+            state.last_action[..., 1],
+            length,
+            width,
+            sdf[..., 0],
         ],
         axis=-1,
     )
 
     count = config.num_neighbors
-    distance = np.where(pair_mask, np.hypot(pair_features[..., 0], pair_features[..., 1]), np.inf)
-    order = np.argsort(distance, axis=-1, kind="stable")[:, :count]  # (A, min(N, A))
-    seen = np.take_along_axis(pair_mask, order, axis=-1)
+    distance = xp.where(
+        pair_mask, xp.hypot(pair_features[..., 0], pair_features[..., 1]), float("inf")
+    )
+    order = xp.argsort(distance, axis=-1, stable=True)[..., :count]  # (..., A, min(N, A))
+    seen = xp.take_along_axis(pair_mask, order, axis=-1)
+    neighbor_length = xp.take_along_axis(length[..., None, :], order, axis=-1)
+    neighbor_width = xp.take_along_axis(width[..., None, :], order, axis=-1)
     neighbor = (
-        np.concatenate(
+        xp.concat(
             [
-                np.take_along_axis(pair_features, order[..., None], axis=1),
-                state.length[order][..., None],
-                state.width[order][..., None],
-                np.ones(order.shape + (1,)),
+                xp.take_along_axis(pair_features, order[..., None], axis=-2),
+                xp.stack([neighbor_length, neighbor_width, xp.ones_like(neighbor_length)], -1),
             ],
             axis=-1,
         )
         * seen[..., None]
     )
-    if order.shape[1] < count:  # fewer slots than observed neighbours: pad with absent ones
-        pad = np.zeros((num_agents, count - order.shape[1], neighbor.shape[-1]))
-        neighbor = np.concatenate([neighbor, pad], axis=1)
+    lead = tuple(neighbor.shape[:-2])
+    if order.shape[-1] < count:  # fewer slots than observed neighbours: pad with absent ones
+        pad = xp.zeros(lead + (count - order.shape[-1], neighbor.shape[-1]), dtype=neighbor.dtype)
+        neighbor = xp.concat([neighbor, pad], axis=-2)
 
-    observation = np.concatenate([own, neighbor.reshape(num_agents, -1), sdf[:, 1:]], axis=-1)
-    return np.where(state.present[:, None], observation, 0.0).astype(np.float32)
+    observation = xp.concat(
+        [own, xp.reshape(neighbor, lead[:-1] + (num_agents, -1)), sdf[..., 1:]], axis=-1
+    )
+    return xp.astype(xp.where(state.present[..., None], observation, 0.0), xp.float32)
