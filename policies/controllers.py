@@ -4,7 +4,8 @@
   that matching every agent to a lane (distance plus a heading penalty) and looking
   up points ahead along lanes and their successors are a few array ops, with no
   Python loop over agents (nor over lanes).
-* :func:`pure_pursuit` — yaw rate that steers a unicycle toward a lookahead point.
+* :func:`pure_pursuit` — yaw rate that steers a unicycle toward a lookahead point;
+  :func:`arc_frame` — points in a vehicle's frame bent along its steering arc.
 * :func:`speed_control` — proportional speed tracking.
 * :func:`idm_acceleration` — the Intelligent Driver Model (Treiber, Hennecke and
   Helbing, "Congested traffic states in empirical observations and microscopic
@@ -23,6 +24,9 @@ from riskflow_env.maps import DrivableMap
 
 HEADING_WEIGHT = 5.0  # [m] lane-matching cost of a lane at 90 deg to the agent's heading
 MAX_HOPS = 4  # successor lanes followed by a lookup ahead
+MERGE_MAX_OFFSET = 0.75  # [lane widths] farthest a dead end may lie from a lane it merges into
+MERGE_MAX_TURN = 1.2  # [rad] largest heading change of a merge (roundabout entries: ~60 deg)
+REACH_CAP = 300.0  # [m] a successor whose path runs this far without a dead end is "open"
 
 
 class LaneGraph:
@@ -30,8 +34,9 @@ class LaneGraph:
 
     Lanes are laid end to end on one global arclength axis (``offset[lane] + s``), so
     ``np.searchsorted`` finds the segment of any (lane, s) pair at once. Each lane
-    keeps one successor: the one whose start heading is closest to its end heading
-    ("straight on"), or -1 for a dead end.
+    keeps one successor (-1 for a dead end): among those whose onward path runs at
+    least ``REACH_CAP`` metres without a dead end (all, if none does), the one whose
+    start heading is closest to the lane's end heading ("straight on").
 
     Args:
         drivable_map: a map with at least one lane.
@@ -59,16 +64,81 @@ class LaneGraph:
         self.segment_heading = np.arctan2(self.delta[:, 1], self.delta[:, 0])  # (S,) [rad]
         self.segment_key = self.offset[self.segment_lane] + self.segment_s  # (S,) increasing
 
-        index = {lane.lane_id: i for i, lane in enumerate(lanes)}
+        source, target, entry = self._edges(drivable_map)
+        reach = self.length.copy()  # path length before a dead end, capped at REACH_CAP
+        for _ in range(self.num_lanes):  # relaxation; converges in at most L rounds
+            best = np.zeros(self.num_lanes)
+            np.maximum.at(best, source, reach[target] - entry)
+            updated = np.minimum(self.length + best, REACH_CAP)
+            if np.array_equal(updated, reach):
+                break
+            reach = updated
         end_heading = self.segment_heading[self.last_segment]
-        self.successor = np.full(self.num_lanes, -1)  # (L,) straightest successor, -1 if none
-        for i, lane in enumerate(lanes):  # once per map
-            known = [index[s] for s in lane.successors if s in index]
-            if known:
-                turn = np.abs(
-                    wrap_angle(self.segment_heading[self.first_segment[known]] - end_heading[i])
-                )
-                self.successor[i] = known[int(np.argmin(turn))]
+        start_heading = self.segment_heading[self._segment_at(target, entry)]
+        turn = np.abs(wrap_angle(start_heading - end_heading[source]))
+        # prefer successors that do not run into a dead end within REACH_CAP, then straight on
+        score = turn + 10.0 * (reach[target] - entry < REACH_CAP - 1e-9)
+        order = np.lexsort((score, source))
+        first = np.unique(source[order], return_index=True)[1]
+        chosen = order[first]
+        self.successor = np.full(self.num_lanes, -1)  # (L,) chosen successor, -1 if none
+        self.successor[source[chosen]] = target[chosen]
+        self.successor_s = np.zeros(self.num_lanes)  # (L,) [m] where the successor is joined
+        self.successor_s[source[chosen]] = entry[chosen]
+
+    def _edges(self, drivable_map: DrivableMap) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(source, target, entry arclength [m]) of every continuation of a lane.
+
+        Listed successors are joined at their start. A lane with none whose end lies
+        on another lane (within ``MERGE_MAX_OFFSET`` of its width, heading within
+        ``MERGE_MAX_TURN``, 1 m or more before that lane's end) merges into it there,
+        e.g. an entry ending on the ring of a roundabout.
+        """
+        lanes = drivable_map.lanes
+        index = {lane.lane_id: i for i, lane in enumerate(lanes)}
+        pairs = [
+            (i, index[n], 0.0)
+            for i, lane in enumerate(lanes)
+            for n in lane.successors
+            if n in index
+        ]
+        listed = {i for i, _, _ in pairs}
+        ends = np.array([i for i in range(self.num_lanes) if i not in listed], dtype=int)
+        if ends.size:
+            end_xy = np.stack([lanes[i].centerline[-1] for i in ends])
+            end_yaw = self.segment_heading[self.last_segment[ends]]
+            distance, error, s, lane = self._project(end_xy, end_yaw)
+            distance = np.where(lane == ends[:, None], np.inf, np.abs(distance))
+            distance = np.where(np.abs(error) < MERGE_MAX_TURN, distance, np.inf)
+            best = np.argmin(distance, axis=-1)
+            rows = np.arange(ends.size)
+            target, entry = lane[rows, best], s[rows, best]
+            ok = (distance[rows, best] < MERGE_MAX_OFFSET * self.width[target]) & (
+                entry < self.length[target] - 1.0
+            )
+            pairs += zip(ends[ok].tolist(), target[ok].tolist(), entry[ok].tolist(), strict=True)
+        edges = np.array(pairs, dtype=float).reshape(-1, 3)
+        return edges[:, 0].astype(int), edges[:, 1].astype(int), edges[:, 2]
+
+    def _project(
+        self, xy: np.ndarray, yaw: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Projection of points (N, 2) [m] with headings (N,) on every segment: distance,
+        heading error (point minus segment) [rad], arclength [m] and lane, each (N, S)."""
+        rel = xy[:, None, :] - self.start  # (N, S, 2)
+        t = np.clip(np.einsum("nsk,sk->ns", rel, self.delta) / self.segment_length**2, 0.0, 1.0)
+        offset = rel - t[..., None] * self.delta
+        cross = self.delta[:, 0] * offset[..., 1] - self.delta[:, 1] * offset[..., 0]
+        distance = np.where(cross >= 0, 1.0, -1.0) * np.linalg.norm(offset, axis=-1)
+        error = wrap_angle(yaw[:, None] - self.segment_heading)
+        s = self.segment_s + t * self.segment_length
+        return distance, error, s, np.broadcast_to(self.segment_lane, s.shape)
+
+    def _segment_at(self, lane: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """(...) segment index holding arclength ``s`` (clamped to the lane) of ``lane``."""
+        key = self.offset[lane] + np.clip(s, 0.0, self.length[lane])
+        segment = np.searchsorted(self.segment_key, key, side="right") - 1
+        return np.clip(segment, self.first_segment[lane], self.last_segment[lane])
 
     def match(
         self, xy: np.ndarray, yaw: np.ndarray, heading_weight: float = HEADING_WEIGHT
@@ -87,18 +157,13 @@ class LaneGraph:
             lane: (N,) int lane index; s: (N,) [m] arclength on it; lateral: (N,) [m]
             signed offset (positive left); heading_error: (N,) [rad] agent minus lane.
         """
-        rel = xy[:, None, :] - self.start  # (N, S, 2)
-        t = np.clip(np.einsum("nsk,sk->ns", rel, self.delta) / self.segment_length**2, 0.0, 1.0)
-        offset = rel - t[..., None] * self.delta
-        distance = np.linalg.norm(offset, axis=-1)  # (N, S)
-        error = wrap_angle(yaw[:, None] - self.segment_heading)
-        best = np.argmin(distance + heading_weight * (1.0 - np.cos(error)), axis=-1)  # (N,)
-        rows = np.arange(len(best))
-        delta, off = self.delta[best], offset[rows, best]
-        cross = delta[:, 0] * off[:, 1] - delta[:, 1] * off[:, 0]
-        lateral = np.where(cross >= 0.0, 1.0, -1.0) * distance[rows, best]
-        s = self.segment_s[best] + t[rows, best] * self.segment_length[best]
-        return self.segment_lane[best], s, lateral, error[rows, best]
+        lateral, error, s, lane = self._project(xy, yaw)
+        best = np.argmin(np.abs(lateral) + heading_weight * (1.0 - np.cos(error)), axis=-1)[:, None]
+
+        def pick(values: np.ndarray) -> np.ndarray:
+            return np.take_along_axis(values, best, axis=-1)[:, 0]
+
+        return pick(lane), pick(s), pick(lateral), pick(error)
 
     def advance(self, lane: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Carry arclengths past a lane's end onto its successors (up to ``MAX_HOPS``).
@@ -115,7 +180,7 @@ class LaneGraph:
             move = (s > self.length[lane]) & (nxt >= 0)
             if not move.any():
                 break
-            s = np.where(move, s - self.length[lane], s)
+            s = np.where(move, s - self.length[lane] + self.successor_s[lane], s)
             lane = np.where(move, nxt, lane)
         return lane, s
 
@@ -132,9 +197,7 @@ class LaneGraph:
             xy: (..., 2) [m]; heading: (...) [rad].
         """
         lane, s = self.advance(lane, s)
-        key = self.offset[lane] + np.clip(s, 0.0, self.length[lane])
-        segment = np.searchsorted(self.segment_key, key, side="right") - 1
-        segment = np.clip(segment, self.first_segment[lane], self.last_segment[lane])
+        segment = self._segment_at(lane, s)
         fraction = (s - self.segment_s[segment]) / self.segment_length[segment]
         xy = self.start[segment] + fraction[..., None] * self.delta[segment]
         return xy, self.segment_heading[segment]
@@ -149,7 +212,8 @@ class LaneGraph:
             ended = nxt < 0
             if ended.all():
                 break
-            remaining = np.where(ended, remaining, remaining + self.length[np.maximum(nxt, 0)])
+            joined = self.length[np.maximum(nxt, 0)] - self.successor_s[current]
+            remaining = np.where(ended, remaining, remaining + joined)
             current = np.where(ended, current, nxt)
         return np.where(self.successor[current] < 0, remaining, np.inf)
 
@@ -180,11 +244,45 @@ def pure_pursuit(
         (N,) [rad/s].
     """
     config = config or DynamicsConfig()
+    curvature = arc_curvature(state, target)
+    return np.clip(state[:, SPEED] * curvature, -config.yaw_rate_max, config.yaw_rate_max)
+
+
+def arc_curvature(state: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """(N,) [1/m] curvature (positive left) of the arc from each vehicle through its target.
+
+    Args:
+        state: (N, 4) (x [m], y [m], v [m/s], psi [rad]); target: (N, 2) [m].
+    """
     rel = target - state[:, :2]
     cos, sin = np.cos(state[:, YAW]), np.sin(state[:, YAW])
     lateral = -sin * rel[:, 0] + cos * rel[:, 1]
-    curvature = 2.0 * lateral / np.maximum(np.sum(rel * rel, axis=-1), 1e-6)
-    return np.clip(state[:, SPEED] * curvature, -config.yaw_rate_max, config.yaw_rate_max)
+    return 2.0 * lateral / np.maximum(np.sum(rel * rel, axis=-1), 1e-6)
+
+
+def arc_frame(
+    dx: np.ndarray, dy: np.ndarray, curvature: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points in a vehicle's frame -> coordinates along the arc of ``curvature``.
+
+    Args:
+        dx, dy: (...) [m] points ahead (x) and to the left (y) of the vehicle.
+        curvature: (...) [1/m] signed, positive turning left; |k| < 1e-4 is straight.
+
+    Returns:
+        along: (...) [m] arclength to the point's projection on the arc (in
+        (-pi R, pi R]); lateral: (...) [m] offset from the arc, positive left;
+        turned: (...) [rad] heading change of the arc up to that point.
+    """
+    straight = np.abs(curvature) < 1e-4
+    k = np.where(straight, 1.0, curvature)
+    radius = 1.0 / np.abs(k)
+    sign = np.sign(k)
+    angle = np.arctan2(dx, radius - sign * dy)
+    along = np.where(straight, dx, radius * angle)
+    lateral = np.where(straight, dy, sign * (radius - np.hypot(dx, dy - 1.0 / k)))
+    turned = np.where(straight, 0.0, sign * angle)
+    return along, lateral, turned
 
 
 def speed_control(speed: np.ndarray, target: np.ndarray, gain: float = 1.0) -> np.ndarray:

@@ -31,11 +31,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from policies.base import actions_dict, controlled_mask
-from policies.controllers import LaneGraph, idm_acceleration, pure_pursuit
+from policies.controllers import (
+    LaneGraph,
+    arc_curvature,
+    arc_frame,
+    idm_acceleration,
+    pure_pursuit,
+)
 from riskflow_env.config import DynamicsConfig
-from riskflow_env.dynamics import SPEED, YAW, X, Y
+from riskflow_env.dynamics import SPEED, YAW
 from riskflow_env.maps import DrivableMap
 from riskflow_env.view import SceneView
+
+PREDICTION_STEP = 0.25  # [s] time between conflict-prediction samples
+PREDICTION_TIMES = np.arange(0.0, 30.0, PREDICTION_STEP)  # [s]
 
 
 @dataclass(frozen=True)
@@ -58,6 +67,11 @@ class IDMParams:
             current speed [s] (at least 10 m).
         leader_range: vehicles farther ahead along the path are ignored [m].
         lane_width: corridor width on maps without lanes [m].
+        yield_horizon: how far ahead conflicts are predicted [s].
+        min_predicted_speed: moving vehicles are predicted at least this fast, so
+            that a vehicle waiting to go still claims its path [m/s].
+        conflict_margin: boxes closer than this along (30% of it across) a vehicle
+            are in conflict [m].
     """
 
     accel_max: float = 1.5
@@ -73,6 +87,9 @@ class IDMParams:
     curve_preview_time: float = 2.5
     leader_range: float = 80.0
     lane_width: float = 3.5
+    yield_horizon: float = 4.0
+    min_predicted_speed: float = 3.0
+    conflict_margin: float = 1.0
 
     def __post_init__(self) -> None:
         positive = (
@@ -86,12 +103,13 @@ class IDMParams:
             "curve_preview_time",
             "leader_range",
             "lane_width",
+            "yield_horizon",
         )
         for name in positive:
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0:
                 raise ValueError(f"IDMParams.{name} must be a finite number > 0, got {value!r}")
-        for name in ("min_gap", "parked_speed"):
+        for name in ("min_gap", "parked_speed", "min_predicted_speed", "conflict_margin"):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0:
                 raise ValueError(f"IDMParams.{name} must be a finite number >= 0, got {value!r}")
@@ -150,37 +168,56 @@ class IDMPolicy:
         return actions_dict(view, mask, actions)
 
     def _actions(self, view: SceneView, rows: np.ndarray) -> np.ndarray:
-        """(n, 2) actions of slots ``rows``."""
+        """(n, 2) actions of the controlled slots ``rows``."""
         params, dyn = self.params, self.dynamics
-        state = view.current[rows]
-        speed = state[:, SPEED]
-        desired = self._desired[rows]
-        lookahead = np.maximum(params.min_lookahead, params.lookahead_time * speed)
-        dead_end = np.full(len(rows), np.inf)
-        if self._graph is None:
-            yaw_rate = np.zeros(len(rows))
-            curvature = np.zeros(len(rows))
-            lane_width = np.full(len(rows), params.lane_width)
-        else:
-            graph = self._graph
-            lane, s, _, _ = graph.match(state[:, :2], state[:, YAW])
-            target, _ = graph.position(lane, s + lookahead)
-            yaw_rate = pure_pursuit(state, target, dyn)
-            curvature = _arc_curvature(state, target)
-            lane_width = graph.width[lane]
-            preview = np.maximum(10.0, params.curve_preview_time * speed)
-            bend = graph.curvature_ahead(lane, s, preview)
-            curve_speed = np.sqrt(params.lateral_accel_max / np.maximum(bend, 1e-6))
-            curve_speed = np.minimum(curve_speed, 0.9 * dyn.yaw_rate_max / np.maximum(bend, 1e-6))
-            desired = np.where(desired > 0, np.maximum(np.minimum(desired, curve_speed), 1.0), 0.0)
-            dead_end = graph.distance_to_dead_end(lane, s) - 0.5 * view.length[rows]
+        current, graph = view.current, self._graph
+        speed = current[:, SPEED]
+        desired = self._desired.copy()
+        count = view.num_agents
+        lane, s = np.zeros(count, dtype=int), np.zeros(count)
+        on_lane = np.zeros(count, dtype=bool)
+        yaw_rate, curvature = np.zeros(count), np.zeros(count)
+        lane_width = np.full(count, params.lane_width)
+        dead_end = np.full(count, np.inf)
+        present = np.flatnonzero(view.present)
+        if graph is not None:
+            lane[present], s[present], lateral, error = graph.match(
+                current[present, :2], current[present, YAW]
+            )
+            on_lane[present] = (np.abs(lateral) < graph.width[lane[present]]) & (
+                np.abs(error) < 0.6
+            )
+            lookahead = np.maximum(params.min_lookahead, params.lookahead_time * speed[rows])
+            target, _ = graph.position(lane[rows], s[rows] + lookahead)
+            yaw_rate[rows] = pure_pursuit(current[rows], target, dyn)
+            curvature[rows] = arc_curvature(current[rows], target)
+            lane_width[rows] = graph.width[lane[rows]]
+            preview = np.maximum(10.0, params.curve_preview_time * speed[rows])
+            bend = np.maximum(graph.curvature_ahead(lane[rows], s[rows], preview), 1e-6)
+            curve_speed = np.minimum(
+                np.sqrt(params.lateral_accel_max / bend), 0.9 * dyn.yaw_rate_max / bend
+            )
+            moving = desired[rows] > 0
+            desired[rows] = np.where(moving, np.clip(curve_speed, 1.0, desired[rows]), 0.0)
+            dead_end[rows] = (
+                graph.distance_to_dead_end(lane[rows], s[rows]) - 0.5 * view.length[rows]
+            )
 
-        gap, closing = self._leader(view, rows, curvature, lane_width)
-        closing = np.where(dead_end < gap, speed, closing)
-        gap = np.minimum(gap, dead_end)
+        gap, closing = self._leader(view, rows, curvature[rows], lane_width[rows])
+        predicted = np.where(
+            self._desired > 0, np.maximum(speed, params.min_predicted_speed), speed
+        )
+        path, heading = self._predict(view, lane, s, on_lane, predicted)
+        conflict_gap = _yield_gaps(view, rows, path, heading, predicted, params)
+        for other_gap, other_closing in (
+            (dead_end[rows], speed[rows]),
+            (conflict_gap, speed[rows]),
+        ):
+            closing = np.where(other_gap < gap, other_closing, closing)
+            gap = np.minimum(gap, other_gap)
         accel = idm_acceleration(
-            speed,
-            np.maximum(desired, 1e-3),
+            speed[rows],
+            np.maximum(desired[rows], 1e-3),
             gap,
             closing,
             accel_max=params.accel_max,
@@ -189,9 +226,31 @@ class IDMPolicy:
             min_gap=params.min_gap,
             delta=params.delta,
         )
-        accel = np.where(desired > 0, accel, -speed / dyn.dt)  # parked: stop and hold
+        accel = np.where(desired[rows] > 0, accel, -speed[rows] / dyn.dt)  # parked: stop, hold
         accel = np.clip(accel, dyn.accel_min, dyn.accel_max)
-        return np.stack([accel, yaw_rate], axis=-1)
+        return np.stack([accel, yaw_rate[rows]], axis=-1)
+
+    def _predict(
+        self,
+        view: SceneView,
+        lane: np.ndarray,
+        s: np.ndarray,
+        on_lane: np.ndarray,
+        speed: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Constant-speed paths (A, K, 2) [m] and headings (A, K) [rad] at ``PREDICTION_TIMES``:
+        along the lanes for vehicles on a lane, straight ahead for the others."""
+        current = view.current
+        times = PREDICTION_TIMES[: int(round(self.params.yield_horizon / PREDICTION_STEP)) + 1]
+        ahead = speed[:, None] * times  # (A, K)
+        direction = np.stack([np.cos(current[:, YAW]), np.sin(current[:, YAW])], axis=-1)
+        path = current[:, None, :2] + ahead[..., None] * direction[:, None]
+        heading = np.broadcast_to(current[:, YAW, None], ahead.shape).copy()
+        if self._graph is not None and on_lane.any():
+            path[on_lane], heading[on_lane] = self._graph.position(
+                lane[on_lane, None], s[on_lane, None] + ahead[on_lane]
+            )
+        return path, heading
 
     def _leader(
         self, view: SceneView, rows: np.ndarray, curvature: np.ndarray, lane_width: np.ndarray
@@ -206,15 +265,12 @@ class IDMPolicy:
         Returns:
             gap: (n,) bumper-to-bumper [m], inf without leader; closing: (n,) [m/s].
         """
-        current, present = view.current, view.present
+        current = view.current
         me = current[rows]
-        rel = current[None, :, :2] - me[:, None, :2]  # (n, A, 2)
-        cos, sin = np.cos(me[:, YAW])[:, None], np.sin(me[:, YAW])[:, None]
-        dx = cos * rel[..., X] + sin * rel[..., Y]
-        dy = -sin * rel[..., X] + cos * rel[..., Y]
-        along, lateral, turned = _arc_frame(dx, dy, curvature[:, None])
+        dx, dy = _in_frame(current[None, :, :2] - me[:, None, :2], me[:, YAW, None])
+        along, lateral, turned = arc_frame(dx, dy, curvature[:, None])
         half = 0.5 * (lane_width[:, None] + view.width[None, :])
-        candidate = present[None, :] & (along > 0) & (np.abs(lateral) < half)
+        candidate = view.present[None, :] & (along > 0) & (np.abs(lateral) < half)
         candidate &= along < self.params.leader_range
         candidate[np.arange(len(rows)), rows] = False
         gap = along - 0.5 * (view.length[rows, None] + view.length[None, :])
@@ -226,34 +282,59 @@ class IDMPolicy:
         return gap[index, leader], me[:, SPEED] - leader_speed
 
 
-def _arc_curvature(state: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """(N,) [1/m] curvature of the arc from each vehicle through its target point."""
-    rel = target - state[:, :2]
-    cos, sin = np.cos(state[:, YAW]), np.sin(state[:, YAW])
-    lateral = -sin * rel[:, 0] + cos * rel[:, 1]
-    return 2.0 * lateral / np.maximum(np.sum(rel * rel, axis=-1), 1e-6)
+def _in_frame(rel: np.ndarray, yaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(..., 2) world offsets -> (dx ahead, dy left) [m] in frames of heading ``yaw`` (...)."""
+    cos, sin = np.cos(yaw), np.sin(yaw)
+    return cos * rel[..., 0] + sin * rel[..., 1], -sin * rel[..., 0] + cos * rel[..., 1]
 
 
-def _arc_frame(
-    dx: np.ndarray, dy: np.ndarray, curvature: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Points in a vehicle's frame -> coordinates along the arc of ``curvature``.
+def _yield_gaps(
+    view: SceneView,
+    rows: np.ndarray,
+    path: np.ndarray,
+    heading: np.ndarray,
+    speed: np.ndarray,
+    params: IDMParams,
+) -> np.ndarray:
+    """(n,) [m] distance each controlled vehicle may still travel before a predicted
+    conflict it must yield in (inf when none).
 
-    Args:
-        dx, dy: (...) [m] points ahead (x) and to the left (y) of the vehicle.
-        curvature: (...) [1/m] signed, positive turning left; |k| < 1e-4 is straight.
-
-    Returns:
-        along: (...) [m] arclength to the point's projection on the arc (in
-        (-pi R, pi R]); lateral: (...) [m] offset from the arc, positive left;
-        turned: (...) [rad] heading change of the arc up to that point.
+    A conflict between i and j: at some prediction time their boxes, grown by the
+    margins, overlap (j's box bounded by its axis-aligned extent in i's frame). Vehicle
+    i yields to j unless j is behind it now; when both would yield to each other and
+    both are controlled here, the one farther from the conflict point goes second.
+    Vehicles this policy does not control (the ego) are always yielded to.
     """
-    straight = np.abs(curvature) < 1e-4
-    k = np.where(straight, 1.0, curvature)
-    radius = 1.0 / np.abs(k)
-    sign = np.sign(k)
-    angle = np.arctan2(dx, radius - sign * dy)
-    along = np.where(straight, dx, radius * angle)
-    lateral = np.where(straight, dy, sign * (radius - np.hypot(dx, dy - 1.0 / k)))
-    turned = np.where(straight, 0.0, sign * angle)
-    return along, lateral, turned
+    count, length, width = view.num_agents, view.length, view.width
+    dx, dy = _in_frame(path[None] - path[:, None], heading[:, None])  # (A, A, K), i's frame
+    relative = heading[None] - heading[:, None]
+    extent_x = 0.5 * (
+        np.abs(np.cos(relative)) * length[None, :, None]
+        + np.abs(np.sin(relative)) * width[None, :, None]
+    )
+    extent_y = 0.5 * (
+        np.abs(np.sin(relative)) * length[None, :, None]
+        + np.abs(np.cos(relative)) * width[None, :, None]
+    )
+    overlap = (np.abs(dx) < 0.5 * length[:, None, None] + extent_x + params.conflict_margin) & (
+        np.abs(dy) < 0.5 * width[:, None, None] + extent_y + 0.3 * params.conflict_margin
+    )
+    pair = view.present[:, None] & view.present[None, :] & ~np.eye(count, dtype=bool)
+    conflict = overlap.any(axis=-1) & pair
+    first = np.argmax(overlap, axis=-1)  # (A, A) first conflicting time index
+    behind = dx[..., 0] < -0.5 * length[:, None]
+    must_yield = conflict & ~behind
+    controlled = np.zeros(count, dtype=bool)
+    controlled[rows] = True
+    point = 0.5 * (
+        np.take_along_axis(path[:, None], first[..., None, None], 2)[:, :, 0]
+        + np.take_along_axis(path[None], first[..., None, None], 2)[:, :, 0]
+    )
+    distance = np.linalg.norm(point - path[:, None, 0], axis=-1)  # (A, A) i to conflict
+    farther = (distance > distance.T) | (
+        (distance == distance.T) & (np.arange(count)[:, None] > np.arange(count))
+    )
+    mutual = must_yield & must_yield.T & controlled[:, None] & controlled[None, :]
+    must_yield &= ~mutual | farther
+    travel = speed[:, None] * PREDICTION_STEP * np.maximum(first - 1, 0)  # last clear distance
+    return np.where(must_yield, travel, np.inf)[rows].min(axis=-1)
