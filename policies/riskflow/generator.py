@@ -1,0 +1,207 @@
+"""The RiskFlow generator: MeanFlow head ``u_theta(z, t, r; C)`` and the model wrapper.
+
+MeanFlow (Geng et al. 2025, "Mean Flows for One-step Generative Modeling") learns the
+*average* velocity ``u(z_t, t, r) = 1 / (r - t) * int_t^r v(z_s, s) ds`` of the flow
+from noise (t = 0) to data (t = 1), so one step ``a = eps + u_theta(eps, 0, 1; C)``
+samples a plan (this project's convention, DESIGN.md section 6). RiskFlow applies it
+in action space: ``z`` is a normalised (accel, yaw rate) sequence of every agent.
+
+The head cuts each agent's plan into tokens of ``plan_patch`` steps and runs
+adaLN-Zero blocks (DiT, as in MeanFlow): temporal attention over the agent's tokens,
+social attention over agents at each token (with the pair-feature bias ``b(e_ij)``, so
+the plans of a scene are generated jointly) and an MLP, each modulated by the agent's
+context ``C_i`` plus the embedding of ``(t, r - t)``. At initialisation ``u = 0``.
+
+Checkpoints carry the ``ModelConfig`` with the state dict
+(:meth:`RiskFlowGenerator.checkpoint` / :meth:`RiskFlowGenerator.from_checkpoint`);
+a checkpoint that does not fit raises :class:`CheckpointError` saying what differs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from policies.riskflow.attention import Attention, edge_bias
+from policies.riskflow.config import ModelConfig
+from policies.riskflow.embeddings import MLP, TimeEmbedding
+from policies.riskflow.encoder import SceneContext, SceneEncoder
+
+CHECKPOINT_FORMAT = "riskflow-generator/1"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that is malformed or does not fit the model."""
+
+
+def _modulate(x: Tensor, shift: Tensor, scale: Tensor) -> Tensor:
+    """``x (B, A, N, D)`` with per-agent ``shift, scale (B, A, D)``."""
+    return x * (1.0 + scale[:, :, None]) + shift[:, :, None]
+
+
+class HeadBlock(nn.Module):
+    """adaLN-Zero block: temporal attention, social attention, MLP, each gated."""
+
+    def __init__(self, dim: int, num_heads: int, mlp_ratio: int, edge_dim: int) -> None:
+        super().__init__()
+        self.norms = nn.ModuleList(nn.LayerNorm(dim, elementwise_affine=False) for _ in range(3))
+        self.temporal = Attention(dim, num_heads)
+        self.social = Attention(dim, num_heads)
+        self.social_bias = nn.Linear(edge_dim, num_heads)
+        self.mlp = MLP(dim, mlp_ratio * dim, dim)
+        self.modulation = nn.Linear(dim, 9 * dim)
+        nn.init.zeros_(self.modulation.weight)
+        nn.init.zeros_(self.modulation.bias)
+
+    def forward(self, x: Tensor, cond: Tensor, scene: SceneContext) -> Tensor:
+        """Args: ``x (B, A, N, D)`` plan tokens; ``cond (B, A, D)``. Returns ``(B, A, N, D)``."""
+        mods = self.modulation(cond).chunk(9, dim=-1)
+        h = _modulate(self.norms[0](x), mods[0], mods[1])
+        x = x + mods[2][:, :, None] * self.temporal(h)
+        h = _modulate(self.norms[1](x), mods[3], mods[4]).transpose(1, 2)  # (B, N, A, D)
+        h = self.social(h, scene.social_mask[:, None], edge_bias(scene.edges, self.social_bias))
+        x = x + mods[5][:, :, None] * h.transpose(1, 2)
+        h = _modulate(self.norms[2](x), mods[6], mods[7])
+        return x + mods[8][:, :, None] * self.mlp(h)
+
+
+class MeanFlowHead(nn.Module):
+    """``u_theta(z, t, r; C)``: average velocity of every agent's plan from t to r."""
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        self.config = config
+        dim, patch = config.head_dim, config.plan_patch * config.action_dim
+        self.in_proj = nn.Linear(patch, dim)
+        self.token_pos = nn.Parameter(0.02 * torch.randn(config.plan_tokens, dim))
+        self.time = TimeEmbedding(config.time_frequencies, dim, config.time_scale)
+        self.cond = nn.Linear(config.context_dim, dim)
+        self.blocks = nn.ModuleList(
+            HeadBlock(dim, config.num_heads, config.mlp_ratio, config.edge_dim)
+            for _ in range(config.head_layers)
+        )
+        self.norm = nn.LayerNorm(dim, elementwise_affine=False)
+        self.final_modulation = nn.Linear(dim, 2 * dim)
+        self.out = nn.Linear(dim, patch)
+        for layer in (self.final_modulation, self.out):
+            nn.init.zeros_(layer.weight)
+            nn.init.zeros_(layer.bias)
+
+    def forward(self, z: Tensor, t: Tensor, r: Tensor, scene: SceneContext) -> Tensor:
+        """Average velocity ``u`` of the flow of ``z`` over ``[t, r]``.
+
+        Args:
+            z: ``(B, A, T, 2)`` normalised actions ``z_t`` on the path from noise ``eps``
+                (t = 0) to data ``a*`` (t = 1).
+            t: ``(B,)`` or ``(B, A)`` current time in [0, 1].
+            r: like ``t``, end time ``r >= t``.
+            scene: the encoder output for the same ``B`` scenes.
+
+        Returns:
+            ``(B, A, T, 2)`` ``u``, so that ``z_r ~ z_t + (r - t) u``; 0 for padded agents.
+        """
+        batch, agents, steps, channels = z.shape
+        tokens = self.config.plan_tokens
+        x = self.in_proj(z.reshape(batch, agents, tokens, -1)) + self.token_pos
+        t, r = (torch.broadcast_to(s.reshape(batch, -1), (batch, agents)) for s in (t, r))
+        cond = F.silu(self.cond(scene.context) + self.time(t, r))  # (B, A, D)
+        for block in self.blocks:
+            x = block(x, cond, scene)
+        shift, scale = self.final_modulation(cond).chunk(2, dim=-1)
+        u = self.out(_modulate(self.norm(x), shift, scale)).reshape(batch, agents, steps, channels)
+        return u * scene.agent_mask[:, :, None, None].to(u.dtype)
+
+
+class RiskFlowGenerator(nn.Module):
+    """Scene encoder + MeanFlow head.
+
+    ``encode(batch)`` once per scene batch, then ``average_velocity(z, t, r, scene)``
+    as often as needed (the MeanFlow JVP, guidance); ``forward`` does both.
+    """
+
+    def __init__(self, config: ModelConfig | None = None) -> None:
+        super().__init__()
+        self.config = config if config is not None else ModelConfig()
+        self.encoder = SceneEncoder(self.config)
+        self.head = MeanFlowHead(self.config)
+
+    def encode(self, batch: Mapping[str, Tensor]) -> SceneContext:
+        """Context of a batch of windows (``docs/WINDOWS.md``)."""
+        return self.encoder(batch)
+
+    def average_velocity(self, z: Tensor, t: Tensor, r: Tensor, scene: SceneContext) -> Tensor:
+        """``u_theta(z, t, r; C)``; see :meth:`MeanFlowHead.forward`."""
+        expected = (*scene.agent_mask.shape, self.config.future_steps, self.config.action_dim)
+        if tuple(z.shape) != expected:
+            raise ValueError(f"z must have shape (B, A, T, 2) = {expected}, got {tuple(z.shape)}")
+        return self.head(z, t, r, scene)
+
+    def forward(self, batch: Mapping[str, Tensor], z: Tensor, t: Tensor, r: Tensor) -> Tensor:
+        """``u_theta(z, t, r; C(batch))``: ``(B, A, T, 2)``."""
+        return self.average_velocity(z, t, r, self.encode(batch))
+
+    def num_parameters(self) -> int:
+        """Number of trainable parameters."""
+        return sum(p.numel() for p in self.parameters() if p.requires_grad)
+
+    def checkpoint(self) -> dict[str, Any]:
+        """``{"format", "config", "state_dict"}`` for ``torch.save``; tensors on the CPU."""
+        state = {k: v.detach().cpu() for k, v in self.state_dict().items()}
+        return {"format": CHECKPOINT_FORMAT, "config": self.config.to_dict(), "state_dict": state}
+
+    @classmethod
+    def from_checkpoint(
+        cls, checkpoint: Mapping[str, Any], config: ModelConfig | None = None
+    ) -> RiskFlowGenerator:
+        """Rebuild a model from :meth:`checkpoint`'s dict (e.g. after ``torch.load``).
+
+        Args:
+            checkpoint: the dict.
+            config: optional expected architecture; if given it must equal the
+                checkpoint's, field by field.
+
+        Raises:
+            CheckpointError: wrong format, a config that differs from ``config`` or is
+                invalid, or a state dict with missing, unexpected or mis-shaped tensors.
+        """
+        if not isinstance(checkpoint, Mapping) or checkpoint.get("format") != CHECKPOINT_FORMAT:
+            found = checkpoint.get("format") if isinstance(checkpoint, Mapping) else None
+            raise CheckpointError(
+                f"checkpoint must be a dict with format {CHECKPOINT_FORMAT!r}, got format {found!r}"
+            )
+        try:
+            saved = ModelConfig.from_dict(checkpoint["config"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise CheckpointError(f"checkpoint has an invalid ModelConfig: {err}") from None
+        if config is not None and config != saved:
+            expected, found = config.to_dict(), saved.to_dict()
+            diff = {k: (expected[k], found[k]) for k in expected if expected[k] != found[k]}
+            raise CheckpointError(
+                f"checkpoint ModelConfig differs from the expected one: {{field: (expected, "
+                f"checkpoint)}} = {diff}"
+            )
+        model = cls(saved)
+        model.load_checkpoint_state(checkpoint["state_dict"])
+        return model
+
+    def load_checkpoint_state(self, state_dict: Mapping[str, Tensor]) -> None:
+        """``load_state_dict`` that raises :class:`CheckpointError` listing every mismatch."""
+        own = self.state_dict()
+        missing = sorted(set(own) - set(state_dict))
+        unexpected = sorted(set(state_dict) - set(own))
+        shapes = {
+            k: (tuple(own[k].shape), tuple(v.shape))
+            for k, v in state_dict.items()
+            if k in own and tuple(own[k].shape) != tuple(v.shape)
+        }
+        if missing or unexpected or shapes:
+            raise CheckpointError(
+                "checkpoint state dict does not fit the model: "
+                f"missing {missing}, unexpected {unexpected}, "
+                f"shape mismatches {{name: (model, checkpoint)}} {shapes}"
+            )
+        self.load_state_dict(state_dict)
