@@ -8,6 +8,8 @@ few operations the standard lacks.
 
 from __future__ import annotations
 
+import functools
+import types
 from typing import Any
 
 import array_api_compat
@@ -17,16 +19,103 @@ Array = Any  # numpy.ndarray or torch.Tensor
 
 
 # NumPy >= 2.1 implements the array API standard in its main namespace (cumulative_sum
-# included), so numpy inputs get ``numpy`` itself: same ufuncs, same results, without the
-# compat wrappers' per-call overhead (its ``clip`` alone cost a quarter of an env step).
+# included), so numpy inputs get numpy itself (see ``_numpy``): same ufuncs, same results,
+# without the compat wrappers' per-call overhead (its ``clip`` alone cost a quarter of an
+# env step).
 _NUMPY_IS_STANDARD = np.lib.NumpyVersion(np.__version__) >= "2.1.0"
 _BY_TYPE: dict[type, Any] = {}  # array type -> namespace, filled on first sight
 
 
 def _namespace_of_type(x: Array):
     if _NUMPY_IS_STANDARD and isinstance(x, np.ndarray):
-        return np
+        return _numpy
     return array_api_compat.array_namespace(x)
+
+
+# --- numpy, minus some Python-level wrappers -------------------------------------------
+# The env steps arrays of a few hundred elements, where numpy's Python wrappers (np.clip,
+# np.stack, np.max, np.take_along_axis ...) cost several times the arithmetic. ``_numpy``
+# is numpy with those replaced by the ufunc calls they end in: bit-identical results
+# (tests/riskflow_env/test_array.py), anything unusual falls back to numpy's own function.
+
+
+_clip_ufunc = getattr(getattr(np, "_core", None), "umath", np).clip  # numpy >= 2: the ufunc
+
+
+def _clip(x: Array, /, min: Any = None, max: Any = None) -> Array:  # noqa: A002 (API names)
+    # What np.clip ends in (numpy/_core/_methods.py): the clip ufunc, or one-sided
+    # maximum / minimum.
+    if (min is None and max is None) or not isinstance(x, np.ndarray) or x.dtype.kind != "f":
+        return np.clip(x, min, max)
+    if max is None:
+        return np.maximum(x, min)
+    if min is None:
+        return np.minimum(x, max)
+    return _clip_ufunc(x, min, max)
+
+
+def _reduction(ufunc: np.ufunc, fallback: Any) -> Any:
+    def reduce(x: Array, /, *, axis: Any = None, keepdims: bool = False, **kwargs) -> Array:
+        if kwargs or not isinstance(x, np.ndarray):
+            return fallback(x, axis=axis, keepdims=keepdims, **kwargs)
+        return ufunc.reduce(x, axis=axis, keepdims=keepdims)
+
+    reduce.__doc__ = fallback.__doc__
+    return reduce
+
+
+def _stack(arrays: Any, /, axis: int = 0) -> Array:
+    arrays = list(arrays)
+    if not arrays or not all(type(a) is np.ndarray for a in arrays):
+        return np.stack(arrays, axis=axis)
+    ndim = arrays[0].ndim + 1
+    if not -ndim <= axis < ndim:
+        return np.stack(arrays, axis=axis)  # raises numpy's AxisError
+    index = (slice(None),) * (axis % ndim) + (None,)
+    return np.concatenate([a[index] for a in arrays], axis=axis)
+
+
+@functools.lru_cache(maxsize=256)
+def _grid(size: int, ndim: int, dim: int) -> np.ndarray:
+    """arange(size) shaped to broadcast along dimension ``dim`` of ``ndim``."""
+    shape = [1] * ndim
+    shape[dim] = size
+    grid = np.arange(size).reshape(shape)
+    grid.setflags(write=False)
+    return grid
+
+
+def _take_along_axis(x: Array, indices: Array, /, *, axis: int = -1) -> Array:
+    ndim = x.ndim
+    if not isinstance(x, np.ndarray) or indices.ndim != ndim or not -ndim <= axis < ndim:
+        return np.take_along_axis(x, indices, axis=axis)
+    axis %= ndim
+    index = [_grid(size, ndim, dim) for dim, size in enumerate(x.shape)]
+    index[axis] = indices
+    return x[tuple(index)]
+
+
+def _cumulative_sum(x: Array, /, *, axis: Any = None, dtype: Any = None, **kwargs) -> Array:
+    if kwargs or axis is None or not isinstance(x, np.ndarray) or x.dtype.kind != "f":
+        return np.cumulative_sum(x, axis=axis, dtype=dtype, **kwargs)
+    return np.add.accumulate(x, axis=axis, dtype=dtype)
+
+
+def _make_numpy_namespace() -> types.ModuleType:
+    module = types.ModuleType("numpy", np.__doc__)
+    module.__dict__.update({k: v for k, v in vars(np).items() if not k.startswith("__")})
+    module.__getattr__ = lambda name: getattr(np, name)  # lazily loaded numpy submodules
+    module.clip = _clip
+    module.max = _reduction(np.maximum, np.max)
+    module.min = _reduction(np.minimum, np.min)
+    module.sum = _reduction(np.add, np.sum)
+    module.stack = _stack
+    module.take_along_axis = _take_along_axis
+    module.cumulative_sum = _cumulative_sum
+    return module
+
+
+_numpy = _make_numpy_namespace()
 
 
 def namespace(*arrays: Array):

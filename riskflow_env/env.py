@@ -56,14 +56,12 @@ from riskflow_env import simulator
 from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import YAW
 from riskflow_env.maps import DrivableMap
-from riskflow_env.observations import observation_size, observe
-from riskflow_env.rewards import reward_terms
-from riskflow_env.risk import pairwise_features
+from riskflow_env.observations import observation_size
+from riskflow_env.rewards import REWARD_TERMS
 from riskflow_env.scenarios import HighwayTrafficSource, Scenario, ScenarioSource, as_source
 from riskflow_env.state import SceneState
 from riskflow_env.view import SceneView
 
-RISK_INDEX = -1  # the risk weight is the last pair feature
 STATE_FEATURES = 9
 
 
@@ -201,7 +199,8 @@ class RiskFlowParallelEnv(ParallelEnv):
         self._scenario_rows[: rows.size] = rows
         self._scene = simulator.reset(scenario, self.config.max_agents, rows)
         self.agents = [self.possible_agents[i] for i in np.flatnonzero(self._scene.present)]
-        observations, _, infos = self._evaluate(self._scene)
+        evaluation = self._evaluate(self._scene)
+        observations, _, infos = self._agent_dicts(evaluation, self.agents)
         if self._renderer is not None:
             self._renderer.reset(self)
         return observations, infos
@@ -219,36 +218,31 @@ class RiskFlowParallelEnv(ParallelEnv):
             raise RuntimeError("step() called after the episode ended: call reset() first")
         action_array = self._action_array(actions)
         scene = simulator.step(self._scene, action_array, self.config.dynamics)
-        observations, rewards, infos = self._evaluate(scene)
-
-        events = self._events
+        evaluation = self._evaluate(scene)
         live = scene.active
-        terminated = live & (
-            (events.collided & self._terminate_on_collision)
-            | (events.offroad & self._terminate_on_offroad)
+        terminated, truncated = simulator.episode_end(
+            live,
+            evaluation.events,
+            self._terminate_on_collision,
+            self._terminate_on_offroad,
+            scene.step >= self.config.episode_steps,
+            self.config.end_with_ego,
         )
-        truncated = live & ~terminated & (scene.step >= self.config.episode_steps)
-        if self.config.end_with_ego and (terminated[0] or truncated[0]):
-            truncated = live & ~terminated
         done = terminated | truncated
         self._scene = scene.replace(active=live & ~done)
 
         agents = self.agents
-        terminations = {agent: bool(terminated[self._slot[agent]]) for agent in agents}
-        truncations = {agent: bool(truncated[self._slot[agent]]) for agent in agents}
-        step_output = (
-            {agent: observations[agent] for agent in agents},
-            {agent: rewards[agent] for agent in agents},
-            terminations,
-            truncations,
-            {agent: infos[agent] for agent in agents},
-        )
-        self.agents = [agent for agent in agents if not done[self._slot[agent]]]
+        observations, rewards, infos = self._agent_dicts(evaluation, agents)
+        slot = self._slot
+        terminated, truncated, done = terminated.tolist(), truncated.tolist(), done.tolist()
+        terminations = {agent: terminated[slot[agent]] for agent in agents}
+        truncations = {agent: truncated[slot[agent]] for agent in agents}
+        self.agents = [agent for agent in agents if not done[slot[agent]]]
         if self._renderer is not None:
             self._renderer.record(self)
         if self.render_mode == "human":
             self.render()
-        return step_output
+        return observations, rewards, terminations, truncations, infos
 
     def state(self) -> np.ndarray:
         """Global state for centralised critics: (9 * max_agents,) float32, ego-centred."""
@@ -299,6 +293,30 @@ class RiskFlowParallelEnv(ParallelEnv):
         return agent
 
     def _action_array(self, actions: Mapping[str, Any]) -> np.ndarray:
+        """(A, 2) float64 actions of the live agents (zeros elsewhere), validated."""
+        if isinstance(actions, Mapping) and len(actions) == len(self.agents):
+            try:  # fast path: exactly the live agents, each a finite (2,) action
+                slots = [self._slot[agent] for agent in actions]
+                values = np.array(list(actions.values()), dtype=np.float64)
+            except (KeyError, ValueError, TypeError):
+                slots, values = None, None
+            if (
+                values is not None
+                and values.shape == (len(slots), 2)
+                and actions.keys() == set(self.agents)
+                and np.isfinite(values).all()
+            ):
+                array = np.zeros((self.config.max_agents, 2))
+                array[slots] = values
+                if self.config.clip_actions or not self._out_of_bounds(array).any():
+                    return array
+        return self._checked_action_array(actions)
+
+    def _out_of_bounds(self, array: np.ndarray) -> np.ndarray:
+        return np.any((array < self._action_low) | (array > self._action_high), axis=-1)
+
+    def _checked_action_array(self, actions: Mapping[str, Any]) -> np.ndarray:
+        """Agent by agent, with an error naming the agent and what is wrong."""
         if not isinstance(actions, Mapping):
             raise TypeError(
                 f"actions must be a dict {{agent: action}}, got {type(actions).__name__}"
@@ -325,7 +343,7 @@ class RiskFlowParallelEnv(ParallelEnv):
             bad = [agent for agent in actions if not np.all(np.isfinite(array[self._slot[agent]]))]
             raise ValueError(f"actions must be finite; got NaN or inf for {bad}")
         if not self.config.clip_actions:
-            outside = np.any((array < self._action_low) | (array > self._action_high), axis=-1)
+            outside = self._out_of_bounds(array)
             if np.any(outside):
                 bad = [agent for agent in actions if outside[self._slot[agent]]]
                 raise ValueError(
@@ -336,34 +354,39 @@ class RiskFlowParallelEnv(ParallelEnv):
                 )
         return array
 
-    def _evaluate(self, scene: SceneState) -> tuple[dict, dict, dict]:
-        """Events, observations, rewards and infos of ``scene`` for every present slot."""
-        features, mask = pairwise_features(scene.current, scene.length, scene.width, scene.present)
-        events = event_detection.detect(scene, self.map)
-        self._events = events
-        observation_rows = observe(scene, features, mask, self.map, self.config.observation)
-        terms = reward_terms(
-            scene, events, features[..., RISK_INDEX], self.config.reward, self.config.dynamics
-        )
-        total = sum(terms.values())
-        names = self.possible_agents
-        present = np.flatnonzero(scene.present)
-        term_lists = {name: values.tolist() for name, values in terms.items()}
+    def _evaluate(self, scene: SceneState) -> simulator.Evaluation:
+        """Features, events, observations and rewards of ``scene`` (kept as last_events)."""
+        evaluation = simulator.evaluate(scene, self.map, self.config)
+        self._events = evaluation.events
+        return evaluation
+
+    def _agent_dicts(
+        self, evaluation: simulator.Evaluation, agents: Sequence[str]
+    ) -> tuple[dict, dict, dict]:
+        """Per-agent observations, rewards and infos of ``agents`` (present slots)."""
+        events = evaluation.events
+        slots = [self._slot[agent] for agent in agents]
+        rows = evaluation.observations
+        reward = evaluation.reward.tolist()
+        # One tuple of (speed, collision, offroad, risk, comfort) per slot.
+        columns = [evaluation.reward_terms[name].tolist() for name in REWARD_TERMS]
+        term_rows = list(zip(*columns, strict=True))
         collided = events.collided.tolist()
         offroad = events.offroad_fraction.tolist()
         depth = events.sdf_depth.tolist()
-        partners = _collision_partners(events.collisions, names)
-        observations = {names[i]: observation_rows[i] for i in present}
-        rewards = {names[i]: float(total[i]) for i in present}
+        partners = _collision_partners(events.collisions, self.possible_agents)
+        pairs = list(zip(agents, slots, strict=True))
+        observations = {agent: rows[i] for agent, i in pairs}
+        rewards = {agent: reward[i] for agent, i in pairs}
         infos = {
-            names[i]: {
-                "reward_terms": {name: values[i] for name, values in term_lists.items()},
+            agent: {
+                "reward_terms": dict(zip(REWARD_TERMS, term_rows[i], strict=True)),
                 "collided": collided[i],
                 "collided_with": partners.get(i, []),
                 "offroad_fraction": offroad[i],
                 "sdf_depth": depth[i],
             }
-            for i in present
+            for agent, i in pairs
         }
         return observations, rewards, infos
 
@@ -371,6 +394,7 @@ class RiskFlowParallelEnv(ParallelEnv):
 def _collision_partners(collisions: np.ndarray, names: Sequence[str]) -> dict[int, list[str]]:
     """slot -> names of the vehicles it overlaps (only slots that collide appear)."""
     partners: dict[int, list[str]] = {}
-    for i, j in np.argwhere(collisions).tolist():
-        partners.setdefault(i, []).append(names[j])
+    if collisions.any():
+        for i, j in np.argwhere(collisions).tolist():
+            partners.setdefault(i, []).append(names[j])
     return partners

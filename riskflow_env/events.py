@@ -8,6 +8,7 @@ is positive, i.e. outside the drivable area.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 from riskflow_env._array import Array, namespace
 from riskflow_env.dynamics import YAW
@@ -34,18 +35,20 @@ class FrameEvents:
     sdf_depth: Array
     centroid_offroad: Array
 
-    @property
+    @cached_property
     def collided(self) -> Array:
         """(..., A) bool, the agent overlaps at least one other vehicle."""
         return namespace(self.collisions).any(self.collisions, axis=-1)
 
-    @property
+    @cached_property
     def offroad(self) -> Array:
         """(..., A) bool, at least one footprint sample is off the road."""
         return self.offroad_fraction > 0.0
 
 
-def detect(state: SceneState, drivable_map: DrivableMap) -> FrameEvents:
+def detect(
+    state: SceneState, drivable_map: DrivableMap, footprint_sdf: Array | None = None
+) -> FrameEvents:
     """Collisions and off-road flags of the present vehicles in ``state``.
 
     Args:
@@ -53,17 +56,22 @@ def detect(state: SceneState, drivable_map: DrivableMap) -> FrameEvents:
             ``length``, ``width`` (..., A) [m] and ``present`` (..., A) bool arrays (a
             batch of scenes sharing ``drivable_map``), numpy or torch.
         drivable_map: the scenes' map.
+        footprint_sdf: (..., A, 9) the map SDF [m] at the footprint points
+            (:func:`~riskflow_env.geometry.footprint_points`), when the caller has looked
+            it up already (one lookup for all points of a step).
     """
     current = state.current
     xp = namespace(current)
     xy, yaw = current[..., :2], current[..., YAW]
     present = state.present
     collisions = pairwise_overlap(xy, yaw, state.length, state.width, valid=present)
-    sdf = drivable_map.sdf_at(footprint_points(xy, yaw, state.length, state.width))  # (..., A, 9)
+    sdf = footprint_sdf
+    if sdf is None:
+        sdf = drivable_map.sdf_at(footprint_points(xy, yaw, state.length, state.width))
     outside = (sdf > 0.0) & present[..., None]
     return FrameEvents(
         collisions=collisions,
-        offroad_fraction=xp.mean(xp.astype(outside, sdf.dtype), axis=-1),
+        offroad_fraction=xp.sum(xp.astype(outside, sdf.dtype), axis=-1) / outside.shape[-1],
         sdf_depth=xp.where(present, xp.max(sdf, axis=-1), 0.0),
         centroid_offroad=outside[..., -1],
     )

@@ -15,6 +15,8 @@ of them. Everything is written once against the array API (numpy or torch).
 
 from __future__ import annotations
 
+import math
+
 from array_api_compat import device
 
 from riskflow_env._array import Array, asarray_like, namespace
@@ -182,21 +184,29 @@ def pairwise_overlap(
         when agents i and j (both valid) overlap.
     """
     xp = namespace(xy, yaw, length, width)
-    length = asarray_like(length, yaw)
-    width = asarray_like(width, yaw)
-    overlap = pair_overlap(
-        xy[..., :, None, :],
-        yaw[..., :, None],
-        length[..., :, None] if length.ndim else length,
-        width[..., :, None] if width.ndim else width,
-        xy[..., None, :, :],
-        yaw[..., None, :],
-        length[..., None, :] if length.ndim else length,
-        width[..., None, :] if width.ndim else width,
-        tolerance,
+    x, y, yaw, length, width = xp.broadcast_arrays(
+        xy[..., 0], xy[..., 1], yaw, asarray_like(length, yaw), asarray_like(width, yaw)
     )
-    num_agents = xy.shape[-2]
-    overlap = overlap & ~xp.eye(num_agents, dtype=xp.bool, device=device(xy))
+    # Bounding-circle prefilter: boxes whose centres are farther apart than the sum of
+    # their circumradii (plus sqrt(2) * tolerance, see ``pair_overlap``) cannot overlap,
+    # so the SAT test runs only on the few candidate pairs. The slack keeps the
+    # prefilter conservative under rounding; the verdicts are those of ``pair_overlap``.
+    radius = 0.5 * xp.sqrt(length**2 + width**2)
+    reach = radius[..., :, None] + radius[..., None, :] + math.sqrt(2.0) * max(tolerance, 0.0)
+    dx, dy = x[..., None, :] - x[..., :, None], y[..., None, :] - y[..., :, None]
+    candidate = dx * dx + dy * dy <= reach * reach * (1.0 + 1e-9) + 1e-9
+    num_agents = x.shape[-1]
+    candidate = candidate & ~xp.eye(num_agents, dtype=xp.bool, device=device(x))
     if valid is not None:
-        overlap = overlap & valid[..., :, None] & valid[..., None, :]
+        candidate = candidate & valid[..., :, None] & valid[..., None, :]
+    index = xp.nonzero(candidate)  # (..., i, j) index arrays of the candidate pairs
+    overlap = xp.zeros(candidate.shape, dtype=xp.bool, device=device(x))
+    if index[0].shape[0] == 0:
+        return overlap
+    first, second = (*index[:-1],), (*index[:-2], index[-1])  # (..., i) and (..., j)
+
+    def box(at: tuple) -> tuple[Array, Array, Array, Array]:
+        return xp.stack([x[at], y[at]], axis=-1), yaw[at], length[at], width[at]
+
+    overlap[index] = pair_overlap(*box(first), *box(second), tolerance)
     return overlap

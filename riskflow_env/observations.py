@@ -56,12 +56,31 @@ def _sample_offsets(config: ObservationConfig) -> np.ndarray:
     return offsets
 
 
+def sample_points(current: Array, config: ObservationConfig) -> Array:
+    """World points of each agent's map SDF samples: its centre, then the rays.
+
+    Args:
+        current: (..., A, 4) agent states (x [m], y [m], v [m/s], psi [rad]).
+        config: ray layout.
+
+    Returns:
+        (..., A, 1 + K * D, 2) [m].
+    """
+    xp = namespace(current)
+    x, y, yaw = current[..., 0, None], current[..., 1, None], current[..., YAW, None]
+    cos, sin = xp.cos(yaw), xp.sin(yaw)
+    offsets = asarray_like(_sample_offsets(config), current)
+    forward, left = offsets[0], offsets[1]  # (P,) each, centre first
+    return xp.stack([x + (cos * forward - sin * left), y + (sin * forward + cos * left)], axis=-1)
+
+
 def observe(
     state: SceneState,
     pair_features: Array,
     pair_mask: Array,
     drivable_map: DrivableMap,
     config: ObservationConfig,
+    sdf: Array | None = None,
 ) -> Array:
     """Observations of all slots at once.
 
@@ -77,6 +96,8 @@ def observe(
         pair_mask: (..., A, A) bool, which pairs are observed (see ``pairwise_features``).
         drivable_map: the scene's map.
         config: observation layout.
+        sdf: (..., A, 1 + K * D) the map SDF [m] at :func:`sample_points`, when the
+            caller has looked it up already (one lookup for all points of a step).
 
     Returns:
         (..., A, observation_size(config)) float32; rows of empty slots are zeros.
@@ -84,12 +105,8 @@ def observe(
     current = state.current
     xp = namespace(current)
     num_agents = current.shape[-2]
-    x, y, yaw = current[..., 0, None], current[..., 1, None], current[..., YAW, None]
-    cos, sin = xp.cos(yaw), xp.sin(yaw)
-    offsets = asarray_like(_sample_offsets(config), current)
-    forward, left = offsets[0], offsets[1]  # (P,) each, centre first
-    world = xp.stack([x + (cos * forward - sin * left), y + (sin * forward + cos * left)], axis=-1)
-    sdf = drivable_map.sdf_at(world)  # (..., A, 1 + K*D)
+    if sdf is None:
+        sdf = drivable_map.sdf_at(sample_points(current, config))  # (..., A, 1 + K*D)
 
     length, width = state.length, state.width
     own = xp.stack(

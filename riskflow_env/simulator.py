@@ -1,18 +1,35 @@
-"""Pure simulator functions: ``reset(scenario) -> SceneState`` and ``step(state, actions)``.
+"""Pure simulator functions: ``reset(scenario) -> SceneState``, ``step(state, actions)``,
+``evaluate(state)`` (events, observations, rewards) and ``episode_end`` (done flags).
 
 The env (:mod:`riskflow_env.env`) is a thin stateful shell over these; they can be used
-directly, e.g. to roll many scenes without the PettingZoo plumbing.
+directly, e.g. to roll many scenes without the PettingZoo plumbing
+(:mod:`riskflow_env.batched` steps a batch of scenes with the same functions).
+``advance``, ``evaluate`` and ``episode_end`` take leading dims ``(..., A)`` and numpy
+arrays or torch tensors.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
 import numpy as np
 
 from riskflow_env import dynamics
-from riskflow_env.config import DynamicsConfig
-from riskflow_env.dynamics import SPEED
+from riskflow_env._array import Array, asarray_like, namespace
+from riskflow_env.config import DynamicsConfig, EnvConfig
+from riskflow_env.dynamics import SPEED, STATE_DIM, YAW
+from riskflow_env.events import FrameEvents, detect
+from riskflow_env.geometry import NUM_FOOTPRINT_POINTS, footprint_points
+from riskflow_env.maps import DrivableMap
+from riskflow_env.observations import observe, sample_points
+from riskflow_env.rewards import reward_terms
+from riskflow_env.risk import pairwise_features
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.state import HISTORY_STEPS, SceneState
+
+RISK_INDEX = -1  # the risk weight is the last pair feature
+_SPEED_COLUMN = np.arange(STATE_DIM) == SPEED
 
 
 def select_agents(scenario: Scenario, max_agents: int) -> np.ndarray:
@@ -79,11 +96,35 @@ def reset(scenario: Scenario, max_agents: int, rows: np.ndarray | None = None) -
     )
 
 
-def step(state: SceneState, actions: np.ndarray, config: DynamicsConfig) -> SceneState:
-    """Advance every agent by one time step.
+def advance(
+    current: Array, present: Array, active: Array, actions: Array, config: DynamicsConfig
+) -> tuple[Array, Array]:
+    """Next states of all slots: active agents follow the unicycle model under
+    ``actions``; present but inactive agents (done) stand still where they are (speed 0);
+    empty slots keep their state.
 
-    Active agents follow the unicycle model under ``actions``; present but inactive
-    agents (done) stand still where they are; empty slots stay empty.
+    Args:
+        current: (..., A, 4) states (x [m], y [m], v [m/s], psi [rad]).
+        present: (..., A) bool, the slot holds a vehicle.
+        active: (..., A) bool, the vehicle is still controlled.
+        actions: (..., A, 2) (accel [m/s^2], yaw rate [rad/s]); rows of inactive slots
+            are ignored. Actions are clipped to the dynamics bounds by the model.
+        config: dynamics bounds and time step.
+
+    Returns:
+        new: (..., A, 4) the states ``dt`` later.
+        applied: (..., A, 2) the actions applied (clipped; zeros for inactive slots).
+    """
+    xp = namespace(current, actions)
+    live = active[..., None]
+    applied = xp.where(live, dynamics.clip_actions(actions, config), 0.0)
+    moved = dynamics.step(current, applied, config)
+    halt = present[..., None] & asarray_like(_SPEED_COLUMN, present)  # zero a done car's speed
+    return xp.where(live, moved, xp.where(halt, 0.0, current)), applied
+
+
+def step(state: SceneState, actions: np.ndarray, config: DynamicsConfig) -> SceneState:
+    """Advance every agent by one time step (see :func:`advance`).
 
     Args:
         state: the current scene state.
@@ -91,15 +132,91 @@ def step(state: SceneState, actions: np.ndarray, config: DynamicsConfig) -> Scen
             are ignored. Actions are clipped to the dynamics bounds by the model.
         config: dynamics bounds and time step.
     """
-    current = state.current
-    active = state.active[:, None]
-    applied = np.where(active, dynamics.clip_actions(actions, config), 0.0)
-    moved = dynamics.step(current, applied, config)
-    stopped = current.copy()
-    stopped[:, SPEED] = 0.0
-    new = np.where(active, moved, np.where(state.present[:, None], stopped, current))
+    new, applied = advance(state.current, state.present, state.active, actions, config)
     history = np.concatenate([state.history[:, 1:], new[:, None]], axis=1)
     history_valid = np.concatenate([state.history_valid[:, 1:], state.present[:, None]], axis=1)
     return state.replace(
         history=history, history_valid=history_valid, last_action=applied, step=state.step + 1
     )
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """Everything the env reports about one state (leading dims ``(..., A)``).
+
+    Attributes:
+        pair_features: (..., A, A, 8) from :func:`riskflow_env.risk.pairwise_features`.
+        pair_mask: (..., A, A) bool, observed pairs.
+        events: collisions and off-road flags.
+        observations: (..., A, D) float32, or None when not requested.
+        reward_terms: term name -> (..., A) weighted reward term.
+        reward: (..., A) the sum of the terms.
+    """
+
+    pair_features: Array
+    pair_mask: Array
+    events: FrameEvents
+    observations: Array | None
+    reward_terms: dict[str, Array]
+    reward: Array
+
+
+def evaluate(
+    state: Any, drivable_map: DrivableMap, config: EnvConfig, observations: bool = True
+) -> Evaluation:
+    """Risk features, events, observations and rewards of ``state``.
+
+    Args:
+        state: a :class:`SceneState`, or any object with ``current`` (..., A, 4),
+            ``last_action`` (..., A, 2), ``length``, ``width`` (..., A) [m] and
+            ``present`` (..., A) bool (a batch of scenes sharing ``drivable_map``).
+        drivable_map: the map.
+        config: observation, reward and dynamics settings.
+        observations: compute the observations (skip them for pure simulation).
+    """
+    current = state.current
+    xp = namespace(current)
+    features, mask = pairwise_features(current, state.length, state.width, state.present)
+    # One map lookup for the footprints (events) and the SDF samples (observations).
+    points = footprint_points(current[..., :2], current[..., YAW], state.length, state.width)
+    if observations:
+        points = xp.concat([points, sample_points(current, config.observation)], axis=-2)
+    sdf = drivable_map.sdf_at(points)
+    events = detect(state, drivable_map, footprint_sdf=sdf[..., :NUM_FOOTPRINT_POINTS])
+    rows = None
+    if observations:
+        sdf = sdf[..., NUM_FOOTPRINT_POINTS:]
+        rows = observe(state, features, mask, drivable_map, config.observation, sdf=sdf)
+    terms = reward_terms(state, events, features[..., RISK_INDEX], config.reward, config.dynamics)
+    return Evaluation(features, mask, events, rows, terms, sum(terms.values()))
+
+
+def episode_end(
+    active: Array,
+    events: FrameEvents,
+    terminate_on_collision: Array,
+    terminate_on_offroad: Array,
+    time_up: bool | Array,
+    end_with_ego: bool,
+) -> tuple[Array, Array]:
+    """Which live agents terminate or are truncated at this step.
+
+    Args:
+        active: (..., A) bool, agents live before the step.
+        events: the events after the step.
+        terminate_on_collision: (A,) bool, agents that terminate when they collide.
+        terminate_on_offroad: (A,) bool, agents that terminate when off the road.
+        time_up: the episode length is reached (bool, or (..., 1) bool per scene).
+        end_with_ego: when the ego (slot 0) is done, truncate every other live agent.
+
+    Returns:
+        terminated, truncated: (..., A) bool, disjoint, both within ``active``.
+    """
+    terminated = active & (
+        (events.collided & terminate_on_collision) | (events.offroad & terminate_on_offroad)
+    )
+    truncated = active & ~terminated & time_up
+    if end_with_ego:
+        ego_done = (terminated[..., 0] | truncated[..., 0])[..., None]
+        truncated = truncated | (ego_done & active & ~terminated)
+    return terminated, truncated

@@ -1,0 +1,121 @@
+"""The numpy namespace of ``riskflow_env._array``: identical results to numpy's own functions.
+
+``namespace(numpy_array)`` returns numpy with a few Python-level wrappers (clip, max, min,
+sum, stack, take_along_axis, cumulative_sum) replaced by the ufunc calls they end in; these
+tests pin that the replacements agree with numpy bit for bit (values, dtype, shape, the
+sign of zeros) or raise the same exception type.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from riskflow_env._array import _NUMPY_IS_STANDARD, namespace
+
+pytestmark = pytest.mark.skipif(
+    not _NUMPY_IS_STANDARD, reason="numpy < 2.1 uses the compat namespace"
+)
+
+FAST = namespace(np.zeros(1))
+DTYPES = (np.float64, np.float32, np.int64, np.int32, np.uint8, np.bool_)
+SHAPES = ((), (5,), (3, 4), (2, 3, 4), (0, 3))
+
+
+def _arrays():
+    rng = np.random.default_rng(0)
+    for dtype in DTYPES:
+        for shape in SHAPES:
+            if dtype is np.bool_:
+                x = rng.random(shape) > 0.5
+            else:
+                x = (rng.normal(size=shape) * 10).astype(dtype)
+            if x.dtype.kind == "f" and x.size:
+                x.flat[0], x.flat[-1] = np.nan, -0.0
+            yield x
+
+
+def _outcome(call):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            return call()
+        except Exception as error:  # noqa: BLE001 - the exception type is the outcome
+            return type(error)
+
+
+def _assert_same(expected_call, got_call):
+    expected, got = _outcome(expected_call), _outcome(got_call)
+    if isinstance(expected, type) or isinstance(got, type):
+        assert expected is got
+        return
+    assert type(got) is type(expected)
+    expected, got = np.asarray(expected), np.asarray(got)
+    assert got.dtype == expected.dtype and got.shape == expected.shape
+    np.testing.assert_array_equal(got, expected)
+    if got.dtype.kind == "f":
+        np.testing.assert_array_equal(np.signbit(got), np.signbit(expected))
+
+
+def test_namespace_of_numpy_and_torch():
+    assert FAST.__name__ == "numpy" and FAST.pi == np.pi and FAST.linalg is np.linalg
+    assert namespace(np.zeros(2), 1.0, None) is FAST
+    assert namespace(torch.zeros(2)) is not FAST
+    with pytest.raises(TypeError):
+        namespace(np.zeros(2), torch.zeros(2))
+    with pytest.raises(TypeError):
+        namespace(1.0, None)
+
+
+@pytest.mark.parametrize(
+    "bounds", [(0.0, 1.0), (None, 2), (-1, None), (0, 0), (2.0, -1.0), (-0.0, 0.0)]
+)
+def test_clip(bounds):
+    for x in _arrays():
+        _assert_same(lambda x=x: np.clip(x, *bounds), lambda x=x: FAST.clip(x, *bounds))
+
+
+@pytest.mark.parametrize("name", ["max", "min", "sum"])
+def test_reductions(name):
+    for x in _arrays():
+        for axis in (None, 0, -1, (0, 1)):
+            for keepdims in (False, True):
+                _assert_same(
+                    lambda x=x, a=axis, k=keepdims: getattr(np, name)(x, axis=a, keepdims=k),
+                    lambda x=x, a=axis, k=keepdims: getattr(FAST, name)(x, axis=a, keepdims=k),
+                )
+
+
+def test_stack_take_along_axis_cumulative_sum():
+    for x in _arrays():
+        for axis in range(-x.ndim - 2, x.ndim + 2):
+            _assert_same(
+                lambda x=x, a=axis: np.stack([x, x, x], axis=a),
+                lambda x=x, a=axis: FAST.stack([x, x, x], axis=a),
+            )
+            if x.ndim and -x.ndim <= axis < x.ndim:
+                _assert_same(
+                    lambda x=x, a=axis: np.cumulative_sum(x, axis=a),
+                    lambda x=x, a=axis: FAST.cumulative_sum(x, axis=a),
+                )
+                if x.shape[axis]:
+                    index = np.take(np.argsort(x, axis=axis), [0, 1, 0], axis=axis, mode="clip")
+                    for idx in (index, index.astype(float)):
+                        _assert_same(
+                            lambda x=x, i=idx, a=axis: np.take_along_axis(x, i, axis=a),
+                            lambda x=x, i=idx, a=axis: FAST.take_along_axis(x, i, axis=a),
+                        )
+    for arrays in (
+        [np.zeros(3), np.zeros(4)],
+        [np.zeros((2, 3)), np.zeros((3, 2))],
+        [],
+        [np.zeros(3), [1, 2, 3]],
+    ):
+        for axis in (0, -1):
+            _assert_same(
+                lambda a=arrays, x=axis: np.stack(a, axis=x),
+                lambda a=arrays, x=axis: FAST.stack(a, axis=x),
+            )
