@@ -97,7 +97,10 @@ class ModelConfig:
                 f"ModelConfig.{name} ({getattr(self, name)}) must be a multiple of "
                 f"num_heads ({self.num_heads})",
             )
-        _require(len(self.map_widths) > 0, "ModelConfig.map_widths must not be empty")
+        _require(
+            len(self.map_widths) > 0 and all(isinstance(w, int) for w in self.map_widths),
+            f"ModelConfig.map_widths must be a non-empty tuple of ints, got {self.map_widths!r}",
+        )
         _require(self.time_scale > 0, f"ModelConfig.time_scale must be > 0, got {self.time_scale}")
         for name, size in (
             ("map_widths", None),

@@ -134,7 +134,7 @@ def trajectory_loss(
         batch: ``future (B, A, T, 4)``, ``future_valid (B, A, T)`` (scene frame).
         scene: the encoder output (current states and agent mask).
         normalizer: action normalisation.
-        heading_weight: weight of the heading error [1/rad^2 relative to 1/m^2].
+        heading_weight: weight [m^2/rad^2] of ``heading_mse`` in the loss.
         dynamics: time step and bounds of the rollout.
 
     Returns:
@@ -189,7 +189,7 @@ def meanflow_loss(
         t: ``(B,)`` or ``(B, A)`` start times in [0, 1] (``time_sampler.TimeSampler``).
         r: like ``t``, end times ``r >= t``.
         clip: ``c``, bound of ``sg(du/dt)`` in the reconstruction.
-        heading_weight: weight of the heading error [rad^2] in the loss.
+        heading_weight: weight [m^2/rad^2] of ``heading_mse`` in the loss.
         action_weight: weight of ``action_mse`` in the loss (0: RiskFlow's pure
             trajectory-space loss). Positions integrate actions twice, so they barely
             see high-frequency action errors; this term (the MeanFlow regression
