@@ -1,0 +1,258 @@
+"""Recorded scenes in the ScenarioNet / MetaDrive "scenario description" format.
+
+A description is a pickled dict with ``tracks`` (object id -> ``type`` and ``state``:
+``position (T, 3)``, ``heading (T,)``, ``velocity (T, 2)``, ``valid (T,)``,
+``length / width / height (T, 1)``), ``map_features`` and ``metadata`` (``sdc_id``,
+``ts`` or ``sample_rate``...). :func:`load_scenarionet` reads one with a restricted
+unpickler (:mod:`~riskflow_env.scenarios.safe_pickle`: builtin containers and numpy
+arrays only) and turns it into a :class:`Scenario`:
+
+* Agents: the ``VEHICLE`` tracks; the SDC (``metadata["sdc_id"]``) is the ego, row 0.
+  Pedestrians, cyclists, cones and barriers are dropped. Tracks never valid in the
+  window are dropped.
+* Time: resampled to 10 Hz when the file's rate differs (linear in position and
+  velocity, shortest-arc in heading; a resampled step is valid when both recorded
+  neighbours are). nuScenes tracks are 2 Hz keyframes that the converter already
+  interpolated to 10 Hz: their accelerations and jerk are interpolation artefacts.
+* State ``(x, y, v, psi)``: ``v`` is the norm of ``velocity`` (finite differences of
+  the positions when the file has none); ``psi`` is unwrapped along time.
+* Window: ``history_steps`` (31) steps up to and including ``current_index`` (default
+  30), then the rest of the recording as the reference future, padded to at least
+  ``min_future_steps`` (100, one default episode) with invalid steps; a
+  ``current_index`` below 30 pads the history the same way. Invalid steps hold the
+  nearest valid state (never NaN), with ``valid`` False.
+* Sizes: median length and width over the valid steps; swapped when the length is the
+  smaller (the nuScenes converter stores the SDC's that way).
+* Map: :func:`~riskflow_env.scenarios.scenarionet_map.build_map` (lane polygons, lane
+  centrelines with successors and speed limits). Traffic lights are not used.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from riskflow_env.dynamics import wrap_angle
+from riskflow_env.scenarios.safe_pickle import load_data_pickle
+from riskflow_env.scenarios.scenario import Scenario
+from riskflow_env.scenarios.scenarionet_map import build_map
+from riskflow_env.state import HISTORY_STEPS
+
+DT = 0.1  # [s] time step of scenarios
+MIN_FUTURE_STEPS = 100  # reference future padded to at least this many steps (10 s)
+VEHICLE = "VEHICLE"
+DEFAULT_SIZE = (4.5, 2.0)  # [m] (length, width) of tracks that give none
+
+
+def load_scenarionet(
+    path: str | Path,
+    resolution: float = 0.5,
+    current_index: int | None = None,
+    min_future_steps: int = MIN_FUTURE_STEPS,
+    margin: float = 5.0,
+) -> Scenario:
+    """Load one ScenarioNet / MetaDrive scenario-description pickle as a :class:`Scenario`.
+
+    Args:
+        path: the ``.pkl`` file. It is read with a restricted unpickler: a file naming
+            any global other than builtin containers and numpy array reconstruction
+            raises ``ValueError`` without running anything.
+        resolution: map raster resolution [m/px].
+        current_index: step (at 10 Hz, from the start of the recording) that becomes the
+            current one; default ``history_steps - 1`` = 30 (3 s of history).
+        min_future_steps: the reference future has at least this many steps [0.1 s].
+        margin: off-road border around the road [m].
+
+    Returns:
+        A Scenario named ``"scenarionet/<scenario id>"`` with ``dt`` 0.1 s.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"load_scenarionet: no such file {path}")
+    description = load_data_pickle(path)
+    return scenario_from_description(
+        description, resolution, current_index, min_future_steps, margin, source=str(path)
+    )
+
+
+def scenario_from_description(
+    description: Mapping[str, Any],
+    resolution: float = 0.5,
+    current_index: int | None = None,
+    min_future_steps: int = MIN_FUTURE_STEPS,
+    margin: float = 5.0,
+    source: str = "<description>",
+) -> Scenario:
+    """:func:`load_scenarionet` for an already loaded description dict."""
+    for key in ("tracks", "map_features", "metadata"):
+        if not isinstance(description, Mapping) or not isinstance(description.get(key), Mapping):
+            raise ValueError(f"{source}: a scenario description needs a dict {key!r}")
+    tracks, metadata = description["tracks"], description["metadata"]
+    ids = [
+        str(k)
+        for k, t in tracks.items()
+        if isinstance(t, Mapping) and str(t.get("type")) == VEHICLE
+    ]
+    sdc = str(metadata.get("sdc_id", ""))
+    if sdc not in ids:
+        raise ValueError(f"{source}: metadata['sdc_id'] = {sdc!r} is not a VEHICLE track")
+    ids.remove(sdc)
+    ids.insert(0, sdc)
+    by_id = {str(k): t for k, t in tracks.items()}
+    xy, heading, velocity, valid, size = _stack_tracks(
+        [by_id[i]["state"] for i in ids], ids, source
+    )
+
+    times = _times(metadata, xy.shape[1], source)
+    grid = np.arange(int(np.floor((times[-1] - times[0]) / DT + 1e-6)) + 1) * DT + times[0]
+    if len(times) != len(grid) or not np.allclose(times, grid, atol=1e-6):
+        xy, heading, velocity, valid = _resample(times, grid, xy, heading, velocity, valid)
+    speed = np.linalg.norm(velocity, axis=-1) if velocity is not None else _speed_from_xy(xy, valid)
+
+    now = HISTORY_STEPS - 1 if current_index is None else int(current_index)
+    if not 0 <= now < len(grid):
+        raise ValueError(f"current_index must be in [0, {len(grid)}) for {source}, got {now}")
+    if not valid[0, now]:
+        raise ValueError(f"{source}: the SDC {sdc!r} is not valid at current_index {now}")
+    future = max(len(grid) - now - 1, int(min_future_steps))
+    index = now - (HISTORY_STEPS - 1) + np.arange(HISTORY_STEPS + future)
+    inside = (index >= 0) & (index < len(grid))
+    index = np.clip(index, 0, len(grid) - 1)
+    window_valid = valid[:, index] & inside
+    keep = window_valid.any(axis=1)
+    keep[0] = True
+    states = np.concatenate(
+        [xy[:, index], speed[:, index, None], heading[:, index, None]], axis=-1
+    )[keep]
+    window_valid = window_valid[keep]
+    states = _hold_nearest_valid(states, window_valid)
+    states[..., 3] = np.unwrap(states[..., 3], axis=1)
+    length, width = size[keep, 0], size[keep, 1]
+    name = str(metadata.get("scenario_id", metadata.get("id", description.get("id", ""))))
+    all_xy = xy[valid]
+    drivable_map = build_map(
+        description["map_features"], resolution, margin, f"scenarionet/{name}", all_xy, source
+    )
+    return Scenario(
+        map=drivable_map,
+        states=states,
+        valid=window_valid,
+        length=length,
+        width=width,
+        ego_index=0,
+        agent_ids=tuple(np.array(ids)[keep].tolist()),
+        name=f"scenarionet/{name}",
+        dt=DT,
+        history_steps=HISTORY_STEPS,
+    )
+
+
+def _stack_tracks(states: list, ids: list[str], source: str) -> tuple:
+    """Arrays of all vehicle tracks: xy (N, T, 2), heading (N, T), velocity (N, T, 2) or
+    None, valid (N, T) bool, size (N, 2) (length, width) [m]."""
+    fields: dict[str, list] = {"position": [], "heading": [], "velocity": [], "valid": []}
+    size = np.zeros((len(ids), 2))
+    steps = None
+    for row, (track_id, state) in enumerate(zip(ids, states, strict=True)):
+        if not isinstance(state, Mapping):
+            raise ValueError(f"{source}: track {track_id!r} has no 'state' dict")
+        for key in ("position", "heading", "valid"):
+            if key not in state:
+                raise ValueError(f"{source}: track {track_id!r} state has no {key!r}")
+        position = np.asarray(state["position"], dtype=np.float64)
+        steps = steps if steps is not None else len(position)
+        if position.ndim != 2 or position.shape[1] < 2 or len(position) != steps:
+            raise ValueError(
+                f"{source}: track {track_id!r} position must have shape ({steps}, 2 or 3), "
+                f"got {position.shape}"
+            )
+        valid = np.asarray(state["valid"]).reshape(-1).astype(bool)
+        heading = np.asarray(state["heading"], dtype=np.float64).reshape(-1)
+        for key, value in (("valid", valid), ("heading", heading)):
+            if value.shape != (steps,):
+                raise ValueError(f"{source}: track {track_id!r} {key} must have shape ({steps},)")
+        valid &= np.all(np.isfinite(position[:, :2]), axis=1) & np.isfinite(heading)
+        fields["position"].append(position[:, :2])
+        fields["heading"].append(heading)
+        fields["valid"].append(valid)
+        velocity = state.get("velocity")
+        velocity = None if velocity is None else np.asarray(velocity, dtype=np.float64)
+        fields["velocity"].append(
+            velocity if velocity is not None and velocity.shape == (steps, 2) else None
+        )
+        for column, key in enumerate(("length", "width")):
+            values = np.asarray(state.get(key, ()), dtype=np.float64).reshape(-1)
+            values = values[valid] if values.shape == (steps,) else values
+            values = values[np.isfinite(values) & (values > 0)]
+            size[row, column] = np.median(values) if values.size else DEFAULT_SIZE[column]
+    size = np.where(size[:, :1] < size[:, 1:], size[:, ::-1], size)  # length is the larger
+    velocities = fields["velocity"]
+    velocity = None if any(v is None for v in velocities) else np.stack(velocities)
+    if velocity is not None:
+        velocity = np.where(np.isfinite(velocity), velocity, 0.0)
+    xy = np.stack(fields["position"])
+    return xy, np.stack(fields["heading"]), velocity, np.stack(fields["valid"]), size
+
+
+def _times(metadata: Mapping, steps: int, source: str) -> np.ndarray:
+    """(T,) [s] time stamps of the recorded steps."""
+    ts = metadata.get("ts")
+    if ts is not None and np.size(ts) == steps:
+        times = np.asarray(ts, dtype=np.float64).reshape(-1)
+    else:
+        rate = float(metadata.get("sample_rate", DT))
+        times = np.arange(steps) * rate
+    if steps < 1 or not np.all(np.isfinite(times)) or np.any(np.diff(times) <= 0):
+        raise ValueError(f"{source}: time stamps must be finite and increasing")
+    return times
+
+
+def _resample(
+    times: np.ndarray,
+    grid: np.ndarray,
+    xy: np.ndarray,
+    heading: np.ndarray,
+    velocity: np.ndarray | None,
+    valid: np.ndarray,
+) -> tuple:
+    """Tracks on the time ``grid`` (G,): linear, heading along the shortest arc."""
+    left = np.clip(np.searchsorted(times, grid, side="right") - 1, 0, max(len(times) - 2, 0))
+    right = np.minimum(left + 1, len(times) - 1)
+    span = np.where(right > left, times[right] - times[left], 1.0)
+    frac = np.clip((grid - times[left]) / span, 0.0, 1.0)  # (G,)
+    new_valid = (valid[:, left] & valid[:, right]) | (valid[:, left] & (frac == 0.0))
+    new_valid |= valid[:, right] & (frac == 1.0)
+
+    def lerp(values: np.ndarray) -> np.ndarray:
+        weight = frac.reshape((1, -1) + (1,) * (values.ndim - 2))
+        return values[:, left] + weight * (values[:, right] - values[:, left])
+
+    turn = wrap_angle(heading[:, right] - heading[:, left])
+    new_heading = heading[:, left] + frac * turn
+    new_velocity = None if velocity is None else lerp(velocity)
+    return lerp(xy), new_heading, new_velocity, new_valid
+
+
+def _speed_from_xy(xy: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(N, T) [m/s] mean of the backward and forward position differences that exist."""
+    step = np.linalg.norm(np.diff(xy, axis=1), axis=-1) / DT  # (N, T-1)
+    ok = valid[:, 1:] & valid[:, :-1]
+    total = np.zeros(valid.shape)
+    count = np.zeros(valid.shape)
+    for sl in (np.s_[:, 1:], np.s_[:, :-1]):  # backward, forward
+        total[sl] += np.where(ok, step, 0.0)
+        count[sl] += ok
+    return np.where(count > 0, total / np.maximum(count, 1), 0.0)
+
+
+def _hold_nearest_valid(states: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``states`` (N, T, 4) with invalid steps replaced by the nearest earlier valid state
+    (the first valid one before any)."""
+    steps = np.arange(valid.shape[1])
+    last = np.maximum.accumulate(np.where(valid, steps, -1), axis=1)
+    first = np.argmax(valid, axis=1)[:, None]
+    source = np.where(last >= 0, last, first)
+    return np.take_along_axis(states, source[..., None], axis=1)
