@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from policies.baselines.constant_velocity import ConstantVelocityPolicy
 from policies.baselines.idm import IDMParams, IDMPolicy
+from policies.baselines.replay import ReplayPolicy
 
-__all__ = ["IDMParams", "IDMPolicy"]
+__all__ = ["ConstantVelocityPolicy", "IDMParams", "IDMPolicy", "ReplayPolicy"]
