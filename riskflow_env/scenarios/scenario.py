@@ -33,6 +33,9 @@ class Scenario:
         name: a short identifier of the scene (source, family, seed...).
         dt: track time step [s].
         history_steps: number of history states, the current one included.
+        kinds: (N,) agent categories (e.g. ``"car"``, ``"truck"``), or empty when unknown.
+        source: where the scene comes from (e.g. ``"highway-env-idm"``, a dataset name).
+        family: road family or location label (e.g. ``"roundabout"``), or empty.
     """
 
     map: DrivableMap
@@ -45,6 +48,9 @@ class Scenario:
     name: str = ""
     dt: float = 0.1
     history_steps: int = HISTORY_STEPS
+    kinds: tuple[str, ...] = field(default=())
+    source: str = ""
+    family: str = ""
 
     def __post_init__(self) -> None:
         states = self.states
@@ -81,6 +87,18 @@ class Scenario:
             raise ValueError(
                 f"Scenario.agent_ids must name all {num_agents} agents, got {len(self.agent_ids)}"
             )
+        if self.kinds and len(self.kinds) != num_agents:
+            raise ValueError(
+                f"Scenario.kinds must give all {num_agents} agents a kind, got {len(self.kinds)}"
+            )
+        for name in ("agent_ids", "kinds"):
+            values = getattr(self, name)
+            if not all(isinstance(value, str) for value in values):
+                raise ValueError(f"Scenario.{name} must hold strings, got {values!r}")
+            object.__setattr__(self, name, tuple(values))
+        for name in ("name", "source", "family"):
+            if not isinstance(getattr(self, name), str):
+                raise ValueError(f"Scenario.{name} must be a string, got {getattr(self, name)!r}")
 
     @property
     def num_agents(self) -> int:

@@ -1,0 +1,89 @@
+"""Low-level ``.npz`` helpers of the scenario format: deterministic writes, schema checks."""
+
+from __future__ import annotations
+
+import os
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+VERSION = 1
+
+
+class ScenarioFormatError(ValueError):
+    """A scenario or map file that cannot be read: the message names the file and why."""
+
+
+def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """``np.savez_compressed`` with fixed zip timestamps, written to a temp name and renamed."""
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with zipfile.ZipFile(temporary, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+            for key, value in arrays.items():
+                info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+                info.compress_type = zipfile.ZIP_DEFLATED
+                with archive.open(info, "w", force_zip64=True) as handle:
+                    np.lib.format.write_array(handle, np.asanyarray(value), allow_pickle=False)
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+
+
+def read_npz(path: Path, schema: str) -> dict[str, np.ndarray]:
+    """All arrays of ``path`` after checking its ``schema`` and ``version``."""
+    if not path.is_file():
+        raise FileNotFoundError(f"scenario file {path} not found")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {key: data[key] for key in data.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as error:
+        raise ScenarioFormatError(f"{path}: not a readable .npz file ({error})") from None
+    found = arrays.get("schema")
+    if found is None or found.shape != () or str(found) != schema:
+        got = "no 'schema' key" if found is None else f"schema {str(found)!r}"
+        raise ScenarioFormatError(f"{path}: expected schema {schema!r}, got {got}")
+    version = arrays.get("version")
+    if version is None or version.shape != () or version.dtype.kind not in "iu":
+        raise ScenarioFormatError(f"{path}: missing or malformed 'version' (expected {VERSION})")
+    if int(version) != VERSION:
+        raise ScenarioFormatError(
+            f"{path}: version {int(version)} is not supported (this riskflow_env reads {VERSION})"
+        )
+    return arrays
+
+
+def check_arrays(
+    path: Path,
+    arrays: dict[str, np.ndarray],
+    spec: dict[str, tuple[tuple, str]],
+    optional: dict[str, tuple[tuple, str]] | None = None,
+) -> None:
+    """Every key of ``spec`` (and of ``optional`` when present) has a consistent shape
+    (named dims agree across keys; ``N?`` is N or 0) and an allowed dtype kind."""
+    missing = sorted(set(spec) - set(arrays))
+    if missing:
+        raise ScenarioFormatError(f"{path}: missing key(s) {missing}")
+    present = {key: rule for key, rule in (optional or {}).items() if key in arrays}
+    sizes: dict[str, int] = {}
+    for key, (dims, kinds) in {**spec, **present}.items():
+        value = arrays[key]
+        if value.dtype.kind not in kinds:
+            raise ScenarioFormatError(
+                f"{path}: {key!r} has dtype {value.dtype}, expected kind {kinds!r}"
+            )
+        ok = value.ndim == len(dims)
+        for dim, size in zip(dims, value.shape, strict=False):
+            if isinstance(dim, int):
+                ok = ok and size == dim
+            elif dim == "N?":
+                ok = ok and size in (0, sizes.get("N", size))
+            else:
+                ok = ok and sizes.setdefault(dim, size) == size
+        if ok and "L+1" in sizes and "L" in sizes:
+            ok = sizes["L+1"] == sizes["L"] + 1
+        if not ok:
+            known = ", ".join(f"{k}={v}" for k, v in sizes.items())
+            raise ScenarioFormatError(
+                f"{path}: {key!r} has shape {value.shape}, expected {dims} ({known})"
+            )

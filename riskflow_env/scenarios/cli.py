@@ -1,0 +1,199 @@
+"""``riskflow-data``: generate naturalistic scenario banks and describe them.
+
+::
+
+    riskflow-data generate --families highway merge roundabout --scenes 300 \\
+        --out data/train --seed 0 --workers 8 --split train
+    riskflow-data info data/train
+
+``generate`` writes scene ``i`` of family ``families[i % len(families)]`` to
+``OUT/<i:05d>-<family>.npz`` (maps once each under ``OUT/maps/``), seeded by
+``np.random.SeedSequence(seed, spawn_key=(split_key, i))``: the files depend on the
+seed, split, families and scene settings, never on the worker count or on which
+scenes were made before. Files appear atomically (temp name + rename), so an
+interrupted run is resumed by running the same command again: complete scenes are
+skipped. ``OUT/riskflow-data.json`` records the settings; resuming with different ones
+is refused. Scenes per minute are printed at the end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import json
+import multiprocessing
+import os
+import sys
+import time
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from riskflow_env.maps import FAMILIES
+from riskflow_env.scenarios.io import list_scenarios, save_scenario
+from riskflow_env.scenarios.naturalistic import SOURCE, SceneConfig, generate_scenario
+
+SPLIT_KEYS = {"train": 0, "eval": 1}  # spawn keys: train and eval scenes never share seeds
+MANIFEST = "riskflow-data.json"
+
+
+@dataclass(frozen=True)
+class GenerateOptions:
+    """Options of ``riskflow-data generate``."""
+
+    out: Path
+    """folder of the bank (scene files and maps/)"""
+    families: tuple[str, ...] = FAMILIES
+    """road families, assigned round-robin to scene indices"""
+    scenes: int = 100
+    """number of scenes in the bank (indices 0 .. scenes - 1)"""
+    seed: int = 0
+    """root seed"""
+    split: str = "train"
+    """'train' or 'eval': separate seed streams"""
+    workers: int = 1
+    """worker processes (results do not depend on it)"""
+    future_steps: int = 100
+    """reference future per scene [steps of 0.1 s]"""
+
+    def settings(self) -> dict:
+        """What the files depend on (recorded in the manifest)."""
+        return {
+            "source": SOURCE,
+            "families": list(self.families),
+            "seed": self.seed,
+            "split": self.split,
+            "future_steps": self.future_steps,
+        }
+
+
+def scene_path(out: Path, index: int, family: str) -> Path:
+    """``out / f"{index:05d}-{family}.npz"``."""
+    return out / f"{index:05d}-{family}.npz"
+
+
+def make_scene(options: GenerateOptions, index: int) -> Path:
+    """Generate and write scene ``index`` (what each worker runs)."""
+    family = options.families[index % len(options.families)]
+    seed = np.random.SeedSequence(options.seed, spawn_key=(SPLIT_KEYS[options.split], index))
+    config = SceneConfig(future_steps=options.future_steps)
+    name = f"{family}-{options.split}-s{options.seed}-{index:05d}"
+    scene = generate_scenario(family, np.random.default_rng(seed), config, name=name)
+    path = scene_path(options.out, index, family)
+    return save_scenario(scene, path, map_dir=options.out / "maps")
+
+
+def generate(options: GenerateOptions) -> dict:
+    """Write the missing scenes of the bank; returns counts and the measured rate."""
+    from tqdm import tqdm
+
+    out = options.out
+    out.mkdir(parents=True, exist_ok=True)
+    manifest = out / MANIFEST
+    if manifest.exists():
+        recorded = json.loads(manifest.read_text())
+        if recorded != options.settings():
+            raise SystemExit(
+                f"riskflow-data: {out} holds a bank made with other settings:\n  {recorded}\n"
+                f"not {options.settings()}; use another --out or the same settings"
+            )
+    else:
+        manifest.write_text(json.dumps(options.settings(), indent=2) + "\n")
+    for stale in [*out.glob(".*.tmp"), *(out / "maps").glob(".*.tmp")]:
+        stale.unlink(missing_ok=True)  # left by an interrupted run
+    todo = [
+        index
+        for index in range(options.scenes)
+        if not scene_path(out, index, options.families[index % len(options.families)]).exists()
+    ]
+    skipped = options.scenes - len(todo)
+    start = time.perf_counter()
+    bar = tqdm(total=len(todo), desc="scenes", unit="scene", disable=not todo)
+    if options.workers <= 1:
+        for index in todo:
+            make_scene(options, index)
+            bar.update()
+    else:
+        context = multiprocessing.get_context("spawn")
+        with concurrent.futures.ProcessPoolExecutor(options.workers, mp_context=context) as pool:
+            futures = [pool.submit(make_scene, options, index) for index in todo]
+            try:
+                for future in concurrent.futures.as_completed(futures):
+                    future.result()
+                    bar.update()
+            except BaseException:
+                for future in futures:
+                    future.cancel()
+                raise
+    bar.close()
+    seconds = time.perf_counter() - start
+    rate = 60.0 * len(todo) / seconds if todo else 0.0
+    print(
+        f"riskflow-data: {len(todo)} scenes written in {seconds:.1f} s "
+        f"({rate:.1f} scenes/min, {options.workers} worker(s)); {skipped} already on disk"
+    )
+    return {"written": len(todo), "skipped": skipped, "seconds": seconds, "per_minute": rate}
+
+
+def info(directory: Path) -> dict[str, int]:
+    """Print and return the number of scenes per family in ``directory``."""
+    counts: Counter[str] = Counter()
+    agents: Counter[str] = Counter()
+    for path in list_scenarios(directory):
+        with np.load(path, allow_pickle=False) as data:  # reads only the members used
+            family = str(data["family"])
+            agents[family] += int(data["length"].shape[0])
+        counts[family] += 1
+    manifest = directory / MANIFEST
+    settings = json.loads(manifest.read_text()) if manifest.exists() else {}
+    size = sum(p.stat().st_size for p in directory.rglob("*.npz"))
+    print(f"{directory}: {sum(counts.values())} scenes, {size / 1e6:.1f} MB", end="")
+    print(f" (split {settings['split']}, seed {settings['seed']})" if settings else "")
+    print(f"  {'family':<14}{'scenes':>8}{'mean agents':>13}")
+    for family in sorted(counts):
+        print(f"  {family:<14}{counts[family]:>8}{agents[family] / counts[family]:>13.1f}")
+    return dict(counts)
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="riskflow-data", description=__doc__.split("\n")[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    gen = commands.add_parser("generate", help="record highway-env IDM/MOBIL scenes")
+    gen.add_argument("--out", type=Path, required=True, help="folder of the bank")
+    gen.add_argument("--families", nargs="+", choices=FAMILIES, default=list(FAMILIES))
+    gen.add_argument("--scenes", type=int, default=100, help="number of scenes")
+    gen.add_argument("--seed", type=int, default=0, help="root seed")
+    gen.add_argument("--split", choices=tuple(SPLIT_KEYS), default="train")
+    gen.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes")
+    gen.add_argument("--future-steps", type=int, default=100, help="future steps per scene")
+    show = commands.add_parser("info", help="count the scenes of a bank per family")
+    show.add_argument("directory", type=Path)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``riskflow-data`` console script."""
+    args = _parser().parse_args(argv)
+    if args.command == "info":
+        info(args.directory)
+        return 0
+    if args.scenes < 0 or args.workers < 1 or args.future_steps < 1:
+        raise SystemExit("riskflow-data: --scenes >= 0, --workers >= 1, --future-steps >= 1")
+    options = GenerateOptions(
+        out=args.out,
+        families=tuple(dict.fromkeys(args.families)),
+        scenes=args.scenes,
+        seed=args.seed,
+        split=args.split,
+        workers=args.workers,
+        future_steps=args.future_steps,
+    )
+    generate(options)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

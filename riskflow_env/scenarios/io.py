@@ -1,0 +1,328 @@
+"""Scenario files: a versioned, compressed ``.npz`` format, banks and the shipped scenes.
+
+One scene per file (``schema="riskflow-scenario"``, ``version=1``), read with
+``allow_pickle=False``:
+
+=====================  =================  ===============================================
+key                    shape, dtype       meaning
+=====================  =================  ===============================================
+schema, version        (), str / int      ``"riskflow-scenario"``, ``1``
+name, source, family   (), str            :class:`Scenario` labels
+dt, history_steps      (), float / int    time step [s], history length (current incl.)
+ego_index              (), int            row of the ego
+states                 (N, T, 4) float    x [m], y [m], v [m/s], psi [rad]; float32 when
+                                          that is lossless, else float64; 0 where invalid
+valid                  (N, T) bool        observed states
+length, width          (N,) float64       vehicle sizes [m]
+agent_ids, kinds       (N,) or (0,) str   per-agent labels
+map_*                  see below          the map, stored inline ...
+map_ref, map_hash      (), str            ... or a path to a map file, relative to this
+                                          file's folder, and the map's content hash
+=====================  =================  ===============================================
+
+A map (inline with the ``map_`` prefix, or alone in a ``schema="riskflow-map"`` file):
+``drivable`` (H, W) bool, ``resolution`` () [m/px], ``origin`` (2,) [m], ``name``,
+``sdf`` (H, W) float32 [m] only when saved with ``include_sdf`` (else recomputed on
+load, a few milliseconds), and the lanes: ``lane_points`` (M, 2) [m] (all centrelines
+concatenated), ``lane_offsets`` (L + 1,) (lane i is ``lane_points[off[i]:off[i+1]]``),
+``lane_widths`` (L,) [m], ``lane_ids`` (L,), ``lane_speed_limits`` (L,) [m/s] (NaN for
+none), ``lane_successors`` (S,) and ``lane_successor_offsets`` (L + 1,).
+
+Banks: a folder of scene files; ``save_scenario(..., map_dir=folder / "maps")`` writes
+each distinct map once, as ``maps/<hash>.npz`` (16 hex digits of a SHA-256 of its
+arrays), and loading keeps one in-memory copy per hash, shared by all scenes.
+Files are written to a temporary name and renamed (atomic), with fixed zip timestamps,
+so equal scenes give byte-identical files.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+
+from riskflow_env.maps import DrivableMap, Lane
+from riskflow_env.scenarios._npz import (
+    VERSION,
+    ScenarioFormatError,
+    check_arrays,
+    read_npz,
+    write_npz,
+)
+from riskflow_env.scenarios.scenario import Scenario
+from riskflow_env.scenarios.sources import ScenarioBank
+
+SCHEMA = "riskflow-scenario"
+MAP_SCHEMA = "riskflow-map"
+ASSETS = Path(__file__).resolve().parent.parent / "assets" / "scenarios"
+SPLITS = ("eval", "train")
+# key -> (shape with named dims, allowed dtype kinds: f float, b bool, i/u int, U str)
+_SCENE_KEYS = {
+    "name": ((), "U"),
+    "source": ((), "U"),
+    "family": ((), "U"),
+    "dt": ((), "f"),
+    "history_steps": ((), "iu"),
+    "ego_index": ((), "iu"),
+    "states": (("N", "T", 4), "f"),
+    "valid": (("N", "T"), "b"),
+    "length": (("N",), "f"),
+    "width": (("N",), "f"),
+    "agent_ids": (("N?",), "U"),
+    "kinds": (("N?",), "U"),
+}
+_MAP_KEYS = {
+    "drivable": (("H", "W"), "b"),
+    "resolution": ((), "f"),
+    "origin": ((2,), "f"),
+    "name": ((), "U"),
+    "lane_points": (("M", 2), "f"),
+    "lane_offsets": (("L+1",), "iu"),
+    "lane_widths": (("L",), "f"),
+    "lane_ids": (("L",), "U"),
+    "lane_speed_limits": (("L",), "f"),
+    "lane_successors": (("S",), "U"),
+    "lane_successor_offsets": (("L+1",), "iu"),
+}
+_OPTIONAL_MAP_KEYS = {"sdf": (("H", "W"), "f")}
+_REF_KEYS = {"map_ref": ((), "U"), "map_hash": ((), "U")}
+_MAP_CACHE: OrderedDict[str, DrivableMap] = OrderedDict()
+_MAP_CACHE_SIZE = 64
+
+
+def save_scenario(
+    scenario: Scenario,
+    path: str | os.PathLike,
+    map_dir: str | os.PathLike | None = None,
+    include_sdf: bool = False,
+) -> Path:
+    """Write ``scenario`` to ``path`` (``.npz``); returns the path.
+
+    Args:
+        scenario: the scene.
+        path: destination file; its folder must exist.
+        map_dir: where shared maps live (e.g. ``<bank>/maps``); the map is written there
+            as ``<hash>.npz`` when absent and referenced by a relative path. None stores
+            the map inside the scene file.
+        include_sdf: also store the map's SDF (float32, compresses poorly) instead of
+            recomputing it from the raster on load.
+    """
+    path = Path(path)
+    arrays: dict[str, np.ndarray] = {"schema": np.array(SCHEMA), "version": np.array(VERSION)}
+    states = np.where(scenario.valid[..., None], scenario.states, 0.0)  # 0 where invalid
+    lossless32 = np.array_equal(states.astype(np.float32).astype(np.float64), states)
+    arrays.update(
+        name=np.array(scenario.name),
+        source=np.array(scenario.source),
+        family=np.array(scenario.family),
+        dt=np.array(float(scenario.dt)),
+        history_steps=np.array(int(scenario.history_steps)),
+        ego_index=np.array(int(scenario.ego_index)),
+        states=states.astype(np.float32 if lossless32 else np.float64),
+        valid=scenario.valid.astype(bool),
+        length=scenario.length.astype(np.float64),
+        width=scenario.width.astype(np.float64),
+        agent_ids=_strings(scenario.agent_ids),
+        kinds=_strings(scenario.kinds),
+    )
+    map_arrays = map_to_arrays(scenario.map, include_sdf)
+    if map_dir is None:
+        arrays.update({f"map_{key}": value for key, value in map_arrays.items()})
+    else:
+        map_dir = Path(map_dir)
+        digest = map_hash(map_arrays)
+        map_path = map_dir / f"{digest}.npz"
+        if not map_path.exists():
+            map_dir.mkdir(parents=True, exist_ok=True)
+            header = {"schema": np.array(MAP_SCHEMA), "version": np.array(VERSION)}
+            write_npz(map_path, header | map_arrays)
+        arrays["map_ref"] = np.array(os.path.relpath(map_path, path.parent))
+        arrays["map_hash"] = np.array(digest)
+    write_npz(path, arrays)
+    return path
+
+
+def load_scenario(path: str | os.PathLike) -> Scenario:
+    """Read a scene written by :func:`save_scenario`.
+
+    Raises:
+        FileNotFoundError: no such file (or its referenced map file is missing).
+        ScenarioFormatError: wrong schema or version, missing keys, wrong shapes or
+            dtypes, NaN/inf at valid steps, or an invalid map; the message names the file.
+    """
+    path = Path(path)
+    arrays = read_npz(path, SCHEMA)
+    if "map_ref" in arrays:
+        check_arrays(path, arrays, {**_SCENE_KEYS, **_REF_KEYS})
+        ref = path.parent / str(arrays["map_ref"])
+        drivable_map = load_map(ref, expected_hash=str(arrays["map_hash"]))
+    else:
+        prefixed = {f"map_{key}": rule for key, rule in _MAP_KEYS.items()}
+        optional = {f"map_{key}": rule for key, rule in _OPTIONAL_MAP_KEYS.items()}
+        check_arrays(path, arrays, {**_SCENE_KEYS, **prefixed}, optional)
+        map_arrays = {key[4:]: value for key, value in arrays.items() if key.startswith("map_")}
+        drivable_map = _map_from_arrays(path, map_arrays)
+    states, valid = arrays["states"].astype(np.float64), arrays["valid"]
+    bad = np.argwhere(valid & ~np.all(np.isfinite(states), axis=-1))
+    if bad.size:
+        agent, step = (int(v) for v in bad[0])
+        raise ScenarioFormatError(
+            f"{path}: 'states' has NaN or inf at {len(bad)} valid step(s), "
+            f"first at agent {agent}, step {step}"
+        )
+    try:
+        return Scenario(
+            map=drivable_map,
+            states=states,
+            valid=valid,
+            length=arrays["length"].astype(np.float64),
+            width=arrays["width"].astype(np.float64),
+            ego_index=int(arrays["ego_index"]),
+            agent_ids=tuple(str(v) for v in arrays["agent_ids"]),
+            name=str(arrays["name"]),
+            dt=float(arrays["dt"]),
+            history_steps=int(arrays["history_steps"]),
+            kinds=tuple(str(v) for v in arrays["kinds"]),
+            source=str(arrays["source"]),
+            family=str(arrays["family"]),
+        )
+    except (ValueError, TypeError) as error:
+        raise ScenarioFormatError(f"{path}: {error}") from None
+
+
+def load_map(path: str | os.PathLike, expected_hash: str | None = None) -> DrivableMap:
+    """Read a map file (``schema="riskflow-map"``); one shared copy per content hash.
+
+    Args:
+        path: the ``.npz`` map file.
+        expected_hash: the hash the referring scene recorded; a mismatch is an error.
+    """
+    path = Path(path)
+    if expected_hash is not None and expected_hash in _MAP_CACHE:
+        _MAP_CACHE.move_to_end(expected_hash)
+        return _MAP_CACHE[expected_hash]
+    if not path.is_file():
+        raise FileNotFoundError(f"map file {path} not found")
+    arrays = read_npz(path, MAP_SCHEMA)
+    arrays = {key: value for key, value in arrays.items() if key not in ("schema", "version")}
+    check_arrays(path, arrays, _MAP_KEYS, _OPTIONAL_MAP_KEYS)
+    digest = map_hash(arrays)
+    if expected_hash is not None and digest != expected_hash:
+        raise ScenarioFormatError(
+            f"{path}: map content hash {digest} differs from the referenced {expected_hash}"
+        )
+    if digest not in _MAP_CACHE:
+        _MAP_CACHE[digest] = _map_from_arrays(path, arrays)
+        while len(_MAP_CACHE) > _MAP_CACHE_SIZE:
+            _MAP_CACHE.popitem(last=False)
+    return _MAP_CACHE[digest]
+
+
+def map_to_arrays(drivable_map: DrivableMap, include_sdf: bool = False) -> dict[str, np.ndarray]:
+    """The arrays that store ``drivable_map`` (keys as in the module docstring)."""
+    lanes = drivable_map.lanes
+    points = [lane.centerline for lane in lanes]
+    successors = [successor for lane in lanes for successor in lane.successors]
+    arrays = {
+        "drivable": drivable_map.drivable,
+        "resolution": np.array(float(drivable_map.resolution)),
+        "origin": drivable_map.origin.astype(np.float64),
+        "name": np.array(drivable_map.name),
+        "lane_points": np.concatenate(points) if points else np.zeros((0, 2)),
+        "lane_offsets": np.cumsum([0] + [len(p) for p in points]).astype(np.int64),
+        "lane_widths": np.array([lane.width for lane in lanes], dtype=np.float64),
+        "lane_ids": _strings([lane.lane_id for lane in lanes]),
+        "lane_speed_limits": np.array(
+            [np.nan if lane.speed_limit is None else lane.speed_limit for lane in lanes],
+            dtype=np.float64,
+        ),
+        "lane_successors": _strings(successors),
+        "lane_successor_offsets": np.cumsum([0] + [len(lane.successors) for lane in lanes]).astype(
+            np.int64
+        ),
+    }
+    if include_sdf:
+        arrays["sdf"] = drivable_map.sdf
+    return arrays
+
+
+def map_hash(arrays: dict[str, np.ndarray]) -> str:
+    """16 hex digits of a SHA-256 over the map arrays (names, dtypes, shapes, bytes)."""
+    digest = hashlib.sha256()
+    for key in sorted(arrays):
+        value = np.ascontiguousarray(arrays[key])
+        digest.update(f"{key}|{value.dtype.str}|{value.shape}|".encode())
+        digest.update(value.tobytes())
+    return digest.hexdigest()[:16]
+
+
+def list_scenarios(directory: str | os.PathLike) -> list[Path]:
+    """Sorted paths of the scene files (``*.npz``) directly in ``directory``."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise FileNotFoundError(f"scenario directory {directory} does not exist")
+    return sorted(path for path in directory.glob("*.npz") if path.is_file())
+
+
+def load_bank(directory: str | os.PathLike) -> ScenarioBank:
+    """All scenes of ``directory`` (see :func:`list_scenarios`) as a :class:`ScenarioBank`."""
+    paths = list_scenarios(directory)
+    if not paths:
+        raise FileNotFoundError(f"no scenario files (*.npz) in {directory}")
+    return ScenarioBank([load_scenario(path) for path in paths])
+
+
+@functools.lru_cache(maxsize=len(SPLITS))
+def shipped_bank(split: str = "eval") -> ScenarioBank:
+    """The scenes that ship with the package (``riskflow_env/assets/scenarios/<split>``).
+
+    Args:
+        split: ``"eval"`` (the default scenarios of ``riskflow_env.parallel_env()``) or
+            ``"train"`` (a small training sample). Loaded once, then cached.
+    """
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    return load_bank(ASSETS / split)
+
+
+def _strings(values) -> np.ndarray:
+    values = [str(v) for v in values]
+    return np.array(values, dtype=str) if values else np.zeros(0, dtype="<U1")
+
+
+def _map_from_arrays(path: Path, arrays: dict[str, np.ndarray]) -> DrivableMap:
+    try:
+        points, offsets = arrays["lane_points"], arrays["lane_offsets"]
+        successors, succ_offsets = arrays["lane_successors"], arrays["lane_successor_offsets"]
+        for name, off, total in (
+            ("lane_offsets", offsets, len(points)),
+            ("lane_successor_offsets", succ_offsets, len(successors)),
+        ):
+            if off[0] != 0 or off[-1] != total or np.any(np.diff(off) < 0):
+                raise ValueError(f"'{name}' must rise from 0 to {total}, got {off.tolist()}")
+        lanes = tuple(
+            Lane(
+                centerline=points[offsets[i] : offsets[i + 1]],
+                width=float(arrays["lane_widths"][i]),
+                lane_id=str(arrays["lane_ids"][i]),
+                speed_limit=None
+                if np.isnan(arrays["lane_speed_limits"][i])
+                else float(arrays["lane_speed_limits"][i]),
+                successors=tuple(str(s) for s in successors[succ_offsets[i] : succ_offsets[i + 1]]),
+            )
+            for i in range(len(arrays["lane_ids"]))
+        )
+        return DrivableMap(
+            drivable=arrays["drivable"],
+            resolution=float(arrays["resolution"]),
+            origin=arrays["origin"],
+            sdf=arrays.get("sdf"),
+            lanes=lanes,
+            name=str(arrays["name"]),
+        )
+    except (ValueError, TypeError, IndexError) as error:
+        raise ScenarioFormatError(f"{path}: invalid map ({error})") from None
