@@ -52,7 +52,7 @@ class SceneConfig:
     warmup: tuple[int, int] = (40, 100)
     candidate_windows: int = 4
     window_stride: int = 10
-    radius: float = 60.0
+    radius: float = 80.0
     density_radius: float = 30.0
     ego_top: float = 0.5
     max_agents: int = 48

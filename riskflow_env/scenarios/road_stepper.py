@@ -23,6 +23,7 @@ import numpy as np
 DT = 0.1  # [s] simulation and recording step (highway-env simulation_frequency = 10 Hz)
 REGULATION_PERIOD = 5  # [steps] right-of-way checks every 0.5 s (highway-env: 2 Hz)
 CONFLICT_HORIZON = 3.0  # [s] highway-env's RegulatedRoad prediction horizon
+MAX_YAW_RATE = 1.0  # [rad/s] steering is capped so the yaw rate stays within (env default)
 CONFLICT_MARGIN = 20.0  # [m] added to the reach of the conflict broad phase (extents)
 
 
@@ -209,11 +210,15 @@ def _wrap(angle: np.ndarray) -> np.ndarray:
 
 @functools.cache
 def traffic_vehicle_class() -> type:
-    """highway-env's IDMVehicle, subclassed so that speeds stop at 0 (no reversing), a
-    stopped vehicle may still change lanes (highway-env's MOBIL skips vehicles below
-    1 m/s, so a queue at a lane end, e.g. the merge lane's, would wait forever; it is
-    evaluated as if moving at 1 m/s), and its lane can be updated by :class:`RoadStepper`
-    for all vehicles at once.
+    """highway-env's IDMVehicle, subclassed so that
+
+    * speeds stop at 0 (no reversing);
+    * the yaw rate stays within ``MAX_YAW_RATE`` (highway-env's heading controller asks
+      for 5 rad/s per rad of heading error, e.g. spikes at lane-segment joints);
+    * a stopped vehicle may still change lanes (highway-env's MOBIL skips vehicles below
+      1 m/s, so a queue at a lane end, e.g. the merge lane's, would wait forever); MOBIL
+      then evaluates it as if moving at 1 m/s;
+    * its lane can be updated by :class:`RoadStepper` for all vehicles at once.
 
     Built on first use: importing highway-env (and pygame) takes most of a second.
     """
@@ -232,6 +237,13 @@ def traffic_vehicle_class() -> type:
                 return super().change_lane_policy()
             finally:
                 self.speed = speed
+
+        def steering_control(self, target_lane_index) -> float:
+            steering = super().steering_control(target_lane_index)
+            # bicycle model: yaw rate = v sin(beta) / (L / 2), tan(beta) = tan(steering) / 2
+            sin_beta = min(1.0, MAX_YAW_RATE * self.LENGTH / 2 / max(self.speed, 1e-3))
+            limit = float(np.arctan(2 * np.tan(np.arcsin(sin_beta))))
+            return float(np.clip(steering, -limit, limit))
 
         def on_state_update(self) -> None:
             if not getattr(self.road, "lane_updates_deferred", False):
