@@ -23,10 +23,11 @@ import functools
 
 import numpy as np
 
-from riskflow_env._array import Array, asarray_like, namespace
+from riskflow_env._array import Array, namespace
 from riskflow_env.config import ObservationConfig
 from riskflow_env.dynamics import YAW
 from riskflow_env.maps import DrivableMap
+from riskflow_env.maps.sampling import constant_like
 from riskflow_env.risk import NUM_PAIR_FEATURES
 from riskflow_env.state import SceneState
 
@@ -69,7 +70,7 @@ def sample_points(current: Array, config: ObservationConfig) -> Array:
     xp = namespace(current)
     x, y, yaw = current[..., 0, None], current[..., 1, None], current[..., YAW, None]
     cos, sin = xp.cos(yaw), xp.sin(yaw)
-    offsets = asarray_like(_sample_offsets(config), current)
+    offsets = constant_like(_sample_offsets(config), current)
     forward, left = offsets[0], offsets[1]  # (P,) each, centre first
     return xp.stack([x + (cos * forward - sin * left), y + (sin * forward + cos * left)], axis=-1)
 

@@ -41,11 +41,15 @@ def bilinear(
     fr = row_c - xp.astype(row0, row_c.dtype)
     flat = xp.reshape(table, (-1,))
     base = row0 * width + col0
-    v00, v01 = flat[base], flat[base + 1]
-    v10, v11 = flat[base + width], flat[base + width + 1]
-    rest = 1 - fc
-    top = v00 * rest + v01 * fc
-    bottom = v10 * rest + v11 * fc
+    corners = (flat[base], flat[base + 1], flat[base + width], flat[base + width + 1])
+    if isinstance(flat, np.ndarray) and table.dtype != fc.dtype:
+        # A float32 raster queried in float64: cast the four corners once (exactly as the
+        # promotion would) rather than inside every mixed-type op (slow in numpy). Torch
+        # keeps the mixed ops, so its autograd graph is unchanged.
+        corners = tuple(xp.astype(value, xp.result_type(value, fc)) for value in corners)
+    v00, v01, v10, v11 = corners
+    top = v00 * (1 - fc) + v01 * fc
+    bottom = v10 * (1 - fc) + v11 * fc
     value = top * (1 - fr) + bottom * fr
     if extend:
         value = value + safe_norm(xp, col - col_c, row - row_c) * resolution
