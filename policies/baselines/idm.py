@@ -1,24 +1,33 @@
-"""Reactive IDM traffic: car following (Treiber et al. 2000) plus lane keeping.
+"""Reactive IDM traffic: car following (Treiber et al. 2000), yielding and lane keeping.
 
-Every step, for all controlled vehicles at once:
+Every step, for all controlled vehicles at once (no loop over agents):
 
-1. Lane keeping: each vehicle is matched to a lane of the map (distance plus a
-   heading penalty, :class:`~policies.controllers.LaneGraph`) and steers with pure
-   pursuit toward a point ``lookahead`` metres ahead along that lane and its
-   straight-on successors.
+1. Lane keeping: each vehicle is matched to a lane (distance plus heading penalty,
+   :class:`~policies.controllers.LaneGraph`) and steers with pure pursuit toward a
+   point ``lookahead`` metres ahead along that lane and its successors. At forks it
+   takes the lanes its reference future (the log) visits, if ``follow_log_route``
+   and the scenario has one; else the straightest successor that does not run into
+   a dead end.
 2. Leader: the nearest vehicle ahead inside the vehicle's corridor. Other vehicles
    are placed in the vehicle's frame bent along its current pure-pursuit arc (so
    leaders around a bend are found); a vehicle is in the corridor when its centre is
    within ``(lane width + its width) / 2`` of the arc. The end of a dead-end lane is
    a standing leader, so vehicles stop before running off the road.
-3. Speed: IDM acceleration toward the desired speed, lowered on curves so that the
-   lateral acceleration stays under ``lateral_accel_max`` and the yaw rate within
-   the dynamics bound; the result is clipped to the dynamics bounds.
+3. Yielding: every vehicle's path over the next ``yield_horizon`` seconds is predicted
+   at constant speed (along its lane, or straight when it is off the lanes); where
+   two boxes would overlap, the vehicle that is not ahead yields, i.e. treats the
+   point before the conflict as a standing leader (between two IDM vehicles that
+   would both yield, the one farther from the conflict point does). Vehicles driven
+   by another policy (the ego) are always yielded to.
+4. Speed: IDM acceleration toward the desired speed, lowered on curves so that the
+   lateral acceleration stays under ``lateral_accel_max`` and the yaw rate within the
+   dynamics bound; the result is clipped to the dynamics bounds.
 
-Desired speed (per vehicle, fixed at ``reset``): ``IDMParams.desired_speed`` when set,
-else the speed limit of the vehicle's lane when the map has one, else the vehicle's
-speed at reset. Vehicles slower than ``parked_speed`` at reset stay parked (they brake
-to a stop and hold it), as parked cars in recorded scenes should. On maps without lane
+Desired speed (per vehicle, fixed at ``reset``): ``IDMParams.desired_speed`` when set;
+else the highest speed of the vehicle's logged track when the scenario has at least
+1 s of reference future for it; else its lane's speed limit; else its current speed
+(never below the current speed). Vehicles whose logged and current speeds stay below
+``parked_speed`` are parked: they brake to a stop and hold it. On maps without lane
 centrelines vehicles keep their heading (zero yaw rate) and the corridor is straight
 with width ``IDMParams.lane_width``.
 """
@@ -43,6 +52,7 @@ from riskflow_env.dynamics import SPEED, YAW
 from riskflow_env.maps import DrivableMap
 from riskflow_env.view import SceneView
 
+ROUTE_STRIDE = 5  # [steps] logged future positions sampled to find a vehicle's route
 PREDICTION_STEP = 0.25  # [s] time between conflict-prediction samples
 PREDICTION_TIMES = np.arange(0.0, 30.0, PREDICTION_STEP)  # [s]
 
@@ -57,9 +67,10 @@ class IDMParams:
         time_headway: IDM desired time gap T [s].
         min_gap: IDM jam distance s0 [m] (bumper to bumper).
         delta: IDM free-road exponent [-].
-        desired_speed: v0 for every vehicle [m/s]; None: lane speed limit, else the
-            vehicle's speed at reset.
-        parked_speed: vehicles slower than this at reset stay stopped [m/s].
+        desired_speed: v0 for every vehicle [m/s]; None: from the log, the lane or the
+            current speed (module docstring).
+        parked_speed: vehicles whose logged and current speeds stay below this are
+            parked [m/s].
         lookahead_time: pure-pursuit lookahead distance per unit speed [s].
         min_lookahead: shortest lookahead distance [m].
         lateral_accel_max: curve speed limit, v^2 * curvature <= this [m/s^2].
@@ -72,6 +83,8 @@ class IDMParams:
             that a vehicle waiting to go still claims its path [m/s].
         conflict_margin: boxes closer than this along (30% of it across) a vehicle
             are in conflict [m].
+        follow_log_route: at junctions, take the lanes the vehicle's reference future
+            (the log) visits, where it has one.
     """
 
     accel_max: float = 1.5
@@ -90,6 +103,7 @@ class IDMParams:
     yield_horizon: float = 4.0
     min_predicted_speed: float = 3.0
     conflict_margin: float = 1.0
+    follow_log_route: bool = True
 
     def __post_init__(self) -> None:
         positive = (
@@ -141,21 +155,38 @@ class IDMPolicy:
         self._map: DrivableMap | None = None
         self._graph: LaneGraph | None = None
         self._desired = np.zeros(0)
+        self._route: np.ndarray | None = None
 
     def reset(self, view: SceneView) -> None:
-        """Match the map's lanes and fix every vehicle's desired speed."""
+        """Build the lane graph, each vehicle's route and desired speed (see the module
+        docstring)."""
         if view.map is not self._map:
             self._map = view.map
             self._graph = LaneGraph(view.map) if view.map.lanes else None
+        scenario, rows = view.scenario, np.asarray(view.scenario_rows)
+        track = np.zeros((view.num_agents,) + scenario.states.shape[1:])
+        track_valid = np.zeros((view.num_agents, scenario.states.shape[1]), dtype=bool)
+        track[rows >= 0], track_valid[rows >= 0] = (
+            scenario.states[rows[rows >= 0]],
+            scenario.valid[rows[rows >= 0]],
+        )
+        future = track_valid.copy()
+        future[:, : scenario.current_index] = False
+        logged = np.where(track_valid, track[..., SPEED], 0.0).max(axis=1)
         speed = view.current[:, SPEED]
-        desired = np.full(view.num_agents, np.nan)
-        if self.params.desired_speed is not None:
-            desired[:] = self.params.desired_speed
-        elif self._graph is not None:
+        desired = np.where(future.sum(axis=1) >= 10, logged, np.nan)  # >= 1 s of future log
+        self._route = None
+        if self._graph is not None:
             lane, *_ = self._graph.match(view.current[:, :2], view.current[:, YAW])
-            desired = self._graph.speed_limit[lane]
+            desired = np.where(np.isfinite(desired), desired, self._graph.speed_limit[lane])
+            if self.params.follow_log_route:
+                sampled = future & (np.arange(future.shape[1]) % ROUTE_STRIDE == 0)
+                self._route = self._graph.route_of(track[..., :2], track[..., YAW], sampled)
         desired = np.where(np.isfinite(desired), desired, speed)
-        self._desired = np.where(speed < self.params.parked_speed, 0.0, desired)
+        if self.params.desired_speed is not None:
+            desired = np.full(view.num_agents, self.params.desired_speed)
+        parked = np.maximum(speed, logged) < self.params.parked_speed
+        self._desired = np.where(parked, 0.0, np.maximum(desired, speed))
 
     def act(self, view: SceneView) -> dict[str, np.ndarray]:
         """``{agent: (accel [m/s^2], yaw_rate [rad/s])}`` for the controlled live agents."""
@@ -180,27 +211,30 @@ class IDMPolicy:
         lane_width = np.full(count, params.lane_width)
         dead_end = np.full(count, np.inf)
         present = np.flatnonzero(view.present)
+        route = self._route
         if graph is not None:
             lane[present], s[present], lateral, error = graph.match(
-                current[present, :2], current[present, YAW]
+                current[present, :2], current[present, YAW], route=_rows(route, present)
             )
             on_lane[present] = (np.abs(lateral) < graph.width[lane[present]]) & (
                 np.abs(error) < 0.6
             )
             lookahead = np.maximum(params.min_lookahead, params.lookahead_time * speed[rows])
-            target, _ = graph.position(lane[rows], s[rows] + lookahead)
+            target, _ = graph.position(lane[rows], s[rows] + lookahead, _rows(route, rows))
             yaw_rate[rows] = pure_pursuit(current[rows], target, dyn)
             curvature[rows] = arc_curvature(current[rows], target)
             lane_width[rows] = graph.width[lane[rows]]
             preview = np.maximum(10.0, params.curve_preview_time * speed[rows])
-            bend = np.maximum(graph.curvature_ahead(lane[rows], s[rows], preview), 1e-6)
+            bend = graph.curvature_ahead(lane[rows], s[rows], preview, _rows(route, rows))
+            bend = np.maximum(bend, 1e-6)
             curve_speed = np.minimum(
                 np.sqrt(params.lateral_accel_max / bend), 0.9 * dyn.yaw_rate_max / bend
             )
             moving = desired[rows] > 0
             desired[rows] = np.where(moving, np.clip(curve_speed, 1.0, desired[rows]), 0.0)
             dead_end[rows] = (
-                graph.distance_to_dead_end(lane[rows], s[rows]) - 0.5 * view.length[rows]
+                graph.distance_to_dead_end(lane[rows], s[rows], _rows(route, rows))
+                - 0.5 * view.length[rows]
             )
 
         gap, closing = self._leader(view, rows, curvature[rows], lane_width[rows])
@@ -248,7 +282,7 @@ class IDMPolicy:
         heading = np.broadcast_to(current[:, YAW, None], ahead.shape).copy()
         if self._graph is not None and on_lane.any():
             path[on_lane], heading[on_lane] = self._graph.position(
-                lane[on_lane, None], s[on_lane, None] + ahead[on_lane]
+                lane[on_lane, None], s[on_lane, None] + ahead[on_lane], _rows(self._route, on_lane)
             )
         return path, heading
 
@@ -280,6 +314,11 @@ class IDMPolicy:
         heading = me[:, YAW] + turned[index, leader]  # path direction at the leader
         leader_speed = current[leader, SPEED] * np.cos(current[leader, YAW] - heading)
         return gap[index, leader], me[:, SPEED] - leader_speed
+
+
+def _rows(route: np.ndarray | None, rows: np.ndarray) -> np.ndarray | None:
+    """``route[rows]``, or None without route."""
+    return None if route is None else route[rows]
 
 
 def _in_frame(rel: np.ndarray, yaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
