@@ -2,11 +2,15 @@
 
 ``parallel_env(...)`` builds the PettingZoo ``ParallelEnv`` (``riskflow_v0``); ``env(...)``
 the AEC view of the same env. See :mod:`riskflow_env.env` for agents, spaces and options.
+``gymnasium.make("RiskFlowEgo-v0")`` is the ego's single-agent Gymnasium view
+(:class:`riskflow_env.wrappers.EgoEnv`).
 """
 
 from __future__ import annotations
 
 from importlib.metadata import PackageNotFoundError, version
+
+import gymnasium
 
 from riskflow_env.config import DynamicsConfig, EnvConfig, ObservationConfig, RewardConfig
 from riskflow_env.env import RiskFlowParallelEnv
@@ -15,6 +19,10 @@ try:
     __version__ = version("riskflow-env")
 except PackageNotFoundError:  # running from a source tree that is not installed
     __version__ = "0.0.0"
+
+
+if "RiskFlowEgo-v0" not in gymnasium.registry:
+    gymnasium.register(id="RiskFlowEgo-v0", entry_point="riskflow_env.wrappers.ego_env:EgoEnv")
 
 
 def parallel_env(**kwargs) -> RiskFlowParallelEnv:

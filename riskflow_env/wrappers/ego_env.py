@@ -1,0 +1,127 @@
+"""Gymnasium single-agent view of ``riskflow_v0``: the ego learns, a scene policy drives
+everyone else (``RiskFlowEgo-v0``).
+
+==================  ==============================================================
+Import              ``gymnasium.make("RiskFlowEgo-v0", **kwargs)`` or
+                    ``riskflow_env.wrappers.EgoEnv(...)``
+Observation space   the ego's observation space of the parallel env:
+                    ``Box(-inf, inf, (D,), float32)``, D = 142 by default
+Action space        the ego's action space: ``Box([accel_min, -yaw_rate_max],
+                    [accel_max, yaw_rate_max])`` (acceleration [m/s^2], yaw rate
+                    [rad/s]), default [-8, 5] x [-1, 1]
+Reward              the ego's reward; ``info["reward_terms"]`` breaks it into terms
+Termination         the ego terminates (collision / off-road, per ``EnvConfig``) or is
+                    truncated (``episode_steps``, default 100 = 10 s)
+Other vehicles      a :class:`~policies.base.ScenePolicy` (default
+                    :class:`~policies.baselines.idm.IDMPolicy` with
+                    ``controlled="others"``: IDM car following and lane keeping)
+==================  ==============================================================
+
+Arguments (``EgoEnv(config=None, scenarios=None, policy=None, render_mode=None,
+env=None)``): ``config``, ``scenarios`` and ``render_mode`` build the parallel env as
+:func:`riskflow_env.parallel_env` does, unless ``env`` passes one in. Every step the
+policy gets ``env.view()`` and must return an action for every live agent but the ego.
+
+Version history:
+
+* v0: initial release.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import gymnasium
+import numpy as np
+
+from policies.base import ScenePolicy
+from policies.baselines.idm import IDMPolicy
+from riskflow_env.config import EnvConfig
+from riskflow_env.env import RiskFlowParallelEnv
+from riskflow_env.scenarios import Scenario, ScenarioSource
+
+EGO = "ego"
+
+
+class EgoEnv(gymnasium.Env):
+    """The ego's Gymnasium env over a :class:`RiskFlowParallelEnv` (see the module docstring).
+
+    Args:
+        config: env configuration (used when ``env`` is None).
+        scenarios: scenario source (used when ``env`` is None).
+        policy: drives every live agent but the ego; default IDM traffic.
+        render_mode: ``None``, ``"rgb_array"`` or ``"human"`` (used when ``env`` is None).
+        env: an existing parallel env to wrap instead of building one.
+    """
+
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 10}
+
+    def __init__(
+        self,
+        config: EnvConfig | None = None,
+        scenarios: ScenarioSource | Sequence[Scenario] | Scenario | None = None,
+        policy: ScenePolicy | None = None,
+        render_mode: str | None = None,
+        env: RiskFlowParallelEnv | None = None,
+    ) -> None:
+        if env is None:
+            env = RiskFlowParallelEnv(config=config, scenarios=scenarios, render_mode=render_mode)
+        elif not isinstance(env, RiskFlowParallelEnv):
+            raise TypeError(f"env must be a RiskFlowParallelEnv, got {type(env).__name__}")
+        elif config is not None or scenarios is not None or render_mode is not None:
+            raise ValueError("pass either env or (config, scenarios, render_mode), not both")
+        if policy is None:
+            policy = IDMPolicy(controlled="others", dynamics=env.config.dynamics)
+        if not isinstance(policy, ScenePolicy):
+            raise TypeError(
+                "policy must be a ScenePolicy (with reset(view) and act(view)), "
+                f"got {type(policy).__name__}"
+            )
+        self.parallel_env = env
+        self.policy = policy
+        self.render_mode = env.render_mode
+        self.observation_space = env.observation_space(EGO)
+        self.action_space = env.action_space(EGO)
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start an episode (``options`` as :meth:`RiskFlowParallelEnv.reset`)."""
+        super().reset(seed=seed)
+        observations, infos = self.parallel_env.reset(seed=seed, options=options)
+        self.policy.reset(self.parallel_env.view())
+        return observations[EGO], infos[EGO]
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Advance 0.1 s: the ego takes ``action`` (accel [m/s^2], yaw rate [rad/s]),
+        the policy drives the others."""
+        env = self.parallel_env
+        if EGO not in env.agents:
+            raise RuntimeError("step() called after the ego's episode ended: call reset() first")
+        others = [agent for agent in env.agents if agent != EGO]
+        proposed = self.policy.act(env.view()) if others else {}
+        unexpected = sorted(set(proposed) - set(others))
+        missing = [agent for agent in others if agent not in proposed]
+        if unexpected or missing:
+            raise ValueError(
+                f"policy {type(self.policy).__name__} must act for exactly the live agents "
+                f"other than the ego; missing {missing}, unexpected {unexpected}"
+            )
+        actions = {EGO: action, **proposed}
+        observations, rewards, terminations, truncations, infos = env.step(actions)
+        return (
+            observations[EGO],
+            rewards[EGO],
+            terminations[EGO],
+            truncations[EGO],
+            infos[EGO],
+        )
+
+    def render(self) -> np.ndarray | None:
+        """Render the whole scene (see :meth:`RiskFlowParallelEnv.render`)."""
+        return self.parallel_env.render()
+
+    def close(self) -> None:
+        """Close the parallel env."""
+        self.parallel_env.close()

@@ -1,0 +1,95 @@
+"""Batched stepping: the same numbers as the env, scene by scene, in numpy and torch."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import riskflow_env
+from riskflow_env import batched
+from riskflow_env.config import EnvConfig
+from riskflow_env.maps import from_highway_env
+from riskflow_env.scenarios import place_traffic
+
+SLOTS = 10
+CONFIG = EnvConfig(
+    max_agents=SLOTS,
+    episode_steps=25,
+    terminate_on_collision="all",
+    terminate_on_offroad="all",
+    end_with_ego=False,
+)
+
+
+def scenes(family: str = "merge", count: int = 3, seed: int = 0):
+    drivable_map = from_highway_env(family)
+    rng = np.random.default_rng(seed)
+    return [place_traffic(drivable_map, SLOTS - 2 * (k % 2), rng) for k in range(count)]
+
+
+def test_batch_matches_env_scene_by_scene():
+    scenarios = scenes()
+    drivable_map = scenarios[0].map
+    state = batched.reset_batch(scenarios, SLOTS)
+    envs = [riskflow_env.parallel_env(config=CONFIG, scenarios=s) for s in scenarios]
+    for env, scenario in zip(envs, scenarios, strict=True):
+        env.reset(seed=0, options={"scenario": scenario})
+    rng = np.random.default_rng(1)
+    for _ in range(CONFIG.episode_steps):
+        actions = rng.uniform([-8.0, -1.2], [6.0, 1.2], (len(scenarios), SLOTS, 2))
+        state, report = batched.step_batch(state, actions, drivable_map, CONFIG)
+        for b, env in enumerate(envs):
+            if not env.agents:
+                continue
+            step = env.step({agent: actions[b, env._slot[agent]] for agent in env.agents})
+            observations, rewards, terminations, truncations, infos = step
+            for agent in observations:
+                slot = env._slot[agent]
+                np.testing.assert_array_equal(observations[agent], report.observations[b, slot])
+                assert rewards[agent] == report.rewards[b, slot]
+                assert terminations[agent] == report.terminated[b, slot]
+                assert truncations[agent] == report.truncated[b, slot]
+                assert infos[agent]["reward_terms"]["risk"] == report.reward_terms["risk"][b, slot]
+            np.testing.assert_array_equal(env.scene.current, state.current[b])
+            np.testing.assert_array_equal(env.scene.active, state.active[b])
+    assert not state.active.any()  # every agent was truncated at the end
+
+
+def test_torch_matches_numpy_and_observations_optional():
+    scenarios = scenes("highway", count=2)
+    drivable_map = scenarios[0].map
+    state = batched.reset_batch(scenarios, SLOTS)
+    tensors = state.convert(torch.as_tensor)
+    rng = np.random.default_rng(2)
+    for _ in range(5):
+        actions = rng.uniform([-3.0, -0.3], [2.0, 0.3], (2, SLOTS, 2))
+        state, report = batched.step_batch(state, actions, drivable_map, CONFIG)
+        tensors, torch_report = batched.step_batch(
+            tensors, torch.as_tensor(actions), drivable_map, CONFIG
+        )
+        np.testing.assert_array_equal(torch_report.observations.numpy(), report.observations)
+        np.testing.assert_array_equal(torch_report.rewards.numpy(), report.rewards)
+        np.testing.assert_array_equal(tensors.current.numpy(), state.current)
+    _, bare = batched.step_batch(state, actions, drivable_map, CONFIG, observations=False)
+    assert bare.observations is None and bare.rewards.shape == (2, SLOTS)
+
+
+def test_errors():
+    scenarios = scenes("highway", count=1) + scenes("merge", count=1)
+    with pytest.raises(ValueError, match="share one DrivableMap"):
+        batched.reset_batch(scenarios, SLOTS)
+    state = batched.reset_batch(scenarios[:1], SLOTS)
+    with pytest.raises(ValueError, match=r"\(B, A, 2\)"):
+        batched.step_batch(state, np.zeros((1, SLOTS)), scenarios[0].map, CONFIG)
+    with pytest.raises(ValueError, match="current"):
+        batched.BatchState(
+            current=np.zeros((SLOTS, 4)),
+            last_action=np.zeros((SLOTS, 2)),
+            length=np.ones(SLOTS),
+            width=np.ones(SLOTS),
+            present=np.ones(SLOTS, bool),
+            active=np.ones(SLOTS, bool),
+        )
+    with pytest.raises(ValueError, match="at least one"):
+        batched.reset_batch([], SLOTS)
