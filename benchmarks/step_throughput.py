@@ -1,0 +1,193 @@
+"""Stepping speed of ``riskflow_v0`` against highway-env, measured in one run.
+
+Two tables:
+
+1. **PettingZoo API vs highway-env**, same road family (highway-env ``highway-v0``, 4
+   lanes), same number of vehicles N (8, 16, 32, 64, the ego included), same time step
+   (0.1 s: highway-env with ``simulation_frequency=10, policy_frequency=10``), 10 s
+   episodes, resets included. highway-env's vehicles are driven by its own IDM/MOBIL
+   models (ego: ``IDLE``) and it observes the ego only; riskflow steps every vehicle with
+   an action given from outside (zeros here) and returns full observations, rewards and
+   infos for every agent. Counted: vehicle-steps (live vehicles x steps) per second.
+2. **Batched stepping** (:mod:`riskflow_env.batched`): B scenes x A agents per call
+   (scenes share one highway map), with and without observations; agent-steps per second.
+
+Rates are the best of ``--rounds`` interleaved rounds of ``--seconds`` each (the machine
+may be shared; the best round is the least disturbed one).
+
+    python benchmarks/step_throughput.py [--seconds 2] [--rounds 3] [--vehicles 8 16 32 64]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import gymnasium
+import highway_env  # noqa: F401 - registers highway-v0
+import numpy as np
+
+import riskflow_env
+from riskflow_env import batched
+from riskflow_env.config import EnvConfig
+from riskflow_env.scenarios import HighwayTrafficSource, TrafficConfig, place_traffic
+
+HIGHWAY_IDLE = 1  # highway-env DiscreteMetaAction index of IDLE
+EPISODE_SECONDS = 10  # [s] episode length of both simulators
+
+
+@dataclass(frozen=True)
+class Options:
+    """Benchmark options."""
+
+    seconds: float = 2.0  # timed seconds per simulator, per round and row
+    rounds: int = 3  # interleaved rounds; the best rate of each simulator is reported
+    vehicles: tuple[int, ...] = (8, 16, 32, 64)  # vehicles per scene, ego included
+    batch_agents: tuple[int, ...] = (8, 32)  # agent slots per scene of the batched rows
+    batch_scenes: tuple[int, ...] = (1, 16, 128)  # scenes per batch
+
+
+def _parse() -> Options:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    defaults = Options()
+    parser.add_argument("--seconds", type=float, default=defaults.seconds)
+    parser.add_argument("--rounds", type=int, default=defaults.rounds)
+    parser.add_argument("--vehicles", type=int, nargs="+", default=list(defaults.vehicles))
+    parser.add_argument("--batch-agents", type=int, nargs="+", default=list(defaults.batch_agents))
+    parser.add_argument("--batch-scenes", type=int, nargs="+", default=list(defaults.batch_scenes))
+    args = parser.parse_args()
+    return Options(
+        seconds=args.seconds,
+        rounds=args.rounds,
+        vehicles=tuple(args.vehicles),
+        batch_agents=tuple(args.batch_agents),
+        batch_scenes=tuple(args.batch_scenes),
+    )
+
+
+def traffic(vehicles: int) -> TrafficConfig:
+    """Highway traffic with exactly ``vehicles`` cars (a 0.6 s headway fits 64 on 600 m)."""
+    return TrafficConfig(
+        families=("highway",), num_vehicles=(vehicles, vehicles), radius=600.0, time_headway=0.6
+    )
+
+
+def rate(run: Callable[[float], tuple[int, float]], seconds: float) -> float:
+    """Units per second of ``run(seconds) -> (units, elapsed)``."""
+    units, elapsed = run(seconds)
+    return units / elapsed
+
+
+def highway_env_run(vehicles: int) -> Callable[[float], tuple[int, float]]:
+    """highway-env stepping for ``seconds``: (vehicle-steps, elapsed)."""
+    env = gymnasium.make(
+        "highway-v0",
+        config={
+            "vehicles_count": vehicles - 1,  # others; the ego is added
+            "simulation_frequency": 10,
+            "policy_frequency": 10,
+            "duration": EPISODE_SECONDS,
+        },
+    )
+    env.reset(seed=0)
+    road = env.unwrapped.road
+
+    def run(seconds: float) -> tuple[int, float]:
+        nonlocal road
+        count, start = 0, time.perf_counter()
+        while time.perf_counter() - start < seconds:
+            count += len(road.vehicles)
+            _, _, terminated, truncated, _ = env.step(HIGHWAY_IDLE)
+            if terminated or truncated:
+                env.reset()
+                road = env.unwrapped.road
+        return count, time.perf_counter() - start
+
+    return run
+
+
+def riskflow_run(vehicles: int) -> Callable[[float], tuple[int, float]]:
+    """riskflow_v0 stepping through the PettingZoo API: (agent-steps, elapsed); the env
+    steps of the last run are kept in ``run.env_steps``."""
+    env = riskflow_env.parallel_env(
+        config=EnvConfig(max_agents=vehicles, episode_steps=EPISODE_SECONDS * 10),
+        scenarios=HighwayTrafficSource(traffic(vehicles)),
+    )
+    env.reset(seed=0)
+    zero = np.zeros(2)
+
+    def run(seconds: float) -> tuple[int, float]:
+        count, steps, start = 0, 0, time.perf_counter()
+        while time.perf_counter() - start < seconds:
+            count += len(env.agents)
+            steps += 1
+            env.step({agent: zero for agent in env.agents})
+            if not env.agents:
+                env.reset()
+        run.steps_per_agent_step = steps / max(count, 1)
+        return count, time.perf_counter() - start
+
+    return run
+
+
+def batched_run(agents: int, scenes: int, observations: bool) -> Callable:
+    """Batched stepping of ``scenes`` highway scenes: (agent-steps, elapsed)."""
+    rng = np.random.default_rng(0)
+    drivable_map = HighwayTrafficSource(traffic(agents)).sample(rng, agents).map
+    pool = [place_traffic(drivable_map, agents, rng, traffic(agents)) for _ in range(8)]
+    scenarios = [pool[k % len(pool)] for k in range(scenes)]
+    config = EnvConfig(
+        max_agents=agents,
+        episode_steps=10**9,
+        terminate_on_collision="none",
+        terminate_on_offroad="none",
+    )
+    state = batched.reset_batch(scenarios, agents)
+    actions = np.zeros((scenes, agents, 2))
+
+    def run(seconds: float) -> tuple[int, float]:
+        nonlocal state
+        count, start = 0, time.perf_counter()
+        while time.perf_counter() - start < seconds:
+            count += int(state.active.sum())
+            state, _ = batched.step_batch(state, actions, drivable_map, config, observations)
+        return count, time.perf_counter() - start
+
+    return run
+
+
+def main() -> None:
+    options = _parse()
+    print("PettingZoo API (full observations for every agent) vs highway-env, dt = 0.1 s")
+    print(
+        "| vehicles | highway-env vehicle-steps/s | riskflow env steps/s "
+        "| riskflow agent-steps/s | ratio |"
+    )
+    print("| ---: | ---: | ---: | ---: | ---: |")
+    for vehicles in options.vehicles:
+        runs = {"highway": highway_env_run(vehicles), "riskflow": riskflow_run(vehicles)}
+        best = dict.fromkeys(runs, 0.0)
+        for _ in range(options.rounds):
+            for name, run in runs.items():
+                best[name] = max(best[name], rate(run, options.seconds))
+        env_steps = best["riskflow"] * runs["riskflow"].steps_per_agent_step
+        print(
+            f"| {vehicles} | {best['highway']:,.0f} | {env_steps:,.0f} "
+            f"| {best['riskflow']:,.0f} | {best['riskflow'] / best['highway']:.1f}x |"
+        )
+
+    print("\nBatched stepping (riskflow_env.batched, numpy float64, one map per batch)")
+    print("| agents A | scenes B | observations | agent-steps/s |")
+    print("| ---: | ---: | :---: | ---: |")
+    for agents in options.batch_agents:
+        for scenes in options.batch_scenes:
+            for observations in (True, False):
+                run = batched_run(agents, scenes, observations)
+                best = max(rate(run, options.seconds) for _ in range(options.rounds))
+                print(f"| {agents} | {scenes} | {'yes' if observations else 'no'} | {best:,.0f} |")
+
+
+if __name__ == "__main__":
+    main()
