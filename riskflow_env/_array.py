@@ -34,7 +34,7 @@ def _namespace_of_type(x: Array):
 
 # --- numpy, minus some Python-level wrappers -------------------------------------------
 # The env steps arrays of a few hundred elements, where numpy's Python wrappers (np.clip,
-# np.stack, np.max, np.take_along_axis ...) cost several times the arithmetic. ``_numpy``
+# np.stack, np.max, np.take_along_axis, np.astype ...) cost several times the arithmetic. ``_numpy``
 # is numpy with those replaced by the ufunc calls they end in: bit-identical results
 # (tests/riskflow_env/test_array.py), anything unusual falls back to numpy's own function.
 
@@ -101,6 +101,12 @@ def _cumulative_sum(x: Array, /, *, axis: Any = None, dtype: Any = None, **kwarg
     return np.add.accumulate(x, axis=axis, dtype=dtype)
 
 
+def _astype(x: Array, dtype: Any, /, *, copy: bool = True, device: Any = None) -> Array:
+    if type(x) is not np.ndarray or device not in (None, "cpu"):
+        return np.astype(x, dtype, copy=copy, device=device)
+    return x.astype(dtype, copy=copy)
+
+
 def _make_numpy_namespace() -> types.ModuleType:
     module = types.ModuleType("numpy", np.__doc__)
     module.__dict__.update({k: v for k, v in vars(np).items() if not k.startswith("__")})
@@ -112,6 +118,7 @@ def _make_numpy_namespace() -> types.ModuleType:
     module.stack = _stack
     module.take_along_axis = _take_along_axis
     module.cumulative_sum = _cumulative_sum
+    module.astype = _astype
     return module
 
 
@@ -161,7 +168,14 @@ def cummin(x: Array, axis: int = -1) -> Array:
     return np.minimum.accumulate(x, axis=axis)
 
 
+def device(x: Array) -> Any:
+    """Device of ``x`` (``array_api_compat.device``; "cpu" for numpy without the lookup)."""
+    return "cpu" if type(x) is np.ndarray else array_api_compat.device(x)
+
+
 def asarray_like(value: Any, like: Array) -> Array:
     """``value`` as an array of ``like``'s backend, dtype and device."""
+    if type(like) is np.ndarray:
+        return np.asarray(value, dtype=like.dtype)
     xp = namespace(like)
     return xp.asarray(value, dtype=like.dtype, device=array_api_compat.device(like))

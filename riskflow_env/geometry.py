@@ -17,9 +17,7 @@ from __future__ import annotations
 
 import math
 
-from array_api_compat import device
-
-from riskflow_env._array import Array, asarray_like, namespace
+from riskflow_env._array import Array, asarray_like, device, namespace
 
 FOOTPRINT_NAMES = (
     "front_right",

@@ -29,9 +29,7 @@ Divisions use safe denominators under ``where`` so torch gradients stay finite a
 
 from __future__ import annotations
 
-import array_api_compat
-
-from riskflow_env._array import Array, namespace
+from riskflow_env._array import Array, device, namespace
 
 TAU_MAX = 20.0  # [s] TTC horizon; TTC is clipped to [0, TAU_MAX] and risk 0 at TAU_MAX.
 MAX_INTERACTION_DISTANCE = 50.0  # [m] centre distance beyond which pairs are ignored.
@@ -177,7 +175,7 @@ def pairwise_features(
     xp = namespace(state, length, width)
     geo = _pair_geometry(state, length, width, tau_max)
     num_agents = state.shape[-2]
-    eye = xp.eye(num_agents, dtype=xp.bool, device=array_api_compat.device(state))
+    eye = xp.eye(num_agents, dtype=xp.bool, device=device(state))
     mask = xp.logical_and(~eye, geo["distance"] <= max_distance)
     if valid is not None:
         valid = xp.astype(valid, xp.bool)

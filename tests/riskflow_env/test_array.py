@@ -1,7 +1,7 @@
 """The numpy namespace of ``riskflow_env._array``: identical results to numpy's own functions.
 
 ``namespace(numpy_array)`` returns numpy with a few Python-level wrappers (clip, max, min,
-sum, stack, take_along_axis, cumulative_sum) replaced by the ufunc calls they end in; these
+sum, stack, take_along_axis, cumulative_sum, astype) replaced by the ufunc calls they end in; these
 tests pin that the replacements agree with numpy bit for bit (values, dtype, shape, the
 sign of zeros) or raise the same exception type.
 """
@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import warnings
 
+import array_api_compat
 import numpy as np
 import pytest
 import torch
 
-from riskflow_env._array import _NUMPY_IS_STANDARD, namespace
+from riskflow_env._array import _NUMPY_IS_STANDARD, asarray_like, device, namespace
 
 pytestmark = pytest.mark.skipif(
     not _NUMPY_IS_STANDARD, reason="numpy < 2.1 uses the compat namespace"
@@ -119,3 +120,22 @@ def test_stack_take_along_axis_cumulative_sum():
                 lambda a=arrays, x=axis: np.stack(a, axis=x),
                 lambda a=arrays, x=axis: FAST.stack(a, axis=x),
             )
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32, np.int64, np.bool_])
+def test_astype_device_asarray_like(dtype):
+    for x in _arrays():
+        for copy in (True, False):
+            _assert_same(
+                lambda x=x, c=copy: np.astype(x, dtype, copy=c),
+                lambda x=x, c=copy: FAST.astype(x, dtype, copy=c),
+            )
+        assert (FAST.astype(x, x.dtype, copy=False) is x) == (
+            np.astype(x, x.dtype, copy=False) is x
+        )
+    like = np.zeros(3, dtype=dtype)
+    assert device(like) == "cpu" == array_api_compat.device(like)
+    assert asarray_like([1, 0, 2], like).dtype == dtype
+    tensor = torch.zeros(3, dtype=torch.float32)
+    assert asarray_like([1.0, 2.0], tensor).dtype == torch.float32
+    assert device(tensor) == tensor.device
