@@ -1,0 +1,191 @@
+"""Validation of a generator on held-out windows: ADE/FDE, minADE over K samples, smoothness.
+
+For every batch of windows (``docs/WINDOWS.md``, future keys included) :func:`evaluate`
+measures, over every agent with at least one valid future step:
+
+* ``ade`` / ``fde`` [m]: one-step samples (``sampler.sample`` with one ``eps`` per plan);
+* ``min_ade`` / ``min_fde`` [m]: the best of ``num_samples`` plans per agent (drawn in
+  one batched pass, ``sample(..., num_samples=K)``), as in trajectory forecasting;
+* ``cv_ade`` / ``cv_fde`` [m]: the constant-velocity reference, zero actions rolled
+  through the same dynamics from the same current states;
+* ``jerk_rms`` / ``data_jerk_rms`` [m/s^3] and ``yaw_accel_rms`` / ``data_yaw_accel_rms``
+  [rad/s^2]: root mean square of the step-to-step change of the sampled and the logged
+  actions (smoothness; realism metrics penalise noisy plans).
+
+ADE of an agent is the mean distance over its valid future steps, FDE the distance at
+its last valid step; both are averaged over agents. The noise comes from a generator
+seeded with ``seed``, so the same model on the same windows gives the same numbers.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+
+import torch
+from torch import Tensor
+
+from policies.riskflow.encoder import SceneContext
+from policies.riskflow.generator import RiskFlowGenerator
+from policies.riskflow.meanflow import Normalizer
+from policies.riskflow.sampler import draw_noise, sample
+from riskflow_env.config import DynamicsConfig
+from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
+
+METRICS = (
+    "ade",
+    "fde",
+    "min_ade",
+    "min_fde",
+    "cv_ade",
+    "cv_fde",
+    "jerk_rms",
+    "data_jerk_rms",
+    "yaw_accel_rms",
+    "data_yaw_accel_rms",
+)
+
+
+class OneStepFlowMatching:
+    """A flow-matching model (trained with ``r = t`` only) seen as a one-step sampler.
+
+    Its network is the instantaneous velocity ``v(z, t) = u_theta(z, t, t)``; one Euler
+    step from noise is ``a = eps + v(eps, 0)``. This adapter answers
+    ``average_velocity(z, t, r)`` with ``u_theta(z, t, t)``, so ``sampler.sample``
+    (which asks for ``u(eps, 0, 1)``) takes exactly that step.
+    """
+
+    def __init__(self, model: RiskFlowGenerator) -> None:
+        self.model = model
+        self.config = model.config
+
+    def encode(self, batch: Mapping[str, Tensor]) -> SceneContext:
+        """The wrapped model's scene context."""
+        return self.model.encode(batch)
+
+    def average_velocity(self, z: Tensor, t: Tensor, r: Tensor, scene: SceneContext) -> Tensor:
+        """``u_theta(z, t, t; C)``; ``r`` is ignored."""
+        return self.model.average_velocity(z, t, t, scene)
+
+
+def displacement_errors(
+    trajectories: Tensor, future: Tensor, future_valid: Tensor, agent_mask: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Per-agent ADE and FDE of predicted trajectories.
+
+    Args:
+        trajectories: ``(B, A, T, >=2)`` or, with a sample axis, ``(B, N, A, T, >=2)``
+            predicted states (x, y [m], ...).
+        future: ``(B, A, T, >=2)`` reference states.
+        future_valid: ``(B, A, T)`` bool, reference observed.
+        agent_mask: ``(B, A)`` bool, agent exists.
+
+    Returns:
+        ``ade, fde``: ``(B, A)`` or ``(B, N, A)`` [m] (0 where undefined); ``valid``:
+        ``(B, A)`` bool, the agent exists and has a valid future step.
+    """
+    mask = future_valid.bool() & agent_mask.bool()[..., None]  # (B, A, T)
+    valid = mask.any(dim=-1)
+    if trajectories.dim() == future.dim() + 1:  # sample axis
+        future, mask = future[:, None], mask[:, None]
+    distance = (trajectories[..., :2] - future[..., :2]).norm(dim=-1)  # (B, [N,] A, T)
+    count = mask.sum(dim=-1).clamp(min=1).to(distance.dtype)
+    ade = (distance * mask).sum(dim=-1) / count
+    steps = torch.arange(mask.shape[-1], device=mask.device)
+    last = torch.where(mask, steps, -1).max(dim=-1).values.expand(distance.shape[:-1])
+    fde = distance.gather(-1, last.clamp(min=0)[..., None])[..., 0] * (last >= 0)  # -1: none
+    return ade, fde, valid
+
+
+def _rms_change(actions: Tensor, valid: Tensor, channel: int, dt: float) -> tuple[Tensor, Tensor]:
+    """(sum of squares, count) of ``diff(actions[..., channel]) / dt`` where both ends are valid."""
+    change = (actions[..., 1:, channel] - actions[..., :-1, channel]) / dt
+    both = (valid[..., 1:] & valid[..., :-1]).to(change.dtype)
+    return (change**2 * both).sum(), both.sum()
+
+
+@torch.no_grad()
+def evaluate(
+    model: RiskFlowGenerator,
+    batches: Iterable[Mapping[str, Tensor]],
+    normalizer: Normalizer,
+    *,
+    num_samples: int = 6,
+    seed: int = 0,
+    flow_matching: bool = False,
+    dynamics: DynamicsConfig = DEFAULT_CONFIG,
+) -> dict[str, float]:
+    """Validation metrics of ``model`` (see the module docstring) over ``batches``.
+
+    Args:
+        model: the generator (evaluate the EMA weights).
+        batches: collated windows with the future keys, on the model's device.
+        normalizer: action normalisation of the model.
+        num_samples: ``K`` of minADE / minFDE.
+        seed: seed of the noise.
+        flow_matching: the model was trained as plain flow matching (``r = t``):
+            sample it with one Euler step (:class:`OneStepFlowMatching`).
+        dynamics: time step and bounds of the rollouts.
+
+    Returns:
+        ``{name: value}`` for every name in :data:`METRICS`, plus ``agents`` (agents
+        measured) and ``windows``.
+    """
+    sampler_model = OneStepFlowMatching(model) if flow_matching else model
+    sums = dict.fromkeys(METRICS, 0.0)
+    counts = {"agents": 0.0, "windows": 0.0, "jerk": 0.0, "data_jerk": 0.0}
+    generator: torch.Generator | None = None
+    for batch in batches:
+        scene = model.encode(batch)
+        if generator is None:
+            generator = torch.Generator(scene.context.device).manual_seed(seed)
+        steps = model.config.future_steps
+        eps = draw_noise(scene, steps, generator=generator)
+        actions, trajectories = sample(sampler_model, scene, eps, normalizer, dynamics=dynamics)
+        _, many = sample(
+            sampler_model,
+            scene,
+            None,
+            normalizer,
+            num_samples=num_samples,
+            generator=generator,
+            dynamics=dynamics,
+        )
+        constant = rollout(scene.state, torch.zeros_like(actions), dynamics)
+        truth = (batch["future"], batch["future_valid"], scene.agent_mask)
+        ade, fde, valid = displacement_errors(trajectories, *truth)
+        min_ade, min_fde, _ = displacement_errors(many, *truth)
+        cv_ade, cv_fde, _ = displacement_errors(constant, *truth)
+        weight = valid.to(ade.dtype)
+        for name, value in (
+            ("ade", ade),
+            ("fde", fde),
+            ("min_ade", min_ade.min(dim=1).values),
+            ("min_fde", min_fde.min(dim=1).values),
+            ("cv_ade", cv_ade),
+            ("cv_fde", cv_fde),
+        ):
+            sums[name] += float((value * weight).sum())
+        counts["agents"] += float(weight.sum())
+        counts["windows"] += batch["agent_mask"].shape[0]
+        plan_valid = scene.agent_mask[..., None].expand(actions.shape[:-1])
+        data_valid = batch["actions_valid"].bool() & plan_valid
+        for prefix, values, mask in (
+            ("", actions, plan_valid),
+            ("data_", batch["actions"], data_valid),
+        ):
+            squares, count = _rms_change(values, mask, 0, dynamics.dt)
+            sums[f"{prefix}jerk_rms"] += float(squares)
+            sums[f"{prefix}yaw_accel_rms"] += float(_rms_change(values, mask, 1, dynamics.dt)[0])
+            counts[f"{prefix}jerk"] += float(count)
+    if counts["agents"] == 0:
+        raise ValueError("evaluate: no agent with a valid future in the batches")
+    metrics = {}
+    for name in METRICS:
+        if "rms" in name:
+            key = "data_jerk" if name.startswith("data_") else "jerk"
+            metrics[name] = (sums[name] / max(counts[key], 1.0)) ** 0.5
+        else:
+            metrics[name] = sums[name] / counts["agents"]
+    metrics["agents"] = counts["agents"]
+    metrics["windows"] = counts["windows"]
+    return metrics

@@ -1,0 +1,94 @@
+"""Checkpoint files: round trip, metadata, mismatches, atomic writing, the shipped default."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from policies.riskflow import checkpoint as checkpoint_module
+from policies.riskflow.checkpoint import (
+    build_checkpoint,
+    code_version,
+    load_checkpoint,
+    load_generator,
+    save_checkpoint,
+)
+from policies.riskflow.generator import CheckpointError, RiskFlowGenerator
+from policies.riskflow.sampler import sample
+from policies.riskflow.synthetic import synthetic_batch
+
+
+def _write(path, model, stats, **overrides):
+    checkpoint = build_checkpoint(
+        model, stats, step=12, train_config={"lr": 1e-4}, metrics={"val_ade": 1.5}
+    )
+    checkpoint.update(overrides)
+    return save_checkpoint(checkpoint, path)
+
+
+def test_round_trip_gives_identical_samples(tmp_path, make_model, normalizer, tiny_config):
+    model = make_model(tiny_config, seed=3).eval()
+    path = _write(tmp_path / "generator.pt", model, normalizer)
+    loaded, loaded_normalizer, metadata = load_generator(path)
+    assert loaded_normalizer == normalizer
+    assert metadata["step"] == 12 and metadata["metrics"] == {"val_ade": 1.5}
+    assert metadata["train_config"] == {"lr": 1e-4}
+    assert metadata["version"] == code_version()
+    assert not loaded.training and not any(p.requires_grad for p in loaded.parameters())
+    batch = synthetic_batch(2, 5, seed=1)
+    eps = torch.randn(2, 5, 52, 2, generator=torch.Generator().manual_seed(0))
+    expected = sample(model, batch, eps, normalizer)
+    for got, want in zip(sample(loaded, batch, eps, loaded_normalizer), expected, strict=True):
+        torch.testing.assert_close(got, want, rtol=0, atol=0)
+    # the file is also a plain generator checkpoint
+    rebuilt = RiskFlowGenerator.from_checkpoint(load_checkpoint(path))
+    assert rebuilt.config == tiny_config
+
+
+def test_mismatches_raise_clear_errors(tmp_path, make_model, normalizer, tiny_config):
+    model = make_model(tiny_config)
+    path = _write(tmp_path / "a.pt", model, normalizer)
+    other = dataclasses.replace(tiny_config, head_layers=2)
+    with pytest.raises(CheckpointError, match="head_layers"):
+        load_generator(path, config=other)
+    state = dict(load_checkpoint(path)["state_dict"])
+    state["head.out.weight"] = torch.zeros(3, 3)
+    bad_shape = _write(tmp_path / "b.pt", model, normalizer, state_dict=state)
+    with pytest.raises(CheckpointError, match=r"head\.out\.weight"):
+        load_generator(bad_shape)
+    no_stats = _write(tmp_path / "c.pt", model, normalizer, normalizer=None)
+    with pytest.raises(CheckpointError, match="normalizer"):
+        load_generator(no_stats)
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="cannot read"):
+        load_generator(tmp_path / "junk.pt")
+    with pytest.raises(FileNotFoundError, match="no generator checkpoint"):
+        load_generator(tmp_path / "missing.pt")
+
+
+def test_save_is_atomic(tmp_path, make_model, normalizer, tiny_config, monkeypatch):
+    model = make_model(tiny_config)
+    path = _write(tmp_path / "g.pt", model, normalizer)
+    before = path.read_bytes()
+
+    def broken_save(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(torch, "save", broken_save)
+    with pytest.raises(OSError, match="disk full"):
+        _write(path, model, normalizer)
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["g.pt"], "no temporary file is left"
+
+
+def test_default_checkpoint(monkeypatch):
+    shipped = checkpoint_module.resources.files("policies") / "checkpoints" / "riskflow_default.pt"
+    if shipped.is_file():
+        model, normalizer, metadata = load_generator()
+        assert isinstance(model, RiskFlowGenerator) and metadata["step"] > 0
+        assert shipped.stat().st_size <= 20e6
+    monkeypatch.setattr(checkpoint_module, "DEFAULT_NAME", "does-not-exist.pt")
+    with pytest.raises(FileNotFoundError, match="riskflow-train"):
+        load_generator()

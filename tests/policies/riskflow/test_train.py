@@ -1,0 +1,155 @@
+"""riskflow-train: end-to-end runs on a tiny scene bank, resume, options, batch order."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from policies.riskflow.checkpoint import load_checkpoint, load_generator
+from policies.riskflow.config import ModelConfig
+from policies.riskflow.dataclass_cli import parse_dataclass
+from policies.riskflow.generator import CheckpointError
+from policies.riskflow.train import CHECKPOINT, GENERATOR, METRICS_LOG, TrainOptions, batch_order
+from policies.riskflow.train import main as train_main
+from riskflow_env.scenarios import HighwayTrafficSource
+from riskflow_env.scenarios.io import save_scenario
+
+ROOT = Path(__file__).resolve().parents[3]
+
+
+@pytest.fixture(scope="module")
+def banks(tmp_path_factory) -> tuple[Path, Path]:
+    """(train, val) scene folders as written by ``riskflow-data``: 3 and 1 highway scenes."""
+    root = tmp_path_factory.mktemp("banks")
+    folders = (root / "train", root / "val")
+    for folder, seeds in zip(folders, ([0, 2, 3], [4]), strict=True):
+        folder.mkdir()
+        for seed in seeds:
+            scene = HighwayTrafficSource().sample(np.random.default_rng(seed))
+            save_scenario(scene, folder / f"{seed:05d}-highway.npz", map_dir=folder / "maps")
+    return folders
+
+
+def tiny_args(
+    banks: tuple[Path, Path], out: Path, config: ModelConfig, *extra: str, steps: int = 4
+) -> list[str]:
+    """A fast command line: tiny model, stride 16, batches of 2 windows."""
+    return [
+        "--data", str(banks[0]), "--val-data", str(banks[1]), "--out", str(out),
+        "--model", json.dumps(config.to_dict()), "--stride", "16", "--batch-size", "2",
+        "--steps", str(steps), "--eval-every", "2", "--log-every", "1",
+        "--val-windows", "3", "--num-samples", "2", *extra,
+    ]  # fmt: skip
+
+
+def test_main_trains_end_to_end(banks, tmp_path, tiny_config):
+    out = tmp_path / "run"
+    assert train_main(tiny_args(banks, out, tiny_config)) == 0
+    lines = [json.loads(line) for line in (out / METRICS_LOG).read_text().splitlines()]
+    assert [line["step"] for line in lines] == [1, 2, 3, 4]
+    final = lines[-1]
+    for key in ("val_ade", "val_fde", "val_min_ade", "val_cv_ade", "val_cv_fde", "val_jerk_rms"):
+        assert np.isfinite(final[key]), key
+    assert final["val_min_ade"] <= final["val_ade"] + 5.0
+    assert final["train_samples_per_s"] > 0 and np.isfinite(final["train_loss"])
+    assert final["train_dudt_abs"] >= 0  # the MeanFlow objective ran
+    full = load_checkpoint(out / CHECKPOINT)
+    assert full["step"] == 4 and "training" in full
+    assert full["train_config"]["stride"] == 16 and full["metrics"]["val_ade"] == final["val_ade"]
+    assert set(full["version"]) == {"riskflow_env", "git_commit", "git_dirty"}
+    assert (banks[0] / "norm_stats.json").is_file()
+    model, normalizer, metadata = load_generator(out / GENERATOR)
+    assert model.config == tiny_config and not model.training
+    assert normalizer.to_dict() == full["normalizer"]
+    assert metadata["step"] == 4 and "training" not in load_checkpoint(out / GENERATOR)
+
+
+def test_resume_gives_the_uninterrupted_result(banks, tmp_path, tiny_config):
+    """2 steps, then --resume up to 4: bit-identical to 4 steps in one go (CPU)."""
+    straight, resumed = tmp_path / "straight", tmp_path / "resumed"
+    train_main(tiny_args(banks, straight, tiny_config))
+    train_main(tiny_args(banks, resumed, tiny_config, steps=2))
+    assert load_checkpoint(resumed / CHECKPOINT)["step"] == 2
+    train_main(tiny_args(banks, resumed, tiny_config, "--resume"))
+    a, b = load_checkpoint(straight / CHECKPOINT), load_checkpoint(resumed / CHECKPOINT)
+    assert b["step"] == 4
+    for key in a["state_dict"]:
+        torch.testing.assert_close(a["state_dict"][key], b["state_dict"][key], rtol=0, atol=0)
+        raw_a, raw_b = a["training"]["raw_state_dict"], b["training"]["raw_state_dict"]
+        torch.testing.assert_close(raw_a[key], raw_b[key], rtol=0, atol=0)
+    assert a["metrics"]["val_ade"] == b["metrics"]["val_ade"]
+    torch.testing.assert_close(a["training"]["rng"]["noise"], b["training"]["rng"]["noise"])
+
+
+def test_resume_with_another_architecture_names_the_mismatch(banks, tmp_path, tiny_config):
+    out = tmp_path / "run"
+    train_main(tiny_args(banks, out, tiny_config, steps=1))
+    wider = dataclasses.replace(tiny_config, head_dim=64)
+    with pytest.raises(CheckpointError, match="head_dim"):
+        train_main(tiny_args(banks, out, wider, "--resume"))
+    with pytest.raises(SystemExit, match="--resume: no checkpoint"):
+        train_main(tiny_args(banks, tmp_path / "empty", tiny_config, "--resume"))
+
+
+def test_flow_matching_reference_and_time_budget(banks, tmp_path, tiny_config):
+    out = tmp_path / "fm"
+    train_main(tiny_args(banks, out, tiny_config, "--flow-matching", "--time-budget-min", "1e-9"))
+    state = load_checkpoint(out / GENERATOR)
+    assert state["step"] == 1, "the time budget stops after the first step"
+    assert state["train_config"]["flow_matching"] is True
+    assert "train_dudt_abs" not in state["metrics"] and np.isfinite(state["metrics"]["val_ade"])
+
+
+def test_val_fraction_splits_scenes(banks, tmp_path, tiny_config):
+    args = tiny_args(banks, tmp_path / "split", tiny_config, "--val-fraction", "0.34", steps=1)
+    del args[args.index("--val-data") : args.index("--val-data") + 2]
+    train_main(args)
+    metrics = load_checkpoint(tmp_path / "split" / GENERATOR)["metrics"]
+    assert metrics["val_windows"] == 3  # one held-out scene, --val-windows 3
+    cached = {p.name for p in (banks[0] / "cache").iterdir()}
+    assert {"windows-stride16-val0.34-train.npz", "windows-stride16-val0.34-val.npz"} <= cached
+
+
+def test_cli_subprocess_smoke(banks, tmp_path, tiny_config):
+    out = tmp_path / "cli"
+    args = tiny_args(banks, out, tiny_config, steps=1)
+    done = subprocess.run(
+        [sys.executable, "-m", "policies.riskflow.train", *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "samples_s" in done.stderr and "DeprecationWarning" not in done.stderr
+    assert (out / GENERATOR).is_file()
+
+
+def test_options_are_typed_documented_and_checked(capsys):
+    options = parse_dataclass(TrainOptions, ["--data", "d", "--steps", "7", "--flow-matching"])
+    assert options == TrainOptions(data=Path("d"), steps=7, flow_matching=True)
+    assert options.val_data is None and options.lr == 1e-4 and options.ema_decay == 0.995
+    with pytest.raises(SystemExit):
+        parse_dataclass(TrainOptions, ["--data", "d", "--steps", "0"], "riskflow-train")
+    assert "--steps" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        parse_dataclass(TrainOptions, ["--help"], "riskflow-train")
+    assert "EMA decay of the weights per step" in capsys.readouterr().out
+
+
+def test_batch_order_is_seeded_and_buckets_agent_counts():
+    agents = np.random.default_rng(0).integers(1, 33, size=103)
+    order = batch_order(agents, 4, 8, seed=1, epoch=2)
+    np.testing.assert_array_equal(order, batch_order(agents, 4, 8, seed=1, epoch=2))
+    assert order.shape == (25, 4) and len(np.unique(order)) == 100
+    assert not np.array_equal(order, batch_order(agents, 4, 8, seed=1, epoch=3))
+    spread = np.ptp(agents[order], axis=1).mean()
+    plain = np.ptp(agents[batch_order(agents, 4, 1, seed=1, epoch=2)], axis=1).mean()
+    assert spread < 0.5 * plain, (spread, plain)
