@@ -303,11 +303,13 @@ class IDMPolicy:
         me = current[rows]
         dx, dy = _in_frame(current[None, :, :2] - me[:, None, :2], me[:, YAW, None])
         along, lateral, turned = arc_frame(dx, dy, curvature[:, None])
-        half = 0.5 * (lane_width[:, None] + view.width[None, :])
-        candidate = view.present[None, :] & (along > 0) & (np.abs(lateral) < half)
+        relative = current[None, :, YAW] - (me[:, YAW, None] + turned)  # (n, A) [rad]
+        extent_along, extent_across = _extents(relative, view.length, view.width)
+        candidate = view.present[None, :] & (along > 0)
+        candidate &= np.abs(lateral) < 0.5 * lane_width[:, None] + extent_across
         candidate &= along < self.params.leader_range
         candidate[np.arange(len(rows)), rows] = False
-        gap = along - 0.5 * (view.length[rows, None] + view.length[None, :])
+        gap = along - 0.5 * view.length[rows, None] - extent_along
         gap = np.where(candidate, gap, np.inf)
         leader = np.argmin(gap, axis=-1)
         index = np.arange(len(rows))
@@ -319,6 +321,13 @@ class IDMPolicy:
 def _rows(route: np.ndarray | None, rows: np.ndarray) -> np.ndarray | None:
     """``route[rows]``, or None without route."""
     return None if route is None else route[rows]
+
+
+def _extents(relative: np.ndarray, length: np.ndarray, width: np.ndarray) -> tuple:
+    """Half extents [m] along and across a frame of boxes (length, width) [m] turned by
+    ``relative`` [rad] from it (broadcast): their axis-aligned bounding box there."""
+    cos, sin = np.abs(np.cos(relative)), np.abs(np.sin(relative))
+    return 0.5 * (cos * length + sin * width), 0.5 * (sin * length + cos * width)
 
 
 def _in_frame(rel: np.ndarray, yaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -346,15 +355,7 @@ def _yield_gaps(
     """
     count, length, width = view.num_agents, view.length, view.width
     dx, dy = _in_frame(path[None] - path[:, None], heading[:, None])  # (A, A, K), i's frame
-    relative = heading[None] - heading[:, None]
-    extent_x = 0.5 * (
-        np.abs(np.cos(relative)) * length[None, :, None]
-        + np.abs(np.sin(relative)) * width[None, :, None]
-    )
-    extent_y = 0.5 * (
-        np.abs(np.sin(relative)) * length[None, :, None]
-        + np.abs(np.cos(relative)) * width[None, :, None]
-    )
+    extent_x, extent_y = _extents(heading[None] - heading[:, None], length[:, None], width[:, None])
     overlap = (np.abs(dx) < 0.5 * length[:, None, None] + extent_x + params.conflict_margin) & (
         np.abs(dy) < 0.5 * width[:, None, None] + extent_y + 0.3 * params.conflict_margin
     )
