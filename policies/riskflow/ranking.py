@@ -1,0 +1,196 @@
+"""TTC causal ranking: which vehicles form the controllable set ``A_c``.
+
+RiskFlow (Lan et al. 2026, "RiskFlow: Fast and Faithful Safety-Critical Traffic Scenario
+Generation") guides only the top-K *critical* agents, found, as in CCDiff (Lin et al.
+2025, "Causal Composition Diffusion Model for Closed-loop Traffic Generation"), from the
+structure of the scene's interactions (DESIGN.md section 5):
+
+1. **Risk graph.** The pairwise TTC risk ``r_ij`` (``riskflow_env.risk``, in [0, 1]; 0 for
+   pairs beyond 50 m) is symmetrised, ``w_ij = max(r_ij, r_ji)`` (TTC is measured in
+   i's frame, so the two directions can differ), and the pairs with ``w_ij > threshold``
+   (0.5: TTC below 10 s) are the edges.
+2. **Interacting groups = connected components** of that graph. Components rather than
+   maximal cliques because a *causal* conflict is a chain: A cuts in ahead of B, B
+   brakes in front of C, and C never conflicts with A directly. A clique splits that
+   chain into pairs; a component keeps it one group. Components are also unique,
+   computed in O(A^2) (``scipy.sparse.csgraph.connected_components``) and need no
+   exponential clique enumeration. The ego is a node: its conflicts make a group
+   critical, though the ego itself is never controllable.
+3. **Scores.** A group's risk is the sum of its edge weights; each agent's score is the
+   accumulated risk of the groups it is in, i.e. its component's risk (0 for agents in
+   no group).
+4. **Top K.** Candidates (live non-ego agents) are ordered by score, then by their own
+   summed edge risk ("strength": who carries the group), then by their largest risk to
+   anyone (below the threshold too: that fills shortfalls when fewer than K agents are in
+   groups), then by distance to the ego (nearer first), then by slot index. The order is
+   total, so ``A_c`` is deterministic. ``k = 0`` gives an empty set, ``k = "all"`` every
+   candidate.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import connected_components
+
+from riskflow_env.risk import FEATURE_NAMES
+
+DEFAULT_THRESHOLD = 0.5  # risk above which a pair is an edge (TTC < 10 s with tau_max = 20 s)
+RISK_CHANNEL = FEATURE_NAMES.index("risk")
+NO_GROUP = -1
+
+
+@dataclass(frozen=True)
+class Ranking:
+    """The controllable set and how it was chosen.
+
+    Attributes:
+        controllable: (A,) bool, the set ``A_c``.
+        scores: (A,) accumulated group risk of each agent (0 outside any group).
+        groups: (A,) int group label (component id, numbered by lowest slot), ``NO_GROUP``
+            for agents in no group (no edge) and for invalid agents.
+        order: (M,) int candidate slots (live non-ego agents), most critical first;
+            ``A_c`` is a prefix of it.
+    """
+
+    controllable: np.ndarray
+    scores: np.ndarray
+    groups: np.ndarray
+    order: np.ndarray
+
+
+def check_k(k: int | str) -> int | str:
+    """Validate ``k``: an int >= 0 or ``"all"``."""
+    if k == "all" or (isinstance(k, (int, np.integer)) and not isinstance(k, bool) and k >= 0):
+        return k if isinstance(k, str) else int(k)
+    raise ValueError(f"k must be an int >= 0 or 'all', got {k!r}")
+
+
+def risk_graph(risk: np.ndarray, valid: np.ndarray, threshold: float = DEFAULT_THRESHOLD):
+    """Symmetric edge weights of the risk graph.
+
+    Args:
+        risk: (A, A) TTC risk in [0, 1], ``risk[i, j]`` = j seen from i; diagonal ignored.
+        valid: (A,) bool agents that take part.
+        threshold: edges are pairs with ``max(r_ij, r_ji) > threshold``.
+
+    Returns:
+        ``(weights, edges)``: (A, A) float64 symmetric risk ``w_ij`` (0 on the diagonal and
+        for invalid agents) and (A, A) bool edges.
+    """
+    weights = np.maximum(risk, risk.T).astype(np.float64)
+    pair_valid = valid[:, None] & valid[None, :]
+    np.fill_diagonal(pair_valid, False)
+    weights = np.where(pair_valid, weights, 0.0)
+    return weights, weights > threshold
+
+
+def interaction_groups(edges: np.ndarray) -> np.ndarray:
+    """(A,) component label of each agent with at least one edge, ``NO_GROUP`` otherwise.
+
+    Labels are numbered in the order of each component's lowest slot.
+    """
+    _, labels = connected_components(csr_matrix(edges), directed=False)
+    in_group = edges.any(axis=1)
+    groups = np.full(edges.shape[0], NO_GROUP, dtype=np.int64)
+    _, first = np.unique(labels[in_group], return_index=True)
+    for new, old in enumerate(labels[in_group][np.sort(first)]):
+        groups[(labels == old) & in_group] = new
+    return groups
+
+
+def causal_ranking(
+    risk: np.ndarray,
+    valid: np.ndarray,
+    k: int | str,
+    *,
+    ego: int = 0,
+    threshold: float = DEFAULT_THRESHOLD,
+    distance_to_ego: np.ndarray | None = None,
+) -> Ranking:
+    """The top-K controllable set ``A_c`` of one scene (module docstring).
+
+    Args:
+        risk: (A, A) TTC risk in [0, 1] (``riskflow_env.risk.risk_matrix`` or the ``risk``
+            channel of a window's ``pair_features``).
+        valid: (A,) bool agents present at the current step; others are never chosen.
+        k: size of ``A_c`` (int >= 0; fewer if fewer candidates) or ``"all"``.
+        ego: slot of the agent under test; never in ``A_c``.
+        threshold: edge threshold on the symmetrised risk.
+        distance_to_ego: (A,) [m] centre distance to the ego, a tie-break (nearer
+            first); None skips it.
+
+    Returns:
+        the :class:`Ranking`.
+    """
+    k = check_k(k)
+    risk = np.asarray(risk, dtype=np.float64)
+    valid = np.asarray(valid, dtype=bool)
+    num_agents = valid.shape[0] if valid.ndim == 1 else -1
+    if risk.shape != (num_agents, num_agents) or not np.all(np.isfinite(risk)):
+        raise ValueError(
+            f"risk must be a finite (A, A) array with A = len(valid) = {num_agents}, "
+            f"got shape {risk.shape}"
+        )
+    if not 0 <= ego < num_agents:
+        raise ValueError(f"ego must be a slot in [0, {num_agents}), got {ego}")
+    if distance_to_ego is None:
+        distance_to_ego = np.zeros(num_agents)
+    distance_to_ego = np.asarray(distance_to_ego, dtype=np.float64)
+    if distance_to_ego.shape != (num_agents,):
+        raise ValueError(f"distance_to_ego must have shape ({num_agents},) [m]")
+
+    weights, edges = risk_graph(risk, valid, threshold)
+    groups = interaction_groups(edges)
+    rows, cols = np.nonzero(np.triu(edges, 1))
+    group_risk = np.bincount(
+        groups[rows], weights=weights[rows, cols], minlength=int(groups.max()) + 1
+    )
+    scores = np.zeros(num_agents)
+    in_group = groups >= 0
+    scores[in_group] = group_risk[groups[in_group]]
+    strength = np.where(edges, weights, 0.0).sum(axis=1)
+    largest = weights.max(axis=1)
+
+    candidates = valid.copy()
+    candidates[ego] = False
+    slots = np.flatnonzero(candidates)
+    # lexsort: last key first; negate the "larger first" keys.
+    keys = (slots, distance_to_ego[slots], -largest[slots], -strength[slots], -scores[slots])
+    order = slots[np.lexsort(keys)]
+    count = order.size if k == "all" else min(k, order.size)
+    controllable = np.zeros(num_agents, dtype=bool)
+    controllable[order[:count]] = True
+    return Ranking(controllable=controllable, scores=scores, groups=groups, order=order)
+
+
+def rank_window(
+    window: Mapping[str, np.ndarray], k: int | str, threshold: float = DEFAULT_THRESHOLD
+) -> Ranking:
+    """:func:`causal_ranking` of one window (docs/WINDOWS.md; slot 0 is the ego).
+
+    Uses the ``risk`` channel of ``pair_features`` (already masked beyond 50 m), the
+    ``agent_mask`` and the current positions of ``history`` for the distance tie-break.
+    Slots are window slots.
+    """
+    risk = np.asarray(window["pair_features"])[..., RISK_CHANNEL]
+    current = np.asarray(window["history"])[:, -1, :2]
+    distance = np.linalg.norm(current - current[0], axis=-1)
+    return causal_ranking(
+        risk, np.asarray(window["agent_mask"]), k, threshold=threshold, distance_to_ego=distance
+    )
+
+
+__all__ = [
+    "DEFAULT_THRESHOLD",
+    "NO_GROUP",
+    "Ranking",
+    "causal_ranking",
+    "check_k",
+    "interaction_groups",
+    "rank_window",
+    "risk_graph",
+]

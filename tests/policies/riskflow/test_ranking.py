@@ -1,0 +1,137 @@
+"""TTC causal ranking: groups, scores, top-K, ties and shortfalls on known conflicts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from policies.riskflow.ranking import (
+    NO_GROUP,
+    causal_ranking,
+    check_k,
+    interaction_groups,
+    rank_window,
+    risk_graph,
+)
+from riskflow_env.risk import risk_matrix
+
+
+def _risk(num_agents: int, pairs: dict[tuple[int, int], float]) -> np.ndarray:
+    risk = np.zeros((num_agents, num_agents))
+    for (i, j), value in pairs.items():
+        risk[i, j] = value  # one direction only: the graph symmetrises with max
+    return risk
+
+
+# Slots: 0 ego. Chain 1-2-3 (risk 1.7 in all), pair 4-5 (0.95), ego-6 (0.6), loose 7, 8.
+CHAIN = {(1, 2): 0.9, (3, 2): 0.8, (4, 5): 0.95, (0, 6): 0.6, (7, 1): 0.4, (8, 0): 0.3}
+
+
+def test_groups_are_connected_components_of_the_thresholded_graph():
+    weights, edges = risk_graph(_risk(9, CHAIN), np.ones(9, bool))
+    assert np.allclose(weights, weights.T)
+    groups = interaction_groups(edges)
+    # 1-3 are one group although 1 and 3 never conflict directly (a causal chain).
+    assert groups[1] == groups[2] == groups[3]
+    assert groups[4] == groups[5] != groups[1]
+    assert groups[0] == groups[6]
+    assert groups[7] == groups[8] == NO_GROUP
+    assert list(groups[[0, 1, 4]]) == [0, 1, 2]  # labels follow the lowest slot
+
+
+def test_scores_are_accumulated_group_risk():
+    ranking = causal_ranking(_risk(9, CHAIN), np.ones(9, bool), 2)
+    assert np.allclose(ranking.scores, [0.6, 1.7, 1.7, 1.7, 0.95, 0.95, 0.6, 0.0, 0.0])
+
+
+@pytest.mark.parametrize(
+    ("k", "expected"),
+    [
+        (0, []),
+        (1, [2]),  # the chain's centre carries the most risk (0.9 + 0.8)
+        (2, [1, 2]),
+        (3, [1, 2, 3]),
+        (5, [1, 2, 3, 4, 5]),
+        (6, [1, 2, 3, 4, 5, 6]),  # the ego's partner; the ego itself never
+        (7, [1, 2, 3, 4, 5, 6, 7]),  # shortfall: 7 has the larger risk to anyone (0.4 > 0.3)
+        (20, [1, 2, 3, 4, 5, 6, 7, 8]),
+        ("all", [1, 2, 3, 4, 5, 6, 7, 8]),
+    ],
+)
+def test_top_k(k, expected):
+    ranking = causal_ranking(_risk(9, CHAIN), np.ones(9, bool), k)
+    assert list(np.flatnonzero(ranking.controllable)) == expected
+    assert list(ranking.order) == [2, 1, 3, 4, 5, 6, 7, 8]
+    assert not ranking.controllable[0]
+
+
+def test_ties_go_to_the_agent_nearer_the_ego_then_the_lower_slot():
+    risk = _risk(5, {(1, 2): 0.9, (3, 4): 0.9})  # two identical pairs
+    valid = np.ones(5, bool)
+    assert list(causal_ranking(risk, valid, 4).order) == [1, 2, 3, 4]
+    distance = np.array([0.0, 40.0, 30.0, 20.0, 10.0])
+    assert list(causal_ranking(risk, valid, 4, distance_to_ego=distance).order) == [4, 3, 2, 1]
+
+
+def test_ego_and_invalid_agents_are_never_controllable():
+    risk = _risk(4, {(0, 1): 1.0, (2, 3): 0.7})
+    valid = np.array([True, True, False, True])
+    ranking = causal_ranking(risk, valid, "all")
+    assert list(np.flatnonzero(ranking.controllable)) == [1, 3]
+    assert ranking.groups[2] == NO_GROUP and ranking.scores[3] == 0.0  # its partner is gone
+    ego_last = causal_ranking(risk, np.ones(4, bool), "all", ego=3)
+    assert not ego_last.controllable[3] and ego_last.controllable[0]
+
+
+def test_threshold():
+    risk = _risk(3, {(0, 1): 0.55, (1, 2): 0.45})
+    assert list(causal_ranking(risk, np.ones(3, bool), 1).order) == [1, 2]
+    high = causal_ranking(risk, np.ones(3, bool), 1, threshold=0.6)
+    assert np.all(high.groups == NO_GROUP) and list(high.order) == [1, 2]  # by largest risk
+
+
+def test_known_conflict_from_ttc_risk():
+    """Ego driving at 20 m/s; a car stopped 30 m ahead in its lane is the conflict
+    (TTC ~ 1.3 s); cars in parallel lanes at the same speed are not; two cars on a
+    crossing course far behind form their own group."""
+    state = np.array(
+        [
+            [0.0, 0.0, 20.0, 0.0],  # ego
+            [30.0, 0.0, 0.0, 0.0],  # stopped ahead
+            [0.0, 3.5, 20.0, 0.0],  # parallel, same speed
+            [10.0, -3.5, 20.0, 0.0],  # parallel, same speed
+            [-40.0, 15.0, 10.0, -np.pi / 2],  # crossing pair behind
+            [-40.0, -15.0, 10.0, np.pi / 2],
+        ]
+    )
+    length, width = np.full(6, 4.5), np.full(6, 2.0)
+    risk = risk_matrix(state, length, width)
+    distance = np.linalg.norm(state[:, :2] - state[0, :2], axis=-1)
+    ranking = causal_ranking(risk, np.ones(6, bool), 3, distance_to_ego=distance)
+    assert ranking.order[0] == 1
+    assert set(np.flatnonzero(ranking.controllable)) == {1, 4, 5}
+    assert ranking.groups[2] == ranking.groups[3] == NO_GROUP
+
+
+def test_rank_window_uses_the_risk_channel_and_positions():
+    num = 4
+    features = np.zeros((num, num, 8), np.float32)
+    features[2, 3, -1] = features[3, 2, -1] = 0.8
+    history = np.zeros((num, 31, 4), np.float32)
+    history[:, -1, 0] = [0.0, 5.0, 50.0, 20.0]
+    window = {"pair_features": features, "history": history, "agent_mask": np.ones(num, bool)}
+    ranking = rank_window(window, 1)
+    assert list(ranking.order) == [3, 2, 1]  # 3 is nearer the ego than 2
+    assert list(np.flatnonzero(ranking.controllable)) == [3]
+
+
+def test_bad_input():
+    for bad in (-1, 1.5, True, "some", None):
+        with pytest.raises(ValueError, match="k must be"):
+            check_k(bad)
+    with pytest.raises(ValueError, match="risk must be"):
+        causal_ranking(np.zeros((3, 2)), np.ones(3, bool), 1)
+    with pytest.raises(ValueError, match="risk must be"):
+        causal_ranking(np.full((2, 2), np.nan), np.ones(2, bool), 1)
+    with pytest.raises(ValueError, match="ego"):
+        causal_ranking(np.zeros((2, 2)), np.ones(2, bool), 1, ego=2)
