@@ -26,9 +26,9 @@ Arguments (``parallel_env(config=None, scenarios=None, render_mode=None)``):
 * ``config``: :class:`~riskflow_env.config.EnvConfig` (slots, episode length,
   termination rules, action clipping, dynamics bounds, observation and reward settings).
 * ``scenarios``: a :class:`~riskflow_env.scenarios.Scenario`, a sequence of them, or a
-  ``ScenarioSource``; default: seeded synthetic traffic on highway-env road networks
-  (:class:`~riskflow_env.scenarios.HighwayTrafficSource`). ``reset(options={"scenario":
-  s})`` starts from a given scene instead.
+  ``ScenarioSource``; default: the shipped naturalistic bank's evaluation split
+  (:func:`~riskflow_env.scenarios.shipped_bank`, highway-env IDM/MOBIL recordings on 7
+  road families). ``reset(options={"scenario": s})`` starts from a given scene instead.
 * ``render_mode``: ``None``, ``"rgb_array"`` or ``"human"``.
 
 Termination: an agent terminates when it collides (or drives off the road) and
@@ -58,7 +58,7 @@ from riskflow_env.dynamics import YAW
 from riskflow_env.maps import DrivableMap
 from riskflow_env.observations import observation_size
 from riskflow_env.rewards import REWARD_TERMS
-from riskflow_env.scenarios import HighwayTrafficSource, Scenario, ScenarioSource, as_source
+from riskflow_env.scenarios import Scenario, ScenarioSource, as_source, shipped_bank
 from riskflow_env.state import SceneState
 from riskflow_env.view import SceneView
 
@@ -90,7 +90,7 @@ class RiskFlowParallelEnv(ParallelEnv):
             )
         self.config = config or EnvConfig()
         self.render_mode = render_mode
-        self.source = as_source(scenarios) if scenarios is not None else HighwayTrafficSource()
+        self.source = as_source(scenarios) if scenarios is not None else shipped_bank("eval")
         self.possible_agents = list(self.config.agent_names)
         self._slot = {name: index for index, name in enumerate(self.possible_agents)}
         self._terminate_on_collision = np.array(self.config.selects("terminate_on_collision"))

@@ -104,7 +104,7 @@ def save_scenario(
 
     Args:
         scenario: the scene.
-        path: destination file; its folder must exist.
+        path: destination file (its folder is created when missing).
         map_dir: where shared maps live (e.g. ``<bank>/maps``); the map is written there
             as ``<hash>.npz`` when absent and referenced by a relative path. None stores
             the map inside the scene file.
@@ -112,6 +112,7 @@ def save_scenario(
             recomputing it from the raster on load.
     """
     path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     arrays: dict[str, np.ndarray] = {"schema": np.array(SCHEMA), "version": np.array(VERSION)}
     states = np.where(scenario.valid[..., None], scenario.states, 0.0)  # 0 where invalid
     lossless32 = np.array_equal(states.astype(np.float32).astype(np.float64), states)
@@ -276,7 +277,6 @@ def load_bank(directory: str | os.PathLike) -> ScenarioBank:
     return ScenarioBank([load_scenario(path) for path in paths])
 
 
-@functools.lru_cache(maxsize=len(SPLITS))
 def shipped_bank(split: str = "eval") -> ScenarioBank:
     """The scenes that ship with the package (``riskflow_env/assets/scenarios/<split>``).
 
@@ -286,6 +286,11 @@ def shipped_bank(split: str = "eval") -> ScenarioBank:
     """
     if split not in SPLITS:
         raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    return _shipped(split)
+
+
+@functools.cache
+def _shipped(split: str) -> ScenarioBank:
     return load_bank(ASSETS / split)
 
 

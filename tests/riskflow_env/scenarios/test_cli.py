@@ -1,0 +1,76 @@
+"""``riskflow-data``: deterministic, worker-count independent, resumable banks."""
+
+from __future__ import annotations
+
+import pytest
+
+from riskflow_env.scenarios import load_bank
+from riskflow_env.scenarios.cli import GenerateOptions, generate, main
+
+
+def _tiny(out, workers: int = 1, **changes) -> GenerateOptions:
+    fields = dict(
+        out=out, families=("u-turn", "merge"), scenes=2, seed=7, workers=workers, future_steps=10
+    )
+    fields.update(changes)
+    return GenerateOptions(**fields)
+
+
+def _files(directory) -> dict[str, bytes]:
+    return {
+        str(path.relative_to(directory)): path.read_bytes()
+        for path in sorted(directory.rglob("*"))
+        if path.is_file()
+    }
+
+
+def test_one_or_two_workers_write_identical_files(tmp_path):
+    generate(_tiny(tmp_path / "one", workers=1))
+    generate(_tiny(tmp_path / "two", workers=2))
+    one, two = _files(tmp_path / "one"), _files(tmp_path / "two")
+    assert sorted(one) == sorted(two)
+    assert {"00000-u-turn.npz", "00001-merge.npz", "riskflow-data.json"} <= set(one)
+    assert sum(name.startswith("maps/") for name in one) == 2  # one map per family
+    assert one == two
+    bank = load_bank(tmp_path / "one")
+    assert [scene.family for scene in bank.scenarios] == ["u-turn", "merge"]
+    assert all(scene.future_steps == 10 for scene in bank.scenarios)
+
+
+def test_resume_skips_complete_scenes_and_redoes_missing_ones(tmp_path):
+    out = tmp_path / "bank"
+    assert generate(_tiny(out))["written"] == 2
+    before = _files(out)
+    stamps = {p.name: p.stat().st_mtime_ns for p in out.glob("*.npz")}
+    assert generate(_tiny(out)) | {"seconds": 0} == {
+        "written": 0,
+        "skipped": 2,
+        "seconds": 0,
+        "per_minute": 0.0,
+    }
+    assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.npz")} == stamps
+    (out / "00001-merge.npz").unlink()
+    (out / ".00001-merge.npz.999.tmp").write_bytes(b"interrupted write")
+    result = generate(_tiny(out, scenes=3))  # also extends the bank
+    assert (result["written"], result["skipped"]) == (2, 1)
+    after = _files(out)
+    assert {name: after[name] for name in before} == before
+    assert "00002-u-turn.npz" in after and not list(out.glob(".*.tmp"))
+
+
+def test_resume_with_other_settings_is_refused(tmp_path):
+    generate(_tiny(tmp_path, scenes=1))
+    with pytest.raises(SystemExit, match="other settings"):
+        generate(_tiny(tmp_path, scenes=1, seed=8))
+
+
+def test_command_line(tmp_path, capsys):
+    out = tmp_path / "bank"
+    argv = ["generate", "--families", "u-turn", "--scenes", "1", "--out", str(out)]
+    assert main([*argv, "--seed", "3", "--workers", "1", "--future-steps", "10"]) == 0
+    assert "scenes/min" in capsys.readouterr().out
+    assert main(["info", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "1 scenes" in printed and "u-turn" in printed and "split train" in printed
+    with pytest.raises(SystemExit):
+        main(["generate", "--families", "nowhere", "--out", str(out)])

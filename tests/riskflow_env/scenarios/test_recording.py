@@ -1,0 +1,153 @@
+"""Naturalistic traffic: highway-env recordings, validity masks, windows, fast stepping."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from riskflow_env.geometry import footprint_points
+from riskflow_env.maps import FAMILIES
+from riskflow_env.scenarios import (
+    DriverConfig,
+    SceneConfig,
+    cut_scenario,
+    cut_scenarios,
+    generate_scenario,
+    record_traffic,
+)
+from riskflow_env.scenarios.road_stepper import MAX_YAW_RATE, RoadStepper
+
+SPARSE = DriverConfig(extra_headway=(4.0, 4.0))  # few vehicles: fast tests
+TINY = SceneConfig(future_steps=20, warmup=(5, 10), candidate_windows=2, driver=SPARSE)
+
+
+@pytest.fixture(scope="module")
+def merge_recording():
+    return record_traffic("merge", np.random.default_rng(3), steps=120, warmup_steps=10)
+
+
+def test_recorded_vehicles_lie_on_the_map(merge_recording):
+    recording = merge_recording
+    valid = recording.valid
+    assert valid.sum() > 1000
+    centre = recording.map.sdf_at(recording.states[..., :2][valid]) <= 0.0
+    points = footprint_points(
+        recording.states[..., :2],
+        recording.states[..., 3],
+        recording.length[:, None],
+        recording.width[:, None],
+    )
+    footprint = np.all(recording.map.sdf_at(points) <= 0.0, axis=-1)[valid]
+    assert centre.mean() >= 0.95 and footprint.mean() >= 0.95
+
+
+def test_masks_follow_vehicles_entering_and_leaving(merge_recording):
+    valid = merge_recording.valid
+    first = np.argmax(valid, axis=1)
+    last = valid.shape[1] - 1 - np.argmax(valid[:, ::-1], axis=1)
+    assert np.all(valid.sum(axis=1) == last - first + 1)  # one contiguous run each
+    assert np.any(first > 0), "some vehicles enter during the recording"
+    assert np.any(last < valid.shape[1] - 1), "some vehicles leave during the recording"
+    assert np.all(merge_recording.states[~valid] == 0.0)
+    assert np.all(np.isfinite(merge_recording.states))
+
+
+def test_recorded_motion_is_plausible(merge_recording):
+    states, valid = merge_recording.states, merge_recording.valid
+    both = valid[:, 1:] & valid[:, :-1]
+    assert np.all(states[..., 2][valid] >= 0.0)  # no reversing
+    yaw_rate = np.diff(states[..., 3], axis=1)[both] / merge_recording.dt
+    assert np.abs(yaw_rate).max() <= MAX_YAW_RATE + 1e-6
+    step = np.linalg.norm(np.diff(states[..., :2], axis=1), axis=-1)[both]
+    assert step.max() <= 40.0 * merge_recording.dt  # no teleporting rows
+    driver = DriverConfig()
+    cars = np.array(merge_recording.kinds) == "car"
+    assert np.all(merge_recording.length[cars] >= driver.car_length[0])
+    assert np.all(merge_recording.length[cars] <= driver.car_length[1])
+
+
+def test_same_generator_state_same_recording():
+    a = record_traffic("u-turn", np.random.default_rng(1), steps=30, warmup_steps=5)
+    b = record_traffic("u-turn", np.random.default_rng(1), steps=30, warmup_steps=5)
+    c = record_traffic("u-turn", np.random.default_rng(2), steps=30, warmup_steps=5)
+    np.testing.assert_array_equal(a.states, b.states)
+    np.testing.assert_array_equal(a.valid, b.valid)
+    assert a.kinds == b.kinds
+    assert a.states.shape != c.states.shape or not np.array_equal(a.states, c.states)
+
+
+def test_windows_keep_the_ego_and_the_vehicles_around_it():
+    recording = record_traffic("u-turn", np.random.default_rng(0), steps=151, warmup_steps=20)
+    config = SceneConfig(radius=60.0)  # 31 + 100 steps
+    scenes = cut_scenarios(recording, np.random.default_rng(0), config)
+    assert len(scenes) == 3  # starts 0, 10, 20
+    entering = leaving = 0
+    for scene in scenes:
+        now = scene.current_index
+        assert scene.states.shape[1] == config.history_steps + config.future_steps
+        assert scene.valid[0].all() and scene.ego_index == 0  # ego over the whole window
+        assert np.all(scene.valid[:, now:].any(axis=1))  # nobody who left before now
+        entering += int(np.sum(~scene.valid[:, now] & scene.valid[:, now:].any(axis=1)))
+        leaving += int(np.sum(scene.valid[:, now] & ~scene.valid[:, -1]))
+        ego = scene.states[0, :, :2]
+        gaps = np.linalg.norm(scene.states[..., :2] - ego, axis=-1)
+        assert np.all(np.where(scene.valid, gaps, np.inf).min(axis=1) <= config.radius)
+        assert scene.source == "highway-env-idm" and scene.family == "u-turn"
+        assert np.all(
+            np.abs(scene.states[np.arange(scene.num_agents), scene.valid.argmax(1), 3])
+            <= np.pi + 1e-6
+        )  # first headings wrapped
+    assert entering + leaving > 0
+
+
+def test_window_outside_the_recording_is_an_error(merge_recording):
+    with pytest.raises(ValueError, match="does not fit"):
+        cut_scenario(merge_recording, 110, np.random.default_rng(0), TINY)
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_every_family_gives_a_scene(family):
+    scene = generate_scenario(family, np.random.default_rng(0), TINY, name=f"{family}-x")
+    assert scene.family == family and scene.name == f"{family}-x"
+    assert scene.history_steps == 31 and scene.future_steps == 20
+    assert scene.num_agents >= 2
+    np.testing.assert_array_equal(scene.states, scene.states.astype(np.float32))
+
+
+def test_scene_config_is_validated():
+    with pytest.raises(ValueError, match="future_steps"):
+        SceneConfig(future_steps=0)
+    with pytest.raises(ValueError, match="warmup"):
+        SceneConfig(warmup=(10, 5))
+
+
+@pytest.mark.parametrize("family", ["roundabout", "intersection", "merge", "exit"])
+def test_road_stepper_queries_match_highway_env(family):
+    """The cached / vectorised queries give highway-env's own answers."""
+    import gymnasium
+    import highway_env  # noqa: F401
+
+    from riskflow_env.maps.highway import ENV_IDS
+
+    env = gymnasium.make(ENV_IDS[family], config={"vehicles_count": 12}).unwrapped
+    env.reset(seed=0)
+    road = env.road
+    road.neighbour_vehicles_connected_lanes = True
+    base = type(road).neighbour_vehicles
+    stepper = RoadStepper(road)
+    for _ in range(3):
+        for _ in range(5):
+            stepper.lane_tables = {}  # the per-step cache
+            road.act()
+            road.step(0.1)
+        stepper.lane_tables = {}
+        for vehicle in road.vehicles:
+            for lane_index in {vehicle.lane_index, *road.network.side_lanes(vehicle.lane_index)}:
+                assert stepper.neighbours(vehicle, lane_index) == base(road, vehicle, lane_index)
+        expected = [
+            road.network.get_closest_lane_index(v.position, v.heading) for v in road.vehicles
+        ]
+        xy = np.array([v.position for v in road.vehicles])
+        stepper.update_lanes(road.vehicles, xy)
+        assert [v.lane_index for v in road.vehicles] == expected
+    env.close()
