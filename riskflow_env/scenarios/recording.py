@@ -2,12 +2,14 @@
 
 :func:`record_traffic` builds the road of a family with highway-env (the same env ids as
 :func:`riskflow_env.maps.from_highway_env`), fills it with IDM/MOBIL vehicles — every
-vehicle is a traffic vehicle, there is no controlled one — and steps ``road.act()`` /
-``road.step(0.1)`` directly (``simulation_frequency=10``), recording every vehicle's
-(x, y, speed, heading) at each step. Per recording it draws a traffic density; per
-vehicle a kind (car or truck) and size, a desired speed and its IDM/MOBIL parameters
-(ranges in :class:`DriverConfig`), set as instance attributes (highway-env's intersection
-env overwrites some class defaults, so nothing relies on them).
+vehicle is a traffic vehicle, there is no controlled one — and steps it by 0.1 s
+(``simulation_frequency=10``) with :class:`~riskflow_env.scenarios.road_stepper.RoadStepper`
+(highway-env's ``road.act()`` / ``road.step()``, faster; right of way at the intersection
+and the roundabout entries), recording every vehicle's (x, y, speed, heading) at each
+step. Per recording it draws a traffic density; per vehicle a kind (car, or truck in
+``TRUCK_FAMILIES``) and size, a desired speed and its IDM/MOBIL parameters (ranges in
+:class:`DriverConfig`), set as instance attributes (highway-env's intersection env
+overwrites some class defaults, so nothing relies on them).
 
 Vehicles enter at the network's entry roads (start nodes without incoming road; for the
 intersection the outer nodes ``o0``-``o3``), Poisson arrivals when the lane start is
@@ -15,7 +17,8 @@ clear, and leave when their front reaches the end of an exit road (end nodes wit
 outgoing road, the intersection's outer nodes) or of a lane cut by the map (highway).
 Vehicles that crash or whose centre leaves the drivable area are removed and flagged.
 Validity masks carry all of this: a vehicle's row is valid from its first to its last
-recorded step. Speeds never go below 0: IDM braking is capped at standstill.
+recorded step. Speeds stay >= 0 and yaw rates within 1 rad/s
+(:func:`~riskflow_env.scenarios.road_stepper.traffic_vehicle_class`).
 
 :mod:`riskflow_env.scenarios.naturalistic` cuts recordings into :class:`Scenario` windows.
 """
