@@ -53,6 +53,7 @@ from pettingzoo import ParallelEnv
 
 from riskflow_env import events as event_detection
 from riskflow_env import simulator
+from riskflow_env.action_input import ActionInput
 from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import YAW
 from riskflow_env.maps import DrivableMap
@@ -110,6 +111,9 @@ class RiskFlowParallelEnv(ParallelEnv):
             )
             for agent in self.possible_agents
         }
+        self._action_input = ActionInput(
+            self.possible_agents, self._action_low, self._action_high, self.config.clip_actions
+        )
         self.state_space = gymnasium.spaces.Box(
             -np.inf, np.inf, (STATE_FEATURES * self.config.max_agents,), np.float32
         )
@@ -216,7 +220,7 @@ class RiskFlowParallelEnv(ParallelEnv):
             raise RuntimeError("step() called before reset(): call reset() first")
         if not self.agents:
             raise RuntimeError("step() called after the episode ended: call reset() first")
-        action_array = self._action_array(actions)
+        action_array = self._action_input.to_array(actions, self.agents)
         scene = simulator.step(self._scene, action_array, self.config.dynamics)
         evaluation = self._evaluate(scene)
         live = scene.active
@@ -286,73 +290,8 @@ class RiskFlowParallelEnv(ParallelEnv):
     # --------------------------------------------------------------- internals
     def _check_agent(self, agent: str) -> str:
         if agent not in self._slot:
-            raise ValueError(
-                f"unknown agent id {agent!r}; possible agents are 'ego' and "
-                f"'agent_1'..'agent_{self.config.max_agents - 1}'"
-            )
+            raise self._action_input.unknown_agent_error(agent)
         return agent
-
-    def _action_array(self, actions: Mapping[str, Any]) -> np.ndarray:
-        """(A, 2) float64 actions of the live agents (zeros elsewhere), validated."""
-        if isinstance(actions, Mapping) and len(actions) == len(self.agents):
-            try:  # fast path: exactly the live agents, each a finite (2,) action
-                slots = [self._slot[agent] for agent in actions]
-                values = np.array(list(actions.values()), dtype=np.float64)
-            except (KeyError, ValueError, TypeError):
-                slots, values = None, None
-            if (
-                values is not None
-                and values.shape == (len(slots), 2)
-                and actions.keys() == set(self.agents)
-                and np.isfinite(values).all()
-            ):
-                array = np.zeros((self.config.max_agents, 2))
-                array[slots] = values
-                if self.config.clip_actions or not self._out_of_bounds(array).any():
-                    return array
-        return self._checked_action_array(actions)
-
-    def _out_of_bounds(self, array: np.ndarray) -> np.ndarray:
-        return np.any((array < self._action_low) | (array > self._action_high), axis=-1)
-
-    def _checked_action_array(self, actions: Mapping[str, Any]) -> np.ndarray:
-        """Agent by agent, with an error naming the agent and what is wrong."""
-        if not isinstance(actions, Mapping):
-            raise TypeError(
-                f"actions must be a dict {{agent: action}}, got {type(actions).__name__}"
-            )
-        for agent in actions:
-            self._check_agent(agent)
-        live = set(self.agents)
-        not_live = sorted(set(actions) - live)
-        if not_live:
-            raise ValueError(f"actions given for agents that are not live: {not_live}")
-        missing = [agent for agent in self.agents if agent not in actions]
-        if missing:
-            raise ValueError(f"actions missing for live agents: {missing}")
-        array = np.zeros((self.config.max_agents, 2))
-        for agent, action in actions.items():
-            value = np.asarray(action, dtype=np.float64)
-            if value.shape != (2,):
-                raise ValueError(
-                    f"actions[{agent!r}] must have shape (2,) = (accel, yaw_rate), "
-                    f"got shape {value.shape}"
-                )
-            array[self._slot[agent]] = value
-        if not np.all(np.isfinite(array)):
-            bad = [agent for agent in actions if not np.all(np.isfinite(array[self._slot[agent]]))]
-            raise ValueError(f"actions must be finite; got NaN or inf for {bad}")
-        if not self.config.clip_actions:
-            outside = self._out_of_bounds(array)
-            if np.any(outside):
-                bad = [agent for agent in actions if outside[self._slot[agent]]]
-                raise ValueError(
-                    f"actions out of bounds for {bad}: accel must be in "
-                    f"[{self._action_low[0]}, {self._action_high[0]}] m/s^2 and yaw rate in "
-                    f"[{self._action_low[1]}, {self._action_high[1]}] rad/s "
-                    "(EnvConfig(clip_actions=True) clips instead)"
-                )
-        return array
 
     def _evaluate(self, scene: SceneState) -> simulator.Evaluation:
         """Features, events, observations and rewards of ``scene`` (kept as last_events)."""

@@ -1,0 +1,105 @@
+"""The env's action input: ``{agent: (accel, yaw_rate)}`` -> one (A, 2) array, validated.
+
+Errors name the agent and what is wrong (unknown or finished agent, missing action,
+wrong shape, NaN/inf, out of bounds when clipping is off). The common case (exactly the
+live agents, each a finite (2,) action) takes a vectorised path.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+
+class ActionInput:
+    """Converts action dicts of a fixed agent roster to arrays.
+
+    Args:
+        agent_names: the ``possible_agents``, in slot order.
+        low: (2,) lower action bounds (accel [m/s^2], yaw rate [rad/s]).
+        high: (2,) upper action bounds.
+        clip: out-of-bounds actions are allowed (the dynamics clip them); when False
+            they raise ValueError.
+    """
+
+    def __init__(
+        self, agent_names: Sequence[str], low: np.ndarray, high: np.ndarray, clip: bool
+    ) -> None:
+        self.slot = {name: index for index, name in enumerate(agent_names)}
+        self.low, self.high, self.clip = np.asarray(low), np.asarray(high), clip
+
+    def unknown_agent_error(self, agent: Any) -> ValueError:
+        """The error for an agent id outside the roster."""
+        return ValueError(
+            f"unknown agent id {agent!r}; possible agents are 'ego' and "
+            f"'agent_1'..'agent_{len(self.slot) - 1}'"
+        )
+
+    def to_array(self, actions: Mapping[str, Any], live: Sequence[str]) -> np.ndarray:
+        """(A, 2) float64 actions of the ``live`` agents (zeros elsewhere), validated.
+
+        Args:
+            actions: ``{agent: (accel [m/s^2], yaw_rate [rad/s])}`` for exactly ``live``.
+            live: the live agents.
+        """
+        if isinstance(actions, Mapping) and len(actions) == len(live):
+            try:  # fast path: exactly the live agents, each a finite (2,) action
+                slots = [self.slot[agent] for agent in actions]
+                values = np.array(list(actions.values()), dtype=np.float64)
+            except (KeyError, ValueError, TypeError):
+                slots, values = None, None
+            if (
+                values is not None
+                and values.shape == (len(slots), 2)
+                and actions.keys() == set(live)
+                and np.isfinite(values).all()
+            ):
+                array = np.zeros((len(self.slot), 2))
+                array[slots] = values
+                if self.clip or not self._out_of_bounds(array).any():
+                    return array
+        return self._checked(actions, live)
+
+    def _out_of_bounds(self, array: np.ndarray) -> np.ndarray:
+        return np.any((array < self.low) | (array > self.high), axis=-1)
+
+    def _checked(self, actions: Mapping[str, Any], live: Sequence[str]) -> np.ndarray:
+        """Agent by agent, with an error naming the agent and what is wrong."""
+        if not isinstance(actions, Mapping):
+            raise TypeError(
+                f"actions must be a dict {{agent: action}}, got {type(actions).__name__}"
+            )
+        for agent in actions:
+            if agent not in self.slot:
+                raise self.unknown_agent_error(agent)
+        not_live = sorted(set(actions) - set(live))
+        if not_live:
+            raise ValueError(f"actions given for agents that are not live: {not_live}")
+        missing = [agent for agent in live if agent not in actions]
+        if missing:
+            raise ValueError(f"actions missing for live agents: {missing}")
+        array = np.zeros((len(self.slot), 2))
+        for agent, action in actions.items():
+            value = np.asarray(action, dtype=np.float64)
+            if value.shape != (2,):
+                raise ValueError(
+                    f"actions[{agent!r}] must have shape (2,) = (accel, yaw_rate), "
+                    f"got shape {value.shape}"
+                )
+            array[self.slot[agent]] = value
+        if not np.all(np.isfinite(array)):
+            bad = [agent for agent in actions if not np.all(np.isfinite(array[self.slot[agent]]))]
+            raise ValueError(f"actions must be finite; got NaN or inf for {bad}")
+        if not self.clip:
+            outside = self._out_of_bounds(array)
+            if np.any(outside):
+                bad = [agent for agent in actions if outside[self.slot[agent]]]
+                raise ValueError(
+                    f"actions out of bounds for {bad}: accel must be in "
+                    f"[{self.low[0]}, {self.high[0]}] m/s^2 and yaw rate in "
+                    f"[{self.low[1]}, {self.high[1]}] rad/s "
+                    "(EnvConfig(clip_actions=True) clips instead)"
+                )
+        return array
