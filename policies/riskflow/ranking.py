@@ -168,20 +168,36 @@ def causal_ranking(
 
 
 def rank_window(
-    window: Mapping[str, np.ndarray], k: int | str, threshold: float = DEFAULT_THRESHOLD
+    window: Mapping[str, np.ndarray],
+    k: int | str,
+    threshold: float = DEFAULT_THRESHOLD,
+    candidates: np.ndarray | None = None,
 ) -> Ranking:
     """:func:`causal_ranking` of one window (docs/WINDOWS.md; slot 0 is the ego).
 
     Uses the ``risk`` channel of ``pair_features`` (already masked beyond 50 m), the
     ``agent_mask`` and the current positions of ``history`` for the distance tie-break.
     Slots are window slots.
+
+    Args:
+        window: the window.
+        k: size of ``A_c`` or ``"all"``.
+        threshold: edge threshold.
+        candidates: optional (A,) bool, agents that may be chosen (e.g. the live ones);
+            every agent of the window still takes part in the risk graph.
     """
     risk = np.asarray(window["pair_features"])[..., RISK_CHANNEL]
     current = np.asarray(window["history"])[:, -1, :2]
     distance = np.linalg.norm(current - current[0], axis=-1)
-    return causal_ranking(
-        risk, np.asarray(window["agent_mask"]), k, threshold=threshold, distance_to_ego=distance
-    )
+    agent_mask = np.asarray(window["agent_mask"], dtype=bool)
+    ranking = causal_ranking(risk, agent_mask, k, threshold=threshold, distance_to_ego=distance)
+    if candidates is None:
+        return ranking
+    order = ranking.order[np.asarray(candidates, dtype=bool)[ranking.order]]
+    count = order.size if k == "all" else min(int(k), order.size)
+    controllable = np.zeros_like(agent_mask)
+    controllable[order[:count]] = True
+    return Ranking(controllable, ranking.scores, ranking.groups, order)
 
 
 __all__ = [

@@ -135,3 +135,18 @@ def test_bad_input():
         causal_ranking(np.full((2, 2), np.nan), np.ones(2, bool), 1)
     with pytest.raises(ValueError, match="ego"):
         causal_ranking(np.zeros((2, 2)), np.ones(2, bool), 1, ego=2)
+
+
+def test_rank_window_candidates_restrict_the_choice_not_the_graph():
+    num = 4
+    features = np.zeros((num, num, 8), np.float32)
+    features[1, 2, -1] = features[3, 0, -1] = 0.9
+    window = {
+        "pair_features": features,
+        "history": np.zeros((num, 31, 4), np.float32),
+        "agent_mask": np.ones(num, bool),
+    }
+    candidates = np.array([True, False, True, True])  # 1 is done but still an obstacle
+    ranking = rank_window(window, 1, candidates=candidates)
+    assert list(ranking.order) == [2, 3] and list(np.flatnonzero(ranking.controllable)) == [2]
+    assert ranking.groups[1] == ranking.groups[2] != NO_GROUP
