@@ -1,0 +1,407 @@
+"""Output-space guidance: bend the controllable agents' plans toward risky interactions.
+
+RiskFlow (Lan et al. 2026) guides the *output* of the one-step generator, not its
+sampling path (DESIGN.md section 7): starting from the base residual
+``u0 = u_theta(eps, 0, 1; C)`` (normalised action space), it takes ``K_g`` steps
+
+    u <- u - gamma * M_Ac * grad_u L,      L = lambda_adv * L_adv + lambda_map * L_map,
+
+with ``a = denorm(eps + u)`` and the trajectory ``rollout(a, s0)`` (the vectorised,
+differentiable unicycle of ``riskflow_env.dynamics``). The generator is *not* re-run
+inside the loop, so each step is one rollout of the ``A_c`` rows, their SDF lookups and
+a backward pass through those only. Only ``A_c`` rows are optimised (they are the only
+variables, which is the mask ``M_Ac`` done exactly): every other row of ``u``, of the
+actions and of the trajectories is the base plan, bit for bit.
+
+Terms (``i`` in ``A_c``, ``p_i^t`` its position at plan step t, scene frame [m]):
+
+* ``L_adv = sum_i (1 / T_g) sum_{t < T_g} min_{j in J} ||p_i^t - p_j^t||`` [m]: the mean,
+  over the guidance horizon ``T_g``, of the distance to the nearest target, summed over
+  ``A_c``. Targets ``J``: with ``target="others"`` (the paper's) every present agent
+  *not* in ``A_c`` (the ego included), with ``target="ego"`` the ego only (stress
+  testing an ego planner). Targets follow their base plans, detached (as in CTG, Zhong
+  et al. 2023, guidance treats the other agents' futures as given). The mean over
+  ``t`` (the paper sums) keeps ``lambda_adv`` independent of ``T_g``.
+* ``L_map = sum_i sum_t w_t sum_k relu(sdf(q_ik^t) + margin)^2`` [m^2]: the squared
+  depth by which each of the 9 footprint samples ``q_ik^t``
+  (``riskflow_env.geometry.footprint_points``) lies off the drivable area (the map's
+  SDF is negative on the road), plus a safety ``margin``; ``w_t = map_decay ** t``
+  weighs the near future (executed before the next replan) most.
+
+Sign and weight convention: guidance *minimises* ``L``. ``L_adv`` is a distance, so
+``lambda_adv > 0`` pulls ``A_c`` toward its targets: **larger lambda_adv = more
+adversarial**; ``lambda_adv < 0`` would push them away, 0 disables the term.
+``lambda_map >= 0`` keeps them on the road. The paper (following the tbsim / CTG
+guidance code, whose collision term is a *penalty* that grows as agents get close)
+quotes an adversarial weight of -50 and a map weight of 1.0: the negative weight turns
+minimising a closeness penalty into attraction. Here the term is the distance itself,
+so the same intent is ``lambda_adv = +50``.
+
+Action bounds: the step is *projected* (projected gradient descent) so that
+``denorm(eps + u)`` of every ``A_c`` row stays inside the dynamics' accel and yaw-rate
+bounds; the rollout's clip is then the identity for those rows and its gradient never
+vanishes on a clipped action (a smooth squashing would alter the unguided plans too).
+Steps: Adam on ``u`` by default, or the paper's plain gradient steps
+(``optimizer="gradient"``). A plain step moves action k by ``gamma * dL/du_k``, and that
+gradient scales with ``lambda``, with the speed and with ``(T - k)^2`` (an early action
+shifts every later position), so one ``gamma`` is too weak in one scene and overshoots
+(off road, hard jerks) in another. Adam's per-coordinate normalisation makes the step a
+bounded move in normalised action units (about ``step_size`` per step: at most
+``K_g * step_size`` = 3 standard deviations of the training actions by default), the
+same in every scene; on the shipped scenes it reaches a given adversarial effect with
+about half the action change of plain steps and a lower ``L_map``. With Adam only the
+*ratio* ``lambda_adv / lambda_map`` matters.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from policies.riskflow.meanflow import Normalizer
+from riskflow_env.config import DynamicsConfig
+from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout
+from riskflow_env.geometry import footprint_points
+from riskflow_env.maps import DrivableMap
+
+TARGETS = ("others", "ego")
+OPTIMIZERS = ("gradient", "adam")
+_ADAM_BETAS = (0.9, 0.999)
+
+
+@dataclass(frozen=True)
+class GuidanceConfig:
+    """Options of output-space guidance.
+
+    Attributes:
+        steps: ``K_g`` guidance steps (0: the base plans).
+        step_size: the Adam learning rate [normalised action units per step], or
+            ``gamma`` [normalised action units per unit of gradient] for ``"gradient"``
+            (e.g. 3e-3 with the default weights).
+        lambda_adv: weight of ``L_adv`` [1/m]; > 0 is adversarial (module docstring).
+        lambda_map: weight of ``L_map`` [1/m^2], >= 0.
+        horizon: ``T_g`` plan steps of ``L_adv``; None: the whole plan.
+        target: ``"others"`` (paper) or ``"ego"`` (stress testing).
+        map_margin: footprint samples closer than this to the road edge are penalised [m].
+        map_decay: ``w_t = map_decay ** t``, in (0, 1].
+        optimizer: ``"adam"`` or ``"gradient"`` (plain steps, the paper's).
+    """
+
+    steps: int = 30
+    step_size: float = 0.1
+    lambda_adv: float = 50.0
+    lambda_map: float = 1.0
+    horizon: int | None = None
+    target: str = "others"
+    map_margin: float = 0.2
+    map_decay: float = 0.98
+    optimizer: str = "adam"
+
+    def __post_init__(self) -> None:
+        if isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 0:
+            raise ValueError(f"GuidanceConfig.steps must be an int >= 0, got {self.steps!r}")
+        if self.horizon is not None and (
+            isinstance(self.horizon, bool) or not isinstance(self.horizon, int) or self.horizon < 1
+        ):
+            raise ValueError(
+                f"GuidanceConfig.horizon must be None or an int >= 1 [steps], got {self.horizon!r}"
+            )
+        for name in ("step_size", "lambda_adv", "lambda_map", "map_margin", "map_decay"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"GuidanceConfig.{name} must be finite, got {getattr(self, name)}")
+        if self.step_size <= 0 or self.lambda_map < 0 or not 0 < self.map_decay <= 1:
+            raise ValueError(
+                "GuidanceConfig needs step_size > 0, lambda_map >= 0 and map_decay in (0, 1]; "
+                f"got {self.step_size}, {self.lambda_map}, {self.map_decay}"
+            )
+        if self.target not in TARGETS:
+            raise ValueError(f"GuidanceConfig.target must be one of {TARGETS}, got {self.target!r}")
+        if self.optimizer not in OPTIMIZERS:
+            raise ValueError(
+                f"GuidanceConfig.optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}"
+            )
+
+
+@dataclass(frozen=True)
+class GuidanceScene:
+    """One scene's plans and what guidance needs about it (torch, scene frame).
+
+    Attributes:
+        eps: (A, T, 2) noise, normalised.
+        u0: (A, T, 2) base residual ``u_theta(eps, 0, 1; C)``.
+        state: (A, 4) current states (x, y [m], v [m/s], psi [rad]).
+        length: (A,) [m].
+        width: (A,) [m].
+        agent_mask: (A,) bool agents present.
+        base_actions: (A, T, 2) :func:`plans_from_velocity` of ``u0``.
+        base_trajectories: (A, T, 4) their rollout.
+        drivable_map: the scene's map (world frame); None drops ``L_map``.
+        frame: (3,) world pose (x [m], y [m], psi [rad]) of the scene frame.
+        ego: slot of the ego.
+    """
+
+    eps: Tensor
+    u0: Tensor
+    state: Tensor
+    length: Tensor
+    width: Tensor
+    agent_mask: Tensor
+    base_actions: Tensor
+    base_trajectories: Tensor
+    drivable_map: DrivableMap | None
+    frame: Tensor
+    ego: int = 0
+
+
+@dataclass(frozen=True)
+class GuidanceResult:
+    """Guided plans: ``u``, ``actions`` (A, T, 2), ``trajectories`` (A, T, 4) (base plans
+    outside ``A_c``) and ``losses`` (steps + 1, 2): ``(L_adv [m], L_map [m^2])`` before
+    each step and after the last."""
+
+    u: Tensor
+    actions: Tensor
+    trajectories: Tensor
+    losses: Tensor
+
+
+def plans_from_velocity(
+    eps: Tensor,
+    u: Tensor,
+    state: Tensor,
+    agent_mask: Tensor,
+    normalizer: Normalizer,
+    dynamics: DynamicsConfig = DEFAULT_CONFIG,
+) -> tuple[Tensor, Tensor]:
+    """Actions ``clip(denorm(eps + u))`` (0 for absent agents) and their rollout.
+
+    The same operations as :func:`policies.riskflow.sampler.sample`, so ``u = u0`` gives
+    the unguided plans exactly. Shapes: ``(..., A, T, 2)``, ``state (..., A, 4)``,
+    ``agent_mask (..., A)``; returns ``(..., A, T, 2)`` and ``(..., A, T, 4)``.
+    """
+    actions = clip_actions(normalizer.denormalize(eps + u), dynamics)
+    actions = actions * agent_mask[..., None, None].to(actions.dtype)
+    return actions, rollout(state, actions, dynamics)
+
+
+def adversarial_loss(xy: Tensor, target_xy: Tensor, horizon: int | None = None) -> Tensor:
+    """``L_adv``: summed over agents, mean over ``t < horizon`` of the nearest-target distance.
+
+    Args:
+        xy: (C, T, 2) [m] controllable agents' positions.
+        target_xy: (J, T, 2) [m] targets' positions.
+        horizon: ``T_g`` steps; None: all.
+
+    Returns:
+        scalar [m]; 0 if there is no agent or no target.
+    """
+    xy, target_xy = xy[:, :horizon], target_xy[:, :horizon]
+    if xy.shape[0] == 0 or target_xy.shape[0] == 0:
+        return xy.sum() * 0.0
+    with torch.no_grad():  # the gradient of a min is the gradient at the argmin
+        offsets = xy[:, None] - target_xy[None]  # (C, J, T_g, 2)
+        nearest = (offsets * offsets).sum(dim=-1).argmin(dim=1)  # (C, T_g)
+    steps = torch.arange(xy.shape[1], device=xy.device)
+    offset = xy - target_xy.detach()[nearest, steps]  # (C, T_g, 2)
+    # vector_norm's gradient is 0 (not NaN) where an agent sits exactly on its target.
+    return torch.linalg.vector_norm(offset, dim=-1).sum() / xy.shape[1]
+
+
+def map_loss(
+    trajectories: Tensor,
+    length: Tensor,
+    width: Tensor,
+    drivable_map: DrivableMap,
+    frame: Tensor,
+    margin: float = 0.2,
+    decay: float = 0.98,
+) -> Tensor:
+    """``L_map``: decayed squared off-road depth of the footprint samples.
+
+    Args:
+        trajectories: (C, T, 4) states in the scene frame.
+        length: (C,) [m].
+        width: (C,) [m].
+        drivable_map: the map, world frame.
+        frame: (3,) world pose (x [m], y [m], psi [rad]) of the scene frame.
+        margin: [m] added to the SDF before the penalty.
+        decay: ``w_t = decay ** t``.
+
+    Returns:
+        scalar [m^2].
+    """
+    return _MapTerm(drivable_map, frame, length, width, trajectories.shape[1], margin, decay)(
+        trajectories
+    )
+
+
+class _MapTerm:
+    """``L_map`` with its constants (rotation to the world frame, ``w_t``) made once."""
+
+    def __init__(
+        self,
+        drivable_map: DrivableMap,
+        frame: Tensor,
+        length: Tensor,
+        width: Tensor,
+        steps: int,
+        margin: float,
+        decay: float,
+    ) -> None:
+        cos, sin = torch.cos(frame[2]), torch.sin(frame[2])
+        self.rotation_t = torch.stack([torch.stack([cos, sin]), torch.stack([-sin, cos])])
+        self.origin, self.yaw = frame[:2], frame[2]
+        # The footprint samples in each vehicle's own frame, (C, 1, 9) along and across [m]
+        # (``footprint_points`` at the origin with heading 0: the one definition of them).
+        zero = torch.zeros_like(length)
+        local = footprint_points(torch.stack([zero, zero], dim=-1), zero, length, width)
+        self.along, self.across = local[:, None, :, 0], local[:, None, :, 1]
+        self.map, self.margin = drivable_map, margin
+        self.weights = decay ** torch.arange(steps, device=frame.device, dtype=frame.dtype)
+
+    def __call__(self, trajectories: Tensor) -> Tensor:
+        world = trajectories[..., :2] @ self.rotation_t + self.origin  # (C, T, 2)
+        yaw = (trajectories[..., 3] + self.yaw)[..., None]
+        cos, sin = torch.cos(yaw), torch.sin(yaw)  # (C, T, 1)
+        x = world[..., :1] + cos * self.along - sin * self.across  # (C, T, 9)
+        y = world[..., 1:] + sin * self.along + cos * self.across
+        points = torch.stack([x, y], dim=-1)  # == footprint_points(world, yaw, ...)
+        depth = torch.relu(self.map.sdf_at(points) + self.margin)  # (C, T, 9)
+        return ((depth * depth).sum(dim=-1) * self.weights).sum()
+
+
+class _Objective:
+    """``(L_adv, L_map)`` of the ``A_c`` rows as a function of their residual ``u_c``."""
+
+    def __init__(
+        self,
+        scene: GuidanceScene,
+        rows: Tensor,
+        target_xy: Tensor,
+        normalizer: Normalizer,
+        config: GuidanceConfig,
+        dynamics: DynamicsConfig,
+    ) -> None:
+        zero = torch.zeros_like(scene.eps[:1, :1])
+        self.std = normalizer.denormalize(zero + 1.0) - normalizer.denormalize(zero)
+        self.offset = normalizer.denormalize(scene.eps[rows])  # a = offset + std * u_c
+        self.state = scene.state[rows]
+        self.target_xy, self.horizon, self.dynamics = target_xy, config.horizon, dynamics
+        self.map_term = None
+        if scene.drivable_map is not None and config.lambda_map != 0:
+            self.map_term = _MapTerm(
+                scene.drivable_map,
+                scene.frame,
+                scene.length[rows],
+                scene.width[rows],
+                scene.eps.shape[1],
+                config.map_margin,
+                config.map_decay,
+            )
+
+    def bounds(self) -> tuple[Tensor, Tensor]:
+        """(C, T, 2) lower and upper bounds of ``u_c`` that keep the actions inside the
+        dynamics' accel and yaw-rate bounds."""
+        dyn = self.dynamics
+        low = self.offset.new_tensor([dyn.accel_min, -dyn.yaw_rate_max])
+        high = self.offset.new_tensor([dyn.accel_max, dyn.yaw_rate_max])
+        return (low - self.offset) / self.std, (high - self.offset) / self.std
+
+    def actions(self, u_c: Tensor) -> Tensor:
+        """(C, T, 2) ``denorm(eps + u_c)`` [m/s^2, rad/s] (inside the bounds: ``u_c`` is
+        kept there by the projection)."""
+        return self.offset + self.std * u_c
+
+    def __call__(self, u_c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(C, T, 4) trajectories, ``L_adv`` [m], ``L_map`` [m^2]."""
+        trajectories = rollout(self.state, self.actions(u_c), self.dynamics)
+        adv = adversarial_loss(trajectories[..., :2], self.target_xy, self.horizon)
+        if self.map_term is None:
+            return trajectories, adv, adv * 0.0
+        return trajectories, adv, self.map_term(trajectories)
+
+
+def guide(
+    scene: GuidanceScene,
+    controllable: Tensor,
+    normalizer: Normalizer,
+    config: GuidanceConfig | None = None,
+    dynamics: DynamicsConfig = DEFAULT_CONFIG,
+) -> GuidanceResult:
+    """Run ``K_g`` guidance steps on the ``A_c`` rows of ``scene.u0`` (module docstring).
+
+    Args:
+        scene: the plans and the scene.
+        controllable: (A,) bool ``A_c`` (absent agents and the ego are ignored).
+        normalizer: action normalisation.
+        config: guidance options.
+        dynamics: time step and bounds.
+
+    Returns:
+        the :class:`GuidanceResult`; every row outside ``A_c`` equals the base plan.
+    """
+    config = config or GuidanceConfig()
+    present = scene.agent_mask.bool()
+    mask = controllable.bool() & present
+    mask[scene.ego] = False
+    rows = torch.nonzero(mask).flatten()
+    targets = present & ~mask
+    if config.target == "ego":
+        targets = torch.zeros_like(targets)
+        targets[scene.ego] = True
+    target_xy = scene.base_trajectories[targets, :, :2].detach()
+
+    if rows.numel() == 0:  # nothing to guide: the base plans
+        losses = scene.eps.new_zeros(config.steps + 1, 2)
+        return GuidanceResult(scene.u0, scene.base_actions, scene.base_trajectories, losses)
+    objective = _Objective(scene, rows, target_xy, normalizer, config, dynamics)
+    with torch.no_grad():
+        lower, upper = objective.bounds()
+        u_c = torch.minimum(torch.maximum(scene.u0[rows], lower), upper)
+    first, second = torch.zeros_like(u_c), torch.zeros_like(u_c)
+    history = []
+    for step in range(config.steps):
+        u_c = u_c.detach().requires_grad_(True)
+        with torch.enable_grad():
+            _, adv, off_road = objective(u_c)
+            loss = config.lambda_adv * adv + config.lambda_map * off_road
+            (grad,) = torch.autograd.grad(loss, u_c)
+        history.append(torch.stack([adv.detach(), off_road.detach()]))
+        with torch.no_grad():
+            if config.optimizer == "adam":
+                beta1, beta2 = _ADAM_BETAS
+                first.mul_(beta1).add_(grad, alpha=1 - beta1)
+                second.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+                scale = config.step_size / (1 - beta1 ** (step + 1))
+                grad = scale * first / ((second / (1 - beta2 ** (step + 1))).sqrt() + 1e-8)
+            else:
+                grad = config.step_size * grad
+            u_c = torch.minimum(torch.maximum(u_c - grad, lower), upper)
+    with torch.no_grad():
+        trajectories_c, adv, off_road = objective(u_c)
+        history.append(torch.stack([adv, off_road]))
+        u = scene.u0.clone()
+        u[rows] = u_c
+        actions = scene.base_actions.clone()
+        actions[rows] = clip_actions(objective.actions(u_c), dynamics)
+        trajectories = scene.base_trajectories.clone()
+        trajectories[rows] = trajectories_c  # rollout clips: the same as the clipped actions'
+    return GuidanceResult(
+        u=u, actions=actions, trajectories=trajectories, losses=torch.stack(history)
+    )
+
+
+__all__ = [
+    "OPTIMIZERS",
+    "TARGETS",
+    "GuidanceConfig",
+    "GuidanceResult",
+    "GuidanceScene",
+    "adversarial_loss",
+    "guide",
+    "map_loss",
+    "plans_from_velocity",
+]

@@ -1,0 +1,195 @@
+"""Output-space guidance: masked to A_c, lowers L_adv with a bounded L_map, bounds, signs."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from policies.riskflow.data import ActionNormalizer
+from policies.riskflow.guidance import (
+    GuidanceConfig,
+    GuidanceScene,
+    adversarial_loss,
+    guide,
+    map_loss,
+    plans_from_velocity,
+)
+from policies.riskflow.sampler import base_velocity, sample
+from policies.riskflow.synthetic import synthetic_batch
+from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
+from riskflow_env.maps import Lane, from_lanes
+
+NORMALIZER = ActionNormalizer(mean=(0.0, 0.0), std=(1.0, 0.1))
+ROAD = from_lanes([Lane(np.array([[-100.0, 0.0], [300.0, 0.0]]), 12.0, "road")])  # |y| < 6 m
+STEPS = 52
+
+
+def make_scene(state: list[list[float]], frame=(0.0, 0.0, 0.0), seed: int = 0) -> GuidanceScene:
+    """Vehicles (4.5 m x 2 m) whose base plans keep their speed and heading."""
+    state = torch.tensor(state, dtype=torch.float32)
+    num = state.shape[0]
+    eps = torch.randn(num, STEPS, 2, generator=torch.Generator().manual_seed(seed))
+    u0 = NORMALIZER.normalize(torch.zeros(num, STEPS, 2)) - eps  # keep speed and heading
+    mask = torch.ones(num, dtype=torch.bool)
+    actions, trajectories = plans_from_velocity(eps, u0, state, mask, NORMALIZER)
+    return GuidanceScene(
+        eps=eps,
+        u0=u0,
+        state=state,
+        length=torch.full((num,), 4.5),
+        width=torch.full((num,), 2.0),
+        agent_mask=mask,
+        base_actions=actions,
+        base_trajectories=trajectories,
+        drivable_map=ROAD,
+        frame=torch.tensor(frame),
+    )
+
+
+# Ego in the middle lane; others ahead and behind in the outer lanes, all at 15 m/s.
+HIGHWAY = [
+    [0.0, 0.0, 15.0, 0.0],
+    [20.0, 3.5, 15.0, 0.0],
+    [-15.0, -3.5, 15.0, 0.0],
+    [35.0, -3.5, 15.0, 0.0],
+    [-30.0, 3.5, 15.0, 0.0],
+    [50.0, 0.0, 15.0, 0.0],
+]
+
+
+def mask_of(num: int, rows: list[int]) -> torch.Tensor:
+    mask = torch.zeros(num, dtype=torch.bool)
+    mask[rows] = True
+    return mask
+
+
+def test_only_controllable_rows_change():
+    scene = make_scene(HIGHWAY)
+    result = guide(scene, mask_of(6, [1, 3]), NORMALIZER)
+    fixed = [0, 2, 4, 5]
+    assert torch.equal(result.u[fixed], scene.u0[fixed])
+    assert torch.equal(result.actions[fixed], scene.base_actions[fixed])
+    assert torch.equal(result.trajectories[fixed], scene.base_trajectories[fixed])
+    for row in (1, 3):
+        assert not torch.equal(result.actions[row], scene.base_actions[row])
+
+
+def test_ego_and_absent_agents_are_never_guided():
+    scene = dataclasses.replace(make_scene(HIGHWAY), agent_mask=mask_of(6, [0, 1, 2, 3, 4]))
+    result = guide(scene, torch.ones(6, dtype=torch.bool), NORMALIZER)
+    for row in (0, 5):
+        assert torch.equal(result.actions[row], scene.base_actions[row])
+
+
+@pytest.mark.parametrize("target", ["others", "ego"])
+@pytest.mark.parametrize("optimizer", ["gradient", "adam"])
+def test_lowers_adversarial_loss_and_keeps_map_loss_bounded(target, optimizer):
+    scene = make_scene(HIGHWAY)
+    step_size = 0.1 if optimizer == "adam" else 5e-3
+    config = GuidanceConfig(target=target, optimizer=optimizer, step_size=step_size)
+    result = guide(scene, mask_of(6, [1, 2, 3]), NORMALIZER, config)
+    (adv_before, map_before), (adv_after, map_after) = result.losses[0], result.losses[-1]
+    assert result.losses.shape == (config.steps + 1, 2)
+    assert adv_after < 0.8 * adv_before
+    assert map_before < 1e-6 and map_after < 0.5  # [m^2]: stays on the 12 m road
+    # The reported losses are those of the returned plans.
+    rows = [1, 2, 3]
+    targets = [0] if target == "ego" else [0, 4, 5]
+    xy, target_xy = result.trajectories[rows, :, :2], scene.base_trajectories[targets, :, :2]
+    assert torch.allclose(adversarial_loss(xy, target_xy), adv_after)
+
+
+def test_sign_convention_negative_weight_pushes_apart():
+    scene = make_scene(HIGHWAY)
+    push = guide(scene, mask_of(6, [1]), NORMALIZER, GuidanceConfig(lambda_adv=-50.0))
+    assert push.losses[-1, 0] > push.losses[0, 0]
+
+
+def test_map_term_pulls_a_vehicle_back_onto_the_road():
+    # Heading 0.15 rad toward the edge at 15 m/s: the base plan leaves the road.
+    scene = make_scene([[0.0, 0.0, 15.0, 0.0], [10.0, 3.0, 15.0, 0.15]])
+    config = GuidanceConfig(lambda_adv=0.0)
+    result = guide(scene, mask_of(2, [1]), NORMALIZER, config)
+    assert result.losses[0, 1] > 50.0
+    assert result.losses[-1, 1] < 0.05 * result.losses[0, 1]
+
+
+def test_actions_stay_in_bounds_and_trajectories_follow_them():
+    scene = make_scene(HIGHWAY)
+    config = GuidanceConfig(optimizer="gradient", step_size=10.0)  # every step hits a bound
+    result = guide(scene, mask_of(6, [1, 2]), NORMALIZER, config)
+    accel, yaw_rate = result.actions[..., 0], result.actions[..., 1]
+    assert accel.min() >= DEFAULT_CONFIG.accel_min and accel.max() <= DEFAULT_CONFIG.accel_max
+    assert yaw_rate.abs().max() <= DEFAULT_CONFIG.yaw_rate_max
+    assert (accel[[1, 2]] == DEFAULT_CONFIG.accel_min).any()  # the bounds are reached
+    expected = rollout(scene.state[[1, 2]], result.actions[[1, 2]])
+    assert torch.allclose(result.trajectories[[1, 2]], expected, atol=1e-4)
+
+
+def test_no_controllable_agent_gives_the_base_plans():
+    scene = make_scene(HIGHWAY)
+    result = guide(scene, torch.zeros(6, dtype=torch.bool), NORMALIZER)
+    assert torch.equal(result.actions, scene.base_actions)
+    assert torch.equal(result.trajectories, scene.base_trajectories)
+
+
+def test_base_plans_are_the_samplers(make_model, tiny_config):
+    model = make_model(tiny_config).eval()
+    batch = synthetic_batch(1, 6, seed=3, map_size=tiny_config.map_size)
+    eps = torch.randn(1, 6, tiny_config.future_steps, 2, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        scene = model.encode(batch)
+        u0 = base_velocity(model, eps, scene)
+        actions, trajectories = plans_from_velocity(
+            eps, u0, scene.state, scene.agent_mask, NORMALIZER
+        )
+        expected_actions, expected_trajectories = sample(model, scene, eps, NORMALIZER)
+    assert torch.equal(actions, expected_actions)
+    assert torch.equal(trajectories, expected_trajectories)
+
+
+def test_adversarial_loss_closed_form():
+    time = torch.arange(10, dtype=torch.float32)
+    xy = torch.stack([time, torch.zeros(10)], dim=-1)[None]  # (1, 10, 2) along y = 0
+    targets = torch.stack(
+        [
+            torch.stack([time, torch.full((10,), 3.0)], dim=-1),  # 3 m to the left
+            torch.stack([time + 4.0 - time, torch.zeros(10)], dim=-1),  # parked at x = 4
+        ]
+    )
+    nearest = torch.minimum(torch.full((10,), 3.0), (time - 4.0).abs())
+    assert torch.allclose(adversarial_loss(xy, targets), nearest.mean())
+    assert torch.allclose(adversarial_loss(xy, targets, horizon=4), nearest[:4].mean())
+    assert adversarial_loss(xy, targets[:0]) == 0.0
+
+
+def test_map_loss_closed_form_and_frame():
+    """A 4 x 2 m box centred 6 m left of the road axis: its left samples sit 1 m off."""
+    states = torch.tensor([[[0.0, 6.0, 0.0, 0.0]]])  # (1, 1, 4)
+    size = torch.tensor([4.0]), torch.tensor([2.0])
+    loss = map_loss(states, *size, ROAD, torch.zeros(3), margin=0.0)
+    # Samples at y = 7 (3), y = 6 (3, on the edge), y = 5 (3): depths 1, 0, 0.
+    assert loss.item() == pytest.approx(3.0, abs=0.1)
+    # The same box given in a frame rotated by 90 degrees and shifted.
+    frame = torch.tensor([10.0, 0.0, np.pi / 2])
+    rotated = torch.tensor([[[6.0, 10.0, 0.0, -np.pi / 2]]])  # world (10, 6), heading 0
+    moved = map_loss(rotated, *size, ROAD, frame, margin=0.0)
+    assert moved.item() == pytest.approx(loss.item(), abs=1e-3)
+
+
+def test_config_validation():
+    for bad in (
+        {"steps": -1},
+        {"step_size": 0.0},
+        {"lambda_map": -1.0},
+        {"lambda_adv": float("nan")},
+        {"horizon": 0},
+        {"target": "all"},
+        {"optimizer": "sgd"},
+        {"map_decay": 1.5},
+    ):
+        with pytest.raises(ValueError, match="GuidanceConfig"):
+            GuidanceConfig(**bad)
