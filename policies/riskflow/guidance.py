@@ -31,11 +31,13 @@ Terms (``i`` in ``A_c``, ``p_i^t`` its position at plan step t, scene frame [m])
 Sign and weight convention: guidance *minimises* ``L``. ``L_adv`` is a distance, so
 ``lambda_adv > 0`` pulls ``A_c`` toward its targets: **larger lambda_adv = more
 adversarial**; ``lambda_adv < 0`` would push them away, 0 disables the term.
-``lambda_map >= 0`` keeps them on the road. The paper (following the tbsim / CTG
-guidance code, whose collision term is a *penalty* that grows as agents get close)
-quotes an adversarial weight of -50 and a map weight of 1.0: the negative weight turns
-minimising a closeness penalty into attraction. Here the term is the distance itself,
-so the same intent is ``lambda_adv = +50``.
+``lambda_map >= 0`` keeps them on the road. The paper quotes an adversarial weight of
+-50 next to a map weight of +1.0 under its own convention, in which the adversarial
+term enters with the opposite sign to the map term: a closeness term that grows as
+agents approach (like the collision losses of the tbsim / CTG guidance code), whose
+negative weight turns minimisation into attraction. Here the term is the distance
+itself, so the same intent, attraction of strength 50, is ``lambda_adv = +50``
+(the default), never ``-50`` (that pushes agents apart).
 
 Action bounds: the step is *projected* (projected gradient descent) so that
 ``denorm(eps + u)`` of every ``A_c`` row stays inside the dynamics' accel and yaw-rate
@@ -101,28 +103,23 @@ class GuidanceConfig:
     optimizer: str = "adam"
 
     def __post_init__(self) -> None:
-        if isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 0:
-            raise ValueError(f"GuidanceConfig.steps must be an int >= 0, got {self.steps!r}")
-        if self.horizon is not None and (
-            isinstance(self.horizon, bool) or not isinstance(self.horizon, int) or self.horizon < 1
-        ):
-            raise ValueError(
-                f"GuidanceConfig.horizon must be None or an int >= 1 [steps], got {self.horizon!r}"
-            )
-        for name in ("step_size", "lambda_adv", "lambda_map", "map_margin", "map_decay"):
-            if not math.isfinite(getattr(self, name)):
-                raise ValueError(f"GuidanceConfig.{name} must be finite, got {getattr(self, name)}")
-        if self.step_size <= 0 or self.lambda_map < 0 or not 0 < self.map_decay <= 1:
-            raise ValueError(
-                "GuidanceConfig needs step_size > 0, lambda_map >= 0 and map_decay in (0, 1]; "
-                f"got {self.step_size}, {self.lambda_map}, {self.map_decay}"
-            )
-        if self.target not in TARGETS:
-            raise ValueError(f"GuidanceConfig.target must be one of {TARGETS}, got {self.target!r}")
-        if self.optimizer not in OPTIMIZERS:
-            raise ValueError(
-                f"GuidanceConfig.optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}"
-            )
+        def int_at_least(value: object, low: int) -> bool:
+            return isinstance(value, int) and not isinstance(value, bool) and value >= low
+
+        reals = ("step_size", "lambda_adv", "lambda_map", "map_margin", "map_decay")
+        checks = [
+            (int_at_least(self.steps, 0), "steps must be an int >= 0"),
+            (self.horizon is None or int_at_least(self.horizon, 1), "horizon must be None or >= 1"),
+            (all(math.isfinite(getattr(self, name)) for name in reals), f"{reals} must be finite"),
+            (self.step_size > 0, "step_size must be > 0"),
+            (self.lambda_map >= 0, "lambda_map must be >= 0"),
+            (0 < self.map_decay <= 1, "map_decay must be in (0, 1]"),
+            (self.target in TARGETS, f"target must be one of {TARGETS}"),
+            (self.optimizer in OPTIMIZERS, f"optimizer must be one of {OPTIMIZERS}"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ValueError(f"GuidanceConfig: {message}; got {self}")
 
 
 @dataclass(frozen=True)

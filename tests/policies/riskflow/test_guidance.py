@@ -183,6 +183,7 @@ def test_map_loss_closed_form_and_frame():
 def test_config_validation():
     for bad in (
         {"steps": -1},
+        {"steps": False},
         {"step_size": 0.0},
         {"lambda_map": -1.0},
         {"lambda_adv": float("nan")},
@@ -191,5 +192,5 @@ def test_config_validation():
         {"optimizer": "sgd"},
         {"map_decay": 1.5},
     ):
-        with pytest.raises(ValueError, match="GuidanceConfig"):
+        with pytest.raises(ValueError, match="GuidanceConfig: "):
             GuidanceConfig(**bad)
