@@ -1,0 +1,189 @@
+"""Latency of one RiskFlow planning cycle, phase by phase, against peers in the same run.
+
+One cycle of :class:`policies.riskflow.policy.RiskFlowAdversary` on a shipped evaluation
+scene with ``--agents`` vehicles (20) and a 52-step plan: window building
+(``window_from_view``), scene encoder, MeanFlow one-step generator, TTC causal ranking
+and ``--guidance-steps`` (30) steps of output-space guidance on the top-``--k`` agents.
+Peers, measured interleaved with it (same machine load):
+
+* **unguided** — the same policy with ``k = 0`` (window + encoder + generator + ranking);
+* **re-sampling** — the gradient-free alternative to guidance: one batched pass drawing
+  ``--guidance-steps`` plans per agent (``sample(num_samples=N)``), then keeping the
+  sample whose ``A_c`` rows score the lowest ``L_adv``.
+
+Prints the median [ms] of each phase and the ratios to the peers. Target: a full cycle
+within 50 ms on a laptop-class CPU. Speed does not depend on the weights: without the
+shipped checkpoint the default-size model is randomly initialised.
+
+    python benchmarks/planning_speed.py [--agents 20] [--threads 1] [--repeats 30]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+import riskflow_env
+from policies.riskflow.config import ModelConfig
+from policies.riskflow.data import ActionNormalizer, collate_windows
+from policies.riskflow.encoder import ENCODER_KEYS
+from policies.riskflow.generator import RiskFlowGenerator
+from policies.riskflow.guidance import adversarial_loss
+from policies.riskflow.policy import PHASES, RiskFlowAdversary
+from policies.riskflow.ranking import rank_window
+from policies.riskflow.sampler import sample
+from riskflow_env.config import EnvConfig
+from riskflow_env.scenarios import shipped_bank
+from riskflow_env.scenarios.windows import window_from_view
+
+FALLBACK_NORMALIZER = ActionNormalizer(mean=(-0.11, -0.02), std=(1.09, 0.12))  # shipped-data scale
+
+
+@dataclass(frozen=True)
+class Options:
+    """Benchmark options."""
+
+    agents: int = 20  # vehicles in the scene (the ego included)
+    k: int = 5  # size of the controllable set A_c
+    guidance_steps: int = 30  # K_g (also the re-sampling peer's sample count)
+    threads: int = 1  # torch CPU threads while planning (0: torch's default)
+    device: str = "cpu"  # torch device
+    repeats: int = 30  # timed cycles per method (the median is reported)
+    warmup: int = 3  # untimed cycles per method first
+
+
+def _parse() -> Options:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    defaults = Options()
+    for name, value in vars(defaults).items():
+        parser.add_argument(f"--{name.replace('_', '-')}", type=type(value), default=value)
+    return Options(**vars(parser.parse_args()))
+
+
+def load_model(device: str) -> tuple[RiskFlowGenerator, ActionNormalizer, str]:
+    """The shipped generator, or a random default-size one if it is not there."""
+    try:
+        from policies.riskflow.checkpoint import load_generator
+
+        model, normalizer, _ = load_generator(device=device)
+        return model, normalizer, "shipped checkpoint"
+    except (ImportError, FileNotFoundError):
+        torch.manual_seed(0)
+        model = RiskFlowGenerator(ModelConfig()).to(device).eval()
+        return model, FALLBACK_NORMALIZER, "random weights (no shipped checkpoint)"
+
+
+def scene_view(agents: int):
+    """The view of the first shipped evaluation scene whose window holds ``agents`` vehicles."""
+    env = riskflow_env.parallel_env(config=EnvConfig(max_agents=agents))
+    for scenario in shipped_bank("eval"):
+        if scenario.valid[:, scenario.current_index].sum() < agents:
+            continue
+        env.reset(seed=0, options={"scenario": scenario})
+        if window_from_view(env.view())["agent_mask"].sum() == agents:
+            return env.view(), scenario.name
+    raise SystemExit(f"no shipped evaluation scene has {agents} vehicles within the window")
+
+
+def resampling_cycle(policy: RiskFlowAdversary, view, samples: int) -> None:
+    """Peer: window, encoder, ``samples`` plans in one pass, ranking, pick by ``L_adv``."""
+    window = window_from_view(view, policy.window_config)
+    batch = collate_windows([{key: window[key] for key in ENCODER_KEYS}])
+    batch = {key: value.to(policy.device) for key, value in batch.items()}
+    generator = torch.Generator(device=policy.device).manual_seed(0)
+    with torch.no_grad():
+        scene = policy.model.encode(batch)
+        _, trajectories = sample(
+            policy.model, scene, None, policy.normalizer, num_samples=samples, generator=generator
+        )  # (1, N, A, T, 4)
+        controllable = torch.from_numpy(rank_window(window, policy.k).controllable)
+        others = ~controllable & scene.agent_mask[0].cpu()
+        scores = [
+            adversarial_loss(plan[controllable, :, :2], plan[others, :, :2])
+            for plan in trajectories[0].cpu()
+        ]
+        int(torch.stack(scores).argmin())
+
+
+def median_ms(options: Options, fns: dict[str, Callable[[], object]]) -> dict[str, list[float]]:
+    """Wall times [ms] of each function, interleaved repetition by repetition."""
+    for _ in range(options.warmup):
+        for fn in fns.values():
+            fn()
+    times: dict[str, list[float]] = {name: [] for name in fns}
+    for _ in range(options.repeats):
+        for name, fn in fns.items():
+            start = time.perf_counter()
+            fn()
+            times[name].append(1e3 * (time.perf_counter() - start))
+    return times
+
+
+def main() -> None:
+    options = _parse()
+    threads = options.threads or None
+    model, normalizer, origin = load_model(options.device)
+    view, scene_name = scene_view(options.agents)
+    kwargs = dict(generator=model, normalizer=normalizer, device=options.device, threads=threads)
+    guided = RiskFlowAdversary(k=options.k, guidance_steps=options.guidance_steps, **kwargs)
+    unguided = RiskFlowAdversary(k=0, **kwargs)
+    for policy in (guided, unguided):
+        policy.reset(view)
+
+    phases: dict[str, list[float]] = {phase: [] for phase in (*PHASES, "total")}
+
+    def guided_cycle() -> None:
+        guided.plan(view)
+        for phase in phases:
+            phases[phase].append(1e3 * guided.timings[phase])
+
+    def resample() -> None:
+        previous = torch.get_num_threads()
+        torch.set_num_threads(threads or previous)
+        try:
+            resampling_cycle(guided, view, options.guidance_steps)
+        finally:
+            torch.set_num_threads(previous)
+
+    walls = median_ms(
+        options,
+        {"riskflow": guided_cycle, "unguided": lambda: unguided.plan(view), "resample": resample},
+    )
+    med = {name: statistics.median(values) for name, values in walls.items()}
+    print(
+        f"RiskFlow planning cycle: {scene_name}, {int(guided.plan_mask.sum())} agents, "
+        f"{model.config.future_steps}-step plans, K = {options.k}, K_g = {options.guidance_steps}"
+        f"\nmodel: {model.num_parameters():,} parameters, {origin}; device {options.device}, "
+        f"{threads or torch.get_num_threads()} CPU thread(s); median of {options.repeats} cycles\n"
+    )
+    total = statistics.median(phases["total"])
+    print(f"{'phase':<34}{'ms':>9}{'share':>8}")
+    for phase in PHASES:
+        value = statistics.median(phases[phase])
+        print(f"{phase:<34}{value:9.2f}{value / total:8.0%}")
+    per_step = statistics.median(phases["guidance"]) / max(options.guidance_steps, 1)
+    print(f"{'  guidance, per step':<34}{per_step:9.2f}")
+    print(f"{'total (policy timer)':<34}{total:9.2f}")
+    print(f"{'total (wall, incl. bookkeeping)':<34}{med['riskflow']:9.2f}\n")
+    print(f"{'method':<34}{'ms':>9}{'RiskFlow / it':>15}")
+    rows = [
+        (f"RiskFlow, K={options.k}, {options.guidance_steps} guidance steps", med["riskflow"]),
+        ("unguided generator (K=0)", med["unguided"]),
+        (f"re-sampling, best of {options.guidance_steps} samples", med["resample"]),
+    ]
+    for name, value in rows:
+        print(f"{name:<34}{value:9.2f}{med['riskflow'] / value:14.2f}x")
+    verdict = "meets" if med["riskflow"] <= 50.0 else "misses"
+    print(f"\ntarget <= 50 ms per cycle: {verdict} ({med['riskflow']:.1f} ms)")
+    spread = np.percentile(walls["riskflow"], [10, 90])
+    print(f"RiskFlow cycle p10-p90: {spread[0]:.1f}-{spread[1]:.1f} ms")
+
+
+if __name__ == "__main__":
+    main()
