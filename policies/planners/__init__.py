@@ -1,0 +1,26 @@
+"""Ego planners to stress-test: callables ``planner(observation, view) -> action``.
+
+* :class:`IDMPlanner` — IDM lane following that reacts to the vehicles ahead
+  (:class:`~policies.baselines.idm.IDMPolicy` restricted to the ego);
+* :class:`ConstantVelocityPlanner` — keeps speed and heading.
+
+Any function with the :class:`EgoPlanner` signature is a planner too
+(``examples/stress_test_planner.py`` shows one).
+"""
+
+from __future__ import annotations
+
+from policies.planners.base import EgoPlanner, as_action, reset_planner
+from policies.planners.constant_velocity import ConstantVelocityPlanner
+from policies.planners.idm_planner import IDMPlanner
+
+PLANNERS = {"idm": IDMPlanner, "constant_velocity": ConstantVelocityPlanner}
+
+__all__ = [
+    "PLANNERS",
+    "ConstantVelocityPlanner",
+    "EgoPlanner",
+    "IDMPlanner",
+    "as_action",
+    "reset_planner",
+]
