@@ -1,0 +1,75 @@
+"""Evaluation metrics (DESIGN.md section 8): pure numpy functions over rollout records.
+
+A :class:`RolloutRecord` holds one rollout's simulated tracks, its logged reference,
+masks, sizes, the map and the ego slot (``RolloutRecord.from_scenario`` builds one from
+an env episode). Definitions with formulas: ``docs/METRICS.md``.
+
+==============  =======================================  ==============================
+metric          per rollout                              over rollouts
+==============  =======================================  ==============================
+SCR, ego rate   :func:`collisions`                       :func:`collision_rates`
+ORR             :func:`offroad` (centroid, footprint)    :func:`offroad_rates`
+ADE, FDE        :func:`displacement_errors`              :func:`displacement_means`
+KDD             :func:`kinematic_samples`                :func:`kdd`
+CS, RS          --                                       :func:`safety_realism_scores`
+==============  =======================================  ==============================
+
+:func:`rollout_metrics` / :func:`aggregate_rollout_metrics` / :func:`method_metrics`
+carry SCR, ORR, ADE and FDE through flat per-rollout rows (for a results file).
+"""
+
+from __future__ import annotations
+
+from riskflow_env.metrics.displacement import (
+    DisplacementResult,
+    displacement_errors,
+    displacement_means,
+)
+from riskflow_env.metrics.kinematics import (
+    KINEMATIC_FEATURES,
+    KinematicSamples,
+    kdd,
+    kdd_over_records,
+    kinematic_samples,
+)
+from riskflow_env.metrics.rollout import NO_EGO, RolloutRecord
+from riskflow_env.metrics.safety import (
+    CollisionResult,
+    OffroadResult,
+    collision_rates,
+    collisions,
+    offroad,
+    offroad_rates,
+)
+from riskflow_env.metrics.scores import min_max_normalise, safety_realism_scores
+from riskflow_env.metrics.summary import (
+    ROLLOUT_KEYS,
+    aggregate_rollout_metrics,
+    method_metrics,
+    rollout_metrics,
+)
+
+__all__ = [
+    "KINEMATIC_FEATURES",
+    "NO_EGO",
+    "ROLLOUT_KEYS",
+    "CollisionResult",
+    "DisplacementResult",
+    "KinematicSamples",
+    "OffroadResult",
+    "RolloutRecord",
+    "aggregate_rollout_metrics",
+    "collision_rates",
+    "collisions",
+    "displacement_errors",
+    "displacement_means",
+    "kdd",
+    "kdd_over_records",
+    "kinematic_samples",
+    "method_metrics",
+    "min_max_normalise",
+    "offroad",
+    "offroad_rates",
+    "rollout_metrics",
+    "safety_realism_scores",
+]

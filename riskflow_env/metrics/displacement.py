@@ -1,0 +1,83 @@
+"""ADE and FDE: position error of simulated vs logged (reference) trajectories.
+
+Per evaluated agent, over the scored steps where both the simulation and the log are
+valid (``mask``), with ``e_t = ||xy_t - xy_ref_t||`` [m]:
+
+* ``ADE_a = mean_t e_t`` over the agent's masked steps;
+* ``FDE_a = e_t`` at the agent's last masked step.
+
+A rollout's ADE / FDE is the mean over the agents with at least one masked step; over
+many rollouts the per-agent values are pooled (every agent of every rollout weighs the
+same), as WOSAC's ADE.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from riskflow_env.metrics.rollout import RolloutRecord
+
+
+@dataclass(frozen=True)
+class DisplacementResult:
+    """Per-agent displacement errors of one rollout.
+
+    Attributes:
+        ade: (A,) average displacement error [m], NaN where ``has_error`` is False.
+        fde: (A,) final displacement error [m], NaN where ``has_error`` is False.
+        has_error: (A,) bool, the agent is evaluated and has a masked step.
+    """
+
+    ade: np.ndarray
+    fde: np.ndarray
+    has_error: np.ndarray
+
+    @property
+    def num_agents(self) -> int:
+        """Agents with an error."""
+        return int(np.sum(self.has_error))
+
+    @property
+    def mean_ade(self) -> float:
+        """Mean ADE over agents [m]; NaN if none."""
+        return float(np.mean(self.ade[self.has_error])) if self.num_agents else float("nan")
+
+    @property
+    def mean_fde(self) -> float:
+        """Mean FDE over agents [m]; NaN if none."""
+        return float(np.mean(self.fde[self.has_error])) if self.num_agents else float("nan")
+
+
+def position_errors(record: RolloutRecord) -> tuple[np.ndarray, np.ndarray]:
+    """Position error at every step and where it counts.
+
+    Returns:
+        error: (A, T) ``||xy - xy_ref||`` [m].
+        mask: (A, T) bool, evaluated agent, scored step, both tracks valid.
+    """
+    error = np.linalg.norm(record.states[..., :2] - record.reference[..., :2], axis=-1)
+    return error, record.scored(record.valid & record.reference_valid)
+
+
+def displacement_errors(record: RolloutRecord) -> DisplacementResult:
+    """Per-agent ADE and FDE of one rollout."""
+    error, mask = position_errors(record)
+    count = mask.sum(axis=1)
+    has_error = count > 0
+    total = np.where(mask, error, 0.0).sum(axis=1)
+    ade = np.where(has_error, total / np.maximum(count, 1), np.nan)
+    last = mask.shape[1] - 1 - np.argmax(mask[:, ::-1], axis=1)  # last masked step
+    fde = np.where(has_error, error[np.arange(error.shape[0]), last], np.nan)
+    return DisplacementResult(ade=ade, fde=fde, has_error=has_error)
+
+
+def displacement_means(results: Sequence[DisplacementResult]) -> tuple[float, float]:
+    """Pooled (ADE, FDE) [m] over all agents of all rollouts; NaN if none."""
+    ade = [r.ade[r.has_error] for r in results]
+    fde = [r.fde[r.has_error] for r in results]
+    if not sum(a.size for a in ade):
+        return float("nan"), float("nan")
+    return float(np.mean(np.concatenate(ade))), float(np.mean(np.concatenate(fde)))

@@ -1,0 +1,160 @@
+"""Safety metrics: SCR (collision rate over rollouts) and ORR (off-road rate).
+
+SCR: a rollout *collides* when two valid vehicles' boxes overlap at any scored step
+(:func:`riskflow_env.geometry.pairwise_overlap`, the env's own collision test, touching
+counts). SCR is the share of rollouts that collide; the ego-involved rate is the share
+whose collisions include the ego. All valid agents count, evaluated or not.
+
+ORR, over the agent-steps of evaluated agents (valid, scored step):
+
+* centroid (paper style): share whose box centre is off the drivable area,
+  ``sdf(centre) > 0``;
+* footprint: share with any of the 9 footprint points
+  (:func:`riskflow_env.geometry.footprint_points`) off the drivable area, as the env's
+  off-road event.
+
+Rates over many rollouts pool the agent-steps (sum of off-road steps / sum of steps).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from riskflow_env.dynamics import YAW
+from riskflow_env.geometry import CENTRE, footprint_points, pairwise_overlap
+from riskflow_env.maps import DrivableMap
+from riskflow_env.metrics.rollout import NO_EGO, RolloutRecord
+
+
+@dataclass(frozen=True)
+class CollisionResult:
+    """Collisions of one rollout.
+
+    Attributes:
+        collided: at least one agent-agent overlap at a scored step.
+        ego_collided: at least one of them involves the ego.
+        first_step: first scored step with an overlap, -1 if none.
+        pairs: (A, A) bool, symmetric: the pair overlapped at some scored step.
+    """
+
+    collided: bool
+    ego_collided: bool
+    first_step: int
+    pairs: np.ndarray
+
+
+@dataclass(frozen=True)
+class OffroadResult:
+    """Off-road agent-step counts of one rollout (or pooled over many).
+
+    Attributes:
+        centroid_steps: agent-steps whose centre is off the drivable area.
+        footprint_steps: agent-steps with any footprint point off the drivable area.
+        agent_steps: scored agent-steps (evaluated agent, valid, scored step).
+    """
+
+    centroid_steps: int
+    footprint_steps: int
+    agent_steps: int
+
+    @property
+    def centroid_rate(self) -> float:
+        """Paper-style ORR in [0, 1]; NaN without agent-steps."""
+        return self.centroid_steps / self.agent_steps if self.agent_steps else float("nan")
+
+    @property
+    def footprint_rate(self) -> float:
+        """Footprint ORR in [0, 1]; NaN without agent-steps."""
+        return self.footprint_steps / self.agent_steps if self.agent_steps else float("nan")
+
+
+def overlaps(record: RolloutRecord, tolerance: float = 0.0) -> np.ndarray:
+    """Box overlap of every pair at every step, vectorised over time.
+
+    Args:
+        record: the rollout.
+        tolerance: SAT separation threshold [m] (see
+            :func:`riskflow_env.geometry.pair_overlap`); 0 is exact, touching counts.
+
+    Returns:
+        (T, A, A) bool, symmetric, False on the diagonal, for invalid agents and at
+        context steps.
+    """
+    states = record.states.transpose(1, 0, 2)  # (T, A, 4)
+    valid = record.valid.T & record.scored_steps[:, None]
+    return pairwise_overlap(
+        states[..., :2], states[..., YAW], record.length, record.width, valid, tolerance
+    )
+
+
+def collisions(record: RolloutRecord, tolerance: float = 0.0) -> CollisionResult:
+    """SCR flags of one rollout (``tolerance`` as :func:`overlaps`)."""
+    overlap = overlaps(record, tolerance)
+    per_step = overlap.any(axis=(1, 2))
+    ego = record.ego_index
+    ego_collided = ego != NO_EGO and bool(overlap[:, ego].any())
+    return CollisionResult(
+        collided=bool(per_step.any()),
+        ego_collided=ego_collided,
+        first_step=int(np.argmax(per_step)) if per_step.any() else -1,
+        pairs=overlap.any(axis=0),
+    )
+
+
+def collision_rates(results: Sequence[CollisionResult]) -> tuple[float, float]:
+    """SCR and the ego-involved collision rate over rollouts.
+
+    Returns:
+        (scr, ego_rate): shares of ``results`` in [0, 1]; NaN for an empty list.
+    """
+    if not results:
+        return float("nan"), float("nan")
+    scr = float(np.mean([r.collided for r in results]))
+    return scr, float(np.mean([r.ego_collided for r in results]))
+
+
+def footprint_sdf(
+    drivable_map: DrivableMap, states: np.ndarray, length: np.ndarray, width: np.ndarray
+) -> np.ndarray:
+    """Map SDF at the 9 footprint points of every state.
+
+    Args:
+        drivable_map: the map.
+        states: (A, T, 4) states (x [m], y [m], v [m/s], psi [rad]).
+        length: (A,) lengths [m].
+        width: (A,) widths [m].
+
+    Returns:
+        (A, T, 9) signed distance [m], positive off the drivable area, in
+        ``FOOTPRINT_NAMES`` order (index ``CENTRE`` is the box centre).
+    """
+    points = footprint_points(
+        states[..., :2], states[..., YAW], length[:, None], width[:, None]
+    )  # (A, T, 9, 2)
+    return np.asarray(drivable_map.sdf_at(points))
+
+
+def offroad(record: RolloutRecord) -> OffroadResult:
+    """ORR counts of one rollout (needs ``record.drivable_map``)."""
+    if record.drivable_map is None:
+        raise ValueError("offroad (ORR) needs a record with a drivable_map")
+    outside = footprint_sdf(record.drivable_map, record.states, record.length, record.width) > 0
+    scored = record.scored()
+    return OffroadResult(
+        centroid_steps=int(np.sum(outside[..., CENTRE] & scored)),
+        footprint_steps=int(np.sum(outside.any(axis=-1) & scored)),
+        agent_steps=int(np.sum(scored)),
+    )
+
+
+def offroad_rates(results: Sequence[OffroadResult]) -> tuple[float, float]:
+    """Pooled ORR over rollouts: (centroid, footprint), NaN without agent-steps."""
+    pooled = OffroadResult(
+        centroid_steps=sum(r.centroid_steps for r in results),
+        footprint_steps=sum(r.footprint_steps for r in results),
+        agent_steps=sum(r.agent_steps for r in results),
+    )
+    return pooled.centroid_rate, pooled.footprint_rate

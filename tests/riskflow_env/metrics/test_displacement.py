@@ -1,0 +1,63 @@
+"""ADE / FDE against references with known offsets."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from riskflow_env.metrics import RolloutRecord, displacement_errors, displacement_means
+
+
+def record_of(states, reference, reference_valid=None, **kwargs):
+    num_agents, num_steps = states.shape[:2]
+    if reference_valid is None:
+        reference_valid = np.ones((num_agents, num_steps), bool)
+    return RolloutRecord(
+        states=states,
+        valid=np.ones((num_agents, num_steps), bool),
+        length=np.full(num_agents, 4.0),
+        width=np.full(num_agents, 2.0),
+        reference=reference,
+        reference_valid=reference_valid,
+        **kwargs,
+    )
+
+
+def test_constant_offset_gives_ade_and_fde_of_its_norm(straight):
+    reference = np.stack([straight(0.0, 10.0, 20), straight(5.0, 8.0, 20)])
+    shifted = reference.copy()
+    shifted[..., :2] += [3.0, 4.0]
+    result = displacement_errors(record_of(shifted, reference))
+    np.testing.assert_allclose(result.ade, [5.0, 5.0])
+    np.testing.assert_allclose(result.fde, [5.0, 5.0])
+    assert (result.mean_ade, result.mean_fde) == pytest.approx((5.0, 5.0))
+
+
+def test_growing_offset_with_context_and_a_log_that_ends_early(straight):
+    # Lateral error e_t = t m over 10 steps; step 0 is context.
+    reference = straight(0.0, 10.0, 10)[None]
+    states = reference.copy()
+    states[0, :, 1] = np.arange(10.0)
+    full = displacement_errors(record_of(states, reference, num_context=1))
+    assert (full.ade[0], full.fde[0]) == pytest.approx((5.0, 9.0))  # mean(1..9), e_9
+    log_valid = np.ones((1, 10), bool)
+    log_valid[0, 8:] = False  # the log ends at step 7: FDE is taken there
+    early = displacement_errors(record_of(states, reference, log_valid, num_context=1))
+    assert (early.ade[0], early.fde[0]) == pytest.approx((4.0, 7.0))  # mean(1..7), e_7
+
+
+def test_agents_without_overlap_with_the_log_and_pooling(straight):
+    reference = np.stack([straight(0.0, 10.0, 6), straight(0.0, 10.0, 6)])
+    states = reference.copy()
+    states[0, :, 0] += 2.0
+    log_valid = np.ones((2, 6), bool)
+    log_valid[1] = False  # agent 1 has no logged future
+    result = displacement_errors(record_of(states, reference, log_valid))
+    assert result.has_error.tolist() == [True, False] and np.isnan(result.ade[1])
+    assert result.num_agents == 1 and result.mean_ade == pytest.approx(2.0)
+    exact = displacement_errors(record_of(reference, reference))  # two agents, error 0
+    assert displacement_means([result, exact]) == pytest.approx((2.0 / 3, 2.0 / 3))
+    assert np.isnan(displacement_means([])[0])
+    not_evaluated = record_of(states, reference, evaluated=np.array([False, True]))
+    assert displacement_errors(not_evaluated).num_agents == 1
+    assert displacement_errors(not_evaluated).mean_ade == pytest.approx(0.0)
