@@ -12,6 +12,8 @@ ORR             :func:`offroad` (centroid, footprint)    :func:`offroad_rates`
 ADE, FDE        :func:`displacement_errors`              :func:`displacement_means`
 KDD             :func:`kinematic_samples`                :func:`kdd`
 CS, RS          --                                       :func:`safety_realism_scores`
+WOSAC realism   --                                       :func:`wosac_scene` (N rollouts
+                                                         of a scene), :func:`wosac_aggregate`
 ==============  =======================================  ==============================
 
 :func:`rollout_metrics` / :func:`aggregate_rollout_metrics` / :func:`method_metrics`
@@ -48,13 +50,16 @@ from riskflow_env.metrics.summary import (
     method_metrics,
     rollout_metrics,
 )
+from riskflow_env.metrics.wosac import WOSAC_2024, FeatureConfig, wosac_aggregate, wosac_scene
 
 __all__ = [
     "KINEMATIC_FEATURES",
     "NO_EGO",
     "ROLLOUT_KEYS",
+    "WOSAC_2024",
     "CollisionResult",
     "DisplacementResult",
+    "FeatureConfig",
     "KinematicSamples",
     "OffroadResult",
     "RolloutRecord",
@@ -72,4 +77,6 @@ __all__ = [
     "offroad_rates",
     "rollout_metrics",
     "safety_realism_scores",
+    "wosac_aggregate",
+    "wosac_scene",
 ]

@@ -1,0 +1,136 @@
+"""WOSAC-style realism: features, estimators and scene scores with known answers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from riskflow_env.metrics import WOSAC_2024, FeatureConfig, RolloutRecord, wosac_scene
+from riskflow_env.metrics.wosac import (
+    bernoulli_log_likelihood,
+    histogram_log_likelihood,
+    wosac_aggregate,
+)
+from riskflow_env.metrics.wosac_features import (
+    MAX_TTC,
+    box_signed_distance,
+    interaction_features,
+    kinematic_features,
+)
+
+STEPS = 30
+
+
+def test_weights_are_the_2024_challenge_weights():
+    assert sum(f.weight for f in WOSAC_2024.values()) == pytest.approx(1.0)
+    assert WOSAC_2024["collision_indication"].weight == 0.25
+    assert WOSAC_2024["linear_speed"].weight == 0.05
+
+
+def test_box_signed_distance_cases():
+    def pair(second):
+        states = np.array([[[0.0, 0.0, 0.0, 0.0]], [second]])  # (A=2, T=1, 4)
+        return box_signed_distance(states, np.array([4.0, 4.0]), np.array([2.0, 2.0]))[0, 0, 1]
+
+    assert pair([10.0, 0.0, 0.0, 0.0]) == pytest.approx(6.0)  # apart along x
+    assert pair([6.0, 4.0, 0.0, 0.0]) == pytest.approx(math.sqrt(8.0))  # corner to corner
+    assert pair([3.0, 0.0, 0.0, 0.0]) == pytest.approx(-1.0)  # 1 m penetration
+    assert pair([5.0, 0.0, 0.0, math.pi / 2]) == pytest.approx(2.0)  # rotated: x half-extent 1
+
+
+def test_ttc_follows_the_vehicle_ahead_only():
+    def ttc(leader):
+        states = np.array([[[0.0, 0.0, 10.0, 0.0]], [leader]])
+        out = interaction_features(states, np.ones((2, 1), bool), np.full(2, 4.0), np.full(2, 2.0))
+        return out["time_to_collision"][0, 0]
+
+    assert ttc([20.0, 0.0, 5.0, 0.0]) == pytest.approx(16.0 / 5.0)  # gap 16 m, closing 5 m/s
+    assert ttc([20.0, 0.0, 15.0, 0.0]) == MAX_TTC  # opening
+    assert ttc([20.0, 5.0, 5.0, 0.0]) == MAX_TTC  # beside the trail
+    assert ttc([20.0, 0.0, 5.0, math.pi]) == MAX_TTC  # oncoming: heading too different
+    assert ttc([-20.0, 0.0, 0.0, 0.0]) == MAX_TTC  # behind
+
+
+def test_kinematic_features_of_a_constant_turn(rolled):
+    actions = np.tile([0.0, 0.2], (STEPS - 1, 1))
+    track = rolled(np.array([0.0, 0.0, 10.0, 3.1]), actions)[None]  # heading wraps past pi
+    features = kinematic_features(track, np.ones((1, STEPS), bool), 0.1)
+    speed, speed_ok = features["linear_speed"]
+    assert not speed_ok[0, 0] and speed_ok[0, 1:-1].all() and not speed_ok[0, -1]
+    np.testing.assert_allclose(speed[0, 1:-1], 10.0, rtol=1e-3)  # chord of the arc
+    np.testing.assert_allclose(features["angular_speed"][0][0, 1:-1], 0.2, rtol=1e-9)
+    accel, accel_ok = features["angular_acceleration"]
+    np.testing.assert_allclose(accel[0][accel_ok[0]], 0.0, atol=1e-9)
+    assert accel_ok.sum() == STEPS - 4
+
+
+def test_histogram_and_bernoulli_estimators():
+    config = FeatureConfig(1.0, 0.0, 1.0, 2, 1.0)
+    sim = np.array([0.2, 0.3, 0.4]).reshape(3, 1, 1)  # 3 rollouts, 1 agent, 1 step
+    log_lik = histogram_log_likelihood(np.array([[0.1], [0.9]]).T, sim.repeat(2, 2),
+                                       np.ones((3, 1, 2), bool), config)  # fmt: skip
+    # 6 samples in bin 0 (+1), none in bin 1 (+1): p = 7/8 and 1/8.
+    np.testing.assert_allclose(np.exp(log_lik), [[7 / 8, 1 / 8]])
+    flags = np.array([[True], [False], [False], [False]])
+    np.testing.assert_allclose(np.exp(bernoulli_log_likelihood(np.array([True]), flags, 0.0)), 0.25)
+
+
+def scene(road, sims, log):
+    """Records of one scene: each sim (A, T, 4) against the same log (A, T, 4)."""
+    num_agents = log.shape[0]
+    return [
+        RolloutRecord(
+            states=sim,
+            valid=np.ones((num_agents, STEPS), bool),
+            length=np.full(num_agents, 4.0),
+            width=np.full(num_agents, 2.0),
+            reference=log,
+            reference_valid=np.ones((num_agents, STEPS), bool),
+            drivable_map=road,
+            num_context=3,
+            scene_id="box",
+        )
+        for sim in sims
+    ]
+
+
+def test_rollouts_identical_to_the_log_score_near_one(road, straight):
+    log = np.stack([straight(5.0, 8.0, STEPS, y=-2.0), straight(12.0, 8.0, STEPS, y=2.0)])
+    scores = wosac_scene(scene(road, [log] * 8, log))
+    # Every histogram holds all its n samples (8 rollouts x up to 27 scored steps) in the
+    # logged value's bin: p = (n + 0.1) / (n + 0.1 * bins) >= 0.995.
+    for name in WOSAC_2024:
+        assert scores[f"{name}_likelihood"] > 0.995, name
+    assert scores["metametric"] > 0.995 and scores["num_rollouts"] == 8.0
+    assert wosac_aggregate([scores, scores])["metametric"] == pytest.approx(scores["metametric"])
+
+
+def test_shifted_rollouts_score_lower(road, straight):
+    log = np.stack([straight(5.0, 8.0, STEPS, y=-2.0), straight(12.0, 8.0, STEPS, y=2.0)])
+    exact = wosac_scene(scene(road, [log] * 4, log))
+    fast = log.copy()
+    fast[..., 0] = log[:, :1, 0] + 2.0 * (log[..., 0] - log[:, :1, 0])  # twice the speed
+    fast[..., 2] = 16.0
+    faster = wosac_scene(scene(road, [fast] * 4, log))
+    assert faster["linear_speed_likelihood"] < 0.01  # 16 m/s lands in another bin
+    assert faster["kinematic"] < exact["kinematic"]
+    assert faster["metametric"] < exact["metametric"]
+    crash = log.copy()
+    crash[1, :, :2] = crash[0, :, :2] + [2.0, 1.0]  # agent 1 drives overlapping agent 0
+    crashed = wosac_scene(scene(road, [crash] * 4, log))
+    # Both agents collide in every rollout but not in the log: p = 0.001 / 4.002.
+    assert crashed["collision_indication_likelihood"] == pytest.approx(0.001 / 4.002)
+    assert crashed["interactive"] < exact["interactive"]
+    off = log.copy()
+    off[..., 1] += 10.0  # both outside the 10 m wide road
+    off_road = wosac_scene(scene(road, [off] * 4, log))
+    assert off_road["offroad_indication_likelihood"] < 1e-3
+
+
+def test_scene_rollouts_must_share_the_reference(road, straight):
+    log = straight(5.0, 8.0, STEPS)[None]
+    records = scene(road, [log], log) + scene(road, [log], log + 1.0)
+    with pytest.raises(ValueError, match="one scene"):
+        wosac_scene(records)
