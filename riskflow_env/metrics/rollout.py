@@ -168,11 +168,12 @@ class RolloutRecord:
             states: (A, T, 4), or T per-step (A, 4) arrays (e.g. ``SceneState.current``
                 after reset and after each env step): ``states[:, 0]`` is the state at
                 the scenario's current step, ``states[:, k]`` the state ``k`` steps later.
-            valid: (A, T) bool or T per-step (A,) arrays (e.g. ``SceneState.present``);
-                default: the slots that hold a row of ``rows``, at every step.
-            rows: (n,) scenario rows in slots 0..n-1, n <= A (as
-                :func:`riskflow_env.simulator.reset`); default
-                :func:`riskflow_env.simulator.select_agents` with ``A`` slots.
+            valid: (A, T) bool, T per-step (A,) arrays (e.g. ``SceneState.present``),
+                or one (A,) array for every step; default: the slots that hold a row.
+            rows: (n,) scenario row of slots 0..n-1, n <= A, -1 for an empty slot (as
+                :func:`riskflow_env.simulator.reset` fills them, or the harness's
+                ``scenario_rows``); default :func:`riskflow_env.simulator.select_agents`
+                with ``A`` slots.
             history: logged states before the current step to prepend (>= 0). Two make
                 WOSAC's central-difference accelerations defined at the first
                 simulated step; steps before the log starts are invalid.
@@ -186,13 +187,15 @@ class RolloutRecord:
             raise ValueError(f"states must have shape (A, T, {STATE_DIM}), got {simulated.shape}")
         num_agents, num_steps = simulated.shape[:2]
         rows = select_agents(scenario, num_agents) if rows is None else np.asarray(rows, int)
-        count = rows.size
-        if count > num_agents:
-            raise ValueError(f"rows names {count} agents, more than the {num_agents} slots")
+        if rows.ndim != 1 or rows.size > num_agents:
+            raise ValueError(f"rows must be (n,) with n <= {num_agents} slots, got {rows.shape}")
+        slots, rows = np.flatnonzero(rows >= 0), rows[rows >= 0]  # filled slots, their rows
         if valid is None:
-            valid = np.zeros((num_agents, num_steps), dtype=bool)
-            valid[:count] = True
+            valid = np.zeros(num_agents, dtype=bool)
+            valid[slots] = True
         valid = _stack(valid, "valid").astype(bool)
+        if valid.shape == (num_agents,):
+            valid = np.repeat(valid[:, None], num_steps, axis=1)
         if history < 0:
             raise ValueError(f"history must be >= 0 steps, got {history}")
 
@@ -202,14 +205,15 @@ class RolloutRecord:
         log_valid = np.zeros((num_agents, total), dtype=bool)
         first = now - history  # scenario step of record step 0
         lo, hi = max(first, 0), min(first + total, scenario.states.shape[1])
-        log[:count, lo - first : hi - first] = scenario.states[rows, lo:hi]
-        log_valid[:count, lo - first : hi - first] = scenario.valid[rows, lo:hi]
+        span = slice(lo - first, hi - first)
+        log[slots, span] = scenario.states[rows, lo:hi]
+        log_valid[slots, span] = scenario.valid[rows, lo:hi]
 
         track = np.concatenate([log[:, :history], simulated], axis=1)
         track_valid = np.concatenate([log_valid[:, :history], valid], axis=1)
         length, width = np.ones(num_agents), np.ones(num_agents)
-        length[:count], width[:count] = scenario.length[rows], scenario.width[rows]
-        ego = np.flatnonzero(rows == scenario.ego_index)
+        length[slots], width[slots] = scenario.length[rows], scenario.width[rows]
+        ego = slots[rows == scenario.ego_index]
         return cls(
             states=track,
             valid=track_valid,

@@ -90,3 +90,16 @@ def test_from_scenario_pads_beyond_the_log(road):
     assert not record.reference_valid[:, 0].any()  # before the log starts
     assert not record.reference_valid[:, -4:].any() and record.reference_valid[:2, -5].all()
     assert record.valid[:2, HISTORY + 1 :].all() and not record.valid[:2, 0].any()
+
+
+def test_from_scenario_takes_harness_rows_with_empty_slots(road):
+    scenario = straight_scenario(road)
+    states = np.zeros((4, 6, 4))
+    states[1] = scenario.states[0, HISTORY - 1 : HISTORY + 5]
+    rows = np.array([1, 0, -1, -1])  # ego first, then row 0; slots 2, 3 empty
+    present = np.array([True, True, False, False])
+    record = RolloutRecord.from_scenario(scenario, states, present, rows, history=0)
+    assert record.valid.shape == (4, 6) and record.valid[:2].all() and not record.valid[2:].any()
+    assert record.ego_index == 0 and record.num_context == 1
+    np.testing.assert_allclose(record.reference[1], scenario.states[0, HISTORY - 1 : HISTORY + 5])
+    assert displacement_errors(record).ade[1] == pytest.approx(0.0)
