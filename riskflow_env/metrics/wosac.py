@@ -23,7 +23,9 @@ For one scene with N rollouts (records sharing the reference):
 
 Over many scenes, the scores are averaged (:func:`wosac_aggregate`). A NaN feature
 (nothing scored) makes the metametric NaN. With N = 1 the histograms are single
-samples: the score is defined but coarse; WOSAC uses N = 32.
+samples: the score is defined but coarse; WOSAC uses N = 32. Time steps share one
+histogram per agent, so even the log scores below 1 when an agent's feature crosses
+bins over time: log replay's score is the ceiling to compare with.
 """
 
 from __future__ import annotations
