@@ -37,6 +37,7 @@ from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import YAW
 from riskflow_env.env import RiskFlowParallelEnv
 from riskflow_env.geometry import separation
+from riskflow_env.metrics import RolloutRecord
 from riskflow_env.render import RenderConfig
 from riskflow_env.scenarios import Scenario, ScenarioSource
 from riskflow_env.wrappers import EventLogWrapper, VideoRecorder
@@ -92,6 +93,13 @@ class EpisodeRecord:
     events: tuple[dict[str, Any], ...]
     metrics: dict[str, Any] = field(default_factory=dict)
     dt: float = 0.1
+
+    def rollout_record(self, history: int = 2) -> RolloutRecord:
+        """The episode as a :class:`riskflow_env.metrics.RolloutRecord` (SCR, ORR, ADE,
+        KDD, WOSAC...), with ``history`` logged steps prepended as context."""
+        return RolloutRecord.from_scenario(
+            self.scenario, self.states, self.present, self.scenario_rows, history=history
+        )
 
     def to_scenario(self, name: str | None = None) -> Scenario:
         """The episode as a scenario: the starting history of the vehicles that had a slot

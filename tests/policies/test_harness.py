@@ -10,6 +10,7 @@ from policies.harness import METRICS, ClosedLoop, mean_interval, summarize, wils
 from policies.planners import ConstantVelocityPlanner, IDMPlanner
 from riskflow_env.config import EnvConfig
 from riskflow_env.maps import Lane, from_lanes
+from riskflow_env.metrics import rollout_metrics
 from riskflow_env.scenarios import Scenario, load_scenario, save_scenario, shipped_bank
 from riskflow_env.wrappers import read_event_log
 
@@ -42,6 +43,13 @@ def test_record_shapes_and_metrics(record, scene):
     ] * record.present[:, None])  # fmt: skip
     assert record.events[-1]["event"] == "episode_summary"
     assert record.metrics["planning_cycles"] == steps  # IDM is asked every step
+
+
+def test_rollout_record_agrees_with_the_metrics_module(record):
+    row = rollout_metrics(record.rollout_record())
+    assert row["ego_collision"] == float(record.metrics["ego_collided"])
+    assert row["collision"] == float(record.metrics["collisions"] > 0)
+    assert row["agent_steps"] > 0
 
 
 def test_replaying_the_executed_scenario_reproduces_the_episode(record, tmp_path):
@@ -79,13 +87,18 @@ def test_collision_metrics():
     states[1, :, 0] = 20.5  # standing 20.5 m ahead
     crash = Scenario(road, states, np.ones((2, 131), bool), np.full(2, 4.0), np.full(2, 2.0))
     with ClosedLoop(ConstantVelocityPlanner(), IDMPolicy(), scenarios=crash) as loop:
-        metrics = loop.run(crash).metrics
+        record = loop.run(crash)
+    metrics = record.metrics
     assert metrics["ego_collided"] and metrics["collisions"] == 1
     assert metrics["time_to_first_ego_collision"] == pytest.approx(1.7)  # 16.5 m gap at 10 m/s
     assert metrics["steps"] == 17  # the ego terminates on collision, the episode ends
     assert metrics["min_distance_to_ego"] <= 0.0
     assert metrics["orr_centroid"] == metrics["orr_footprint"] == 0.0
     assert not metrics["ego_offroad"]
+    row = rollout_metrics(record.rollout_record())  # the metrics module agrees
+    assert (
+        row["ego_collision"] == 1.0 and row["first_collision_step"] == 2 + 17
+    )  # 2 logged steps first
 
 
 def test_intervals():
