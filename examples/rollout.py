@@ -1,81 +1,180 @@
-"""Run one 10 s closed-loop episode and print what happened.
+"""One 10 s closed-loop episode: the IDM ego planner against the RiskFlow adversary.
 
-Until the RiskFlow adversary lands, every vehicle follows a simple scripted plan: the
-traffic holds its speed, and the ego speeds up by ``--ego-accel`` for the first seconds,
-closing in on whoever is ahead. The printout lists every collision and off-road event.
+    python examples/rollout.py                          # shipped scene 0, K = 5
+    python examples/rollout.py --scenario 12 --k all --target ego --video mp4
+    python examples/rollout.py --scenario outputs/stress_test/worst/00-merge-eval-s0-00001.npz \\
+        --traffic replay                                # watch a saved scenario again
 
-    python examples/rollout.py --seed 3
+The ego follows its lane with IDM (``policies.planners.IDMPlanner``); every other vehicle
+is driven by ``RiskFlowAdversary`` (the shipped checkpoint unless ``--checkpoint``): one
+generator pass plans 5 s for every vehicle, the top-K critical ones (``A_c``) are guided
+toward risky interactions, and it re-plans every ``--planning-interval`` seconds. With
+``--traffic replay`` the others replay the scenario's reference future instead (open loop:
+a scenario saved by ``stress_test_planner.py`` replays what happened).
+
+Prints the events (collisions, off-road excursions) and the metrics; writes to ``--out``
+(default ``outputs/rollout/``): ``rollout.gif`` (or ``.mp4``) with the plans drawn (cyan:
+base plans; red, haloed vehicles: guided plans of ``A_c``), ``events.jsonl`` (the event
+log, ``riskflow_env.wrappers.read_event_log`` reads it) and ``metrics.json``.
 """
 
 from __future__ import annotations
 
-import argparse
+import json
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
-import numpy as np
+from policies.baselines import ReplayPolicy
+from policies.harness import METRICS, ClosedLoop
+from policies.planners import IDMPlanner
+from policies.riskflow import RiskFlowAdversary
+from policies.riskflow.checkpoint import load_generator
+from policies.riskflow.dataclass_cli import parse_dataclass
+from riskflow_env.config import EnvConfig
+from riskflow_env.scenarios import Scenario, load_scenario, shipped_bank
 
-import riskflow_env
+VIDEO_FORMATS = ("gif", "mp4", "none")
+TRAFFIC = ("riskflow", "replay")
 
 
 @dataclass(frozen=True)
 class Options:
-    """Command-line options."""
+    """Options of ``rollout.py``."""
 
+    scenario: str = "0"
+    """index into the shipped evaluation bank (0-104), or a scenario file (.npz)"""
+    k: str = "5"
+    """size of the controllable set A_c: an int >= 0 (0: unguided generator) or 'all'"""
+    planning_interval: float = 0.5
+    """time between re-plans of the adversary [s], a multiple of 0.1 s"""
+    target: str = "others"
+    """what A_c is pulled toward: 'others' (the paper's) or 'ego' (stress testing)"""
     seed: int = 0
-    """episode seed (scenario draw)"""
-    ego_accel: float = 2.0
-    """ego acceleration during the first 4 s [m/s^2]"""
+    """noise seed of the adversary (same seed, same rollout)"""
+    out: Path = Path("outputs/rollout")
+    """output directory"""
+    device: str = "cpu"
+    """torch device of the generator ('cpu', 'cuda', ...)"""
+    checkpoint: Path | None = None
+    """generator checkpoint; default the shipped policies/checkpoints/riskflow_default.pt"""
+    video: str = "gif"
+    """video format: gif, mp4 or none"""
     steps: int = 100
     """episode length [steps of 0.1 s]"""
+    traffic: str = "riskflow"
+    """who drives the other vehicles: 'riskflow' or 'replay' (the scenario's future)"""
+
+    def __post_init__(self) -> None:
+        if self.video not in VIDEO_FORMATS:
+            raise ValueError(f"--video must be one of {VIDEO_FORMATS}, got {self.video!r}")
+        if self.traffic not in TRAFFIC:
+            raise ValueError(f"--traffic must be one of {TRAFFIC}, got {self.traffic!r}")
+        if self.target not in ("others", "ego"):
+            raise ValueError(f"--target must be 'others' or 'ego', got {self.target!r}")
+        if not (self.k == "all" or (self.k.isdigit())):
+            raise ValueError(f"--k must be an int >= 0 or 'all', got {self.k!r}")
+        if self.steps < 1:
+            raise ValueError(f"--steps must be >= 1, got {self.steps}")
+
+    @property
+    def controllable(self) -> int | str:
+        """``k`` as the adversary takes it."""
+        return self.k if self.k == "all" else int(self.k)
 
 
-def parse_options() -> Options:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    for name, default in Options.__dataclass_fields__.items():
-        parser.add_argument(
-            f"--{name.replace('_', '-')}", type=type(default.default), default=default.default
-        )
-    return Options(**vars(parser.parse_args()))
+def load_scene(spec: str) -> Scenario:
+    """Scene ``spec``: an index into the shipped evaluation bank or a scenario file."""
+    if spec.lstrip("-").isdigit():
+        bank = shipped_bank("eval")
+        index = int(spec)
+        if not 0 <= index < len(bank):
+            raise SystemExit(f"--scenario {spec}: the shipped bank has scenes 0-{len(bank) - 1}")
+        return bank[index]
+    if not Path(spec).is_file():
+        raise SystemExit(f"--scenario {spec!r}: no such scenario file (or give a bank index)")
+    return load_scenario(spec)
 
 
-def main(options: Options) -> dict:
-    config = riskflow_env.EnvConfig(
-        episode_steps=options.steps, terminate_on_collision="none", terminate_on_offroad="none"
+def make_traffic(options: Options) -> RiskFlowAdversary | ReplayPolicy:
+    """The scene policy of every vehicle but the ego."""
+    if options.traffic == "replay":
+        return ReplayPolicy(controlled="others", mode="open_loop")
+    model = {}
+    if options.checkpoint is not None:
+        generator, normalizer, _ = load_generator(options.checkpoint, device=options.device)
+        model = {"generator": generator, "normalizer": normalizer}
+    return RiskFlowAdversary(
+        k=options.controllable,
+        planning_interval=options.planning_interval,
+        target=options.target,
+        seed=options.seed,
+        device=options.device,
+        **model,
     )
-    env = riskflow_env.parallel_env(config=config)
-    observations, _ = env.reset(seed=options.seed)
-    print(f"scene {env.scenario.name!r}: {len(env.agents)} vehicles, seed {options.seed}")
-    collisions: set[tuple[str, str]] = set()
-    offroad: set[str] = set()
-    total_reward = 0.0
-    while env.agents:
-        step = env.scene.step
-        actions = {agent: np.zeros(2) for agent in env.agents}
-        if "ego" in actions and step < 40:
-            actions["ego"] = np.array([options.ego_accel, 0.0])
-        _, rewards, _, _, infos = env.step(actions)
-        total_reward += rewards.get("ego", 0.0)
-        for agent, info in infos.items():
-            for other in info["collided_with"]:
-                pair = tuple(sorted((agent, other)))
-                if pair not in collisions:
-                    collisions.add(pair)
-                    print(f"  t={env.scene.step * 0.1:4.1f} s  collision {pair[0]} <-> {pair[1]}")
-            if info["offroad_fraction"] > 0 and agent not in offroad:
-                offroad.add(agent)
-                print(
-                    f"  t={env.scene.step * 0.1:4.1f} s  off-road  {agent} "
-                    f"({info['offroad_fraction']:.0%} of footprint, {info['sdf_depth']:.2f} m)"
-                )
-    summary = {
-        "collisions": len(collisions),
-        "offroad_agents": len(offroad),
-        "ego_return": round(total_reward, 3),
-    }
-    print("summary:", summary)
-    env.close()
-    return summary
+
+
+def describe(event: dict[str, Any]) -> str:
+    """One line of the event log, for people."""
+    kind, head = event["event"], f"  t = {event['time']:4.1f} s  "
+    if kind == "collision_start":
+        a, b = event["agents"]
+        contact = "/".join(event["contact"])
+        return f"{head}collision   {a} <-> {b}  {event['relative_speed']:.1f} m/s ({contact})"
+    if kind == "collision_end":
+        a, b = event["agents"]
+        return f"{head}  ends      {a} <-> {b}  after {event['duration']:.1f} s ({event['cause']})"
+    if kind == "offroad_start":
+        share, depth = event["offroad_fraction"], event["sdf_depth"]
+        return f"{head}off-road    {event['agent']}  {share:.0%} of footprint, {depth:.2f} m out"
+    if kind == "offroad_end":
+        agent, duration = event["agent"], event["duration"]
+        return f"{head}  ends      {agent}  after {duration:.1f} s ({event['cause']})"
+    return f"{head}{kind}: {event.get('end_reason', '')}"
+
+
+def main(options: Options) -> dict[str, Any]:
+    """Run the episode, print it, write the outputs; returns the metrics."""
+    scenario = load_scene(options.scenario)
+    traffic = make_traffic(options)
+    out = options.out
+    out.mkdir(parents=True, exist_ok=True)
+    video = None if options.video == "none" else out / f"rollout.{options.video}"
+    config = EnvConfig(episode_steps=options.steps)
+    print(f"scene {scenario.name!r} ({scenario.num_agents} vehicles), traffic: {options.traffic}")
+    with ClosedLoop(
+        IDMPlanner(dynamics=config.dynamics),
+        traffic,
+        config=config,
+        event_log=out / "events.jsonl",
+        video=video,
+    ) as loop:
+        record = loop.run(scenario)
+    print("events:")
+    for event in record.events[:-1]:
+        print(describe(event))
+    if len(record.events) <= 1:
+        print("  none")
+    metrics = record.metrics
+    why = (
+        "ego collided"
+        if metrics["ego_collided"]
+        else "ego off-road"
+        if metrics["ego_offroad"]
+        else "time limit"
+    )
+    print(f"episode over after {metrics['steps'] * record.dt:.1f} s ({why})")
+    print("metrics:")
+    for name, value in metrics.items():
+        if name == "scenario":
+            continue
+        shown = f"{value:.3f}" if isinstance(value, float) else value
+        print(f"  {name:28s} {shown!s:>10}   {METRICS[name]}")
+    (out / "metrics.json").write_text(json.dumps(record.metrics, indent=2) + "\n")
+    written = [out / "events.jsonl", out / "metrics.json"] + ([video] if video else [])
+    print("wrote", ", ".join(str(path) for path in written))
+    return record.metrics
 
 
 if __name__ == "__main__":
-    main(parse_options())
+    main(parse_dataclass(Options, prog="rollout.py", description=__doc__.splitlines()[0]))
