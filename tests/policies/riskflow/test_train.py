@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 import torch
 
+from policies.riskflow.batches import batch_order
 from policies.riskflow.checkpoint import load_checkpoint, load_generator
 from policies.riskflow.config import ModelConfig
 from policies.riskflow.dataclass_cli import parse_dataclass
 from policies.riskflow.generator import CheckpointError
-from policies.riskflow.train import CHECKPOINT, GENERATOR, METRICS_LOG, TrainOptions, batch_order
+from policies.riskflow.train import CHECKPOINT, GENERATOR, METRICS_LOG, TrainOptions
 from policies.riskflow.train import main as train_main
 from riskflow_env.scenarios import HighwayTrafficSource
 from riskflow_env.scenarios.io import save_scenario
