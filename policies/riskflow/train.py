@@ -230,7 +230,8 @@ def train(options: TrainOptions) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     budget = 60.0 * options.time_budget_min if options.time_budget_min > 0 else math.inf
-    bar = tqdm(total=options.steps, initial=step, desc="riskflow-train", unit="step")
+    interval = 0.5 if sys.stderr.isatty() else 30.0  # [s]: a log file gets few lines
+    bar = tqdm(options.steps, "riskflow-train", initial=step, unit="step", mininterval=interval)
     sums: dict[str, list[float]] = {}
     epoch, batches = -1, np.zeros((0, options.batch_size), dtype=np.int64)
     with (out / METRICS_LOG).open("a") as log:
