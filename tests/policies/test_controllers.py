@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from policies.controllers import (
-    LaneGraph,
     arc_frame,
     idm_acceleration,
     pure_pursuit,
     speed_control,
 )
+from policies.lane_graph import LaneGraph
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.maps import Lane, from_lanes
 
