@@ -34,7 +34,7 @@ from policies.riskflow.config import ModelConfig
 from policies.riskflow.data import ActionNormalizer, collate_windows
 from policies.riskflow.encoder import ENCODER_KEYS
 from policies.riskflow.generator import RiskFlowGenerator
-from policies.riskflow.guidance import adversarial_loss
+from policies.riskflow.guidance_losses import adversarial_loss
 from policies.riskflow.policy import PHASES, RiskFlowAdversary
 from policies.riskflow.ranking import rank_window
 from policies.riskflow.sampler import sample
