@@ -19,10 +19,16 @@ when the ego collides or leaves the road). The report gives the ego's collision 
 time to its first collision and its off-road rate, with 95% confidence intervals (Wilson
 for rates, bootstrap for mean times), and the worst scenes found (ego collisions first,
 then the closest calls). Those are saved in ``<out>/worst/`` as scenario files whose
-reference future is what happened; replay one (the others follow what they did, your
-planner drives the ego again) with::
+reference future is what happened. Watch one again (the others replay what they did, the
+IDM ego drives) with::
 
     python examples/rollout.py --scenario outputs/stress_test/worst/00-<name>.npz --traffic replay
+
+or put your planner back in the same situation::
+
+    scenario = load_scenario("outputs/stress_test/worst/00-<name>.npz")
+    with ClosedLoop(my_planner, ReplayPolicy(mode="open_loop")) as loop:
+        record = loop.run(scenario)
 
 ``<out>/summary.json`` holds the summary and every scene's metrics; ``<out>/events.jsonl``
 the event log of all scenes.
