@@ -21,17 +21,17 @@ env keeps them): their plan is their current pose at speed 0, and they are never
 Determinism: the noise ``eps`` of cycle ``c`` of episode ``e`` (``reset`` count from 0)
 comes from a ``torch.Generator`` seeded with ``(seed, e, c)``, so the same seed gives the
 same closed-loop rollout, bit for bit, on one machine (same device and thread count).
+The schedule, plan buffer, seeding and overlays are :class:`~policies.riskflow.plan_buffer.
+PlanBufferPolicy`'s, shared with the diffusion baselines.
 """
 
 from __future__ import annotations
 
-import math
 import time
 
 import numpy as np
 import torch
 
-from policies.base import actions_dict, controlled_mask
 from policies.riskflow.data import collate_windows
 from policies.riskflow.encoder import ENCODER_KEYS
 from policies.riskflow.generator import RiskFlowGenerator
@@ -42,17 +42,16 @@ from policies.riskflow.guidance import (
     plans_from_velocity,
 )
 from policies.riskflow.meanflow import Normalizer
-from policies.riskflow.ranking import DEFAULT_THRESHOLD, Ranking, check_k, rank_window
+from policies.riskflow.plan_buffer import BASE_COLOR, GUIDED_COLOR, PlanBufferPolicy, hold_still
+from policies.riskflow.ranking import DEFAULT_THRESHOLD, rank_window
 from policies.riskflow.sampler import base_velocity
 from riskflow_env.scenarios.windows import WindowConfig, window_from_view
 from riskflow_env.view import SceneView
 
-BASE_COLOR = (70, 200, 235)  # overlay of the unguided plans
-GUIDED_COLOR = (235, 35, 35)  # overlay of the guided (A_c) plans
 PHASES = ("window", "encoder", "generator", "ranking", "guidance")
 
 
-class RiskFlowAdversary:
+class RiskFlowAdversary(PlanBufferPolicy):
     """RiskFlow adversary for every non-ego vehicle (module docstring).
 
     Args:
@@ -80,6 +79,8 @@ class RiskFlowAdversary:
             threads only slow down (on CPU; irrelevant on a GPU).
     """
 
+    phases = PHASES
+
     def __init__(
         self,
         k: int | str = 5,
@@ -99,12 +100,7 @@ class RiskFlowAdversary:
         window_config: WindowConfig | None = None,
         threads: int | None = 1,
     ) -> None:
-        self.k = check_k(k)
-        if not (isinstance(planning_interval, (int, float)) and planning_interval > 0):
-            raise ValueError(f"planning_interval must be > 0 [s], got {planning_interval!r}")
-        if threads is not None and (not isinstance(threads, int) or threads < 1):
-            raise ValueError(f"threads must be None or an int >= 1, got {threads!r}")
-        self.planning_interval = float(planning_interval)
+        self.check_options(k, planning_interval, threads)
         self.guidance = GuidanceConfig(
             steps=guidance_steps,
             step_size=step_size,
@@ -115,109 +111,27 @@ class RiskFlowAdversary:
             optimizer=optimizer,
         )
         self.rank_threshold = float(rank_threshold)
-        self.seed = int(seed)
-        self.device = torch.device(device)
-        self.threads = threads
+        device = torch.device(device)
         if generator is None:
             if normalizer is not None:
                 raise ValueError("normalizer given without its generator: pass both or neither")
-            generator, normalizer = _load_shipped(self.device)
+            generator, normalizer = _load_shipped(device)
         elif normalizer is None:
             raise ValueError("a generator needs the normalizer it was trained with")
-        self.model = generator.to(self.device).eval()
+        self.model = generator.to(device).eval()
         self.normalizer = normalizer
         config = self.model.config
-        self.window_config = window_config or WindowConfig(
+        window_config = window_config or WindowConfig(
             history_steps=config.history_steps,
             future_steps=config.future_steps,
             crop_size=config.map_size,
         )
-        self.dynamics = self.window_config.dynamics
-        self._episode = -1
-        self._clear()
-
-    # ----------------------------------------------------------- ScenePolicy
-    def reset(self, view: SceneView) -> None:
-        """New episode: drop the plans; the next ``act`` plans cycle 0."""
-        interval = self.planning_interval / view.dt
-        steps = round(interval)
-        if not math.isclose(interval, steps, rel_tol=1e-6) or not (
-            1 <= steps <= self.model.config.future_steps
-        ):
-            raise ValueError(
-                f"planning_interval ({self.planning_interval} s) must be a multiple of dt "
-                f"({view.dt} s) within [dt, {self.model.config.future_steps} * dt]"
-            )
-        self.interval_steps = steps
-        self._episode += 1
-        self._clear()
-
-    def act(self, view: SceneView) -> dict[str, np.ndarray]:
-        """The next action of each live non-ego vehicle's plan; re-plans on schedule."""
-        if self._episode < 0:
-            raise RuntimeError("call reset(view) before act(view)")
-        elapsed = None if self._plan_step is None else view.step - self._plan_step
-        if elapsed is None or not 0 <= elapsed < self.interval_steps:
-            self.plan(view)
-            elapsed = 0
-        actions = np.zeros((view.num_agents, 2))
-        actions[self.plan_mask] = self.plan_actions[self.plan_mask, elapsed]
-        return actions_dict(view, controlled_mask(view, "others"), actions)
-
-    # -------------------------------------------------------------- planning
-    def _clear(self) -> None:
-        self._plan_step: int | None = None
-        self.cycles = 0
-        self.plans: np.ndarray | None = None
-        self.plan_actions = np.zeros((0, 0, 2))
-        self.noise: torch.Tensor | None = None
-        self.base_plans: np.ndarray | None = None
-        self.plan_mask = np.zeros(0, dtype=bool)
-        self.controllable = np.zeros(0, dtype=bool)
-        self.ranking: Ranking | None = None
-        self.guidance_losses: np.ndarray | None = None
-        self.timings: dict[str, float] = {}
-        self._names: tuple[str, ...] = ()
-
-    def _noise_source(self) -> torch.Generator:
-        seed = int(
-            np.random.SeedSequence([self.seed, self._episode, self.cycles]).generate_state(1)[0]
+        super().__init__(
+            k, planning_interval, config.future_steps, window_config, seed, device, threads
         )
-        return torch.Generator(device=self.device).manual_seed(seed)
-
-    def _tick(self, phase: str, start: float) -> float:
-        if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
-        now = time.perf_counter()
-        self.timings[phase] = now - start
-        return now
-
-    def plan(self, view: SceneView) -> np.ndarray:
-        """Run one planning cycle now (``act`` calls it on schedule); the plan buffer
-        restarts at ``view.step``.
-
-        Returns:
-            ``plans``: (A, T, 4) world-frame states (x, y [m], v [m/s], psi [rad]) after
-            each plan step, per env slot; NaN rows for slots without a plan. Also sets
-            ``plan_actions`` (A, T, 2) (accel [m/s^2], yaw rate [rad/s]; zeros without a
-            plan), ``base_plans`` (unguided), ``plan_mask`` (A,) (slots with a plan),
-            ``controllable`` (A,) (``A_c``), ``ranking`` (window slots), ``noise`` (the
-            cycle's ``eps``, (A_window, T, 2), window slot order), ``guidance_losses``
-            (K_g + 1, 2) and ``timings`` ([s] per phase of :data:`PHASES`, and ``"total"``).
-        """
-        if self._episode < 0:
-            raise RuntimeError("call reset(view) before plan(view)")
-        previous_threads = torch.get_num_threads()
-        if self.threads is not None:
-            torch.set_num_threads(self.threads)
-        try:
-            self._plan_cycle(view)
-        finally:
-            if self.threads is not None:
-                torch.set_num_threads(previous_threads)
-        return self.plans
 
     def _plan_cycle(self, view: SceneView) -> None:
+        """One cycle: window, encoder, one MeanFlow pass, ranking, guidance (module docstring)."""
         start = time.perf_counter()
         window = window_from_view(view, self.window_config)
         slots = window["agent_index"]
@@ -238,10 +152,7 @@ class RiskFlowAdversary:
                 eps, u0, state, agent_mask, self.normalizer, self.dynamics
             )
             done = torch.from_numpy(~view.active[slots]).to(self.device)
-            actions[done] = 0.0  # done vehicles stand still (the env keeps them at speed 0)
-            standing = state.clone()
-            standing[:, 2] = 0.0
-            trajectories[done] = standing[done, None].expand_as(trajectories[done])
+            hold_still(actions, trajectories, state, done)  # the env keeps them at speed 0
         clock = self._tick("generator", clock)
         self.ranking = rank_window(window, self.k, self.rank_threshold, view.active[slots])
         clock = self._tick("ranking", clock)
@@ -262,66 +173,8 @@ class RiskFlowAdversary:
         controllable = torch.from_numpy(self.ranking.controllable).to(self.device)
         result = guide(guidance_scene, controllable, self.normalizer, self.guidance, self.dynamics)
         self._tick("guidance", clock)
-        self.timings["total"] = time.perf_counter() - start
         self._store(view, slots, result.actions, result.trajectories, trajectories, frame)
         self.guidance_losses = result.losses.cpu().numpy()
-        self._plan_step = view.step
-        self.cycles += 1
-
-    def _store(
-        self,
-        view: SceneView,
-        slots: np.ndarray,
-        actions: torch.Tensor,
-        guided: torch.Tensor,
-        base: torch.Tensor,
-        frame: np.ndarray,
-    ) -> None:
-        """Plans in env slot order, world frame; NaN rows for slots without a plan."""
-        num, steps = view.num_agents, actions.shape[1]
-        self.plan_actions = np.zeros((num, steps, 2))
-        self.plan_actions[slots] = actions.cpu().numpy()
-        self._names = view.agent_names
-        self.plan_mask = np.zeros(num, dtype=bool)
-        self.plan_mask[slots] = True
-        self.controllable = np.zeros(num, dtype=bool)
-        self.controllable[slots] = self.ranking.controllable
-        self.plans, self.base_plans = (
-            _to_world(t.cpu().numpy(), slots, num, frame) for t in (guided, base)
-        )
-
-    # ------------------------------------------------------------ rendering
-    @property
-    def controllable_names(self) -> tuple[str, ...]:
-        """Names of the agents in ``A_c`` this cycle (set by the last ``act``)."""
-        return tuple(self._names[i] for i in np.flatnonzero(self.controllable))
-
-    def draw(self, renderer) -> None:
-        """Push this cycle's plans to a renderer (``SceneRenderer.set_overlay``): base plans
-        of the unguided vehicles, guided plans of ``A_c`` (highlighted)."""
-        if self.plans is None:
-            return
-        others = self.plan_mask & ~self.controllable
-        renderer.set_overlay("riskflow_base", self.plans[..., :2], others, BASE_COLOR)
-        renderer.set_overlay(
-            "riskflow_guided",
-            self.plans[..., :2],
-            self.controllable,
-            GUIDED_COLOR,
-            highlight=tuple(int(i) for i in np.flatnonzero(self.controllable)),
-        )
-
-
-def _to_world(plans: np.ndarray, slots: np.ndarray, num: int, frame: np.ndarray) -> np.ndarray:
-    """(num, T, 4) world-frame states from scene-frame ``plans`` (A, T, 4) of ``slots``."""
-    cos, sin = math.cos(frame[2]), math.sin(frame[2])
-    out = np.full((num, plans.shape[1], 4), np.nan)
-    x, y = plans[..., 0].astype(np.float64), plans[..., 1].astype(np.float64)
-    out[slots, :, 0] = frame[0] + cos * x - sin * y
-    out[slots, :, 1] = frame[1] + sin * x + cos * y
-    out[slots, :, 2] = plans[..., 2]
-    out[slots, :, 3] = plans[..., 3] + frame[2]
-    return out
 
 
 def _load_shipped(device: torch.device) -> tuple[RiskFlowGenerator, Normalizer]:
@@ -338,4 +191,4 @@ def _load_shipped(device: torch.device) -> tuple[RiskFlowGenerator, Normalizer]:
     return model, normalizer
 
 
-__all__ = ["PHASES", "RiskFlowAdversary"]
+__all__ = ["BASE_COLOR", "GUIDED_COLOR", "PHASES", "RiskFlowAdversary"]

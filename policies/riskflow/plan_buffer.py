@@ -1,0 +1,244 @@
+"""``PlanBufferPolicy``: the receding-horizon machinery shared by the learned adversaries.
+
+A subclass (``RiskFlowAdversary``, the diffusion baselines' ``DiffusionAdversary``)
+implements :meth:`PlanBufferPolicy._plan_cycle`: from a :class:`SceneView`, plan every
+window slot and call :meth:`PlanBufferPolicy._store`. This base does the rest:
+
+* **schedule**: ``act`` re-plans every ``planning_interval`` (a multiple of ``dt``) and
+  otherwise emits the next action of each plan (the plan buffer);
+* **seeding**: the noise of cycle ``c`` of episode ``e`` (``reset`` count from 0) comes
+  from a ``torch.Generator`` seeded with ``(seed, e, c)`` (:meth:`_noise_source`), so
+  the same seed gives the same closed-loop rollout, bit for bit, on one machine;
+* **threads**: torch CPU threads while planning (restored after);
+* **timings** per phase, world-frame plans, the controllable set and the render overlays.
+
+Vehicles that are live but got no window slot hold speed and heading (zero actions)
+until a cycle gives them a plan; done vehicles stand still (:func:`hold_still`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import torch
+
+from policies.base import actions_dict, controlled_mask
+from policies.riskflow.ranking import Ranking, check_k
+from riskflow_env.scenarios.windows import WindowConfig
+from riskflow_env.view import SceneView
+
+BASE_COLOR = (70, 200, 235)  # overlay of the unguided plans
+GUIDED_COLOR = (235, 35, 35)  # overlay of the guided (A_c) plans
+
+
+def hold_still(
+    actions: torch.Tensor, trajectories: torch.Tensor, state: torch.Tensor, done: torch.Tensor
+) -> None:
+    """In place: ``done`` rows get zero actions and stand at their current pose, speed 0
+    (the env keeps done vehicles as obstacles). Shapes (A, T, 2), (A, T, 4), (A, 4), (A,)."""
+    actions[done] = 0.0
+    standing = state.clone()
+    standing[:, 2] = 0.0
+    trajectories[done] = standing[done, None].expand_as(trajectories[done])
+
+
+class PlanBufferPolicy:
+    """Base of the plan-buffer scene policies (module docstring); drives every non-ego vehicle.
+
+    Args:
+        k: size of ``A_c`` (int >= 0) or ``"all"``.
+        planning_interval: time between re-plans [s]; a multiple of the env's ``dt``
+            between ``dt`` and the plan horizon.
+        horizon: plan length [steps].
+        window_config: window options (its ``dynamics`` must be the env's).
+        seed: noise seed.
+        device: torch device.
+        threads: torch CPU threads while planning; None keeps torch's setting.
+    """
+
+    overlay_prefix = "riskflow"
+    phases: tuple[str, ...] = ()
+
+    def __init__(
+        self,
+        k: int | str,
+        planning_interval: float,
+        horizon: int,
+        window_config: WindowConfig,
+        seed: int = 0,
+        device: torch.device | str = "cpu",
+        threads: int | None = 1,
+    ) -> None:
+        self.k = self.check_options(k, planning_interval, threads)
+        self.planning_interval = float(planning_interval)
+        self.horizon = int(horizon)
+        self.window_config = window_config
+        self.dynamics = window_config.dynamics
+        self.seed = int(seed)
+        self.device = torch.device(device)
+        self.threads = threads
+        self._episode = -1
+        self._clear()
+
+    @staticmethod
+    def check_options(k: int | str, planning_interval: float, threads: int | None) -> int | str:
+        """Validate the shared options (subclasses call it before loading a model); returns k."""
+        k = check_k(k)
+        if not (isinstance(planning_interval, (int, float)) and planning_interval > 0):
+            raise ValueError(f"planning_interval must be > 0 [s], got {planning_interval!r}")
+        if threads is not None and (not isinstance(threads, int) or threads < 1):
+            raise ValueError(f"threads must be None or an int >= 1, got {threads!r}")
+        return k
+
+    # ----------------------------------------------------------- ScenePolicy
+    def reset(self, view: SceneView) -> None:
+        """New episode: drop the plans; the next ``act`` plans cycle 0."""
+        interval = self.planning_interval / view.dt
+        steps = round(interval)
+        if not math.isclose(interval, steps, rel_tol=1e-6) or not 1 <= steps <= self.horizon:
+            raise ValueError(
+                f"planning_interval ({self.planning_interval} s) must be a multiple of dt "
+                f"({view.dt} s) within [dt, {self.horizon} * dt]"
+            )
+        self.interval_steps = steps
+        self._episode += 1
+        self._clear()
+
+    def act(self, view: SceneView) -> dict[str, np.ndarray]:
+        """The next action of each live non-ego vehicle's plan; re-plans on schedule."""
+        if self._episode < 0:
+            raise RuntimeError("call reset(view) before act(view)")
+        elapsed = None if self._plan_step is None else view.step - self._plan_step
+        if elapsed is None or not 0 <= elapsed < self.interval_steps:
+            self.plan(view)
+            elapsed = 0
+        actions = np.zeros((view.num_agents, 2))
+        actions[self.plan_mask] = self.plan_actions[self.plan_mask, elapsed]
+        return actions_dict(view, controlled_mask(view, "others"), actions)
+
+    # -------------------------------------------------------------- planning
+    def _clear(self) -> None:
+        self._plan_step: int | None = None
+        self.cycles = 0
+        self.plans: np.ndarray | None = None
+        self.plan_actions = np.zeros((0, 0, 2))
+        self.noise: torch.Tensor | None = None
+        self.base_plans: np.ndarray | None = None
+        self.plan_mask = np.zeros(0, dtype=bool)
+        self.controllable = np.zeros(0, dtype=bool)
+        self.ranking: Ranking | None = None
+        self.guidance_losses: np.ndarray | None = None
+        self.timings: dict[str, float] = {}
+        self._names: tuple[str, ...] = ()
+
+    def _noise_source(self) -> torch.Generator:
+        seed = int(
+            np.random.SeedSequence([self.seed, self._episode, self.cycles]).generate_state(1)[0]
+        )
+        return torch.Generator(device=self.device).manual_seed(seed)
+
+    def _tick(self, phase: str, start: float) -> float:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        now = time.perf_counter()
+        self.timings[phase] = now - start
+        return now
+
+    def plan(self, view: SceneView) -> np.ndarray:
+        """Run one planning cycle now (``act`` calls it on schedule); the plan buffer
+        restarts at ``view.step``.
+
+        Returns:
+            ``plans``: (A, T, 4) world-frame states (x, y [m], v [m/s], psi [rad]) after
+            each plan step, per env slot; NaN rows for slots without a plan. Also sets
+            ``plan_actions`` (A, T, 2) (accel [m/s^2], yaw rate [rad/s]; zeros without a
+            plan), ``base_plans`` (unguided), ``plan_mask`` (A,) (slots with a plan),
+            ``controllable`` (A,) (``A_c``), ``ranking`` (window slots), ``noise`` (the
+            cycle's noise, window slot order), ``guidance_losses`` ((N, 2): ``L_adv``,
+            ``L_map`` per guidance step) and ``timings`` ([s] per phase of ``phases``,
+            and ``"total"``).
+        """
+        if self._episode < 0:
+            raise RuntimeError("call reset(view) before plan(view)")
+        previous_threads = torch.get_num_threads()
+        if self.threads is not None:
+            torch.set_num_threads(self.threads)
+        try:
+            start = time.perf_counter()
+            self._plan_cycle(view)
+            self.timings["total"] = time.perf_counter() - start
+        finally:
+            if self.threads is not None:
+                torch.set_num_threads(previous_threads)
+        self._plan_step = view.step
+        self.cycles += 1
+        return self.plans
+
+    def _plan_cycle(self, view: SceneView) -> None:
+        """Plan every window slot and :meth:`_store` the plans (subclasses)."""
+        raise NotImplementedError
+
+    def _store(
+        self,
+        view: SceneView,
+        slots: np.ndarray,
+        actions: torch.Tensor,
+        guided: torch.Tensor,
+        base: torch.Tensor,
+        frame: np.ndarray,
+    ) -> None:
+        """Plans in env slot order, world frame; NaN rows for slots without a plan.
+
+        Args: window ``slots`` (A_w,); ``actions`` (A_w, T, 2); ``guided`` and ``base``
+        (A_w, T, 4) scene-frame states; ``frame`` (3,) world pose of the scene frame.
+        """
+        num, steps = view.num_agents, actions.shape[1]
+        self.plan_actions = np.zeros((num, steps, 2))
+        self.plan_actions[slots] = actions.cpu().numpy()
+        self._names = view.agent_names
+        self.plan_mask = np.zeros(num, dtype=bool)
+        self.plan_mask[slots] = True
+        self.controllable = np.zeros(num, dtype=bool)
+        self.controllable[slots] = self.ranking.controllable
+        self.plans, self.base_plans = (
+            _to_world(t.cpu().numpy(), slots, num, frame) for t in (guided, base)
+        )
+
+    # ------------------------------------------------------------ rendering
+    @property
+    def controllable_names(self) -> tuple[str, ...]:
+        """Names of the agents in ``A_c`` this cycle (set by the last ``act``)."""
+        return tuple(self._names[i] for i in np.flatnonzero(self.controllable))
+
+    def draw(self, renderer) -> None:
+        """Push this cycle's plans to a renderer (``SceneRenderer.set_overlay``): base plans
+        of the unguided vehicles, guided plans of ``A_c`` (highlighted)."""
+        if self.plans is None:
+            return
+        others = self.plan_mask & ~self.controllable
+        prefix = self.overlay_prefix
+        renderer.set_overlay(f"{prefix}_base", self.plans[..., :2], others, BASE_COLOR)
+        renderer.set_overlay(
+            f"{prefix}_guided",
+            self.plans[..., :2],
+            self.controllable,
+            GUIDED_COLOR,
+            highlight=tuple(int(i) for i in np.flatnonzero(self.controllable)),
+        )
+
+
+def _to_world(plans: np.ndarray, slots: np.ndarray, num: int, frame: np.ndarray) -> np.ndarray:
+    """(num, T, 4) world-frame states from scene-frame ``plans`` (A, T, 4) of ``slots``."""
+    cos, sin = math.cos(frame[2]), math.sin(frame[2])
+    out = np.full((num, plans.shape[1], 4), np.nan)
+    x, y = plans[..., 0].astype(np.float64), plans[..., 1].astype(np.float64)
+    out[slots, :, 0] = frame[0] + cos * x - sin * y
+    out[slots, :, 1] = frame[1] + sin * x + cos * y
+    out[slots, :, 2] = plans[..., 2]
+    out[slots, :, 3] = plans[..., 3] + frame[2]
+    return out
+
+
+__all__ = ["BASE_COLOR", "GUIDED_COLOR", "PlanBufferPolicy", "hold_still"]
