@@ -23,6 +23,10 @@ EMA, optimiser, step and random state, so the result equals an uninterrupted run
 the CPU); ``OUT/generator.pt`` is the same without the training state, the file to
 ship; ``OUT/metrics.jsonl`` logs training and validation metrics. Windows are cached
 in ``DATA/cache/`` and the action statistics in ``DATA/norm_stats.json``.
+
+``--generator diffusion`` trains the DDPM denoiser of the CTG / CTG++ / CCDiff-style
+baselines in this same loop (same network, data, EMA and validation; objective and
+sampler from ``policies.baselines.diffusion.train``; docs/BASELINES.md).
 """
 
 from __future__ import annotations
@@ -55,6 +59,7 @@ from policies.riskflow.meanflow import flow_matching_loss, meanflow_loss
 from policies.riskflow.time_sampler import TimeSampler
 
 CHECKPOINT, GENERATOR, METRICS_LOG = "checkpoint.pt", "generator.pt", "metrics.jsonl"
+GENERATORS = ("meanflow", "diffusion")
 # torch.func.jvp's first call warns that torch.jit.script is deprecated (torch's own use).
 warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.*", category=DeprecationWarning)
 
@@ -83,6 +88,16 @@ class TrainOptions:
     """maximum global gradient norm (inf: no clipping)"""
     flow_matching: bool = False
     """train the plain flow-matching reference (r = t always, sampled in one Euler step)"""
+    generator: str = "meanflow"
+    """'meanflow' (RiskFlow) or 'diffusion' (the DDPM of the CTG/CTG++/CCDiff baselines)"""
+    diffusion_steps: int = 100
+    """--generator diffusion: number of diffusion levels K"""
+    diffusion_schedule: str = "cosine"
+    """--generator diffusion: noise schedule, 'cosine' or 'linear'"""
+    diffusion_prediction: str = "v"
+    """--generator diffusion: parameterisation, 'v' (x0 with a skip), 'sample' (x0) or 'epsilon'"""
+    val_sampling_steps: int = 10
+    """--generator diffusion: deterministic DDIM levels of the validation samples"""
     equal_fraction: float = 0.2
     """share of MeanFlow samples with r = t"""
     action_weight: float = 1.0
@@ -123,6 +138,14 @@ class TrainOptions:
             "--grad-clip > 0": self.grad_clip > 0,
             "0 <= --ema-decay < 1": 0 <= self.ema_decay < 1,
             "0 < --val-fraction < 1": 0 < self.val_fraction < 1,
+            f"--generator in {GENERATORS}": self.generator in GENERATORS,
+            "--flow-matching only with --generator meanflow": not (
+                self.flow_matching and self.generator != "meanflow"
+            ),
+            "--diffusion-steps, --val-sampling-steps >= 1": min(
+                self.diffusion_steps, self.val_sampling_steps
+            )
+            >= 1,
         }
         broken = [rule for rule, holds in rules.items() if not holds]
         if broken:
@@ -173,6 +196,11 @@ def train(options: TrainOptions) -> dict[str, Any]:
         raise SystemExit(f"riskflow-train: {err}") from None
     config = model_config(options.model)
     model = RiskFlowGenerator(config).to(device)
+    objective = None
+    if options.generator == "diffusion":
+        from policies.baselines.diffusion.train import DiffusionObjective
+
+        objective = DiffusionObjective.from_options(options)
     ema = EMA(model, options.ema_decay)
     optimizer = torch.optim.Adam(model.parameters(), lr=options.lr)
     noise = torch.Generator(device).manual_seed(options.seed)  # eps and (t, r)
@@ -181,6 +209,9 @@ def train(options: TrainOptions) -> dict[str, Any]:
         state = load_checkpoint(out / CHECKPOINT, device)
         if "training" not in state:
             raise SystemExit(f"riskflow-train: {out / CHECKPOINT} holds no training state")
+        trained = state.get("train_config", {}).get("generator", "meanflow")
+        if trained != options.generator:
+            raise SystemExit(f"riskflow-train: --resume: {out} trained --generator {trained}")
         ema.model.load_state_dict(RiskFlowGenerator.from_checkpoint(state, config).state_dict())
         model.load_checkpoint_state(state["training"]["raw_state_dict"])
         optimizer.load_state_dict(state["training"]["optimizer"])
@@ -208,8 +239,9 @@ def train(options: TrainOptions) -> dict[str, Any]:
             collated(val_set, val_indices[i : i + options.batch_size], device)
             for i in range(0, len(val_indices), options.batch_size)
         )
+        sampler_model = ema.model if objective is None else objective.sampler(ema.model)
         result = evaluate(
-            ema.model, batches, normalizer, num_samples=options.num_samples,
+            sampler_model, batches, normalizer, num_samples=options.num_samples,
             seed=options.seed, flow_matching=options.flow_matching,
         )  # fmt: skip
         return {f"val_{k}": v for k, v in result.items()}
@@ -243,12 +275,15 @@ def train(options: TrainOptions) -> dict[str, Any]:
                     agents, options.batch_size, options.bucket, options.seed, epoch
                 )
             batch = collated(train_set, batches[step % per_epoch], device)
-            eps = torch.randn(batch["actions"].shape, generator=noise, device=device)
-            t, r = sampler(options.batch_size, generator=noise, device=device)
-            if options.flow_matching:
-                loss, values = flow_matching_loss(model, batch, normalizer, eps, t, **weights)
+            if objective is not None:
+                loss, values = objective.loss(model, batch, normalizer, noise, **weights)
             else:
-                loss, values = meanflow_loss(model, batch, normalizer, eps, t, r, **weights)
+                eps = torch.randn(batch["actions"].shape, generator=noise, device=device)
+                t, r = sampler(options.batch_size, generator=noise, device=device)
+                if options.flow_matching:
+                    loss, values = flow_matching_loss(model, batch, normalizer, eps, t, **weights)
+                else:
+                    loss, values = meanflow_loss(model, batch, normalizer, eps, t, r, **weights)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             values["grad_norm"] = torch.nn.utils.clip_grad_norm_(
