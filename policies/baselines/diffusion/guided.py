@@ -1,0 +1,271 @@
+"""Guided reverse chains: CTG-, CTG++- and CCDiff-style guidance with RiskFlow's losses.
+
+All three bend the plans of a controllable set ``A_c`` at *every* denoising level,
+minimising RiskFlow's own ``L = lambda_adv L_adv + lambda_map L_map``
+(:mod:`policies.riskflow.guidance_losses`; definitions, signs and weights in
+:mod:`policies.riskflow.guidance`), so that only the guidance mechanism differs:
+
+* ``gradient="mean"`` (**CTG**, Zhong et al. 2023, "Guided Conditional Diffusion for
+  Controllable Traffic Simulation", sec. 4.2): the transition mean ``mu`` of the ``A_c``
+  rows is read as a plan, rolled through the unicycle (``dynamics.rollout``), and moved
+  ``inner_steps`` times against ``grad_mu L(rollout(denorm(mu)))``; no network gradient.
+* ``gradient="clean"`` (**CTG++**, Zhong et al. 2023, "Language-Guided Traffic Simulation
+  via Scene-Level Diffusion", sec. 4.3): the loss is taken on the predicted clean plan
+  ``x0_hat(x_k)`` and differentiated *through the denoiser* to the noisy sample,
+  ``grad_{x_k} L(rollout(denorm(x0_hat(x_k))))``; the ``A_c`` rows of ``mu`` move against
+  it (one gradient per level: each needs a backward pass through the network).
+* **CCDiff** (Lin et al. 2025, "Causal Composition Diffusion Model for Closed-loop Traffic
+  Generation") is CTG's mean guidance on the ``A_c`` chosen by the TTC causal ranking
+  (:mod:`policies.riskflow.ranking`); CTG and CTG++ take the ``K`` vehicles nearest the
+  ego (they have no notion of criticality). The choice of ``A_c`` is the policy's.
+
+Step: each gradient is normalised per agent (divided by its RMS over the plan) and
+scaled by ``step_size`` [normalised action units], the diffusion analogue of RiskFlow's
+Adam step: a bounded move per step, the same in every scene (raw gradients scale with
+``lambda``, speed and ``(T - t)^2``). Only ``A_c`` rows move.
+
+Everyone else follows the unguided chain of the same noise, bit for bit: the chain is
+run once without guidance (the base plans, as RiskFlow's), then again with guidance,
+its non-``A_c`` rows replaced by the base chain's at every level (inpainting). So
+guided vehicles react to the others' actual plans through the scene-level denoiser,
+and the others are unaffected, as with RiskFlow; ``L_adv``'s targets are the base
+plans (detached), RiskFlow's targets. Guidance doubles the denoiser passes.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from policies.baselines.diffusion.model import DiffusionDenoiser
+from policies.baselines.diffusion.sampling import (
+    Levels,
+    denoise_step,
+    plans_from_sample,
+    reverse_chain,
+)
+from policies.riskflow.encoder import SceneContext
+from policies.riskflow.guidance import TARGETS
+from policies.riskflow.guidance_losses import MapTerm, adversarial_loss
+from policies.riskflow.meanflow import Normalizer
+from policies.riskflow.plan_buffer import hold_still
+from riskflow_env.config import DynamicsConfig
+from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
+from riskflow_env.maps import DrivableMap
+
+GRADIENTS = ("mean", "clean")
+
+
+@dataclass(frozen=True)
+class DiffusionGuidanceConfig:
+    """Options of diffusion guidance (module docstring).
+
+    Attributes:
+        gradient: ``"mean"`` (CTG, CCDiff) or ``"clean"`` (CTG++).
+        inner_steps: gradient steps per level (``"mean"`` only; ``"clean"`` takes 1).
+        step_size: per-agent RMS of one step [normalised action units].
+        lambda_adv: weight of ``L_adv`` [1/m]; > 0 is adversarial (RiskFlow's convention).
+        lambda_map: weight of ``L_map`` [1/m^2], >= 0.
+        horizon: ``T_g`` plan steps of ``L_adv``; None: the whole plan.
+        target: ``"others"`` or ``"ego"`` (as RiskFlow's ``GuidanceConfig.target``).
+        map_margin: [m] of ``L_map``.
+        map_decay: ``w_t = map_decay ** t`` of ``L_map``.
+    """
+
+    gradient: str = "mean"
+    inner_steps: int = 1
+    step_size: float = 0.1
+    lambda_adv: float = 50.0
+    lambda_map: float = 1.0
+    horizon: int | None = None
+    target: str = "others"
+    map_margin: float = 0.2
+    map_decay: float = 0.98
+
+    def __post_init__(self) -> None:
+        reals = (self.step_size, self.lambda_adv, self.lambda_map, self.map_margin, self.map_decay)
+        checks = [
+            (self.gradient in GRADIENTS, f"gradient must be one of {GRADIENTS}"),
+            (
+                isinstance(self.inner_steps, int) and self.inner_steps >= 1,
+                "inner_steps must be >= 1",
+            ),
+            (
+                self.gradient == "mean" or self.inner_steps == 1,
+                "gradient 'clean' takes inner_steps 1",
+            ),
+            (all(math.isfinite(v) for v in reals), "weights and sizes must be finite"),
+            (self.step_size > 0, "step_size must be > 0"),
+            (self.lambda_map >= 0, "lambda_map must be >= 0"),
+            (self.horizon is None or self.horizon >= 1, "horizon must be None or >= 1"),
+            (self.target in TARGETS, f"target must be one of {TARGETS}"),
+            (0 < self.map_decay <= 1, "map_decay must be in (0, 1]"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ValueError(f"DiffusionGuidanceConfig: {message}; got {self}")
+
+
+@dataclass(frozen=True)
+class SceneGeometry:
+    """What the losses need about one scene (torch, scene frame).
+
+    Attributes:
+        state: (A, 4) current states (x, y [m], v [m/s], psi [rad]).
+        length: (A,) [m].
+        width: (A,) [m].
+        agent_mask: (A,) bool agents present.
+        drivable_map: the map (world frame); None drops ``L_map``.
+        frame: (3,) world pose (x [m], y [m], psi [rad]) of the scene frame.
+        ego: slot of the ego (never guided).
+        standing: (A,) bool vehicles that stand still (done: zero actions, current pose at
+            speed 0; never guided); None: none.
+    """
+
+    state: Tensor
+    length: Tensor
+    width: Tensor
+    agent_mask: Tensor
+    drivable_map: DrivableMap | None
+    frame: Tensor
+    ego: int = 0
+    standing: Tensor | None = None
+
+
+@dataclass(frozen=True)
+class GuidedPlans:
+    """``actions`` (A, T, 2), ``trajectories`` (A, T, 4) (base plans outside ``A_c``), the
+    unguided ``base_actions`` / ``base_trajectories``, and ``losses`` (N, 2): ``(L_adv [m],
+    L_map [m^2])`` at each gradient evaluation and, last, of the final plans."""
+
+    actions: Tensor
+    trajectories: Tensor
+    base_actions: Tensor
+    base_trajectories: Tensor
+    losses: Tensor
+
+
+class _Objective:
+    """``(L, L_adv, L_map)`` of the ``A_c`` rows as a function of their normalised actions."""
+
+    def __init__(self, geometry, rows, target_xy, normalizer, config, dynamics, steps) -> None:
+        self.state, self.target_xy = geometry.state[rows], target_xy
+        self.normalizer, self.config, self.dynamics = normalizer, config, dynamics
+        self.map_term = None
+        if geometry.drivable_map is not None and config.lambda_map != 0:
+            self.map_term = MapTerm(
+                geometry.drivable_map, geometry.frame, geometry.length[rows],
+                geometry.width[rows], steps, config.map_margin, config.map_decay,
+            )  # fmt: skip
+
+    def __call__(self, x_c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        trajectories = rollout(self.state, self.normalizer.denormalize(x_c), self.dynamics)
+        adv = adversarial_loss(trajectories[..., :2], self.target_xy, self.config.horizon)
+        off_road = adv * 0.0 if self.map_term is None else self.map_term(trajectories)
+        return self.config.lambda_adv * adv + self.config.lambda_map * off_road, adv, off_road
+
+
+def _step(grad: Tensor, step_size: float) -> Tensor:
+    """``step_size * grad / rms(grad)`` per agent (row); 0 where the gradient is 0."""
+    rms = grad.pow(2).mean(dim=(-2, -1), keepdim=True).sqrt()
+    return step_size * grad / rms.clamp(min=1e-12)
+
+
+def guided_sample(
+    denoiser: DiffusionDenoiser,
+    scene: SceneContext,
+    noise: Tensor,
+    levels: Levels,
+    geometry: SceneGeometry,
+    controllable: Tensor,
+    normalizer: Normalizer,
+    config: DiffusionGuidanceConfig | None = None,
+    eta: float = 1.0,
+    dynamics: DynamicsConfig = DEFAULT_CONFIG,
+    on_base_done: Callable[[], object] | None = None,
+) -> GuidedPlans:
+    """Base chain, then the guided chain of the ``A_c`` rows (module docstring).
+
+    Args:
+        denoiser: the denoiser.
+        scene: ``denoiser.encode(batch)`` of one scene (``B = 1``).
+        noise: ``(len(levels) + 1, 1, A, T, 2)`` (``sampling.chain_noise``).
+        levels: the chain's transitions (``denoiser.schedule.levels(S)``).
+        geometry: the scene for the losses.
+        controllable: (A,) bool ``A_c``; absent agents and the ego are ignored.
+        normalizer: action normalisation.
+        config: guidance options.
+        eta: DDIM stochasticity (1 with all levels: DDPM).
+        dynamics: time step and bounds.
+        on_base_done: called when the base chain is done (timing).
+    """
+    config = config or DiffusionGuidanceConfig()
+    path = reverse_chain(denoiser, scene, noise, levels, eta)
+    base_actions, base_trajectories = plans_from_sample(
+        path[-1][0], geometry.state, geometry.agent_mask, normalizer, dynamics
+    )
+    present = geometry.agent_mask.bool()
+    mask = controllable.bool() & present
+    if geometry.standing is not None:
+        hold_still(base_actions, base_trajectories, geometry.state, geometry.standing)
+        mask &= ~geometry.standing.bool()
+    if on_base_done is not None:
+        on_base_done()
+    mask[geometry.ego] = False
+    rows = torch.nonzero(mask).flatten()
+    if rows.numel() == 0:
+        empty = base_actions.new_zeros(0, 2)
+        return GuidedPlans(base_actions, base_trajectories, base_actions, base_trajectories, empty)
+    targets = present & ~mask
+    if config.target == "ego":
+        targets = torch.zeros_like(targets)
+        targets[geometry.ego] = True
+    target_xy = base_trajectories[targets, :, :2].detach()
+    steps = noise.shape[-2]
+    objective = _Objective(geometry, rows, target_xy, normalizer, config, dynamics, steps)
+    keep = mask[None, :, None, None]
+    history, x = [], path[0]
+    for index, (k, k_prev) in enumerate(levels):
+        if config.gradient == "clean":
+            with torch.enable_grad():
+                x_in = x.detach().requires_grad_(True)
+                x0_hat, eps_hat = denoiser(x_in, k, scene, clip=True)
+                loss, adv, off_road = objective(x0_hat[0, rows])
+                (grad,) = torch.autograd.grad(loss, x_in)
+            history.append(torch.stack([adv.detach(), off_road.detach()]))
+            with torch.no_grad():
+                mean, sigma = denoiser.schedule.reverse_moments(
+                    x0_hat.detach(), eps_hat.detach(), k, k_prev, eta
+                )
+                mean[0, rows] -= _step(grad[0, rows], config.step_size)
+        else:
+            with torch.no_grad():
+                _, _, mean, sigma = denoise_step(denoiser, x, k, k_prev, eta, scene)
+            mean_c = mean[0, rows]
+            for _ in range(config.inner_steps):
+                with torch.enable_grad():
+                    mean_c = mean_c.detach().requires_grad_(True)
+                    loss, adv, off_road = objective(mean_c)
+                    (grad,) = torch.autograd.grad(loss, mean_c)
+                history.append(torch.stack([adv.detach(), off_road.detach()]))
+                mean_c = mean_c.detach() - _step(grad, config.step_size)
+            mean[0, rows] = mean_c
+        with torch.no_grad():
+            x = torch.where(keep, mean + sigma * noise[index + 1], path[index + 1])
+    with torch.no_grad():
+        _, adv, off_road = objective(x[0, rows])
+        history.append(torch.stack([adv, off_road]))
+        guided_actions, guided_trajectories = plans_from_sample(
+            x[0], geometry.state, geometry.agent_mask, normalizer, dynamics
+        )
+        actions, trajectories = base_actions.clone(), base_trajectories.clone()
+        actions[rows] = guided_actions[rows]
+        trajectories[rows] = guided_trajectories[rows]
+    return GuidedPlans(actions, trajectories, base_actions, base_trajectories, torch.stack(history))
+
+
+__all__ = ["GRADIENTS", "DiffusionGuidanceConfig", "GuidedPlans", "SceneGeometry", "guided_sample"]

@@ -1,0 +1,200 @@
+"""``DiffusionAdversary``: the CTG-, CTG++- and CCDiff-style scene policies.
+
+The same closed-loop machinery as ``RiskFlowAdversary``
+(:class:`~policies.riskflow.plan_buffer.PlanBufferPolicy`: re-plan every
+``planning_interval``, plan buffer, seeded noise per (seed, episode, cycle), done
+vehicles standing still, world-frame plans, overlays); one planning cycle is
+
+1. ``window_from_view`` -> one window, one encoder pass (the scene context);
+2. the controllable set ``A_c``: the ``k`` live vehicles nearest the ego (``"ctg"``,
+   ``"ctgpp"``) or the TTC causal ranking (``"ccdiff"``; :mod:`policies.riskflow.ranking`);
+3. the unguided reverse chain (DDPM with all ``K`` levels, or DDIM with
+   ``sampling_steps``), then the guided chain of ``A_c`` (:mod:`.guided`): gradient of
+   RiskFlow's ``L_adv + L_map`` on the transition mean (``"ctg"``, ``"ccdiff"``) or
+   through the predicted clean sample (``"ctgpp"``), at every level.
+
+All the cycle's noise (chain start and every transition; kept in ``noise``, shape
+``(levels + 1, A_window, T, 2)``) is drawn from the seeded generator, so the same seed
+gives the same rollout; ``k = 0`` gives the unguided
+diffusion generator. Method mapping and simplifications: ``docs/BASELINES.md``.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from policies.baselines.diffusion.guided import (
+    DiffusionGuidanceConfig,
+    SceneGeometry,
+    guided_sample,
+)
+from policies.baselines.diffusion.model import DiffusionDenoiser, load_diffusion
+from policies.baselines.diffusion.sampling import chain_noise
+from policies.riskflow.data import collate_windows
+from policies.riskflow.encoder import ENCODER_KEYS
+from policies.riskflow.meanflow import Normalizer
+from policies.riskflow.plan_buffer import PlanBufferPolicy
+from policies.riskflow.ranking import DEFAULT_THRESHOLD, NO_GROUP, Ranking, rank_window
+from riskflow_env.scenarios.windows import WindowConfig, window_from_view
+from riskflow_env.view import SceneView
+
+PHASES = ("window", "encoder", "ranking", "denoising", "guidance")
+# variant -> (A_c selection, guidance gradient)
+VARIANTS = {"ctg": ("nearest", "mean"), "ctgpp": ("nearest", "clean"), "ccdiff": ("causal", "mean")}
+
+
+def nearest_ranking(window: dict, k: int | str, candidates: np.ndarray) -> Ranking:
+    """``A_c`` = the ``k`` candidates nearest the ego (slot 0) at the current step.
+
+    Ties go to the lower slot. ``scores`` are minus the distances [m]; no groups.
+    """
+    current = np.asarray(window["history"])[:, -1, :2]
+    distance = np.linalg.norm(current - current[0], axis=-1)
+    candidates = np.asarray(candidates, dtype=bool) & np.asarray(window["agent_mask"], bool)
+    candidates[0] = False
+    slots = np.flatnonzero(candidates)
+    order = slots[np.lexsort((slots, distance[slots]))]
+    count = order.size if k == "all" else min(int(k), order.size)
+    controllable = np.zeros(distance.shape[0], dtype=bool)
+    controllable[order[:count]] = True
+    groups = np.full(distance.shape[0], NO_GROUP, dtype=np.int64)
+    return Ranking(controllable, -distance, groups, order)
+
+
+class DiffusionAdversary(PlanBufferPolicy):
+    """A guided diffusion adversary for every non-ego vehicle (module docstring).
+
+    Args:
+        variant: ``"ctg"``, ``"ctgpp"`` or ``"ccdiff"``.
+        k: size of ``A_c`` (int >= 0) or ``"all"``; 0 gives the unguided generator.
+        planning_interval: time between re-plans [s] (a multiple of ``dt``).
+        sampling_steps: levels of the chain: None for all ``K`` (DDPM), fewer for DDIM.
+        eta: DDIM stochasticity (1: DDPM-like ancestral noise; 0: deterministic).
+        target: ``"others"`` or ``"ego"`` (as RiskFlow's).
+        step_size: per-agent RMS of one guidance step [normalised action units].
+        inner_steps: guidance steps per level (``"ctg"``, ``"ccdiff"``).
+        lambda_adv: adversarial weight; > 0 is more adversarial (RiskFlow's convention).
+        lambda_map: off-road weight, >= 0.
+        guidance_horizon: ``T_g`` [steps] of ``L_adv``; None: whole plan.
+        rank_threshold: risk-graph edge threshold (``"ccdiff"``).
+        seed: noise seed.
+        device: torch device.
+        denoiser: the model; None loads ``policies/checkpoints/diffusion_default.pt``.
+        normalizer: its action normalisation (required with ``denoiser``).
+        window_config: window options (default: the model's training windows).
+        threads: torch CPU threads while planning; None keeps torch's setting.
+    """
+
+    overlay_prefix = "diffusion"
+    phases = PHASES
+
+    def __init__(
+        self,
+        variant: str = "ctg",
+        k: int | str = 5,
+        planning_interval: float = 0.5,
+        sampling_steps: int | None = None,
+        eta: float = 1.0,
+        target: str = "others",
+        step_size: float = DiffusionGuidanceConfig.step_size,
+        inner_steps: int = 1,
+        lambda_adv: float = 50.0,
+        lambda_map: float = 1.0,
+        guidance_horizon: int | None = None,
+        rank_threshold: float = DEFAULT_THRESHOLD,
+        seed: int = 0,
+        device: torch.device | str = "cpu",
+        denoiser: DiffusionDenoiser | None = None,
+        normalizer: Normalizer | None = None,
+        window_config: WindowConfig | None = None,
+        threads: int | None = 1,
+    ) -> None:
+        self.check_options(k, planning_interval, threads)
+        if variant not in VARIANTS:
+            raise ValueError(f"variant must be one of {tuple(VARIANTS)}, got {variant!r}")
+        if not 0.0 <= eta <= 1.0:
+            raise ValueError(f"eta must be in [0, 1], got {eta}")
+        self.variant, self.eta = variant, float(eta)
+        self.selection, gradient = VARIANTS[variant]
+        self.guidance = DiffusionGuidanceConfig(
+            gradient=gradient,
+            inner_steps=inner_steps,
+            step_size=step_size,
+            lambda_adv=lambda_adv,
+            lambda_map=lambda_map,
+            horizon=guidance_horizon,
+            target=target,
+        )
+        self.rank_threshold = float(rank_threshold)
+        device = torch.device(device)
+        if denoiser is None:
+            if normalizer is not None:
+                raise ValueError("normalizer given without its denoiser: pass both or neither")
+            denoiser, normalizer, _ = load_diffusion(None, device=device)
+        elif normalizer is None:
+            raise ValueError("a denoiser needs the normalizer it was trained with")
+        denoiser.network.to(device).eval()
+        self.denoiser, self.normalizer = denoiser, normalizer
+        self.levels = denoiser.schedule.levels(sampling_steps)
+        config = denoiser.config
+        window_config = window_config or WindowConfig(
+            history_steps=config.history_steps,
+            future_steps=config.future_steps,
+            crop_size=config.map_size,
+        )
+        super().__init__(
+            k, planning_interval, config.future_steps, window_config, seed, device, threads
+        )
+
+    def _plan_cycle(self, view: SceneView) -> None:
+        """One cycle: window, encoder, ``A_c``, base chain, guided chain (module docstring)."""
+        start = time.perf_counter()
+        window = window_from_view(view, self.window_config)
+        slots = window["agent_index"]
+        batch = collate_windows([{key: window[key] for key in ENCODER_KEYS}])
+        batch = {key: value.to(self.device) for key, value in batch.items()}
+        clock = self._tick("window", start)
+        with torch.no_grad():
+            scene = self.denoiser.encode(batch)
+        clock = self._tick("encoder", clock)
+        live = view.active[slots]
+        if self.selection == "causal":
+            self.ranking = rank_window(window, self.k, self.rank_threshold, live)
+        else:
+            self.ranking = nearest_ranking(window, self.k, live)
+        clock = self._tick("ranking", clock)
+        shape = (1, len(slots), self.denoiser.config.future_steps, 2)
+        noise = chain_noise(
+            shape, self.levels, self._noise_source(), self.device, scene.context.dtype
+        )
+        self.noise = noise[:, 0]  # (levels + 1, A_w, T, 2): chain start, then each transition
+        ego = view.current[0]
+        frame = np.array([ego[0], ego[1], ego[3]])
+        state = scene.state[0]
+        geometry = SceneGeometry(
+            state=state,
+            length=batch["length"][0],
+            width=batch["width"][0],
+            agent_mask=scene.agent_mask[0],
+            drivable_map=view.map,
+            frame=torch.as_tensor(frame, dtype=state.dtype, device=self.device),
+            standing=torch.from_numpy(~live).to(self.device),
+        )
+        controllable = torch.from_numpy(self.ranking.controllable).to(self.device)
+        marks = [clock]
+        result = guided_sample(
+            self.denoiser, scene, noise, self.levels, geometry, controllable,
+            self.normalizer, self.guidance, self.eta, self.dynamics,
+            on_base_done=lambda: marks.append(self._tick("denoising", clock)),
+        )  # fmt: skip
+        self._tick("guidance", marks[-1])
+        self._store(
+            view, slots, result.actions, result.trajectories, result.base_trajectories, frame
+        )
+        self.guidance_losses = result.losses.cpu().numpy()
+
+
+__all__ = ["PHASES", "VARIANTS", "DiffusionAdversary", "nearest_ranking"]

@@ -1,0 +1,193 @@
+"""DiffusionAdversary closed loop, and ``riskflow-train --generator diffusion`` end to end."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+import riskflow_env
+from policies.base import ScenePolicy
+from policies.baselines.diffusion.model import DiffusionDenoiser, load_diffusion
+from policies.baselines.diffusion.policy import PHASES, DiffusionAdversary
+from policies.baselines.diffusion.sampling import plans_from_sample, reverse_chain
+from policies.riskflow.checkpoint import load_generator
+from policies.riskflow.config import ModelConfig
+from policies.riskflow.data import ActionNormalizer, collate_windows
+from policies.riskflow.encoder import ENCODER_KEYS
+from policies.riskflow.generator import CheckpointError, RiskFlowGenerator
+from policies.riskflow.train import GENERATOR, METRICS_LOG
+from policies.riskflow.train import main as train_main
+from riskflow_env.config import EnvConfig
+from riskflow_env.dynamics import DEFAULT_CONFIG
+from riskflow_env.maps import Lane, from_lanes
+from riskflow_env.scenarios import HighwayTrafficSource, Scenario
+from riskflow_env.scenarios.io import save_scenario
+from riskflow_env.scenarios.windows import window_from_view
+
+TINY = ModelConfig(
+    encoder_dim=16, head_dim=32, context_dim=32, edge_dim=8, num_heads=2, encoder_layers=1,
+    head_layers=1, map_widths=(4, 8), time_frequencies=8,
+)  # fmt: skip
+NORMALIZER = ActionNormalizer(mean=(0.0, 0.0), std=(0.5, 0.02))
+CONFIG = EnvConfig(
+    max_agents=8, episode_steps=20, terminate_on_collision="all", terminate_on_offroad="none"
+)
+START = [(0.0, 0.0), (18.0, 3.5), (-12.0, -3.5), (30.0, -3.5), (-25.0, 3.5), (45.0, 0.0)]
+
+
+def make_scenario() -> Scenario:
+    """Six cars at 12 m/s on a straight three-lane road."""
+    road = from_lanes([Lane(np.array([[-150.0, 0.0], [500.0, 0.0]]), 12.0, "road")])
+    steps, num = 31 + 60, len(START)
+    time = 0.1 * (np.arange(steps) - 30)
+    states = np.zeros((num, steps, 4))
+    for row, (x, y) in enumerate(START):
+        states[row, :, 0], states[row, :, 1], states[row, :, 2] = x + 12.0 * time, y, 12.0
+    valid = np.ones(states.shape[:2], dtype=bool)
+    return Scenario(road, states, valid, np.full(num, 4.5), np.full(num, 2.0), name="road")
+
+
+@pytest.fixture(scope="module")
+def denoiser() -> DiffusionDenoiser:
+    torch.manual_seed(0)
+    network = RiskFlowGenerator(TINY)
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for param in network.parameters():
+            param.add_(0.2 * torch.randn(param.shape, generator=gen))
+    return DiffusionDenoiser(network.eval())
+
+
+def adversary(denoiser, **kwargs) -> DiffusionAdversary:
+    kwargs = {"k": 2, "sampling_steps": 5, "seed": 3, **kwargs}
+    return DiffusionAdversary(denoiser=denoiser, normalizer=NORMALIZER, **kwargs)
+
+
+def run(policy, steps: int):
+    env = riskflow_env.parallel_env(config=CONFIG, scenarios=make_scenario())
+    env.reset(seed=0, options={"scenario": make_scenario()})
+    policy.reset(env.view())
+    emitted = []
+    for _ in range(steps):
+        if not env.agents:
+            break
+        view = env.view()
+        actions = policy.act(view)
+        assert set(actions) == set(view.live_agents) - {"ego"}
+        for action in actions.values():
+            assert DEFAULT_CONFIG.accel_min <= action[0] <= DEFAULT_CONFIG.accel_max
+            assert abs(action[1]) <= DEFAULT_CONFIG.yaw_rate_max
+        emitted.append(actions)
+        env.step({**actions, "ego": np.zeros(2)} if "ego" in env.agents else actions)
+    return env, emitted
+
+
+@pytest.mark.parametrize("variant", ["ctg", "ctgpp", "ccdiff"])
+def test_closed_loop_runs_replans_and_repeats_with_the_seed(denoiser, variant):
+    policy = adversary(denoiser, variant=variant)
+    assert isinstance(policy, ScenePolicy)
+    _, first = run(policy, 7)
+    assert policy.cycles == 2 and set(policy.timings) == {*PHASES, "total"}
+    assert policy.controllable.sum() == 2 and not policy.controllable[0]
+    assert policy.guidance_losses.shape[1] == 2
+    _, second = run(adversary(denoiser, variant=variant), 7)
+    for a, b in zip(first, second, strict=True):
+        assert a.keys() == b.keys() and all(np.array_equal(a[n], b[n]) for n in a)
+    _, other = run(adversary(denoiser, variant=variant, seed=4), 7)
+    assert any(not np.array_equal(other[0][n], first[0][n]) for n in first[0])
+
+
+def test_k0_is_the_unguided_chain_and_guidance_touches_only_a_c(denoiser):
+    env = riskflow_env.parallel_env(config=CONFIG, scenarios=make_scenario())
+    env.reset(options={"scenario": make_scenario()})
+    unguided = adversary(denoiser, k=0)
+    unguided.reset(env.view())
+    unguided.plan(env.view())
+    assert not unguided.controllable.any()
+    np.testing.assert_array_equal(unguided.plans, unguided.base_plans)
+    # The plans are the reverse chain of the cycle's noise (kept in policy.noise).
+    window = window_from_view(env.view(), unguided.window_config)
+    scene = denoiser.encode(collate_windows([{key: window[key] for key in ENCODER_KEYS}]))
+    x0 = reverse_chain(denoiser, scene, unguided.noise[:, None], unguided.levels)[-1]
+    actions, _ = plans_from_sample(x0[0], scene.state[0], scene.agent_mask[0], NORMALIZER)
+    np.testing.assert_array_equal(unguided.plan_actions[window["agent_index"]], actions.numpy())
+
+    guided = adversary(denoiser, k=2, step_size=0.3)
+    guided.reset(env.view())
+    guided.plan(env.view())
+    np.testing.assert_array_equal(guided.base_plans, unguided.plans)
+    same = guided.plan_mask & ~guided.controllable
+    np.testing.assert_array_equal(guided.plans[same], unguided.plans[same])
+    moved = guided.controllable
+    assert moved.sum() == 2
+    assert not np.allclose(guided.plans[moved], unguided.plans[moved])
+
+
+def test_draw_and_bad_options(denoiser):
+    class Renderer:
+        def __init__(self):
+            self.overlays = {}
+
+        def set_overlay(self, name, *args, **kwargs):
+            self.overlays[name] = args
+
+    policy = adversary(denoiser)
+    run(policy, 1)
+    renderer = Renderer()
+    policy.draw(renderer)
+    assert set(renderer.overlays) == {"diffusion_base", "diffusion_guided"}
+    for kwargs, match in (
+        ({"variant": "ctg+"}, "variant"),
+        ({"k": -1}, "k must be"),
+        ({"eta": 2.0}, "eta"),
+        ({"inner_steps": 2, "variant": "ctgpp"}, "inner_steps"),
+        ({"sampling_steps": 101}, "sampling_steps"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            adversary(denoiser, **kwargs)
+    with pytest.raises(ValueError, match="normalizer"):
+        DiffusionAdversary(denoiser=denoiser)
+
+
+@pytest.fixture(scope="module")
+def banks(tmp_path_factory):
+    root = tmp_path_factory.mktemp("banks")
+    folders = (root / "train", root / "val")
+    for folder, seeds in zip(folders, ([0, 2], [4]), strict=True):
+        folder.mkdir()
+        for seed in seeds:
+            scene = HighwayTrafficSource().sample(np.random.default_rng(seed))
+            save_scenario(scene, folder / f"{seed:05d}-highway.npz", map_dir=folder / "maps")
+    return folders
+
+
+def train_args(banks, out, *extra: str) -> list[str]:
+    """A fast ``riskflow-train`` command line: tiny model, stride 16, batches of 2."""
+    return [
+        "--data", str(banks[0]), "--val-data", str(banks[1]), "--out", str(out),
+        "--model", json.dumps(TINY.to_dict()), "--stride", "16", "--batch-size", "2",
+        "--eval-every", "3", "--log-every", "1", "--val-windows", "2", "--num-samples", "2",
+        *extra,
+    ]  # fmt: skip
+
+
+def test_riskflow_train_generator_diffusion_end_to_end(banks, tmp_path):
+    out = tmp_path / "diffusion"
+    diffusion = ("--generator", "diffusion", "--diffusion-steps", "20", "--val-sampling-steps", "3")
+    assert train_main(train_args(banks, out, "--steps", "3", *diffusion)) == 0
+    final = json.loads((out / METRICS_LOG).read_text().splitlines()[-1])
+    assert final["step"] == 3 and np.isfinite(final["val_ade"]) and "train_eps_mse" in final
+    denoiser, normalizer, metadata = load_diffusion(out / GENERATOR)
+    assert denoiser.diffusion.num_steps == 20 and denoiser.diffusion.prediction == "v"
+    assert denoiser.config == TINY and metadata["step"] == 3
+    run(DiffusionAdversary(denoiser=denoiser, normalizer=normalizer, sampling_steps=3), 2)
+    with pytest.raises(SystemExit, match="trained --generator diffusion"):
+        train_main(train_args(banks, out, "--steps", "4", "--resume"))
+    meanflow = tmp_path / "meanflow"
+    train_main(train_args(banks, meanflow, "--steps", "1"))
+    with pytest.raises(CheckpointError, match="not a diffusion checkpoint"):
+        load_diffusion(meanflow / GENERATOR)
+    assert load_generator(meanflow / GENERATOR)[0].config == TINY
