@@ -1,0 +1,119 @@
+"""Does the RiskFlow adversary make the IDM ego fail, without driving off the road?
+
+Runs every configuration (default: K=5 and K=0, the unguided generator) closed loop for
+10 s on the first ``--scenes`` shipped evaluation scenes, with the IDM ego planner, and
+prints collision and off-road rates with 95% confidence intervals (Wilson for rates,
+bootstrap for means) plus the ratios of each K to K=0::
+
+    python benchmarks/adversary_quality.py --scenes 50 --ks 5,0 --target ego
+
+The episode ends early when the ego collides (the default ``EnvConfig``), as in a
+stress test. ``--out`` receives ``quality.json`` with the summaries and every scene's
+metrics.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from tqdm import tqdm
+
+from policies.harness import ClosedLoop, summarize
+from policies.planners import IDMPlanner
+from policies.riskflow import RiskFlowAdversary
+from policies.riskflow.checkpoint import load_generator
+from policies.riskflow.dataclass_cli import parse_dataclass
+from riskflow_env.scenarios import shipped_bank
+
+ROWS = {
+    "collision_rate": "episodes with any collision",
+    "ego_collision_rate": "episodes with an ego collision",
+    "orr_centroid": "agent-steps, centre off road",
+    "orr_footprint": "agent-steps, footprint off road",
+    "min_distance_to_ego": "least ego separation [m]",
+    "planning_time_ms": "planning cycle [ms]",
+}
+
+
+@dataclass(frozen=True)
+class Options:
+    """Quality check of the adversary."""
+
+    scenes: int = 50
+    """number of shipped evaluation scenes (the first ones)"""
+    ks: str = "5,0"
+    """comma-separated K values to compare (ints or 'all'); the last one is the reference"""
+    target: str = "ego"
+    """guidance target: 'ego' (stress test) or 'others' (the paper's)"""
+    planning_interval: float = 0.5
+    """[s] replanning period"""
+    seed: int = 0
+    """adversary noise seed"""
+    checkpoint: str | None = None
+    """generator checkpoint; default: the shipped one"""
+    out: str = "outputs/adversary_quality"
+    """output directory"""
+
+
+def run(options: Options) -> dict[str, dict]:
+    """Summaries per K (``{k: {metric: {value, low, high, n}}}``)."""
+    generator, normalizer, _ = load_generator(options.checkpoint)
+    bank = shipped_bank("eval")
+    scenes = [bank[i] for i in range(min(options.scenes, len(bank)))]
+    results: dict[str, dict] = {}
+    for k in options.ks.split(","):
+        adversary = RiskFlowAdversary(
+            k=k if k == "all" else int(k),
+            planning_interval=options.planning_interval,
+            target=options.target,
+            seed=options.seed,
+            generator=generator,
+            normalizer=normalizer,
+        )
+        with ClosedLoop(IDMPlanner(), adversary) as loop:
+            for scenario in tqdm(scenes, desc=f"K={k}"):
+                loop.run(scenario)
+            results[k] = {
+                "summary": summarize(loop.records),
+                "scenes": [record.metrics for record in loop.records],
+            }
+    return results
+
+
+def table(results: dict[str, dict]) -> str:
+    """Markdown table: one column per K, the last K as reference for the ratios."""
+    ks = list(results)
+    reference = results[ks[-1]]["summary"]
+    header = "| metric | " + " | ".join(f"K={k}" for k in ks) + " | ratio to K=" + ks[-1] + " |"
+    lines = [header, "|" + " --- |" * (len(ks) + 2)]
+    for name, label in ROWS.items():
+        cells = []
+        for k in ks:
+            entry = results[k]["summary"][name]
+            value = entry["value"]
+            if value is None:
+                cells.append("n/a")
+            elif entry["low"] is None:
+                cells.append(f"{value:.3f}")
+            else:
+                cells.append(f"{value:.3f} [{entry['low']:.3f}, {entry['high']:.3f}]")
+        first, base = results[ks[0]]["summary"][name]["value"], reference[name]["value"]
+        ratio = f"{first / base:.2f}x" if first is not None and base else "n/a"
+        lines.append(f"| {label} | " + " | ".join(cells) + f" | {ratio} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    options = parse_dataclass(Options, argv, prog="adversary_quality")
+    results = run(options)
+    out = Path(options.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "quality.json").write_text(json.dumps({"options": vars(options), **results}, indent=1))
+    print(f"{options.scenes} scenes, IDM ego, target={options.target}, 10 s closed loop")
+    print(table(results))
+
+
+if __name__ == "__main__":
+    main()
