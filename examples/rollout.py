@@ -150,6 +150,7 @@ def main(options: Options) -> dict[str, Any]:
         video=video,
     ) as loop:
         record = loop.run(scenario)
+    (out / "metrics.json").write_text(json.dumps(record.metrics, indent=2) + "\n")
     print("events:")
     for event in record.events[:-1]:
         print(describe(event))
@@ -170,7 +171,6 @@ def main(options: Options) -> dict[str, Any]:
             continue
         shown = f"{value:.3f}" if isinstance(value, float) else value
         print(f"  {name:28s} {shown!s:>10}   {METRICS[name]}")
-    (out / "metrics.json").write_text(json.dumps(record.metrics, indent=2) + "\n")
     written = [out / "events.jsonl", out / "metrics.json"] + ([video] if video else [])
     print("wrote", ", ".join(str(path) for path in written))
     return record.metrics
