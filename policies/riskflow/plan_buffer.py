@@ -30,7 +30,7 @@ from riskflow_env.scenarios.windows import WindowConfig
 from riskflow_env.view import SceneView
 
 BASE_COLOR = (70, 200, 235)  # overlay of the unguided plans
-GUIDED_COLOR = (235, 35, 35)  # overlay of the guided (A_c) plans
+GUIDED_COLOR = (200, 80, 235)  # overlay of the guided (A_c) plans (purple: red marks collisions)
 
 
 def hold_still(
