@@ -24,12 +24,16 @@ scaled by ``step_size`` [normalised action units], the diffusion analogue of Ris
 Adam step: a bounded move per step, the same in every scene (raw gradients scale with
 ``lambda``, speed and ``(T - t)^2``). Only ``A_c`` rows move.
 
-Everyone else follows the unguided chain of the same noise, bit for bit: the chain is
-run once without guidance (the base plans, as RiskFlow's), then again with guidance,
-its non-``A_c`` rows replaced by the base chain's at every level (inpainting). So
-guided vehicles react to the others' actual plans through the scene-level denoiser,
-and the others are unaffected, as with RiskFlow; ``L_adv``'s targets are the base
-plans (detached), RiskFlow's targets. Guidance doubles the denoiser passes.
+``anchor=True`` (default): everyone else follows the unguided chain of the same noise,
+bit for bit: the chain is run once without guidance (the base plans, as RiskFlow's),
+then again with guidance, its non-``A_c`` rows replaced by the base chain's at every
+level (inpainting). So guided vehicles react to the others' actual plans through the
+scene-level denoiser, the others are unaffected, as with RiskFlow, and ``L_adv``'s
+targets are the base plans (detached), RiskFlow's targets; guidance doubles the
+denoiser passes. ``anchor=False``: one chain, the cost of unguided sampling (plus the
+guidance); the others are denoised jointly with the guided rows (they react to them,
+as in CTG++'s scene-level sampling), ``L_adv``'s targets are their current clean
+estimates ``x0_hat`` at each level, and there are no separate base plans.
 """
 
 from __future__ import annotations
@@ -74,6 +78,7 @@ class DiffusionGuidanceConfig:
         target: ``"others"`` or ``"ego"`` (as RiskFlow's ``GuidanceConfig.target``).
         map_margin: [m] of ``L_map``.
         map_decay: ``w_t = map_decay ** t`` of ``L_map``.
+        anchor: the others follow the unguided chain (module docstring).
     """
 
     gradient: str = "mean"
@@ -85,6 +90,7 @@ class DiffusionGuidanceConfig:
     target: str = "others"
     map_margin: float = 0.2
     map_decay: float = 0.98
+    anchor: bool = True
 
     def __post_init__(self) -> None:
         reals = (self.step_size, self.lambda_adv, self.lambda_map, self.map_margin, self.map_decay)
@@ -138,9 +144,10 @@ class SceneGeometry:
 
 @dataclass(frozen=True)
 class GuidedPlans:
-    """``actions`` (A, T, 2), ``trajectories`` (A, T, 4) (base plans outside ``A_c``), the
-    unguided ``base_actions`` / ``base_trajectories``, and ``losses`` (N, 2): ``(L_adv [m],
-    L_map [m^2])`` at each gradient evaluation and, last, of the final plans."""
+    """``actions`` (A, T, 2), ``trajectories`` (A, T, 4) (base plans outside ``A_c`` when
+    anchored), the unguided ``base_actions`` / ``base_trajectories`` (the plans themselves
+    without ``anchor``), and ``losses`` (N, 2): ``(L_adv [m], L_map [m^2])`` at each
+    gradient evaluation and, last, of the final plans."""
 
     actions: Tensor
     trajectories: Tensor
@@ -152,8 +159,8 @@ class GuidedPlans:
 class _Objective:
     """``(L, L_adv, L_map)`` of the ``A_c`` rows as a function of their normalised actions."""
 
-    def __init__(self, geometry, rows, target_xy, normalizer, config, dynamics, steps) -> None:
-        self.state, self.target_xy = geometry.state[rows], target_xy
+    def __init__(self, geometry, rows, normalizer, config, dynamics, steps) -> None:
+        self.state = geometry.state[rows]
         self.normalizer, self.config, self.dynamics = normalizer, config, dynamics
         self.map_term = None
         if geometry.drivable_map is not None and config.lambda_map != 0:
@@ -162,9 +169,9 @@ class _Objective:
                 geometry.width[rows], steps, config.map_margin, config.map_decay,
             )  # fmt: skip
 
-    def __call__(self, x_c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def __call__(self, x_c: Tensor, target_xy: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         trajectories = rollout(self.state, self.normalizer.denormalize(x_c), self.dynamics)
-        adv = adversarial_loss(trajectories[..., :2], self.target_xy, self.config.horizon)
+        adv = adversarial_loss(trajectories[..., :2], target_xy, self.config.horizon)
         off_road = adv * 0.0 if self.map_term is None else self.map_term(trajectories)
         return self.config.lambda_adv * adv + self.config.lambda_map * off_road, adv, off_road
 
@@ -204,67 +211,79 @@ def guided_sample(
         on_base_done: called when the base chain is done (timing).
     """
     config = config or DiffusionGuidanceConfig()
-    path = reverse_chain(denoiser, scene, noise, levels, eta)
-    base_actions, base_trajectories = plans_from_sample(
-        path[-1][0], geometry.state, geometry.agent_mask, normalizer, dynamics
-    )
     present = geometry.agent_mask.bool()
-    mask = controllable.bool() & present
-    if geometry.standing is not None:
-        hold_still(base_actions, base_trajectories, geometry.state, geometry.standing)
-        mask &= ~geometry.standing.bool()
-    if on_base_done is not None:
-        on_base_done()
+    standing = torch.zeros_like(present) if geometry.standing is None else geometry.standing
+    mask = controllable.bool() & present & ~standing.bool()
     mask[geometry.ego] = False
     rows = torch.nonzero(mask).flatten()
-    if rows.numel() == 0:
-        empty = base_actions.new_zeros(0, 2)
-        return GuidedPlans(base_actions, base_trajectories, base_actions, base_trajectories, empty)
     targets = present & ~mask
     if config.target == "ego":
         targets = torch.zeros_like(targets)
         targets[geometry.ego] = True
-    target_xy = base_trajectories[targets, :, :2].detach()
-    steps = noise.shape[-2]
-    objective = _Objective(geometry, rows, target_xy, normalizer, config, dynamics, steps)
-    keep = mask[None, :, None, None]
-    history, x = [], path[0]
+
+    def plans(x0: Tensor) -> tuple[Tensor, Tensor]:
+        actions, trajectories = plans_from_sample(
+            x0, geometry.state, geometry.agent_mask, normalizer, dynamics
+        )
+        hold_still(actions, trajectories, geometry.state, standing.bool())
+        return actions, trajectories
+
+    path = None
+    if config.anchor or rows.numel() == 0:
+        path = reverse_chain(denoiser, scene, noise, levels, eta)
+        base_actions, base_trajectories = plans(path[-1][0])
+        target_xy = base_trajectories[targets, :, :2]
+    if on_base_done is not None:
+        on_base_done()
+    if rows.numel() == 0:
+        empty = base_actions.new_zeros(0, 2)
+        return GuidedPlans(base_actions, base_trajectories, base_actions, base_trajectories, empty)
+    objective = _Objective(geometry, rows, normalizer, config, dynamics, noise.shape[-2])
+    history, x = [], noise[0]
     for index, (k, k_prev) in enumerate(levels):
         if config.gradient == "clean":
             with torch.enable_grad():
                 x_in = x.detach().requires_grad_(True)
                 x0_hat, eps_hat = denoiser(x_in, k, scene, clip=True)
-                loss, adv, off_road = objective(x0_hat[0, rows])
+                if path is None:
+                    target_xy = plans(x0_hat.detach()[0])[1][targets, :, :2]
+                loss, adv, off_road = objective(x0_hat[0, rows], target_xy)
                 (grad,) = torch.autograd.grad(loss, x_in)
             history.append(torch.stack([adv.detach(), off_road.detach()]))
             with torch.no_grad():
-                mean, sigma = denoiser.schedule.reverse_moments(
-                    x0_hat.detach(), eps_hat.detach(), k, k_prev, eta
-                )
+                x0_hat, eps_hat = x0_hat.detach(), eps_hat.detach()
+                mean, sigma = denoiser.schedule.reverse_moments(x0_hat, eps_hat, k, k_prev, eta)
                 mean[0, rows] -= _step(grad[0, rows], config.step_size)
         else:
             with torch.no_grad():
-                _, _, mean, sigma = denoise_step(denoiser, x, k, k_prev, eta, scene)
+                x0_hat, _, mean, sigma = denoise_step(denoiser, x, k, k_prev, eta, scene)
+                if path is None:
+                    target_xy = plans(x0_hat[0])[1][targets, :, :2]
             mean_c = mean[0, rows]
             for _ in range(config.inner_steps):
                 with torch.enable_grad():
                     mean_c = mean_c.detach().requires_grad_(True)
-                    loss, adv, off_road = objective(mean_c)
+                    loss, adv, off_road = objective(mean_c, target_xy)
                     (grad,) = torch.autograd.grad(loss, mean_c)
                 history.append(torch.stack([adv.detach(), off_road.detach()]))
                 mean_c = mean_c.detach() - _step(grad, config.step_size)
             mean[0, rows] = mean_c
         with torch.no_grad():
-            x = torch.where(keep, mean + sigma * noise[index + 1], path[index + 1])
+            x = mean + sigma * noise[index + 1]
+            if path is not None:  # inpainting: the others keep the base chain
+                x = torch.where(mask[None, :, None, None], x, path[index + 1])
     with torch.no_grad():
-        _, adv, off_road = objective(x[0, rows])
+        guided_actions, guided_trajectories = plans(x[0])
+        if path is None:
+            actions, trajectories = guided_actions, guided_trajectories
+            base_actions, base_trajectories = actions, trajectories
+            target_xy = trajectories[targets, :, :2]
+        else:
+            actions, trajectories = base_actions.clone(), base_trajectories.clone()
+            actions[rows] = guided_actions[rows]
+            trajectories[rows] = guided_trajectories[rows]
+        _, adv, off_road = objective(x[0, rows], target_xy)
         history.append(torch.stack([adv, off_road]))
-        guided_actions, guided_trajectories = plans_from_sample(
-            x[0], geometry.state, geometry.agent_mask, normalizer, dynamics
-        )
-        actions, trajectories = base_actions.clone(), base_trajectories.clone()
-        actions[rows] = guided_actions[rows]
-        trajectories[rows] = guided_trajectories[rows]
     return GuidedPlans(actions, trajectories, base_actions, base_trajectories, torch.stack(history))
 
 

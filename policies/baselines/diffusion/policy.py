@@ -79,6 +79,9 @@ class DiffusionAdversary(PlanBufferPolicy):
         lambda_adv: adversarial weight; > 0 is more adversarial (RiskFlow's convention).
         lambda_map: off-road weight, >= 0.
         guidance_horizon: ``T_g`` [steps] of ``L_adv``; None: whole plan.
+        anchor: the vehicles outside ``A_c`` follow the unguided chain, bit for bit (two
+            chains per cycle); False: one chain, they are denoised jointly with ``A_c``
+            (:mod:`.guided`).
         rank_threshold: risk-graph edge threshold (``"ccdiff"``).
         seed: noise seed.
         device: torch device.
@@ -104,6 +107,7 @@ class DiffusionAdversary(PlanBufferPolicy):
         lambda_adv: float = 50.0,
         lambda_map: float = 1.0,
         guidance_horizon: int | None = None,
+        anchor: bool = True,
         rank_threshold: float = DEFAULT_THRESHOLD,
         seed: int = 0,
         device: torch.device | str = "cpu",
@@ -127,6 +131,7 @@ class DiffusionAdversary(PlanBufferPolicy):
             lambda_map=lambda_map,
             horizon=guidance_horizon,
             target=target,
+            anchor=anchor,
         )
         self.rank_threshold = float(rank_threshold)
         device = torch.device(device)

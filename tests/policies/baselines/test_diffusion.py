@@ -140,28 +140,34 @@ def scene_problem(seed: int = 4, agents: int = 6):
     return denoiser, scene, geometry
 
 
-@pytest.mark.parametrize(("gradient", "steps"), [("mean", None), ("clean", None), ("mean", 8)])
-def test_guidance_moves_only_the_controllable_agents_and_lowers_l_adv(gradient, steps):
+@pytest.mark.parametrize(
+    ("gradient", "steps", "anchor"),
+    [("mean", None, True), ("clean", None, True), ("mean", 8, True), ("clean", 8, False)],
+)
+def test_guidance_moves_only_the_controllable_agents_and_lowers_l_adv(gradient, steps, anchor):
     denoiser, scene, geometry = scene_problem()
     levels = denoiser.schedule.levels(steps)
     noise = chain_noise((1, 6, 52, 2), levels, torch.Generator().manual_seed(7))
     controllable = torch.tensor([True, False, True, False, True, False])  # the ego is ignored
-    config = DiffusionGuidanceConfig(gradient=gradient, step_size=0.3)
+    config = DiffusionGuidanceConfig(gradient=gradient, step_size=0.3, anchor=anchor)
     result = guided_sample(
         denoiser, scene, noise, levels, geometry, controllable, NORMALIZER, config
     )
-    base, _ = plans_from_sample(
+    base, base_trajectories = plans_from_sample(
         reverse_chain(denoiser, scene, noise, levels)[-1][0], geometry.state,
         geometry.agent_mask, NORMALIZER,
     )  # fmt: skip
-    torch.testing.assert_close(result.base_actions, base, rtol=0, atol=0)
     rows, others = torch.tensor([2, 4]), torch.tensor([0, 1, 3, 5])
-    assert torch.equal(result.actions[others], base[others])
-    assert torch.equal(result.trajectories[others], result.base_trajectories[others])
+    if anchor:
+        torch.testing.assert_close(result.base_actions, base, rtol=0, atol=0)
+        assert torch.equal(result.actions[others], base[others])
+        assert torch.equal(result.trajectories[others], result.base_trajectories[others])
+    else:  # one chain: the others react, there are no separate base plans
+        assert torch.equal(result.base_actions, result.actions)
     assert not torch.allclose(result.actions[rows], base[rows])
-    target = result.base_trajectories[others, :, :2]
+    target = result.trajectories[others, :, :2]
     guided = adversarial_loss(result.trajectories[rows, :, :2], target)
-    unguided = adversarial_loss(result.base_trajectories[rows, :, :2], target)
+    unguided = adversarial_loss(base_trajectories[rows, :, :2], base_trajectories[others, :, :2])
     assert float(guided) < 0.9 * float(unguided)
     assert result.losses.shape == (len(levels) + 1, 2)
     torch.testing.assert_close(result.losses[-1, 0], guided)
@@ -170,19 +176,26 @@ def test_guidance_moves_only_the_controllable_agents_and_lowers_l_adv(gradient, 
 def test_no_controllable_agent_is_the_unguided_chain_and_seeds_repeat():
     denoiser, scene, geometry = scene_problem(seed=5)
     levels = denoiser.schedule.levels(6)
+    controllable = torch.tensor([False, True, True, False, False, False])
     runs = []
-    for _ in range(2):
+    for anchor in (True, True, False):
         noise = chain_noise((1, 6, 52, 2), levels, torch.Generator().manual_seed(9))
-        none = guided_sample(
-            denoiser, scene, noise, levels, geometry, torch.zeros(6, dtype=torch.bool), NORMALIZER
-        )
-        assert torch.equal(none.actions, none.base_actions) and none.losses.numel() == 0
-        controllable = torch.tensor([False, True, True, False, False, False])
+        config = DiffusionGuidanceConfig(anchor=anchor)
+        nobody = torch.zeros(6, dtype=torch.bool)
+        none = guided_sample(denoiser, scene, noise, levels, geometry, nobody, NORMALIZER, config)
+        unguided, _ = plans_from_sample(
+            reverse_chain(denoiser, scene, noise, levels)[-1][0], geometry.state,
+            geometry.agent_mask, NORMALIZER,
+        )  # fmt: skip
+        assert torch.equal(none.actions, unguided) and none.losses.numel() == 0
         runs.append(
-            guided_sample(denoiser, scene, noise, levels, geometry, controllable, NORMALIZER)
+            guided_sample(
+                denoiser, scene, noise, levels, geometry, controllable, NORMALIZER, config
+            )
         )
     assert torch.equal(runs[0].actions, runs[1].actions)
     assert torch.equal(runs[0].losses, runs[1].losses)
+    assert not torch.equal(runs[0].actions, runs[2].actions)
 
 
 def test_standing_agents_stand_still_and_are_never_guided():

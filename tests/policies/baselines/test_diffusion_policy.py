@@ -126,6 +126,14 @@ def test_k0_is_the_unguided_chain_and_guidance_touches_only_a_c(denoiser):
     assert not np.allclose(guided.plans[moved], unguided.plans[moved])
 
 
+def test_unanchored_guidance_runs_one_chain(denoiser):
+    policy = adversary(denoiser, variant="ctgpp", anchor=False)
+    run(policy, 6)
+    assert policy.cycles == 2 and policy.controllable.sum() == 2
+    np.testing.assert_array_equal(policy.plans, policy.base_plans)
+    assert policy.timings["denoising"] < policy.timings["guidance"]
+
+
 def test_draw_and_bad_options(denoiser):
     class Renderer:
         def __init__(self):
