@@ -8,8 +8,9 @@ bootstrap for means) plus the ratios of each K to K=0::
     python benchmarks/adversary_quality.py --scenes 50 --ks 5,0 --target ego
 
 The episode ends early when the ego collides (the default ``EnvConfig``), as in a
-stress test. ``--out`` receives ``quality.json`` with the summaries and every scene's
-metrics.
+stress test; ``--full-episodes`` runs every episode for 10 s instead, so that off-road
+rates are compared over the same exposure. ``--out`` receives ``quality.json`` with the
+summaries and every scene's metrics.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
 from policies.riskflow.checkpoint import load_generator
 from policies.riskflow.dataclass_cli import parse_dataclass
+from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
 
 ROWS = {
@@ -51,6 +53,8 @@ class Options:
     """[s] replanning period"""
     seed: int = 0
     """adversary noise seed"""
+    full_episodes: bool = False
+    """run every episode for the full 10 s (no termination on collision or off-road)"""
     checkpoint: str | None = None
     """generator checkpoint; default: the shipped one"""
     out: str = "outputs/adversary_quality"
@@ -72,7 +76,12 @@ def run(options: Options) -> dict[str, dict]:
             generator=generator,
             normalizer=normalizer,
         )
-        with ClosedLoop(IDMPlanner(), adversary) as loop:
+        config = (
+            EnvConfig(terminate_on_collision="none", terminate_on_offroad="none")
+            if options.full_episodes
+            else None
+        )
+        with ClosedLoop(IDMPlanner(), adversary, config=config) as loop:
             for scenario in tqdm(scenes, desc=f"K={k}"):
                 loop.run(scenario)
             results[k] = {
@@ -111,7 +120,8 @@ def main(argv: list[str] | None = None) -> None:
     out = Path(options.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "quality.json").write_text(json.dumps({"options": vars(options), **results}, indent=1))
-    print(f"{options.scenes} scenes, IDM ego, target={options.target}, 10 s closed loop")
+    ending = "full 10 s" if options.full_episodes else "ends at an ego collision"
+    print(f"{options.scenes} scenes, IDM ego, target={options.target}, episodes: {ending}")
     print(table(results))
 
 
