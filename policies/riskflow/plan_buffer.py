@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import time
+from abc import ABC, abstractmethod
 
 import numpy as np
 import torch
@@ -44,7 +45,7 @@ def hold_still(
     trajectories[done] = standing[done, None].expand_as(trajectories[done])
 
 
-class PlanBufferPolicy:
+class PlanBufferPolicy(ABC):
     """Base of the plan-buffer scene policies (module docstring); drives every non-ego vehicle.
 
     Args:
@@ -176,9 +177,9 @@ class PlanBufferPolicy:
         self.cycles += 1
         return self.plans
 
+    @abstractmethod
     def _plan_cycle(self, view: SceneView) -> None:
         """Plan every window slot and :meth:`_store` the plans (subclasses)."""
-        raise NotImplementedError
 
     def _store(
         self,
