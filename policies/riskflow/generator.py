@@ -145,8 +145,8 @@ class RiskFlowGenerator(nn.Module):
         return self.average_velocity(z, t, r, self.encode(batch))
 
     def num_parameters(self) -> int:
-        """Number of trainable parameters."""
-        return sum(p.numel() for p in self.parameters() if p.requires_grad)
+        """Number of parameters (frozen ones included: a loaded checkpoint is frozen)."""
+        return sum(p.numel() for p in self.parameters())
 
     def checkpoint(self) -> dict[str, Any]:
         """``{"format", "config", "state_dict"}`` for ``torch.save``; tensors on the CPU."""
