@@ -9,6 +9,10 @@ window slot and call :meth:`PlanBufferPolicy._store`. This base does the rest:
 * **seeding**: the noise of cycle ``c`` of episode ``e`` (``reset`` count from 0) comes
   from a ``torch.Generator`` seeded with ``(seed, e, c)`` (:meth:`_noise_source`), so
   the same seed gives the same closed-loop rollout, bit for bit, on one machine;
+* **observation**: :meth:`PlanBufferPolicy._encode_view` cuts the cycle's window from
+  the view (``window_from_view``), collates it and runs the model's scene encoder (the
+  ``"window"`` and ``"encoder"`` phases of every subclass); :func:`default_window_config`
+  is the window of a model's training data;
 * **threads**: torch CPU threads while planning (restored after);
 * **timings** per phase, world-frame plans, the controllable set and the render overlays.
 
@@ -21,17 +25,67 @@ from __future__ import annotations
 import math
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from policies.base import actions_dict, controlled_mask
+from policies.riskflow.config import ModelConfig
+from policies.riskflow.data import collate_windows
+from policies.riskflow.encoder import ENCODER_KEYS, SceneContext
 from policies.riskflow.ranking import Ranking, check_k
-from riskflow_env.scenarios.windows import WindowConfig
+from riskflow_env.scenarios.windows import WindowConfig, window_from_view
 from riskflow_env.view import SceneView
 
 BASE_COLOR = (70, 200, 235)  # overlay of the unguided plans
 GUIDED_COLOR = (200, 80, 235)  # overlay of the guided (A_c) plans (purple: red marks collisions)
+
+
+def default_window_config(config: ModelConfig) -> WindowConfig:
+    """The windows a model with architecture ``config`` was trained on (history, plan
+    length and map crop size; the other options at their defaults)."""
+    return WindowConfig(
+        history_steps=config.history_steps,
+        future_steps=config.future_steps,
+        crop_size=config.map_size,
+    )
+
+
+def check_model_pair(model: object, normalizer: object, name: str) -> None:
+    """A model and its normalizer go together: both given or neither (then the shipped
+    checkpoint is loaded). Raises ValueError naming ``name`` (the model argument)."""
+    if model is None and normalizer is not None:
+        raise ValueError(f"normalizer given without its {name}: pass both or neither")
+    if model is not None and normalizer is None:
+        raise ValueError(f"a {name} needs the normalizer it was trained with")
+
+
+@dataclass(frozen=True)
+class EncodedView:
+    """One cycle's observation of the scene (:meth:`PlanBufferPolicy._encode_view`).
+
+    Attributes:
+        window: the window dict (``docs/WINDOWS.md``; ego frame, ego in slot 0).
+        slots: (A_w,) env slot of each window row.
+        batch: the collated window (batch of one) on the policy's device.
+        scene: the encoder's :class:`SceneContext` of ``batch`` (no gradients).
+        frame: (3,) world pose of the scene frame: the ego's (x [m], y [m], psi [rad]).
+        clock: ``time.perf_counter()`` after the encoder (start of the next phase).
+    """
+
+    window: dict[str, np.ndarray]
+    slots: np.ndarray
+    batch: dict[str, torch.Tensor]
+    scene: SceneContext
+    frame: np.ndarray
+    clock: float
+
+    def frame_tensor(self) -> torch.Tensor:
+        """``frame`` as a tensor of the context's dtype and device (for ``L_map``)."""
+        state = self.scene.state
+        return torch.as_tensor(self.frame, dtype=state.dtype, device=state.device)
 
 
 def hold_still(
@@ -177,6 +231,27 @@ class PlanBufferPolicy(ABC):
         self.cycles += 1
         return self.plans
 
+    def _encode_view(
+        self, view: SceneView, encode: Callable[[Mapping[str, torch.Tensor]], SceneContext]
+    ) -> EncodedView:
+        """Window, collate, encode (phases ``"window"`` and ``"encoder"``).
+
+        Args:
+            view: the scene now.
+            encode: the model's encoder, ``batch -> SceneContext`` (run without gradients).
+        """
+        start = time.perf_counter()
+        window = window_from_view(view, self.window_config)
+        batch = collate_windows([{key: window[key] for key in ENCODER_KEYS}])
+        batch = {key: value.to(self.device) for key, value in batch.items()}
+        clock = self._tick("window", start)
+        with torch.no_grad():
+            scene = encode(batch)
+        clock = self._tick("encoder", clock)
+        ego = view.current[0]
+        frame = np.array([ego[0], ego[1], ego[3]])
+        return EncodedView(window, window["agent_index"], batch, scene, frame, clock)
+
     @abstractmethod
     def _plan_cycle(self, view: SceneView) -> None:
         """Plan every window slot and :meth:`_store` the plans (subclasses)."""
@@ -242,4 +317,12 @@ def _to_world(plans: np.ndarray, slots: np.ndarray, num: int, frame: np.ndarray)
     return out
 
 
-__all__ = ["BASE_COLOR", "GUIDED_COLOR", "PlanBufferPolicy", "hold_still"]
+__all__ = [
+    "BASE_COLOR",
+    "GUIDED_COLOR",
+    "EncodedView",
+    "PlanBufferPolicy",
+    "check_model_pair",
+    "default_window_config",
+    "hold_still",
+]

@@ -23,30 +23,50 @@ comes from a ``torch.Generator`` seeded with ``(seed, e, c)``, so the same seed 
 same closed-loop rollout, bit for bit, on one machine (same device and thread count).
 The schedule, plan buffer, seeding and overlays are :class:`~policies.riskflow.plan_buffer.
 PlanBufferPolicy`'s, shared with the diffusion baselines.
+
+Generator (:mod:`policies.riskflow.base_generator`): the shipped MeanFlow model by
+default; ``generator="diffusion"`` (or a diffusion ``checkpoint``) plans with the
+diffusion baselines' denoiser run as a deterministic DDIM chain from ``eps`` instead,
+with the same ranking and output-space guidance (the generator ablation of issue 7).
+``lambda_adv = 0`` / ``lambda_map = 0`` drop a guidance term (the loss ablation).
+
+Subclasses replace how ``A_c`` is optimised by overriding :meth:`RiskFlowAdversary._guide`
+(the STRIVE-style baseline optimises the generator's input noise instead).
 """
 
 from __future__ import annotations
 
-import time
+import os
+from typing import TYPE_CHECKING
 
-import numpy as np
 import torch
 
-from policies.riskflow.data import collate_windows
-from policies.riskflow.encoder import ENCODER_KEYS
+from policies.riskflow.base_generator import generator_kind, load_base_generator
 from policies.riskflow.generator import RiskFlowGenerator
 from policies.riskflow.guidance import (
     GuidanceConfig,
+    GuidanceResult,
     GuidanceScene,
     guide,
     plans_from_velocity,
 )
 from policies.riskflow.meanflow import Normalizer
-from policies.riskflow.plan_buffer import BASE_COLOR, GUIDED_COLOR, PlanBufferPolicy, hold_still
+from policies.riskflow.plan_buffer import (
+    BASE_COLOR,
+    GUIDED_COLOR,
+    EncodedView,
+    PlanBufferPolicy,
+    check_model_pair,
+    default_window_config,
+    hold_still,
+)
 from policies.riskflow.ranking import DEFAULT_THRESHOLD, rank_window
 from policies.riskflow.sampler import base_velocity
-from riskflow_env.scenarios.windows import WindowConfig, window_from_view
+from riskflow_env.scenarios.windows import WindowConfig
 from riskflow_env.view import SceneView
+
+if TYPE_CHECKING:
+    from policies.baselines.diffusion.sampling import OneCallSampler
 
 PHASES = ("window", "encoder", "generator", "ranking", "guidance")
 
@@ -68,10 +88,15 @@ class RiskFlowAdversary(PlanBufferPolicy):
         rank_threshold: risk-graph edge threshold.
         seed: noise seed.
         device: torch device of the model.
-        generator: the model; None loads the shipped checkpoint
-            (``policies.riskflow.checkpoint.load_generator``). It is moved to ``device``
-            and put in eval mode.
-        normalizer: the model's action normalisation (required with ``generator``).
+        generator: the base-plan generator: a model object (a ``RiskFlowGenerator``, or
+            a diffusion ``OneCallSampler``; moved to ``device``, eval mode) with its
+            ``normalizer``; or ``"meanflow"`` / ``"diffusion"`` to load that kind from
+            ``checkpoint`` (default: the shipped file of that kind); None: the kind of
+            ``checkpoint``, MeanFlow without one (:mod:`policies.riskflow.base_generator`).
+        normalizer: the model's action normalisation (required with a model object).
+        checkpoint: a ``riskflow-train`` checkpoint file to load (its kind is read from
+            it); not with a model object.
+        sampling_steps: DDIM levels of a diffusion generator (None: 10); MeanFlow: None.
         window_config: window options; default the training windows' for the model's
             sizes. Its ``dynamics`` (dt and bounds) must be the env's.
         threads: torch CPU threads while planning (restored after); None keeps torch's
@@ -95,8 +120,10 @@ class RiskFlowAdversary(PlanBufferPolicy):
         rank_threshold: float = DEFAULT_THRESHOLD,
         seed: int = 0,
         device: torch.device | str = "cpu",
-        generator: RiskFlowGenerator | None = None,
+        generator: RiskFlowGenerator | OneCallSampler | str | None = None,
         normalizer: Normalizer | None = None,
+        checkpoint: str | os.PathLike | None = None,
+        sampling_steps: int | None = None,
         window_config: WindowConfig | None = None,
         threads: int | None = 1,
     ) -> None:
@@ -112,35 +139,32 @@ class RiskFlowAdversary(PlanBufferPolicy):
         )
         self.rank_threshold = float(rank_threshold)
         device = torch.device(device)
-        if generator is None:
-            if normalizer is not None:
-                raise ValueError("normalizer given without its generator: pass both or neither")
-            generator, normalizer = _load_shipped(device)
-        elif normalizer is None:
-            raise ValueError("a generator needs the normalizer it was trained with")
+        if generator is None or isinstance(generator, str):
+            check_model_pair(None, normalizer, "generator")
+            generator, normalizer, self.generator_kind = load_base_generator(
+                generator, checkpoint, device, sampling_steps
+            )
+        else:
+            check_model_pair(generator, normalizer, "generator")
+            if checkpoint is not None or sampling_steps is not None:
+                raise ValueError(
+                    "checkpoint and sampling_steps go with generator=None or a kind name, "
+                    "not with a model object"
+                )
+            self.generator_kind = generator_kind(generator)
         self.model = generator.to(device).eval()
         self.normalizer = normalizer
         config = self.model.config
-        window_config = window_config or WindowConfig(
-            history_steps=config.history_steps,
-            future_steps=config.future_steps,
-            crop_size=config.map_size,
-        )
+        window_config = window_config or default_window_config(config)
         super().__init__(
             k, planning_interval, config.future_steps, window_config, seed, device, threads
         )
 
     def _plan_cycle(self, view: SceneView) -> None:
         """One cycle: window, encoder, one MeanFlow pass, ranking, guidance (module docstring)."""
-        start = time.perf_counter()
-        window = window_from_view(view, self.window_config)
-        slots = window["agent_index"]
-        batch = collate_windows([{key: window[key] for key in ENCODER_KEYS}])
-        batch = {key: value.to(self.device) for key, value in batch.items()}
-        clock = self._tick("window", start)
+        observed = self._encode_view(view, self.model.encode)
+        scene, slots = observed.scene, observed.slots
         with torch.no_grad():
-            scene = self.model.encode(batch)
-            clock = self._tick("encoder", clock)
             shape = (1, len(slots), self.model.config.future_steps, 2)
             eps = torch.randn(
                 shape, generator=self._noise_source(), device=self.device, dtype=scene.context.dtype
@@ -153,42 +177,34 @@ class RiskFlowAdversary(PlanBufferPolicy):
             )
             done = torch.from_numpy(~view.active[slots]).to(self.device)
             hold_still(actions, trajectories, state, done)  # the env keeps them at speed 0
-        clock = self._tick("generator", clock)
-        self.ranking = rank_window(window, self.k, self.rank_threshold, view.active[slots])
+        clock = self._tick("generator", observed.clock)
+        self.ranking = rank_window(observed.window, self.k, self.rank_threshold, view.active[slots])
         clock = self._tick("ranking", clock)
-        ego = view.current[0]
-        frame = np.array([ego[0], ego[1], ego[3]])
         guidance_scene = GuidanceScene(
             eps=eps,
             u0=u0,
             state=state,
-            length=batch["length"][0],
-            width=batch["width"][0],
+            length=observed.batch["length"][0],
+            width=observed.batch["width"][0],
             agent_mask=agent_mask,
             base_actions=actions,
             base_trajectories=trajectories,
             drivable_map=view.map,
-            frame=torch.as_tensor(frame, dtype=state.dtype, device=self.device),
+            frame=observed.frame_tensor(),
         )
         controllable = torch.from_numpy(self.ranking.controllable).to(self.device)
-        result = guide(guidance_scene, controllable, self.normalizer, self.guidance, self.dynamics)
+        result = self._guide(guidance_scene, controllable, observed)
         self._tick("guidance", clock)
-        self._store(view, slots, result.actions, result.trajectories, trajectories, frame)
+        self._store(view, slots, result.actions, result.trajectories, trajectories, observed.frame)
         self.guidance_losses = result.losses.cpu().numpy()
 
-
-def _load_shipped(device: torch.device) -> tuple[RiskFlowGenerator, Normalizer]:
-    """The shipped generator and its normalizer (lazy import: training code is optional)."""
-    try:
-        from policies.riskflow.checkpoint import load_generator
-    except ImportError as err:
-        raise RuntimeError(
-            "RiskFlowAdversary(generator=None) loads the shipped checkpoint through "
-            f"policies.riskflow.checkpoint, which cannot be imported ({err}); pass "
-            "generator= and normalizer= explicitly"
-        ) from err
-    model, normalizer, _ = load_generator(None, device=device)
-    return model, normalizer
+    def _guide(
+        self, scene: GuidanceScene, controllable: torch.Tensor, observed: EncodedView
+    ) -> GuidanceResult:
+        """Optimise the ``A_c`` rows (``controllable`` (A_w,) bool) of the base plans in
+        ``scene``: output-space guidance (:func:`policies.riskflow.guidance.guide`).
+        ``observed`` has the scene context, for methods that re-run the generator."""
+        return guide(scene, controllable, self.normalizer, self.guidance, self.dynamics)
 
 
 __all__ = ["BASE_COLOR", "GUIDED_COLOR", "PHASES", "RiskFlowAdversary"]

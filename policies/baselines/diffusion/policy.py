@@ -21,8 +21,6 @@ diffusion generator. Method mapping and simplifications: ``docs/BASELINES.md``.
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import torch
 
@@ -33,12 +31,14 @@ from policies.baselines.diffusion.guided import (
 )
 from policies.baselines.diffusion.model import DiffusionDenoiser, load_diffusion
 from policies.baselines.diffusion.sampling import chain_noise
-from policies.riskflow.data import collate_windows
-from policies.riskflow.encoder import ENCODER_KEYS
 from policies.riskflow.meanflow import Normalizer
-from policies.riskflow.plan_buffer import PlanBufferPolicy
+from policies.riskflow.plan_buffer import (
+    PlanBufferPolicy,
+    check_model_pair,
+    default_window_config,
+)
 from policies.riskflow.ranking import DEFAULT_THRESHOLD, NO_GROUP, Ranking, rank_window
-from riskflow_env.scenarios.windows import WindowConfig, window_from_view
+from riskflow_env.scenarios.windows import WindowConfig
 from riskflow_env.view import SceneView
 
 PHASES = ("window", "encoder", "ranking", "denoising", "guidance")
@@ -135,57 +135,41 @@ class DiffusionAdversary(PlanBufferPolicy):
         )
         self.rank_threshold = float(rank_threshold)
         device = torch.device(device)
+        check_model_pair(denoiser, normalizer, "denoiser")
         if denoiser is None:
-            if normalizer is not None:
-                raise ValueError("normalizer given without its denoiser: pass both or neither")
             denoiser, normalizer, _ = load_diffusion(None, device=device)
-        elif normalizer is None:
-            raise ValueError("a denoiser needs the normalizer it was trained with")
         denoiser.network.to(device).eval()
         self.denoiser, self.normalizer = denoiser, normalizer
         self.levels = denoiser.schedule.levels(sampling_steps)
         config = denoiser.config
-        window_config = window_config or WindowConfig(
-            history_steps=config.history_steps,
-            future_steps=config.future_steps,
-            crop_size=config.map_size,
-        )
+        window_config = window_config or default_window_config(config)
         super().__init__(
             k, planning_interval, config.future_steps, window_config, seed, device, threads
         )
 
     def _plan_cycle(self, view: SceneView) -> None:
         """One cycle: window, encoder, ``A_c``, base chain, guided chain (module docstring)."""
-        start = time.perf_counter()
-        window = window_from_view(view, self.window_config)
-        slots = window["agent_index"]
-        batch = collate_windows([{key: window[key] for key in ENCODER_KEYS}])
-        batch = {key: value.to(self.device) for key, value in batch.items()}
-        clock = self._tick("window", start)
-        with torch.no_grad():
-            scene = self.denoiser.encode(batch)
-        clock = self._tick("encoder", clock)
+        observed = self._encode_view(view, self.denoiser.encode)
+        window, slots, scene = observed.window, observed.slots, observed.scene
         live = view.active[slots]
         if self.selection == "causal":
             self.ranking = rank_window(window, self.k, self.rank_threshold, live)
         else:
             self.ranking = nearest_ranking(window, self.k, live)
-        clock = self._tick("ranking", clock)
+        clock = self._tick("ranking", observed.clock)
         shape = (1, len(slots), self.denoiser.config.future_steps, 2)
         noise = chain_noise(
             shape, self.levels, self._noise_source(), self.device, scene.context.dtype
         )
         self.noise = noise[:, 0]  # (levels + 1, A_w, T, 2): chain start, then each transition
-        ego = view.current[0]
-        frame = np.array([ego[0], ego[1], ego[3]])
         state = scene.state[0]
         geometry = SceneGeometry(
             state=state,
-            length=batch["length"][0],
-            width=batch["width"][0],
+            length=observed.batch["length"][0],
+            width=observed.batch["width"][0],
             agent_mask=scene.agent_mask[0],
             drivable_map=view.map,
-            frame=torch.as_tensor(frame, dtype=state.dtype, device=self.device),
+            frame=observed.frame_tensor(),
             standing=torch.from_numpy(~live).to(self.device),
         )
         controllable = torch.from_numpy(self.ranking.controllable).to(self.device)
@@ -197,7 +181,12 @@ class DiffusionAdversary(PlanBufferPolicy):
         )  # fmt: skip
         self._tick("guidance", marks[-1])
         self._store(
-            view, slots, result.actions, result.trajectories, result.base_trajectories, frame
+            view,
+            slots,
+            result.actions,
+            result.trajectories,
+            result.base_trajectories,
+            observed.frame,
         )
         self.guidance_losses = result.losses.cpu().numpy()
 

@@ -105,6 +105,16 @@ class OneCallSampler:
         self.levels = denoiser.schedule.levels(sampling_steps)
         self.config = denoiser.config
 
+    def to(self, device: torch.device | str) -> OneCallSampler:
+        """Move the denoiser's network to ``device`` (in place, like ``nn.Module.to``)."""
+        self.denoiser.network.to(device)
+        return self
+
+    def eval(self) -> OneCallSampler:
+        """Put the denoiser's network in eval mode (in place)."""
+        self.denoiser.network.eval()
+        return self
+
     def encode(self, batch) -> SceneContext:
         """The denoiser's scene context."""
         return self.denoiser.encode(batch)

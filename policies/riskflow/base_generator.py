@@ -1,0 +1,105 @@
+"""The base-plan generator of the one-step adversaries: MeanFlow, or diffusion seen as one step.
+
+``RiskFlowAdversary`` (and the STRIVE-style and nominal baselines built on it) needs one
+thing from its generator: ``u0 = average_velocity(eps, 0, 1; C)``, the residual whose
+``eps + u0`` is every agent's normalised plan. Two kinds provide it:
+
+* ``"meanflow"``: :class:`~policies.riskflow.generator.RiskFlowGenerator`, one forward
+  pass (``policies/checkpoints/riskflow_default.pt``);
+* ``"diffusion"``: the DDPM denoiser of the diffusion baselines
+  (``policies/checkpoints/diffusion_default.pt``) wrapped in
+  :class:`~policies.baselines.diffusion.sampling.OneCallSampler`: a deterministic
+  ``sampling_steps``-level DDIM chain from ``eps`` (``eta = 0``), so ``eps`` still fixes
+  the plan and output-space guidance applies unchanged (the ablation "MeanFlow vs the
+  diffusion generator" of issue 7).
+
+The kind of a checkpoint file is read from its ``train_config["generator"]``
+(``riskflow-train --generator``; files without it are MeanFlow).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+
+from policies.riskflow.data import ActionNormalizer
+from policies.riskflow.generator import RiskFlowGenerator
+
+GENERATOR_KINDS = ("meanflow", "diffusion")
+DEFAULT_SAMPLING_STEPS = 10  # DDIM levels of a diffusion base generator (its validation's)
+
+
+def checkpoint_kind(checkpoint: Mapping[str, Any]) -> str:
+    """``"meanflow"`` or ``"diffusion"``: what ``riskflow-train`` trained into ``checkpoint``."""
+    train_config = checkpoint.get("train_config")
+    kind = train_config.get("generator") if isinstance(train_config, Mapping) else None
+    return kind or "meanflow"
+
+
+def generator_kind(model: object) -> str:
+    """The kind of a model object: a ``OneCallSampler`` is ``"diffusion"``, else MeanFlow."""
+    from policies.baselines.diffusion.sampling import OneCallSampler
+
+    return "diffusion" if isinstance(model, OneCallSampler) else "meanflow"
+
+
+def load_base_generator(
+    kind: str | None = None,
+    checkpoint: str | os.PathLike | None = None,
+    device: torch.device | str = "cpu",
+    sampling_steps: int | None = None,
+) -> tuple[RiskFlowGenerator, ActionNormalizer, str]:
+    """Load a base-plan generator: ``(model, normalizer, kind)``.
+
+    Args:
+        kind: ``"meanflow"`` or ``"diffusion"``; None: the checkpoint's kind (MeanFlow
+            without a checkpoint). With both, they must agree.
+        checkpoint: a ``riskflow-train`` checkpoint file; None: the shipped one of ``kind``.
+        device: where the model goes (eval mode, no gradients).
+        sampling_steps: DDIM levels of a diffusion generator (None: 10); an error for
+            MeanFlow (it has one step).
+
+    Returns:
+        The model (a ``RiskFlowGenerator`` or a ``OneCallSampler``, both with ``encode``,
+        ``average_velocity`` and ``config``), its action normalizer and its kind.
+
+    Raises:
+        ValueError: an unknown kind, a kind the checkpoint is not, or ``sampling_steps``
+            with MeanFlow.
+        FileNotFoundError, CheckpointError: as ``load_generator`` / ``load_diffusion``.
+    """
+    if kind is not None and kind not in GENERATOR_KINDS:
+        raise ValueError(f"generator must be one of {GENERATOR_KINDS} or a model, got {kind!r}")
+    if checkpoint is not None:
+        from policies.riskflow.checkpoint import load_checkpoint
+
+        found = checkpoint_kind(load_checkpoint(checkpoint))
+        if kind is not None and kind != found:
+            raise ValueError(f"generator={kind!r}, but checkpoint {checkpoint} is a {found} model")
+        kind = found
+    kind = kind or "meanflow"
+    if kind == "meanflow":
+        if sampling_steps is not None:
+            raise ValueError("sampling_steps applies to a diffusion generator only")
+        from policies.riskflow.checkpoint import load_generator
+
+        model, normalizer, _ = load_generator(checkpoint, device=device)
+        return model, normalizer, kind
+    from policies.baselines.diffusion.model import load_diffusion
+    from policies.baselines.diffusion.sampling import OneCallSampler
+
+    denoiser, normalizer, _ = load_diffusion(checkpoint, device=device)
+    steps = DEFAULT_SAMPLING_STEPS if sampling_steps is None else sampling_steps
+    return OneCallSampler(denoiser, steps), normalizer, kind
+
+
+__all__ = [
+    "DEFAULT_SAMPLING_STEPS",
+    "GENERATOR_KINDS",
+    "checkpoint_kind",
+    "generator_kind",
+    "load_base_generator",
+]
