@@ -1,0 +1,37 @@
+"""Scene policies that drive the non-ego vehicles (DESIGN.md section 2).
+
+The scene policies are importable from here, loaded on first use (``import policies``
+stays light; ``policies.base`` needs no torch):
+
+* ``RiskFlowAdversary``: MeanFlow generator, TTC ranking, output-space guidance;
+* ``StriveAdversary``: STRIVE-style, optimises the generator's noise of ``A_c``;
+* ``NominalGenerator``: the unguided learned generator (BITS-like nominal traffic);
+* ``DiffusionAdversary``: CTG-, CTG++- and CCDiff-style guided diffusion;
+* ``IDMPolicy``, ``ReplayPolicy``, ``ConstantVelocityPolicy``: rule-based and log replay.
+"""
+
+from __future__ import annotations
+
+from importlib import import_module
+
+_EXPORTS = {
+    "RiskFlowAdversary": "policies.riskflow.policy",
+    "StriveAdversary": "policies.baselines.strive",
+    "NominalGenerator": "policies.baselines.nominal",
+    "DiffusionAdversary": "policies.baselines.diffusion.policy",
+    "IDMPolicy": "policies.baselines.idm",
+    "ReplayPolicy": "policies.baselines.replay",
+    "ConstantVelocityPolicy": "policies.baselines.constant_velocity",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> object:
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'policies' has no attribute {name!r}")
+    return getattr(import_module(_EXPORTS[name]), name)
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_EXPORTS])

@@ -1,0 +1,91 @@
+"""``NominalGenerator``: the unguided learned generator (BITS-like nominal traffic).
+
+BITS (Xu et al. 2023, "BITS: Bi-level Imitation for Traffic Simulation", ICRA) drives
+every agent with a policy imitated from logged traffic, without any adversarial
+objective: the *nominal* learned traffic the guided methods are compared against. Here
+that role is played by RiskFlow's own learned generator with no guidance: it is
+:class:`~policies.riskflow.policy.RiskFlowAdversary` with ``k = 0`` (no controllable
+set, so no guidance step runs and every vehicle follows its base plan ``clip(denorm(eps +
+u_theta(eps, 0, 1; C)))``, bit for bit the plans of ``RiskFlowAdversary(k=0)`` with the
+same seed), re-planned every ``planning_interval`` from the current scene. The same
+class with ``generator="diffusion"`` is the unguided diffusion generator (deterministic
+DDIM from ``eps``).
+
+**Mapping to BITS, and what is simplified**
+
+==========================================  ===========================================
+BITS                                        here
+==========================================  ===========================================
+bi-level policy: a high-level goal          one scene-level generator, no explicit goal:
+(spatial intent) predictor, then a          the MeanFlow head maps noise to every
+goal-conditioned low-level trajectory       agent's 5.2 s action plan in one pass
+policy
+prediction-and-planning module: samples     one sample per agent per cycle, no selection
+several goals, predicts the others, picks   or collision check
+the plan with the best rule-based score
+per-agent rasterised (BEV) context          vector histories + map crops, social
+                                            attention between agents
+trained on nuScenes / Lyft Level 5          trained on the shipped highway-env bank
+closed loop, re-planning                    closed loop, re-planning every 0.5 s
+==========================================  ===========================================
+"""
+
+from __future__ import annotations
+
+import os
+
+import torch
+
+from policies.riskflow.generator import RiskFlowGenerator
+from policies.riskflow.meanflow import Normalizer
+from policies.riskflow.policy import RiskFlowAdversary
+from riskflow_env.scenarios.windows import WindowConfig
+
+
+class NominalGenerator(RiskFlowAdversary):
+    """The unguided generator for every non-ego vehicle (module docstring).
+
+    Args:
+        planning_interval: time between re-plans [s] (a multiple of ``dt``).
+        seed: noise seed.
+        device: torch device.
+        generator: a model object (with ``normalizer``), ``"meanflow"`` or
+            ``"diffusion"`` (the shipped checkpoint of that kind), or None (MeanFlow, or
+            ``checkpoint``'s kind); as ``RiskFlowAdversary``.
+        normalizer: the model's action normalisation (required with a model object).
+        checkpoint: a ``riskflow-train`` checkpoint file.
+        sampling_steps: DDIM levels of a diffusion generator (None: 10).
+        window_config: window options (default: the model's training windows).
+        threads: torch CPU threads while planning; None keeps torch's setting.
+    """
+
+    overlay_prefix = "nominal"
+
+    def __init__(
+        self,
+        planning_interval: float = 0.5,
+        seed: int = 0,
+        device: torch.device | str = "cpu",
+        generator: RiskFlowGenerator | str | None = None,
+        normalizer: Normalizer | None = None,
+        checkpoint: str | os.PathLike | None = None,
+        sampling_steps: int | None = None,
+        window_config: WindowConfig | None = None,
+        threads: int | None = 1,
+    ) -> None:
+        super().__init__(
+            k=0,
+            planning_interval=planning_interval,
+            guidance_steps=0,
+            seed=seed,
+            device=device,
+            generator=generator,
+            normalizer=normalizer,
+            checkpoint=checkpoint,
+            sampling_steps=sampling_steps,
+            window_config=window_config,
+            threads=threads,
+        )
+
+
+__all__ = ["NominalGenerator"]

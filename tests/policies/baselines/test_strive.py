@@ -1,0 +1,116 @@
+"""StriveAdversary: latent optimisation of A_c only, L_adv down, K=0 unguided, seeding, errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from policies.base import ScenePolicy
+from policies.baselines.diffusion.sampling import OneCallSampler
+from policies.baselines.strive import StriveAdversary
+from policies.riskflow.policy import PHASES, RiskFlowAdversary
+
+
+@pytest.fixture
+def strive(tiny_meanflow, tiny_normalizer):
+    def make(**kwargs) -> StriveAdversary:
+        kwargs = {"k": 2, "guidance_steps": 8, "seed": 3, **kwargs}
+        return StriveAdversary(generator=tiny_meanflow, normalizer=tiny_normalizer, **kwargs)
+
+    return make
+
+
+def planned(policy, road_view):
+    _, view = road_view()
+    policy.reset(view)
+    policy.plan(view)
+    return policy
+
+
+def test_optimises_only_the_latent_of_a_c_and_lowers_l_adv(strive, road_view):
+    policy = planned(strive(target="ego", lambda_map=0.0), road_view)
+    assert isinstance(policy, ScenePolicy)
+    assert set(policy.timings) == {*PHASES, "total"}
+    moved = policy.controllable
+    assert moved.sum() == 2 and not moved[0]
+    same = policy.plan_mask & ~moved
+    np.testing.assert_array_equal(policy.plans[same], policy.base_plans[same])
+    assert not np.allclose(policy.plans[moved], policy.base_plans[moved])
+    # Only the A_c rows of the latent moved (window row order = env slots here).
+    rows = policy.ranking.controllable
+    changed = (policy.latent != policy.noise).any(dim=(1, 2)).numpy()
+    np.testing.assert_array_equal(changed, rows)
+    losses = policy.guidance_losses
+    assert losses.shape == (9, 2) and policy.prior_losses.shape == (9,)
+    assert losses[-1, 0] < losses[0, 0]
+    np.testing.assert_allclose(policy.prior_losses[0], 0.5 * (policy.noise[rows] ** 2).sum())
+
+
+def test_k0_is_exactly_the_unguided_generator(strive, road_view, tiny_meanflow, tiny_normalizer):
+    policy = planned(strive(k=0), road_view)
+    reference = RiskFlowAdversary(k=0, seed=3, generator=tiny_meanflow, normalizer=tiny_normalizer)
+    planned(reference, road_view)
+    assert not policy.controllable.any()
+    np.testing.assert_array_equal(policy.plans, policy.base_plans)
+    np.testing.assert_array_equal(policy.plans, reference.plans)
+    np.testing.assert_array_equal(policy.plan_actions, reference.plan_actions)
+
+
+def test_same_base_plans_and_a_c_as_riskflow(strive, road_view, tiny_meanflow, tiny_normalizer):
+    policy = planned(strive(), road_view)
+    riskflow = RiskFlowAdversary(
+        k=2, guidance_steps=8, seed=3, generator=tiny_meanflow, normalizer=tiny_normalizer
+    )
+    planned(riskflow, road_view)
+    np.testing.assert_array_equal(policy.base_plans, riskflow.base_plans)
+    np.testing.assert_array_equal(policy.controllable, riskflow.controllable)
+    torch.testing.assert_close(policy.noise, riskflow.noise, rtol=0, atol=0)
+
+
+def test_prior_term_pulls_the_latent_toward_zero(strive, road_view):
+    policy = planned(strive(lambda_adv=0.0, lambda_map=0.0, lambda_prior=1.0), road_view)
+    assert policy.prior_losses[-1] < 0.5 * policy.prior_losses[0]
+    free = planned(strive(lambda_prior=0.0), road_view)
+    assert free.prior_losses[-1] != free.prior_losses[0]
+
+
+def test_same_seed_same_closed_loop_rollout(strive, closed_loop):
+    histories = []
+    for seed in (5, 5, 6):
+        env, _ = closed_loop(strive(seed=seed, guidance_steps=3), 7)
+        histories.append(env.scene.history.copy())
+    np.testing.assert_array_equal(histories[0], histories[1])
+    assert not np.array_equal(histories[0], histories[2])
+
+
+def test_gradient_steps_and_draw(strive, road_view):
+    policy = planned(strive(optimizer="gradient", step_size=1e-3), road_view)
+    assert policy.guidance_losses[-1, 0] <= policy.guidance_losses[0, 0]
+    overlays = {}
+
+    class Renderer:
+        def set_overlay(self, name, *args, **kwargs):
+            overlays[name] = args
+
+    policy.draw(Renderer())
+    assert set(overlays) == {"strive_base", "strive_guided"}
+
+
+def test_bad_options(strive, tiny_denoiser, tiny_normalizer, tiny_meanflow):
+    for kwargs, match in (
+        ({"lambda_prior": -1.0}, "lambda_prior"),
+        ({"lambda_prior": float("nan")}, "lambda_prior"),
+        ({"k": -1}, "k must be"),
+        ({"planning_interval": 0.0}, "planning_interval"),
+        ({"target": "everyone"}, "GuidanceConfig: target"),
+        ({"guidance_steps": -1}, "GuidanceConfig: steps"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            strive(**kwargs)
+    with pytest.raises(ValueError, match="diffusion"):
+        StriveAdversary(generator="diffusion")
+    with pytest.raises(ValueError, match="diffusion"):
+        StriveAdversary(generator=OneCallSampler(tiny_denoiser, 2), normalizer=tiny_normalizer)
+    with pytest.raises(ValueError, match="normalizer"):
+        StriveAdversary(generator=tiny_meanflow)
