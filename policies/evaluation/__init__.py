@@ -1,0 +1,39 @@
+"""Closed-loop evaluation harness: ``riskflow-eval`` (docs/EVALUATION.md, DESIGN.md section 8).
+
+==================  ==============================================================
+module              concept
+==================  ==============================================================
+``registry``        the methods: name -> policy class, variant, options (``--list``)
+``ego``             the ego planners under test (``--ego idm|cv|replay``)
+``options``         the typed options and the grid of rollouts (jobs, row keys)
+``rollout``         one rollout: policy + ego, closed loop, metrics, timing
+``results``         the results folder: config check, fsynced rows, KDD samples
+``runner``          skip finished rollouts, run the rest in worker processes
+``report``          tables per (K, interval): raw metrics, CS / RS, timing
+``plots``           CS vs RS, realism vs horizon, speed (PNG)
+``cli``             the ``riskflow-eval`` command line
+==================  ==============================================================
+"""
+
+from __future__ import annotations
+
+from policies.evaluation.options import EvalOptions, Job, plan_jobs
+from policies.evaluation.registry import METHODS, MethodSpec, build_policy
+from policies.evaluation.report import build_tables, write_report
+from policies.evaluation.results import ConfigMismatch, ResultsStore
+from policies.evaluation.runner import prepare, run_evaluation
+
+__all__ = [
+    "METHODS",
+    "ConfigMismatch",
+    "EvalOptions",
+    "Job",
+    "MethodSpec",
+    "ResultsStore",
+    "build_policy",
+    "build_tables",
+    "plan_jobs",
+    "prepare",
+    "run_evaluation",
+    "write_report",
+]

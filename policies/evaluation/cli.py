@@ -1,0 +1,98 @@
+"""``riskflow-eval``: closed-loop evaluation of the adversaries and baselines (docs/EVALUATION.md).
+
+::
+
+    riskflow-eval --methods riskflow ctg idm --k 2 5 all --interval 0.5 --scenes 100 \\
+        --workers 2 --out outputs/eval          # runs what is missing, then writes the report
+    riskflow-eval report --out outputs/eval     # the report alone
+    riskflow-eval --list                        # the methods
+
+The options are :class:`~policies.evaluation.options.EvalOptions` (one flag per field,
+its docstring as help; tuple fields take several values). Bad arguments exit with a
+usage error naming the argument.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import typing
+from collections.abc import Sequence
+from typing import Any
+
+from policies.evaluation.options import EvalOptions
+from policies.evaluation.registry import method_list
+from policies.riskflow.dataclass_cli import field_docs
+
+PROG = "riskflow-eval"
+
+
+def _flag(field: dataclasses.Field) -> str:
+    return field.metadata.get("flag", "--" + field.name.replace("_", "-"))
+
+
+def parser() -> argparse.ArgumentParser:
+    """The run parser: one option per :class:`EvalOptions` field, plus ``--list``."""
+    parser = argparse.ArgumentParser(
+        prog=PROG,
+        description="Closed-loop evaluation; 'riskflow-eval report --out DIR' writes the "
+        "report of a results folder.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    hints, docs = typing.get_type_hints(EvalOptions), field_docs(EvalOptions)
+    for field in dataclasses.fields(EvalOptions):
+        hint = hints[field.name]
+        kwargs: dict[str, Any] = {"help": docs.get(field.name, " "), "dest": field.name,
+                                  "default": field.default}  # fmt: skip
+        if hint is bool:
+            kwargs["action"] = argparse.BooleanOptionalAction
+        elif typing.get_origin(hint) is tuple:
+            kwargs.update(nargs="+", type=typing.get_args(hint)[0])
+        else:  # X or X | None
+            kwargs["type"] = next(
+                a for a in typing.get_args(hint) or (hint,) if a is not type(None)
+            )
+        parser.add_argument(_flag(field), **kwargs)
+    parser.add_argument("--list", action="store_true", help="list the methods and exit")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Entry point of ``riskflow-eval``."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    from policies.evaluation.report import write_report  # after argv: --help stays fast
+
+    if argv[:1] == ["report"]:
+        report = argparse.ArgumentParser(prog=f"{PROG} report")
+        report.add_argument("--out", required=True, help="results folder of a riskflow-eval run")
+        report.add_argument("--no-plots", action="store_true", help="tables only")
+        args = report.parse_args(argv[1:])
+        try:
+            print(f"wrote {write_report(args.out, plots=not args.no_plots)}")
+        except FileNotFoundError as err:
+            report.error(str(err))
+        return
+    run_parser = parser()
+    args = vars(run_parser.parse_args(argv))
+    if args.pop("list"):
+        print(method_list())
+        return
+    options = EvalOptions(**{k: tuple(v) if isinstance(v, list) else v for k, v in args.items()})
+    from policies.evaluation.runner import prepare, run_evaluation
+
+    try:
+        prepared = prepare(options)
+    except ValueError as err:
+        run_parser.error(str(err))
+    summary = run_evaluation(options, prepared=prepared)
+    print(
+        f"{summary['ran']} rollouts run in {summary['wall_s']:.1f} s "
+        f"({summary['skipped']} of {summary['planned']} were already in {options.out})"
+    )
+    if options.report:
+        print(f"wrote {write_report(options.out)}")
+
+
+if __name__ == "__main__":
+    main()

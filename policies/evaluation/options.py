@@ -1,0 +1,204 @@
+"""``riskflow-eval`` options (a typed dataclass) and the grid of rollouts they ask for.
+
+:class:`EvalOptions` is what the command line fills; :func:`plan_jobs` checks it (every
+error names its argument) and expands it into :class:`Job` s, one per (method, K,
+planning interval, scene, seed). A method without K (or without a planning interval)
+gets one job per scene and seed for all K (or intervals): its key has ``k`` (or
+``interval``) None. The run-level settings (:func:`run_config`) must be the same for
+every row of a results file; the per-job ones are in each row's key.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import zlib
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from policies.evaluation.ego import EGO_PLANNERS
+from policies.evaluation.registry import method_options, method_spec
+from riskflow_env.config import DynamicsConfig
+from riskflow_env.scenarios import Scenario, load_bank, shipped_bank
+
+SCHEMA = 1  # results.jsonl row layout version
+TARGETS = ("others", "ego")
+SHIPPED = "shipped:eval"  # the data source name of the shipped evaluation scenes
+
+
+@dataclass(frozen=True)
+class EvalOptions:
+    """Closed-loop evaluation of scene policies against an ego planner."""
+
+    methods: tuple[str, ...] = ("riskflow",)
+    """methods to evaluate (riskflow-eval --list shows them)"""
+    k: tuple[str, ...] = ("5",)
+    """controllable-set sizes K: ints >= 0 or 'all'"""
+    interval: tuple[float, ...] = (0.5,)
+    """[s] planning intervals (multiples of the env dt, 0.1 s)"""
+    scenes: int = 100
+    """number of scenes (the first ones of the source)"""
+    data: str | None = None
+    """scenario directory (riskflow-data output); default: the shipped evaluation scenes"""
+    seeds: tuple[int, ...] = (0,)
+    """rollout seeds (one rollout per scene and seed)"""
+    ego: str = "idm"
+    """ego planner under test: idm, cv (constant velocity) or replay (its log)"""
+    target: str = "others"
+    """guidance target: 'others' (the paper's) or 'ego'"""
+    duration: float = 10.0
+    """[s] episode length"""
+    stop_at_ego_collision: bool = False
+    """end an episode when the ego collides (default: full episodes, equal exposure)"""
+    diffusion_steps: int | None = None
+    """denoising steps of ctg / ctgpp / ccdiff: default all 100 (DDPM); fewer: DDIM"""
+    overrides: tuple[str, ...] = field(default=(), metadata={"flag": "--set"})
+    """method options key=value or method.key=value (e.g. riskflow.guidance_steps=10)"""
+    wosac: bool = True
+    """compute the WOSAC-style likelihood per rollout"""
+    workers: int = 1
+    """worker processes (each with one torch thread); 1 runs in this process"""
+    device: str = "cpu"
+    """torch device of the learned methods"""
+    out: str = "outputs/eval"
+    """output directory (results.jsonl, samples/, report.md, plots)"""
+    report: bool = True
+    """write the report when the runs are done"""
+
+
+@dataclass(frozen=True)
+class Job:
+    """One rollout to run: the row key fields and what the worker needs."""
+
+    method: str
+    options: dict[str, Any]
+    k: int | str | None
+    interval: float | None
+    scene: str
+    scene_index: int
+    seed: int
+    run: dict[str, Any]  # run_config(...) plus wosac and device
+
+    @property
+    def key(self) -> str:
+        """The row's identity in ``results.jsonl``."""
+        return row_key(self.method, self.options, self.k, self.interval, self.scene, self.seed)
+
+    @property
+    def policy_seed(self) -> int:
+        """The policy's noise seed: a function of (seed, scene) only."""
+        words = [self.seed, zlib.crc32(self.scene.encode())]
+        return int(np.random.SeedSequence(words).generate_state(1)[0])
+
+
+def row_key(
+    method: str,
+    options: dict[str, Any],
+    k: int | str | None,
+    interval: float | None,
+    scene: str,
+    seed: int,
+) -> str:
+    """Canonical JSON of (method, options, k, interval, scene, seed)."""
+    fields = [method, options, k, interval, scene, seed]
+    return json.dumps(fields, sort_keys=True, separators=(",", ":"))
+
+
+def method_label(method: str, options: dict[str, Any]) -> str:
+    """The method's name in tables: ``ctg[sampling_steps=10]``."""
+    if not options:
+        return method
+    return method + "[" + ",".join(f"{k}={v}" for k, v in sorted(options.items())) + "]"
+
+
+def parse_k(text: str) -> int | str:
+    """A ``--k`` value: an int >= 0 or 'all'."""
+    if text == "all":
+        return text
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise ValueError(f"--k: expected an int >= 0 or 'all', got {text!r}")
+    return value
+
+
+def check_interval(interval: float, dt: float, horizon_s: float | None) -> float:
+    """A ``--interval`` value: a positive multiple of ``dt`` within the plan horizon."""
+    steps = interval / dt
+    if not (interval > 0 and math.isclose(steps, round(steps), rel_tol=1e-6)):
+        raise ValueError(f"--interval: {interval} s is not a positive multiple of dt = {dt} s")
+    if horizon_s is not None and interval > horizon_s + 1e-9:
+        raise ValueError(f"--interval: {interval} s exceeds the plan horizon {horizon_s} s")
+    return round(steps) * dt
+
+
+def run_config(options: EvalOptions) -> dict[str, Any]:
+    """Settings every row of one results file shares (``config.json``)."""
+    return {
+        "schema": SCHEMA,
+        "data": options.data or SHIPPED,
+        "ego": options.ego,
+        "target": options.target,
+        "duration": options.duration,
+        "stop_at_ego_collision": options.stop_at_ego_collision,
+    }
+
+
+def load_scenes(data: str | None, count: int) -> list[Scenario]:
+    """The first ``count`` scenes of ``data`` (a directory) or of the shipped bank."""
+    bank = shipped_bank("eval") if data in (None, SHIPPED) else load_bank(data)
+    return [bank[i] for i in range(min(count, len(bank)))]
+
+
+def check_options(options: EvalOptions, dt: float = DynamicsConfig().dt) -> None:
+    """ValueError naming the argument for a bad scalar option."""
+    if not options.methods:
+        raise ValueError("--methods: give at least one method")
+    for name in options.methods:
+        method_spec(name)
+    if len(set(options.methods)) != len(options.methods):
+        raise ValueError(f"--methods: repeated method in {options.methods}")
+    if options.scenes < 1:
+        raise ValueError(f"--scenes must be >= 1, got {options.scenes}")
+    if options.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {options.workers}")
+    if options.ego not in EGO_PLANNERS:
+        raise ValueError(f"--ego must be one of {tuple(EGO_PLANNERS)}, got {options.ego!r}")
+    if options.target not in TARGETS:
+        raise ValueError(f"--target must be one of {TARGETS}, got {options.target!r}")
+    steps = options.duration / dt
+    if not (options.duration > 0 and math.isclose(steps, round(steps), rel_tol=1e-6)):
+        raise ValueError(f"--duration: {options.duration} s is not a positive multiple of {dt} s")
+    if options.diffusion_steps is not None and options.diffusion_steps < 1:
+        raise ValueError(f"--diffusion-steps must be >= 1, got {options.diffusion_steps}")
+    if not options.seeds:
+        raise ValueError("--seeds: give at least one seed")
+
+
+def plan_jobs(options: EvalOptions, scenes: list[Scenario]) -> list[Job]:
+    """Every rollout the options ask for, in a fixed order (ValueError on bad arguments)."""
+    dt = DynamicsConfig().dt
+    check_options(options, dt)
+    ks = list(dict.fromkeys(parse_k(text) for text in options.k))
+    intervals = list(dict.fromkeys(check_interval(t, dt, None) for t in options.interval))
+    per_method = method_options(options.methods, options.overrides, options.diffusion_steps)
+    run = run_config(options) | {"wosac": options.wosac, "device": options.device}
+    jobs = []
+    for method in options.methods:
+        spec = method_spec(method)
+        for k in ks if spec.uses_k else [None]:
+            for interval in intervals if spec.uses_interval else [None]:
+                for index, scene in enumerate(scenes):
+                    for seed in options.seeds:
+                        job = Job(
+                            method, per_method[method], k, interval, scene.name, index, seed, run
+                        )
+                        jobs.append(job)
+    names = [scene.name for scene in scenes]
+    if len(set(names)) != len(names):
+        raise ValueError("--data: scene names must be unique (they key the results rows)")
+    return list({job.key: job for job in jobs}.values())

@@ -1,0 +1,262 @@
+"""The methods ``riskflow-eval`` compares: name -> how to build its scene policy.
+
+Every method is a :class:`MethodSpec`: a loader that imports its policy class (lazily,
+so a method whose module is missing fails only when it is asked for, naming the
+module), the fixed keyword arguments that make the variant (``riskflow-noadv`` is
+RiskFlow with ``lambda_adv=0``), and which of the shared arguments the class takes
+(``k``, ``planning_interval``, ``target``, ``seed``, ``device``). Method options
+(``--set key=value``) are further keyword arguments of the class, checked against its
+signature; :func:`build_policy` makes one policy for one rollout.
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from policies.base import ScenePolicy
+
+SHARED = ("k", "planning_interval", "target", "seed", "device")
+DIFFUSION_STEPS_OPTION = "sampling_steps"  # the DiffusionAdversary argument --diffusion-steps sets
+
+
+def _riskflow() -> type:
+    from policies.riskflow import RiskFlowAdversary
+
+    return RiskFlowAdversary
+
+
+def _diffusion() -> type:
+    from policies.baselines.diffusion import DiffusionAdversary
+
+    return DiffusionAdversary
+
+
+def _strive() -> type:
+    from policies.baselines.strive import StriveAdversary
+
+    return StriveAdversary
+
+
+def _nominal() -> type:
+    from policies.baselines.nominal import NominalGenerator
+
+    return NominalGenerator
+
+
+def _idm() -> type:
+    from policies.baselines import IDMPolicy
+
+    return IDMPolicy
+
+
+def _replay() -> type:
+    from policies.baselines import ReplayPolicy
+
+    return ReplayPolicy
+
+
+def _constant_velocity() -> type:
+    from policies.baselines import ConstantVelocityPolicy
+
+    return ConstantVelocityPolicy
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """How to build one method's scene policy.
+
+    Attributes:
+        name: the method's name on the command line.
+        description: one line for ``--list``.
+        loader: returns the policy class (imports it).
+        fixed: keyword arguments that define the variant (``--set`` cannot change them).
+        takes: which of :data:`SHARED` the class takes; the others are not passed, and a
+            method without ``k`` (or ``planning_interval``) is run once for all K (or
+            intervals) and appears in every table.
+        diffusion: takes ``--diffusion-steps`` (as ``sampling_steps``).
+    """
+
+    name: str
+    description: str
+    loader: Callable[[], type]
+    fixed: Mapping[str, Any] = field(default_factory=dict)
+    takes: tuple[str, ...] = SHARED
+    diffusion: bool = False
+
+    @property
+    def uses_k(self) -> bool:
+        """The method has a controllable-set size K."""
+        return "k" in self.takes
+
+    @property
+    def uses_interval(self) -> bool:
+        """The method re-plans every planning interval."""
+        return "planning_interval" in self.takes
+
+    def policy_class(self) -> type:
+        """The policy class; ValueError naming the method when its module is missing."""
+        try:
+            return self.loader()
+        except ImportError as err:
+            raise ValueError(f"method {self.name!r} is not available: {err}") from err
+
+    def option_names(self) -> tuple[str, ...]:
+        """Keyword arguments ``--set`` may give (the class's, minus shared and fixed ones)."""
+        parameters = inspect.signature(self.policy_class().__init__).parameters
+        return tuple(
+            name
+            for name, p in parameters.items()
+            if name != "self" and name not in SHARED and name not in self.fixed
+            if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
+        )
+
+
+_ADVERSARY = "adversarial guidance on the top-K agents"
+METHODS: dict[str, MethodSpec] = {
+    spec.name: spec
+    for spec in (
+        MethodSpec("riskflow", f"RiskFlow: MeanFlow generator, {_ADVERSARY}", _riskflow),
+        MethodSpec(
+            "riskflow-noadv",
+            "RiskFlow without L_adv (lambda_adv = 0; ablation)",
+            _riskflow,
+            fixed={"lambda_adv": 0.0},
+        ),
+        MethodSpec(
+            "riskflow-nomap",
+            "RiskFlow without L_map (lambda_map = 0; ablation)",
+            _riskflow,
+            fixed={"lambda_map": 0.0},
+        ),
+        MethodSpec(
+            "riskflow-diffusion",
+            "RiskFlow guidance on the diffusion generator (DDIM; ablation)",
+            _riskflow,
+            fixed={"generator": "diffusion"},
+            diffusion=True,
+        ),
+        MethodSpec(
+            "ctg",
+            f"CTG-style guided DDPM, {_ADVERSARY}",
+            _diffusion,
+            {"variant": "ctg"},
+            diffusion=True,
+        ),
+        MethodSpec(
+            "ctgpp",
+            "CTG++-style: guidance through the predicted clean sample",
+            _diffusion,
+            {"variant": "ctgpp"},
+            diffusion=True,
+        ),
+        MethodSpec(
+            "ccdiff",
+            "CCDiff-style: TTC causal ranking, CTG guidance on it",
+            _diffusion,
+            {"variant": "ccdiff"},
+            diffusion=True,
+        ),
+        MethodSpec("strive", f"STRIVE-style latent optimisation, {_ADVERSARY}", _strive),
+        MethodSpec(
+            "bits",
+            "BITS-like nominal: the unguided learned generator",
+            _nominal,
+            takes=("planning_interval", "seed", "device"),
+        ),
+        MethodSpec(
+            "bits-diffusion",
+            "the unguided diffusion generator (DDIM)",
+            _nominal,
+            {"generator": "diffusion"},
+            takes=("planning_interval", "seed", "device"),
+            diffusion=True,
+        ),
+        MethodSpec("idm", "IDM traffic (reactive, rule based)", _idm, takes=()),
+        MethodSpec("replay", "log replay (tracking the reference)", _replay, takes=()),
+        MethodSpec("cv", "constant velocity (zero actions)", _constant_velocity, takes=()),
+    )
+}
+
+
+def method_spec(name: str) -> MethodSpec:
+    """The spec of ``name``; ValueError listing the known methods otherwise."""
+    if name not in METHODS:
+        raise ValueError(f"--methods: unknown method {name!r}; known: {', '.join(METHODS)}")
+    return METHODS[name]
+
+
+def method_list() -> str:
+    """The ``--list`` text: one line per method."""
+    width = max(len(name) for name in METHODS)
+    return "\n".join(f"{name:<{width}}  {spec.description}" for name, spec in METHODS.items())
+
+
+def parse_value(text: str) -> Any:
+    """A ``--set`` value: none/null, true/false, int, float, else the string."""
+    lowered = text.strip().lower()
+    if lowered in ("none", "null"):
+        return None
+    if lowered in ("true", "false"):
+        return lowered == "true"
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+def method_options(
+    methods: tuple[str, ...], settings: tuple[str, ...], diffusion_steps: int | None
+) -> dict[str, dict[str, Any]]:
+    """Per method, the options given on the command line (part of each row's key).
+
+    Args:
+        methods: method names.
+        settings: ``--set`` items ``key=value`` (every method that takes ``key``; at
+            least one must) or ``method.key=value`` (that method, which must take it;
+            ignored when the method is not in ``methods``, so one sweep's settings
+            can serve runs of a subset of its methods).
+        diffusion_steps: ``--diffusion-steps`` for the diffusion methods (None: DDPM).
+    """
+    options: dict[str, dict[str, Any]] = {name: {} for name in methods}
+    for name in methods:
+        if method_spec(name).diffusion and diffusion_steps is not None:
+            options[name][DIFFUSION_STEPS_OPTION] = int(diffusion_steps)
+    for item in settings:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--set: expected key=value or method.key=value, got {item!r}")
+        scope, dot, key = key.rpartition(".")
+        if dot and scope not in METHODS:
+            raise ValueError(f"--set {item!r}: unknown method {scope!r}")
+        # a method.key item for a method not in --methods is checked, then unused
+        targets = [scope] if dot else [m for m in methods if key in METHODS[m].option_names()]
+        if not targets or key not in METHODS[targets[0]].option_names():
+            where = scope if dot else "any of --methods"
+            raise ValueError(f"--set {item!r}: {key!r} is not an option of {where}")
+        for name in targets:
+            if name in options:
+                options[name][key] = parse_value(value)
+    return options
+
+
+def build_policy(
+    name: str,
+    options: Mapping[str, Any],
+    *,
+    k: int | str | None,
+    planning_interval: float | None,
+    target: str,
+    seed: int,
+    device: str = "cpu",
+) -> ScenePolicy:
+    """One scene policy of method ``name`` (the shared arguments it does not take are
+    dropped; ``options`` are passed as keyword arguments)."""
+    spec = method_spec(name)
+    shared = dict(k=k, planning_interval=planning_interval, target=target, seed=seed, device=device)
+    kwargs = {key: shared[key] for key in spec.takes} | dict(spec.fixed) | dict(options)
+    return spec.policy_class()(**kwargs)

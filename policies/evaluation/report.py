@@ -1,0 +1,221 @@
+"""``report.md`` from a results folder: metric and timing tables per (K, planning interval).
+
+One table per (K, interval) found in the rows. A method without K (idm, replay, bits...)
+joins every table, one without a planning interval every interval. Within a table the
+methods are compared on the scenes (and seeds) that all of them have finished, so an
+interrupted run never compares methods over different scenes; the table says how many.
+Aggregation is :func:`riskflow_env.metrics.method_metrics` (SCR and ego rate over
+rollouts, ORR over pooled agent-steps, ADE/FDE over pooled agents, KDD over pooled
+samples), the mean of the per-rollout WOSAC scores, and CS / RS
+(:func:`riskflow_env.metrics.safety_realism_scores`) across the table's methods.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from policies.evaluation.results import ResultsStore
+from riskflow_env.metrics import method_metrics, safety_realism_scores
+
+REFERENCE_METHOD = "riskflow"  # timing ratios are to this label when present
+METRIC_COLUMNS = (
+    ("scr", "SCR"),
+    ("ego_collision_rate", "ego SCR"),
+    ("orr", "ORR"),
+    ("orr_footprint", "ORR fp"),
+    ("ade", "ADE [m]"),
+    ("fde", "FDE [m]"),
+    ("kdd", "KDD"),
+    ("wosac", "WOSAC"),
+    ("cs", "CS"),
+    ("rs", "RS"),
+)
+
+
+@dataclass(frozen=True)
+class Table:
+    """The comparison at one (K, planning interval).
+
+    Attributes:
+        k: K (None: only methods without K).
+        interval: planning interval [s] (None: only methods without one).
+        scenes: (scene, seed) pairs every method of the table finished.
+        metrics: ``{label: {metric: value}}``, CS and RS included.
+        timing: ``{label: {name: value}}`` (seconds, milliseconds as named).
+    """
+
+    k: int | str | None
+    interval: float | None
+    scenes: int
+    metrics: dict[str, dict[str, float]]
+    timing: dict[str, dict[str, float]]
+
+    @property
+    def title(self) -> str:
+        """``K=5, T=0.5 s``."""
+        k = "-" if self.k is None else self.k
+        interval = "-" if self.interval is None else f"{self.interval:g} s"
+        return f"K={k}, T={interval}"
+
+
+def _nan(value: Any) -> float:
+    return float("nan") if value is None else float(value)
+
+
+def _k_order(k: int | str | None) -> tuple[int, float]:
+    return (0, -1) if k is None else (1, math.inf) if k == "all" else (1, float(k))
+
+
+def table_keys(rows: list[dict]) -> list[tuple[int | str | None, float | None]]:
+    """The (K, interval) pairs of the tables, sorted: those of the rows with a K, else
+    the intervals of the rows with one, else a single table."""
+    keys = {(row["k"], row["interval"]) for row in rows if row["k"] is not None}
+    keys = keys or {(None, row["interval"]) for row in rows if row["interval"] is not None}
+    return sorted(keys or {(None, None)}, key=lambda key: (_k_order(key[0]), key[1] or 0.0))
+
+
+def build_tables(store: ResultsStore) -> list[Table]:
+    """Every table of the results folder."""
+    rows = store.rows()
+    tables = []
+    for k, interval in table_keys(rows):
+        members = [
+            row for row in rows
+            if row["k"] in (None, k) and row["interval"] in (None, interval)
+        ]  # fmt: skip
+        by_label: dict[str, list[dict]] = {}
+        for row in members:
+            by_label.setdefault(row["label"], []).append(row)
+        common = set.intersection(
+            *({(r["scene"], r["seed"]) for r in v} for v in by_label.values())
+        )
+        metrics, timing = {}, {}
+        for label, group in sorted(by_label.items()):
+            group = sorted((r for r in group if (r["scene"], r["seed"]) in common),
+                           key=lambda r: (r["scene_index"], r["seed"]))  # fmt: skip
+            metrics[label] = _method_metrics(store, group)
+            timing[label] = _timing(group)
+        for label, scores in safety_realism_scores(metrics).items():
+            metrics[label].update(scores)
+        _add_ratios(timing, _reference_label(by_label))
+        tables.append(Table(k, interval, len(common), metrics, timing))
+    return tables
+
+
+def _method_metrics(store: ResultsStore, rows: list[dict]) -> dict[str, float]:
+    numeric = [{key: _nan(row[key]) for key in _ROLLOUT_KEYS} for row in rows]
+    out = method_metrics(numeric, [store.samples(row) for row in rows])
+    scores = [row["wosac"]["metametric"] for row in rows if row.get("wosac")]
+    out["wosac"] = float(np.mean([_nan(s) for s in scores])) if scores else float("nan")
+    return out
+
+
+_ROLLOUT_KEYS = (
+    "collision", "ego_collision", "first_collision_step", "offroad_centroid_steps",
+    "offroad_footprint_steps", "agent_steps", "ade", "fde", "displacement_agents",
+)  # fmt: skip
+
+
+def _timing(rows: list[dict]) -> dict[str, float]:
+    timing = [row["timing"] for row in rows]
+    cycles = sum(t["planning_cycles"] for t in timing)
+    planning = sum(t["planning_s"] for t in timing)
+    return {
+        "rollouts": float(len(rows)),
+        "total_s": sum(t["rollout_s"] for t in timing),
+        "per_scene_s": float(np.mean([t["rollout_s"] for t in timing])) if timing else math.nan,
+        "cycles_per_rollout": cycles / len(rows) if rows else math.nan,
+        "cycle_ms": 1e3 * planning / cycles if cycles else math.nan,
+        "cycle_ms_max": max((_nan(t["cycle_ms_max"]) for t in timing), default=math.nan),
+    }
+
+
+def _reference_label(by_label: dict[str, list[dict]]) -> str | None:
+    """The label timings are compared to: plain riskflow, else riskflow with options."""
+    if REFERENCE_METHOD in by_label:
+        return REFERENCE_METHOD
+    return next((lab for lab, rows in sorted(by_label.items())
+                 if rows[0]["method"] == REFERENCE_METHOD), None)  # fmt: skip
+
+
+def _add_ratios(timing: dict[str, dict[str, float]], reference_label: str | None) -> None:
+    reference = timing.get(reference_label) if reference_label else None
+    for values in timing.values():
+        for name in ("total_s", "cycle_ms"):
+            base = reference[name] if reference else math.nan
+            values[f"{name}_ratio"] = values[name] / base if base and base > 0 else math.nan
+
+
+def _cell(value: float, digits: int = 3) -> str:
+    return "n/a" if value is None or math.isnan(value) else f"{value:.{digits}f}"
+
+
+def metrics_markdown(table: Table) -> str:
+    """The metric table: raw metrics next to CS and RS."""
+    lines = [
+        "| method | rollouts | " + " | ".join(name for _, name in METRIC_COLUMNS) + " |",
+        "|---|---:|" + "---:|" * len(METRIC_COLUMNS),
+    ]
+    for label, values in table.metrics.items():
+        cells = [_cell(values.get(key, math.nan)) for key, _ in METRIC_COLUMNS]
+        count = int(values["num_rollouts"])
+        lines.append(f"| {label} | {count} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def timing_markdown(table: Table) -> str:
+    """The timing table: total, per scene, per planning cycle, ratios to riskflow."""
+    lines = [
+        "| method | total [s] | per scene [s] | cycles / scene | per cycle [ms] | "
+        f"max cycle [ms] | total / {REFERENCE_METHOD} | cycle / {REFERENCE_METHOD} |",
+        "|---|" + "---:|" * 7,
+    ]
+    for label, t in table.timing.items():
+        cells = [
+            _cell(t["total_s"], 1), _cell(t["per_scene_s"], 2), _cell(t["cycles_per_rollout"], 1),
+            _cell(t["cycle_ms"], 1), _cell(t["cycle_ms_max"], 1),
+            _cell(t["total_s_ratio"], 2), _cell(t["cycle_ms_ratio"], 2),
+        ]  # fmt: skip
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def write_report(out: str | Path, plots: bool = True) -> Path:
+    """Write ``report.md`` (and the PNG plots) into the results folder ``out``."""
+    store = ResultsStore(out)
+    rows = store.rows()
+    if not rows:
+        raise FileNotFoundError(f"--out {out}: no results ({store.results} is missing or empty)")
+    tables = build_tables(store)
+    config = store.config()
+    duration = config.get("duration", "?")
+    lines = [
+        "# riskflow-eval report",
+        "",
+        f"{len(rows)} rollouts in `{store.results.name}`. Run settings: "
+        + ", ".join(f"{k}={v}" for k, v in sorted(config.items())) + ".",
+        "",
+        "SCR and ego SCR: shares of rollouts with a collision (any pair / the ego's). ORR: "
+        "share of agent-steps off the road (centre; fp: footprint). ADE/FDE [m] and KDD "
+        "(mean W1 of longitudinal / lateral acceleration and jerk) against the log, for "
+        "the non-ego vehicles. WOSAC: mean per-rollout metametric (one rollout per scene "
+        "and seed). CS, RS: min-max normalised across the methods of each table "
+        "(docs/METRICS.md); compare them only within a table.",
+    ]  # fmt: skip
+    for table in tables:
+        timing = f"Timing (rollouts of {duration} s; a cycle is one call that planned):"
+        lines += ["", f"## {table.title} ({table.scenes} scenes x seeds)", ""]
+        lines += [metrics_markdown(table), "", timing, "", timing_markdown(table)]
+    if plots:
+        from policies.evaluation.plots import write_plots
+
+        files = write_plots(tables, store.out)
+        lines += ["", "## Plots", ""] + [f"![{f.stem}]({f.name})" for f in files]
+    path = store.out / "report.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path

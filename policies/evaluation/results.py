@@ -1,0 +1,126 @@
+"""The results folder: ``config.json``, ``results.jsonl`` (one row per rollout), ``samples/``.
+
+Writing is crash-safe and resumable:
+
+* ``config.json`` holds the run-level settings (:func:`~.options.run_config`); a run
+  with other settings into the same folder is refused (:class:`ConfigMismatch`), never
+  mixed in.
+* Each finished rollout first writes its KDD samples to ``samples/<id>.npz`` (temporary
+  file, fsync, rename), then appends its row to ``results.jsonl`` and fsyncs. The row is
+  the commit: a rollout interrupted before its row is written is simply run again.
+* :meth:`ResultsStore.done_keys` reads the keys of the rows present; a torn last line
+  (a crash mid-write) is ignored and overwritten on the next append.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from riskflow_env.metrics import KinematicSamples
+
+RESULTS = "results.jsonl"
+CONFIG = "config.json"
+SAMPLES = "samples"
+
+
+class ConfigMismatch(ValueError):
+    """The output folder holds results of another run configuration."""
+
+
+def sample_id(key: str) -> str:
+    """File stem of a row's samples: a hash of its key."""
+    return hashlib.sha1(key.encode()).hexdigest()[:20]
+
+
+class ResultsStore:
+    """One results folder (module docstring).
+
+    Args:
+        out: the folder (created when needed).
+    """
+
+    def __init__(self, out: str | os.PathLike) -> None:
+        self.out = Path(out)
+        self.results = self.out / RESULTS
+        self.config_file = self.out / CONFIG
+
+    def check_config(self, config: dict[str, Any]) -> None:
+        """Write ``config.json`` if absent; ConfigMismatch naming the settings that differ."""
+        self.out.mkdir(parents=True, exist_ok=True)
+        if not self.config_file.exists():
+            _write_atomic(self.config_file, json.dumps(config, indent=1, sort_keys=True).encode())
+            return
+        stored = json.loads(self.config_file.read_text())
+        differ = sorted(k for k in set(stored) | set(config) if stored.get(k) != config.get(k))
+        if differ:
+            details = ", ".join(
+                f"{k}: {stored.get(k)!r} there, {config.get(k)!r} now" for k in differ
+            )
+            raise ConfigMismatch(
+                f"--out {self.out} holds results of another configuration ({details}); "
+                "use another --out, or the same settings to resume"
+            )
+
+    def config(self) -> dict[str, Any]:
+        """The stored run configuration ({} if none)."""
+        return json.loads(self.config_file.read_text()) if self.config_file.exists() else {}
+
+    def rows(self) -> list[dict[str, Any]]:
+        """Every complete row (a torn last line is skipped)."""
+        if not self.results.exists():
+            return []
+        rows = []
+        for line in self.results.read_bytes().split(b"\n"):
+            if line.strip():
+                try:
+                    rows.append(json.loads(line))
+                except json.JSONDecodeError:
+                    continue  # a torn line from an interrupted write
+        return rows
+
+    def done_keys(self) -> set[str]:
+        """Keys of the rows present."""
+        return {row["key"] for row in self.rows()}
+
+    def append(self, row: dict[str, Any], samples: dict[str, np.ndarray]) -> None:
+        """Write one rollout: its samples, then its row (both fsynced)."""
+        name = sample_id(row["key"])
+        buffer = io.BytesIO()
+        np.savez_compressed(buffer, **{k: np.asarray(v, np.float32) for k, v in samples.items()})
+        (self.out / SAMPLES).mkdir(parents=True, exist_ok=True)
+        _write_atomic(self.out / SAMPLES / f"{name}.npz", buffer.getvalue())
+        row = {**row, "samples": f"{SAMPLES}/{name}.npz"}
+        line = json.dumps(row, sort_keys=True, allow_nan=False).encode() + b"\n"
+        with open(self.results, "ab") as file:
+            if file.tell() and not _ends_with_newline(self.results):
+                file.write(b"\n")  # after a torn line, start a fresh one
+            file.write(line)
+            file.flush()
+            os.fsync(file.fileno())
+
+    def samples(self, row: dict[str, Any]) -> KinematicSamples:
+        """The KDD samples of a row."""
+        with np.load(self.out / row["samples"]) as arrays:
+            return KinematicSamples.from_arrays({k: arrays[k].astype(np.float64) for k in arrays})
+
+
+def _ends_with_newline(path: Path) -> bool:
+    with open(path, "rb") as file:
+        file.seek(-1, os.SEEK_END)
+        return file.read(1) == b"\n"
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    temporary = path.with_name(path.name + ".tmp")
+    with open(temporary, "wb") as file:
+        file.write(data)
+        file.flush()
+        os.fsync(file.fileno())
+    os.replace(temporary, path)

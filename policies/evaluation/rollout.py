@@ -1,0 +1,142 @@
+"""One evaluation rollout: build the policy and the ego, run closed loop, measure.
+
+:func:`run_job` is what a worker process runs for one :class:`~.options.Job`: a fresh
+policy (noise seeded from the job's seed and scene only, so a rollout does not depend on
+which worker ran it or on what it ran before), a fresh ego planner, one
+:class:`~policies.harness.ClosedLoop` episode, then the metrics of
+:mod:`riskflow_env.metrics` on the episode's :class:`RolloutRecord`. The ego is the
+planner under test, so the realism metrics (ORR, ADE/FDE, KDD, WOSAC) score the other
+vehicles only; SCR counts every pair, the ego included.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import time
+from typing import Any
+
+import numpy as np
+import torch
+
+from policies.evaluation.ego import make_planner
+from policies.evaluation.options import Job, load_scenes, method_label
+from policies.evaluation.registry import build_policy
+from policies.harness import ClosedLoop
+from riskflow_env.config import EnvConfig
+from riskflow_env.metrics import RolloutRecord, kinematic_samples, rollout_metrics, wosac_scene
+from riskflow_env.scenarios import Scenario
+
+HISTORY = 2  # logged steps prepended as context (WOSAC's central differences)
+
+
+@functools.cache
+def _scenes(data: str) -> tuple[Scenario, ...]:
+    return tuple(load_scenes(data, 10**9))
+
+
+def job_scenario(job: Job) -> Scenario:
+    """The job's scene (the source is loaded once per process)."""
+    scene = _scenes(job.run["data"])[job.scene_index]
+    if scene.name != job.scene:
+        raise RuntimeError(f"scene {job.scene_index} of {job.run['data']} is {scene.name!r}, "
+                           f"expected {job.scene!r}: the scenario directory changed")  # fmt: skip
+    return scene
+
+
+def env_config(run: dict[str, Any], dt: float) -> EnvConfig:
+    """Episode length and termination of the run (full episodes unless stopping at an
+    ego collision; nobody ends on leaving the road)."""
+    return EnvConfig(
+        episode_steps=round(run["duration"] / dt),
+        terminate_on_collision="ego" if run["stop_at_ego_collision"] else "none",
+        terminate_on_offroad="none",
+    )
+
+
+def json_number(value: Any) -> Any:
+    """A JSON-ready number: numpy scalars to Python, NaN / inf to None."""
+    if value is None or isinstance(value, (bool, np.bool_)):
+        return None if value is None else bool(value)
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def run_job(job: Job) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Run one rollout.
+
+    Returns:
+        ``(row, samples)``: the results row (module ``results`` documents it) and the
+        rollout's KDD samples (``KinematicSamples.as_arrays()``).
+    """
+    scenario = job_scenario(job)
+    run = job.run
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        start = time.perf_counter()
+        policy = build_policy(
+            job.method, job.options, k=job.k, planning_interval=job.interval,
+            target=run["target"], seed=job.policy_seed, device=run["device"],
+        )  # fmt: skip
+        planner = make_planner(run["ego"])
+        setup = time.perf_counter() - start
+        config = env_config(run, scenario.dt)
+        with ClosedLoop(planner, policy, config=config, scenarios=scenario) as loop:
+            start = time.perf_counter()
+            episode = loop.run(scenario, seed=job.seed)
+            wall = time.perf_counter() - start
+    finally:
+        torch.set_num_threads(threads)
+
+    start = time.perf_counter()
+    others = episode.present.copy()
+    others[0] = False  # slot 0 is the ego
+    record = RolloutRecord.from_scenario(
+        scenario, episode.states, episode.present, episode.scenario_rows,
+        history=HISTORY, evaluated=others,
+    )  # fmt: skip
+    metrics = {key: json_number(v) for key, v in rollout_metrics(record).items()}
+    wosac = None
+    if run["wosac"]:
+        wosac = {key: json_number(v) for key, v in wosac_scene([record]).items()}
+    samples = kinematic_samples(record).as_arrays()
+    scored = time.perf_counter() - start
+
+    m = episode.metrics
+    cycles = m["planning_cycles"]
+    row = {
+        "key": job.key,
+        "method": job.method,
+        "label": method_label(job.method, job.options),
+        "options": job.options,
+        "k": job.k,
+        "interval": job.interval,
+        "scene": job.scene,
+        "scene_index": job.scene_index,
+        "seed": job.seed,
+        "policy_seed": job.policy_seed,
+        "steps": m["steps"],
+        "agents": int(others.sum()),
+        **metrics,
+        "harness": {
+            "ego_collided": bool(m["ego_collided"]),
+            "collision_events": m["collisions"],
+            "time_to_first_collision": json_number(m["time_to_first_collision"]),
+            "time_to_first_ego_collision": json_number(m["time_to_first_ego_collision"]),
+            "min_distance_to_ego": json_number(m["min_distance_to_ego"]),
+            "ego_offroad": bool(m["ego_offroad"]),
+        },
+        "wosac": wosac,
+        "timing": {
+            "rollout_s": wall,
+            "setup_s": setup,
+            "metrics_s": scored,
+            "planning_cycles": cycles,
+            "planning_s": (m["planning_time_ms"] or 0.0) * cycles / 1e3,
+            "cycle_ms_mean": json_number(m["planning_time_ms"]),
+            "cycle_ms_max": json_number(m["planning_time_max_ms"]),
+            "ego_ms_mean": json_number(m["ego_time_ms"]),
+        },
+    }
+    return row, samples

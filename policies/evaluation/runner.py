@@ -1,0 +1,120 @@
+"""Run the rollouts of an evaluation: skip the finished ones, farm out the rest.
+
+:func:`run_evaluation` plans the jobs (:func:`~.options.plan_jobs`), checks every method
+once in this process (its options build a policy, its plan horizon covers the planning
+intervals), drops the jobs whose rows are already in the results file, and runs the rest
+in ``workers`` processes (spawned, one torch thread each) or in this process, with a
+progress bar. The parent alone writes the results file, each row as soon as its rollout
+returns. Every rollout is a function of its job only, so the worker count changes the
+order of the rows, never their numbers.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from policies.evaluation.options import EvalOptions, Job, load_scenes, plan_jobs, run_config
+from policies.evaluation.registry import build_policy
+from policies.evaluation.results import ResultsStore
+from policies.evaluation.rollout import run_job
+from riskflow_env.config import DynamicsConfig
+
+
+def check_methods(jobs: list[Job], dt: float = DynamicsConfig().dt) -> None:
+    """Build each (method, options) once; ValueError naming the argument when its options
+    are rejected or a planning interval exceeds its plan horizon."""
+    seen: dict[str, Job] = {}
+    intervals: dict[str, set[float]] = {}
+    for job in jobs:
+        seen.setdefault(job.method, job)
+        if job.interval is not None:
+            intervals.setdefault(job.method, set()).add(job.interval)
+    for method, job in seen.items():
+        try:
+            policy = build_policy(
+                method, job.options, k=job.k, planning_interval=job.interval,
+                target=job.run["target"], seed=0, device=job.run["device"],
+            )  # fmt: skip
+        except (TypeError, ValueError) as err:
+            given = ", ".join(f"{k}={v!r}" for k, v in job.options.items()) or "defaults"
+            raise ValueError(f"--methods {method} (options: {given}): {err}") from err
+        horizon = getattr(policy, "horizon", None)
+        for interval in sorted(intervals.get(method, ())):
+            if horizon is not None and interval > horizon * dt + 1e-9:
+                raise ValueError(
+                    f"--interval: {interval} s exceeds the plan horizon of {method} "
+                    f"({horizon} steps = {horizon * dt:.1f} s)"
+                )
+
+
+def _init_worker() -> None:
+    torch.set_num_threads(1)
+
+
+def _results(jobs: list[Job], workers: int) -> Iterator[tuple[dict, dict[str, np.ndarray]]]:
+    if workers <= 1:
+        for job in jobs:
+            yield run_job(job)
+        return
+    context = multiprocessing.get_context("spawn")
+    with context.Pool(workers, initializer=_init_worker) as pool:
+        yield from pool.imap_unordered(run_job, jobs, chunksize=1)
+
+
+def prepare(options: EvalOptions) -> tuple[ResultsStore, list[Job]]:
+    """Check the options (ValueError naming the argument) and the results folder's
+    configuration (:class:`~.results.ConfigMismatch`); returns the store and every job."""
+    store = ResultsStore(options.out)
+    try:
+        scenes = load_scenes(options.data, options.scenes)
+    except FileNotFoundError as err:
+        raise ValueError(f"--data: {err}") from err
+    jobs = plan_jobs(options, scenes)
+    check_methods(jobs)
+    store.check_config(run_config(options))
+    return store, jobs
+
+
+def run_evaluation(
+    options: EvalOptions,
+    progress: bool = True,
+    prepared: tuple[ResultsStore, list[Job]] | None = None,
+) -> dict[str, Any]:
+    """Run every missing rollout of ``options`` into ``options.out``.
+
+    Args:
+        options: the evaluation.
+        progress: show a progress bar.
+        prepared: :func:`prepare`'s result, if already called.
+
+    Returns:
+        ``{"planned", "skipped", "ran", "wall_s"}``: rollouts asked for, already present,
+        run now, and the wall time [s].
+    """
+    store, jobs = prepared or prepare(options)
+    done = store.done_keys()
+    todo = [job for job in jobs if job.key not in done]
+    start = time.perf_counter()
+    bar = tqdm(total=len(todo), desc="rollouts", unit="rollout", disable=not progress)
+    if len(todo) < len(jobs):
+        bar.write(f"{len(jobs) - len(todo)} of {len(jobs)} rollouts already in {store.results}")
+    try:
+        for row, samples in _results(todo, options.workers):
+            store.append(row, samples)
+            bar.set_postfix_str(f"{row['label']} {row['scene']}", refresh=False)
+            bar.update()
+    finally:
+        bar.close()
+    return {
+        "planned": len(jobs),
+        "skipped": len(jobs) - len(todo),
+        "ran": len(todo),
+        "wall_s": time.perf_counter() - start,
+    }

@@ -1,0 +1,155 @@
+"""riskflow-eval: results file, resuming, determinism, workers, report, argument errors."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import pytest
+
+from policies.base import ScenePolicy
+from policies.evaluation import (
+    METHODS,
+    ConfigMismatch,
+    EvalOptions,
+    ResultsStore,
+    build_policy,
+    run_evaluation,
+    write_report,
+)
+from policies.evaluation.cli import main
+
+# tiny: 2 scenes, 1 s episodes, RiskFlow with a 2-step guidance budget
+TINY = EvalOptions(
+    methods=("idm", "replay", "riskflow"),
+    k=("2",),
+    interval=(0.5,),
+    scenes=2,
+    duration=1.0,
+    overrides=("riskflow.guidance_steps=2",),
+    report=False,
+)
+VOLATILE = ("timing", "samples")  # wall times and file names differ between runs
+
+
+def _numbers(out) -> dict[str, dict]:
+    rows = ResultsStore(out).rows()
+    return {row["key"]: {k: v for k, v in row.items() if k not in VOLATILE} for row in rows}
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("eval") / "full"
+    summary = run_evaluation(replace(TINY, out=str(out)), progress=False)
+    return out, summary
+
+
+def test_results_rows_and_schema(tiny_run):
+    out, summary = tiny_run
+    assert summary == summary | {"planned": 6, "skipped": 0, "ran": 6}
+    rows = ResultsStore(out).rows()
+    assert len(rows) == 6 and len({row["key"] for row in rows}) == 6
+    row = next(r for r in rows if r["method"] == "riskflow")
+    assert row["k"] == 2 and row["interval"] == 0.5 and row["steps"] == 10
+    assert row["options"] == {"guidance_steps": 2}
+    assert row["label"] == "riskflow[guidance_steps=2]"
+    for key in ("collision", "ego_collision", "offroad_centroid_steps", "ade", "fde"):
+        assert key in row
+    assert row["timing"]["planning_cycles"] == 2 and row["timing"]["cycle_ms_mean"] > 0
+    assert 0.0 <= row["wosac"]["metametric"] <= 1.0
+    assert (out / row["samples"]).is_file()
+    idm = next(r for r in rows if r["method"] == "idm")
+    assert idm["k"] is None and idm["interval"] is None  # one run serves every table
+
+
+def test_resume_skips_finished_rows_and_keeps_numbers(tiny_run, tmp_path):
+    full, _ = tiny_run
+    out = tmp_path / "resumed"
+    # an "interrupted" run: a subset of the rollouts, then a torn last line
+    first = run_evaluation(replace(TINY, out=str(out), methods=("idm",), scenes=1), progress=False)
+    assert first["ran"] == 1
+    with open(out / "results.jsonl", "ab") as file:
+        file.write(b'{"key": "half a line')
+    second = run_evaluation(replace(TINY, out=str(out)), progress=False)
+    assert (second["skipped"], second["ran"]) == (1, 5)
+    again = run_evaluation(replace(TINY, out=str(out)), progress=False)
+    assert again["ran"] == 0
+    assert _numbers(out) == _numbers(full)  # nothing duplicated, same numbers
+
+
+def test_worker_count_does_not_change_results(tiny_run, tmp_path):
+    full, _ = tiny_run
+    out = tmp_path / "workers"
+    options = replace(TINY, out=str(out), methods=("riskflow", "idm"), workers=2)
+    run_evaluation(options, progress=False)
+    expected = {k: v for k, v in _numbers(full).items() if v["method"] in ("riskflow", "idm")}
+    assert _numbers(out) == expected
+
+
+def test_config_mismatch_is_refused(tiny_run):
+    out, _ = tiny_run
+    with pytest.raises(ConfigMismatch, match="ego"):
+        run_evaluation(replace(TINY, out=str(out), ego="cv"), progress=False)
+
+
+def test_report(tiny_run):
+    out, _ = tiny_run
+    path = write_report(out)
+    text = path.read_text()
+    assert "## K=2, T=0.5 s (2 scenes x seeds)" in text
+    assert "| riskflow[guidance_steps=2] | 2 |" in text and "| idm | 2 |" in text
+    for name in ("cs_rs_T0.5.png", "realism_vs_horizon_K2.png", "speed.png"):
+        assert (out / name).stat().st_size > 0
+        assert f"({name})" in text
+
+
+def test_report_command(tiny_run, capsys):
+    out, _ = tiny_run
+    main(["report", "--out", str(out), "--no-plots"])
+    assert "report.md" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--methods", "nope"], "--methods: unknown method 'nope'"),
+        (["--k", "-1"], "--k: expected an int >= 0"),
+        (["--k", "two"], "--k: expected an int >= 0"),
+        (["--interval", "0.55"], "--interval: 0.55 s is not a positive multiple"),
+        (["--interval", "9.0"], "--interval: 9.0 s exceeds the plan horizon"),
+        (["--ego", "pilot"], "--ego must be one of"),
+        (["--target", "all"], "--target must be one of"),
+        (["--duration", "1.05"], "--duration"),
+        (["--scenes", "0"], "--scenes must be >= 1"),
+        (["--set", "riskflow.warp=3"], "'warp' is not an option of riskflow"),
+        (["--set", "guidance_steps"], "--set: expected key=value"),
+        (["--set", "ctg.guidance_steps=3"], "'guidance_steps' is not an option of ctg"),
+        (["--set", "nope.steps=3"], "unknown method 'nope'"),
+        (["--set", "riskflow.lambda_map=-1"], "--methods riskflow"),
+        (["--data", "/nonexistent/dir"], "--data"),
+    ],
+)
+def test_bad_arguments_name_the_argument(argv, message, tmp_path, capsys):
+    scenes = [] if "--scenes" in argv else ["--scenes", "1"]
+    with pytest.raises(SystemExit) as exit_info:
+        main([*argv, *scenes, "--out", str(tmp_path / "bad")])
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_list(capsys):
+    main(["--list"])
+    listed = capsys.readouterr().out
+    assert all(name in listed for name in METHODS)
+
+
+@pytest.mark.parametrize("name", sorted(METHODS))
+def test_every_method_builds(name):
+    policy = build_policy(name, {}, k=2, planning_interval=0.5, target="others", seed=0)
+    assert isinstance(policy, ScenePolicy)
+
+
+def test_rows_are_json_without_nan(tiny_run):
+    out, _ = tiny_run
+    for line in (out / "results.jsonl").read_text().splitlines():
+        json.loads(line, parse_constant=lambda name: pytest.fail(f"{name} in results"))
