@@ -1,0 +1,140 @@
+"""Evaluate trained PPO egos against the IDM planner, constant velocity and random actions.
+
+    python examples/evaluate_ego.py --runs runs/ego_ppo/seed0,runs/ego_ppo/seed1,runs/ego_ppo/seed2
+
+Every ego drives the same scenes of the shipped *evaluation* bank (the PPO egos trained
+on the training bank) under two kinds of traffic: the RiskFlow adversary at its defaults
+(K=5, 30 guidance steps, re-plan every 0.5 s, target ``others``) and nominal traffic (the
+unguided generator, K=0, or IDM with ``--nominal idm``). Each PPO run contributes its
+trained policy (``final_model.zip``, ``ppo`` rows) and its untrained initial policy
+(``initial_model.zip``, ``ppo-initial`` rows), both acting with the Gaussian's mean;
+each run is evaluated with its own seed (adversary noise), the baselines with every
+seed of ``--seeds``. Episodes: 10 s, ending at an ego collision or off-road (the
+library's default ``EnvConfig``).
+
+Report: ego collision rate, off-road rate, collision-or-off-road rate (Wilson 95%
+intervals over all (seed, scene) episodes), progress [m] and time to the first ego
+collision [s] (bootstrap 95% intervals), as a Markdown table (``<out>/results.md``,
+printed), a plot (``<out>/results.png``) and JSON (``<out>/results.json``, with a
+per-run breakdown of the PPO rows).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from policies.planners import ConstantVelocityPlanner, IDMPlanner
+from policies.riskflow.dataclass_cli import parse_dataclass
+from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
+from policies.rl.evaluation import RandomPlanner, evaluate, load_ppo_planner, summarize_ego
+from policies.rl.report import markdown_table, plot_summaries
+from riskflow_env.config import EnvConfig
+from riskflow_env.scenarios import shipped_bank
+
+NOMINAL = ("generator", "idm")
+BASELINES = {
+    "idm": lambda seed: IDMPlanner(),
+    "constant_velocity": lambda seed: ConstantVelocityPlanner(),
+    "random": lambda seed: RandomPlanner(seed),
+}
+
+
+@dataclass(frozen=True)
+class Options:
+    """Options of evaluate_ego.py."""
+
+    runs: str = ""
+    """comma-separated training output folders (train_ego_ppo.py --out); empty: baselines only"""
+    out: Path = Path("outputs/evaluate_ego")
+    """output folder"""
+    split: str = "eval"
+    """shipped scenario bank"""
+    scenes: int = 35
+    """number of scenes, spread evenly over the bank (every family)"""
+    seeds: str = "0,1,2"
+    """seeds of the baselines' runs (a PPO run uses its own training seed)"""
+    episodes_per_run: int = 1
+    """adversary seeds per PPO run (seed*100 + i): more episodes per scene"""
+    nominal: str = "generator"
+    """nominal traffic: 'generator' (unguided, K=0) or 'idm'"""
+    k: int = 5
+    """K of the adversarial traffic"""
+    guidance_steps: int = 30
+    """K_g of the adversarial traffic"""
+    planning_interval: float = 0.5
+    """re-plan interval of both RiskFlow traffics [s]"""
+    episode_steps: int = 100
+    """episode length [steps of 0.1 s]"""
+    baselines: bool = True
+    """also evaluate the IDM, constant-velocity and random egos"""
+
+    def __post_init__(self) -> None:
+        if self.nominal not in NOMINAL:
+            raise ValueError(f"--nominal must be one of {NOMINAL}, got {self.nominal!r}")
+        if self.scenes < 1 or self.episodes_per_run < 1:
+            raise ValueError("--scenes and --episodes-per-run must be >= 1")
+
+
+def run_seed(run: Path) -> int:
+    """The training seed of a run folder (its options.json)."""
+    return int(json.loads((run / "options.json").read_text())["seed"])
+
+
+def main(argv: list[str] | None = None) -> None:
+    options = parse_dataclass(Options, argv, prog="evaluate_ego.py", description=__doc__)
+    bank = shipped_bank(options.split)
+    count = min(options.scenes, len(bank))
+    scenes = [bank[round(i * len(bank) / count)] for i in range(count)]
+    config = EnvConfig(episode_steps=options.episode_steps)
+    adversarial = ScenePolicyConfig(
+        stage=AdversaryStage(k=options.k),
+        guidance_steps=options.guidance_steps,
+        planning_interval=options.planning_interval,
+    )
+    nominal = (
+        ScenePolicyConfig(kind="idm")
+        if options.nominal == "idm"
+        else ScenePolicyConfig(
+            stage=AdversaryStage(k=0), planning_interval=options.planning_interval
+        )
+    )
+    traffics = (adversarial, nominal)
+
+    results, per_run = {}, {}
+    for run in [Path(r) for r in options.runs.split(",") if r]:
+        seed = run_seed(run)
+        seeds = [seed * 100 + i for i in range(options.episodes_per_run)]
+        planners = {
+            name: (lambda s, path=run / f"{stem}.zip": load_ppo_planner(str(path)))
+            for name, stem in (("ppo", "final_model"), ("ppo-initial", "initial_model"))
+        }
+        records = evaluate(planners, traffics, scenes, seeds, config, progress=print)
+        for (name, traffic), episodes in records.items():
+            results.setdefault((name, traffic), []).extend(episodes)
+            per_run[f"{name} (seed {seed})", traffic] = summarize_ego(episodes)
+    if options.baselines:
+        seeds = [int(s) for s in options.seeds.split(",") if s]
+        results |= evaluate(BASELINES, traffics, scenes, seeds, config, progress=print)
+
+    summaries = {key: summarize_ego(episodes) for key, episodes in results.items()}
+    order = sorted(summaries, key=lambda key: (key[1] != adversarial.label, key[1]))
+    summaries = {key: summaries[key] for key in order}
+    table = markdown_table(summaries)
+    breakdown = markdown_table(per_run) if per_run else ""
+    out = options.out
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.md").write_text(table + ("\n\nPer run:\n\n" + breakdown if breakdown else ""))
+    plot_summaries(summaries, out / "results.png")
+    rows = [{"planner": p, "traffic": t, **s} for (p, t), s in summaries.items()]
+    runs = [{"planner": p, "traffic": t, **s} for (p, t), s in per_run.items()]
+    (out / "results.json").write_text(json.dumps({"summary": rows, "per_run": runs}, indent=1))
+    print(table)
+    if breakdown:
+        print("\nPer run:\n\n" + breakdown)
+    print(f"\nwritten: {out / 'results.md'}, {out / 'results.png'}, {out / 'results.json'}")
+
+
+if __name__ == "__main__":
+    main()

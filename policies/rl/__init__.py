@@ -1,0 +1,33 @@
+"""Reinforcement learning of an ego against the RiskFlow adversary (the ``rl`` extra).
+
+* :mod:`policies.rl.adversary` — the traffic (RiskFlow adversary, unguided generator, IDM)
+  and the curriculum stages (k, guidance weight, target);
+* :mod:`policies.rl.envs` — the ego's training env (normalised actions, episode outcome,
+  settable adversary) and the vector-env factory;
+* :mod:`policies.rl.curriculum` — the linear curriculum and the SB3 callbacks (needs
+  stable-baselines3);
+* :mod:`policies.rl.evaluation` — trained / baseline ego planners in closed loop, summaries
+  with 95% intervals; :mod:`policies.rl.report` — Markdown table and plot;
+* :mod:`policies.rl.marl` — the parallel env as a SuperSuit / SB3 vector env with
+  parameter sharing, and the reward of learned adversaries.
+
+Examples: ``examples/train_ego_ppo.py``, ``examples/evaluate_ego.py``,
+``examples/train_adversaries_marl.py``; results in ``docs/RL.md``.
+"""
+
+from __future__ import annotations
+
+from policies.rl.adversary import AdversaryStage, ScenePolicyConfig, apply_stage, make_traffic
+from policies.rl.envs import EgoEnvConfig, EgoTrainingEnv, build_env, make_env, scale_action
+
+__all__ = [
+    "AdversaryStage",
+    "EgoEnvConfig",
+    "EgoTrainingEnv",
+    "ScenePolicyConfig",
+    "apply_stage",
+    "build_env",
+    "make_env",
+    "make_traffic",
+    "scale_action",
+]

@@ -1,0 +1,115 @@
+"""The ego's training env: ``RiskFlowEgo-v0`` with normalised actions and a settable adversary.
+
+:class:`EgoTrainingEnv` wraps :class:`~riskflow_env.wrappers.EgoEnv`:
+
+* **actions** in ``[-1, 1]^2`` (what SB3's Gaussian policies expect), mapped by
+  :func:`scale_action` so that 0 is "keep speed and heading" (0 m/s^2, 0 rad/s): -1 is
+  the strongest braking (``accel_min``), +1 the strongest acceleration (``accel_max``),
+  and the yaw rate is ``u * yaw_rate_max``. A plain affine map of ``[-8, 5]`` would put
+  0 at -1.5 m/s^2, so an untrained policy would brake;
+* **episode outcome** in the last step's info: ``ego_collision`` and ``ego_offroad``
+  (1.0 if it happened at any step of the episode), logged by the training callbacks;
+* :meth:`EgoTrainingEnv.set_adversary_stage` ramps the adversary (curriculum).
+
+:func:`make_env` is the factory that ``SubprocVecEnv`` / ``DummyVecEnv`` call in each
+worker: it seeds the adversary per worker and limits torch to one thread per worker.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import gymnasium
+import numpy as np
+
+from policies.rl.adversary import AdversaryStage, ScenePolicyConfig, apply_stage, make_traffic
+from riskflow_env.config import DynamicsConfig, EnvConfig
+from riskflow_env.wrappers import EgoEnv
+
+
+def scale_action(action: np.ndarray, dynamics: DynamicsConfig) -> np.ndarray:
+    """Normalised ``(u_accel, u_yaw)`` in ``[-1, 1]`` (clipped) -> (accel [m/s^2], yaw rate
+    [rad/s]); 0 maps to 0, -1 to ``accel_min``, +1 to ``accel_max`` / ``yaw_rate_max``."""
+    u = np.clip(np.asarray(action, dtype=np.float64).reshape(2), -1.0, 1.0)
+    accel = u[0] * (dynamics.accel_max if u[0] >= 0 else -dynamics.accel_min)
+    return np.array([accel, u[1] * dynamics.yaw_rate_max])
+
+
+@dataclass(frozen=True)
+class EgoEnvConfig:
+    """Everything a worker needs to build its env (picklable for ``SubprocVecEnv``).
+
+    Attributes:
+        env: the parallel env's configuration (episode length, rewards, termination).
+        traffic: the scene policy of the other vehicles.
+        split: shipped scenario bank the episodes are drawn from (``"train"``/``"eval"``).
+        scenes: use only the first ``scenes`` scenes of the split (None: all).
+    """
+
+    env: EnvConfig = field(default_factory=EnvConfig)
+    traffic: ScenePolicyConfig = field(default_factory=ScenePolicyConfig)
+    split: str = "train"
+    scenes: int | None = None
+
+
+class EgoTrainingEnv(gymnasium.Wrapper):
+    """Normalised actions, episode outcome in ``info``, settable adversary (module docstring).
+
+    Args:
+        env: the ego's Gymnasium view.
+    """
+
+    def __init__(self, env: EgoEnv) -> None:
+        super().__init__(env)
+        self.dynamics = env.parallel_env.config.dynamics
+        self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self._outcome = {"ego_collision": 0.0, "ego_offroad": 0.0}
+
+    def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        self._outcome = {"ego_collision": 0.0, "ego_offroad": 0.0}
+        return self.env.reset(**kwargs)
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        observation, reward, terminated, truncated, info = self.env.step(
+            scale_action(action, self.dynamics)
+        )
+        self._outcome["ego_collision"] = max(
+            self._outcome["ego_collision"], float(info["collided"])
+        )
+        offroad = float(info["offroad_fraction"] > 0)
+        self._outcome["ego_offroad"] = max(self._outcome["ego_offroad"], offroad)
+        if terminated or truncated:
+            info = {**info, **self._outcome}
+        return observation, reward, terminated, truncated, info
+
+    def set_adversary_stage(self, stage: AdversaryStage) -> None:
+        """Set k, guidance weight and target of the RiskFlow adversary (next cycle on)."""
+        apply_stage(self.env.unwrapped.policy, stage)
+
+
+def build_env(config: EgoEnvConfig, seed: int = 0) -> EgoTrainingEnv:
+    """One training env (not yet reset); the adversary's noise seed is ``seed``."""
+    from riskflow_env.scenarios import shipped_bank
+
+    bank = shipped_bank(config.split)
+    scenes = list(bank) if config.scenes is None else [bank[i] for i in range(config.scenes)]
+    policy = make_traffic(config.traffic, seed=seed)
+    return EgoTrainingEnv(EgoEnv(config=config.env, scenarios=scenes, policy=policy))
+
+
+def make_env(config: EgoEnvConfig, rank: int, seed: int) -> Callable[[], gymnasium.Env]:
+    """Factory of worker ``rank``'s env for ``SubprocVecEnv`` / ``DummyVecEnv``, wrapped in
+    SB3's ``Monitor`` (episode returns and lengths). The adversary of worker ``rank`` draws
+    its noise from ``seed * 1000 + rank``; the env's scene draws are seeded by the vector
+    env (``VecEnv.seed``, which SB3's ``PPO(seed=...)`` calls)."""
+
+    def thunk() -> gymnasium.Env:
+        import torch
+        from stable_baselines3.common.monitor import Monitor
+
+        torch.set_num_threads(1)  # one core per worker; the adversary plans on one thread
+        return Monitor(build_env(config, seed=seed * 1000 + rank))
+
+    return thunk

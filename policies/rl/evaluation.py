@@ -1,0 +1,179 @@
+"""Closed-loop evaluation of ego planners (a trained PPO ego among them) against traffic.
+
+:class:`PPOPlanner` turns a Stable-Baselines3 model (and the ``VecNormalize`` statistics
+it was trained with) into an :class:`~policies.planners.EgoPlanner`; :class:`RandomPlanner`
+draws uniform actions. :func:`evaluate` runs every planner against every traffic on the
+same scenes and seeds through :class:`~policies.harness.ClosedLoop` (the harness of the
+stress tests); :func:`summarize_ego` reduces the episodes to the ego's collision rate,
+off-road rate, progress and time to first collision with 95% intervals over all
+(seed, scene) episodes: Wilson for rates, percentile bootstrap for means.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+from policies.harness import ClosedLoop, EpisodeRecord, mean_interval, summarize
+from policies.rl.adversary import ScenePolicyConfig, make_traffic
+from policies.rl.envs import scale_action
+from riskflow_env.config import DynamicsConfig, EnvConfig
+from riskflow_env.scenarios import Scenario
+from riskflow_env.view import SceneView
+
+PlannerFactory = Callable[[int], Any]  # seed -> EgoPlanner
+
+
+class PPOPlanner:
+    """A trained SB3 policy as an ego planner (normalised actions, see :func:`scale_action`).
+
+    Args:
+        model: an SB3 algorithm (``PPO.load(...)``) trained on
+            :class:`~policies.rl.envs.EgoTrainingEnv`.
+        normalize: the ``VecNormalize`` it was trained with (its observation statistics
+            are applied), or None.
+        deterministic: act with the mean of the Gaussian (True) or sample it.
+        dynamics: the env's bounds (to de-normalise actions).
+    """
+
+    def __init__(
+        self,
+        model: Any,
+        normalize: Any = None,
+        deterministic: bool = True,
+        dynamics: DynamicsConfig | None = None,
+    ) -> None:
+        self.model, self.normalize = model, normalize
+        self.deterministic, self.dynamics = deterministic, dynamics or DynamicsConfig()
+
+    def reset(self, view: SceneView) -> None:
+        """Nothing to prepare (the policy is a feed-forward MLP)."""
+
+    def __call__(self, observation: np.ndarray, view: SceneView | None = None) -> np.ndarray:
+        """(2,) (accel [m/s^2], yaw rate [rad/s]) from the ego's observation."""
+        if self.normalize is not None:
+            observation = self.normalize.normalize_obs(observation)
+        action, _ = self.model.predict(observation, deterministic=self.deterministic)
+        return scale_action(action, self.dynamics)
+
+
+class RandomPlanner:
+    """Uniform random actions over the dynamics bounds (a floor for every metric).
+
+    Args:
+        seed: seeds the draws (the same seed gives the same actions).
+        dynamics: the bounds.
+    """
+
+    def __init__(self, seed: int = 0, dynamics: DynamicsConfig | None = None) -> None:
+        self.rng = np.random.default_rng(seed)
+        self.dynamics = dynamics or DynamicsConfig()
+
+    def reset(self, view: SceneView) -> None:
+        """Nothing to prepare."""
+
+    def __call__(self, observation: np.ndarray, view: SceneView | None = None) -> np.ndarray:
+        """(2,) uniform in [accel_min, accel_max] x [-yaw_rate_max, yaw_rate_max]."""
+        d = self.dynamics
+        return self.rng.uniform([d.accel_min, -d.yaw_rate_max], [d.accel_max, d.yaw_rate_max])
+
+
+def load_ppo_planner(run: str, deterministic: bool = True) -> PPOPlanner:
+    """A :class:`PPOPlanner` from a model file (``.zip``) saved by ``train_ego_ppo.py``;
+    the ``VecNormalize`` statistics are read from the same name with ``_vecnormalize.pkl``
+    in place of ``.zip`` when that file exists."""
+    from pathlib import Path
+
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    path = Path(run)
+    model = PPO.load(path, device="cpu")
+    stats = path.with_name(path.name.removesuffix(".zip") + "_vecnormalize.pkl")
+    normalize = None
+    if stats.is_file():
+        normalize = VecNormalize.load(str(stats), venv=_DummyVec(model))
+        normalize.training, normalize.norm_reward = False, False
+    return PPOPlanner(model, normalize, deterministic)
+
+
+class _DummyVec:
+    """The minimum of a VecEnv that ``VecNormalize.load`` needs (spaces, num_envs)."""
+
+    def __init__(self, model: Any) -> None:
+        self.observation_space, self.action_space = model.observation_space, model.action_space
+        self.num_envs, self.render_mode = 1, None
+
+
+def evaluate(
+    planners: dict[str, PlannerFactory],
+    traffics: Sequence[ScenePolicyConfig],
+    scenes: Sequence[Scenario],
+    seeds: Sequence[int],
+    config: EnvConfig | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> dict[tuple[str, str], list[EpisodeRecord]]:
+    """Every planner against every traffic on every (seed, scene).
+
+    Args:
+        planners: name -> ``factory(seed)`` building the planner for one seed.
+        traffics: the traffic of the other vehicles (adversary seeded with the seed).
+        scenes: the scenes.
+        seeds: seeds of the adversary's noise and of the random planner.
+        config: env configuration (default: the library's, 10 s episodes ending at an
+            ego collision or off-road).
+        progress: called with a label after each (planner, traffic, seed).
+
+    Returns:
+        ``{(planner name, traffic label): records}`` in (seed, scene) order.
+    """
+    torch.set_num_threads(1)
+    results: dict[tuple[str, str], list[EpisodeRecord]] = {}
+    for traffic in traffics:
+        for name, factory in planners.items():
+            records = results.setdefault((name, traffic.label), [])
+            for seed in seeds:
+                with ClosedLoop(factory(seed), make_traffic(traffic, seed), config) as loop:
+                    for scene in scenes:
+                        records.append(loop.run(scene, seed=seed))
+                if progress is not None:
+                    progress(f"{name} vs {traffic.label}, seed {seed}")
+    return results
+
+
+def ego_progress(record: EpisodeRecord) -> float:
+    """Distance the ego drove in the episode [m] (path length of its executed states)."""
+    xy = record.states[0, :, :2]
+    return float(np.hypot(*np.diff(xy, axis=0).T).sum())
+
+
+def summarize_ego(records: Sequence[EpisodeRecord]) -> dict[str, dict[str, Any]]:
+    """The ego's metrics with 95% intervals: ``{name: {"value", "low", "high", "n"}}``.
+
+    * ``ego_collision_rate``, ``ego_offroad_rate``: shares of episodes (Wilson);
+    * ``ego_failure_rate``: share with a collision or an off-road excursion (Wilson);
+    * ``progress`` [m]: distance driven by the ego (bootstrap);
+    * ``time_to_first_ego_collision`` [s]: over the episodes with one (bootstrap).
+    """
+    from policies.harness import wilson_interval
+
+    base = summarize(list(records))
+    failures = sum(r.metrics["ego_collided"] or r.metrics["ego_offroad"] for r in records)
+    low, high = wilson_interval(failures, len(records))
+    distances = [ego_progress(r) for r in records]
+    d_low, d_high = mean_interval(distances)
+    return {
+        "ego_collision_rate": base["ego_collision_rate"],
+        "ego_offroad_rate": base["ego_offroad_rate"],
+        "ego_failure_rate": _entry(failures / max(len(records), 1), low, high, len(records)),
+        "progress": _entry(float(np.mean(distances)), d_low, d_high, len(distances)),
+        "time_to_first_ego_collision": base["time_to_first_ego_collision"],
+    }
+
+
+def _entry(value: float, low: float, high: float, count: int) -> dict[str, Any]:
+    clean = [None if not np.isfinite(x) else float(x) for x in (value, low, high)]
+    return dict(zip(("value", "low", "high"), clean, strict=True)) | {"n": count}

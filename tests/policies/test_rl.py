@@ -1,0 +1,141 @@
+"""policies.rl: action scaling, curriculum, adversary stages, the ego training env, the
+training and evaluation examples with a tiny budget, and the multi-agent (SuperSuit) path.
+
+Needs the ``rl`` extra (stable-baselines3, supersuit); skipped without it. No timing
+assertions: the examples run a few hundred steps with a cheap adversary (2 guidance steps,
+re-plan every 1 s) and short episodes.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip(
+    "stable_baselines3", reason="stable-baselines3 is not installed (pip install -e '.[rl]')"
+)
+
+from policies.rl.adversary import AdversaryStage, ScenePolicyConfig, apply_stage  # noqa: E402
+from policies.rl.curriculum import LinearCurriculum  # noqa: E402
+from policies.rl.envs import EgoEnvConfig, build_env, scale_action  # noqa: E402
+from policies.rl.marl import AdversaryRewardConfig, adversary_reward  # noqa: E402
+from riskflow_env.config import DynamicsConfig, EnvConfig  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+TINY_TRAFFIC = ScenePolicyConfig(stage=AdversaryStage(k=2), guidance_steps=2, planning_interval=1.0)
+
+
+def run(script: str, *args: str | Path) -> str:
+    """Run an example in a subprocess; its stdout (fails with stderr on a non-zero exit)."""
+    command = [sys.executable, str(ROOT / "examples" / script), *map(str, args)]
+    done = subprocess.run(command, capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done.stdout
+
+
+def test_scale_action_keeps_zero_and_reaches_the_bounds():
+    dynamics = DynamicsConfig()
+    np.testing.assert_allclose(scale_action(np.zeros(2), dynamics), [0.0, 0.0])
+    np.testing.assert_allclose(scale_action(np.array([-1.0, -1.0]), dynamics), [-8.0, -1.0])
+    np.testing.assert_allclose(scale_action(np.array([1.0, 0.5]), dynamics), [5.0, 0.5])
+    np.testing.assert_allclose(scale_action(np.array([3.0, -7.0]), dynamics), [5.0, -1.0])
+
+
+def test_linear_curriculum_ramps_then_holds():
+    curriculum = LinearCurriculum(
+        AdversaryStage(1, 10.0, "others"), AdversaryStage(5, 50.0, "ego"), ramp_fraction=0.5
+    )
+    assert curriculum.stage_at(0.0) == AdversaryStage(1, 10.0, "others")
+    middle = curriculum.stage_at(0.25)
+    assert middle.k == 3 and middle.lambda_adv == pytest.approx(30.0) and middle.target == "ego"
+    assert curriculum.stage_at(0.5) == curriculum.stage_at(1.0) == AdversaryStage(5, 50.0, "ego")
+    assert LinearCurriculum(AdversaryStage(1), AdversaryStage(5), 0.0).stage_at(0.0).k == 5
+    with pytest.raises(ValueError, match="ramp_fraction"):
+        LinearCurriculum(AdversaryStage(), AdversaryStage(), ramp_fraction=1.5)
+
+
+def test_stage_validation():
+    with pytest.raises(ValueError, match="target"):
+        AdversaryStage(target="nobody")
+    with pytest.raises(ValueError, match="k must be"):
+        AdversaryStage(k=-1)
+    with pytest.raises(ValueError, match="kind"):
+        ScenePolicyConfig(kind="replay")
+
+
+def test_training_env_normalised_actions_outcome_and_stage():
+    env = build_env(
+        EgoEnvConfig(env=EnvConfig(episode_steps=5), traffic=TINY_TRAFFIC, scenes=2), seed=0
+    )
+    assert env.action_space.shape == (2,) and env.action_space.high.tolist() == [1.0, 1.0]
+    env.set_adversary_stage(AdversaryStage(k=4, lambda_adv=20.0, target="ego"))
+    adversary = env.unwrapped.policy
+    assert adversary.k == 4 and adversary.guidance.lambda_adv == 20.0
+    assert adversary.guidance.target == "ego" and adversary.guidance.steps == 2
+    env.reset(seed=0)
+    done, info = False, {}
+    while not done:
+        _, reward, terminated, truncated, info = env.step(np.zeros(2, np.float32))
+        done = terminated or truncated
+        assert np.isfinite(reward)
+    assert info["ego_collision"] in (0.0, 1.0) and info["ego_offroad"] in (0.0, 1.0)
+
+
+def test_apply_stage_rejects_traffic_without_adversary():
+    from policies.baselines.idm import IDMPolicy
+
+    with pytest.raises(TypeError, match="RiskFlow adversary"):
+        apply_stage(IDMPolicy(), AdversaryStage())
+
+
+def test_train_then_evaluate_tiny_budget(tmp_path):
+    run_dir = tmp_path / "run"
+    out = run(
+        "train_ego_ppo.py", "--total-timesteps", "256", "--n-steps", "64", "--batch-size", "64",
+        "--n-epochs", "1", "--num-envs", "2", "--vec-env", "dummy", "--scenes", "3",
+        "--episode-steps", "20", "--guidance-steps", "2", "--checkpoint-every", "128",
+        "--seed", "3", "--out", run_dir,
+    )  # fmt: skip
+    assert "final model" in out
+    for name in ("initial_model", "final_model"):
+        assert (run_dir / f"{name}.zip").is_file()
+        assert (run_dir / f"{name}_vecnormalize.pkl").is_file()
+    assert sorted(p.name for p in (run_dir / "checkpoints").glob("*.zip")) == [
+        "ppo_128_steps.zip", "ppo_256_steps.zip"
+    ]  # fmt: skip
+    header = (run_dir / "progress.csv").read_text().splitlines()[0].split(",")
+    assert "curriculum/k" in header and "rollout/ego_collision_rate" in header
+
+    eval_dir = tmp_path / "eval"
+    out = run(
+        "evaluate_ego.py", "--runs", run_dir, "--scenes", "2", "--seeds", "0",
+        "--episode-steps", "10", "--guidance-steps", "2", "--planning-interval", "1.0",
+        "--out", eval_dir,
+    )  # fmt: skip
+    results = json.loads((eval_dir / "results.json").read_text())
+    rows = {(row["planner"], row["traffic"]) for row in results["summary"]}
+    planners = ("ppo", "ppo-initial", "idm", "constant_velocity", "random")
+    assert rows == {(p, t) for p in planners for t in ("riskflow K=5", "riskflow K=0")}
+    assert all(row["ego_collision_rate"]["n"] == 2 for row in results["summary"])
+    assert {row["planner"] for row in results["per_run"]} == {
+        "ppo (seed 3)",
+        "ppo-initial (seed 3)",
+    }
+    assert (eval_dir / "results.png").stat().st_size > 0
+    assert "| ppo | riskflow K=5 |" in (eval_dir / "results.md").read_text()
+
+
+def test_adversary_reward_terms():
+    config = AdversaryRewardConfig()
+    info = {"collided_with": ["ego", "agent_2"], "offroad_fraction": 0.0}
+    reward, terms = adversary_reward(info, 0.0, config)
+    assert terms == {"ego_collision": 5.0, "other_collision": -1.0, "closeness": 0.05,
+                     "offroad": 0.0}  # fmt: skip
+    assert reward == pytest.approx(4.05)
+    far, terms = adversary_reward({"collided_with": [], "offroad_fraction": 0.2}, 45.0, config)
+    assert terms["closeness"] == 0.0 and far == -1.0
