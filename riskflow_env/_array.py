@@ -154,6 +154,39 @@ def is_torch(x: Array) -> bool:
     return type(x) is not np.ndarray and array_api_compat.is_torch_array(x)
 
 
+def requires_grad(x: Array) -> bool:
+    """True when ``x`` is a torch tensor that autograd is recording (numpy: False)."""
+    if type(x) is np.ndarray or not is_torch(x) or not x.requires_grad:
+        return False
+    import torch  # already imported: x is a tensor
+
+    return torch.is_grad_enabled()
+
+
+def detach(x: Array) -> Array:
+    """``x`` cut from the autograd graph (torch); numpy arrays are returned as they are."""
+    return x if type(x) is np.ndarray else x.detach()
+
+
+def attach_gradient(value: Array, x: Array, gradient: Array, axis: int | None = -1) -> Array:
+    """``value`` with the gradient ``d value / d x = gradient`` attached, for autograd.
+
+    Computes ``value + sum((x - detach(x)) * gradient, axis)``: the added term is
+    exactly zero, so the result equals ``value`` (up to the sign of a zero), and its
+    gradient with respect to ``x`` is ``gradient``. Lets a function computed without
+    autograd (its value and analytic gradient in a few array ops) join a graph as one
+    linear node.
+
+    Args:
+        value: (...) values computed from ``detach(x)`` (no graph), or a scalar.
+        x: (..., D) the inputs, in the graph.
+        gradient: (..., D) ``d value / d x`` (no graph), x's shape.
+        axis: -1 for one value per (..., D) row of ``x``; None for a scalar ``value``.
+    """
+    xp = namespace(value, x, gradient)
+    return value + xp.sum((x - detach(x)) * gradient, axis=axis)
+
+
 def cummax(x: Array, axis: int = -1) -> Array:
     """Running maximum along ``axis`` (numpy: ``maximum.accumulate``; torch: ``cummax``)."""
     if is_torch(x):

@@ -9,7 +9,12 @@ sampling path (DESIGN.md section 7): starting from the base residual
 with ``a = denorm(eps + u)`` and the trajectory ``rollout(a, s0)`` (the vectorised,
 differentiable unicycle of ``riskflow_env.dynamics``). The generator is *not* re-run
 inside the loop, so each step is one rollout of the ``A_c`` rows, their SDF lookups and
-a backward pass through those only. Only ``A_c`` rows are optimised (they are the only
+a backward pass through those only. Autograd records only the rollout: ``L_adv`` and
+``L_map`` give their value and their gradient with respect to the trajectories in
+closed form (``guidance_losses``: the argmin's unit vectors; the SDF's bilinear slope
+chained through the footprint), pulled back through the rollout in one
+vector-Jacobian product. Same math as differentiating the losses op by op; the
+gradients agree to float rounding. Only ``A_c`` rows are optimised (they are the only
 variables, which is the mask ``M_Ac`` done exactly): every other row of ``u``, of the
 actions and of the trajectories is the base plan, bit for bit.
 
@@ -63,7 +68,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from policies.riskflow.guidance_losses import MapTerm, adversarial_loss, map_loss
+from policies.riskflow.guidance_losses import (
+    MapTerm,
+    adversarial_loss,
+    adversarial_value_and_gradient,
+    map_loss,
+)
 from policies.riskflow.meanflow import Normalizer
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout
@@ -227,12 +237,37 @@ class _Objective:
         return self.offset + self.std * u_c
 
     def __call__(self, u_c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """(C, T, 4) trajectories, ``L_adv`` [m], ``L_map`` [m^2]."""
+        """(C, T, 4) trajectories, ``L_adv`` [m], ``L_map`` [m^2] (no gradient)."""
         trajectories = rollout(self.state, self.actions(u_c), self.dynamics)
         adv = adversarial_loss(trajectories[..., :2], self.target_xy, self.horizon)
         if self.map_term is None:
             return trajectories, adv, adv * 0.0
         return trajectories, adv, self.map_term(trajectories)
+
+    def gradient(self, u_c: Tensor, lambda_adv: float, lambda_map: float) -> tuple[Tensor, ...]:
+        """``grad_u L`` (C, T, 2) of ``L = lambda_adv * L_adv + lambda_map * L_map``,
+        ``L_adv`` [m] and ``L_map`` [m^2].
+
+        Autograd records only the rollout: the losses give their value and their
+        gradient with respect to the trajectories in closed form
+        (``*_value_and_gradient``), which is then pulled back through the rollout in
+        one vector-Jacobian product.
+        """
+        u_c = u_c.detach().requires_grad_(True)
+        with torch.enable_grad():
+            # In bounds (the projection keeps them there): the rollout's clip is skipped.
+            trajectories = rollout(self.state, self.actions(u_c), self.dynamics, clip=False)
+        xy = trajectories[..., :2].detach()
+        adv, d_xy = adversarial_value_and_gradient(xy, self.target_xy, self.horizon)
+        d_trajectories = torch.zeros_like(trajectories)
+        d_trajectories[..., :2] = lambda_adv * d_xy
+        if self.map_term is None:
+            off_road = adv * 0.0
+        else:
+            off_road, d_map = self.map_term.value_and_gradient(trajectories)
+            d_trajectories.add_(d_map, alpha=lambda_map)
+        (grad,) = torch.autograd.grad(trajectories, u_c, d_trajectories)
+        return grad, adv, off_road
 
 
 def guide(
@@ -275,12 +310,8 @@ def guide(
     first, second = torch.zeros_like(u_c), torch.zeros_like(u_c)
     history = []
     for step in range(config.steps):
-        u_c = u_c.detach().requires_grad_(True)
-        with torch.enable_grad():
-            _, adv, off_road = objective(u_c)
-            loss = config.lambda_adv * adv + config.lambda_map * off_road
-            (grad,) = torch.autograd.grad(loss, u_c)
-        history.append(torch.stack([adv.detach(), off_road.detach()]))
+        grad, adv, off_road = objective.gradient(u_c, config.lambda_adv, config.lambda_map)
+        history.append((adv, off_road))
         with torch.no_grad():
             if config.optimizer == "adam":
                 beta1, beta2 = _ADAM_BETAS
@@ -293,7 +324,7 @@ def guide(
             u_c = torch.minimum(torch.maximum(u_c - grad, lower), upper)
     with torch.no_grad():
         trajectories_c, adv, off_road = objective(u_c)
-        history.append(torch.stack([adv, off_road]))
+        history.append((adv, off_road))
         u = scene.u0.clone()
         u[rows] = u_c
         actions = scene.base_actions.clone()
@@ -301,7 +332,10 @@ def guide(
         trajectories = scene.base_trajectories.clone()
         trajectories[rows] = trajectories_c  # rollout clips: the same as the clipped actions'
     return GuidanceResult(
-        u=u, actions=actions, trajectories=trajectories, losses=torch.stack(history)
+        u=u,
+        actions=actions,
+        trajectories=trajectories,
+        losses=torch.stack([torch.stack(h) for h in history]),
     )
 
 
@@ -312,6 +346,7 @@ __all__ = [
     "GuidanceResult",
     "GuidanceScene",
     "adversarial_loss",
+    "adversarial_value_and_gradient",
     "guide",
     "map_loss",
     "plans_from_velocity",

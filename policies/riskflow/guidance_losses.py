@@ -14,14 +14,18 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from riskflow_env._array import attach_gradient, requires_grad
 from riskflow_env.geometry import footprint_points
 from riskflow_env.maps import DrivableMap
 
-__all__ = ["MapTerm", "adversarial_loss", "map_loss"]
+__all__ = ["MapTerm", "adversarial_loss", "adversarial_value_and_gradient", "map_loss"]
 
 
 def adversarial_loss(xy: Tensor, target_xy: Tensor, horizon: int | None = None) -> Tensor:
     """``L_adv``: summed over agents, mean over ``t < horizon`` of the nearest-target distance.
+
+    Differentiable with respect to ``xy`` (targets are constants): the value and its
+    gradient come from :func:`adversarial_value_and_gradient`.
 
     Args:
         xy: (C, T, 2) [m] controllable agents' positions.
@@ -31,16 +35,44 @@ def adversarial_loss(xy: Tensor, target_xy: Tensor, horizon: int | None = None) 
     Returns:
         scalar [m]; 0 if there is no agent or no target.
     """
-    xy, target_xy = xy[:, :horizon], target_xy[:, :horizon]
-    if xy.shape[0] == 0 or target_xy.shape[0] == 0:
-        return xy.sum() * 0.0
-    with torch.no_grad():  # the gradient of a min is the gradient at the argmin
-        offsets = xy[:, None] - target_xy[None]  # (C, J, T_g, 2)
+    if not requires_grad(xy):
+        return _adversarial(xy, target_xy, horizon, with_gradient=False)[0]
+    value, gradient = _adversarial(xy.detach(), target_xy, horizon, with_gradient=True)
+    return attach_gradient(value, xy, gradient, axis=None)
+
+
+def adversarial_value_and_gradient(
+    xy: Tensor, target_xy: Tensor, horizon: int | None = None
+) -> tuple[Tensor, Tensor]:
+    """:func:`adversarial_loss` [m] and its gradient (C, T, 2) [m/m] with respect to ``xy``.
+
+    The gradient of a min is the gradient at the argmin; ``(1 / T_g)`` times the unit
+    vector from the nearest target to the agent for ``t < T_g`` (0 where the agent sits
+    exactly on it), 0 beyond ``T_g``. No autograd graph is built.
+    """
+    return _adversarial(xy.detach(), target_xy.detach(), horizon, with_gradient=True)
+
+
+def _adversarial(
+    xy: Tensor, target_xy: Tensor, horizon: int | None, with_gradient: bool
+) -> tuple[Tensor, Tensor | None]:
+    """The one implementation of :func:`adversarial_loss` (and its gradient)."""
+    near, target_xy = xy[:, :horizon], target_xy[:, :horizon].detach()
+    if near.shape[0] == 0 or target_xy.shape[0] == 0:
+        return near.sum() * 0.0, torch.zeros_like(xy) if with_gradient else None
+    with torch.no_grad():
+        offsets = near[:, None] - target_xy[None]  # (C, J, T_g, 2)
         nearest = (offsets * offsets).sum(dim=-1).argmin(dim=1)  # (C, T_g)
-    steps = torch.arange(xy.shape[1], device=xy.device)
-    offset = xy - target_xy.detach()[nearest, steps]  # (C, T_g, 2)
-    # vector_norm's gradient is 0 (not NaN) where an agent sits exactly on its target.
-    return torch.linalg.vector_norm(offset, dim=-1).sum() / xy.shape[1]
+    steps = torch.arange(near.shape[1], device=xy.device)
+    offset = near - target_xy[nearest, steps]  # (C, T_g, 2)
+    distance = torch.linalg.vector_norm(offset, dim=-1)  # (C, T_g)
+    value = distance.sum() / near.shape[1]
+    if not with_gradient:
+        return value, None
+    scale = torch.where(distance > 0, distance * near.shape[1], torch.inf)  # 0 on a target
+    gradient = torch.zeros_like(xy)
+    gradient[:, : near.shape[1]] = offset / scale[..., None]
+    return value, gradient
 
 
 def map_loss(
@@ -96,11 +128,40 @@ class MapTerm:
         self.weights = decay ** torch.arange(steps, device=frame.device, dtype=frame.dtype)
 
     def __call__(self, trajectories: Tensor) -> Tensor:
+        """Scalar ``L_map`` [m^2] of (C, T, 4) scene-frame states, differentiable with
+        respect to them (value and gradient from :meth:`value_and_gradient`)."""
+        if not requires_grad(trajectories):
+            return self._evaluate(trajectories, with_gradient=False)[0]
+        value, gradient = self._evaluate(trajectories.detach(), with_gradient=True)
+        return attach_gradient(value, trajectories, gradient, axis=None)
+
+    def value_and_gradient(self, trajectories: Tensor) -> tuple[Tensor, Tensor]:
+        """``L_map`` [m^2] and its gradient (C, T, 4) with respect to the states
+        (x, y [m^2/m], v: 0, psi [m^2/rad]); no autograd graph is built."""
+        return self._evaluate(trajectories.detach(), with_gradient=True)
+
+    def _evaluate(self, trajectories: Tensor, with_gradient: bool) -> tuple[Tensor, Tensor | None]:
+        """The one implementation of the value and its (chain-rule) gradient."""
         world = trajectories[..., :2] @ self.rotation_t + self.origin  # (C, T, 2)
         yaw = (trajectories[..., 3] + self.yaw)[..., None]
         cos, sin = torch.cos(yaw), torch.sin(yaw)  # (C, T, 1)
-        x = world[..., :1] + cos * self.along - sin * self.across  # (C, T, 9)
-        y = world[..., 1:] + sin * self.along + cos * self.across
+        along_x, across_x = cos * self.along, sin * self.across  # (C, T, 9)
+        along_y, across_y = sin * self.along, cos * self.across
+        x = world[..., :1] + along_x - across_x  # (C, T, 9)
+        y = world[..., 1:] + along_y + across_y
         points = torch.stack([x, y], dim=-1)  # == footprint_points(world, yaw, ...)
-        depth = torch.relu(self.map.sdf_at(points) + self.margin)  # (C, T, 9)
-        return ((depth * depth).sum(dim=-1) * self.weights).sum()
+        if not with_gradient:
+            depth = torch.relu(self.map.sdf_at(points) + self.margin)  # (C, T, 9)
+            return ((depth * depth).sum(dim=-1) * self.weights).sum(), None
+        sdf, sdf_gradient = self.map.sdf_with_gradient(points)  # (C, T, 9), (C, T, 9, 2)
+        depth = torch.relu(sdf + self.margin)
+        value = ((depth * depth).sum(dim=-1) * self.weights).sum()
+        # dL/dq for each sample q = world + R(yaw) * local, then the chain rule to the state:
+        # world = xy @ rotation_t + origin, dq/dyaw = (-(q_y - world_y), q_x - world_x).
+        slope = (2.0 * depth * self.weights[:, None])[..., None] * sdf_gradient  # (C, T, 9, 2)
+        d_xy = slope.sum(dim=-2) @ self.rotation_t.T  # (C, T, 2)
+        d_yaw = (slope[..., 1] * (along_x - across_x) - slope[..., 0] * (along_y + across_y)).sum(
+            dim=-1
+        )
+        d_speed = torch.zeros_like(d_yaw)
+        return value, torch.cat([d_xy, d_speed[..., None], d_yaw[..., None]], dim=-1)

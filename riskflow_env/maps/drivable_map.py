@@ -23,7 +23,12 @@ from riskflow_env._array import Array, is_torch, namespace
 from riskflow_env.maps._validate import finite_number
 from riskflow_env.maps.lanes import Lane, as_query
 from riskflow_env.maps.rasterize import signed_distance
-from riskflow_env.maps.sampling import bilinear, constant_like, crop_points
+from riskflow_env.maps.sampling import (
+    bilinear,
+    bilinear_with_gradient,
+    constant_like,
+    crop_points,
+)
 
 CropLayer = Literal["drivable", "sdf"]
 
@@ -144,6 +149,20 @@ class DrivableMap:
         """
         xy = as_query(xy, "xy", last_dim=2)
         return bilinear(self._table("sdf", xy), xy, self._origin, self.resolution, extend=True)
+
+    def sdf_with_gradient(self, xy: Array) -> tuple[Array, Array]:
+        """:meth:`sdf_at` and its gradient with respect to ``xy``, without autograd.
+
+        Args:
+            xy: (..., 2) [m], numpy or torch.
+
+        Returns:
+            (...) [m] signed distances and (..., 2) their gradient [m/m]
+            (:func:`~riskflow_env.maps.sampling.bilinear_with_gradient`).
+        """
+        xy = as_query(xy, "xy", last_dim=2)
+        table = self._table("sdf", xy)
+        return bilinear_with_gradient(table, xy, self._origin, self.resolution, extend=True)
 
     def is_drivable(self, xy: Array) -> Array:
         """(...) bool: ``sdf_at(xy) <= 0`` for world points ``xy`` (..., 2) [m]."""

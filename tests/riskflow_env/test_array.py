@@ -139,3 +139,22 @@ def test_astype_device_asarray_like(dtype):
     tensor = torch.zeros(3, dtype=torch.float32)
     assert asarray_like([1.0, 2.0], tensor).dtype == torch.float32
     assert device(tensor) == tensor.device
+
+
+def test_attach_gradient_keeps_the_value_and_sets_the_gradient():
+    from riskflow_env._array import attach_gradient, detach, requires_grad
+
+    x = torch.randn(3, 5, 2, requires_grad=True)
+    value, gradient = torch.randn(3, 5), torch.randn(3, 5, 2)
+    assert requires_grad(x) and not requires_grad(x.detach()) and not requires_grad(np.ones(2))
+    with torch.no_grad():
+        assert not requires_grad(x)
+    out = attach_gradient(value, x, gradient)
+    assert torch.equal(out.detach(), value)
+    (grad,) = torch.autograd.grad(out.sum(), x)
+    assert torch.equal(grad, gradient)
+    scalar = attach_gradient(value.sum(), x, gradient, axis=None)
+    assert torch.equal(scalar.detach(), value.sum())
+    assert torch.equal(torch.autograd.grad(2.0 * scalar, x)[0], 2.0 * gradient)
+    array = np.ones(3)
+    assert detach(array) is array

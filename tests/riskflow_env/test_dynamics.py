@@ -351,3 +351,18 @@ def test_public_constants():
     assert (dynamics.X, dynamics.Y, dynamics.SPEED, dynamics.YAW) == (0, 1, 2, 3)
     assert (dynamics.STATE_DIM, dynamics.ACTION_DIM, ACCEL, YAW_RATE) == (4, 2, 0, 1)
     assert Y == 1
+
+
+def test_rollout_without_clip_equals_with_clip_for_actions_in_bounds():
+    """``clip=False`` (actions known to be in bounds) changes neither values nor gradients."""
+    generator = torch.Generator().manual_seed(0)
+    state = torch.tensor([[0.0, 0.0, 3.0, 0.2], [5.0, -2.0, 38.0, -1.0]])
+    actions = torch.rand(2, 40, 2, generator=generator) * torch.tensor([13.0, 2.0])
+    actions = (actions - torch.tensor([8.0, 1.0])).requires_grad_(True)  # hits both speed bounds
+    clipped = rollout(state, actions)
+    unclipped = rollout(state, actions, clip=False)
+    assert torch.equal(clipped, unclipped)
+    weights = torch.randn(clipped.shape, generator=generator)
+    (expected,) = torch.autograd.grad(clipped, actions, weights)
+    (got,) = torch.autograd.grad(unclipped, actions, weights)
+    assert torch.equal(got, expected)

@@ -13,10 +13,12 @@ from policies.riskflow.guidance import (
     GuidanceConfig,
     GuidanceScene,
     adversarial_loss,
+    adversarial_value_and_gradient,
     guide,
     map_loss,
     plans_from_velocity,
 )
+from policies.riskflow.guidance_losses import MapTerm
 from policies.riskflow.sampler import base_velocity, sample
 from policies.riskflow.synthetic import synthetic_batch
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
@@ -194,3 +196,54 @@ def test_config_validation():
     ):
         with pytest.raises(ValueError, match="GuidanceConfig: "):
             GuidanceConfig(**bad)
+
+
+def test_adversarial_gradient_is_autograd_of_the_nearest_distance():
+    """``adversarial_value_and_gradient`` (and autograd through ``adversarial_loss``) equal
+    autograd of the plain formula: mean over T_g of the distance to the nearest target."""
+    generator = torch.Generator().manual_seed(1)
+    xy = torch.randn(3, 12, 2, generator=generator, dtype=torch.float64) * 5
+    targets = torch.randn(4, 12, 2, generator=generator, dtype=torch.float64) * 5
+    targets[0, 2] = xy[1, 2]  # an agent exactly on a target: gradient 0, not NaN
+    for horizon in (None, 5):
+        plain = xy.clone().requires_grad_(True)
+        distance = (plain[:, None] - targets[None]).norm(dim=-1).amin(dim=1)[:, :horizon]
+        (expected,) = torch.autograd.grad(distance.mean(dim=1).sum(), plain)
+        value, gradient = adversarial_value_and_gradient(xy, targets, horizon)
+        assert torch.allclose(value, distance.detach().mean(dim=1).sum())
+        assert torch.allclose(gradient, torch.nan_to_num(expected))  # norm's NaN at 0
+        assert (gradient[1, 2] == 0).all() and (horizon is None or (gradient[:, 5:] == 0).all())
+        graph = xy.clone().requires_grad_(True)
+        (through_loss,) = torch.autograd.grad(adversarial_loss(graph, targets, horizon), graph)
+        assert torch.equal(through_loss, gradient)
+
+
+def test_map_gradient_matches_finite_differences():
+    """``MapTerm.value_and_gradient`` against central differences in (x, y, psi), in a
+    rotated scene frame, with samples off the road; autograd through ``MapTerm`` agrees."""
+    generator = torch.Generator().manual_seed(2)
+    frame = torch.tensor([10.0, -1.0, 0.4], dtype=torch.float64)
+    states = torch.zeros(2, 6, 4, dtype=torch.float64)
+    states[..., 0] = torch.linspace(-5.0, 30.0, 6)
+    states[..., 1] = torch.rand(2, 6, generator=generator, dtype=torch.float64) * 10 - 2.0
+    states[..., 3] = torch.rand(2, 6, generator=generator, dtype=torch.float64) - 0.9
+    length, width = torch.tensor([4.5, 5.0]).double(), torch.tensor([2.0, 2.2]).double()
+    term = MapTerm(ROAD, frame, length, width, 6, margin=0.2, decay=0.9)
+    value, gradient = term.value_and_gradient(states)
+    assert value > 1.0  # some samples are off the road
+    assert torch.equal(value, term(states)) and (gradient[..., 2] == 0).all()
+    step = 1e-6
+    for channel in (0, 1, 3):
+        shift = torch.zeros_like(states)
+        shift[..., channel] = step
+        numeric = torch.stack(
+            [
+                (term(states + shift * e[..., None]) - term(states - shift * e[..., None]))
+                / (2 * step)
+                for e in torch.eye(12, dtype=torch.float64).reshape(12, 2, 6)
+            ]
+        ).reshape(2, 6)
+        assert torch.allclose(gradient[..., channel], numeric, atol=1e-5), channel
+    graph = states.clone().requires_grad_(True)
+    (through_term,) = torch.autograd.grad(term(graph), graph)
+    assert torch.equal(through_term, gradient)

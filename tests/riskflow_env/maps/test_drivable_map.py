@@ -249,3 +249,45 @@ def test_lookups_and_builders_reject_bad_input(rect_map: DrivableMap) -> None:
         from_polygons(shapely.box(0, 0, 1e5, 1e5), resolution=0.5)
     with pytest.raises(ValueError, match="at least one Lane"):
         from_lanes([])
+
+
+def test_sdf_with_gradient_matches_finite_differences_numpy_and_torch(
+    rect_map: DrivableMap,
+) -> None:
+    """The analytic gradient (on and beyond the raster) against central differences,
+    the same in numpy and torch; its values are ``sdf_at``'s, bit for bit."""
+    rng = np.random.default_rng(5)
+    points = rng.uniform([-12.0, -12.0], [32.0, 22.0], size=(300, 2))
+    value, gradient = rect_map.sdf_with_gradient(points)
+    np.testing.assert_array_equal(value, rect_map.sdf_at(points))
+    step = 1e-6  # [m]
+    numeric = np.stack(
+        [
+            (rect_map.sdf_at(points + step * e) - rect_map.sdf_at(points - step * e)) / (2 * step)
+            for e in np.eye(2)
+        ],
+        axis=-1,
+    )
+    np.testing.assert_allclose(gradient, numeric, atol=1e-5)
+    value_t, gradient_t = rect_map.sdf_with_gradient(torch.as_tensor(points))
+    np.testing.assert_array_equal(value_t.numpy(), value)
+    np.testing.assert_allclose(gradient_t.numpy(), gradient, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_autograd_through_sdf_at_is_the_analytic_gradient(
+    rect_map: DrivableMap, dtype: torch.dtype
+) -> None:
+    """A query that requires grad gets the same values as one that does not and, as its
+    autograd gradient, ``sdf_with_gradient``'s."""
+    rng = np.random.default_rng(6)
+    points = torch.as_tensor(
+        rng.uniform([-12.0, -12.0], [32.0, 22.0], size=(4, 50, 2)), dtype=dtype
+    )
+    xy = points.clone().requires_grad_(True)
+    value = rect_map.sdf_at(xy)
+    (grad,) = torch.autograd.grad(value.sum(), xy)
+    expected_value, expected_grad = rect_map.sdf_with_gradient(points)
+    assert torch.equal(value.detach(), expected_value)
+    assert torch.equal(value.detach(), rect_map.sdf_at(points))
+    assert torch.equal(grad, expected_grad)
