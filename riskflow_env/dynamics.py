@@ -30,10 +30,11 @@ integration and the policies' vectorised rollout cannot drift apart.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 
-from riskflow_env._array import Array, cummax, namespace
+from riskflow_env._array import Array, asarray_like, cummax, device, namespace
 from riskflow_env.config import DynamicsConfig
 
 X, Y, SPEED, YAW = 0, 1, 2, 3
@@ -57,6 +58,8 @@ __all__ = [
     "clip_actions",
     "inverse",
     "rollout",
+    "rollout_vjp",
+    "rollout_with_vjp",
     "step",
     "wrap_angle",
 ]
@@ -122,8 +125,9 @@ def clip_actions(actions: Array, config: DynamicsConfig = DEFAULT_CONFIG) -> Arr
     return xp.stack([accel, yaw_rate], axis=-1)
 
 
-def _bounded_speed(v0: Array, accel: Array, config: DynamicsConfig) -> Array:
-    """Speeds ``(..., T)`` after each step, kept in ``[speed_min, speed_max]``.
+def _bounded_speed(v0: Array, accel: Array, config: DynamicsConfig) -> tuple[Array, tuple]:
+    """Speeds ``(..., T)`` after each step, kept in ``[speed_min, speed_max]``, and what
+    :func:`_bounded_speed_vjp` needs (the reflections' inputs and running maxima).
 
     The unbounded path is ``S_t = v0 + dt * cumsum(a)_t``. The lower bound is the
     Skorokhod reflection ``S_t + max(0, max_{k<=t}(speed_min - S_k))``, which equals
@@ -136,9 +140,55 @@ def _bounded_speed(v0: Array, accel: Array, config: DynamicsConfig) -> Array:
     """
     xp = namespace(v0, accel)
     free = v0 + config.dt * xp.cumulative_sum(accel, axis=-1)
-    lower = free + xp.clip(cummax(config.speed_min - free, axis=-1), 0.0, None)
-    both = lower - xp.clip(cummax(lower - config.speed_max, axis=-1), 0.0, None)
-    return xp.clip(both, config.speed_min, config.speed_max)
+    below = config.speed_min - free
+    below_max = cummax(below, axis=-1)
+    lower = free + xp.clip(below_max, 0.0, None)
+    above = lower - config.speed_max
+    above_max = cummax(above, axis=-1)
+    both = lower - xp.clip(above_max, 0.0, None)
+    speed = xp.clip(both, config.speed_min, config.speed_max)
+    return speed, (below, below_max, above, above_max, both)
+
+
+def _argcummax(inner: Array, running_max: Array, steps: Array) -> Array:
+    """``(..., T)`` step of each running maximum; the latest on ties, as ``torch.cummax``."""
+    xp = namespace(inner)
+    return cummax(xp.where(inner == running_max, steps, 0), axis=-1)
+
+
+def _windows(first: Array, last: Array, steps: Array) -> Array:
+    """``(..., T, T)`` bool ``[first_t <= k <= last_t]`` (row t, column k)."""
+    return (steps >= first[..., None]) & (steps <= last[..., None])
+
+
+def _bounded_speed_vjp(cotangent: Array, saved: tuple, config: DynamicsConfig) -> Array:
+    """Cotangent ``(..., T)`` on the accelerations from the one on the speeds of
+    :func:`_bounded_speed`: autograd of its forward, ties included, in closed form.
+
+    Each speed is ``v0``, or the bound last touched, plus ``dt`` times the sum of the
+    accelerations over a window of steps: after the lower reflection's argmax ``k_t``
+    where it is active (its running max ``>= 0``: ``torch.clamp`` passes the gradient
+    at 0), from step 0 otherwise; the upper reflection takes back the window of its
+    argmax ``j_t``. So ``d speed_t / d a_k`` is ``dt`` times an exact -1/0/1 matrix:
+    an action that cannot move a speed (braking while stopped) gets exactly 0, with no
+    rounding residue for an optimiser to amplify.
+    """
+    below, below_max, above, above_max, both = saved
+    xp = namespace(cotangent, below)
+    lower_on, upper_on = below_max >= 0, above_max >= 0
+    upper_reached = bool(xp.any(upper_on))
+    if not upper_reached and not bool(xp.any(lower_on)):
+        return config.dt * _reverse_cumsum(cotangent, axis=-1)  # speed = v0 + dt * cumsum(a)
+    steps = xp.arange(below.shape[-1], device=device(below))
+    first = xp.where(lower_on, _argcummax(below, below_max, steps) + 1, 0)  # (..., T)
+    jacobian = xp.astype(_windows(first, steps, steps), cotangent.dtype)  # lower / dt
+    if upper_reached:
+        latest = _argcummax(above, above_max, steps)  # (..., T) j_t
+        back = _windows(xp.take_along_axis(first, latest, axis=-1), latest, steps)
+        jacobian = jacobian - xp.astype(back & upper_on[..., None], cotangent.dtype)
+    inside = (both >= config.speed_min) & (both <= config.speed_max)  # the final clip
+    cotangent = xp.where(inside, cotangent, 0.0)
+    return config.dt * xp.sum(cotangent[..., :, None] * jacobian, axis=-2)
 
 
 def _shift_in(first: Array, seq: Array) -> Array:
@@ -172,24 +222,121 @@ def rollout(
         included). Speeds lie in ``[speed_min, speed_max]``; the heading is
         continuous (not wrapped).
     """
+    return _rollout(state, actions, config, clip)[0]
+
+
+def _rollout(state: Array, actions: Array, config: DynamicsConfig, clip: bool) -> tuple:
+    """:func:`rollout` and what its vector-Jacobian product needs."""
     _require_last_dim(state, STATE_DIM, "state")
     _require_last_dim(actions, ACTION_DIM, "actions", min_ndim=2)
     xp = namespace(state, actions)
     dt = config.dt
+    commanded = actions
     if clip:
         actions = clip_actions(actions, config)
     x0, y0 = state[..., X, None], state[..., Y, None]  # (..., 1)
     v0, psi0 = state[..., SPEED, None], state[..., YAW, None]
 
-    speed = _bounded_speed(v0, actions[..., ACCEL], config)  # (..., T)
+    speed, bounds = _bounded_speed(v0, actions[..., ACCEL], config)  # (..., T)
     yaw = psi0 + dt * xp.cumulative_sum(actions[..., YAW_RATE], axis=-1)
     speed_before = _shift_in(v0, speed)
     yaw_before = _shift_in(psi0, yaw)
+    cos_before, sin_before = xp.cos(yaw_before), xp.sin(yaw_before)
     distance = 0.5 * (speed_before + speed) * dt  # (..., T) [m], uses a_eff
-    x = x0 + xp.cumulative_sum(distance * xp.cos(yaw_before), axis=-1)
-    y = y0 + xp.cumulative_sum(distance * xp.sin(yaw_before), axis=-1)
+    x = x0 + xp.cumulative_sum(distance * cos_before, axis=-1)
+    y = y0 + xp.cumulative_sum(distance * sin_before, axis=-1)
     x, y, speed, yaw = xp.broadcast_arrays(x, y, speed, yaw)
-    return xp.stack([x, y, speed, yaw], axis=-1)
+    saved = (commanded if clip else None, bounds, distance, cos_before, sin_before)
+    return xp.stack([x, y, speed, yaw], axis=-1), saved
+
+
+def rollout_with_vjp(
+    state: Array, actions: Array, config: DynamicsConfig = DEFAULT_CONFIG, clip: bool = True
+) -> tuple[Array, Callable[[Array], Array]]:
+    """:func:`rollout` and its vector-Jacobian product with respect to the actions,
+    in closed form (no autograd; numpy or torch).
+
+    Args: as :func:`rollout`.
+
+    Returns:
+        ``(trajectories, vjp)``: the ``(..., T, 4)`` rollout, and ``vjp(cotangent)``
+        mapping a cotangent ``(..., T, 4)`` on ``(x, y, v, psi)`` (e.g. ``dL/d
+        trajectories``) to ``(..., T, 2)`` on the actions (``dL/d actions``, shaped as
+        ``actions``): what torch autograd of :func:`rollout` gives, to float rounding,
+        including at the speed bounds (the reflections' argmax steps; gradient 1 at a
+        tie, as ``torch.clamp``) and at clipped actions (0 outside the bounds).
+        Reverse cumulative sums over time; no Python loop over time.
+    """
+    trajectories, saved = _rollout(state, actions, config, clip)
+    shape = tuple(actions.shape)
+
+    def vjp(cotangent: Array) -> Array:
+        _require_last_dim(cotangent, STATE_DIM, "cotangent", min_ndim=2)
+        if tuple(cotangent.shape) != tuple(trajectories.shape):
+            raise ValueError(
+                f"cotangent must have the trajectories' shape {tuple(trajectories.shape)}, "
+                f"got {tuple(cotangent.shape)}"
+            )
+        return _rollout_vjp(cotangent, saved, shape, config)
+
+    return trajectories, vjp
+
+
+def rollout_vjp(
+    state: Array,
+    actions: Array,
+    cotangent: Array,
+    config: DynamicsConfig = DEFAULT_CONFIG,
+    clip: bool = True,
+) -> Array:
+    """``cotangent^T d rollout / d actions``: ``(..., T, 2)`` from a ``(..., T, 4)``
+    cotangent on the rollout's states (:func:`rollout_with_vjp`)."""
+    return rollout_with_vjp(state, actions, config, clip)[1](cotangent)
+
+
+def _reverse_cumsum(x: Array, axis: int) -> Array:
+    """``sum_{s >= t} x_s`` along ``axis``."""
+    xp = namespace(x)
+    return xp.flip(xp.cumulative_sum(xp.flip(x, axis=axis), axis=axis), axis=axis)
+
+
+def _shift_out(seq: Array) -> Array:
+    """``(..., T)`` the next step's values: ``[seq_1, ..., seq_{T-1}, 0]``."""
+    xp = namespace(seq)
+    return xp.concat([seq[..., 1:], xp.zeros_like(seq[..., :1])], axis=-1)
+
+
+def _rollout_vjp(cotangent: Array, saved: tuple, shape: tuple, config: DynamicsConfig) -> Array:
+    """The backward pass of :func:`_rollout`, op by op in reverse."""
+    commanded, bounds, distance, cos_before, sin_before = saved
+    xp = namespace(cotangent)
+    dt = config.dt
+    # x_t = x0 + sum_{k<=t} distance_k cos(psi_{k-1}) (y: sin): each step's increment
+    # moves every later position.
+    increment = _reverse_cumsum(cotangent[..., :2], axis=-2)  # (..., T, 2)
+    increment_x, increment_y = increment[..., 0], increment[..., 1]
+    d_distance = increment_x * cos_before + increment_y * sin_before  # (..., T)
+    d_yaw_before = distance * (increment_y * cos_before - increment_x * sin_before)
+    # psi_t enters as psi_before_{t+1}; v_t in distance_t and distance_{t+1}.
+    d_yaw = cotangent[..., YAW] + _shift_out(d_yaw_before)
+    d_speed = cotangent[..., SPEED] + (0.5 * dt) * (d_distance + _shift_out(d_distance))
+    d_accel = _bounded_speed_vjp(d_speed, bounds, config)
+    d_actions = xp.stack([d_accel, dt * _reverse_cumsum(d_yaw, axis=-1)], axis=-1)
+    if commanded is not None:  # clip_actions: gradient 1 inside the bounds (inclusive)
+        low = asarray_like([config.accel_min, -config.yaw_rate_max], commanded)
+        high = asarray_like([config.accel_max, config.yaw_rate_max], commanded)
+        inside = (commanded >= low) & (commanded <= high)
+        d_actions = xp.where(inside, d_actions, 0.0)
+    return _sum_to_shape(d_actions, shape)
+
+
+def _sum_to_shape(x: Array, shape: tuple) -> Array:
+    """``x`` summed over the leading dimensions it was broadcast along, to ``shape``."""
+    xp = namespace(x)
+    if x.ndim > len(shape):
+        x = xp.sum(x, axis=tuple(range(x.ndim - len(shape))))
+    stretched = tuple(i for i, n in enumerate(shape) if n == 1 and x.shape[i] != 1)
+    return xp.sum(x, axis=stretched, keepdims=True) if stretched else x
 
 
 def step(state: Array, action: Array, config: DynamicsConfig = DEFAULT_CONFIG) -> Array:

@@ -76,7 +76,7 @@ from policies.riskflow.guidance_losses import (
 )
 from policies.riskflow.meanflow import Normalizer
 from riskflow_env.config import DynamicsConfig
-from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout
+from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout, rollout_with_vjp
 from riskflow_env.maps import DrivableMap
 
 TARGETS = ("others", "ego")
@@ -248,17 +248,18 @@ class _Objective:
         """``grad_u L`` (C, T, 2) of ``L = lambda_adv * L_adv + lambda_map * L_map``,
         ``L_adv`` [m] and ``L_map`` [m^2].
 
-        Autograd records only the rollout: the losses give their value and their
-        gradient with respect to the trajectories in closed form
-        (``*_value_and_gradient``), which is then pulled back through the rollout in
-        one vector-Jacobian product.
+        No autograd: the losses give their value and their gradient with respect to the
+        trajectories in closed form (``*_value_and_gradient``), the rollout its
+        vector-Jacobian product (``rollout_with_vjp``), and ``a = offset + std * u_c``
+        is a diagonal scale.
         """
-        u_c = u_c.detach().requires_grad_(True)
-        with torch.enable_grad():
-            # In bounds (the projection keeps them there): the rollout's clip is skipped.
-            trajectories = rollout(self.state, self.actions(u_c), self.dynamics, clip=False)
-        xy = trajectories[..., :2].detach()
-        adv, d_xy = adversarial_value_and_gradient(xy, self.target_xy, self.horizon)
+        # In bounds (the projection keeps them there): the rollout's clip is skipped.
+        trajectories, vjp = rollout_with_vjp(
+            self.state, self.actions(u_c), self.dynamics, clip=False
+        )
+        adv, d_xy = adversarial_value_and_gradient(
+            trajectories[..., :2], self.target_xy, self.horizon
+        )
         d_trajectories = torch.zeros_like(trajectories)
         d_trajectories[..., :2] = lambda_adv * d_xy
         if self.map_term is None:
@@ -266,8 +267,7 @@ class _Objective:
         else:
             off_road, d_map = self.map_term.value_and_gradient(trajectories)
             d_trajectories.add_(d_map, alpha=lambda_map)
-        (grad,) = torch.autograd.grad(trajectories, u_c, d_trajectories)
-        return grad, adv, off_road
+        return vjp(d_trajectories) * self.std, adv, off_road
 
 
 def guide(
@@ -309,10 +309,10 @@ def guide(
         u_c = torch.minimum(torch.maximum(scene.u0[rows], lower), upper)
     first, second = torch.zeros_like(u_c), torch.zeros_like(u_c)
     history = []
-    for step in range(config.steps):
-        grad, adv, off_road = objective.gradient(u_c, config.lambda_adv, config.lambda_map)
-        history.append((adv, off_road))
-        with torch.no_grad():
+    with torch.no_grad():  # closed-form gradients: nothing to record
+        for step in range(config.steps):
+            grad, adv, off_road = objective.gradient(u_c, config.lambda_adv, config.lambda_map)
+            history.append((adv, off_road))
             if config.optimizer == "adam":
                 beta1, beta2 = _ADAM_BETAS
                 first.mul_(beta1).add_(grad, alpha=1 - beta1)
@@ -322,7 +322,6 @@ def guide(
             else:
                 grad = config.step_size * grad
             u_c = torch.minimum(torch.maximum(u_c - grad, lower), upper)
-    with torch.no_grad():
         trajectories_c, adv, off_road = objective(u_c)
         history.append((adv, off_road))
         u = scene.u0.clone()

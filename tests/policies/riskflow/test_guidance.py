@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from policies.riskflow import guidance
 from policies.riskflow.data import ActionNormalizer
 from policies.riskflow.guidance import (
     GuidanceConfig,
@@ -247,3 +248,52 @@ def test_map_gradient_matches_finite_differences():
     graph = states.clone().requires_grad_(True)
     (through_term,) = torch.autograd.grad(term(graph), graph)
     assert torch.equal(through_term, gradient)
+
+
+def _autograd_gradient(objective, u_c, lambda_adv, lambda_map):
+    """The autograd path the closed form replaces: through the rollout and both losses."""
+    u_c = u_c.detach().requires_grad_(True)
+    with torch.enable_grad():
+        trajectories = rollout(objective.state, objective.actions(u_c), objective.dynamics)
+        adv = adversarial_loss(trajectories[..., :2], objective.target_xy, objective.horizon)
+        off_road = objective.map_term(trajectories)
+        (grad,) = torch.autograd.grad(lambda_adv * adv + lambda_map * off_road, u_c)
+    return grad, adv.detach(), off_road.detach()
+
+
+def _stopping_scene() -> GuidanceScene:
+    """HIGHWAY with vehicle 3 braking to a stop (speed bound active) and vehicle 1 on the
+    road edge (map term active)."""
+    state = [row[:] for row in HIGHWAY]
+    state[1][1], state[3][2] = 5.0, 1.0
+    scene = make_scene(state)
+    accel = torch.zeros(len(state), STEPS, 2)
+    accel[3, :30, 0] = -2.0
+    u0 = NORMALIZER.normalize(accel) - scene.eps
+    actions, trajectories = plans_from_velocity(
+        scene.eps, u0, scene.state, scene.agent_mask, NORMALIZER
+    )
+    assert bool((trajectories[3, :, 2] == 0).any())
+    return dataclasses.replace(scene, u0=u0, base_actions=actions, base_trajectories=trajectories)
+
+
+def test_closed_form_gradient_and_plans_equal_the_autograd_path(monkeypatch):
+    scene = _stopping_scene()
+    controllable = mask_of(6, [1, 3, 5])
+    config = GuidanceConfig()
+    rows = torch.tensor([1, 3, 5])
+    targets = scene.base_trajectories[[0, 2, 4], :, :2]
+    objective = guidance._Objective(scene, rows, targets, NORMALIZER, config, DEFAULT_CONFIG)
+    guided = guide(scene, controllable, NORMALIZER, config)
+    for u_c in (scene.u0[rows], guided.u[rows]):
+        closed = objective.gradient(u_c, config.lambda_adv, config.lambda_map)
+        reference = _autograd_gradient(objective, u_c, config.lambda_adv, config.lambda_map)
+        scale = float(reference[0].abs().max())
+        torch.testing.assert_close(closed[0], reference[0], rtol=0, atol=1e-5 * scale)
+        torch.testing.assert_close(closed[1:], reference[1:])
+    monkeypatch.setattr(guidance._Objective, "gradient", _autograd_gradient)
+    previous = guide(scene, controllable, NORMALIZER, config)
+    # Plans (trajectories) to float rounding; actions that move nothing (braking while
+    # stopped) may differ: autograd leaves rounding residues there that Adam amplifies.
+    torch.testing.assert_close(guided.trajectories, previous.trajectories, rtol=0, atol=1e-4)
+    torch.testing.assert_close(guided.losses, previous.losses, rtol=1e-5, atol=1e-5)
