@@ -309,7 +309,9 @@ def guide(
         u_c = torch.minimum(torch.maximum(scene.u0[rows], lower), upper)
     first, second = torch.zeros_like(u_c), torch.zeros_like(u_c)
     history = []
-    with torch.no_grad():  # closed-form gradients: nothing to record
+    # Closed-form gradients: nothing to record, and inference mode skips autograd's
+    # per-op bookkeeping (version counters) too; u_c leaves it only through copies.
+    with torch.inference_mode():
         for step in range(config.steps):
             grad, adv, off_road = objective.gradient(u_c, config.lambda_adv, config.lambda_map)
             history.append((adv, off_road))
@@ -322,6 +324,7 @@ def guide(
             else:
                 grad = config.step_size * grad
             u_c = torch.minimum(torch.maximum(u_c - grad, lower), upper)
+    with torch.no_grad():
         trajectories_c, adv, off_road = objective(u_c)
         history.append((adv, off_road))
         u = scene.u0.clone()

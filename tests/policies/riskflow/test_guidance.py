@@ -252,8 +252,8 @@ def test_map_gradient_matches_finite_differences():
 
 def _autograd_gradient(objective, u_c, lambda_adv, lambda_map):
     """The autograd path the closed form replaces: through the rollout and both losses."""
-    u_c = u_c.detach().requires_grad_(True)
-    with torch.enable_grad():
+    with torch.inference_mode(False), torch.enable_grad():  # guide's loop runs in inference
+        u_c = u_c.clone().requires_grad_(True)
         trajectories = rollout(objective.state, objective.actions(u_c), objective.dynamics)
         adv = adversarial_loss(trajectories[..., :2], objective.target_xy, objective.horizon)
         off_road = objective.map_term(trajectories)
