@@ -25,6 +25,10 @@ continuous, which keeps gradients and yaw-rate recovery simple); wrap it with
 
 :func:`step` is :func:`rollout` with one action, so the env's step-by-step
 integration and the policies' vectorised rollout cannot drift apart.
+:func:`rollout_with_vjp` returns the rollout with its vector-Jacobian product in closed
+form (reverse cumulative sums; the speed bounds through the reflections' argmax steps),
+equal to autograd of :func:`rollout` to float rounding, for gradient loops that need no
+autograd (output-space guidance).
 """
 
 from __future__ import annotations

@@ -9,12 +9,14 @@ sampling path (DESIGN.md section 7): starting from the base residual
 with ``a = denorm(eps + u)`` and the trajectory ``rollout(a, s0)`` (the vectorised,
 differentiable unicycle of ``riskflow_env.dynamics``). The generator is *not* re-run
 inside the loop, so each step is one rollout of the ``A_c`` rows, their SDF lookups and
-a backward pass through those only. Autograd records only the rollout: ``L_adv`` and
-``L_map`` give their value and their gradient with respect to the trajectories in
-closed form (``guidance_losses``: the argmin's unit vectors; the SDF's bilinear slope
-chained through the footprint), pulled back through the rollout in one
-vector-Jacobian product. Same math as differentiating the losses op by op; the
-gradients agree to float rounding. Only ``A_c`` rows are optimised (they are the only
+a backward pass through those only, with no autograd at all: ``L_adv`` and ``L_map`` give
+their value and their gradient with respect to the trajectories in closed form
+(``guidance_losses``: the argmin's unit vectors; the SDF's bilinear slope chained through
+the footprint), pulled back through the rollout by its closed-form vector-Jacobian
+product (``riskflow_env.dynamics.rollout_with_vjp``) and through ``denorm`` (a diagonal
+scale). Same math as differentiating op by op: the gradients agree with autograd to
+float rounding, except that an action that cannot move the plan (braking while stopped)
+gets exactly 0 rather than a rounding residue for Adam to amplify. Only ``A_c`` rows are optimised (they are the only
 variables, which is the mask ``M_Ac`` done exactly): every other row of ``u``, of the
 actions and of the trajectories is the base plan, bit for bit.
 
