@@ -47,6 +47,8 @@ class Options:
 
     runs: str = ""
     """comma-separated training output folders (train_ego_ppo.py --out); empty: baselines only"""
+    model: str = "final_model"
+    """model of each run to evaluate as 'ppo' (e.g. checkpoints/ppo_80000_steps)"""
     out: Path = Path("outputs/evaluate_ego")
     """output folder"""
     split: str = "eval"
@@ -69,6 +71,8 @@ class Options:
     """episode length [steps of 0.1 s]"""
     baselines: bool = True
     """also evaluate the IDM, constant-velocity and random egos"""
+    combine: str = ""
+    """comma-separated results.json files of earlier runs: merge them (no new episodes)"""
 
     def __post_init__(self) -> None:
         if self.nominal not in NOMINAL:
@@ -77,13 +81,31 @@ class Options:
             raise ValueError("--scenes and --episodes-per-run must be >= 1")
 
 
-def run_seed(run: Path) -> int:
-    """The training seed of a run folder (its options.json)."""
-    return int(json.loads((run / "options.json").read_text())["seed"])
+def run_options(run: Path) -> tuple[int, str]:
+    """Training seed and base planner of a run folder (its options.json)."""
+    options = json.loads((run / "options.json").read_text())
+    return int(options["seed"]), options.get("base_planner", "none")
+
+
+def load_results(paths: str) -> tuple[dict, dict]:
+    """Summaries and per-run summaries of earlier ``results.json`` files, merged."""
+    summaries, per_run = {}, {}
+    for path in [Path(p) for p in paths.split(",") if p]:
+        content = json.loads(path.read_text())
+        for target, rows in ((summaries, content["summary"]), (per_run, content["per_run"])):
+            for row in rows:
+                row = dict(row)
+                target[row.pop("planner"), row.pop("traffic")] = row
+    return summaries, per_run
 
 
 def main(argv: list[str] | None = None) -> None:
     options = parse_dataclass(Options, argv, prog="evaluate_ego.py", description=__doc__)
+    if options.combine:
+        summaries, per_run = load_results(options.combine)
+        adversarial_label = ScenePolicyConfig(stage=AdversaryStage(k=options.k)).label
+        write_report(summaries, per_run, adversarial_label, options.out)
+        return
     bank = shipped_bank(options.split)
     count = min(options.scenes, len(bank))
     scenes = [bank[round(i * len(bank) / count)] for i in range(count)]
@@ -104,11 +126,15 @@ def main(argv: list[str] | None = None) -> None:
 
     results, per_run = {}, {}
     for run in [Path(r) for r in options.runs.split(",") if r]:
-        seed = run_seed(run)
+        seed, base = run_options(run)
         seeds = [seed * 100 + i for i in range(options.episodes_per_run)]
         planners = {
-            name: (lambda s, path=run / f"{stem}.zip": load_ppo_planner(str(path)))
-            for name, stem in (("ppo", "final_model"), ("ppo-initial", "initial_model"))
+            name: (
+                lambda s, path=run / f"{stem}.zip", base=base: load_ppo_planner(
+                    str(path), True, base
+                )
+            )
+            for name, stem in (("ppo", options.model), ("ppo-initial", "initial_model"))
         }
         records = evaluate(planners, traffics, scenes, seeds, config, progress=print)
         for (name, traffic), episodes in records.items():
@@ -119,11 +145,15 @@ def main(argv: list[str] | None = None) -> None:
         results |= evaluate(BASELINES, traffics, scenes, seeds, config, progress=print)
 
     summaries = {key: summarize_ego(episodes) for key, episodes in results.items()}
-    order = sorted(summaries, key=lambda key: (key[1] != adversarial.label, key[1]))
+    write_report(summaries, per_run, adversarial.label, options.out)
+
+
+def write_report(summaries: dict, per_run: dict, adversarial_label: str, out: Path) -> None:
+    """results.md (printed), results.png and results.json; adversarial rows first."""
+    order = sorted(summaries, key=lambda key: (key[1] != adversarial_label, key[1]))
     summaries = {key: summaries[key] for key in order}
     table = markdown_table(summaries)
     breakdown = markdown_table(per_run) if per_run else ""
-    out = options.out
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.md").write_text(table + ("\n\nPer run:\n\n" + breakdown if breakdown else ""))
     plot_summaries(summaries, out / "results.png")

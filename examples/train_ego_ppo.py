@@ -1,6 +1,6 @@
 """Train an ego with Stable-Baselines3 PPO against the RiskFlow adversary (``rl`` extra).
 
-    python examples/train_ego_ppo.py --seed 0 --total-timesteps 150000 --out runs/ego_ppo/seed0
+    python examples/train_ego_ppo.py --seed 0 --total-timesteps 120000 --out runs/ego_ppo/seed0
     python examples/train_ego_ppo.py --help
 
 The ego drives ``RiskFlowEgo-v0`` (:class:`~policies.rl.envs.EgoTrainingEnv`: actions
@@ -9,6 +9,12 @@ other vehicle, with a curriculum that ramps ``k`` and the guidance weight ``lamb
 (and optionally switches the target) over the first ``ramp_fraction`` of training
 (:mod:`policies.rl.curriculum`). Episodes come from the shipped *training* bank; evaluate
 on the evaluation bank with ``examples/evaluate_ego.py``.
+
+Reward: the env's (``RewardConfig``: speed, collision, off-road, TTC risk, comfort) with
+the collision and off-road weights doubled to -10 (the library default is -5): the speed
+term pays at most 0.1 per step, so -10 makes avoiding one collision worth 100 steps of
+full speed, and off-road equal to collision means that leaving the road is never a
+cheaper way out of a crash than the crash itself (both end the episode).
 
 The adversary plans on the CPU; that is the cost of a step. Training uses a cheaper one
 than the evaluation's (``guidance_steps`` 10 and a re-plan every 1.0 s instead of 30 and
@@ -48,7 +54,7 @@ VEC_ENVS = ("subproc", "dummy")
 class Options:
     """Options of train_ego_ppo.py."""
 
-    total_timesteps: int = 150_000
+    total_timesteps: int = 120_000
     """env steps to train for (all envs together)"""
     seed: int = 0
     """seeds PPO, torch, numpy, the scene draws and the adversary's noise"""
@@ -64,6 +70,8 @@ class Options:
     """use only the first N scenes of the split (None: all)"""
     episode_steps: int = 100
     """episode length [steps of 0.1 s]"""
+    base_planner: str = "none"
+    """'none' (the policy drives) or 'idm' (the policy's action is added to IDM's: residual)"""
     guidance_steps: int = 10
     """K_g of the training adversary (evaluation uses 30)"""
     planning_interval: float = 1.0
@@ -78,13 +86,13 @@ class Options:
     """curriculum: adversarial guidance weight after the ramp [1/m]"""
     target_start: str = "others"
     """curriculum: guidance target at the start ('others' or 'ego')"""
-    target_end: str = "others"
+    target_end: str = "ego"
     """curriculum: guidance target from half-way through the ramp"""
-    ramp_fraction: float = 0.5
+    ramp_fraction: float = 0.4
     """share of training the curriculum ramp takes (0: no curriculum)"""
-    collision_reward: float = -5.0
+    collision_reward: float = -10.0
     """reward when the ego collides [per step]"""
-    offroad_reward: float = -5.0
+    offroad_reward: float = -10.0
     """reward while the ego is off the road [per step]"""
     n_steps: int = 1024
     """PPO rollout length per env"""
@@ -96,11 +104,11 @@ class Options:
     """Adam learning rate"""
     gamma: float = 0.99
     """discount factor"""
-    log_std_init: float = -1.0
-    """initial log std of the Gaussian policy (normalised actions; -1: std 0.37)"""
+    log_std_init: float = -1.2
+    """initial log std of the Gaussian policy (normalised actions; -1.2: std 0.30)"""
     normalize: bool = True
     """normalise observations and rewards (VecNormalize; stats saved with each model)"""
-    checkpoint_every: int = 25_000
+    checkpoint_every: int = 20_000
     """save a checkpoint every N env steps (0: none)"""
     tensorboard: bool = False
     """also write TensorBoard event files to <out>/tb"""
@@ -126,6 +134,7 @@ def env_config(options: Options) -> EgoEnvConfig:
         ),
         split=options.split,
         scenes=options.scenes,
+        base_planner=options.base_planner,
     )
 
 

@@ -7,6 +7,9 @@
   the strongest braking (``accel_min``), +1 the strongest acceleration (``accel_max``),
   and the yaw rate is ``u * yaw_rate_max``. A plain affine map of ``[-8, 5]`` would put
   0 at -1.5 m/s^2, so an untrained policy would brake;
+* optionally **residual**: with ``base_planner`` (e.g. ``"idm"``), the scaled action is
+  added to that planner's action (:func:`compose_action`), so that 0 is "drive as the
+  base planner does" and the policy learns a correction (residual policy learning);
 * **episode outcome** in the last step's info: ``ego_collision`` and ``ego_offroad``
   (1.0 if it happened at any step of the episode), logged by the training callbacks;
 * :meth:`EgoTrainingEnv.set_adversary_stage` ramps the adversary (curriculum).
@@ -28,6 +31,34 @@ from policies.rl.adversary import AdversaryStage, ScenePolicyConfig, apply_stage
 from riskflow_env.config import DynamicsConfig, EnvConfig
 from riskflow_env.wrappers import EgoEnv
 
+BASE_PLANNERS = ("none", "idm")
+
+
+def make_base_planner(name: str, dynamics: DynamicsConfig):
+    """The base planner of a residual policy (None for ``"none"``)."""
+    if name not in BASE_PLANNERS:
+        raise ValueError(f"base_planner must be one of {BASE_PLANNERS}, got {name!r}")
+    if name == "none":
+        return None
+    from policies.planners import IDMPlanner
+
+    return IDMPlanner(dynamics=dynamics)
+
+
+def compose_action(
+    action: np.ndarray, base: np.ndarray | None, dynamics: DynamicsConfig
+) -> np.ndarray:
+    """The env action of a normalised policy action: ``scale_action(action)``, plus the base
+    planner's action ``base`` (accel [m/s^2], yaw rate [rad/s]) when there is one, clipped
+    to the dynamics bounds. Used by training (:class:`EgoTrainingEnv`) and evaluation
+    (:class:`~policies.rl.evaluation.PPOPlanner`) alike."""
+    scaled = scale_action(action, dynamics)
+    if base is None:
+        return scaled
+    low = [dynamics.accel_min, -dynamics.yaw_rate_max]
+    high = [dynamics.accel_max, dynamics.yaw_rate_max]
+    return np.clip(scaled + np.asarray(base, dtype=np.float64), low, high)
+
 
 def scale_action(action: np.ndarray, dynamics: DynamicsConfig) -> np.ndarray:
     """Normalised ``(u_accel, u_yaw)`` in ``[-1, 1]`` (clipped) -> (accel [m/s^2], yaw rate
@@ -46,12 +77,15 @@ class EgoEnvConfig:
         traffic: the scene policy of the other vehicles.
         split: shipped scenario bank the episodes are drawn from (``"train"``/``"eval"``).
         scenes: use only the first ``scenes`` scenes of the split (None: all).
+        base_planner: ``"none"`` (the policy's action is the action) or ``"idm"`` (the
+            policy's action is a residual added to the IDM planner's).
     """
 
     env: EnvConfig = field(default_factory=EnvConfig)
     traffic: ScenePolicyConfig = field(default_factory=ScenePolicyConfig)
     split: str = "train"
     scenes: int | None = None
+    base_planner: str = "none"
 
 
 class EgoTrainingEnv(gymnasium.Wrapper):
@@ -59,22 +93,32 @@ class EgoTrainingEnv(gymnasium.Wrapper):
 
     Args:
         env: the ego's Gymnasium view.
+        base_planner: ``"none"`` or ``"idm"`` (residual actions, module docstring).
     """
 
-    def __init__(self, env: EgoEnv) -> None:
+    def __init__(self, env: EgoEnv, base_planner: str = "none") -> None:
         super().__init__(env)
         self.dynamics = env.parallel_env.config.dynamics
+        self.base = make_base_planner(base_planner, self.dynamics)
         self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (2,), np.float32)
         self._outcome = {"ego_collision": 0.0, "ego_offroad": 0.0}
+        self._observation: np.ndarray | None = None
 
     def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
         self._outcome = {"ego_collision": 0.0, "ego_offroad": 0.0}
-        return self.env.reset(**kwargs)
+        self._observation, info = self.env.reset(**kwargs)
+        if self.base is not None:
+            self.base.reset(self.env.unwrapped.parallel_env.view())
+        return self._observation, info
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        base = None
+        if self.base is not None:
+            base = self.base(self._observation, self.env.unwrapped.parallel_env.view())
         observation, reward, terminated, truncated, info = self.env.step(
-            scale_action(action, self.dynamics)
+            compose_action(action, base, self.dynamics)
         )
+        self._observation = observation
         self._outcome["ego_collision"] = max(
             self._outcome["ego_collision"], float(info["collided"])
         )
@@ -96,7 +140,8 @@ def build_env(config: EgoEnvConfig, seed: int = 0) -> EgoTrainingEnv:
     bank = shipped_bank(config.split)
     scenes = list(bank) if config.scenes is None else [bank[i] for i in range(config.scenes)]
     policy = make_traffic(config.traffic, seed=seed)
-    return EgoTrainingEnv(EgoEnv(config=config.env, scenarios=scenes, policy=policy))
+    env = EgoEnv(config=config.env, scenarios=scenes, policy=policy)
+    return EgoTrainingEnv(env, config.base_planner)
 
 
 def make_env(config: EgoEnvConfig, rank: int, seed: int) -> Callable[[], gymnasium.Env]:

@@ -19,7 +19,7 @@ import torch
 
 from policies.harness import ClosedLoop, EpisodeRecord, mean_interval, summarize
 from policies.rl.adversary import ScenePolicyConfig, make_traffic
-from policies.rl.envs import scale_action
+from policies.rl.envs import compose_action, make_base_planner
 from riskflow_env.config import DynamicsConfig, EnvConfig
 from riskflow_env.scenarios import Scenario
 from riskflow_env.view import SceneView
@@ -37,6 +37,7 @@ class PPOPlanner:
             are applied), or None.
         deterministic: act with the mean of the Gaussian (True) or sample it.
         dynamics: the env's bounds (to de-normalise actions).
+        base_planner: ``"none"``, or ``"idm"`` for a residual policy (as trained).
     """
 
     def __init__(
@@ -45,19 +46,25 @@ class PPOPlanner:
         normalize: Any = None,
         deterministic: bool = True,
         dynamics: DynamicsConfig | None = None,
+        base_planner: str = "none",
     ) -> None:
         self.model, self.normalize = model, normalize
         self.deterministic, self.dynamics = deterministic, dynamics or DynamicsConfig()
+        self.base = make_base_planner(base_planner, self.dynamics)
 
     def reset(self, view: SceneView) -> None:
-        """Nothing to prepare (the policy is a feed-forward MLP)."""
+        """Reset the base planner, if any (the policy itself is a feed-forward MLP)."""
+        if self.base is not None:
+            self.base.reset(view)
 
     def __call__(self, observation: np.ndarray, view: SceneView | None = None) -> np.ndarray:
-        """(2,) (accel [m/s^2], yaw rate [rad/s]) from the ego's observation."""
+        """(2,) (accel [m/s^2], yaw rate [rad/s]) from the ego's observation (and the
+        view, for the base planner)."""
+        base = None if self.base is None else self.base(observation, view)
         if self.normalize is not None:
             observation = self.normalize.normalize_obs(observation)
         action, _ = self.model.predict(observation, deterministic=self.deterministic)
-        return scale_action(action, self.dynamics)
+        return compose_action(action, base, self.dynamics)
 
 
 class RandomPlanner:
@@ -81,10 +88,13 @@ class RandomPlanner:
         return self.rng.uniform([d.accel_min, -d.yaw_rate_max], [d.accel_max, d.yaw_rate_max])
 
 
-def load_ppo_planner(run: str, deterministic: bool = True) -> PPOPlanner:
+def load_ppo_planner(
+    run: str, deterministic: bool = True, base_planner: str = "none"
+) -> PPOPlanner:
     """A :class:`PPOPlanner` from a model file (``.zip``) saved by ``train_ego_ppo.py``;
     the ``VecNormalize`` statistics are read from the same name with ``_vecnormalize.pkl``
-    in place of ``.zip`` when that file exists."""
+    in place of ``.zip`` (checkpoints: ``ppo_N_steps.zip`` -> ``ppo_vecnormalize_N_steps.pkl``)
+    when that file exists. ``base_planner`` must be the one the model was trained with."""
     from pathlib import Path
 
     from stable_baselines3 import PPO
@@ -92,12 +102,15 @@ def load_ppo_planner(run: str, deterministic: bool = True) -> PPOPlanner:
 
     path = Path(run)
     model = PPO.load(path, device="cpu")
-    stats = path.with_name(path.name.removesuffix(".zip") + "_vecnormalize.pkl")
+    stem = path.name.removesuffix(".zip")
+    stats = path.with_name(stem + "_vecnormalize.pkl")
+    if stem.startswith("ppo_") and stem.endswith("_steps"):  # SB3's CheckpointCallback names
+        stats = path.with_name("ppo_vecnormalize_" + stem.removeprefix("ppo_") + ".pkl")
     normalize = None
     if stats.is_file():
         normalize = VecNormalize.load(str(stats), venv=_DummyVec(model))
         normalize.training, normalize.norm_reward = False, False
-    return PPOPlanner(model, normalize, deterministic)
+    return PPOPlanner(model, normalize, deterministic, base_planner=base_planner)
 
 
 class _DummyVec:

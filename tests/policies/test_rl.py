@@ -22,7 +22,7 @@ pytest.importorskip(
 
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig, apply_stage  # noqa: E402
 from policies.rl.curriculum import LinearCurriculum  # noqa: E402
-from policies.rl.envs import EgoEnvConfig, build_env, scale_action  # noqa: E402
+from policies.rl.envs import EgoEnvConfig, build_env, compose_action, scale_action  # noqa: E402
 from policies.rl.marl import AdversaryRewardConfig, adversary_reward  # noqa: E402
 from riskflow_env.config import DynamicsConfig, EnvConfig  # noqa: E402
 
@@ -44,6 +44,32 @@ def test_scale_action_keeps_zero_and_reaches_the_bounds():
     np.testing.assert_allclose(scale_action(np.array([-1.0, -1.0]), dynamics), [-8.0, -1.0])
     np.testing.assert_allclose(scale_action(np.array([1.0, 0.5]), dynamics), [5.0, 0.5])
     np.testing.assert_allclose(scale_action(np.array([3.0, -7.0]), dynamics), [5.0, -1.0])
+
+
+def test_compose_action_adds_the_base_planner_and_clips():
+    dynamics = DynamicsConfig()
+    base = np.array([1.0, -0.2])
+    np.testing.assert_allclose(compose_action(np.zeros(2), base, dynamics), base)
+    np.testing.assert_allclose(compose_action(np.array([0.2, 0.1]), base, dynamics), [2.0, -0.1])
+    np.testing.assert_allclose(compose_action(np.ones(2), base, dynamics), [5.0, 0.8])
+    np.testing.assert_allclose(compose_action(np.ones(2), None, dynamics), [5.0, 1.0])
+
+
+def test_residual_env_drives_as_idm_with_zero_actions():
+    from policies.planners import IDMPlanner
+
+    config = EgoEnvConfig(
+        env=EnvConfig(episode_steps=3), traffic=TINY_TRAFFIC, scenes=1, base_planner="idm"
+    )
+    env, idm = build_env(config, seed=0), IDMPlanner()
+    observation, _ = env.reset(seed=0)
+    view = env.unwrapped.parallel_env.view()
+    idm.reset(view)
+    expected = idm(observation, view)
+    env.step(np.zeros(2, np.float32))
+    np.testing.assert_allclose(env.unwrapped.parallel_env.scene.last_action[0], expected)
+    with pytest.raises(ValueError, match="base_planner"):
+        build_env(EgoEnvConfig(base_planner="mpc"))
 
 
 def test_linear_curriculum_ramps_then_holds():
