@@ -77,7 +77,7 @@ from policies.riskflow.guidance import (
     GuidanceScene,
     plans_from_velocity,
 )
-from policies.riskflow.guidance_losses import MapTerm, adversarial_loss
+from policies.riskflow.guidance_losses import adversarial_loss, map_term, target_rows
 from policies.riskflow.meanflow import Normalizer
 from policies.riskflow.plan_buffer import EncodedView
 from policies.riskflow.policy import RiskFlowAdversary
@@ -238,23 +238,18 @@ class _LatentObjective:
     ) -> None:
         config = policy.guidance
         self.policy, self.scene, self.context, self.rows = policy, scene, observed.scene, rows
-        targets = scene.agent_mask.bool().clone()
-        targets[rows] = False
-        if config.target == "ego":
-            targets = torch.zeros_like(targets)
-            targets[scene.ego] = True
+        controllable = torch.zeros_like(scene.agent_mask, dtype=torch.bool)
+        controllable[rows] = True
+        targets = target_rows(scene.agent_mask, controllable, scene.ego, config.target)
         self.target_xy = scene.base_trajectories[targets, :, :2].detach()
-        self.map_term = None
-        if scene.drivable_map is not None and config.lambda_map != 0:
-            self.map_term = MapTerm(
-                scene.drivable_map,
-                scene.frame,
-                scene.length[rows],
-                scene.width[rows],
-                scene.eps.shape[1],
-                config.map_margin,
-                config.map_decay,
-            )
+        self.map_term = map_term(
+            scene.drivable_map,
+            scene.frame,
+            scene.length[rows],
+            scene.width[rows],
+            scene.eps.shape[1],
+            config,
+        )
 
     def __call__(self, eps_c: Tensor) -> tuple[tuple[Tensor, Tensor, Tensor], Tensor]:
         """``((u_c, actions_c, trajectories_c), (L_adv [m], L_map [m^2], prior))``."""

@@ -16,9 +16,9 @@ the footprint), pulled back through the rollout by its closed-form vector-Jacobi
 product (``riskflow_env.dynamics.rollout_with_vjp``) and through ``denorm`` (a diagonal
 scale). Same math as differentiating op by op: the gradients agree with autograd to
 float rounding, except that an action that cannot move the plan (braking while stopped)
-gets exactly 0 rather than a rounding residue for Adam to amplify. Only ``A_c`` rows are optimised (they are the only
-variables, which is the mask ``M_Ac`` done exactly): every other row of ``u``, of the
-actions and of the trajectories is the base plan, bit for bit.
+gets exactly 0 rather than a rounding residue for Adam to amplify. Only ``A_c`` rows are
+optimised (they are the only variables, which is the mask ``M_Ac`` done exactly): every
+other row of ``u``, of the actions and of the trajectories is the base plan, bit for bit.
 
 Terms (``i`` in ``A_c``, ``p_i^t`` its position at plan step t, scene frame [m]):
 
@@ -71,10 +71,11 @@ import torch
 from torch import Tensor
 
 from policies.riskflow.guidance_losses import (
-    MapTerm,
     adversarial_loss,
     adversarial_value_and_gradient,
     map_loss,
+    map_term,
+    target_rows,
 )
 from policies.riskflow.meanflow import Normalizer
 from riskflow_env.config import DynamicsConfig
@@ -213,17 +214,14 @@ class _Objective:
         self.offset = normalizer.denormalize(scene.eps[rows])  # a = offset + std * u_c
         self.state = scene.state[rows]
         self.target_xy, self.horizon, self.dynamics = target_xy, config.horizon, dynamics
-        self.map_term = None
-        if scene.drivable_map is not None and config.lambda_map != 0:
-            self.map_term = MapTerm(
-                scene.drivable_map,
-                scene.frame,
-                scene.length[rows],
-                scene.width[rows],
-                scene.eps.shape[1],
-                config.map_margin,
-                config.map_decay,
-            )
+        self.map_term = map_term(
+            scene.drivable_map,
+            scene.frame,
+            scene.length[rows],
+            scene.width[rows],
+            scene.eps.shape[1],
+            config,
+        )
 
     def bounds(self) -> tuple[Tensor, Tensor]:
         """(C, T, 2) lower and upper bounds of ``u_c`` that keep the actions inside the
@@ -296,10 +294,7 @@ def guide(
     mask = controllable.bool() & present
     mask[scene.ego] = False
     rows = torch.nonzero(mask).flatten()
-    targets = present & ~mask
-    if config.target == "ego":
-        targets = torch.zeros_like(targets)
-        targets[scene.ego] = True
+    targets = target_rows(present, mask, scene.ego, config.target)
     target_xy = scene.base_trajectories[targets, :, :2].detach()
 
     if rows.numel() == 0:  # nothing to guide: the base plans

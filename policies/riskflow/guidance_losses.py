@@ -18,7 +18,49 @@ from riskflow_env._array import attach_gradient, requires_grad
 from riskflow_env.geometry import footprint_points
 from riskflow_env.maps import DrivableMap
 
-__all__ = ["MapTerm", "adversarial_loss", "adversarial_value_and_gradient", "map_loss"]
+__all__ = [
+    "MapTerm",
+    "adversarial_loss",
+    "adversarial_value_and_gradient",
+    "map_loss",
+    "map_term",
+    "target_rows",
+]
+
+
+def target_rows(present: Tensor, controllable: Tensor, ego: int, target: str) -> Tensor:
+    """(A,) bool: the agents ``L_adv`` pulls the controllable ones toward.
+
+    Args:
+        present: (A,) bool agents in the scene.
+        controllable: (A,) bool ``A_c``.
+        ego: slot of the ego.
+        target: ``"others"`` (the paper's: every present agent outside ``A_c``, the ego
+            included) or ``"ego"`` (the ego only, for stress-testing an ego planner).
+    """
+    if target == "ego":
+        targets = torch.zeros_like(present, dtype=torch.bool)
+        targets[ego] = True
+        return targets
+    if target != "others":
+        raise ValueError(f"target must be 'others' or 'ego'; got {target!r}")
+    return present.bool() & ~controllable.bool()
+
+
+def map_term(
+    drivable_map: DrivableMap | None,
+    frame: Tensor,
+    length: Tensor,
+    width: Tensor,
+    steps: int,
+    config,
+) -> MapTerm | None:
+    """The :class:`MapTerm` of the controllable rows, or None when ``L_map`` is off (no map,
+    or ``config.lambda_map == 0``); ``config`` has ``lambda_map``, ``map_margin`` and
+    ``map_decay`` (every guided method's config does)."""
+    if drivable_map is None or config.lambda_map == 0:
+        return None
+    return MapTerm(drivable_map, frame, length, width, steps, config.map_margin, config.map_decay)
 
 
 def adversarial_loss(xy: Tensor, target_xy: Tensor, horizon: int | None = None) -> Tensor:

@@ -54,7 +54,7 @@ from policies.baselines.diffusion.sampling import (
 )
 from policies.riskflow.encoder import SceneContext
 from policies.riskflow.guidance import TARGETS
-from policies.riskflow.guidance_losses import MapTerm, adversarial_loss
+from policies.riskflow.guidance_losses import adversarial_loss, map_term, target_rows
 from policies.riskflow.meanflow import Normalizer
 from policies.riskflow.plan_buffer import hold_still
 from riskflow_env.config import DynamicsConfig
@@ -162,12 +162,14 @@ class _Objective:
     def __init__(self, geometry, rows, normalizer, config, dynamics, steps) -> None:
         self.state = geometry.state[rows]
         self.normalizer, self.config, self.dynamics = normalizer, config, dynamics
-        self.map_term = None
-        if geometry.drivable_map is not None and config.lambda_map != 0:
-            self.map_term = MapTerm(
-                geometry.drivable_map, geometry.frame, geometry.length[rows],
-                geometry.width[rows], steps, config.map_margin, config.map_decay,
-            )  # fmt: skip
+        self.map_term = map_term(
+            geometry.drivable_map,
+            geometry.frame,
+            geometry.length[rows],
+            geometry.width[rows],
+            steps,
+            config,
+        )
 
     def __call__(self, x_c: Tensor, target_xy: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         trajectories = rollout(self.state, self.normalizer.denormalize(x_c), self.dynamics)
@@ -216,10 +218,7 @@ def guided_sample(
     mask = controllable.bool() & present & ~standing.bool()
     mask[geometry.ego] = False
     rows = torch.nonzero(mask).flatten()
-    targets = present & ~mask
-    if config.target == "ego":
-        targets = torch.zeros_like(targets)
-        targets[geometry.ego] = True
+    targets = target_rows(present, mask, geometry.ego, config.target)
 
     def plans(x0: Tensor) -> tuple[Tensor, Tensor]:
         actions, trajectories = plans_from_sample(

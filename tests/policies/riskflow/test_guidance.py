@@ -297,3 +297,29 @@ def test_closed_form_gradient_and_plans_equal_the_autograd_path(monkeypatch):
     # stopped) may differ: autograd leaves rounding residues there that Adam amplifies.
     torch.testing.assert_close(guided.trajectories, previous.trajectories, rtol=0, atol=1e-4)
     torch.testing.assert_close(guided.losses, previous.losses, rtol=1e-5, atol=1e-5)
+
+
+def test_target_rows_others_ego_and_bad_target():
+    from policies.riskflow.guidance_losses import target_rows
+
+    present = torch.tensor([True, True, True, False, True])
+    controllable = torch.tensor([False, True, False, False, False])
+    others = target_rows(present, controllable, ego=0, target="others")
+    assert others.tolist() == [True, False, True, False, True]  # absent and A_c excluded
+    assert target_rows(present, controllable, ego=0, target="ego").tolist() == [
+        True,
+        False,
+        False,
+        False,
+        False,
+    ]
+    with pytest.raises(ValueError, match="target"):
+        target_rows(present, controllable, ego=0, target="everyone")
+
+
+def test_map_term_is_none_without_map_or_weight():
+    from policies.riskflow.guidance_losses import map_term
+
+    size = torch.ones(2)
+    frame = torch.zeros(3)
+    assert map_term(None, frame, size, size, 5, GuidanceConfig()) is None
