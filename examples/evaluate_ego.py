@@ -6,10 +6,11 @@ Every ego drives the same scenes of the shipped *evaluation* bank (the PPO egos 
 on the training bank) under two kinds of traffic: the RiskFlow adversary at its defaults
 (K=5, 30 guidance steps, re-plan every 0.5 s, target ``others``) and nominal traffic (the
 unguided generator, K=0, or IDM with ``--nominal idm``). Each PPO run contributes its
-trained policy (``final_model.zip``, ``ppo`` rows) and its untrained initial policy
-(``initial_model.zip``, ``ppo-initial`` rows), both acting with the Gaussian's mean;
-each run is evaluated with its own seed (adversary noise), the baselines with every
-seed of ``--seeds``. Episodes: 10 s, ending at an ego collision or off-road (the
+trained policy (``final_model.zip`` or ``--model``; rows ``ppo`` or ``--label``) and its
+untrained initial policy (``initial_model.zip``; rows ``ppo-initial``), both acting with
+the Gaussian's mean; a run is evaluated with its own seed (adversary noise:
+``seed * 100 + i``, ``i < --episodes-per-run``), the baselines with every seed of
+``--seeds``. Episodes: 10 s, ending at an ego collision or off-road (the
 library's default ``EnvConfig``).
 
 Report: ego collision rate, off-road rate, collision-or-off-road rate (Wilson 95%
@@ -47,6 +48,8 @@ class Options:
 
     runs: str = ""
     """comma-separated training output folders (train_ego_ppo.py --out); empty: baselines only"""
+    label: str = "ppo"
+    """name of the PPO rows ('<label>' trained, '<label>-initial' untrained)"""
     model: str = "final_model"
     """model of each run to evaluate as 'ppo' (e.g. checkpoints/ppo_80000_steps)"""
     out: Path = Path("outputs/evaluate_ego")
@@ -134,7 +137,10 @@ def main(argv: list[str] | None = None) -> None:
                     str(path), True, base
                 )
             )
-            for name, stem in (("ppo", options.model), ("ppo-initial", "initial_model"))
+            for name, stem in (
+                (options.label, options.model),
+                (f"{options.label}-initial", "initial_model"),
+            )
         }
         records = evaluate(planners, traffics, scenes, seeds, config, progress=print)
         for (name, traffic), episodes in records.items():
