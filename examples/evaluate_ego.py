@@ -26,6 +26,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from policies.harness import wilson_interval
 from policies.planners import ConstantVelocityPlanner, IDMPlanner
 from policies.riskflow.dataclass_cli import parse_dataclass
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
@@ -90,16 +91,46 @@ def run_options(run: Path) -> tuple[int, str]:
     return int(options["seed"]), options.get("base_planner", "none")
 
 
+RATES = ("ego_collision_rate", "ego_offroad_rate", "ego_failure_rate")
+
+
 def load_results(paths: str) -> tuple[dict, dict]:
-    """Summaries and per-run summaries of earlier ``results.json`` files, merged."""
+    """Summaries and per-run summaries of earlier ``results.json`` files, merged.
+
+    A (planner, traffic) row found in several files (e.g. PPO runs evaluated in separate
+    processes) is pooled: rates exactly (Wilson interval of the summed counts), means as
+    the episode-weighted mean without an interval (the episodes are not in the files).
+    """
     summaries, per_run = {}, {}
     for path in [Path(p) for p in paths.split(",") if p]:
         content = json.loads(path.read_text())
         for target, rows in ((summaries, content["summary"]), (per_run, content["per_run"])):
             for row in rows:
                 row = dict(row)
-                target[row.pop("planner"), row.pop("traffic")] = row
+                key = row.pop("planner"), row.pop("traffic")
+                target[key] = pool(target[key], row) if key in target else row
     return summaries, per_run
+
+
+def pool(first: dict, second: dict) -> dict:
+    """Two summaries of disjoint episodes of one (planner, traffic) row as one."""
+    pooled = {}
+    for metric, a in first.items():
+        b = second[metric]
+        count = a["n"] + b["n"]
+        weighted = [e["value"] * e["n"] for e in (a, b) if e["value"] is not None and e["n"]]
+        value = (
+            sum(weighted) / sum(e["n"] for e in (a, b) if e["value"] is not None)
+            if weighted
+            else None
+        )
+        if metric in RATES:
+            hits = round(a["value"] * a["n"] + b["value"] * b["n"])
+            low, high = wilson_interval(hits, count)
+            pooled[metric] = {"value": hits / count, "low": low, "high": high, "n": count}
+        else:
+            pooled[metric] = {"value": value, "low": None, "high": None, "n": count}
+    return pooled
 
 
 def main(argv: list[str] | None = None) -> None:

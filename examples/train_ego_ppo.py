@@ -1,7 +1,10 @@
 """Train an ego with Stable-Baselines3 PPO against the RiskFlow adversary (``rl`` extra).
 
-    python examples/train_ego_ppo.py --seed 0 --total-timesteps 120000 --out runs/ego_ppo/seed0
+    python examples/train_ego_ppo.py --seed 0 --out runs/ego_ppo/seed0
+    python examples/train_ego_ppo.py --seed 0 --base-planner idm --vec-env dummy  # residual
     python examples/train_ego_ppo.py --help
+
+Results, budget and the commands of the documented runs: docs/RL.md.
 
 The ego drives ``RiskFlowEgo-v0`` (:class:`~policies.rl.envs.EgoTrainingEnv`: actions
 normalised to [-1, 1], 0 = keep speed and heading); the RiskFlow adversary drives every
@@ -54,7 +57,7 @@ VEC_ENVS = ("subproc", "dummy")
 class Options:
     """Options of train_ego_ppo.py."""
 
-    total_timesteps: int = 120_000
+    total_timesteps: int = 80_000
     """env steps to train for (all envs together)"""
     seed: int = 0
     """seeds PPO, torch, numpy, the scene draws and the adversary's noise"""
