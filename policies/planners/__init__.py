@@ -2,6 +2,9 @@
 
 * :class:`IDMPlanner` — IDM lane following that reacts to the vehicles ahead
   (:class:`~policies.baselines.idm.IDMPolicy` restricted to the ego);
+* :class:`LaneKeepingPlanner` — the IDM planner's steering at constant speed;
+* :class:`OraclePlanner` — sampling MPC that reads the adversary's plans (privileged: a
+  reference for what is avoidable, not a planner to deploy);
 * :class:`ConstantVelocityPlanner` — keeps speed and heading.
 
 Any function with the :class:`EgoPlanner` signature is a planner too
@@ -12,15 +15,22 @@ from __future__ import annotations
 
 from policies.planners.base import EgoPlanner, as_action, reset_planner
 from policies.planners.constant_velocity import ConstantVelocityPlanner
-from policies.planners.idm_planner import IDMPlanner
+from policies.planners.idm_planner import IDMPlanner, LaneKeepingPlanner
+from policies.planners.oracle import OraclePlanner
 
-PLANNERS = {"idm": IDMPlanner, "constant_velocity": ConstantVelocityPlanner}
+PLANNERS = {
+    "idm": IDMPlanner,
+    "lane_keeping": LaneKeepingPlanner,
+    "constant_velocity": ConstantVelocityPlanner,
+}
 
 __all__ = [
     "PLANNERS",
     "ConstantVelocityPlanner",
     "EgoPlanner",
     "IDMPlanner",
+    "LaneKeepingPlanner",
+    "OraclePlanner",
     "as_action",
     "reset_planner",
 ]

@@ -50,3 +50,19 @@ class IDMPlanner:
             view: the current scene.
         """
         return self.policy.act(view).get(self.agent, np.zeros(2))
+
+
+class LaneKeepingPlanner(IDMPlanner):
+    """The IDM planner's steering at constant speed: pure pursuit along the lane of the
+    route, acceleration 0 (it never brakes); an ``EgoPlanner``.
+
+    The base of a residual RL ego whose acceleration is its own
+    (``base_planner="lane"`` in :mod:`policies.rl.envs`): its untrained policy keeps its
+    lane and speed, and the policy learns when to brake, accelerate and leave the lane.
+    Arguments as :class:`IDMPlanner`.
+    """
+
+    def __call__(self, observation: np.ndarray | None, view: SceneView) -> np.ndarray:
+        """(2,) (0 [m/s^2], the IDM planner's yaw rate [rad/s])."""
+        action = super().__call__(observation, view)
+        return np.array([0.0, action[1]])

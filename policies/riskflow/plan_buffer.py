@@ -231,6 +231,25 @@ class PlanBufferPolicy(ABC):
         self.cycles += 1
         return self.plans
 
+    def predicted_states(self, view: SceneView, steps: int) -> np.ndarray:
+        """What the current plans say each vehicle will do over the next ``steps`` steps.
+
+        Args:
+            view: the current scene (``act(view)`` has run for it, so the plans are live).
+            steps: how far ahead [env steps]; past the end of a plan its last state holds.
+
+        Returns:
+            (A, steps, 4) world-frame states (x, y [m], v [m/s], psi [rad]) after each of
+            the next ``steps`` steps; NaN rows for slots without a plan.
+        """
+        if self.plans is None or self._plan_step is None:
+            raise RuntimeError("no plans yet: call act(view) before predicted_states(view)")
+        if not (isinstance(steps, int) and steps >= 1):
+            raise ValueError(f"steps must be an int >= 1, got {steps!r}")
+        elapsed = view.step - self._plan_step
+        index = np.minimum(np.arange(elapsed, elapsed + steps), self.plans.shape[1] - 1)
+        return self.plans[:, index]
+
     def _encode_view(
         self, view: SceneView, encode: Callable[[Mapping[str, torch.Tensor]], SceneContext]
     ) -> EncodedView:

@@ -1,0 +1,154 @@
+"""Oracle ego planner: sampling MPC against the scene policy's own plans (privileged).
+
+Not a planner to deploy: it reads what the adversary intends to do
+(:meth:`~policies.riskflow.plan_buffer.PlanBufferPolicy.predicted_states`), which no real
+ego can see. It answers one question: *can* the ego avoid the collisions the adversary
+sets up? If the oracle collides about as often as every other planner, the scenes are
+not avoidable and no learned ego can do better; if it collides far less, there is
+something to learn (docs/RL.md).
+
+Every step it rolls out a fixed set of candidate action sequences with the env's own
+dynamics (:func:`riskflow_env.dynamics.rollout`, one call for all candidates), scores
+each against the other vehicles' predicted boxes and the map, and applies the first
+action of the cheapest. A candidate holds an acceleration over the whole horizon and a
+yaw rate for ``d`` steps followed by the opposite yaw rate for ``d`` steps (a lane-change
+shape; ``d`` = the horizon gives a constant turn). Its cost, with per-step discount
+``gamma``:
+
+    cost = w_collision * sum_t gamma^t [min_j separation_tj <= margin]
+         + w_offroad   * sum_t gamma^t [max footprint SDF_t > -road_margin]
+         - mean_t (gamma^t min(min_j separation_tj, clearance_cap))
+         - w_speed * mean_t v_t
+
+(separation: the SAT gap of :func:`riskflow_env.geometry.separation`, the signed
+distance the env's collision check uses; SDF: the map's signed distance at the 9
+footprint points, positive off the road, as for the env's off-road check.)
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from riskflow_env import dynamics as unicycle
+from riskflow_env.config import DynamicsConfig
+from riskflow_env.geometry import footprint_points, separation
+from riskflow_env.view import SceneView
+
+ACCELS = (-8.0, -5.0, -3.0, -1.5, 0.0, 1.5, 3.0, 5.0)  # [m/s^2]
+YAW_RATES = (-0.3, -0.15, -0.07, -0.03, 0.0, 0.03, 0.07, 0.15, 0.3)  # [rad/s]
+DURATIONS = (5, 15)  # [steps] of the lane-change shape; the horizon adds constant turns
+
+
+def candidate_actions(
+    horizon: int,
+    accels: tuple[float, ...] = ACCELS,
+    yaw_rates: tuple[float, ...] = YAW_RATES,
+    durations: tuple[int, ...] = DURATIONS,
+) -> np.ndarray:
+    """(M, horizon, 2) distinct candidate sequences (module docstring), M <= the product
+    of the option counts (duplicates, e.g. every shape of a zero yaw rate, are dropped)."""
+    shapes = []
+    for d in sorted({min(d, horizon) for d in (*durations, horizon)}):
+        yaw = np.zeros(horizon)
+        yaw[:d] = 1.0
+        yaw[d : 2 * d] = -1.0
+        shapes.append(yaw)
+    yaw = np.asarray(yaw_rates, dtype=np.float64)[:, None, None] * np.stack(shapes)  # (Y, S, H)
+    accel = np.asarray(accels, dtype=np.float64)[:, None, None, None]  # (A, 1, 1, 1)
+    accel, yaw = np.broadcast_arrays(accel, yaw[None])  # (A, Y, S, H) each
+    actions = np.stack((accel, yaw), axis=-1).reshape(-1, horizon, 2)
+    return np.unique(actions, axis=0)
+
+
+class OraclePlanner:
+    """Sampling MPC that knows the adversary's plans; an ``EgoPlanner`` (module docstring).
+
+    Args:
+        policy: the scene policy whose plans it reads (a RiskFlow adversary or any
+            plan-buffer policy); it can also be given later with :meth:`watch`.
+        horizon: look-ahead [steps].
+        dynamics: the env's dynamics (time step and bounds).
+        margin: separation [m] below which a predicted step counts as a collision.
+        road_margin: SDF [m] above which (i.e. closer to the edge than this) a footprint
+            point counts as off the road.
+        gamma: per-step discount of the cost terms.
+        w_collision, w_offroad, w_speed: cost weights (module docstring).
+        clearance_cap: separation [m] beyond which more clearance is worth nothing.
+    """
+
+    def __init__(
+        self,
+        policy: Any = None,
+        horizon: int = 30,
+        dynamics: DynamicsConfig | None = None,
+        margin: float = 0.3,
+        road_margin: float = 0.1,
+        gamma: float = 0.95,
+        w_collision: float = 10.0,
+        w_offroad: float = 10.0,
+        w_speed: float = 0.02,
+        clearance_cap: float = 5.0,
+    ) -> None:
+        if not (isinstance(horizon, int) and horizon >= 1):
+            raise ValueError(f"horizon must be an int >= 1 [steps], got {horizon!r}")
+        if not 0.0 < gamma <= 1.0:
+            raise ValueError(f"gamma must be in (0, 1], got {gamma!r}")
+        self.policy = None if policy is None else self.watch(policy)
+        self.horizon, self.dynamics = horizon, dynamics or DynamicsConfig()
+        self.margin, self.road_margin = float(margin), float(road_margin)
+        self.weights = (float(w_collision), float(w_offroad), float(w_speed))
+        self.clearance_cap = float(clearance_cap)
+        self.discount = gamma ** np.arange(horizon)
+        self.candidates = candidate_actions(horizon)
+
+    def watch(self, policy: Any) -> Any:
+        """Read the plans of ``policy`` from now on; returns it.
+
+        Raises:
+            TypeError: ``policy`` has no plans to read (e.g. IDM traffic).
+        """
+        if not callable(getattr(policy, "predicted_states", None)):
+            raise TypeError(
+                "OraclePlanner needs a scene policy with plans (predicted_states), "
+                f"got {type(policy).__name__}"
+            )
+        self.policy = policy
+        return policy
+
+    def reset(self, view: SceneView) -> None:
+        """Nothing to prepare (the candidates are fixed)."""
+
+    def __call__(self, observation: np.ndarray | None, view: SceneView) -> np.ndarray:
+        """(2,) (accel [m/s^2], yaw rate [rad/s]): first action of the cheapest candidate."""
+        if self.policy is None:
+            raise RuntimeError("OraclePlanner has no scene policy to read: call watch(policy)")
+        return self.candidates[int(np.argmin(self.costs(view))), 0].copy()
+
+    def costs(self, view: SceneView) -> np.ndarray:
+        """(M,) cost of every candidate from the current scene (module docstring)."""
+        ego = view.history[0, -1]
+        length, width = view.length, view.width
+        paths = unicycle.rollout(ego[None], self.candidates, self.dynamics)  # (M, H, 4)
+        predicted = self.policy.predicted_states(view, self.horizon)  # (A, H, 4)
+        others = view.present & view.active & ~np.isnan(predicted[:, 0, 0])
+        others[0] = False
+        gap = np.full(paths.shape[:2], np.inf)
+        if others.any():
+            boxes = predicted[others][None]  # (1, B, H, 4)
+            gap = separation(
+                paths[:, None, :, :2], paths[:, None, :, 3], length[0], width[0],
+                boxes[..., :2], boxes[..., 3],
+                length[others][None, :, None], width[others][None, :, None],
+            ).min(axis=1)  # fmt: skip  # (M, H)
+        footprint = footprint_points(paths[..., :2], paths[..., 3], length[0], width[0])
+        edge = view.map.sdf_at(footprint).max(axis=-1)  # (M, H)
+        w_collision, w_offroad, w_speed = self.weights
+        discount = self.discount
+        return (
+            w_collision * ((gap <= self.margin) * discount).sum(-1)
+            + w_offroad * ((edge > -self.road_margin) * discount).sum(-1)
+            - (np.minimum(gap, self.clearance_cap) * discount).sum(-1) / discount.sum()
+            - w_speed * paths[..., 2].mean(-1)
+        )

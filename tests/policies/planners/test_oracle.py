@@ -1,0 +1,81 @@
+"""Lane keeping at constant speed, the oracle planner and the plans it reads."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from policies.baselines import ConstantVelocityPolicy
+from policies.harness import ClosedLoop
+from policies.planners import IDMPlanner, LaneKeepingPlanner, OraclePlanner, reset_planner
+from policies.planners.oracle import candidate_actions
+from policies.riskflow import RiskFlowAdversary
+from riskflow_env import dynamics
+from tests.policies.planners.test_planners import stopped_car_scene, start
+
+
+class ConstantVelocityPlans(ConstantVelocityPolicy):
+    """Constant-velocity traffic that also tells what it will do (the oracle's input)."""
+
+    def predicted_states(self, view, steps: int) -> np.ndarray:
+        actions = np.zeros((view.num_agents, steps, 2))
+        return dynamics.rollout(view.history[:, -1], actions)
+
+
+def test_lane_keeping_steers_like_idm_but_never_brakes():
+    env, observations = start(stopped_car_scene())
+    lane, idm = LaneKeepingPlanner(), IDMPlanner()
+    for planner in (lane, idm):
+        reset_planner(planner, env.view())
+    accel, yaw_rate = lane(observations["ego"], env.view())
+    assert accel == 0.0 and yaw_rate == idm(observations["ego"], env.view())[1]
+    with ClosedLoop(LaneKeepingPlanner(), ConstantVelocityPolicy()) as loop:
+        assert loop.run(stopped_car_scene()).metrics["ego_collided"]  # into the stopped car
+
+
+def test_candidate_actions_are_distinct_lane_change_shapes():
+    candidates = candidate_actions(30)
+    assert candidates.shape == (200, 30, 2)  # 8 accels x (8 turning yaw rates x 3 shapes + 1)
+    assert len(np.unique(candidates, axis=0)) == len(candidates)
+    assert np.all(candidates[..., 0] == candidates[:, :1, 0])  # one acceleration per sequence
+    turns = np.abs(candidates[..., 1]).sum(axis=1) > 0
+    heading_change = candidates[..., 1].sum(axis=1)
+    # lane changes (5 and 15 steps each way) end on the heading they started with
+    assert np.sum(turns & (np.abs(heading_change) < 1e-9)) == 8 * 8 * 2
+
+
+def test_oracle_avoids_the_stopped_car_that_constant_velocity_hits():
+    scene = stopped_car_scene()
+    traffic = ConstantVelocityPlans()
+    with ClosedLoop(OraclePlanner(traffic), traffic) as loop:
+        record = loop.run(scene)
+    assert not record.metrics["ego_collided"]
+    assert not record.metrics["ego_offroad"]
+    assert record.metrics["steps"] == 100  # drove the whole episode
+
+
+def test_oracle_needs_plans_to_read():
+    with pytest.raises(TypeError, match="predicted_states"):
+        OraclePlanner(ConstantVelocityPolicy())
+    env, observations = start(stopped_car_scene())
+    with pytest.raises(RuntimeError, match="watch"):
+        OraclePlanner()(observations["ego"], env.view())
+    with pytest.raises(ValueError, match="horizon"):
+        OraclePlanner(horizon=0)
+
+
+def test_predicted_states_follow_the_plan_buffer(tiny_meanflow, tiny_normalizer, closed_loop):
+    policy = RiskFlowAdversary(
+        k=0, planning_interval=0.5, seed=0, generator=tiny_meanflow, normalizer=tiny_normalizer
+    )
+    with pytest.raises(RuntimeError, match="act"):
+        policy.predicted_states(None, 3)
+    env, _ = closed_loop(policy, 3)  # planned at step 0, acted at steps 0, 1, 2
+    view = env.view()
+    policy.act(view)  # step 3: still the plan of step 0
+    ahead = policy.predicted_states(view, 60)
+    horizon = policy.plans.shape[1]
+    np.testing.assert_array_equal(ahead[:, : horizon - 3], policy.plans[:, 3:])
+    np.testing.assert_array_equal(ahead[:, horizon - 3 :], policy.plans[:, -1:].repeat(63 - horizon, 1))
+    with pytest.raises(ValueError, match="steps"):
+        policy.predicted_states(view, 0)
