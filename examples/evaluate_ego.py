@@ -1,4 +1,5 @@
-"""Evaluate trained PPO egos against the IDM planner, constant velocity and random actions.
+"""Evaluate trained PPO egos against the IDM planner, lane keeping, constant velocity and random
+actions (and, with ``--oracle``, a planner that reads the adversary's plans).
 
     python examples/evaluate_ego.py --runs runs/ego_ppo/seed0,runs/ego_ppo/seed1,runs/ego_ppo/seed2
 
@@ -27,7 +28,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from policies.harness import wilson_interval
-from policies.planners import ConstantVelocityPlanner, IDMPlanner
+from policies.planners import (
+    ConstantVelocityPlanner,
+    IDMPlanner,
+    LaneKeepingPlanner,
+    OraclePlanner,
+)
 from policies.riskflow.dataclass_cli import parse_dataclass
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.evaluation import RandomPlanner, evaluate, load_ppo_planner, summarize_ego
@@ -38,6 +44,7 @@ from riskflow_env.scenarios import shipped_bank
 NOMINAL = ("generator", "idm")
 BASELINES = {
     "idm": lambda seed: IDMPlanner(),
+    "lane_keeping": lambda seed: LaneKeepingPlanner(),
     "constant_velocity": lambda seed: ConstantVelocityPlanner(),
     "random": lambda seed: RandomPlanner(seed),
 }
@@ -74,13 +81,18 @@ class Options:
     episode_steps: int = 100
     """episode length [steps of 0.1 s]"""
     baselines: bool = True
-    """also evaluate the IDM, constant-velocity and random egos"""
+    """also evaluate the IDM, lane-keeping, constant-velocity and random egos"""
+    oracle: bool = False
+    """also evaluate the oracle (sampling MPC that reads the adversary's plans: what is
+    avoidable; needs RiskFlow nominal traffic)"""
     combine: str = ""
     """comma-separated results.json files of earlier runs: merge them (no new episodes)"""
 
     def __post_init__(self) -> None:
         if self.nominal not in NOMINAL:
             raise ValueError(f"--nominal must be one of {NOMINAL}, got {self.nominal!r}")
+        if self.oracle and self.nominal == "idm":
+            raise ValueError("--oracle reads the traffic's plans: it needs --nominal generator")
         if self.scenes < 1 or self.episodes_per_run < 1:
             raise ValueError("--scenes and --episodes-per-run must be >= 1")
 
@@ -177,9 +189,12 @@ def main(argv: list[str] | None = None) -> None:
         for (name, traffic), episodes in records.items():
             results.setdefault((name, traffic), []).extend(episodes)
             per_run[f"{name} (seed {seed})", traffic] = summarize_ego(episodes)
-    if options.baselines:
+    baselines = dict(BASELINES) if options.baselines else {}
+    if options.oracle:
+        baselines["oracle"] = lambda seed: OraclePlanner()
+    if baselines:
         seeds = [int(s) for s in options.seeds.split(",") if s]
-        results |= evaluate(BASELINES, traffics, scenes, seeds, config, progress=print)
+        results |= evaluate(baselines, traffics, scenes, seeds, config, progress=print)
 
     summaries = {key: summarize_ego(episodes) for key, episodes in results.items()}
     write_report(summaries, per_run, adversarial.label, options.out)

@@ -74,7 +74,8 @@ class Options:
     episode_steps: int = 100
     """episode length [steps of 0.1 s]"""
     base_planner: str = "none"
-    """'none' (the policy drives) or 'idm' (the policy's action is added to IDM's: residual)"""
+    """'none' (the policy drives), 'idm' (the policy's action is added to IDM's: residual) or
+    'lane' (added to lane keeping at constant speed: the policy owns the acceleration)"""
     guidance_steps: int = 10
     """K_g of the training adversary (evaluation uses 30)"""
     planning_interval: float = 1.0
@@ -97,6 +98,8 @@ class Options:
     """reward when the ego collides [per step]"""
     offroad_reward: float = -10.0
     """reward while the ego is off the road [per step]"""
+    risk_reward: float = -0.05
+    """weight of the TTC risk term (times the ego's largest TTC risk weight, in [0, 1])"""
     n_steps: int = 1024
     """PPO rollout length per env"""
     batch_size: int = 256
@@ -126,7 +129,11 @@ class Options:
 
 def env_config(options: Options) -> EgoEnvConfig:
     """The workers' env: training bank, cheaper adversary, reward weights of the options."""
-    reward = RewardConfig(collision=options.collision_reward, offroad=options.offroad_reward)
+    reward = RewardConfig(
+        collision=options.collision_reward,
+        offroad=options.offroad_reward,
+        risk=options.risk_reward,
+    )
     start = AdversaryStage(options.k_start, options.lambda_adv_start, options.target_start)
     return EgoEnvConfig(
         env=EnvConfig(episode_steps=options.episode_steps, reward=reward),

@@ -31,7 +31,7 @@ from policies.rl.adversary import AdversaryStage, ScenePolicyConfig, apply_stage
 from riskflow_env.config import DynamicsConfig, EnvConfig
 from riskflow_env.wrappers import EgoEnv
 
-BASE_PLANNERS = ("none", "idm")
+BASE_PLANNERS = ("none", "idm", "lane")
 
 
 def make_base_planner(name: str, dynamics: DynamicsConfig):
@@ -40,9 +40,9 @@ def make_base_planner(name: str, dynamics: DynamicsConfig):
         raise ValueError(f"base_planner must be one of {BASE_PLANNERS}, got {name!r}")
     if name == "none":
         return None
-    from policies.planners import IDMPlanner
+    from policies.planners import IDMPlanner, LaneKeepingPlanner
 
-    return IDMPlanner(dynamics=dynamics)
+    return (IDMPlanner if name == "idm" else LaneKeepingPlanner)(dynamics=dynamics)
 
 
 def compose_action(

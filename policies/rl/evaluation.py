@@ -132,7 +132,9 @@ def evaluate(
     """Every planner against every traffic on every (seed, scene).
 
     Args:
-        planners: name -> ``factory(seed)`` building the planner for one seed.
+        planners: name -> ``factory(seed)`` building the planner for one seed; a planner
+            with a ``watch(policy)`` method (:class:`~policies.planners.OraclePlanner`) is
+            given the traffic's scene policy.
         traffics: the traffic of the other vehicles (adversary seeded with the seed).
         scenes: the scenes.
         seeds: seeds of the adversary's noise and of the random planner.
@@ -149,7 +151,10 @@ def evaluate(
         for name, factory in planners.items():
             records = results.setdefault((name, traffic.label), [])
             for seed in seeds:
-                with ClosedLoop(factory(seed), make_traffic(traffic, seed), config) as loop:
+                planner, others = factory(seed), make_traffic(traffic, seed)
+                if callable(getattr(planner, "watch", None)):  # the oracle reads their plans
+                    planner.watch(others)
+                with ClosedLoop(planner, others, config) as loop:
                     for scene in scenes:
                         records.append(loop.run(scene, seed=seed))
                 if progress is not None:

@@ -55,17 +55,20 @@ def test_compose_action_adds_the_base_planner_and_clips():
     np.testing.assert_allclose(compose_action(np.ones(2), None, dynamics), [5.0, 1.0])
 
 
-def test_residual_env_drives_as_idm_with_zero_actions():
+@pytest.mark.parametrize("base", ["idm", "lane"])
+def test_residual_env_drives_as_its_base_with_zero_actions(base):
     from policies.planners import IDMPlanner
 
     config = EgoEnvConfig(
-        env=EnvConfig(episode_steps=3), traffic=TINY_TRAFFIC, scenes=1, base_planner="idm"
+        env=EnvConfig(episode_steps=3), traffic=TINY_TRAFFIC, scenes=1, base_planner=base
     )
     env, idm = build_env(config, seed=0), IDMPlanner()
     observation, _ = env.reset(seed=0)
     view = env.unwrapped.parallel_env.view()
     idm.reset(view)
     expected = idm(observation, view)
+    if base == "lane":  # IDM's steering, no acceleration: the policy owns it
+        expected = np.array([0.0, expected[1]])
     env.step(np.zeros(2, np.float32))
     np.testing.assert_allclose(env.unwrapped.parallel_env.scene.last_action[0], expected)
     with pytest.raises(ValueError, match="base_planner"):
@@ -125,7 +128,7 @@ def test_train_then_evaluate_tiny_budget(tmp_path):
         "train_ego_ppo.py", "--total-timesteps", "256", "--n-steps", "64", "--batch-size", "64",
         "--n-epochs", "1", "--num-envs", "2", "--vec-env", "dummy", "--scenes", "3",
         "--episode-steps", "20", "--guidance-steps", "2", "--checkpoint-every", "128",
-        "--seed", "3", "--out", run_dir,
+        "--seed", "3", "--base-planner", "lane", "--risk-reward", "-0.5", "--out", run_dir,
     )  # fmt: skip
     assert "final model" in out
     for name in ("initial_model", "final_model"):
@@ -136,16 +139,19 @@ def test_train_then_evaluate_tiny_budget(tmp_path):
     ]  # fmt: skip
     header = (run_dir / "progress.csv").read_text().splitlines()[0].split(",")
     assert "curriculum/k" in header and "rollout/ego_collision_rate" in header
+    options = json.loads((run_dir / "options.json").read_text())
+    assert options["base_planner"] == "lane" and options["risk_reward"] == -0.5
 
     eval_dir = tmp_path / "eval"
     out = run(
         "evaluate_ego.py", "--runs", run_dir, "--scenes", "2", "--seeds", "0",
         "--episode-steps", "10", "--guidance-steps", "2", "--planning-interval", "1.0",
-        "--out", eval_dir,
+        "--oracle", "--out", eval_dir,
     )  # fmt: skip
     results = json.loads((eval_dir / "results.json").read_text())
     rows = {(row["planner"], row["traffic"]) for row in results["summary"]}
-    planners = ("ppo", "ppo-initial", "idm", "constant_velocity", "random")
+    planners = ("ppo", "ppo-initial", "idm", "lane_keeping", "constant_velocity", "random")
+    planners += ("oracle",)  # --oracle
     assert rows == {(p, t) for p in planners for t in ("riskflow K=5", "riskflow K=0")}
     assert all(row["ego_collision_rate"]["n"] == 2 for row in results["summary"])
     assert {row["planner"] for row in results["per_run"]} == {
