@@ -36,8 +36,15 @@ from policies.planners import (
 )
 from policies.riskflow.dataclass_cli import parse_dataclass
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
-from policies.rl.evaluation import RandomPlanner, evaluate, load_ppo_planner, summarize_ego
-from policies.rl.report import markdown_table, plot_summaries
+from policies.rl.evaluation import (
+    PAIRED_OUTCOMES,
+    RandomPlanner,
+    evaluate,
+    load_ppo_planner,
+    paired_counts,
+    summarize_ego,
+)
+from policies.rl.report import markdown_table, paired_table, plot_summaries
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
 
@@ -106,22 +113,24 @@ def run_options(run: Path) -> tuple[int, str]:
 RATES = ("ego_collision_rate", "ego_offroad_rate", "ego_failure_rate")
 
 
-def load_results(paths: str) -> tuple[dict, dict]:
-    """Summaries and per-run summaries of earlier ``results.json`` files, merged.
+def load_results(paths: str) -> tuple[dict, dict, list]:
+    """Summaries, per-run summaries and paired counts of earlier ``results.json`` files,
+    merged.
 
     A (planner, traffic) row found in several files (e.g. PPO runs evaluated in separate
     processes) is pooled: rates exactly (Wilson interval of the summed counts), means as
     the episode-weighted mean without an interval (the episodes are not in the files).
     """
-    summaries, per_run = {}, {}
+    summaries, per_run, paired = {}, {}, []
     for path in [Path(p) for p in paths.split(",") if p]:
         content = json.loads(path.read_text())
+        paired.extend(content.get("paired", []))
         for target, rows in ((summaries, content["summary"]), (per_run, content["per_run"])):
             for row in rows:
                 row = dict(row)
                 key = row.pop("planner"), row.pop("traffic")
                 target[key] = pool(target[key], row) if key in target else row
-    return summaries, per_run
+    return summaries, per_run, paired
 
 
 def pool(first: dict, second: dict) -> dict:
@@ -148,9 +157,9 @@ def pool(first: dict, second: dict) -> dict:
 def main(argv: list[str] | None = None) -> None:
     options = parse_dataclass(Options, argv, prog="evaluate_ego.py", description=__doc__)
     if options.combine:
-        summaries, per_run = load_results(options.combine)
+        summaries, per_run, paired = load_results(options.combine)
         adversarial_label = ScenePolicyConfig(stage=AdversaryStage(k=options.k)).label
-        write_report(summaries, per_run, adversarial_label, options.out)
+        write_report(summaries, per_run, paired, adversarial_label, options.out)
         return
     bank = shipped_bank(options.split)
     count = min(options.scenes, len(bank))
@@ -170,7 +179,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     traffics = (adversarial, nominal)
 
-    results, per_run = {}, {}
+    results, per_run, paired = {}, {}, []
     for run in [Path(r) for r in options.runs.split(",") if r]:
         seed, base = run_options(run)
         seeds = [seed * 100 + i for i in range(options.episodes_per_run)]
@@ -189,6 +198,12 @@ def main(argv: list[str] | None = None) -> None:
         for (name, traffic), episodes in records.items():
             results.setdefault((name, traffic), []).extend(episodes)
             per_run[f"{name} (seed {seed})", traffic] = summarize_ego(episodes)
+        for traffic in traffics:
+            trained, untrained = (records[name, traffic.label] for name in planners)
+            for metric in PAIRED_OUTCOMES:
+                counts = paired_counts(trained, untrained, metric)
+                row = {"planner": options.label, "run": f"seed {seed}", "traffic": traffic.label}
+                paired.append(row | {"metric": metric, **counts})
     baselines = dict(BASELINES) if options.baselines else {}
     if options.oracle:
         baselines["oracle"] = lambda seed: OraclePlanner()
@@ -197,24 +212,29 @@ def main(argv: list[str] | None = None) -> None:
         results |= evaluate(baselines, traffics, scenes, seeds, config, progress=print)
 
     summaries = {key: summarize_ego(episodes) for key, episodes in results.items()}
-    write_report(summaries, per_run, adversarial.label, options.out)
+    write_report(summaries, per_run, paired, adversarial.label, options.out)
 
 
-def write_report(summaries: dict, per_run: dict, adversarial_label: str, out: Path) -> None:
+def write_report(
+    summaries: dict, per_run: dict, paired: list, adversarial_label: str, out: Path
+) -> None:
     """results.md (printed), results.png and results.json; adversarial rows first."""
     order = sorted(summaries, key=lambda key: (key[1] != adversarial_label, key[1]))
     summaries = {key: summaries[key] for key in order}
-    table = markdown_table(summaries)
-    breakdown = markdown_table(per_run) if per_run else ""
+    sections = [markdown_table(summaries)]
+    if paired:
+        sections.append("Trained vs untrained, paired episodes:\n\n" + paired_table(paired))
+    if per_run:
+        sections.append("Per run:\n\n" + markdown_table(per_run))
+    text = "\n\n".join(sections)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "results.md").write_text(table + ("\n\nPer run:\n\n" + breakdown if breakdown else ""))
+    (out / "results.md").write_text(text + "\n")
     plot_summaries(summaries, out / "results.png")
     rows = [{"planner": p, "traffic": t, **s} for (p, t), s in summaries.items()]
     runs = [{"planner": p, "traffic": t, **s} for (p, t), s in per_run.items()]
-    (out / "results.json").write_text(json.dumps({"summary": rows, "per_run": runs}, indent=1))
-    print(table)
-    if breakdown:
-        print("\nPer run:\n\n" + breakdown)
+    content = {"summary": rows, "per_run": runs, "paired": paired}
+    (out / "results.json").write_text(json.dumps(content, indent=1))
+    print(text)
     print(f"\nwritten: {out / 'results.md'}, {out / 'results.png'}, {out / 'results.json'}")
 
 

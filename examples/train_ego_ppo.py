@@ -98,6 +98,9 @@ class Options:
     """reward when the ego collides [per step]"""
     offroad_reward: float = -10.0
     """reward while the ego is off the road [per step]"""
+    terminate_on_offroad: bool = True
+    """end the episode when the ego leaves the road (the library default); off: it pays
+    ``offroad_reward`` every step it is off, so leaving the road never ends its troubles"""
     risk_reward: float = -0.05
     """weight of the TTC risk term (times the ego's largest TTC risk weight, in [0, 1])"""
     n_steps: int = 1024
@@ -136,7 +139,11 @@ def env_config(options: Options) -> EgoEnvConfig:
     )
     start = AdversaryStage(options.k_start, options.lambda_adv_start, options.target_start)
     return EgoEnvConfig(
-        env=EnvConfig(episode_steps=options.episode_steps, reward=reward),
+        env=EnvConfig(
+            episode_steps=options.episode_steps,
+            reward=reward,
+            terminate_on_offroad="ego" if options.terminate_on_offroad else "none",
+        ),
         traffic=ScenePolicyConfig(
             stage=start,
             guidance_steps=options.guidance_steps,

@@ -9,6 +9,7 @@ one bar per planner, with the 95% interval as error bars.
 from __future__ import annotations
 
 import os
+from collections import Counter
 from collections.abc import Mapping
 from typing import Any
 
@@ -19,6 +20,8 @@ METRIC_LABELS = {
     "progress": "progress [m]",
     "time_to_first_ego_collision": "time to 1st ego collision [s]",
 }
+
+COUNTS = ("n", "trained", "untrained", "trained_only", "untrained_only")
 
 Summaries = Mapping[tuple[str, str], Mapping[str, Mapping[str, Any]]]
 
@@ -46,6 +49,45 @@ def markdown_table(summaries: Summaries, metrics: tuple[str, ...] = tuple(METRIC
         count = summary[metrics[0]]["n"]
         lines.append("| " + " | ".join([planner, traffic, *cells, str(count)]) + " |")
     return "\n".join(lines)
+
+
+def paired_table(rows: list[Mapping[str, Any]]) -> str:
+    """Trained vs untrained on paired episodes (:func:`~policies.rl.evaluation.paired_counts`
+    rows, one per run, traffic and outcome), per run and pooled over the runs ("all": the
+    counts summed), with :func:`~policies.rl.evaluation.paired_difference` for each."""
+    from policies.rl.evaluation import paired_difference
+
+    table: dict[tuple, dict[str, Any]] = {}
+    for row in rows:
+        table[row["planner"], row["traffic"], row["metric"], row["run"]] = row
+        total = table.setdefault((row["planner"], row["traffic"], row["metric"], "all"), {})
+        for name in COUNTS:
+            total[name] = total.get(name, 0) + row[name]
+    runs = Counter(key[:3] for key in table if key[3] != "all")
+    header = ["ego", "run", "traffic", "outcome", "untrained", "trained"]
+    header += [
+        "trained - untrained [95% CI]",
+        "only untrained / only trained",
+        "McNemar p",
+        "episodes",
+    ]
+    lines = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
+    for (planner, traffic, metric, run), counts in sorted(table.items(), key=_paired_order):
+        if run == "all" and runs[planner, traffic, metric] < 2:
+            continue  # one run: its row is the pooled row
+        d = paired_difference(counts)
+        n = d["n"]
+        cells = [planner, run, traffic, METRIC_LABELS[metric]]
+        cells += [f"{d['untrained'] / n:.3f}", f"{d['trained'] / n:.3f}"]
+        cells += [f"{d['difference']:+.3f} [{d['low']:+.3f}, {d['high']:+.3f}]"]
+        cells += [f"{d['untrained_only']} / {d['trained_only']}", f"{d['p_value']:.2g}", str(n)]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _paired_order(item: tuple) -> tuple:
+    (planner, traffic, metric, run), _ = item
+    return planner, traffic, metric, run == "all", run
 
 
 def plot_summaries(

@@ -12,6 +12,7 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -23,6 +24,11 @@ pytest.importorskip(
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig, apply_stage  # noqa: E402
 from policies.rl.curriculum import LinearCurriculum  # noqa: E402
 from policies.rl.envs import EgoEnvConfig, build_env, compose_action, scale_action  # noqa: E402
+from policies.rl.evaluation import (  # noqa: E402
+    PAIRED_OUTCOMES,
+    paired_counts,
+    paired_difference,
+)
 from policies.rl.marl import AdversaryRewardConfig, adversary_reward  # noqa: E402
 from riskflow_env.config import DynamicsConfig, EnvConfig  # noqa: E402
 
@@ -158,8 +164,44 @@ def test_train_then_evaluate_tiny_budget(tmp_path):
         "ppo (seed 3)",
         "ppo-initial (seed 3)",
     }
+    paired = results["paired"]  # trained vs untrained on the same episodes
+    assert {(row["traffic"], row["metric"]) for row in paired} == {
+        (t, m) for t in ("riskflow K=5", "riskflow K=0") for m in PAIRED_OUTCOMES
+    }
+    assert all(row["n"] == 2 and row["run"] == "seed 3" for row in paired)
+    assert "Trained vs untrained, paired episodes" in (eval_dir / "results.md").read_text()
     assert (eval_dir / "results.png").stat().st_size > 0
     assert "| ppo | riskflow K=5 |" in (eval_dir / "results.md").read_text()
+
+
+def test_paired_counts_and_difference():
+    from scipy import stats
+
+    def records(outcomes):
+        return [
+            SimpleNamespace(scenario=SimpleNamespace(name=f"s{i}"), metrics=m)
+            for i, m in enumerate(outcomes)
+        ]
+
+    hit = {"ego_collided": True, "ego_offroad": False}
+    off = {"ego_collided": False, "ego_offroad": True}
+    safe = {"ego_collided": False, "ego_offroad": False}
+    untrained = records([hit] * 6 + [off] * 2 + [safe] * 2)
+    trained = records([hit] * 2 + [safe] * 4 + [off, hit] + [safe] * 2)
+    counts = paired_counts(trained, untrained, "ego_collision_rate")
+    assert counts == {"n": 10, "trained": 3, "untrained": 6, "trained_only": 1, "untrained_only": 4}
+    failures = paired_counts(trained, untrained, "ego_failure_rate")
+    assert (failures["trained"], failures["untrained"]) == (4, 8)
+    d = paired_difference(counts)
+    assert d["difference"] == pytest.approx(-0.3)
+    half = stats.norm.ppf(0.975) * np.sqrt(1 + 4 - 10 * 0.09) / 10
+    assert (d["low"], d["high"]) == pytest.approx((-0.3 - half, -0.3 + half))
+    assert d["p_value"] == pytest.approx(stats.binomtest(1, 5, 0.5).pvalue)
+    assert paired_difference({**counts, "trained_only": 0, "untrained_only": 0})["p_value"] == 1
+    with pytest.raises(ValueError, match="metric"):
+        paired_counts(trained, untrained, "progress")
+    with pytest.raises(ValueError, match="same episodes"):
+        paired_counts(trained[::-1], untrained, "ego_collision_rate")
 
 
 def test_adversary_reward_terms():
