@@ -1,5 +1,5 @@
-"""Evaluate trained PPO egos against the IDM planner, lane keeping, constant velocity and random
-actions (and, with ``--oracle``, a planner that reads the adversary's plans).
+"""Evaluate trained PPO egos against the IDM planner, lane keeping, a sampling MPC, constant
+velocity and random actions (and, with ``--oracle``, the MPC reading the adversary's plans).
 
     python examples/evaluate_ego.py --runs runs/ego_ppo/seed0,runs/ego_ppo/seed1,runs/ego_ppo/seed2
 
@@ -33,6 +33,7 @@ from policies.planners import (
     IDMPlanner,
     LaneKeepingPlanner,
     OraclePlanner,
+    SamplingMPCPlanner,
 )
 from policies.riskflow.dataclass_cli import parse_dataclass
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
@@ -52,6 +53,7 @@ NOMINAL = ("generator", "idm")
 BASELINES = {
     "idm": lambda seed: IDMPlanner(),
     "lane_keeping": lambda seed: LaneKeepingPlanner(),
+    "sampling_mpc": lambda seed: SamplingMPCPlanner(),
     "constant_velocity": lambda seed: ConstantVelocityPlanner(),
     "random": lambda seed: RandomPlanner(seed),
 }
@@ -88,7 +90,7 @@ class Options:
     episode_steps: int = 100
     """episode length [steps of 0.1 s]"""
     baselines: bool = True
-    """also evaluate the IDM, lane-keeping, constant-velocity and random egos"""
+    """also evaluate the IDM, lane-keeping, sampling-MPC, constant-velocity and random egos"""
     oracle: bool = False
     """also evaluate the oracle (sampling MPC that reads the adversary's plans: what is
     avoidable; needs RiskFlow nominal traffic)"""
@@ -104,10 +106,15 @@ class Options:
             raise ValueError("--scenes and --episodes-per-run must be >= 1")
 
 
-def run_options(run: Path) -> tuple[int, str]:
-    """Training seed and base planner of a run folder (its options.json)."""
+def run_options(run: Path) -> tuple[int, str, int]:
+    """Training seed, base planner and action repeat of a run folder (its options.json)."""
     options = json.loads((run / "options.json").read_text())
-    return int(options["seed"]), options.get("base_planner", "none")
+    return int(options["seed"]), options["base_planner"], options.get("action_repeat", 1)
+
+
+def ppo_factory(path: str, base: str, repeat: int):
+    """``factory(seed)`` of the PPO planner saved at ``path`` (deterministic actions)."""
+    return lambda seed: load_ppo_planner(path, True, base, repeat)
 
 
 RATES = ("ego_collision_rate", "ego_offroad_rate", "ego_failure_rate")
@@ -181,14 +188,10 @@ def main(argv: list[str] | None = None) -> None:
 
     results, per_run, paired = {}, {}, []
     for run in [Path(r) for r in options.runs.split(",") if r]:
-        seed, base = run_options(run)
+        seed, base, repeat = run_options(run)
         seeds = [seed * 100 + i for i in range(options.episodes_per_run)]
         planners = {
-            name: (
-                lambda s, path=run / f"{stem}.zip", base=base: load_ppo_planner(
-                    str(path), True, base
-                )
-            )
+            name: ppo_factory(str(run / f"{stem}.zip"), base, repeat)
             for name, stem in (
                 (options.label, options.model),
                 (f"{options.label}-initial", "initial_model"),

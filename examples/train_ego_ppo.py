@@ -76,6 +76,14 @@ class Options:
     base_planner: str = "none"
     """'none' (the policy drives), 'idm' (the policy's action is added to IDM's: residual) or
     'lane' (added to lane keeping at constant speed: the policy owns the acceleration)"""
+    action_repeat: int = 1
+    """env steps per policy decision (the action is held; the base planner steers every
+    step); ``total_timesteps`` counts decisions, i.e. env steps / action_repeat"""
+    use_sde: bool = False
+    """generalized state-dependent exploration (gSDE; Raffin et al. 2022): noise that is
+    constant over ``sde_sample_freq`` steps instead of fresh every step"""
+    sde_sample_freq: int = -1
+    """resample the gSDE noise every N decisions (-1: once per rollout)"""
     guidance_steps: int = 10
     """K_g of the training adversary (evaluation uses 30)"""
     planning_interval: float = 1.0
@@ -125,7 +133,14 @@ class Options:
     def __post_init__(self) -> None:
         if self.vec_env not in VEC_ENVS:
             raise ValueError(f"--vec-env must be one of {VEC_ENVS}, got {self.vec_env!r}")
-        for name in ("total_timesteps", "num_envs", "n_steps", "batch_size", "n_epochs"):
+        for name in (
+            "total_timesteps",
+            "num_envs",
+            "n_steps",
+            "batch_size",
+            "n_epochs",
+            "action_repeat",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
 
@@ -152,6 +167,7 @@ def env_config(options: Options) -> EgoEnvConfig:
         split=options.split,
         scenes=options.scenes,
         base_planner=options.base_planner,
+        action_repeat=options.action_repeat,
     )
 
 
@@ -186,6 +202,8 @@ def train(options: Options) -> Path:
         learning_rate=options.learning_rate,
         gamma=options.gamma,
         policy_kwargs={"log_std_init": options.log_std_init},
+        use_sde=options.use_sde,
+        sde_sample_freq=options.sde_sample_freq,
         seed=options.seed,
         device="cpu",
         verbose=0,

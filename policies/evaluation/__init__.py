@@ -4,7 +4,7 @@
 module              concept
 ==================  ==============================================================
 ``registry``        the methods: name -> policy class, variant, options (``--list``)
-``ego``             the ego planners under test (``--ego idm|cv|replay``)
+``ego``             the ego planners under test (``--ego idm|cv|replay|mpc``)
 ``options``         the typed options and the grid of rollouts (jobs, row keys)
 ``rollout``         one rollout: policy + ego, closed loop, metrics, timing
 ``results``         the results folder: config check, fsynced rows, KDD samples

@@ -1,11 +1,12 @@
-"""Ego planners ``riskflow-eval --ego`` can put under test: IDM, constant velocity, log replay."""
+"""Ego planners ``riskflow-eval --ego`` can put under test: IDM, constant velocity, log replay,
+sampling MPC."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from policies.baselines import ReplayPolicy
-from policies.planners import ConstantVelocityPlanner, EgoPlanner, IDMPlanner
+from policies.planners import ConstantVelocityPlanner, EgoPlanner, IDMPlanner, SamplingMPCPlanner
 from riskflow_env.view import SceneView
 
 
@@ -25,7 +26,12 @@ class ReplayPlanner:
         return self.policy.act(view).get("ego", np.zeros(2))
 
 
-EGO_PLANNERS = {"idm": IDMPlanner, "cv": ConstantVelocityPlanner, "replay": ReplayPlanner}
+EGO_PLANNERS = {
+    "idm": IDMPlanner,
+    "cv": ConstantVelocityPlanner,
+    "replay": ReplayPlanner,
+    "mpc": SamplingMPCPlanner,
+}
 
 
 def make_planner(name: str) -> EgoPlanner:

@@ -3,7 +3,9 @@
 * :class:`IDMPlanner` — IDM lane following that reacts to the vehicles ahead
   (:class:`~policies.baselines.idm.IDMPolicy` restricted to the ego);
 * :class:`LaneKeepingPlanner` — the IDM planner's steering at constant speed;
-* :class:`OraclePlanner` — sampling MPC that reads the adversary's plans (privileged: a
+* :class:`SamplingMPCPlanner` — sampling MPC against constant-velocity predictions of the
+  other vehicles (evades; far fewer collisions than IDM under the adversary);
+* :class:`OraclePlanner` — the same MPC reading the adversary's plans (privileged: a
   reference for what is avoidable, not a planner to deploy);
 * :class:`ConstantVelocityPlanner` — keeps speed and heading.
 
@@ -16,11 +18,12 @@ from __future__ import annotations
 from policies.planners.base import EgoPlanner, as_action, reset_planner
 from policies.planners.constant_velocity import ConstantVelocityPlanner
 from policies.planners.idm_planner import IDMPlanner, LaneKeepingPlanner
-from policies.planners.oracle import OraclePlanner
+from policies.planners.sampling_mpc import OraclePlanner, SamplingMPCPlanner
 
 PLANNERS = {
     "idm": IDMPlanner,
     "lane_keeping": LaneKeepingPlanner,
+    "sampling_mpc": SamplingMPCPlanner,
     "constant_velocity": ConstantVelocityPlanner,
 }
 
@@ -31,6 +34,7 @@ __all__ = [
     "IDMPlanner",
     "LaneKeepingPlanner",
     "OraclePlanner",
+    "SamplingMPCPlanner",
     "as_action",
     "reset_planner",
 ]

@@ -78,7 +78,9 @@ class EgoEnvConfig:
         split: shipped scenario bank the episodes are drawn from (``"train"``/``"eval"``).
         scenes: use only the first ``scenes`` scenes of the split (None: all).
         base_planner: ``"none"`` (the policy's action is the action) or ``"idm"`` (the
-            policy's action is a residual added to the IDM planner's).
+            policy's action is a residual added to the IDM planner's) or ``"lane"``
+            (added to lane keeping at constant speed).
+        action_repeat: env steps per policy action.
     """
 
     env: EnvConfig = field(default_factory=EnvConfig)
@@ -86,6 +88,7 @@ class EgoEnvConfig:
     split: str = "train"
     scenes: int | None = None
     base_planner: str = "none"
+    action_repeat: int = 1
 
 
 class EgoTrainingEnv(gymnasium.Wrapper):
@@ -93,13 +96,20 @@ class EgoTrainingEnv(gymnasium.Wrapper):
 
     Args:
         env: the ego's Gymnasium view.
-        base_planner: ``"none"`` or ``"idm"`` (residual actions, module docstring).
+        base_planner: ``"none"``, ``"idm"`` or ``"lane"`` (residual actions, module
+            docstring).
+        action_repeat: env steps per policy action (the policy decides every
+            ``action_repeat * dt`` seconds; :class:`~policies.rl.evaluation.PPOPlanner`
+            holds its actions as long).
     """
 
-    def __init__(self, env: EgoEnv, base_planner: str = "none") -> None:
+    def __init__(self, env: EgoEnv, base_planner: str = "none", action_repeat: int = 1) -> None:
         super().__init__(env)
+        if not (isinstance(action_repeat, int) and action_repeat >= 1):
+            raise ValueError(f"action_repeat must be an int >= 1, got {action_repeat!r}")
         self.dynamics = env.parallel_env.config.dynamics
         self.base = make_base_planner(base_planner, self.dynamics)
+        self.action_repeat = action_repeat
         self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (2,), np.float32)
         self._outcome = {"ego_collision": 0.0, "ego_offroad": 0.0}
         self._observation: np.ndarray | None = None
@@ -112,6 +122,17 @@ class EgoTrainingEnv(gymnasium.Wrapper):
         return self._observation, info
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """``action_repeat`` env steps with the same policy action (the base planner, if
+        any, re-plans every step); the reward is their sum."""
+        total = 0.0
+        for _ in range(self.action_repeat):
+            observation, reward, terminated, truncated, info = self._step_once(action)
+            total += reward
+            if terminated or truncated:
+                break
+        return observation, total, terminated, truncated, info
+
+    def _step_once(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         base = None
         if self.base is not None:
             base = self.base(self._observation, self.env.unwrapped.parallel_env.view())
@@ -141,7 +162,7 @@ def build_env(config: EgoEnvConfig, seed: int = 0) -> EgoTrainingEnv:
     scenes = list(bank) if config.scenes is None else [bank[i] for i in range(config.scenes)]
     policy = make_traffic(config.traffic, seed=seed)
     env = EgoEnv(config=config.env, scenarios=scenes, policy=policy)
-    return EgoTrainingEnv(env, config.base_planner)
+    return EgoTrainingEnv(env, config.base_planner, config.action_repeat)
 
 
 def make_env(config: EgoEnvConfig, rank: int, seed: int) -> Callable[[], gymnasium.Env]:

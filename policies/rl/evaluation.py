@@ -37,7 +37,9 @@ class PPOPlanner:
             are applied), or None.
         deterministic: act with the mean of the Gaussian (True) or sample it.
         dynamics: the env's bounds (to de-normalise actions).
-        base_planner: ``"none"``, or ``"idm"`` for a residual policy (as trained).
+        base_planner: ``"none"``, or ``"idm"`` / ``"lane"`` for a residual policy (as
+            trained).
+        action_repeat: env steps per policy decision (as trained).
     """
 
     def __init__(
@@ -47,24 +49,33 @@ class PPOPlanner:
         deterministic: bool = True,
         dynamics: DynamicsConfig | None = None,
         base_planner: str = "none",
+        action_repeat: int = 1,
     ) -> None:
         self.model, self.normalize = model, normalize
         self.deterministic, self.dynamics = deterministic, dynamics or DynamicsConfig()
         self.base = make_base_planner(base_planner, self.dynamics)
+        self.action_repeat = action_repeat
+        self._held: np.ndarray | None = None
+        self._calls = 0
 
     def reset(self, view: SceneView) -> None:
-        """Reset the base planner, if any (the policy itself is a feed-forward MLP)."""
+        """Reset the base planner, if any, and the held action (the policy itself is a
+        feed-forward MLP)."""
         if self.base is not None:
             self.base.reset(view)
+        self._held, self._calls = None, 0
 
     def __call__(self, observation: np.ndarray, view: SceneView | None = None) -> np.ndarray:
         """(2,) (accel [m/s^2], yaw rate [rad/s]) from the ego's observation (and the
-        view, for the base planner)."""
+        view, for the base planner); the policy decides every ``action_repeat`` calls,
+        as in training, and the base planner every call."""
         base = None if self.base is None else self.base(observation, view)
-        if self.normalize is not None:
-            observation = self.normalize.normalize_obs(observation)
-        action, _ = self.model.predict(observation, deterministic=self.deterministic)
-        return compose_action(action, base, self.dynamics)
+        if self._calls % self.action_repeat == 0:
+            if self.normalize is not None:
+                observation = self.normalize.normalize_obs(observation)
+            self._held, _ = self.model.predict(observation, deterministic=self.deterministic)
+        self._calls += 1
+        return compose_action(self._held, base, self.dynamics)
 
 
 class RandomPlanner:
@@ -89,12 +100,13 @@ class RandomPlanner:
 
 
 def load_ppo_planner(
-    run: str, deterministic: bool = True, base_planner: str = "none"
+    run: str, deterministic: bool = True, base_planner: str = "none", action_repeat: int = 1
 ) -> PPOPlanner:
     """A :class:`PPOPlanner` from a model file (``.zip``) saved by ``train_ego_ppo.py``;
     the ``VecNormalize`` statistics are read from the same name with ``_vecnormalize.pkl``
     in place of ``.zip`` (checkpoints: ``ppo_N_steps.zip`` -> ``ppo_vecnormalize_N_steps.pkl``)
-    when that file exists. ``base_planner`` must be the one the model was trained with."""
+    when that file exists. ``base_planner`` and ``action_repeat`` must be those the model
+    was trained with."""
     from pathlib import Path
 
     from stable_baselines3 import PPO
@@ -110,7 +122,7 @@ def load_ppo_planner(
     if stats.is_file():
         normalize = VecNormalize.load(str(stats), venv=_DummyVec(model))
         normalize.training, normalize.norm_reward = False, False
-    return PPOPlanner(model, normalize, deterministic, base_planner=base_planner)
+    return PPOPlanner(model, normalize, deterministic, None, base_planner, action_repeat)
 
 
 class _DummyVec:

@@ -156,7 +156,8 @@ def test_train_then_evaluate_tiny_budget(tmp_path):
     )  # fmt: skip
     results = json.loads((eval_dir / "results.json").read_text())
     rows = {(row["planner"], row["traffic"]) for row in results["summary"]}
-    planners = ("ppo", "ppo-initial", "idm", "lane_keeping", "constant_velocity", "random")
+    planners = ("ppo", "ppo-initial", "idm", "lane_keeping", "sampling_mpc", "constant_velocity")
+    planners += ("random",)
     planners += ("oracle",)  # --oracle
     assert rows == {(p, t) for p in planners for t in ("riskflow K=5", "riskflow K=0")}
     assert all(row["ego_collision_rate"]["n"] == 2 for row in results["summary"])

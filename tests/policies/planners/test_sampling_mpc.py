@@ -1,4 +1,4 @@
-"""Lane keeping at constant speed, the oracle planner and the plans it reads."""
+"""Lane keeping at constant speed, the sampling MPC, the oracle and the plans it reads."""
 
 from __future__ import annotations
 
@@ -7,19 +7,22 @@ import pytest
 
 from policies.baselines import ConstantVelocityPolicy
 from policies.harness import ClosedLoop
-from policies.planners import IDMPlanner, LaneKeepingPlanner, OraclePlanner, reset_planner
-from policies.planners.oracle import candidate_actions
+from policies.planners import (
+    IDMPlanner,
+    LaneKeepingPlanner,
+    OraclePlanner,
+    SamplingMPCPlanner,
+    reset_planner,
+)
+from policies.planners.sampling_mpc import ConstantVelocityPrediction, candidate_actions
 from policies.riskflow import RiskFlowAdversary
-from riskflow_env import dynamics
-from tests.policies.planners.test_planners import stopped_car_scene, start
+from tests.policies.planners.test_planners import start, stopped_car_scene
 
 
 class ConstantVelocityPlans(ConstantVelocityPolicy):
     """Constant-velocity traffic that also tells what it will do (the oracle's input)."""
 
-    def predicted_states(self, view, steps: int) -> np.ndarray:
-        actions = np.zeros((view.num_agents, steps, 2))
-        return dynamics.rollout(view.history[:, -1], actions)
+    predicted_states = ConstantVelocityPrediction().predicted_states
 
 
 def test_lane_keeping_steers_like_idm_but_never_brakes():
@@ -44,14 +47,24 @@ def test_candidate_actions_are_distinct_lane_change_shapes():
     assert np.sum(turns & (np.abs(heading_change) < 1e-9)) == 8 * 8 * 2
 
 
-def test_oracle_avoids_the_stopped_car_that_constant_velocity_hits():
-    scene = stopped_car_scene()
+@pytest.mark.parametrize("which", ["sampling_mpc", "oracle"])
+def test_mpc_avoids_the_stopped_car_that_constant_velocity_hits(which):
     traffic = ConstantVelocityPlans()
-    with ClosedLoop(OraclePlanner(traffic), traffic) as loop:
-        record = loop.run(scene)
+    planner = SamplingMPCPlanner() if which == "sampling_mpc" else OraclePlanner(traffic)
+    with ClosedLoop(planner, traffic) as loop:
+        record = loop.run(stopped_car_scene())
     assert not record.metrics["ego_collided"]
     assert not record.metrics["ego_offroad"]
     assert record.metrics["steps"] == 100  # drove the whole episode
+
+
+def test_constant_velocity_prediction_extrapolates(road_view):
+    _, view = road_view()  # six cars at 12 m/s along +x
+    ahead = ConstantVelocityPrediction().predicted_states(view, 10)
+    assert ahead.shape == (view.num_agents, 10, 4)
+    ahead, now = ahead[view.present], view.history[view.present, -1]
+    np.testing.assert_allclose(ahead[..., 0], now[:, None, 0] + 1.2 * np.arange(1, 11))
+    np.testing.assert_allclose(ahead[..., 1:], np.broadcast_to(now[:, None, 1:], (6, 10, 3)))
 
 
 def test_oracle_needs_plans_to_read():
@@ -61,7 +74,9 @@ def test_oracle_needs_plans_to_read():
     with pytest.raises(RuntimeError, match="watch"):
         OraclePlanner()(observations["ego"], env.view())
     with pytest.raises(ValueError, match="horizon"):
-        OraclePlanner(horizon=0)
+        SamplingMPCPlanner(horizon=0)
+    with pytest.raises(ValueError, match="gamma"):
+        OraclePlanner(gamma=0.0)
 
 
 def test_predicted_states_follow_the_plan_buffer(tiny_meanflow, tiny_normalizer, closed_loop):
@@ -76,6 +91,8 @@ def test_predicted_states_follow_the_plan_buffer(tiny_meanflow, tiny_normalizer,
     ahead = policy.predicted_states(view, 60)
     horizon = policy.plans.shape[1]
     np.testing.assert_array_equal(ahead[:, : horizon - 3], policy.plans[:, 3:])
-    np.testing.assert_array_equal(ahead[:, horizon - 3 :], policy.plans[:, -1:].repeat(63 - horizon, 1))
+    np.testing.assert_array_equal(
+        ahead[:, horizon - 3 :], policy.plans[:, -1:].repeat(63 - horizon, 1)
+    )
     with pytest.raises(ValueError, match="steps"):
         policy.predicted_states(view, 0)

@@ -1,19 +1,22 @@
-"""Oracle ego planner: sampling MPC against the scene policy's own plans (privileged).
-
-Not a planner to deploy: it reads what the adversary intends to do
-(:meth:`~policies.riskflow.plan_buffer.PlanBufferPolicy.predicted_states`), which no real
-ego can see. It answers one question: *can* the ego avoid the collisions the adversary
-sets up? If the oracle collides about as often as every other planner, the scenes are
-not avoidable and no learned ego can do better; if it collides far less, there is
-something to learn (docs/RL.md).
+"""Sampling MPC ego planner, with constant-velocity predictions or the adversary's plans.
 
 Every step it rolls out a fixed set of candidate action sequences with the env's own
 dynamics (:func:`riskflow_env.dynamics.rollout`, one call for all candidates), scores
-each against the other vehicles' predicted boxes and the map, and applies the first
-action of the cheapest. A candidate holds an acceleration over the whole horizon and a
-yaw rate for ``d`` steps followed by the opposite yaw rate for ``d`` steps (a lane-change
-shape; ``d`` = the horizon gives a constant turn). Its cost, with per-step discount
-``gamma``:
+each against the other vehicles' *predicted* boxes and the map, and applies the first
+action of the cheapest (receding horizon). The prediction is what distinguishes the two
+planners:
+
+* :class:`SamplingMPCPlanner` predicts that every other vehicle keeps its current speed
+  and heading (:class:`ConstantVelocityPrediction`): an ordinary planner, which sees no
+  more than the current states of the other vehicles;
+* :class:`OraclePlanner` reads what the adversary intends to do
+  (:meth:`~policies.riskflow.plan_buffer.PlanBufferPolicy.predicted_states`), which no
+  real ego can see. It answers whether the collisions the adversary sets up are
+  avoidable at all.
+
+A candidate holds an acceleration over the whole horizon and a yaw rate for ``d`` steps
+followed by the opposite yaw rate for ``d`` steps (a lane-change shape; ``d`` = the
+horizon gives a constant turn). Its cost, with per-step discount ``gamma``:
 
     cost = w_collision * sum_t gamma^t [min_j separation_tj <= margin]
          + w_offroad   * sum_t gamma^t [max footprint SDF_t > -road_margin]
@@ -22,7 +25,10 @@ shape; ``d`` = the horizon gives a constant turn). Its cost, with per-step disco
 
 (separation: the SAT gap of :func:`riskflow_env.geometry.separation`, the signed
 distance the env's collision check uses; SDF: the map's signed distance at the 9
-footprint points, positive off the road, as for the env's off-road check.)
+footprint points, positive off the road, as for the env's off-road check.) Sampling
+fixed action sequences and keeping the best is the simplest member of the family of
+sampling-based MPC (e.g. the "predictive sampling" baseline of Howell et al., *Predictive
+Sampling: Real-time Behaviour Synthesis with MuJoCo*, 2022).
 """
 
 from __future__ import annotations
@@ -62,12 +68,28 @@ def candidate_actions(
     return np.unique(actions, axis=0)
 
 
-class OraclePlanner:
-    """Sampling MPC that knows the adversary's plans; an ``EgoPlanner`` (module docstring).
+class ConstantVelocityPrediction:
+    """Every vehicle keeps its current speed and heading (zero actions through the env's
+    dynamics): the prediction of :class:`SamplingMPCPlanner`."""
+
+    def __init__(self, dynamics: DynamicsConfig | None = None) -> None:
+        self.dynamics = dynamics or DynamicsConfig()
+
+    def predicted_states(self, view: SceneView, steps: int) -> np.ndarray:
+        """(A, steps, 4) states (x, y [m], v [m/s], psi [rad]) after each of the next
+        ``steps`` steps."""
+        still = np.zeros((view.num_agents, steps, 2))
+        return unicycle.rollout(view.history[:, -1], still, self.dynamics)
+
+
+class SamplingMPCPlanner:
+    """Sampling MPC with a prediction of the other vehicles; an ``EgoPlanner`` (module
+    docstring).
 
     Args:
-        policy: the scene policy whose plans it reads (a RiskFlow adversary or any
-            plan-buffer policy); it can also be given later with :meth:`watch`.
+        prediction: what the other vehicles will do: any object with
+            ``predicted_states(view, steps) -> (A, steps, 4)``; default
+            :class:`ConstantVelocityPrediction`.
         horizon: look-ahead [steps].
         dynamics: the env's dynamics (time step and bounds).
         margin: separation [m] below which a predicted step counts as a collision.
@@ -80,7 +102,7 @@ class OraclePlanner:
 
     def __init__(
         self,
-        policy: Any = None,
+        prediction: Any = None,
         horizon: int = 30,
         dynamics: DynamicsConfig | None = None,
         margin: float = 0.3,
@@ -95,35 +117,21 @@ class OraclePlanner:
             raise ValueError(f"horizon must be an int >= 1 [steps], got {horizon!r}")
         if not 0.0 < gamma <= 1.0:
             raise ValueError(f"gamma must be in (0, 1], got {gamma!r}")
-        self.policy = None if policy is None else self.watch(policy)
         self.horizon, self.dynamics = horizon, dynamics or DynamicsConfig()
+        self.prediction = prediction
+        if prediction is None:
+            self.prediction = ConstantVelocityPrediction(self.dynamics)
         self.margin, self.road_margin = float(margin), float(road_margin)
         self.weights = (float(w_collision), float(w_offroad), float(w_speed))
         self.clearance_cap = float(clearance_cap)
         self.discount = gamma ** np.arange(horizon)
         self.candidates = candidate_actions(horizon)
 
-    def watch(self, policy: Any) -> Any:
-        """Read the plans of ``policy`` from now on; returns it.
-
-        Raises:
-            TypeError: ``policy`` has no plans to read (e.g. IDM traffic).
-        """
-        if not callable(getattr(policy, "predicted_states", None)):
-            raise TypeError(
-                "OraclePlanner needs a scene policy with plans (predicted_states), "
-                f"got {type(policy).__name__}"
-            )
-        self.policy = policy
-        return policy
-
     def reset(self, view: SceneView) -> None:
         """Nothing to prepare (the candidates are fixed)."""
 
     def __call__(self, observation: np.ndarray | None, view: SceneView) -> np.ndarray:
         """(2,) (accel [m/s^2], yaw rate [rad/s]): first action of the cheapest candidate."""
-        if self.policy is None:
-            raise RuntimeError("OraclePlanner has no scene policy to read: call watch(policy)")
         return self.candidates[int(np.argmin(self.costs(view))), 0].copy()
 
     def costs(self, view: SceneView) -> np.ndarray:
@@ -131,7 +139,7 @@ class OraclePlanner:
         ego = view.history[0, -1]
         length, width = view.length, view.width
         paths = unicycle.rollout(ego[None], self.candidates, self.dynamics)  # (M, H, 4)
-        predicted = self.policy.predicted_states(view, self.horizon)  # (A, H, 4)
+        predicted = self.prediction.predicted_states(view, self.horizon)  # (A, H, 4)
         others = view.present & view.active & ~np.isnan(predicted[:, 0, 0])
         others[0] = False
         gap = np.full(paths.shape[:2], np.inf)
@@ -152,3 +160,39 @@ class OraclePlanner:
             - (np.minimum(gap, self.clearance_cap) * discount).sum(-1) / discount.sum()
             - w_speed * paths[..., 2].mean(-1)
         )
+
+
+class OraclePlanner(SamplingMPCPlanner):
+    """:class:`SamplingMPCPlanner` that predicts with the adversary's own plans
+    (privileged: a reference for what is avoidable, not a planner to deploy).
+
+    Args:
+        policy: the scene policy whose plans it reads (a RiskFlow adversary or any
+            plan-buffer policy); or give it later with :meth:`watch` (what
+            :func:`policies.rl.evaluation.evaluate` does).
+        **options: as :class:`SamplingMPCPlanner` (but ``prediction``).
+    """
+
+    def __init__(self, policy: Any = None, **options: Any) -> None:
+        super().__init__(prediction=None, **options)
+        self.prediction = None if policy is None else self.watch(policy)
+
+    def watch(self, policy: Any) -> Any:
+        """Read the plans of ``policy`` from now on; returns it.
+
+        Raises:
+            TypeError: ``policy`` has no plans to read (e.g. IDM traffic).
+        """
+        if not callable(getattr(policy, "predicted_states", None)):
+            raise TypeError(
+                "OraclePlanner needs a scene policy with plans (predicted_states), "
+                f"got {type(policy).__name__}"
+            )
+        self.prediction = policy
+        return policy
+
+    def costs(self, view: SceneView) -> np.ndarray:
+        """(M,) cost of every candidate (:meth:`SamplingMPCPlanner.costs`)."""
+        if self.prediction is None:
+            raise RuntimeError("OraclePlanner has no scene policy to read: call watch(policy)")
+        return super().costs(view)
