@@ -81,6 +81,37 @@ def test_residual_env_drives_as_its_base_with_zero_actions(base):
         build_env(EgoEnvConfig(base_planner="mpc"))
 
 
+def test_action_repeat_holds_the_policy_action():
+    from policies.rl.evaluation import PPOPlanner
+
+    config = EgoEnvConfig(
+        env=EnvConfig(episode_steps=7), traffic=TINY_TRAFFIC, scenes=1, action_repeat=3
+    )
+    env = build_env(config, seed=0)
+    env.reset(seed=0)
+    base = env.unwrapped.parallel_env
+    env.step(np.array([0.5, 0.0], np.float32))
+    assert base.view().step == 3  # one decision, three env steps
+    np.testing.assert_allclose(base.scene.last_action[0], [2.5, 0.0])
+    *_, terminated, truncated, _ = env.step(np.zeros(2, np.float32))
+    *_, terminated, truncated, _ = env.step(np.zeros(2, np.float32))  # truncated at step 7
+    assert truncated and base.view().step == 7
+    with pytest.raises(ValueError, match="action_repeat"):
+        build_env(EgoEnvConfig(traffic=TINY_TRAFFIC, scenes=1, action_repeat=0))
+
+    class Counting:  # a model whose n-th decision is (n / 10, 0)
+        calls = 0
+
+        def predict(self, observation, deterministic=True):
+            self.calls += 1
+            return np.array([self.calls / 10, 0.0]), None
+
+    planner = PPOPlanner(Counting(), action_repeat=3)
+    planner.reset(None)
+    accels = [planner(np.zeros(3))[0] for _ in range(7)]
+    np.testing.assert_allclose(accels, [0.5, 0.5, 0.5, 1.0, 1.0, 1.0, 1.5])
+
+
 def test_linear_curriculum_ramps_then_holds():
     curriculum = LinearCurriculum(
         AdversaryStage(1, 10.0, "others"), AdversaryStage(5, 50.0, "ego"), ramp_fraction=0.5
