@@ -106,15 +106,21 @@ class Options:
             raise ValueError("--scenes and --episodes-per-run must be >= 1")
 
 
-def run_options(run: Path) -> tuple[int, str, int]:
-    """Training seed, base planner and action repeat of a run folder (its options.json)."""
+def run_options(run: Path) -> tuple[int, dict]:
+    """Training seed of a run folder and the options its policy needs at evaluation (base
+    planner, action repeat, maneuver features), from its options.json."""
     options = json.loads((run / "options.json").read_text())
-    return int(options["seed"]), options["base_planner"], options.get("action_repeat", 1)
+    policy = {
+        "base_planner": options["base_planner"],
+        "action_repeat": options.get("action_repeat", 1),
+        "maneuver_features": options.get("maneuver_features", False),
+    }
+    return int(options["seed"]), policy
 
 
-def ppo_factory(path: str, base: str, repeat: int):
+def ppo_factory(path: str, policy: dict):
     """``factory(seed)`` of the PPO planner saved at ``path`` (deterministic actions)."""
-    return lambda seed: load_ppo_planner(path, True, base, repeat)
+    return lambda seed: load_ppo_planner(path, True, **policy)
 
 
 RATES = ("ego_collision_rate", "ego_offroad_rate", "ego_failure_rate")
@@ -188,10 +194,10 @@ def main(argv: list[str] | None = None) -> None:
 
     results, per_run, paired = {}, {}, []
     for run in [Path(r) for r in options.runs.split(",") if r]:
-        seed, base, repeat = run_options(run)
+        seed, policy = run_options(run)
         seeds = [seed * 100 + i for i in range(options.episodes_per_run)]
         planners = {
-            name: ppo_factory(str(run / f"{stem}.zip"), base, repeat)
+            name: ppo_factory(str(run / f"{stem}.zip"), policy)
             for name, stem in (
                 (options.label, options.model),
                 (f"{options.label}-initial", "initial_model"),

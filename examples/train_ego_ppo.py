@@ -79,6 +79,9 @@ class Options:
     action_repeat: int = 1
     """env steps per policy decision (the action is held; the base planner steers every
     step); ``total_timesteps`` counts decisions, i.e. env steps / action_repeat"""
+    maneuver_features: bool = False
+    """append what 15 fixed maneuvers would lead to (predicted clearance and road margin,
+    constant-velocity predictions; policies.rl.features) to the observation"""
     use_sde: bool = False
     """generalized state-dependent exploration (gSDE; Raffin et al. 2022): noise that is
     constant over ``sde_sample_freq`` steps instead of fresh every step"""
@@ -168,6 +171,7 @@ def env_config(options: Options) -> EgoEnvConfig:
         scenes=options.scenes,
         base_planner=options.base_planner,
         action_repeat=options.action_repeat,
+        maneuver_features=options.maneuver_features,
     )
 
 

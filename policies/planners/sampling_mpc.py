@@ -112,6 +112,7 @@ class SamplingMPCPlanner:
         w_offroad: float = 10.0,
         w_speed: float = 0.02,
         clearance_cap: float = 5.0,
+        candidates: np.ndarray | None = None,
     ) -> None:
         if not (isinstance(horizon, int) and horizon >= 1):
             raise ValueError(f"horizon must be an int >= 1 [steps], got {horizon!r}")
@@ -125,7 +126,11 @@ class SamplingMPCPlanner:
         self.weights = (float(w_collision), float(w_offroad), float(w_speed))
         self.clearance_cap = float(clearance_cap)
         self.discount = gamma ** np.arange(horizon)
-        self.candidates = candidate_actions(horizon)
+        self.candidates = candidate_actions(horizon) if candidates is None else candidates
+        if self.candidates.ndim != 3 or self.candidates.shape[1:] != (horizon, 2):
+            raise ValueError(
+                f"candidates must have shape (M, horizon={horizon}, 2), got {self.candidates.shape}"
+            )
 
     def reset(self, view: SceneView) -> None:
         """Nothing to prepare (the candidates are fixed)."""
@@ -136,6 +141,24 @@ class SamplingMPCPlanner:
 
     def costs(self, view: SceneView) -> np.ndarray:
         """(M,) cost of every candidate from the current scene (module docstring)."""
+        paths, gap, edge = self.outcomes(view)
+        w_collision, w_offroad, w_speed = self.weights
+        discount = self.discount
+        return (
+            w_collision * ((gap <= self.margin) * discount).sum(-1)
+            + w_offroad * ((edge > -self.road_margin) * discount).sum(-1)
+            - (np.minimum(gap, self.clearance_cap) * discount).sum(-1) / discount.sum()
+            - w_speed * paths[..., 2].mean(-1)
+        )
+
+    def outcomes(self, view: SceneView) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What every candidate leads to under the prediction.
+
+        Returns:
+            ``paths`` (M, H, 4) the ego's states, ``gap`` (M, H) its separation [m] from
+            the nearest predicted vehicle (inf when there is none) and ``edge`` (M, H) the
+            largest map SDF over its footprint [m] (positive: partly off the road).
+        """
         ego = view.history[0, -1]
         length, width = view.length, view.width
         paths = unicycle.rollout(ego[None], self.candidates, self.dynamics)  # (M, H, 4)
@@ -152,14 +175,7 @@ class SamplingMPCPlanner:
             ).min(axis=1)  # fmt: skip  # (M, H)
         footprint = footprint_points(paths[..., :2], paths[..., 3], length[0], width[0])
         edge = view.map.sdf_at(footprint).max(axis=-1)  # (M, H)
-        w_collision, w_offroad, w_speed = self.weights
-        discount = self.discount
-        return (
-            w_collision * ((gap <= self.margin) * discount).sum(-1)
-            + w_offroad * ((edge > -self.road_margin) * discount).sum(-1)
-            - (np.minimum(gap, self.clearance_cap) * discount).sum(-1) / discount.sum()
-            - w_speed * paths[..., 2].mean(-1)
-        )
+        return paths, gap, edge
 
 
 class OraclePlanner(SamplingMPCPlanner):
@@ -191,8 +207,8 @@ class OraclePlanner(SamplingMPCPlanner):
         self.prediction = policy
         return policy
 
-    def costs(self, view: SceneView) -> np.ndarray:
-        """(M,) cost of every candidate (:meth:`SamplingMPCPlanner.costs`)."""
+    def outcomes(self, view: SceneView) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`SamplingMPCPlanner.outcomes` under the adversary's plans."""
         if self.prediction is None:
             raise RuntimeError("OraclePlanner has no scene policy to read: call watch(policy)")
-        return super().costs(view)
+        return super().outcomes(view)

@@ -81,6 +81,7 @@ class EgoEnvConfig:
             policy's action is a residual added to the IDM planner's) or ``"lane"``
             (added to lane keeping at constant speed).
         action_repeat: env steps per policy action.
+        maneuver_features: append the maneuver-clearance features to the observation.
     """
 
     env: EnvConfig = field(default_factory=EnvConfig)
@@ -89,6 +90,7 @@ class EgoEnvConfig:
     scenes: int | None = None
     base_planner: str = "none"
     action_repeat: int = 1
+    maneuver_features: bool = False
 
 
 class EgoTrainingEnv(gymnasium.Wrapper):
@@ -101,15 +103,30 @@ class EgoTrainingEnv(gymnasium.Wrapper):
         action_repeat: env steps per policy action (the policy decides every
             ``action_repeat * dt`` seconds; :class:`~policies.rl.evaluation.PPOPlanner`
             holds its actions as long).
+        maneuver_features: append :class:`~policies.rl.features.ManeuverFeatures` to
+            the observation.
     """
 
-    def __init__(self, env: EgoEnv, base_planner: str = "none", action_repeat: int = 1) -> None:
+    def __init__(
+        self,
+        env: EgoEnv,
+        base_planner: str = "none",
+        action_repeat: int = 1,
+        maneuver_features: bool = False,
+    ) -> None:
         super().__init__(env)
         if not (isinstance(action_repeat, int) and action_repeat >= 1):
             raise ValueError(f"action_repeat must be an int >= 1, got {action_repeat!r}")
         self.dynamics = env.parallel_env.config.dynamics
         self.base = make_base_planner(base_planner, self.dynamics)
         self.action_repeat = action_repeat
+        self.features = None
+        if maneuver_features:
+            from policies.rl.features import ManeuverFeatures
+
+            self.features = ManeuverFeatures(dynamics=self.dynamics)
+            size = env.observation_space.shape[0] + self.features.size
+            self.observation_space = gymnasium.spaces.Box(-np.inf, np.inf, (size,), np.float32)
         self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (2,), np.float32)
         self._outcome = {"ego_collision": 0.0, "ego_offroad": 0.0}
         self._observation: np.ndarray | None = None
@@ -119,7 +136,13 @@ class EgoTrainingEnv(gymnasium.Wrapper):
         self._observation, info = self.env.reset(**kwargs)
         if self.base is not None:
             self.base.reset(self.env.unwrapped.parallel_env.view())
-        return self._observation, info
+        return self._policy_observation(), info
+
+    def _policy_observation(self) -> np.ndarray:
+        """The env's observation, with the maneuver features when enabled."""
+        if self.features is None:
+            return self._observation
+        return self.features.augment(self._observation, self.env.unwrapped.parallel_env.view())
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """``action_repeat`` env steps with the same policy action (the base planner, if
@@ -130,7 +153,7 @@ class EgoTrainingEnv(gymnasium.Wrapper):
             total += reward
             if terminated or truncated:
                 break
-        return observation, total, terminated, truncated, info
+        return self._policy_observation(), total, terminated, truncated, info
 
     def _step_once(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         base = None
@@ -162,7 +185,7 @@ def build_env(config: EgoEnvConfig, seed: int = 0) -> EgoTrainingEnv:
     scenes = list(bank) if config.scenes is None else [bank[i] for i in range(config.scenes)]
     policy = make_traffic(config.traffic, seed=seed)
     env = EgoEnv(config=config.env, scenarios=scenes, policy=policy)
-    return EgoTrainingEnv(env, config.base_planner, config.action_repeat)
+    return EgoTrainingEnv(env, config.base_planner, config.action_repeat, config.maneuver_features)
 
 
 def make_env(config: EgoEnvConfig, rank: int, seed: int) -> Callable[[], gymnasium.Env]:

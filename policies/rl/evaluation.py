@@ -40,6 +40,7 @@ class PPOPlanner:
         base_planner: ``"none"``, or ``"idm"`` / ``"lane"`` for a residual policy (as
             trained).
         action_repeat: env steps per policy decision (as trained).
+        maneuver_features: append the maneuver-clearance features (as trained).
     """
 
     def __init__(
@@ -50,8 +51,14 @@ class PPOPlanner:
         dynamics: DynamicsConfig | None = None,
         base_planner: str = "none",
         action_repeat: int = 1,
+        maneuver_features: bool = False,
     ) -> None:
         self.model, self.normalize = model, normalize
+        self.features = None
+        if maneuver_features:
+            from policies.rl.features import ManeuverFeatures
+
+            self.features = ManeuverFeatures(dynamics=dynamics)
         self.deterministic, self.dynamics = deterministic, dynamics or DynamicsConfig()
         self.base = make_base_planner(base_planner, self.dynamics)
         self.action_repeat = action_repeat
@@ -71,6 +78,8 @@ class PPOPlanner:
         as in training, and the base planner every call."""
         base = None if self.base is None else self.base(observation, view)
         if self._calls % self.action_repeat == 0:
+            if self.features is not None:
+                observation = self.features.augment(observation, view)
             if self.normalize is not None:
                 observation = self.normalize.normalize_obs(observation)
             self._held, _ = self.model.predict(observation, deterministic=self.deterministic)
@@ -100,13 +109,17 @@ class RandomPlanner:
 
 
 def load_ppo_planner(
-    run: str, deterministic: bool = True, base_planner: str = "none", action_repeat: int = 1
+    run: str,
+    deterministic: bool = True,
+    base_planner: str = "none",
+    action_repeat: int = 1,
+    maneuver_features: bool = False,
 ) -> PPOPlanner:
     """A :class:`PPOPlanner` from a model file (``.zip``) saved by ``train_ego_ppo.py``;
     the ``VecNormalize`` statistics are read from the same name with ``_vecnormalize.pkl``
     in place of ``.zip`` (checkpoints: ``ppo_N_steps.zip`` -> ``ppo_vecnormalize_N_steps.pkl``)
-    when that file exists. ``base_planner`` and ``action_repeat`` must be those the model
-    was trained with."""
+    when that file exists. ``base_planner``, ``action_repeat`` and ``maneuver_features``
+    must be those the model was trained with."""
     from pathlib import Path
 
     from stable_baselines3 import PPO
@@ -122,7 +135,9 @@ def load_ppo_planner(
     if stats.is_file():
         normalize = VecNormalize.load(str(stats), venv=_DummyVec(model))
         normalize.training, normalize.norm_reward = False, False
-    return PPOPlanner(model, normalize, deterministic, None, base_planner, action_repeat)
+    return PPOPlanner(
+        model, normalize, deterministic, None, base_planner, action_repeat, maneuver_features
+    )
 
 
 class _DummyVec:

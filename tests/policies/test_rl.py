@@ -112,7 +112,31 @@ def test_action_repeat_holds_the_policy_action():
     np.testing.assert_allclose(accels, [0.5, 0.5, 0.5, 1.0, 1.0, 1.0, 1.5])
 
 
-def test_linear_curriculum_ramps_then_holds():
+def test_maneuver_features_in_training_and_evaluation_agree():
+    from policies.rl.evaluation import PPOPlanner
+    from policies.rl.features import ManeuverFeatures
+
+    plain = build_env(EgoEnvConfig(traffic=TINY_TRAFFIC, scenes=1))
+    config = EgoEnvConfig(traffic=TINY_TRAFFIC, scenes=1, maneuver_features=True)
+    env = build_env(config)
+    features = ManeuverFeatures()
+    assert env.observation_space.shape[0] == plain.observation_space.shape[0] + features.size
+    observation, _ = env.reset(seed=0)
+    assert env.observation_space.contains(observation)
+    view = env.unwrapped.parallel_env.view()
+    raw = observation[: -features.size]
+
+    class Recording:  # records what the policy network is given
+        def predict(self, observation, deterministic=True):
+            self.seen = observation
+            return np.zeros(2), None
+
+    model = Recording()
+    planner = PPOPlanner(model, maneuver_features=True)
+    planner.reset(view)
+    planner(raw, view)
+    np.testing.assert_array_equal(model.seen, observation)
+
     curriculum = LinearCurriculum(
         AdversaryStage(1, 10.0, "others"), AdversaryStage(5, 50.0, "ego"), ramp_fraction=0.5
     )

@@ -96,3 +96,20 @@ def test_predicted_states_follow_the_plan_buffer(tiny_meanflow, tiny_normalizer,
     )
     with pytest.raises(ValueError, match="steps"):
         policy.predicted_states(view, 0)
+
+
+def test_maneuver_features_see_the_stopped_car_ahead():
+    from policies.rl.features import ACCELS, CAP, ManeuverFeatures
+
+    env, _ = start(stopped_car_scene())  # 35.5 m gap at 15 m/s, a 3.5 m wide road
+    features = ManeuverFeatures()
+    values = features(env.view())
+    candidates = features.planner.candidates
+    count = len(candidates)
+    assert values.shape == (features.size,) == (2 * count,)
+    gap, edge = values[:count], values[count:]
+    straight = np.abs(candidates[..., 1]).sum(axis=1) == 0
+    by_accel = {a: gap[straight & (candidates[:, 0, 0] == a)][0] for a in ACCELS}
+    assert by_accel[3.0] <= 0.0 < by_accel[-5.0]  # accelerating hits it, braking stops short
+    assert np.all(edge[straight] < 0) and np.all(edge[~straight] > 0)  # one lane: turns leave it
+    assert np.all(np.abs(values) <= CAP)
