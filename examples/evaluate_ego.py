@@ -108,12 +108,13 @@ class Options:
 
 def run_options(run: Path) -> tuple[int, dict]:
     """Training seed of a run folder and the options its policy needs at evaluation (base
-    planner, action repeat, maneuver features), from its options.json."""
+    planner, action repeat, maneuver features and actions), from its options.json."""
     options = json.loads((run / "options.json").read_text())
     policy = {
         "base_planner": options["base_planner"],
         "action_repeat": options.get("action_repeat", 1),
         "maneuver_features": options.get("maneuver_features", False),
+        "maneuver_actions": options.get("maneuver_actions", False),
     }
     return int(options["seed"]), policy
 

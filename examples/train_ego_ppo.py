@@ -82,6 +82,10 @@ class Options:
     maneuver_features: bool = False
     """append what 15 fixed maneuvers would lead to (predicted clearance and road margin,
     constant-velocity predictions; policies.rl.features) to the observation"""
+    maneuver_actions: bool = False
+    """discrete actions: choose one of the 15 maneuvers of policies.rl.features.maneuvers
+    (brake / hold / accelerate x straight / lane change / turn) every --action-repeat steps
+    (--log-std-init and gSDE do not apply)"""
     use_sde: bool = False
     """generalized state-dependent exploration (gSDE; Raffin et al. 2022): noise that is
     constant over ``sde_sample_freq`` steps instead of fresh every step"""
@@ -134,6 +138,8 @@ class Options:
     """also write TensorBoard event files to <out>/tb"""
 
     def __post_init__(self) -> None:
+        if self.maneuver_actions and self.use_sde:
+            raise ValueError("--use-sde needs continuous actions: drop --maneuver-actions")
         if self.vec_env not in VEC_ENVS:
             raise ValueError(f"--vec-env must be one of {VEC_ENVS}, got {self.vec_env!r}")
         for name in (
@@ -172,6 +178,7 @@ def env_config(options: Options) -> EgoEnvConfig:
         base_planner=options.base_planner,
         action_repeat=options.action_repeat,
         maneuver_features=options.maneuver_features,
+        maneuver_actions=options.maneuver_actions,
     )
 
 
@@ -205,7 +212,7 @@ def train(options: Options) -> Path:
         n_epochs=options.n_epochs,
         learning_rate=options.learning_rate,
         gamma=options.gamma,
-        policy_kwargs={"log_std_init": options.log_std_init},
+        policy_kwargs={} if options.maneuver_actions else {"log_std_init": options.log_std_init},
         use_sde=options.use_sde,
         sde_sample_freq=options.sde_sample_freq,
         seed=options.seed,

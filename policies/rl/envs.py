@@ -46,18 +46,36 @@ def make_base_planner(name: str, dynamics: DynamicsConfig):
 
 
 def compose_action(
-    action: np.ndarray, base: np.ndarray | None, dynamics: DynamicsConfig
+    action: np.ndarray | int,
+    base: np.ndarray | None,
+    dynamics: DynamicsConfig,
+    maneuvers: np.ndarray | None = None,
+    substep: int = 0,
 ) -> np.ndarray:
-    """The env action of a normalised policy action: ``scale_action(action)``, plus the base
-    planner's action ``base`` (accel [m/s^2], yaw rate [rad/s]) when there is one, clipped
-    to the dynamics bounds. Used by training (:class:`EgoTrainingEnv`) and evaluation
-    (:class:`~policies.rl.evaluation.PPOPlanner`) alike."""
-    scaled = scale_action(action, dynamics)
+    """The env action of a policy action, plus the base planner's action ``base`` (accel
+    [m/s^2], yaw rate [rad/s]) when there is one, clipped to the dynamics bounds. Used by
+    training (:class:`EgoTrainingEnv`) and evaluation
+    (:class:`~policies.rl.evaluation.PPOPlanner`) alike.
+
+    Args:
+        action: normalised ``(u_accel, u_yaw)`` (:func:`scale_action`), or with
+            ``maneuvers`` the index of a maneuver.
+        base: the base planner's action, or None.
+        dynamics: the bounds.
+        maneuvers: (M, H, 2) maneuver action sequences (:func:`policies.rl.features.maneuvers`)
+            for a discrete policy; None for a continuous one.
+        substep: env steps since the policy chose ``action`` (a maneuver is followed
+            along its sequence while it is held).
+    """
+    if maneuvers is None:
+        own = scale_action(action, dynamics)
+    else:
+        own = maneuvers[int(action), min(substep, maneuvers.shape[1] - 1)]
     if base is None:
-        return scaled
+        return np.asarray(own, dtype=np.float64).copy()
     low = [dynamics.accel_min, -dynamics.yaw_rate_max]
     high = [dynamics.accel_max, dynamics.yaw_rate_max]
-    return np.clip(scaled + np.asarray(base, dtype=np.float64), low, high)
+    return np.clip(own + np.asarray(base, dtype=np.float64), low, high)
 
 
 def scale_action(action: np.ndarray, dynamics: DynamicsConfig) -> np.ndarray:
@@ -82,6 +100,7 @@ class EgoEnvConfig:
             (added to lane keeping at constant speed).
         action_repeat: env steps per policy action.
         maneuver_features: append the maneuver-clearance features to the observation.
+        maneuver_actions: the policy chooses among fixed maneuvers (discrete actions).
     """
 
     env: EnvConfig = field(default_factory=EnvConfig)
@@ -91,6 +110,7 @@ class EgoEnvConfig:
     base_planner: str = "none"
     action_repeat: int = 1
     maneuver_features: bool = False
+    maneuver_actions: bool = False
 
 
 class EgoTrainingEnv(gymnasium.Wrapper):
@@ -105,6 +125,9 @@ class EgoTrainingEnv(gymnasium.Wrapper):
             holds its actions as long).
         maneuver_features: append :class:`~policies.rl.features.ManeuverFeatures` to
             the observation.
+        maneuver_actions: the policy chooses one of the 15 maneuvers of
+            :func:`~policies.rl.features.maneuvers` (``Discrete(15)``) and follows it for
+            ``action_repeat`` steps, instead of a normalised (accel, yaw rate).
     """
 
     def __init__(
@@ -113,6 +136,7 @@ class EgoTrainingEnv(gymnasium.Wrapper):
         base_planner: str = "none",
         action_repeat: int = 1,
         maneuver_features: bool = False,
+        maneuver_actions: bool = False,
     ) -> None:
         super().__init__(env)
         if not (isinstance(action_repeat, int) and action_repeat >= 1):
@@ -127,7 +151,13 @@ class EgoTrainingEnv(gymnasium.Wrapper):
             self.features = ManeuverFeatures(dynamics=self.dynamics)
             size = env.observation_space.shape[0] + self.features.size
             self.observation_space = gymnasium.spaces.Box(-np.inf, np.inf, (size,), np.float32)
+        self.maneuvers = None
         self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (2,), np.float32)
+        if maneuver_actions:
+            from policies.rl.features import maneuvers
+
+            self.maneuvers = maneuvers()
+            self.action_space = gymnasium.spaces.Discrete(len(self.maneuvers))
         self._outcome = {"ego_collision": 0.0, "ego_offroad": 0.0}
         self._observation: np.ndarray | None = None
 
@@ -148,19 +178,19 @@ class EgoTrainingEnv(gymnasium.Wrapper):
         """``action_repeat`` env steps with the same policy action (the base planner, if
         any, re-plans every step); the reward is their sum."""
         total = 0.0
-        for _ in range(self.action_repeat):
-            observation, reward, terminated, truncated, info = self._step_once(action)
+        for substep in range(self.action_repeat):
+            observation, reward, terminated, truncated, info = self._step_once(action, substep)
             total += reward
             if terminated or truncated:
                 break
         return self._policy_observation(), total, terminated, truncated, info
 
-    def _step_once(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+    def _step_once(self, action: Any, substep: int) -> tuple[np.ndarray, float, bool, bool, dict]:
         base = None
         if self.base is not None:
             base = self.base(self._observation, self.env.unwrapped.parallel_env.view())
         observation, reward, terminated, truncated, info = self.env.step(
-            compose_action(action, base, self.dynamics)
+            compose_action(action, base, self.dynamics, self.maneuvers, substep)
         )
         self._observation = observation
         self._outcome["ego_collision"] = max(
@@ -185,7 +215,13 @@ def build_env(config: EgoEnvConfig, seed: int = 0) -> EgoTrainingEnv:
     scenes = list(bank) if config.scenes is None else [bank[i] for i in range(config.scenes)]
     policy = make_traffic(config.traffic, seed=seed)
     env = EgoEnv(config=config.env, scenarios=scenes, policy=policy)
-    return EgoTrainingEnv(env, config.base_planner, config.action_repeat, config.maneuver_features)
+    return EgoTrainingEnv(
+        env,
+        config.base_planner,
+        config.action_repeat,
+        config.maneuver_features,
+        config.maneuver_actions,
+    )
 
 
 def make_env(config: EgoEnvConfig, rank: int, seed: int) -> Callable[[], gymnasium.Env]:

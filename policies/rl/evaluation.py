@@ -41,6 +41,7 @@ class PPOPlanner:
             trained).
         action_repeat: env steps per policy decision (as trained).
         maneuver_features: append the maneuver-clearance features (as trained).
+        maneuver_actions: the policy's actions are maneuver indices (as trained).
     """
 
     def __init__(
@@ -52,8 +53,14 @@ class PPOPlanner:
         base_planner: str = "none",
         action_repeat: int = 1,
         maneuver_features: bool = False,
+        maneuver_actions: bool = False,
     ) -> None:
         self.model, self.normalize = model, normalize
+        self.maneuvers = None
+        if maneuver_actions:
+            from policies.rl.features import maneuvers
+
+            self.maneuvers = maneuvers()
         self.features = None
         if maneuver_features:
             from policies.rl.features import ManeuverFeatures
@@ -83,8 +90,9 @@ class PPOPlanner:
             if self.normalize is not None:
                 observation = self.normalize.normalize_obs(observation)
             self._held, _ = self.model.predict(observation, deterministic=self.deterministic)
+        substep = self._calls % self.action_repeat
         self._calls += 1
-        return compose_action(self._held, base, self.dynamics)
+        return compose_action(self._held, base, self.dynamics, self.maneuvers, substep)
 
 
 class RandomPlanner:
@@ -114,12 +122,13 @@ def load_ppo_planner(
     base_planner: str = "none",
     action_repeat: int = 1,
     maneuver_features: bool = False,
+    maneuver_actions: bool = False,
 ) -> PPOPlanner:
     """A :class:`PPOPlanner` from a model file (``.zip``) saved by ``train_ego_ppo.py``;
     the ``VecNormalize`` statistics are read from the same name with ``_vecnormalize.pkl``
     in place of ``.zip`` (checkpoints: ``ppo_N_steps.zip`` -> ``ppo_vecnormalize_N_steps.pkl``)
-    when that file exists. ``base_planner``, ``action_repeat`` and ``maneuver_features``
-    must be those the model was trained with."""
+    when that file exists. ``base_planner``, ``action_repeat``, ``maneuver_features`` and
+    ``maneuver_actions`` must be those the model was trained with."""
     from pathlib import Path
 
     from stable_baselines3 import PPO
@@ -136,7 +145,14 @@ def load_ppo_planner(
         normalize = VecNormalize.load(str(stats), venv=_DummyVec(model))
         normalize.training, normalize.norm_reward = False, False
     return PPOPlanner(
-        model, normalize, deterministic, None, base_planner, action_repeat, maneuver_features
+        model,
+        normalize,
+        deterministic,
+        None,
+        base_planner,
+        action_repeat,
+        maneuver_features,
+        maneuver_actions,
     )
 
 

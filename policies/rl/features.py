@@ -29,6 +29,14 @@ LANE_CHANGE_STEPS = 15  # [steps] each way of the lane-change shape
 CAP = 10.0  # [m] features are clipped to [-CAP, CAP]
 
 
+def maneuvers(horizon: int = 30) -> np.ndarray:
+    """(15, horizon, 2) the fixed maneuvers (accel [m/s^2], yaw rate [rad/s] per step):
+    brake / hold / accelerate, each straight, as a lane change to either side or as a
+    constant turn to either side. They are what :class:`ManeuverFeatures` describes and
+    what a policy with ``maneuver_actions`` chooses among."""
+    return candidate_actions(horizon, ACCELS, TURNS, (LANE_CHANGE_STEPS,))
+
+
 class ManeuverFeatures:
     """Predicted clearance and road margin of fixed maneuvers (module docstring).
 

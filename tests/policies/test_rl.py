@@ -137,6 +137,42 @@ def test_maneuver_features_in_training_and_evaluation_agree():
     planner(raw, view)
     np.testing.assert_array_equal(model.seen, observation)
 
+
+def test_maneuver_actions_follow_the_chosen_maneuver():
+    from policies.rl.evaluation import PPOPlanner
+    from policies.rl.features import maneuvers
+
+    table = maneuvers()
+    dynamics = DynamicsConfig()
+    np.testing.assert_allclose(compose_action(4, None, dynamics, table, 3), table[4, 3])
+    np.testing.assert_allclose(  # the base is added and the sum clipped to the bounds
+        compose_action(14, np.array([4.0, 0.1]), dynamics, table, 0), [5.0, 0.25]
+    )
+    np.testing.assert_allclose(compose_action(0, None, dynamics, table, 99), table[0, -1])
+
+    config = EgoEnvConfig(
+        env=EnvConfig(episode_steps=6), traffic=TINY_TRAFFIC, scenes=1,
+        maneuver_actions=True, action_repeat=2,
+    )  # fmt: skip
+    env = build_env(config, seed=0)
+    assert env.action_space.n == len(table) == 15
+    env.reset(seed=0)
+    env.step(14)
+    np.testing.assert_allclose(env.unwrapped.parallel_env.scene.last_action[0], table[14, 1])
+
+    class Choosing:  # picks maneuver 3, then 7
+        picks = iter([3, 7])
+
+        def predict(self, observation, deterministic=True):
+            return np.int64(next(self.picks)), None
+
+    planner = PPOPlanner(Choosing(), action_repeat=2, maneuver_actions=True)
+    planner.reset(None)
+    actions = [planner(np.zeros(3)) for _ in range(4)]
+    np.testing.assert_allclose(actions, [table[3, 0], table[3, 1], table[7, 0], table[7, 1]])
+
+
+def test_linear_curriculum_ramps_then_holds():
     curriculum = LinearCurriculum(
         AdversaryStage(1, 10.0, "others"), AdversaryStage(5, 50.0, "ego"), ramp_fraction=0.5
     )
