@@ -37,14 +37,8 @@ from policies.planners import (
 )
 from policies.riskflow.dataclass_cli import parse_dataclass
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
-from policies.rl.evaluation import (
-    PAIRED_OUTCOMES,
-    RandomPlanner,
-    evaluate,
-    load_ppo_planner,
-    paired_counts,
-    summarize_ego,
-)
+from policies.rl.evaluation import RandomPlanner, evaluate, load_ppo_planner, summarize_ego
+from policies.rl.paired import PAIRED_OUTCOMES, paired_counts
 from policies.rl.report import markdown_table, paired_table, plot_summaries
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank

@@ -2,12 +2,17 @@
 
 * :mod:`policies.rl.adversary` — the traffic (RiskFlow adversary, unguided generator, IDM)
   and the curriculum stages (k, guidance weight, target);
-* :mod:`policies.rl.envs` — the ego's training env (normalised actions, episode outcome,
-  settable adversary) and the vector-env factory;
+* :mod:`policies.rl.envs` — the ego's training env (normalised or maneuver actions, a
+  base planner for residual actions, action repeat, episode outcome, settable adversary)
+  and the vector-env factory;
+* :mod:`policies.rl.features` — the fixed maneuvers and their predicted clearance, as
+  observation features and as discrete actions;
 * :mod:`policies.rl.curriculum` — the linear curriculum and the SB3 callbacks (needs
   stable-baselines3);
 * :mod:`policies.rl.evaluation` — trained / baseline ego planners in closed loop, summaries
-  with 95% intervals; :mod:`policies.rl.report` — Markdown table and plot;
+  with 95% intervals; :mod:`policies.rl.paired` — trained vs untrained on paired
+  episodes (difference, interval, McNemar test); :mod:`policies.rl.report` — Markdown
+  tables and plot;
 * :mod:`policies.rl.marl` — the parallel env as a SuperSuit / SB3 vector env with
   parameter sharing, and the reward of learned adversaries.
 
