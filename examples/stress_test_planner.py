@@ -92,7 +92,8 @@ class Options:
     """Options of ``stress_test_planner.py``."""
 
     planner: str = "idm"
-    """ego planner: idm, constant_velocity or my_planner (edit it in this file)"""
+    """ego planner: idm, lane_keeping, sampling_mpc, constant_velocity or my_planner (edit it
+    in this file)"""
     scenes: int = 20
     """scenes of the shipped evaluation bank to run (the first N, 105 at most)"""
     k: str = "5"
@@ -128,7 +129,7 @@ def make_planner(name: str, config: EnvConfig) -> EgoPlanner:
     """A built-in planner by name, or :func:`my_planner`."""
     if name == "my_planner":
         return my_planner
-    if name == "idm":
+    if name in ("idm", "lane_keeping", "sampling_mpc"):
         return PLANNERS[name](dynamics=config.dynamics)
     return PLANNERS[name]()
 
