@@ -1,17 +1,25 @@
 """Train an ego with Stable-Baselines3 PPO against the RiskFlow adversary (``rl`` extra).
 
-    python examples/train_ego_ppo.py --seed 0 --out runs/ego_ppo/seed0
-    python examples/train_ego_ppo.py --seed 0 --base-planner idm --vec-env dummy  # residual
+    python examples/train_ego_ppo.py --seed 0 --vec-env dummy --out runs/ego_maneuver/seed0
     python examples/train_ego_ppo.py --help
 
 Results, budget and the commands of the documented runs: docs/RL.md.
 
-The ego drives ``RiskFlowEgo-v0`` (:class:`~policies.rl.envs.EgoTrainingEnv`: actions
-normalised to [-1, 1], 0 = keep speed and heading); the RiskFlow adversary drives every
-other vehicle, with a curriculum that ramps ``k`` and the guidance weight ``lambda_adv``
-(and optionally switches the target) over the first ``ramp_fraction`` of training
-(:mod:`policies.rl.curriculum`). Episodes come from the shipped *training* bank; evaluate
-on the evaluation bank with ``examples/evaluate_ego.py``.
+The ego drives ``RiskFlowEgo-v0`` (:class:`~policies.rl.envs.EgoTrainingEnv`); the RiskFlow
+adversary drives every other vehicle, with a curriculum that ramps ``k`` and the guidance
+weight ``lambda_adv`` (and optionally switches the target) over the first
+``ramp_fraction`` of training (:mod:`policies.rl.curriculum`). Episodes come from the
+shipped *training* bank; evaluate on the evaluation bank with ``examples/evaluate_ego.py``.
+
+The defaults are the recipe that learns within the budget of docs/RL.md: every 0.2 s
+(``--action-repeat 2``) the policy chooses one of 15 fixed maneuvers (brake / hold /
+accelerate, each straight, as a lane change or as a turn to either side;
+``--maneuver-actions``), added to lane keeping (``--base-planner lane``), and it sees,
+besides the env's observation, what each maneuver would lead to under constant-velocity
+predictions of the others (``--maneuver-features``; :mod:`policies.rl.features`).
+``--no-maneuver-actions --no-maneuver-features --action-repeat 1`` gives the continuous
+policy (normalised (accel, yaw rate), 0 = keep speed and heading), with
+``--base-planner none`` (the policy drives), ``idm`` (a residual over IDM) or ``lane``.
 
 Reward: the env's (``RewardConfig``: speed, collision, off-road, TTC risk, comfort) with
 the collision and off-road weights doubled to -10 (the library default is -5): the speed
@@ -73,16 +81,16 @@ class Options:
     """use only the first N scenes of the split (None: all)"""
     episode_steps: int = 100
     """episode length [steps of 0.1 s]"""
-    base_planner: str = "none"
+    base_planner: str = "lane"
     """'none' (the policy drives), 'idm' (the policy's action is added to IDM's: residual) or
     'lane' (added to lane keeping at constant speed: the policy owns the acceleration)"""
-    action_repeat: int = 1
+    action_repeat: int = 2
     """env steps per policy decision (the action is held; the base planner steers every
     step); ``total_timesteps`` counts decisions, i.e. env steps / action_repeat"""
-    maneuver_features: bool = False
+    maneuver_features: bool = True
     """append what 15 fixed maneuvers would lead to (predicted clearance and road margin,
     constant-velocity predictions; policies.rl.features) to the observation"""
-    maneuver_actions: bool = False
+    maneuver_actions: bool = True
     """discrete actions: choose one of the 15 maneuvers of policies.rl.features.maneuvers
     (brake / hold / accelerate x straight / lane change / turn) every --action-repeat steps
     (--log-std-init and gSDE do not apply)"""
@@ -105,9 +113,9 @@ class Options:
     """curriculum: adversarial guidance weight after the ramp [1/m]"""
     target_start: str = "others"
     """curriculum: guidance target at the start ('others' or 'ego')"""
-    target_end: str = "ego"
+    target_end: str = "others"
     """curriculum: guidance target from half-way through the ramp"""
-    ramp_fraction: float = 0.4
+    ramp_fraction: float = 0.2
     """share of training the curriculum ramp takes (0: no curriculum)"""
     collision_reward: float = -10.0
     """reward when the ego collides [per step]"""
@@ -118,15 +126,15 @@ class Options:
     ``offroad_reward`` every step it is off, so leaving the road never ends its troubles"""
     risk_reward: float = -0.05
     """weight of the TTC risk term (times the ego's largest TTC risk weight, in [0, 1])"""
-    n_steps: int = 1024
+    n_steps: int = 512
     """PPO rollout length per env"""
-    batch_size: int = 256
+    batch_size: int = 128
     """PPO minibatch size"""
     n_epochs: int = 10
     """PPO epochs per update"""
     learning_rate: float = 3e-4
     """Adam learning rate"""
-    gamma: float = 0.99
+    gamma: float = 0.97
     """discount factor"""
     log_std_init: float = -1.2
     """initial log std of the Gaussian policy (normalised actions; -1.2: std 0.30)"""
