@@ -18,7 +18,9 @@ Report: ego collision rate, off-road rate, collision-or-off-road rate (Wilson 95
 intervals over all (seed, scene) episodes), progress [m] and time to the first ego
 collision [s] (bootstrap 95% intervals), as a Markdown table (``<out>/results.md``,
 printed), a plot (``<out>/results.png``) and JSON (``<out>/results.json``, with a
-per-run breakdown of the PPO rows).
+per-run breakdown of the PPO rows), the trained-vs-untrained comparison on paired
+episodes (:mod:`policies.rl.paired`) and the runs' training curves
+(``<out>/training.png``).
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ from policies.riskflow.dataclass_cli import parse_dataclass
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.evaluation import RandomPlanner, evaluate, load_ppo_planner, summarize_ego
 from policies.rl.paired import PAIRED_OUTCOMES, paired_counts
-from policies.rl.report import markdown_table, paired_table, plot_summaries
+from policies.rl.report import markdown_table, paired_table, plot_summaries, plot_training
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
 
@@ -217,6 +219,10 @@ def main(argv: list[str] | None = None) -> None:
 
     summaries = {key: summarize_ego(episodes) for key, episodes in results.items()}
     write_report(summaries, per_run, paired, adversarial.label, options.out)
+    curves = {f"seed {run_options(Path(r))[0]}": r for r in options.runs.split(",") if r}
+    if curves:
+        plot_training(curves, options.out / "training.png")
+        print(f"written: {options.out / 'training.png'}")
 
 
 def write_report(

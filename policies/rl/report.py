@@ -127,3 +127,49 @@ def plot_summaries(
     figure.tight_layout(rect=(0, 0.08, 1, 1))
     figure.savefig(path, dpi=120)
     plt.close(figure)
+
+
+def plot_training(
+    runs: Mapping[str, str | os.PathLike], path: str | os.PathLike, window: int = 8
+) -> None:
+    """Training curves of ``train_ego_ppo.py`` runs: the share of training episodes that
+    ended in an ego collision and in an off-road excursion (the callbacks' per-rollout
+    rates, moving average over ``window`` rollouts) against the env decisions.
+
+    Args:
+        runs: label -> run folder (with ``progress.csv``).
+        path: the image (PNG/SVG/PDF by extension).
+        window: rollouts averaged per point.
+    """
+    import csv
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    columns = {
+        "ego collision": "rollout/ego_collision_rate",
+        "ego off-road": "rollout/ego_offroad_rate",
+    }
+    figure, axes = plt.subplots(1, len(columns), figsize=(5.0 * len(columns), 3.4), squeeze=False)
+    kernel = np.ones(window) / window
+    for label, run in runs.items():
+        with open(os.path.join(run, "progress.csv"), newline="") as file:
+            rows = [row for row in csv.DictReader(file) if row.get(columns["ego collision"])]
+        steps = np.array([float(row["time/total_timesteps"]) for row in rows])
+        for axis, (title, column) in zip(axes[0], columns.items(), strict=True):
+            rate = np.array([float(row[column]) for row in rows])
+            if len(rate) >= window:
+                rate, shown = np.convolve(rate, kernel, "valid"), steps[window - 1 :]
+            else:
+                shown = steps
+            axis.plot(shown, rate, label=label)
+            axis.set_title(f"{title} (share of training episodes)")
+            axis.set_xlabel("policy decisions")
+            axis.grid(alpha=0.3)
+    axes[0][0].legend(fontsize="small")
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)

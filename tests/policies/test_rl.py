@@ -259,6 +259,7 @@ def test_train_then_evaluate_tiny_budget(tmp_path):
     assert all(row["n"] == 2 and row["run"] == "seed 3" for row in paired)
     assert "Trained vs untrained, paired episodes" in (eval_dir / "results.md").read_text()
     assert (eval_dir / "results.png").stat().st_size > 0
+    assert (eval_dir / "training.png").stat().st_size > 0  # the run's training curves
     assert "| ppo | riskflow K=5 |" in (eval_dir / "results.md").read_text()
 
 
