@@ -106,6 +106,7 @@ def plot_summaries(
     traffics = list(dict.fromkeys(t for _, t in summaries))
     figure, axes = plt.subplots(1, len(metrics), figsize=(4.2 * len(metrics), 3.6), squeeze=False)
     width = 0.8 / max(len(planners), 1)
+    palette = plt.get_cmap("tab10" if len(planners) <= 10 else "tab20")
     for axis, metric in zip(axes[0], metrics, strict=True):
         for index, planner in enumerate(planners):
             values, errors = [], [[], []]
@@ -118,7 +119,8 @@ def plot_summaries(
                 errors[0].append(value - low)
                 errors[1].append(high - value)
             positions = np.arange(len(traffics)) + (index - (len(planners) - 1) / 2) * width
-            axis.bar(positions, values, width, yerr=errors, capsize=3, label=planner)
+            color = palette(index % palette.N)
+            axis.bar(positions, values, width, yerr=errors, capsize=3, label=planner, color=color)
         axis.set_xticks(np.arange(len(traffics)), traffics)
         axis.set_title(METRIC_LABELS[metric])
         axis.grid(axis="y", alpha=0.3)
