@@ -1,18 +1,27 @@
-"""The ego's training env: ``RiskFlowEgo-v0`` with normalised actions and a settable adversary.
+"""The ego's training env: ``RiskFlowEgo-v0`` with the policy's actions and a settable adversary.
 
-:class:`EgoTrainingEnv` wraps :class:`~riskflow_env.wrappers.EgoEnv`:
+:class:`EgoInterface` is how a policy's observations and actions map to the env's, one
+object for training (:class:`EgoTrainingEnv`) and evaluation
+(:class:`~policies.rl.evaluation.PPOPlanner`):
 
-* **actions** in ``[-1, 1]^2`` (what SB3's Gaussian policies expect), mapped by
-  :func:`scale_action` so that 0 is "keep speed and heading" (0 m/s^2, 0 rad/s): -1 is
-  the strongest braking (``accel_min``), +1 the strongest acceleration (``accel_max``),
-  and the yaw rate is ``u * yaw_rate_max``. A plain affine map of ``[-8, 5]`` would put
-  0 at -1.5 m/s^2, so an untrained policy would brake;
-* optionally **residual**: with ``base_planner`` (e.g. ``"idm"``), the scaled action is
-  added to that planner's action (:func:`compose_action`), so that 0 is "drive as the
-  base planner does" and the policy learns a correction (residual policy learning);
-* **episode outcome** in the last step's info: ``ego_collision`` and ``ego_offroad``
-  (1.0 if it happened at any step of the episode), logged by the training callbacks;
-* :meth:`EgoTrainingEnv.set_adversary_stage` ramps the adversary (curriculum).
+* **maneuver actions** (``maneuver_actions``): the policy picks one of the 15 fixed
+  maneuvers of :func:`policies.rl.features.maneuvers` (``Discrete(15)``) and follows it
+  for ``action_repeat`` steps;
+* otherwise **normalised actions** in ``[-1, 1]^2`` (what SB3's Gaussian policies expect),
+  mapped by :func:`scale_action` so that 0 is "keep speed and heading" (0 m/s^2, 0 rad/s):
+  -1 is the strongest braking (``accel_min``), +1 the strongest acceleration
+  (``accel_max``), and the yaw rate is ``u * yaw_rate_max``. A plain affine map of
+  ``[-8, 5]`` would put 0 at -1.5 m/s^2, so an untrained policy would brake;
+* optionally **residual**: with ``base_planner`` (``"idm"`` or ``"lane"``), the policy's
+  action is added to that planner's (:func:`compose_action`), so that 0 (or a straight
+  maneuver) is "drive as the base planner does";
+* optionally the **maneuver features** (``maneuver_features``,
+  :class:`~policies.rl.features.ManeuverFeatures`) appended to the observation.
+
+:class:`EgoTrainingEnv` adds ``action_repeat`` env steps per decision, the **episode
+outcome** in the last step's info (``ego_collision`` and ``ego_offroad``: 1.0 if it
+happened at any step of the episode, logged by the training callbacks) and
+:meth:`EgoTrainingEnv.set_adversary_stage`, which ramps the adversary (curriculum).
 
 :func:`make_env` is the factory that ``SubprocVecEnv`` / ``DummyVecEnv`` call in each
 worker: it seeds the adversary per worker and limits torch to one thread per worker.
@@ -29,6 +38,7 @@ import numpy as np
 
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig, apply_stage, make_traffic
 from riskflow_env.config import DynamicsConfig, EnvConfig
+from riskflow_env.view import SceneView
 from riskflow_env.wrappers import EgoEnv
 
 BASE_PLANNERS = ("none", "idm", "lane")
@@ -86,6 +96,70 @@ def scale_action(action: np.ndarray, dynamics: DynamicsConfig) -> np.ndarray:
     return np.array([accel, u[1] * dynamics.yaw_rate_max])
 
 
+class EgoInterface:
+    """A policy's view of the ego: its observation and how its actions drive (module
+    docstring). Shared by :class:`EgoTrainingEnv` and
+    :class:`~policies.rl.evaluation.PPOPlanner`, so training and evaluation cannot differ.
+
+    Args:
+        dynamics: the env's dynamics (bounds and time step).
+        base_planner: ``"none"``, ``"idm"`` or ``"lane"``.
+        action_repeat: env steps per policy decision (the action is held; the base
+            planner plans every step).
+        maneuver_features: append the maneuver-clearance features to the observation.
+        maneuver_actions: the policy's actions are maneuver indices.
+    """
+
+    def __init__(
+        self,
+        dynamics: DynamicsConfig,
+        base_planner: str = "none",
+        action_repeat: int = 1,
+        maneuver_features: bool = False,
+        maneuver_actions: bool = False,
+    ) -> None:
+        if not (isinstance(action_repeat, int) and action_repeat >= 1):
+            raise ValueError(f"action_repeat must be an int >= 1, got {action_repeat!r}")
+        from policies.rl.features import ManeuverFeatures, maneuvers
+
+        self.dynamics, self.action_repeat = dynamics, action_repeat
+        self.base = make_base_planner(base_planner, dynamics)
+        self.features = ManeuverFeatures(dynamics=dynamics) if maneuver_features else None
+        self.maneuvers = maneuvers() if maneuver_actions else None
+
+    def action_space(self) -> gymnasium.Space:
+        """``Discrete(15)`` for maneuver actions, else ``Box([-1, 1]^2)``."""
+        if self.maneuvers is not None:
+            return gymnasium.spaces.Discrete(len(self.maneuvers))
+        return gymnasium.spaces.Box(-1.0, 1.0, (2,), np.float32)
+
+    def observation_space(self, env_space: gymnasium.spaces.Box) -> gymnasium.spaces.Box:
+        """The policy's observation space, given the env's."""
+        if self.features is None:
+            return env_space
+        size = env_space.shape[0] + self.features.size
+        return gymnasium.spaces.Box(-np.inf, np.inf, (size,), np.float32)
+
+    def reset(self, view: SceneView) -> None:
+        """New episode (the base planner's lane graph and route)."""
+        if self.base is not None:
+            self.base.reset(view)
+
+    def observe(self, observation: np.ndarray, view: SceneView) -> np.ndarray:
+        """The policy's observation: the env's, with the maneuver features if enabled."""
+        if self.features is None:
+            return observation
+        return self.features.augment(observation, view)
+
+    def env_action(
+        self, action: np.ndarray | int, observation: np.ndarray, view: SceneView, substep: int
+    ) -> np.ndarray:
+        """(2,) env action (accel [m/s^2], yaw rate [rad/s]) of a policy action chosen
+        ``substep`` steps ago, with the base planner's action for ``view`` added."""
+        base = None if self.base is None else self.base(observation, view)
+        return compose_action(action, base, self.dynamics, self.maneuvers, substep)
+
+
 @dataclass(frozen=True)
 class EgoEnvConfig:
     """Everything a worker needs to build its env (picklable for ``SubprocVecEnv``).
@@ -114,20 +188,13 @@ class EgoEnvConfig:
 
 
 class EgoTrainingEnv(gymnasium.Wrapper):
-    """Normalised actions, episode outcome in ``info``, settable adversary (module docstring).
+    """The policy's actions and observation (:class:`EgoInterface`), ``action_repeat`` env
+    steps per decision, episode outcome in ``info``, settable adversary (module docstring).
 
     Args:
         env: the ego's Gymnasium view.
-        base_planner: ``"none"``, ``"idm"`` or ``"lane"`` (residual actions, module
-            docstring).
-        action_repeat: env steps per policy action (the policy decides every
-            ``action_repeat * dt`` seconds; :class:`~policies.rl.evaluation.PPOPlanner`
-            holds its actions as long).
-        maneuver_features: append :class:`~policies.rl.features.ManeuverFeatures` to
-            the observation.
-        maneuver_actions: the policy chooses one of the 15 maneuvers of
-            :func:`~policies.rl.features.maneuvers` (``Discrete(15)``) and follows it for
-            ``action_repeat`` steps, instead of a normalised (accel, yaw rate).
+        base_planner, action_repeat, maneuver_features, maneuver_actions: as
+            :class:`EgoInterface`.
     """
 
     def __init__(
@@ -139,68 +206,48 @@ class EgoTrainingEnv(gymnasium.Wrapper):
         maneuver_actions: bool = False,
     ) -> None:
         super().__init__(env)
-        if not (isinstance(action_repeat, int) and action_repeat >= 1):
-            raise ValueError(f"action_repeat must be an int >= 1, got {action_repeat!r}")
-        self.dynamics = env.parallel_env.config.dynamics
-        self.base = make_base_planner(base_planner, self.dynamics)
-        self.action_repeat = action_repeat
-        self.features = None
-        if maneuver_features:
-            from policies.rl.features import ManeuverFeatures
-
-            self.features = ManeuverFeatures(dynamics=self.dynamics)
-            size = env.observation_space.shape[0] + self.features.size
-            self.observation_space = gymnasium.spaces.Box(-np.inf, np.inf, (size,), np.float32)
-        self.maneuvers = None
-        self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (2,), np.float32)
-        if maneuver_actions:
-            from policies.rl.features import maneuvers
-
-            self.maneuvers = maneuvers()
-            self.action_space = gymnasium.spaces.Discrete(len(self.maneuvers))
+        self.interface = EgoInterface(
+            env.parallel_env.config.dynamics,
+            base_planner,
+            action_repeat,
+            maneuver_features,
+            maneuver_actions,
+        )
+        self.observation_space = self.interface.observation_space(env.observation_space)
+        self.action_space = self.interface.action_space()
         self._outcome = {"ego_collision": 0.0, "ego_offroad": 0.0}
         self._observation: np.ndarray | None = None
 
     def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
         self._outcome = {"ego_collision": 0.0, "ego_offroad": 0.0}
         self._observation, info = self.env.reset(**kwargs)
-        if self.base is not None:
-            self.base.reset(self.env.unwrapped.parallel_env.view())
-        return self._policy_observation(), info
+        view = self.env.unwrapped.parallel_env.view()
+        self.interface.reset(view)
+        return self.interface.observe(self._observation, view), info
 
-    def _policy_observation(self) -> np.ndarray:
-        """The env's observation, with the maneuver features when enabled."""
-        if self.features is None:
-            return self._observation
-        return self.features.augment(self._observation, self.env.unwrapped.parallel_env.view())
-
-    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """``action_repeat`` env steps with the same policy action (the base planner, if
-        any, re-plans every step); the reward is their sum."""
+        any, plans every step); the reward is their sum."""
         total = 0.0
-        for substep in range(self.action_repeat):
-            observation, reward, terminated, truncated, info = self._step_once(action, substep)
+        for substep in range(self.interface.action_repeat):
+            view = self.env.unwrapped.parallel_env.view()
+            action_now = self.interface.env_action(action, self._observation, view, substep)
+            observation, reward, terminated, truncated, info = self.env.step(action_now)
+            self._observation = observation
+            self._record_outcome(info)
             total += reward
             if terminated or truncated:
+                info = {**info, **self._outcome}
                 break
-        return self._policy_observation(), total, terminated, truncated, info
+        view = self.env.unwrapped.parallel_env.view()
+        return self.interface.observe(observation, view), total, terminated, truncated, info
 
-    def _step_once(self, action: Any, substep: int) -> tuple[np.ndarray, float, bool, bool, dict]:
-        base = None
-        if self.base is not None:
-            base = self.base(self._observation, self.env.unwrapped.parallel_env.view())
-        observation, reward, terminated, truncated, info = self.env.step(
-            compose_action(action, base, self.dynamics, self.maneuvers, substep)
-        )
-        self._observation = observation
+    def _record_outcome(self, info: dict[str, Any]) -> None:
         self._outcome["ego_collision"] = max(
             self._outcome["ego_collision"], float(info["collided"])
         )
         offroad = float(info["offroad_fraction"] > 0)
         self._outcome["ego_offroad"] = max(self._outcome["ego_offroad"], offroad)
-        if terminated or truncated:
-            info = {**info, **self._outcome}
-        return observation, reward, terminated, truncated, info
 
     def set_adversary_stage(self, stage: AdversaryStage) -> None:
         """Set k, guidance weight and target of the RiskFlow adversary (next cycle on)."""

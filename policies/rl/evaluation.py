@@ -19,7 +19,7 @@ import torch
 
 from policies.harness import ClosedLoop, EpisodeRecord, mean_interval, summarize
 from policies.rl.adversary import ScenePolicyConfig, make_traffic
-from policies.rl.envs import compose_action, make_base_planner
+from policies.rl.envs import EgoInterface
 from riskflow_env.config import DynamicsConfig, EnvConfig
 from riskflow_env.scenarios import Scenario
 from riskflow_env.view import SceneView
@@ -56,43 +56,35 @@ class PPOPlanner:
         maneuver_actions: bool = False,
     ) -> None:
         self.model, self.normalize = model, normalize
-        self.maneuvers = None
-        if maneuver_actions:
-            from policies.rl.features import maneuvers
-
-            self.maneuvers = maneuvers()
-        self.features = None
-        if maneuver_features:
-            from policies.rl.features import ManeuverFeatures
-
-            self.features = ManeuverFeatures(dynamics=dynamics)
-        self.deterministic, self.dynamics = deterministic, dynamics or DynamicsConfig()
-        self.base = make_base_planner(base_planner, self.dynamics)
-        self.action_repeat = action_repeat
-        self._held: np.ndarray | None = None
+        self.deterministic = deterministic
+        self.interface = EgoInterface(
+            dynamics or DynamicsConfig(),
+            base_planner,
+            action_repeat,
+            maneuver_features,
+            maneuver_actions,
+        )
+        self._held: Any = None
         self._calls = 0
 
     def reset(self, view: SceneView) -> None:
         """Reset the base planner, if any, and the held action (the policy itself is a
         feed-forward MLP)."""
-        if self.base is not None:
-            self.base.reset(view)
+        self.interface.reset(view)
         self._held, self._calls = None, 0
 
     def __call__(self, observation: np.ndarray, view: SceneView | None = None) -> np.ndarray:
         """(2,) (accel [m/s^2], yaw rate [rad/s]) from the ego's observation (and the
-        view, for the base planner); the policy decides every ``action_repeat`` calls,
-        as in training, and the base planner every call."""
-        base = None if self.base is None else self.base(observation, view)
-        if self._calls % self.action_repeat == 0:
-            if self.features is not None:
-                observation = self.features.augment(observation, view)
+        view, for the base planner and the features); the policy decides every
+        ``action_repeat`` calls, as in training, and the base planner every call."""
+        substep = self._calls % self.interface.action_repeat
+        if substep == 0:
+            seen = self.interface.observe(observation, view)
             if self.normalize is not None:
-                observation = self.normalize.normalize_obs(observation)
-            self._held, _ = self.model.predict(observation, deterministic=self.deterministic)
-        substep = self._calls % self.action_repeat
+                seen = self.normalize.normalize_obs(seen)
+            self._held, _ = self.model.predict(seen, deterministic=self.deterministic)
         self._calls += 1
-        return compose_action(self._held, base, self.dynamics, self.maneuvers, substep)
+        return self.interface.env_action(self._held, observation, view, substep)
 
 
 class RandomPlanner:
