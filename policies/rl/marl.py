@@ -154,12 +154,42 @@ class FixedEgoParallelEnv(ParallelEnv):
         return self.env.state()
 
 
-def full_roster_env(slots: int, episode_steps: int, **config: Any) -> RiskFlowParallelEnv:
-    """A parallel env whose scenes fill all ``slots`` (ego included) and in which nobody
-    finishes early: what SuperSuit's plain vector env needs (module docstring)."""
-    from riskflow_env.scenarios import HighwayTrafficSource, TrafficConfig
+class FullRosterSource:
+    """Highway-env highway traffic with exactly ``slots`` vehicles (a ``ScenarioSource``).
 
-    source = HighwayTrafficSource(TrafficConfig(families=("highway",), num_vehicles=(slots, slots)))
+    :func:`~riskflow_env.scenarios.traffic.place_traffic` places *up to* the requested
+    count (it drops candidates that would overlap), and SuperSuit's plain vector env fails
+    on a scene with an empty slot, so a short draw is replaced by the next draw from the
+    same generator (deterministic given its state).
+
+    Args:
+        slots: vehicles per scene, the ego included.
+        attempts: draws before giving up with an error.
+    """
+
+    def __init__(self, slots: int, attempts: int = 100) -> None:
+        from riskflow_env.scenarios import HighwayTrafficSource, TrafficConfig
+
+        self.slots, self.attempts = slots, attempts
+        config = TrafficConfig(families=("highway",), num_vehicles=(slots, slots))
+        self.source = HighwayTrafficSource(config)
+
+    def sample(self, rng: np.random.Generator, max_agents: int | None = None):
+        """The first draw with all ``slots`` vehicles."""
+        for _ in range(self.attempts):
+            scenario = self.source.sample(rng, max_agents)
+            if scenario.num_agents == self.slots:
+                return scenario
+        raise RuntimeError(
+            f"FullRosterSource: no highway scene with {self.slots} vehicles in "
+            f"{self.attempts} draws; lower slots"
+        )
+
+
+def full_roster_env(slots: int, episode_steps: int, **config: Any) -> RiskFlowParallelEnv:
+    """A parallel env whose scenes fill all ``slots`` (ego included, :class:`FullRosterSource`)
+    and in which nobody finishes early: what SuperSuit's plain vector env needs (module
+    docstring)."""
     env_config = EnvConfig(
         max_agents=slots,
         episode_steps=episode_steps,
@@ -167,7 +197,7 @@ def full_roster_env(slots: int, episode_steps: int, **config: Any) -> RiskFlowPa
         terminate_on_offroad="none",
         **config,
     )
-    return RiskFlowParallelEnv(config=env_config, scenarios=source)
+    return RiskFlowParallelEnv(config=env_config, scenarios=FullRosterSource(slots))
 
 
 def marl_vec_env(

@@ -19,6 +19,7 @@ pytest.importorskip("supersuit", reason="supersuit is not installed (pip install
 from policies.planners import ConstantVelocityPlanner  # noqa: E402
 from policies.rl.marl import (  # noqa: E402
     FixedEgoParallelEnv,
+    FullRosterSource,
     full_roster_env,
     marl_vec_env,
     rollout_ego_collisions,
@@ -26,6 +27,17 @@ from policies.rl.marl import (  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 SLOTS = 4
+
+
+def test_full_roster_scenes_fill_every_slot():
+    # env seed 262 draws a highway scene with 5 of 6 vehicles first (place_traffic drops
+    # overlapping candidates); SuperSuit's vector env would fail on its empty slot
+    env = full_roster_env(6, episode_steps=5)
+    for seed in (0, 262):
+        observations, _ = env.reset(seed=seed)
+        assert len(observations) == 6
+    with pytest.raises(RuntimeError, match="no highway scene with 60 vehicles"):
+        FullRosterSource(60, attempts=2).sample(np.random.default_rng(0), 60)
 
 
 def test_fixed_ego_env_hides_the_ego_and_rewards_adversaries():
