@@ -242,14 +242,7 @@ class _LatentObjective:
         controllable[rows] = True
         targets = target_rows(scene.agent_mask, controllable, scene.ego, config.target)
         self.target_xy = scene.base_trajectories[targets, :, :2].detach()
-        self.map_term = map_term(
-            scene.drivable_map,
-            scene.frame,
-            scene.length[rows],
-            scene.width[rows],
-            scene.eps.shape[1],
-            config,
-        )
+        self.map_term = map_term(scene, rows, scene.eps.shape[1], config)
 
     def __call__(self, eps_c: Tensor) -> tuple[tuple[Tensor, Tensor, Tensor], Tensor]:
         """``((u_c, actions_c, trajectories_c), (L_adv [m], L_map [m^2], prior))``."""

@@ -214,14 +214,7 @@ class _Objective:
         self.offset = normalizer.denormalize(scene.eps[rows])  # a = offset + std * u_c
         self.state = scene.state[rows]
         self.target_xy, self.horizon, self.dynamics = target_xy, config.horizon, dynamics
-        self.map_term = map_term(
-            scene.drivable_map,
-            scene.frame,
-            scene.length[rows],
-            scene.width[rows],
-            scene.eps.shape[1],
-            config,
-        )
+        self.map_term = map_term(scene, rows, scene.eps.shape[1], config)
 
     def bounds(self) -> tuple[Tensor, Tensor]:
         """(C, T, 2) lower and upper bounds of ``u_c`` that keep the actions inside the

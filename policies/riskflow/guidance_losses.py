@@ -47,20 +47,17 @@ def target_rows(present: Tensor, controllable: Tensor, ego: int, target: str) ->
     return present.bool() & ~controllable.bool()
 
 
-def map_term(
-    drivable_map: DrivableMap | None,
-    frame: Tensor,
-    length: Tensor,
-    width: Tensor,
-    steps: int,
-    config,
-) -> MapTerm | None:
-    """The :class:`MapTerm` of the controllable rows, or None when ``L_map`` is off (no map,
-    or ``config.lambda_map == 0``); ``config`` has ``lambda_map``, ``map_margin`` and
-    ``map_decay`` (every guided method's config does)."""
-    if drivable_map is None or config.lambda_map == 0:
+def map_term(scene, rows: Tensor, steps: int, config) -> MapTerm | None:
+    """The :class:`MapTerm` of the controllable ``rows`` of ``scene`` (anything with
+    ``drivable_map``, ``frame``, ``length`` and ``width``: a planning scene), or None when
+    ``L_map`` is off (no map, or ``config.lambda_map == 0``); ``config`` has
+    ``lambda_map``, ``map_margin`` and ``map_decay`` (every guided method's config does)."""
+    if scene.drivable_map is None or config.lambda_map == 0:
         return None
-    return MapTerm(drivable_map, frame, length, width, steps, config.map_margin, config.map_decay)
+    length, width = scene.length[rows], scene.width[rows]
+    return MapTerm(
+        scene.drivable_map, scene.frame, length, width, steps, config.map_margin, config.map_decay
+    )
 
 
 def adversarial_loss(xy: Tensor, target_xy: Tensor, horizon: int | None = None) -> Tensor:

@@ -162,14 +162,7 @@ class _Objective:
     def __init__(self, geometry, rows, normalizer, config, dynamics, steps) -> None:
         self.state = geometry.state[rows]
         self.normalizer, self.config, self.dynamics = normalizer, config, dynamics
-        self.map_term = map_term(
-            geometry.drivable_map,
-            geometry.frame,
-            geometry.length[rows],
-            geometry.width[rows],
-            steps,
-            config,
-        )
+        self.map_term = map_term(geometry, rows, steps, config)
 
     def __call__(self, x_c: Tensor, target_xy: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         trajectories = rollout(self.state, self.normalizer.denormalize(x_c), self.dynamics)

@@ -318,8 +318,10 @@ def test_target_rows_others_ego_and_bad_target():
 
 
 def test_map_term_is_none_without_map_or_weight():
+    from types import SimpleNamespace
+
     from policies.riskflow.guidance_losses import map_term
 
     size = torch.ones(2)
-    frame = torch.zeros(3)
-    assert map_term(None, frame, size, size, 5, GuidanceConfig()) is None
+    scene = SimpleNamespace(drivable_map=None, frame=torch.zeros(3), length=size, width=size)
+    assert map_term(scene, torch.arange(2), 5, GuidanceConfig()) is None
