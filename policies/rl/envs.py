@@ -193,26 +193,13 @@ class EgoTrainingEnv(gymnasium.Wrapper):
 
     Args:
         env: the ego's Gymnasium view.
-        base_planner, action_repeat, maneuver_features, maneuver_actions: as
-            :class:`EgoInterface`.
+        **interface: ``base_planner``, ``action_repeat``, ``maneuver_features``,
+            ``maneuver_actions`` of :class:`EgoInterface`.
     """
 
-    def __init__(
-        self,
-        env: EgoEnv,
-        base_planner: str = "none",
-        action_repeat: int = 1,
-        maneuver_features: bool = False,
-        maneuver_actions: bool = False,
-    ) -> None:
+    def __init__(self, env: EgoEnv, **interface: Any) -> None:
         super().__init__(env)
-        self.interface = EgoInterface(
-            env.parallel_env.config.dynamics,
-            base_planner,
-            action_repeat,
-            maneuver_features,
-            maneuver_actions,
-        )
+        self.interface = EgoInterface(env.parallel_env.config.dynamics, **interface)
         self.observation_space = self.interface.observation_space(env.observation_space)
         self.action_space = self.interface.action_space()
         self._outcome = {"ego_collision": 0.0, "ego_offroad": 0.0}
@@ -264,10 +251,10 @@ def build_env(config: EgoEnvConfig, seed: int = 0) -> EgoTrainingEnv:
     env = EgoEnv(config=config.env, scenarios=scenes, policy=policy)
     return EgoTrainingEnv(
         env,
-        config.base_planner,
-        config.action_repeat,
-        config.maneuver_features,
-        config.maneuver_actions,
+        base_planner=config.base_planner,
+        action_repeat=config.action_repeat,
+        maneuver_features=config.maneuver_features,
+        maneuver_actions=config.maneuver_actions,
     )
 
 
