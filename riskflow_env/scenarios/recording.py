@@ -6,7 +6,11 @@ vehicle is a traffic vehicle, there is no controlled one — and steps it by 0.1
 (``simulation_frequency=10``) with :class:`~riskflow_env.scenarios.road_stepper.RoadStepper`
 (highway-env's ``road.act()`` / ``road.step()``, faster; right of way at the intersection
 and the roundabout entries), recording every vehicle's (x, y, speed, heading) at each
-step. Per recording it draws a traffic density; per vehicle a kind (car, or truck in
+step. The IDM/MOBIL commands move the vehicles through the simulator's own unicycle
+(:func:`~riskflow_env.scenarios.road_stepper.move_unicycle`), not highway-env's
+bicycle, so the heading is the direction of travel and every recorded track, rolled out
+from its logged actions, reproduces itself: the generator's training targets are
+reachable by the dynamics it plans with. Per recording it draws a traffic density; per vehicle a kind (car, or truck in
 ``TRUCK_FAMILIES``) and size, a desired speed and its IDM/MOBIL parameters (ranges in
 :class:`DriverConfig`), set as instance attributes (highway-env's intersection env
 overwrites some class defaults, so nothing relies on them).

@@ -63,8 +63,7 @@ class RoadStepper:
             self.regulate(vehicles, distance)
         road.lane_updates_deferred = True
         try:
-            for vehicle in vehicles:
-                vehicle.step(DT)
+            move_unicycle(vehicles, DT)
         finally:
             road.lane_updates_deferred = False
         xy = np.array([v.position for v in vehicles]).reshape(-1, 2)
@@ -208,11 +207,60 @@ def _wrap(angle: np.ndarray) -> np.ndarray:
     return (angle + np.pi) % (2 * np.pi) - np.pi
 
 
+def move_unicycle(vehicles: list, dt: float) -> None:
+    """One step of highway-env vehicles through the simulator's unicycle, all at once.
+
+    highway-env's ``Vehicle.step`` integrates a kinematic bicycle that moves along
+    ``heading + beta`` (slip angle ``tan(beta) = tan(steering) / 2``): its heading is
+    not the direction of travel, and a generator trained on such tracks learns the
+    mismatch (it over-steers on curves). Here the same commands drive
+    :func:`riskflow_env.dynamics.step` instead: acceleration as commanded, yaw rate the
+    bicycle's ``speed * sin(beta) / (length / 2)`` (already capped at ``MAX_YAW_RATE`` by
+    the steering), motion along the heading. Bounds are the simulator's
+    (``DynamicsConfig``: speed in [0, 40] m/s, acceleration in [-8, 5] m/s^2). Crashed
+    vehicles brake as in highway-env (``clip_actions``) and collision impacts are applied
+    as there; lanes are updated by :meth:`RoadStepper.update_lanes` (or, for a vehicle
+    stepped on its own, ``on_state_update``).
+    """
+    from riskflow_env.dynamics import step as unicycle_step
+
+    if not vehicles:
+        return
+    for vehicle in vehicles:
+        vehicle.timer += dt  # IDMVehicle's lane-change timer
+        vehicle.clip_actions()
+    steering = np.array([v.action["steering"] for v in vehicles], dtype=float)
+    half_length = np.array([v.LENGTH / 2 for v in vehicles], dtype=float)
+    state = np.array([[*v.position, v.speed, v.heading] for v in vehicles], dtype=float)
+    beta = np.arctan(0.5 * np.tan(steering))
+    yaw_rate = state[:, 2] * np.sin(beta) / half_length
+    accel = np.array([v.action["acceleration"] for v in vehicles], dtype=float)
+    config = _dynamics_config(dt)
+    new = unicycle_step(state, np.stack([accel, yaw_rate], axis=-1), config)
+    for vehicle, (x, y, speed, heading) in zip(vehicles, new, strict=True):
+        vehicle.position = np.array([x, y])
+        if vehicle.impact is not None:
+            vehicle.position += vehicle.impact
+            vehicle.crashed = True
+            vehicle.impact = None
+        vehicle.speed, vehicle.heading = float(speed), float(heading)
+        if not getattr(vehicle.road, "lane_updates_deferred", False):
+            vehicle.on_state_update()
+
+
+@functools.lru_cache(maxsize=4)
+def _dynamics_config(dt: float):
+    from riskflow_env.config import DynamicsConfig
+
+    return DynamicsConfig(dt=dt)
+
+
 @functools.cache
 def traffic_vehicle_class() -> type:
     """highway-env's IDMVehicle, subclassed so that
 
-    * speeds stop at 0 (no reversing);
+    * it moves as the simulator's unicycle (:func:`move_unicycle`), so recorded tracks
+      reproduce themselves through :mod:`riskflow_env.dynamics`; speeds stop at 0;
     * the yaw rate stays within ``MAX_YAW_RATE`` (highway-env's heading controller asks
       for 5 rad/s per rad of heading error, e.g. spikes at lane-segment joints);
     * a stopped vehicle may still change lanes (highway-env's MOBIL skips vehicles below
@@ -226,8 +274,7 @@ def traffic_vehicle_class() -> type:
 
     class TrafficVehicle(IDMVehicle):
         def step(self, dt: float) -> None:
-            super().step(dt)  # moves with the speed at the start of the step, >= 0
-            self.speed = max(self.speed, 0.0)
+            move_unicycle([self], dt)
 
         def change_lane_policy(self) -> None:
             if self.speed >= 1.0 or self.lane_index != self.target_lane_index:
