@@ -14,7 +14,15 @@ window slot and call :meth:`PlanBufferPolicy._store`. This base does the rest:
   ``"window"`` and ``"encoder"`` phases of every subclass); :func:`default_window_config`
   is the window of a model's training data;
 * **threads**: torch CPU threads while planning (restored after);
-* **timings** per phase, world-frame plans, the controllable set and the render overlays.
+* **timings** per phase, world-frame plans, the controllable set and the render overlays;
+* **stitching**: a new plan does not switch the actions at once. Its first
+  ``stitch_steps`` actions (5 = 0.5 s by default) are blended with the continuation of the
+  plan being executed, the previous plan's share falling linearly (``n/(n+1), ...,
+  1/(n+1)``), and the plan is rolled out again from the current state. Positions and
+  speeds are continuous across a re-plan anyway (every plan starts at the current
+  state); this makes the acceleration and yaw rate continuous too, which removes the
+  jerk spike at every re-plan (the step that switched plans had about twice the p95
+  jerk of the steps within a plan). Set ``policy.stitch_steps = 0`` to switch at once.
 
 Vehicles that are live but got no window slot hold speed and heading (zero actions)
 until a cycle gives them a plan; done vehicles stand still (:func:`hold_still`).
@@ -36,6 +44,7 @@ from policies.riskflow.config import ModelConfig
 from policies.riskflow.data import collate_windows
 from policies.riskflow.encoder import ENCODER_KEYS, SceneContext
 from policies.riskflow.ranking import Ranking, check_k
+from riskflow_env.dynamics import inverse, rollout
 from riskflow_env.scenarios.windows import WindowConfig, window_from_view
 from riskflow_env.view import SceneView
 
@@ -115,6 +124,7 @@ class PlanBufferPolicy(ABC):
 
     overlay_prefix = "riskflow"
     phases: tuple[str, ...] = ()
+    stitch_steps: int = 5  # [steps] re-plan blend (module docstring); 0: switch at once
 
     def __init__(
         self,
@@ -220,9 +230,14 @@ class PlanBufferPolicy(ABC):
         previous_threads = torch.get_num_threads()
         if self.threads is not None:
             torch.set_num_threads(self.threads)
+        previous = None
+        if self._plan_step is not None:
+            previous = (self.plan_actions, self.plan_mask, view.step - self._plan_step)
         try:
             start = time.perf_counter()
             self._plan_cycle(view)
+            if previous is not None and self.stitch_steps > 0:
+                self._stitch(view, *previous)
             self.timings["total"] = time.perf_counter() - start
         finally:
             if self.threads is not None:
@@ -230,6 +245,38 @@ class PlanBufferPolicy(ABC):
         self._plan_step = view.step
         self.cycles += 1
         return self.plans
+
+    def _stitch(self, view: SceneView, actions: np.ndarray, mask: np.ndarray, elapsed: int) -> None:
+        """Blend the first ``stitch_steps`` actions of the new plans with the rest of the
+        previous plans (module docstring, *stitching*) and roll the plans out again.
+
+        Args: the previous ``plan_actions`` (A, T, 2) and ``plan_mask`` (A,), and the
+        steps executed of them (``elapsed``).
+        """
+        steps = min(self.stitch_steps, actions.shape[1] - elapsed, self.plan_actions.shape[1])
+        same = mask.shape == self.plan_mask.shape
+        rows = np.flatnonzero(self.plan_mask & mask & view.active) if same else []
+        if steps <= 0 or len(rows) == 0:
+            return
+        keep = (1.0 - np.arange(1, steps + 1) / (steps + 1))[:, None]  # previous plan's share
+        old = actions[rows, elapsed : elapsed + steps]
+
+        def blend(plan_actions: np.ndarray, previous: np.ndarray) -> np.ndarray:
+            plan_actions[:, :steps] = keep * previous + (1.0 - keep) * plan_actions[:, :steps]
+            return plan_actions
+
+        current = view.current[rows]
+        self.plan_actions[rows] = blend(self.plan_actions[rows], old)
+        self.plans[rows] = rollout(current, self.plan_actions[rows], self.dynamics)
+        # The unguided alternative is stitched alike: the same plans where nothing was
+        # guided; for A_c its own actions (inverse dynamics of the base plan), blended.
+        guided = self.controllable[rows]
+        self.base_plans[rows[~guided]] = self.plans[rows[~guided]]
+        if guided.any():
+            start = current[guided][:, None]
+            base = inverse(np.concatenate([start, self.base_plans[rows[guided]]], axis=1))
+            base = blend(base, old[guided])
+            self.base_plans[rows[guided]] = rollout(current[guided], base, self.dynamics)
 
     def predicted_states(self, view: SceneView, steps: int) -> np.ndarray:
         """What the current plans say each vehicle will do over the next ``steps`` steps.
