@@ -40,6 +40,7 @@ from torch import Tensor
 
 from policies.riskflow.encoder import SceneContext
 from policies.riskflow.generator import RiskFlowGenerator
+from policies.riskflow.plan_penalties import offroad_penalty, overlap_penalty
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout, wrap_angle
 
@@ -126,8 +127,11 @@ def trajectory_loss(
     normalizer: Normalizer,
     heading_weight: float = 0.0,
     dynamics: DynamicsConfig = DEFAULT_CONFIG,
+    collision_weight: float = 0.0,
+    offroad_weight: float = 0.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
-    """Masked squared error of the rolled-out reconstruction to the reference future.
+    """Masked squared error of the rolled-out reconstruction to the reference future,
+    plus the optional realism penalties of :mod:`policies.riskflow.plan_penalties`.
 
     Args:
         a_hat: ``(B, A, T, 2)`` normalised reconstructed actions.
@@ -136,11 +140,17 @@ def trajectory_loss(
         normalizer: action normalisation.
         heading_weight: weight [m^2/rad^2] of ``heading_mse`` in the loss.
         dynamics: time step and bounds of the rollout.
+        collision_weight: weight of ``overlap`` (squared penetration depth of decoded box
+            pairs [m^2]); needs ``length``, ``width`` in the batch.
+        offroad_weight: weight of ``offroad`` (squared excess of the planned centres'
+            SDF [m^2], from ``map_crops``).
 
     Returns:
-        ``loss = position_mse + heading_weight * heading_mse`` (mean over valid agent
-        steps, per step: ``|p_hat - p|^2`` [m^2]) and detached metrics ``position_mse``,
-        ``heading_mse`` [rad^2], ``ade`` [m], ``fde`` [m] (at the last valid step).
+        ``loss = position_mse + heading_weight * heading_mse + collision_weight *
+        overlap + offroad_weight * offroad`` (means over valid agent steps, per step:
+        ``|p_hat - p|^2`` [m^2]) and detached metrics ``position_mse``, ``heading_mse``
+        [rad^2], ``ade`` [m], ``fde`` [m] (at the last valid step), and ``overlap`` /
+        ``offroad`` when their weight is not 0.
     """
     trajectory = rollout(scene.state, normalizer.denormalize(a_hat), dynamics)  # (B, A, T, 4)
     future = batch["future"]
@@ -152,6 +162,13 @@ def trajectory_loss(
     position_mse = (squared * weight).sum() / count
     heading_mse = (heading * weight).sum() / count
     loss = position_mse + heading_weight * heading_mse
+    penalties = {}
+    if collision_weight:
+        penalties["overlap"] = overlap_penalty(trajectory, batch, mask)
+        loss = loss + collision_weight * penalties["overlap"]
+    if offroad_weight:
+        penalties["offroad"] = offroad_penalty(trajectory, batch, scene.state, mask)
+        loss = loss + offroad_weight * penalties["offroad"]
     with torch.no_grad():
         distance = squared.detach().sqrt()
         steps = torch.arange(mask.shape[-1], device=mask.device)
@@ -163,7 +180,7 @@ def trajectory_loss(
             "heading_mse": heading_mse.detach(),
             "ade": (distance * weight).sum() / count,
             "fde": (final * has_last).sum() / has_last.sum().clamp(min=1),
-        }
+        } | {name: value.detach() for name, value in penalties.items()}
     return loss, metrics
 
 
@@ -178,6 +195,8 @@ def meanflow_loss(
     heading_weight: float = 0.0,
     action_weight: float = 0.0,
     dynamics: DynamicsConfig = DEFAULT_CONFIG,
+    collision_weight: float = 0.0,
+    offroad_weight: float = 0.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """RiskFlow's MeanFlow objective (see the module docstring).
 
@@ -195,6 +214,8 @@ def meanflow_loss(
             see high-frequency action errors; this term (the MeanFlow regression
             itself) pins those down.
         dynamics: time step and bounds of the rollout.
+        collision_weight, offroad_weight: weights of the realism penalties
+            (:func:`trajectory_loss`).
 
     Returns:
         ``(loss, metrics)``: the scalar loss and detached scalar metrics: those of
@@ -215,9 +236,11 @@ def meanflow_loss(
     u, dudt = average_velocity_jvp(u_theta, z_t, t, r, v)
     dudt = dudt.detach()
     a_hat = eps + u + (t_ - r_) * dudt.clamp(-clip, clip)
+    penalties = {"collision_weight": collision_weight, "offroad_weight": offroad_weight}
     loss, metrics = _loss(
-        a_hat, a_star, batch, scene, normalizer, heading_weight, action_weight, dynamics
-    )
+        a_hat, a_star, batch, scene, normalizer, heading_weight, action_weight, dynamics,
+        **penalties,
+    )  # fmt: skip
     metrics["dudt_abs"] = dudt.abs().mean()
     metrics["dudt_clipped"] = (dudt.abs() > clip).to(dudt.dtype).mean()
     return loss, metrics
@@ -232,6 +255,8 @@ def flow_matching_loss(
     heading_weight: float = 0.0,
     action_weight: float = 0.0,
     dynamics: DynamicsConfig = DEFAULT_CONFIG,
+    collision_weight: float = 0.0,
+    offroad_weight: float = 0.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """Plain flow matching (``r = t``, no JVP): ``a_hat = eps + u_theta(z_t, t, t; C)``.
 
@@ -244,7 +269,11 @@ def flow_matching_loss(
     a_star = target_actions(batch, normalizer)
     t_ = _time_as(t)
     u = model.average_velocity((1.0 - t_) * eps + t_ * a_star, t, t, scene)
-    return _loss(eps + u, a_star, batch, scene, normalizer, heading_weight, action_weight, dynamics)
+    penalties = {"collision_weight": collision_weight, "offroad_weight": offroad_weight}
+    return _loss(
+        eps + u, a_star, batch, scene, normalizer, heading_weight, action_weight, dynamics,
+        **penalties,
+    )  # fmt: skip
 
 
 def _loss(
@@ -256,9 +285,12 @@ def _loss(
     heading_weight: float,
     action_weight: float,
     dynamics: DynamicsConfig,
+    **penalties: float,
 ) -> tuple[Tensor, dict[str, Tensor]]:
-    """Trajectory loss plus ``action_weight * action_mse``, with all metrics."""
-    loss, metrics = trajectory_loss(a_hat, batch, scene, normalizer, heading_weight, dynamics)
+    """Trajectory loss (with its penalties) plus ``action_weight * action_mse``."""
+    loss, metrics = trajectory_loss(
+        a_hat, batch, scene, normalizer, heading_weight, dynamics, **penalties
+    )
     weight = (batch["actions_valid"].bool() & scene.agent_mask[..., None]).to(a_hat.dtype)
     squared = ((a_hat - a_star) ** 2).sum(dim=-1)
     action_mse = (squared * weight).sum() / weight.sum().clamp(min=1.0)

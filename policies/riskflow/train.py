@@ -104,6 +104,10 @@ class TrainOptions:
     """weight of the normalised action MSE added to the trajectory-space loss (smooth plans)"""
     heading_weight: float = 0.0
     """weight [m^2/rad^2] of the heading MSE in the trajectory-space loss"""
+    collision_weight: float = 0.0
+    """weight of the squared penetration depth of decoded box pairs [m^2] (plan_penalties)"""
+    offroad_weight: float = 0.0
+    """weight of the squared SDF excess of planned centres over the reference's [m^2]"""
     model: str = ""
     """ModelConfig fields as JSON, or a .json file holding them (empty: defaults)"""
     stride: int = 5
@@ -232,7 +236,10 @@ def train(options: TrainOptions) -> dict[str, Any]:
     sampler = TimeSampler(
         equal_fraction=options.equal_fraction, flow_matching=options.flow_matching
     )
-    weights = {"heading_weight": options.heading_weight, "action_weight": options.action_weight}
+    weights = {
+        name: getattr(options, name)
+        for name in ("heading_weight", "action_weight", "collision_weight", "offroad_weight")
+    }
 
     def validate() -> dict[str, float]:
         batches = (

@@ -10,7 +10,9 @@ step. The IDM/MOBIL commands move the vehicles through the simulator's own unicy
 (:func:`~riskflow_env.scenarios.road_stepper.move_unicycle`), not highway-env's
 bicycle, so the heading is the direction of travel and every recorded track, rolled out
 from its logged actions, reproduces itself: the generator's training targets are
-reachable by the dynamics it plans with. Per recording it draws a traffic density; per vehicle a kind (car, or truck in
+reachable by the dynamics it plans with.
+
+Per recording it draws a traffic density; per vehicle a kind (car, or truck in
 ``TRUCK_FAMILIES``) and size, a desired speed and its IDM/MOBIL parameters (ranges in
 :class:`DriverConfig`), set as instance attributes (highway-env's intersection env
 overwrites some class defaults, so nothing relies on them).

@@ -44,6 +44,8 @@ def diffusion_loss(
     heading_weight: float = 0.0,
     action_weight: float = 1.0,
     dynamics: DynamicsConfig = DEFAULT_CONFIG,
+    collision_weight: float = 0.0,
+    offroad_weight: float = 0.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """The denoiser's training loss (module docstring).
 
@@ -56,6 +58,9 @@ def diffusion_loss(
         heading_weight: weight [m^2/rad^2] of the heading error (not ``"epsilon"``).
         action_weight: weight of the normalised action error (not ``"epsilon"``).
         dynamics: time step and bounds of the rollout.
+        collision_weight, offroad_weight: weights of the realism penalties on the
+            decoded ``x0_hat`` (``policies.riskflow.meanflow.trajectory_loss``; not
+            ``"epsilon"``).
 
     Returns:
         ``(loss, metrics)``: detached scalars ``loss``, ``action_mse`` (normalised
@@ -82,7 +87,10 @@ def diffusion_loss(
     action_mse = (((x0_hat - a_star) ** 2).sum(dim=-1) * weight).sum() / count
     eps_mse = (((eps_hat - eps) ** 2).sum(dim=-1) * weight).sum() / count
     if denoiser.diffusion.prediction != "epsilon":
-        loss, metrics = trajectory_loss(x0_hat, batch, scene, normalizer, heading_weight, dynamics)
+        penalties = {"collision_weight": collision_weight, "offroad_weight": offroad_weight}
+        loss, metrics = trajectory_loss(
+            x0_hat, batch, scene, normalizer, heading_weight, dynamics, **penalties
+        )
         loss = loss + action_weight * action_mse
     else:
         with torch.no_grad():
