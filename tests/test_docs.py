@@ -58,13 +58,17 @@ SIZES: dict[str, str] = {
     "--episode-steps": "5",
     "--eval-episodes": "1",
     "--duration": "1",  # riskflow-eval episode length [s]
+    "--diffusion-steps": "2",  # riskflow-eval DDIM levels of the diffusion methods
     "--time-budget-min": "1",
 }
 
 # Program (regex on the command) -> size options added right after it. The first match
 # wins; subcommands that take no size (riskflow-eval report / --list) match nothing.
 SMALLEST: list[tuple[str, str]] = [
-    (r"riskflow-eval(?! report| --list)", "--scenes 1 --duration 1 --workers 1"),
+    (
+        r"riskflow-eval(?! report| --list)",
+        "--scenes 1 --duration 1 --workers 1 --diffusion-steps 2",  # absent: DDPM, 100 levels
+    ),
     (r"riskflow-data generate", "--scenes 1 --workers 1"),
     (r"riskflow-train", "--steps 2 --eval-every 2 --val-windows 2 --batch-size 4"),
     (r"python examples/rollout\.py", "--steps 5"),
