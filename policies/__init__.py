@@ -1,4 +1,4 @@
-"""Scene policies that drive the non-ego vehicles (DESIGN.md section 2).
+"""Scene policies that drive the non-ego vehicles (docs/ARCHITECTURE.md).
 
 The scene policies are importable from here, loaded on first use (``import policies``
 stays light; ``policies.base`` needs no torch):

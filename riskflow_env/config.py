@@ -20,7 +20,7 @@ def _finite(name: str, value: float) -> None:
 
 @dataclass(frozen=True)
 class DynamicsConfig:
-    """Unicycle model bounds and time step (DESIGN.md section 4).
+    """Unicycle model bounds and time step (docs/ARCHITECTURE.md).
 
     Attributes:
         dt: integration step [s].

@@ -1,4 +1,4 @@
-"""Closed-loop evaluation harness: ``riskflow-eval`` (docs/EVALUATION.md, DESIGN.md section 8).
+"""Closed-loop evaluation harness: ``riskflow-eval`` (docs/EVALUATION.md, docs/METRICS.md).
 
 ==================  ==============================================================
 module              concept

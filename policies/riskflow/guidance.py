@@ -1,7 +1,7 @@
 """Output-space guidance: bend the controllable agents' plans toward risky interactions.
 
 RiskFlow (Lan et al. 2026) guides the *output* of the one-step generator, not its
-sampling path (DESIGN.md section 7): starting from the base residual
+sampling path (docs/GENERATOR.md): starting from the base residual
 ``u0 = u_theta(eps, 0, 1; C)`` (normalised action space), it takes ``K_g`` steps
 
     u <- u - gamma * M_Ac * grad_u L,      L = lambda_adv * L_adv + lambda_map * L_map,

@@ -1,4 +1,4 @@
-"""``RiskFlowAdversary``: the closed-loop RiskFlow scene policy (DESIGN.md section 3).
+"""``RiskFlowAdversary``: the closed-loop RiskFlow scene policy (docs/ARCHITECTURE.md).
 
 It drives every non-ego vehicle. Every planning cycle (``planning_interval``, 0.5 s =
 5 steps by default) it re-plans from the current :class:`~riskflow_env.view.SceneView`

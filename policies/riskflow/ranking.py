@@ -3,7 +3,7 @@
 RiskFlow (Lan et al. 2026, "RiskFlow: Fast and Faithful Safety-Critical Traffic Scenario
 Generation") guides only the top-K *critical* agents, found, as in CCDiff (Lin et al.
 2025, "Causal Composition Diffusion Model for Closed-loop Traffic Generation"), from the
-structure of the scene's interactions (DESIGN.md section 5):
+structure of the scene's interactions (docs/ARCHITECTURE.md):
 
 1. **Risk graph.** The pairwise TTC risk ``r_ij`` (``riskflow_env.risk``, in [0, 1]; 0 for
    pairs beyond 50 m) is symmetrised, ``w_ij = max(r_ij, r_ji)`` (TTC is measured in

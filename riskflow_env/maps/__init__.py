@@ -1,4 +1,4 @@
-"""Drivable-area maps: raster + signed distance field + lane centrelines (DESIGN.md section 4).
+"""Drivable-area maps: raster + signed distance field + lane centrelines (docs/ARCHITECTURE.md).
 
 Public names:
 

@@ -1,4 +1,4 @@
-"""Evaluation metrics (DESIGN.md section 8): pure numpy functions over rollout records.
+"""Evaluation metrics (docs/METRICS.md): pure numpy functions over rollout records.
 
 A :class:`RolloutRecord` holds one rollout's simulated tracks, its logged reference,
 masks, sizes, the map and the ego slot (``RolloutRecord.from_scenario`` builds one from

@@ -56,7 +56,13 @@ def test_replay_reproduces_synthetic_traffic():
     assert ade < 0.1, f"replay ADE {ade:.4f} m"
 
 
-@pytest.mark.skipif(not SAMPLE.is_file(), reason=f"ScenarioNet sample {SAMPLE} not found")
+@pytest.mark.skipif(
+    not SAMPLE.is_file(),
+    reason=(
+        f"ScenarioNet sample {SAMPLE.name} not in {DATA_DIR.resolve()}: the nuScenes samples"
+        " are not shipped; set RISKFLOW_SCENARIONET_DIR to their folder (README, Real data)"
+    ),
+)
 def test_replay_reproduces_a_scenarionet_sample():
     from riskflow_env.scenarios.scenarionet import load_scenarionet
 

@@ -144,6 +144,7 @@ def test_astype_device_asarray_like(dtype):
 def test_attach_gradient_keeps_the_value_and_sets_the_gradient():
     from riskflow_env._array import attach_gradient, detach, requires_grad
 
+    torch.manual_seed(0)
     x = torch.randn(3, 5, 2, requires_grad=True)
     value, gradient = torch.randn(3, 5), torch.randn(3, 5, 2)
     assert requires_grad(x) and not requires_grad(x.detach()) and not requires_grad(np.ones(2))

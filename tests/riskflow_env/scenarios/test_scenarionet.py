@@ -21,7 +21,11 @@ DATA_DIR = Path(
 SAMPLES = sorted(DATA_DIR.glob("*.pkl")) if DATA_DIR.is_dir() else []
 needs_samples = pytest.mark.skipif(
     not SAMPLES,
-    reason=f"no ScenarioNet samples in {DATA_DIR} (set RISKFLOW_SCENARIONET_DIR to their folder)",
+    reason=(
+        f"no ScenarioNet sample pickles (*.pkl) in {DATA_DIR.resolve()}: the nuScenes samples"
+        " are not shipped; set RISKFLOW_SCENARIONET_DIR to their folder (README, Real data)."
+        " The loader is still covered by the synthetic-description tests of this file"
+    ),
 )
 
 
