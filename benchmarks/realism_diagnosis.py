@@ -1,0 +1,181 @@
+"""Where the unguided generator's collisions and off-road steps come from.
+
+    python benchmarks/realism_diagnosis.py                      # first 21 eval scenes
+    python benchmarks/realism_diagnosis.py --scenes 105 --checkpoint runs/x/generator.pt
+
+For each scene of the shipped evaluation bank (scenes 0..N-1: the families take turns),
+the unguided generator (``NominalGenerator``, K = 0, re-planning every 0.5 s) drives every
+vehicle but an IDM ego for 10 s. Episodes run their full length (nothing terminates on a
+collision or off the road) so that every time bucket sees every scene. Printed, as
+Markdown tables:
+
+* **open loop vs closed loop, by road family:** the first planning cycle's one-shot plans
+  (5.2 s, rolled out, no re-planning) - do they already overlap another vehicle's plan or
+  leave the road? - against the closed loop (re-planning on its own outputs);
+* **collisions by kind:** non-ego pairs vs ego-involved; rear-end (front meets rear),
+  head-on (front meets front) or side (the event log's contact kinds); with a standing
+  vehicle (either below 0.5 m/s at contact) or between moving ones;
+* **off-road by time bucket** (2 s buckets): drift appears as a share rising with time.
+
+Curved roads are the roundabout, racetrack, U-turn and intersection families.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections import Counter
+
+import numpy as np
+
+from policies.baselines import NominalGenerator
+from policies.harness import ClosedLoop
+from policies.planners import IDMPlanner
+from policies.riskflow.checkpoint import load_generator
+from riskflow_env.config import EnvConfig
+from riskflow_env.dynamics import SPEED, YAW
+from riskflow_env.geometry import footprint_points, pairwise_overlap
+from riskflow_env.scenarios import shipped_bank
+
+CURVED = ("roundabout", "racetrack", "u-turn", "intersection")
+STANDING = 0.5  # [m/s]
+BUCKET = 20  # [steps] 2 s
+FULL_EPISODES = EnvConfig(terminate_on_collision="none", terminate_on_offroad="none")
+
+
+def open_loop(plans: np.ndarray, planned: np.ndarray, scene, drivable) -> tuple[bool, float]:
+    """(any two plans overlap at some step, share of plan agent-steps with a footprint
+    sample off the road) of one cycle's plans (A, T, 4), rows ``planned``."""
+    states = plans[planned]
+    length, width = scene.length[planned], scene.width[planned]
+    xy, yaw = np.swapaxes(states[..., :2], 0, 1), np.swapaxes(states[..., YAW], 0, 1)
+    overlap = pairwise_overlap(xy, yaw, length, width).any()
+    points = footprint_points(states[..., :2], states[..., YAW], length[:, None], width[:, None])
+    offroad = (drivable.sdf_at(points) > 0).any(axis=-1)
+    return bool(overlap), float(offroad.mean())
+
+
+class FirstPlans:
+    """A scene policy that drives as ``policy`` and keeps each episode's first plans:
+    ``first = (plans (A, T, 4), planned (A,) non-ego rows with a plan)``."""
+
+    def __init__(self, policy: NominalGenerator) -> None:
+        self.policy, self.first = policy, None
+
+    def reset(self, view) -> None:
+        self.policy.reset(view)
+        self.first = None
+
+    def act(self, view) -> dict:
+        actions = self.policy.act(view)
+        if self.first is None:
+            planned = self.policy.plan_mask & view.active
+            planned[0] = False
+            self.first = (self.policy.plans.copy(), planned)
+        return actions
+
+
+def collision_kinds(record) -> Counter:
+    """Counts of the episode's collision starts by (ego involved, kind, standing)."""
+    counts = Counter()
+    for event in record.events:
+        if event["event"] != "collision_start":
+            continue
+        contact = sorted(event["contact"])
+        kind = {("front", "front"): "head-on", ("front", "rear"): "rear-end"}.get(
+            tuple(contact), "side"
+        )
+        slots = [record.agent_names.index(name) for name in event["agents"]]
+        speeds = record.states[slots, event["step"], SPEED]
+        who = "ego" if event["ego_involved"] else "non-ego"
+        counts[(who, kind, "standing" if speeds.min() < STANDING else "moving")] += 1
+    return counts
+
+
+def diagnose(scenes: int, checkpoint: str | None, seed: int) -> dict:
+    """Run the episodes; returns per-family rows, collision kinds and time buckets."""
+    models = {}
+    if checkpoint:
+        generator, normalizer, _ = load_generator(checkpoint)
+        models = {"generator": generator, "normalizer": normalizer}
+    policy = NominalGenerator(planning_interval=0.5, seed=seed, **models)
+    families: dict[str, list] = {}
+    kinds: Counter = Counter()
+    buckets = np.zeros((5, 2))  # off-road centroid steps, live steps per 2 s bucket
+    recorder = FirstPlans(policy)
+    with ClosedLoop(IDMPlanner(), recorder, config=FULL_EPISODES) as loop:
+        for scenario in shipped_bank("eval").scenarios[:scenes]:
+            record = loop.run(scenario)
+            plan_overlap, plan_offroad = open_loop(*recorder.first, loop.base.scene, scenario.map)
+            live = record.active[:, :-1] & record.present[:, None]
+            live[0] = False  # the generator's vehicles only
+            off = record.offroad_centroid[:, 1:] & live
+            steps = min(off.shape[1], len(buckets) * BUCKET)
+            starts = np.arange(0, steps, BUCKET)
+            buckets[: starts.size, 0] += np.add.reduceat(off[:, :steps].sum(0), starts)
+            buckets[: starts.size, 1] += np.add.reduceat(live[:, :steps].sum(0), starts)
+            episode = collision_kinds(record)
+            kinds.update(episode)
+            families.setdefault(scenario.family, []).append(
+                (
+                    plan_overlap,
+                    plan_offroad,
+                    any(k[0] == "non-ego" for k in episode),
+                    any(k[0] == "ego" for k in episode),
+                    float(off.sum() / max(live.sum(), 1)),
+                    float((record.offroad_footprint[:, 1:] & live).sum() / max(live.sum(), 1)),
+                )
+            )
+    return {"families": families, "kinds": kinds, "buckets": buckets}
+
+
+def report(result: dict) -> str:
+    """Markdown tables of :func:`diagnose`'s result."""
+    lines = [
+        "| family | scenes | one-shot plans overlap | one-shot plan footprint off-road | "
+        "closed loop: non-ego collision | ego collision | off-road centroid | footprint |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    rows = result["families"]
+    groups = {name: rows[name] for name in rows}
+    groups["curved roads"] = [r for name in CURVED for r in rows.get(name, [])]
+    groups["straight roads"] = [r for name in rows if name not in CURVED for r in rows[name]]
+    groups["all"] = [r for name in rows for r in rows[name]]
+    for name, entries in groups.items():
+        if not entries:
+            continue
+        values = np.array(entries, dtype=float).mean(axis=0)
+        lines.append(
+            f"| {name} | {len(entries)} | {values[0]:.2f} | {values[1]:.3f} | {values[2]:.2f} "
+            f"| {values[3]:.2f} | {values[4]:.3f} | {values[5]:.3f} |"
+        )
+    lines += ["", "| collision starts | kind | vehicles | count |", "| --- | --- | --- | ---: |"]
+    for (who, kind, standing), count in sorted(result["kinds"].items()):
+        lines.append(f"| {who} | {kind} | {standing} | {count} |")
+    lines += ["", "| time [s] | off-road centroid share (generator's vehicles) |", "| --- | ---: |"]
+    for index, (off, live) in enumerate(result["buckets"]):
+        if live:
+            lines.append(f"| {2 * index}-{2 * index + 2} | {off / live:.3f} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> str:
+    """Entry point: run, print and return the tables."""
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    parser.add_argument("--scenes", type=int, default=21, help="first N eval scenes (<= 105)")
+    parser.add_argument("--checkpoint", default=None, help="generator (default: the shipped one)")
+    parser.add_argument("--seed", type=int, default=0, help="noise seed of the generator")
+    args = parser.parse_args(argv)
+    if not 1 <= args.scenes <= 105:
+        parser.error(f"--scenes must be in [1, 105], got {args.scenes}")
+    start = time.perf_counter()
+    text = report(diagnose(args.scenes, args.checkpoint, args.seed))
+    print(text)
+    print(f"\n{args.scenes} scenes in {time.perf_counter() - start:.0f} s")
+    return text
+
+
+if __name__ == "__main__":
+    main()

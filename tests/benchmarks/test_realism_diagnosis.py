@@ -1,0 +1,31 @@
+"""benchmarks/realism_diagnosis.py runs end to end on one scene (no timing assertions)."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "realism_diagnosis.py"
+
+
+@pytest.fixture(scope="module")
+def diagnosis():
+    spec = importlib.util.spec_from_file_location("realism_diagnosis", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_one_scene_gives_every_table(diagnosis, capsys):
+    text = diagnosis.main(["--scenes", "1"])
+    for heading in ("one-shot plans overlap", "collision starts", "off-road centroid share"):
+        assert heading in text
+    assert "| highway | 1 |" in text and "| 0-2 |" in text
+    assert "1 scenes in" in capsys.readouterr().out
+
+
+def test_bad_scene_count(diagnosis):
+    with pytest.raises(SystemExit):
+        diagnosis.main(["--scenes", "0"])
