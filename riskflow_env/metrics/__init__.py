@@ -31,7 +31,7 @@ from riskflow_env.metrics.kinematics import (
     KINEMATIC_FEATURES,
     KinematicSamples,
     kdd,
-    jerk_cycle_phase,
+    jerk_steps,
     kdd_over_records,
     kinematic_samples,
 )
@@ -71,7 +71,7 @@ __all__ = [
     "collisions",
     "displacement_errors",
     "displacement_means",
-    "jerk_cycle_phase",
+    "jerk_steps",
     "kdd",
     "kdd_over_records",
     "kinematic_samples",

@@ -75,30 +75,23 @@ def kinematic_values(
     return samples
 
 
-def jerk_cycle_phase(record: RolloutRecord, period: int) -> tuple[np.ndarray, np.ndarray]:
-    """Simulated jerk samples (as in KDD) with their phase in a re-plan cycle.
+def jerk_steps(record: RolloutRecord) -> tuple[np.ndarray, np.ndarray]:
+    """Simulated jerk samples (those of :func:`kinematic_values`) with their step index.
 
-    Simulated step ``k`` is the action from the reset state (record step
-    ``num_context - 1``) on, so ``k = 0, period, 2 period, ...`` are the steps that
-    start a new plan. A jerk sample is the change of acceleration from step ``k - 1``
-    to step ``k``; its phase is ``k mod period``: phase 0 is the switch to a new plan
-    (for ``k = 0`` the previous acceleration is the logged one), phases 1..period-1
-    lie within a plan. Samples are those of :func:`kinematic_values`.
-
-    Args:
-        record: the rollout.
-        period: steps per planning cycle (>= 1).
+    Simulated step ``k`` is the action taken from the reset state (record step
+    ``num_context - 1``) on. A jerk sample is the change of acceleration from step
+    ``k - 1`` to step ``k`` (for ``k = 0`` the previous acceleration is the logged one).
+    With a policy that re-plans every ``period`` steps, ``k mod period == 0`` (``k > 0``)
+    are the steps that switch to a new plan, the other ``k`` lie within a plan.
 
     Returns:
-        ``(jerk, phase)``: 1-D jerk samples [m/s^3] and their (int) phases.
+        ``(jerk, step)``: 1-D jerk samples [m/s^3] and their (int) step ``k``.
     """
-    if period < 1:
-        raise ValueError(f"period must be >= 1 step, got {period}")
     values, ok = kinematic_series(record.states, record.valid, record.dt)["jerk"]
     index = np.arange(values.shape[1])  # sample t spans record steps t .. t+2
     keep = ok & (index + 2 >= record.num_context)[None, :] & record.evaluated[:, None]
-    phase = np.broadcast_to((index + 2 - record.num_context) % period, values.shape)
-    return values[keep], phase[keep]
+    step = np.broadcast_to(index + 2 - record.num_context, values.shape)
+    return values[keep], step[keep]
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from riskflow_env.metrics import NO_EGO, RolloutRecord, collision_involvement, jerk_cycle_phase
+from riskflow_env.metrics import NO_EGO, RolloutRecord, collision_involvement, jerk_steps
 
 
 def test_collision_involvement_drops_pairs_with_the_ego():
@@ -31,11 +31,10 @@ def test_jerk_spikes_only_at_the_replan_phase(rolled):
         reference_valid=np.ones((1, steps), bool),
         num_context=context,
     )
-    jerk, phase = jerk_cycle_phase(record, period)
-    assert np.bincount(phase).tolist() == [6] * period  # simulated steps 0..29: one jerk each
+    jerk, step = jerk_steps(record)
+    assert step.tolist() == list(range(30))  # simulated steps 0..29: one jerk each
+    phase = step % period
     assert np.abs(jerk[phase != 0]).max() == pytest.approx(0.0, abs=1e-9)
     spikes = np.abs(jerk[phase == 0])
     assert spikes[0] == pytest.approx(0.0, abs=1e-9)  # step 0: log (0) -> first plan (0)
     assert spikes[1:] == pytest.approx(10.0)  # |1 - 0| m/s^2 / 0.1 s at every later switch
-    with pytest.raises(ValueError):
-        jerk_cycle_phase(record, 0)
