@@ -58,7 +58,9 @@ from riskflow_env.metrics import (
 )
 from riskflow_env.scenarios import Scenario, load_bank, shipped_bank
 
-SHIPPED_CHECKPOINT = Path(__file__).resolve().parents[1] / "policies/checkpoints/riskflow_default.pt"
+SHIPPED_CHECKPOINT = (
+    Path(__file__).resolve().parents[1] / "policies/checkpoints/riskflow_default.pt"
+)
 BASELINES = ("idm", "replay")
 COLUMNS = (  # (key, header, format)
     ("veh_coll", "veh. in coll.", "{:.3f}"),
@@ -83,23 +85,38 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         description=__doc__.split("\n\n")[0],
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    parser.add_argument("--checkpoint", nargs="+", default=[str(SHIPPED_CHECKPOINT)],
-                        help="generator checkpoints, one row each (named by the file)")
-    parser.add_argument("--baselines", nargs="*", default=list(BASELINES),
-                        help="reference methods of riskflow-eval measured in the same run")
-    parser.add_argument("--bank", default=None,
-                        help="scenario directory; default: the shipped evaluation bank")
-    parser.add_argument("--scenes", type=int, default=14,
-                        help="number of scenes, spread evenly over the road families")
+    parser.add_argument(
+        "--checkpoint",
+        nargs="+",
+        default=[str(SHIPPED_CHECKPOINT)],
+        help="generator checkpoints, one row each (named by the file)",
+    )
+    parser.add_argument(
+        "--baselines",
+        nargs="*",
+        default=list(BASELINES),
+        help="reference methods of riskflow-eval measured in the same run",
+    )
+    parser.add_argument(
+        "--bank", default=None, help="scenario directory; default: the shipped evaluation bank"
+    )
+    parser.add_argument(
+        "--scenes",
+        type=int,
+        default=14,
+        help="number of scenes, spread evenly over the road families",
+    )
     parser.add_argument("--full", action="store_true", help="every scene of the bank")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="rollout seeds")
     parser.add_argument("--duration", type=float, default=10.0, help="[s] episode length")
-    parser.add_argument("--interval", type=float, default=0.5,
-                        help="[s] planning interval of the generator")
+    parser.add_argument(
+        "--interval", type=float, default=0.5, help="[s] planning interval of the generator"
+    )
     parser.add_argument("--ego", default="idm", help="ego planner (riskflow-eval --ego)")
     parser.add_argument("--device", default="cpu", help="torch device of the generator")
-    parser.add_argument("--workers", type=int, default=1,
-                        help="worker processes (spawned, one torch thread each)")
+    parser.add_argument(
+        "--workers", type=int, default=1, help="worker processes (spawned, one torch thread each)"
+    )
     parser.add_argument("--out", default=None, help="write the rows as JSON to this file")
     args = parser.parse_args(argv)
     if args.scenes < 1 or args.workers < 1:
@@ -197,7 +214,9 @@ def _jobs(args: argparse.Namespace, scenes: Sequence[Scenario], picked: list[int
         for index in picked:
             for seed in args.seeds:
                 run = base | {"label": label}
-                jobs.append(Job(method, options, None, interval, scenes[index].name, index, seed, run))
+                jobs.append(
+                    Job(method, options, None, interval, scenes[index].name, index, seed, run)
+                )
     return jobs
 
 

@@ -30,8 +30,8 @@ from riskflow_env.metrics.displacement import (
 from riskflow_env.metrics.kinematics import (
     KINEMATIC_FEATURES,
     KinematicSamples,
-    kdd,
     jerk_steps,
+    kdd,
     kdd_over_records,
     kinematic_samples,
 )
