@@ -23,7 +23,7 @@ import torch
 from policies.evaluation.ego import make_planner
 from policies.evaluation.options import Job, load_scenes, method_label
 from policies.evaluation.registry import build_policy
-from policies.harness import ClosedLoop
+from policies.harness import ClosedLoop, EpisodeRecord
 from riskflow_env.config import EnvConfig
 from riskflow_env.metrics import RolloutRecord, kinematic_samples, rollout_metrics, wosac_scene
 from riskflow_env.scenarios import Scenario
@@ -84,12 +84,13 @@ def _warm_up(job: Job, scenario: Scenario, config: EnvConfig) -> float:
     return time.perf_counter() - start
 
 
-def run_job(job: Job) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """Run one rollout.
+def rollout_episode(job: Job) -> tuple[EpisodeRecord, RolloutRecord, dict[str, float]]:
+    """Run one job's closed-loop episode (no metrics).
 
     Returns:
-        ``(row, samples)``: the results row (module ``results`` documents it) and the
-        rollout's KDD samples (``KinematicSamples.as_arrays()``).
+        ``(episode, record, timing)``: the harness's episode, its :class:`RolloutRecord`
+        (``HISTORY`` logged steps of context; the ego is not evaluated) and
+        ``{"rollout_s", "setup_s", "warmup_s"}``.
     """
     scenario = job_scenario(job)
     run = job.run
@@ -111,14 +112,26 @@ def run_job(job: Job) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
             wall = time.perf_counter() - start
     finally:
         torch.set_num_threads(threads)
-
-    start = time.perf_counter()
     others = episode.present.copy()
     others[0] = False  # slot 0 is the ego
     record = RolloutRecord.from_scenario(
         scenario, episode.states, episode.present, episode.scenario_rows,
         history=HISTORY, evaluated=others,
     )  # fmt: skip
+    return episode, record, {"rollout_s": wall, "setup_s": setup, "warmup_s": warmup}
+
+
+def run_job(job: Job) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Run one rollout.
+
+    Returns:
+        ``(row, samples)``: the results row (module ``results`` documents it) and the
+        rollout's KDD samples (``KinematicSamples.as_arrays()``).
+    """
+    run = job.run
+    episode, record, timing = rollout_episode(job)
+    others = record.evaluated
+    start = time.perf_counter()
     metrics = {key: json_number(v) for key, v in rollout_metrics(record).items()}
     wosac = None
     if run["wosac"]:
@@ -152,9 +165,7 @@ def run_job(job: Job) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         },
         "wosac": wosac,
         "timing": {
-            "rollout_s": wall,
-            "setup_s": setup,
-            "warmup_s": warmup,
+            **timing,
             "metrics_s": scored,
             "planning_cycles": cycles,
             "planning_s": (m["planning_time_ms"] or 0.0) * cycles / 1e3,

@@ -30,6 +30,7 @@ from riskflow_env.metrics.displacement import (
 from riskflow_env.metrics.kinematics import (
     KINEMATIC_FEATURES,
     KinematicSamples,
+    jerk_steps,
     kdd,
     kdd_over_records,
     kinematic_samples,
@@ -38,6 +39,7 @@ from riskflow_env.metrics.rollout import NO_EGO, RolloutRecord
 from riskflow_env.metrics.safety import (
     CollisionResult,
     OffroadResult,
+    collision_involvement,
     collision_rates,
     collisions,
     offroad,
@@ -64,10 +66,12 @@ __all__ = [
     "OffroadResult",
     "RolloutRecord",
     "aggregate_rollout_metrics",
+    "collision_involvement",
     "collision_rates",
     "collisions",
     "displacement_errors",
     "displacement_means",
+    "jerk_steps",
     "kdd",
     "kdd_over_records",
     "kinematic_samples",

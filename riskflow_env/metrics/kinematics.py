@@ -75,6 +75,25 @@ def kinematic_values(
     return samples
 
 
+def jerk_steps(record: RolloutRecord) -> tuple[np.ndarray, np.ndarray]:
+    """Simulated jerk samples (those of :func:`kinematic_values`) with their step index.
+
+    Simulated step ``k`` is the action taken from the reset state (record step
+    ``num_context - 1``) on. A jerk sample is the change of acceleration from step
+    ``k - 1`` to step ``k`` (for ``k = 0`` the previous acceleration is the logged one).
+    With a policy that re-plans every ``period`` steps, ``k mod period == 0`` (``k > 0``)
+    are the steps that switch to a new plan, the other ``k`` lie within a plan.
+
+    Returns:
+        ``(jerk, step)``: 1-D jerk samples [m/s^3] and their (int) step ``k``.
+    """
+    values, ok = kinematic_series(record.states, record.valid, record.dt)["jerk"]
+    index = np.arange(values.shape[1])  # sample t spans record steps t .. t+2
+    keep = ok & (index + 2 >= record.num_context)[None, :] & record.evaluated[:, None]
+    step = np.broadcast_to(index + 2 - record.num_context, values.shape)
+    return values[keep], step[keep]
+
+
 @dataclass(frozen=True)
 class KinematicSamples:
     """KDD samples of one rollout (or of many, concatenated).

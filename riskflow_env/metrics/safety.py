@@ -104,6 +104,25 @@ def collisions(record: RolloutRecord, tolerance: float = 0.0) -> CollisionResult
     )
 
 
+def collision_involvement(pairs: np.ndarray, ego_index: int = NO_EGO) -> np.ndarray:
+    """Which agents collided with a non-ego agent (pairs with the ego dropped).
+
+    Args:
+        pairs: (A, A) bool, symmetric (``CollisionResult.pairs``).
+        ego_index: the ego's slot, or ``NO_EGO``.
+
+    Returns:
+        (A,) bool: the agent overlapped some non-ego agent other than itself; always
+        False for the ego.
+    """
+    pairs = np.asarray(pairs, dtype=bool)
+    others = np.ones(pairs.shape[0], dtype=bool)
+    if ego_index != NO_EGO:
+        others[ego_index] = False
+    off_diagonal = ~np.eye(pairs.shape[0], dtype=bool)
+    return (pairs & off_diagonal & others[:, None] & others[None, :]).any(axis=1)
+
+
 def collision_rates(results: Sequence[CollisionResult]) -> tuple[float, float]:
     """SCR and the ego-involved collision rate over rollouts.
 

@@ -1,0 +1,302 @@
+"""Realism of learned traffic in closed loop: the table of issue 13, item 2.
+
+One run measures, on the same scenes and seeds, the unguided generator (``riskflow-eval``
+method ``bits``: the RiskFlow generator with K = 0) for each ``--checkpoint`` (a row
+named by the file), IDM traffic (``idm``) and log replay (``replay``), all against the
+IDM ego, closed loop, ``--duration`` seconds. The rollouts are ``riskflow-eval``'s
+(:func:`policies.evaluation.rollout.rollout_episode`); the numbers are
+:mod:`riskflow_env.metrics`'s. Columns (the controlled vehicles are the non-ego ones):
+
+* ``veh_coll``: share of non-ego vehicles that overlap another non-ego vehicle at some
+  step (:func:`~riskflow_env.metrics.collision_involvement`);
+* ``scr_nonego``: share of rollouts with a non-ego pair overlap; ``ego_coll``: share of
+  rollouts where the ego is hit;
+* ``orr`` / ``orr_fp``: off-road share of agent-steps by centroid / by footprint;
+* ``jerk_p95`` / ``lat_p95``: p95 of |longitudinal jerk| [m/s^3] and |lateral
+  acceleration| [m/s^2] (KDD's samples of the simulated tracks);
+* ``jerk_replan_p95`` / ``jerk_within_p95``: p95 |jerk| at the steps that switch to a new
+  plan (step index 0 mod the planning interval) and at the other steps
+  (:func:`~riskflow_env.metrics.jerk_steps`; the first simulated step, which follows
+  the log, is in neither); the JSON has every phase (``jerk_p95_by_phase``);
+* ``wosac`` (mean per-rollout metametric), ``kdd``, ``ade`` / ``fde`` [m], ``wall_s``
+  (rollouts and metrics, summed over this row's rollouts).
+
+By default 14 scenes, two per road family of the shipped evaluation bank (``--full``:
+every scene)::
+
+    python benchmarks/traffic_realism.py [--checkpoint A.pt B.pt] [--scenes 14 | --full]
+        [--seeds 0 1 2] [--bank DIR] [--workers 1] [--out realism.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from policies.evaluation.options import SHIPPED, EvalOptions, Job, run_config
+from policies.evaluation.registry import method_spec
+from policies.evaluation.rollout import rollout_episode
+from riskflow_env.config import DynamicsConfig
+from riskflow_env.metrics import (
+    KinematicSamples,
+    collision_involvement,
+    collisions,
+    jerk_steps,
+    kinematic_samples,
+    method_metrics,
+    rollout_metrics,
+    wosac_scene,
+)
+from riskflow_env.scenarios import Scenario, load_bank, shipped_bank
+
+SHIPPED_CHECKPOINT = (
+    Path(__file__).resolve().parents[1] / "policies/checkpoints/riskflow_default.pt"
+)
+BASELINES = ("idm", "replay")
+COLUMNS = (  # (key, header, format)
+    ("veh_coll", "veh. in coll.", "{:.3f}"),
+    ("scr_nonego", "SCR non-ego", "{:.2f}"),
+    ("ego_coll", "ego coll.", "{:.2f}"),
+    ("orr", "ORR centroid", "{:.4f}"),
+    ("orr_fp", "ORR footprint", "{:.4f}"),
+    ("jerk_p95", "p95 jerk", "{:.2f}"),
+    ("lat_p95", "p95 lat. acc.", "{:.2f}"),
+    ("jerk_replan_p95", "p95 jerk re-plan", "{:.2f}"),
+    ("jerk_within_p95", "p95 jerk within", "{:.2f}"),
+    ("wosac", "WOSAC", "{:.3f}"),
+    ("kdd", "KDD", "{:.3f}"),
+    ("ade", "ADE", "{:.2f}"),
+    ("fde", "FDE", "{:.2f}"),
+    ("wall_s", "wall [s]", "{:.0f}"),
+)
+
+
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    parser.add_argument(
+        "--checkpoint",
+        nargs="+",
+        default=[str(SHIPPED_CHECKPOINT)],
+        help="generator checkpoints, one row each (named by the file)",
+    )
+    parser.add_argument(
+        "--baselines",
+        nargs="*",
+        default=list(BASELINES),
+        help="reference methods of riskflow-eval measured in the same run",
+    )
+    parser.add_argument(
+        "--bank", default=None, help="scenario directory; default: the shipped evaluation bank"
+    )
+    parser.add_argument(
+        "--scenes",
+        type=int,
+        default=14,
+        help="number of scenes, spread evenly over the road families",
+    )
+    parser.add_argument("--full", action="store_true", help="every scene of the bank")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="rollout seeds")
+    parser.add_argument("--duration", type=float, default=10.0, help="[s] episode length")
+    parser.add_argument(
+        "--interval", type=float, default=0.5, help="[s] planning interval of the generator"
+    )
+    parser.add_argument("--ego", default="idm", help="ego planner (riskflow-eval --ego)")
+    parser.add_argument("--device", default="cpu", help="torch device of the generator")
+    parser.add_argument(
+        "--workers", type=int, default=1, help="worker processes (spawned, one torch thread each)"
+    )
+    parser.add_argument("--out", default=None, help="write the rows as JSON to this file")
+    args = parser.parse_args(argv)
+    if args.scenes < 1 or args.workers < 1:
+        parser.error("--scenes and --workers must be >= 1")
+    for path in args.checkpoint:
+        if not Path(path).is_file():
+            parser.error(f"--checkpoint: no file {path}")
+    return args
+
+
+def pick_scenes(scenes: Sequence[Scenario], count: int) -> list[int]:
+    """Indices of ``count`` scenes taken round-robin over the families (in bank order),
+    so every family appears once ``count`` >= the number of families."""
+    families: dict[str, list[int]] = {}
+    for index, scene in enumerate(scenes):
+        families.setdefault(scene.family, []).append(index)
+    queues = list(families.values())
+    picked: list[int] = []
+    for rank in range(max(len(q) for q in queues)):
+        picked += [q[rank] for q in queues if rank < len(q)]
+    return sorted(picked[:count])
+
+
+def measure(job: Job) -> dict[str, Any]:
+    """One rollout and its per-rollout numbers and samples."""
+    start = time.perf_counter()
+    _, record, _ = rollout_episode(job)
+    hit = collisions(record)
+    involved = collision_involvement(hit.pairs, record.ego_index) & record.evaluated
+    jerk, step = jerk_steps(record)
+    return {
+        "label": job.run["label"],
+        "metrics": rollout_metrics(record),
+        "vehicles": int(record.evaluated.sum()),
+        "involved": int(involved.sum()),
+        "nonego_collision": bool(involved.any()),
+        "samples": kinematic_samples(record),
+        "jerk": jerk,
+        "step": step,
+        "period": job.run["period"],
+        "wosac": float(wosac_scene([record])["metametric"]),
+        "wall_s": time.perf_counter() - start,
+    }
+
+
+def _p95(values: np.ndarray) -> float:
+    return float(np.percentile(np.abs(values), 95)) if values.size else float("nan")
+
+
+def summarise(label: str, results: list[dict[str, Any]]) -> dict[str, Any]:
+    """One table row from the rollouts of one method."""
+    samples = [r["samples"] for r in results]
+    pooled = KinematicSamples.concatenate(samples).generated
+    agg = method_metrics([r["metrics"] for r in results], samples)
+    jerk = np.concatenate([r["jerk"] for r in results])
+    step = np.concatenate([r["step"] for r in results])
+    period = results[0]["period"]
+    phase = np.where(step > 0, step % period, -1)  # step 0 follows the log: no re-plan
+    vehicles = sum(r["vehicles"] for r in results)
+    return {
+        "label": label,
+        "rollouts": len(results),
+        "vehicles": vehicles,
+        "veh_coll": sum(r["involved"] for r in results) / vehicles if vehicles else float("nan"),
+        "scr_nonego": float(np.mean([r["nonego_collision"] for r in results])),
+        "ego_coll": agg["ego_collision_rate"],
+        "scr": agg["scr"],
+        "orr": agg["orr"],
+        "orr_fp": agg["orr_footprint"],
+        "jerk_p95": _p95(pooled["jerk"]),
+        "lat_p95": _p95(pooled["lateral_acceleration"]),
+        "jerk_replan_p95": _p95(jerk[phase == 0]),
+        "jerk_within_p95": _p95(jerk[phase > 0]),
+        "jerk_p95_by_phase": [_p95(jerk[phase == p]) for p in range(period)],
+        "wosac": float(np.mean([r["wosac"] for r in results])),
+        "kdd": agg["kdd"],
+        "ade": agg["ade"],
+        "fde": agg["fde"],
+        "wall_s": float(sum(r["wall_s"] for r in results)),
+    }
+
+
+def _jobs(args: argparse.Namespace, scenes: Sequence[Scenario], picked: list[int]) -> list[Job]:
+    base = run_config(EvalOptions(data=args.bank, ego=args.ego, duration=args.duration))
+    period = round(args.interval / DynamicsConfig().dt)  # steps per planning cycle
+    base |= {"wosac": True, "device": args.device, "period": period}
+    names = [Path(p).name for p in args.checkpoint]
+    unique = len(set(names)) == len(names)
+    methods = [("bits", {"checkpoint": str(Path(p).resolve())}, n if unique else p)
+               for p, n in zip(args.checkpoint, names, strict=True)]  # fmt: skip
+    methods += [(name, {}, name) for name in args.baselines]
+    jobs = []
+    for method, options, label in methods:
+        interval = args.interval if method_spec(method).uses_interval else None
+        for index in picked:
+            for seed in args.seeds:
+                run = base | {"label": label}
+                jobs.append(
+                    Job(method, options, None, interval, scenes[index].name, index, seed, run)
+                )
+    return jobs
+
+
+def _results(jobs: list[Job], workers: int):
+    if workers <= 1:
+        yield from map(measure, jobs)
+        return
+    from policies.evaluation.runner import _init_worker
+
+    with multiprocessing.get_context("spawn").Pool(workers, initializer=_init_worker) as pool:
+        yield from pool.imap(measure, jobs, chunksize=1)
+
+
+def markdown(rows: Sequence[dict[str, Any]]) -> str:
+    """The rows as a Markdown table (NaN as 'n/a')."""
+
+    def cell(value: Any, fmt: str) -> str:
+        return "n/a" if value is None or not np.isfinite(value) else fmt.format(value)
+
+    lines = ["| generator | " + " | ".join(h for _, h, _ in COLUMNS) + " |",
+             "|---|" + "---:|" * len(COLUMNS)]  # fmt: skip
+    for row in rows:
+        lines.append(f"| {row['label']} | "
+                     + " | ".join(cell(row[k], f) for k, _, f in COLUMNS) + " |")  # fmt: skip
+    return "\n".join(lines)
+
+
+def _write(path: str, payload: dict[str, Any]) -> None:
+    def clean(value: Any) -> Any:
+        if isinstance(value, float) and not np.isfinite(value):
+            return None
+        if isinstance(value, list):
+            return [clean(v) for v in value]
+        return value
+
+    payload = {**payload, "rows": [{k: clean(v) for k, v in r.items()} for r in payload["rows"]]}
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w") as handle:
+        json.dump(payload, handle, indent=1)
+        handle.flush()
+        os.fsync(handle.fileno())
+
+
+def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
+    """Run the benchmark, print the table; returns the rows."""
+    args = parse_args(argv)
+    start = time.perf_counter()
+    bank = shipped_bank("eval") if args.bank is None else load_bank(args.bank)
+    scenes = [bank[i] for i in range(len(bank))]
+    picked = list(range(len(scenes))) if args.full else pick_scenes(scenes, args.scenes)
+    if args.bank is None:
+        args.bank = SHIPPED
+    jobs = _jobs(args, scenes, picked)
+    dt = DynamicsConfig().dt
+    config = {"bank": args.bank, "scenes": [scenes[i].name for i in picked], "seeds": args.seeds,
+              "duration_s": args.duration, "interval_s": args.interval, "dt": dt, "ego": args.ego,
+              "checkpoints": args.checkpoint}  # fmt: skip
+    print(f"{len(picked)} scenes ({len({scenes[i].family for i in picked})} families) x "
+          f"{len(args.seeds)} seeds x {len(jobs) // max(len(picked) * len(args.seeds), 1)} "
+          f"methods, {args.duration:g} s closed loop, {args.ego} ego", file=sys.stderr)  # fmt: skip
+    per_label: dict[str, list[dict[str, Any]]] = {}
+    for job in jobs:
+        per_label.setdefault(job.run["label"], [])
+    rows: list[dict[str, Any]] = []
+    expected = {label: sum(j.run["label"] == label for j in jobs) for label in per_label}
+    for done, result in enumerate(_results(jobs, args.workers), 1):
+        label = result["label"]
+        per_label[label].append(result)
+        print(f"  {done}/{len(jobs)} {label} ({result['wall_s']:.1f} s)", file=sys.stderr)
+        if len(per_label[label]) == expected[label]:
+            rows.append(summarise(label, per_label[label]))
+            if args.out:
+                _write(args.out, {"config": config, "rows": rows})
+    wall = time.perf_counter() - start
+    print(markdown(rows))
+    print(f"\ntotal wall time {wall:.0f} s", file=sys.stderr)
+    if args.out:
+        _write(args.out, {"config": config, "rows": rows, "total_wall_s": wall})
+    return rows
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,45 @@
+"""benchmarks/traffic_realism.py end to end on one scene and a short episode."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+
+SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "traffic_realism.py"
+
+
+def _module():
+    spec = importlib.util.spec_from_file_location("traffic_realism", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_one_scene_rows_with_every_column(tmp_path, capsys):
+    bench = _module()
+    out = tmp_path / "realism.json"
+    rows = bench.main(["--scenes", "1", "--duration", "1.0", "--out", str(out)])
+    assert [row["label"] for row in rows] == ["riskflow_default.pt", "idm", "replay"]
+    keys = {key for key, _, _ in bench.COLUMNS} | {"jerk_p95_by_phase", "rollouts", "vehicles"}
+    for row in rows:
+        assert keys <= set(row)
+        assert row["rollouts"] == 1 and len(row["jerk_p95_by_phase"]) == 5
+        assert 0.0 <= row["veh_coll"] <= 1.0 and 0.0 <= row["orr_fp"] <= 1.0
+        assert np.isfinite(row["jerk_p95"]) and np.isfinite(row["wosac"])
+    assert json.loads(out.read_text())["rows"][0]["label"] == "riskflow_default.pt"
+    assert "| riskflow_default.pt |" in capsys.readouterr().out
+
+
+def test_scene_choice_covers_every_family():
+    bench = _module()
+
+    class Scene:
+        def __init__(self, family):
+            self.family = family
+
+    scenes = [Scene(f) for f in "aaabbbc"]
+    assert bench.pick_scenes(scenes, 3) == [0, 3, 6]
+    assert bench.pick_scenes(scenes, 5) == [0, 1, 3, 4, 6]
