@@ -72,6 +72,8 @@ SMALLEST: list[tuple[str, str]] = [
     (r"riskflow-data generate", "--scenes 1 --workers 1"),
     (r"riskflow-train", "--steps 2 --eval-every 2 --val-windows 2 --batch-size 4"),
     (r"python examples/rollout\.py", "--steps 5"),
+    (r"python benchmarks/traffic_realism\.py", "--scenes 1 --duration 1"),
+    (r"python benchmarks/realism_diagnosis\.py", "--scenes 1"),
     (r"python examples/stress_test_planner\.py", "--scenes 1 --steps 5"),
     (
         r"python examples/train_ego_ppo\.py",
