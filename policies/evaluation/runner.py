@@ -25,6 +25,7 @@ from policies.evaluation.registry import build_policy
 from policies.evaluation.results import ResultsStore
 from policies.evaluation.rollout import run_job
 from riskflow_env.config import DynamicsConfig
+from riskflow_env.processes import exit_with_parent
 
 
 def check_methods(jobs: list[Job], dt: float = DynamicsConfig().dt) -> None:
@@ -56,6 +57,7 @@ def check_methods(jobs: list[Job], dt: float = DynamicsConfig().dt) -> None:
 
 def _init_worker() -> None:
     torch.set_num_threads(1)
+    exit_with_parent()  # a killed riskflow-eval leaves no worker behind
 
 
 def _results(jobs: list[Job], workers: int) -> Iterator[tuple[dict, dict[str, np.ndarray]]]:

@@ -12,8 +12,10 @@
 seed, split, families and scene settings, never on the worker count or on which
 scenes were made before. Files appear atomically (temp name + rename), so an
 interrupted run is resumed by running the same command again: complete scenes are
-skipped. ``OUT/riskflow-data.json`` records the settings; resuming with different ones
-is refused. Scenes per minute are printed at the end.
+skipped. Workers end as soon as the parent does (``kill -9`` included), so nothing
+writes into ``OUT`` once the command is gone. ``OUT/riskflow-data.json`` records the
+settings; resuming with different ones is refused. Scenes per minute are printed at the
+end.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from riskflow_env.maps import FAMILIES
+from riskflow_env.processes import exit_with_parent
 from riskflow_env.scenarios.io import list_scenarios, save_scenario
 from riskflow_env.scenarios.naturalistic import SOURCE, SceneConfig, generate_scenario
 
@@ -118,7 +121,9 @@ def generate(options: GenerateOptions) -> dict:
             bar.update()
     else:
         context = multiprocessing.get_context("spawn")
-        with concurrent.futures.ProcessPoolExecutor(options.workers, mp_context=context) as pool:
+        with concurrent.futures.ProcessPoolExecutor(
+            options.workers, mp_context=context, initializer=exit_with_parent
+        ) as pool:
             futures = [pool.submit(make_scene, options, index) for index in todo]
             try:
                 for future in concurrent.futures.as_completed(futures):
