@@ -10,6 +10,12 @@ Writing is crash-safe and resumable:
   the commit: a rollout interrupted before its row is written is simply run again.
 * :meth:`ResultsStore.done_keys` reads the keys of the rows present; a torn last line
   (a crash mid-write) is ignored and overwritten on the next append.
+* One writer per folder: the first write takes an exclusive lock on ``writer.lock``
+  (``flock`` on POSIX, ``msvcrt.locking`` on Windows; the file holds the writer's pid).
+  A second run into the same folder gets :class:`ResultsLocked`; the OS releases the lock
+  when the writer ends, ``kill -9`` included, so a killed run never blocks its resume.
+* Reading keeps the first row of each key (a folder written by two runs at once before
+  the lock existed counts each rollout once) and warns about the duplicates.
 """
 
 from __future__ import annotations
@@ -18,6 +24,7 @@ import hashlib
 import io
 import json
 import os
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -28,10 +35,15 @@ from riskflow_env.metrics import KinematicSamples
 RESULTS = "results.jsonl"
 CONFIG = "config.json"
 SAMPLES = "samples"
+LOCK = "writer.lock"
 
 
 class ConfigMismatch(ValueError):
     """The output folder holds results of another run configuration."""
+
+
+class ResultsLocked(ValueError):
+    """Another process is writing into the output folder."""
 
 
 def sample_id(key: str) -> str:
@@ -50,10 +62,38 @@ class ResultsStore:
         self.out = Path(out)
         self.results = self.out / RESULTS
         self.config_file = self.out / CONFIG
+        self._lock: Any = None
+
+    def lock(self) -> None:
+        """Become the folder's only writer (module docstring); ResultsLocked naming the
+        other writer's pid if another process holds the lock. Writing methods call it."""
+        if self._lock is not None:
+            return
+        self.out.mkdir(parents=True, exist_ok=True)
+        file = open(self.out / LOCK, "a+", encoding="utf-8")  # noqa: SIM115 (held open)
+        if not _try_lock(file):
+            file.seek(0)
+            holder = file.read(200).strip() or "unknown"
+            file.close()
+            raise ResultsLocked(
+                f"--out {self.out} is being written by another run (pid {holder}, lock file "
+                f"{self.out / LOCK}); wait for it to finish or use another --out"
+            )
+        file.seek(0)
+        file.truncate()
+        file.write(f"{os.getpid()}\n")
+        file.flush()
+        self._lock = file
+
+    def unlock(self) -> None:
+        """Release the writer lock (if held); the lock file stays."""
+        if self._lock is not None:
+            self._lock.close()  # closing the file releases the lock
+            self._lock = None
 
     def check_config(self, config: dict[str, Any]) -> None:
         """Write ``config.json`` if absent; ConfigMismatch naming the settings that differ."""
-        self.out.mkdir(parents=True, exist_ok=True)
+        self.lock()
         if not self.config_file.exists():
             _write_atomic(self.config_file, json.dumps(config, indent=1, sort_keys=True).encode())
             return
@@ -73,17 +113,29 @@ class ResultsStore:
         return json.loads(self.config_file.read_text()) if self.config_file.exists() else {}
 
     def rows(self) -> list[dict[str, Any]]:
-        """Every complete row (a torn last line is skipped)."""
+        """Every complete row, the first of each key (a torn last line is skipped)."""
         if not self.results.exists():
             return []
-        rows = []
+        rows: dict[str, dict[str, Any]] = {}
+        duplicates = 0
         for line in self.results.read_bytes().split(b"\n"):
             if line.strip():
                 try:
-                    rows.append(json.loads(line))
+                    row = json.loads(line)
                 except json.JSONDecodeError:
                     continue  # a torn line from an interrupted write
-        return rows
+                if row["key"] in rows:
+                    duplicates += 1
+                else:
+                    rows[row["key"]] = row
+        if duplicates:
+            warnings.warn(
+                f"{self.results}: {duplicates} duplicate row(s) ignored (the same rollout "
+                "written twice, e.g. by two runs into one --out)",
+                UserWarning,
+                stacklevel=2,
+            )
+        return list(rows.values())
 
     def done_keys(self) -> set[str]:
         """Keys of the rows present."""
@@ -91,6 +143,7 @@ class ResultsStore:
 
     def append(self, row: dict[str, Any], samples: dict[str, np.ndarray]) -> None:
         """Write one rollout: its samples, then its row (both fsynced)."""
+        self.lock()
         name = sample_id(row["key"])
         buffer = io.BytesIO()
         np.savez_compressed(buffer, **{k: np.asarray(v, np.float32) for k, v in samples.items()})
@@ -109,6 +162,23 @@ class ResultsStore:
         """The KDD samples of a row."""
         with np.load(self.out / row["samples"]) as arrays:
             return KinematicSamples.from_arrays({k: arrays[k].astype(np.float64) for k in arrays})
+
+
+def _try_lock(file: Any) -> bool:
+    """Take an exclusive, non-blocking lock on ``file``; False if another process has it."""
+    try:
+        if os.name == "nt":
+            import msvcrt
+
+            file.seek(0)
+            msvcrt.locking(file.fileno(), msvcrt.LK_NBLCK, 1)
+        else:
+            import fcntl
+
+            fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        return False
+    return True
 
 
 def _ends_with_newline(path: Path) -> bool:

@@ -72,7 +72,9 @@ def _results(jobs: list[Job], workers: int) -> Iterator[tuple[dict, dict[str, np
 
 def prepare(options: EvalOptions) -> tuple[ResultsStore, list[Job]]:
     """Check the options (ValueError naming the argument) and the results folder's
-    configuration (:class:`~.results.ConfigMismatch`); returns the store and every job."""
+    configuration (:class:`~.results.ConfigMismatch`) and take its writer lock
+    (:class:`~.results.ResultsLocked` if another run holds it); returns the store (locked
+    until :func:`run_evaluation` ends) and every job."""
     store = ResultsStore(options.out)
     try:
         scenes = load_scenes(options.data, options.scenes)
@@ -80,7 +82,11 @@ def prepare(options: EvalOptions) -> tuple[ResultsStore, list[Job]]:
         raise ValueError(f"--data: {err}") from err
     jobs = plan_jobs(options, scenes)
     check_methods(jobs)
-    store.check_config(run_config(options))
+    try:
+        store.check_config(run_config(options))  # takes the folder's writer lock
+    except BaseException:
+        store.unlock()
+        raise
     return store, jobs
 
 
@@ -114,6 +120,7 @@ def run_evaluation(
             bar.update()
     finally:
         bar.close()
+        store.unlock()
     return {
         "planned": len(jobs),
         "skipped": len(jobs) - len(todo),
