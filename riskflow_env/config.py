@@ -180,9 +180,10 @@ class EnvConfig:
             ("observation", ObservationConfig),
             ("reward", RewardConfig),
         ):
+            value = getattr(self, name)
             _require(
-                isinstance(getattr(self, name), kind),
-                f"EnvConfig.{name} must be a {kind.__name__}, got {type(getattr(self, name)).__name__}",
+                isinstance(value, kind),
+                f"EnvConfig.{name} must be a {kind.__name__}, got {type(value).__name__}",
             )
         names = set(agent_names(self.max_agents))
         for option in ("terminate_on_collision", "terminate_on_offroad"):
