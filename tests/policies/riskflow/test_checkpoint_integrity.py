@@ -3,11 +3,17 @@
 from __future__ import annotations
 
 import resource
+import warnings
 
 import pytest
 import torch
 
-from policies.riskflow.checkpoint import load_checkpoint, load_generator, save_checkpoint
+from policies.riskflow.checkpoint import (
+    load_checkpoint,
+    load_generator,
+    save_checkpoint,
+    weights_digest,
+)
 from policies.riskflow.generator import CheckpointError
 
 SHIPPED = "policies/checkpoints/riskflow_default.pt"
@@ -15,18 +21,28 @@ DIFFUSION = "policies/checkpoints/diffusion_default.pt"
 
 
 def _shipped():
-    with pytest.warns(UserWarning, match="weights_sha256"):
-        return load_checkpoint(SHIPPED)
+    return load_checkpoint(SHIPPED)
 
 
-def test_shipped_checkpoint_without_digest_loads_with_a_warning():
+@pytest.mark.parametrize(("path", "kind"), [(SHIPPED, "meanflow"), (DIFFUSION, "diffusion")])
+def test_shipped_checkpoints_carry_kind_and_a_verified_digest(path, kind):
+    raw = torch.load(path, weights_only=True)
+    assert raw["kind"] == kind and raw["weights_sha256"] == weights_digest(raw["state_dict"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # verified: no "cannot be verified" warning
+        load_checkpoint(path)
+
+
+def test_checkpoint_without_digest_loads_with_a_warning(tmp_path):
+    old = {k: v for k, v in _shipped().items() if k not in ("kind", "weights_sha256")}
+    torch.save(old, tmp_path / "old.pt")  # as written before digests existed
     with pytest.warns(UserWarning, match="no weights_sha256"):
-        model, _, _ = load_generator(SHIPPED)
+        model, _, _ = load_generator(tmp_path / "old.pt")
     assert model.num_parameters() > 0
 
 
 def test_diffusion_checkpoint_refused_by_load_generator():
-    with pytest.warns(UserWarning), pytest.raises(CheckpointError, match="diffusion"):
+    with pytest.raises(CheckpointError, match="diffusion"):
         load_generator(DIFFUSION)
 
 
