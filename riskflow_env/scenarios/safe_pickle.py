@@ -136,7 +136,8 @@ class _SafeArray(np.ndarray):
             raise _Refused("array built outside an unpickler")
         self._budget.take(nbytes, "array")
         if not isinstance(raw, (bytes, bytearray)) or len(raw) != nbytes:
-            raise _Refused(f"array data holds {len(raw) if isinstance(raw, (bytes, bytearray)) else type(raw).__name__} bytes, shape {shape} x {dtype} needs {nbytes}")
+            held = len(raw) if isinstance(raw, (bytes, bytearray)) else type(raw).__name__
+            raise _Refused(f"array data holds {held} bytes, shape {shape} x {dtype} needs {nbytes}")
         super().__setstate__((shape, dtype, fortran, bytes(raw)))
 
 
@@ -146,10 +147,14 @@ class _Budget:
 
     def take(self, nbytes: int, what: str) -> None:
         if nbytes > MAX_ARRAY_BYTES:
-            raise _Refused(f"a {what} of {nbytes} bytes exceeds the limit MAX_ARRAY_BYTES = {MAX_ARRAY_BYTES}")
+            raise _Refused(
+                f"a {what} of {nbytes} bytes exceeds the limit MAX_ARRAY_BYTES = {MAX_ARRAY_BYTES}"
+            )
         self.total += nbytes
         if self.total > MAX_TOTAL_BYTES:
-            raise _Refused(f"arrays totalling over {MAX_TOTAL_BYTES} bytes exceed the limit MAX_TOTAL_BYTES")
+            raise _Refused(
+                f"arrays totalling over {MAX_TOTAL_BYTES} bytes exceed the limit MAX_TOTAL_BYTES"
+            )
 
 
 class RestrictedUnpickler(pickle.Unpickler):
@@ -244,7 +249,12 @@ _PLAIN_BUILTINS += ("int", "float", "complex", "bool")
 #: stand-in where the plain object could allocate without bound or address memory).
 ALLOWED_GLOBALS: frozenset[tuple[str, str]] = frozenset(
     {("builtins", name) for name in _PLAIN_BUILTINS + ("bytearray", "bytes")}
-    | {("collections", "OrderedDict"), ("_codecs", "encode"), ("numpy", "ndarray"), ("numpy", "dtype")}
+    | {
+        ("collections", "OrderedDict"),
+        ("_codecs", "encode"),
+        ("numpy", "ndarray"),
+        ("numpy", "dtype"),
+    }
     | {(module, name) for module in _NUMPY_MODULES for name in ("_reconstruct", "scalar")}
     | {(module, "_frombuffer") for module in _NUMERIC_MODULES}
 )
@@ -269,7 +279,9 @@ def _finish(obj: Any, depth: int = 0) -> Any:
             obj[index] = _finish(value, depth + 1)
         return obj
     if isinstance(obj, tuple):
-        return type(obj)(_finish(value, depth + 1) for value in obj) if obj.__class__ is tuple else obj
+        return (
+            type(obj)(_finish(value, depth + 1) for value in obj) if obj.__class__ is tuple else obj
+        )
     if isinstance(obj, (set, frozenset)):
         for value in obj:
             _finish(value, depth + 1)
@@ -304,7 +316,9 @@ def load_data_pickle(path: str | Path) -> Any:
     path = Path(path)
     size = path.stat().st_size
     if size > MAX_FILE_BYTES:
-        raise ValueError(f"{path}: {size} bytes exceeds the limit MAX_FILE_BYTES = {MAX_FILE_BYTES}")
+        raise ValueError(
+            f"{path}: {size} bytes exceeds the limit MAX_FILE_BYTES = {MAX_FILE_BYTES}"
+        )
     with path.open("rb") as file:
         return _load(file, str(path))
 
@@ -312,5 +326,7 @@ def load_data_pickle(path: str | Path) -> Any:
 def loads_data_pickle(data: bytes, source: str = "<bytes>") -> Any:
     """:func:`load_data_pickle` for in-memory bytes; ``source`` names them in errors."""
     if len(data) > MAX_FILE_BYTES:
-        raise ValueError(f"{source}: {len(data)} bytes exceeds the limit MAX_FILE_BYTES = {MAX_FILE_BYTES}")
+        raise ValueError(
+            f"{source}: {len(data)} bytes exceeds the limit MAX_FILE_BYTES = {MAX_FILE_BYTES}"
+        )
     return _load(io.BytesIO(data), source)

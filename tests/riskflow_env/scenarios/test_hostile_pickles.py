@@ -19,16 +19,25 @@ def i8(value):
 
 def ndarray_offset_pickle(offset, count=256):
     return (
-        b"\x80\x02cnumpy\nndarray\n(" + i8(count) + b"\x85X\x02\x00\x00\x00u1C\x10"
-        + b"A" * 16 + i8(offset) + b"tR."
+        b"\x80\x02cnumpy\nndarray\n("
+        + i8(count)
+        + b"\x85X\x02\x00\x00\x00u1C\x10"
+        + b"A" * 16
+        + i8(offset)
+        + b"tR."
     )
 
 
 def bytearray_buffer_pickle(offset):
     # ndarray(shape, dtype, bytearray buffer, offset): the write-before-the-buffer variant
     return (
-        b"\x80\x02cnumpy\nndarray\n(" + i8(64) + b"\x85X\x02\x00\x00\x00u1c__builtin__\nbytearray\n"
-        + i8(16) + b"\x85R" + i8(offset) + b"tR."
+        b"\x80\x02cnumpy\nndarray\n("
+        + i8(64)
+        + b"\x85X\x02\x00\x00\x00u1c__builtin__\nbytearray\n"
+        + i8(16)
+        + b"\x85R"
+        + i8(offset)
+        + b"tR."
     )
 
 
@@ -41,7 +50,10 @@ HOSTILE = {
     "os_system": b"cos\nsystem\n(S'touch /tmp/riskflow_hostile_marker'\ntR.",
     "reconstruct_huge": pickle.dumps(np.zeros(4, np.float64))[:0]
     + b"\x80\x02cnumpy.core.multiarray\n_reconstruct\ncnumpy\nndarray\nK\x00\x85C\x01b\x87R"
-    + b"(K\x01" + i8(2**20) + i8(2**20) + b"\x86cnumpy\ndtype\nX\x02\x00\x00\x00f8\x89\x88\x87R"
+    + b"(K\x01"
+    + i8(2**20)
+    + i8(2**20)
+    + b"\x86cnumpy\ndtype\nX\x02\x00\x00\x00f8\x89\x88\x87R"
     + b"(K\x03X\x01\x00\x00\x00<NNNJ\xff\xff\xff\xffJ\xff\xff\xff\xffK\x00tb\x89C\x00tb.",
     "object_dtype": b"\x80\x02cnumpy\ndtype\nX\x02\x00\x00\x00O8\x89\x88\x87R.",
     "codecs_lookup": b"\x80\x02c_codecs\nencode\nX\x01\x00\x00\x00aX\x04\x00\x00\x00nope\x86R.",
@@ -73,7 +85,8 @@ def test_far_offsets_do_not_crash_the_interpreter():
         from riskflow_env.scenarios.safe_pickle import loads_data_pickle
         i8 = lambda v: b"\\x8a\\x08" + struct.pack("<q", v)
         for offset in (-4096, -2**20, -2**40, 2**40, 2**62):
-            data = (b"\\x80\\x02cnumpy\\nndarray\\n(" + i8(256) + b"\\x85X\\x02\\x00\\x00\\x00u1C\\x10"
+            data = (b"\\x80\\x02cnumpy\\nndarray\\n(" + i8(256)
+                    + b"\\x85X\\x02\\x00\\x00\\x00u1C\\x10"
                     + b"A" * 16 + i8(offset) + b"tR.")
             try:
                 loads_data_pickle(data)
@@ -83,7 +96,9 @@ def test_far_offsets_do_not_crash_the_interpreter():
         print("ok")
         """
     )
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120
+    )
     assert result.returncode == 0, result.stderr
     assert "ok" in result.stdout
 
