@@ -150,3 +150,49 @@ def test_object_arrays_refused():
     data = pickle.dumps(np.array([1, "a"], dtype=object), protocol=2)
     with pytest.raises(ValueError, match="refused"):
         loads_data_pickle(data)
+
+
+FUZZ = """
+import pickle, random, resource, sys
+import numpy as np
+resource.setrlimit(resource.RLIMIT_AS, (4 * 2**30, 4 * 2**30))
+from riskflow_env.scenarios.safe_pickle import loads_data_pickle
+
+rng = random.Random(int(sys.argv[1]))
+seeds = [
+    pickle.dumps({"a": np.arange(12.0).reshape(3, 4), "b": [np.int32(3), "x", b"yz"]}, protocol=p)
+    for p in range(pickle.HIGHEST_PROTOCOL + 1)
+]
+seeds.append(pickle.dumps({"ts": np.arange(5) * 0.1, "ba": bytearray(b"abc")}, protocol=2))
+bad = 0
+for _ in range(int(sys.argv[2])):
+    data = bytearray(rng.choice(seeds))
+    for _ in range(rng.randint(1, 4)):
+        op, at = rng.random(), rng.randrange(len(data))
+        if op < 0.5:
+            data[at] = rng.randrange(256)
+        elif op < 0.7:
+            del data[at]
+        elif op < 0.9:
+            data.insert(at, rng.randrange(256))
+        else:
+            data = data[:at]
+        if not data:
+            data = bytearray(b"(")
+    try:
+        loads_data_pickle(bytes(data), source="fuzz.pkl")
+    except ValueError as error:
+        assert "fuzz.pkl" in str(error), error
+    except BaseException as error:
+        print("UNEXPECTED", type(error).__name__, error, bytes(data))
+        bad += 1
+print("bad", bad)
+"""
+
+
+def test_mutated_pickles_raise_only_value_error():
+    result = subprocess.run(
+        [sys.executable, "-c", FUZZ, "0", "3000"], capture_output=True, text=True, timeout=300
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "bad 0" in result.stdout, result.stdout[-3000:]
