@@ -1,10 +1,12 @@
 """Hostile data pickles (issue 19): nothing reads memory, nothing runs, nothing hangs."""
 
+import collections
 import pickle
 import struct
 import subprocess
 import sys
 import textwrap
+import time
 
 import numpy as np
 import pytest
@@ -196,3 +198,57 @@ def test_mutated_pickles_raise_only_value_error():
     )
     assert result.returncode == 0, result.stderr[-2000:]
     assert "bad 0" in result.stdout, result.stdout[-3000:]
+
+
+def shared_chain_pickle(levels, tail=b""):
+    """``L[i] = [L[i-1], L[i-1]]``: ~19 bytes a level, 2**levels paths to the bottom."""
+    memo = lambda i: struct.pack("<I", i)  # noqa: E731
+    data = b"\x80\x02]r" + memo(0) + b"0"
+    for i in range(1, levels):
+        data += b"](j" + memo(i - 1) + b"j" + memo(i - 1) + b"er" + memo(i) + b"0"
+    return data + (tail or b"j" + memo(levels - 1) + b".")
+
+
+def test_shared_references_do_not_hang():
+    """A 1 KB file sharing one list 2**60 times over loaded for days (each path walked)."""
+    data = shared_chain_pickle(60)
+    assert len(data) < 1200
+    start = time.perf_counter()
+    loaded = loads_data_pickle(data)
+    assert time.perf_counter() - start < 2.0
+    assert loaded[0] is loaded[1]  # sharing kept, not expanded
+
+
+def test_str_of_a_shared_structure_refused():
+    """builtins.str is not a global pickle writes; str() of the chain above is exponential."""
+    levels = 40
+    memo = struct.pack("<I", levels - 1)
+    data = shared_chain_pickle(levels, tail=b"cbuiltins\nstr\nj" + memo + b"\x85R.")
+    with pytest.raises(ValueError, match="builtins.str"):
+        loads_data_pickle(data)
+
+
+def test_cycles_load():
+    value = [1]
+    value.append(value)
+    loaded = loads_data_pickle(pickle.dumps({"a": value, "b": (value, np.arange(3))}))
+    assert loaded["a"][1] is loaded["a"] and loaded["b"][0] is loaded["a"]
+    assert type(loaded["b"][1]) is np.ndarray
+
+
+@pytest.mark.parametrize("protocol", range(pickle.HIGHEST_PROTOCOL + 1))
+def test_plain_python_values_still_load(protocol):
+    data = collections.OrderedDict(
+        s={1, 2}, fs=frozenset({"a"}), c=1 + 2j, b=b"\x00\xff", empty=b"", t=(True, None),
+        big=2**100, f=-0.5, u="\u00e9", n=[[], {}], ba=bytearray(b"z"),
+    )  # fmt: skip
+    assert loads_data_pickle(pickle.dumps(data, protocol=protocol)) == data
+
+
+def test_load_scenarionet_refuses_the_offset_pickle(tmp_path):
+    from riskflow_env.scenarios.scenarionet import load_scenarionet
+
+    path = tmp_path / "scene.pkl"
+    path.write_bytes(ndarray_offset_pickle(-4096))
+    with pytest.raises(ValueError, match=r"scene\.pkl.*numpy\.ndarray"):
+        load_scenarionet(path)
