@@ -242,8 +242,10 @@ class RestrictedUnpickler(pickle.Unpickler):
         raise ValueError(f"{self.source}: refusing to unpickle a persistent id ({pid!r:.80})")
 
 
-_PLAIN_BUILTINS = ("dict", "list", "tuple", "set", "frozenset", "str")
-_PLAIN_BUILTINS += ("int", "float", "complex", "bool")
+# the builtins that pickle itself writes as globals (protocols 0-5): sets before protocol 4,
+# complex numbers. dict, list, tuple, str, int, float and bool have opcodes of their own,
+# and a file calling them could only amplify (``str`` of a shared structure is exponential).
+_PLAIN_BUILTINS = ("set", "frozenset", "complex")
 
 #: (module, name): every global a data pickle may refer to (each through a checked
 #: stand-in where the plain object could allocate without bound or address memory).
@@ -260,33 +262,45 @@ ALLOWED_GLOBALS: frozenset[tuple[str, str]] = frozenset(
 )
 
 
-def _finish(obj: Any, depth: int = 0) -> Any:
-    """Plain ndarrays / dtypes in place of the stand-ins; nesting depth checked."""
-    if depth > MAX_DEPTH:
-        raise _Refused(f"containers nested deeper than MAX_DEPTH = {MAX_DEPTH}")
-    if isinstance(obj, _SafeArray):
-        return obj.view(np.ndarray)
-    if isinstance(obj, _DtypeSpec):
-        return obj.dtype
-    if obj is _NDARRAY:
-        raise _Refused("a bare numpy.ndarray reference is refused")
-    if isinstance(obj, dict):
-        for key, value in obj.items():
-            obj[key] = _finish(value, depth + 1)
+def _finish(root: Any) -> Any:
+    """Plain ndarrays / dtypes in place of the stand-ins; nesting depth checked.
+
+    Each container is visited once: a file that shares one list many times over (a
+    chain of ``[x, x]`` levels is a few hundred bytes for 2**60 paths) or holds a cycle
+    costs no more than its size."""
+    done: dict[int, Any] = {}
+
+    def visit(obj: Any, depth: int) -> Any:
+        if depth > MAX_DEPTH:
+            raise _Refused(f"containers nested deeper than MAX_DEPTH = {MAX_DEPTH}")
+        if isinstance(obj, _SafeArray):
+            return obj.view(np.ndarray)
+        if isinstance(obj, _DtypeSpec):
+            return obj.dtype
+        if obj is _NDARRAY:
+            raise _Refused("a bare numpy.ndarray reference is refused")
+        if not isinstance(obj, (dict, list, tuple, set, frozenset)):
+            return obj
+        if id(obj) in done:
+            return done[id(obj)]
+        if isinstance(obj, tuple):
+            if obj.__class__ is not tuple:
+                return obj
+            done[id(obj)] = result = tuple(visit(value, depth + 1) for value in obj)
+            return result
+        done[id(obj)] = obj  # mutable containers are fixed in place (cycles end here)
+        if isinstance(obj, dict):
+            for key, value in obj.items():
+                obj[key] = visit(value, depth + 1)
+        elif isinstance(obj, list):
+            for index, value in enumerate(obj):
+                obj[index] = visit(value, depth + 1)
+        else:
+            for value in obj:
+                visit(value, depth + 1)
         return obj
-    if isinstance(obj, list):
-        for index, value in enumerate(obj):
-            obj[index] = _finish(value, depth + 1)
-        return obj
-    if isinstance(obj, tuple):
-        return (
-            type(obj)(_finish(value, depth + 1) for value in obj) if obj.__class__ is tuple else obj
-        )
-    if isinstance(obj, (set, frozenset)):
-        for value in obj:
-            _finish(value, depth + 1)
-        return obj
-    return obj
+
+    return visit(root, 0)
 
 
 def _load(file: io.BufferedIOBase, source: str) -> Any:
