@@ -36,6 +36,7 @@ import numpy as np
 
 from riskflow_env.maps import FAMILIES
 from riskflow_env.processes import exit_with_parent
+from riskflow_env.scenarios._npz import check_npz_sizes
 from riskflow_env.scenarios.io import list_scenarios, save_scenario
 from riskflow_env.scenarios.naturalistic import SOURCE, SceneConfig, generate_scenario
 
@@ -148,6 +149,7 @@ def info(directory: Path) -> dict[str, int]:
     counts: Counter[str] = Counter()
     agents: Counter[str] = Counter()
     for path in list_scenarios(directory):
+        check_npz_sizes(path)  # sizes from the headers before anything is read
         with np.load(path, allow_pickle=False) as data:  # reads only the members used
             family = str(data["family"])
             agents[family] += int(data["length"].shape[0])
