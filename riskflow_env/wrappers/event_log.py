@@ -137,6 +137,20 @@ def _drop_torn_tail(path: Path) -> None:
         file.truncate(keep)
 
 
+def _last_episode(path: Path) -> int:
+    """The ``episode`` of the last event in ``path`` (-1 if none), read line by line."""
+    last = b""
+    with open(path, "rb") as file:
+        for line in file:
+            if line.strip():
+                last = line
+    try:
+        episode = json.loads(last)["episode"] if last else -1
+    except (ValueError, KeyError, TypeError):
+        return -1
+    return episode if isinstance(episode, int) and not isinstance(episode, bool) else -1
+
+
 def _round(value: Any) -> Any:
     """Plain-Python, JSON-ready copy of floats / arrays, rounded to 1e-4."""
     return (np.round(np.asarray(value, dtype=np.float64), 4) + 0.0).tolist()  # no -0.0
@@ -150,7 +164,8 @@ class EventRecorder:
 
     Args:
         path: JSON Lines file to write, or None to keep the events in memory only.
-        append: append to an existing file (a torn last line of a killed run is dropped).
+        append: append to an existing file (a torn last line of a killed run is dropped;
+            episode numbers continue after the file's last one).
         overwrite: replace an existing non-empty file. Without ``append`` or
             ``overwrite``, a non-empty file raises FileExistsError (a killed run's log
             is never destroyed silently).
@@ -165,6 +180,7 @@ class EventRecorder:
         self.path = None if path is None else Path(path)
         self.events: list[dict[str, Any]] = []
         self._file = None
+        self._episode = -1  # the episode being recorded; begin() moves to the next
         if append and overwrite:
             raise ValueError("EventRecorder: append and overwrite exclude each other")
         if self.path is not None:
@@ -177,9 +193,9 @@ class EventRecorder:
                 )
             if exists and append:
                 _drop_torn_tail(self.path)
+                self._episode = _last_episode(self.path)  # a resumed log keeps counting
             mode = "a" if append else "w"
             self._file = open(self.path, mode, buffering=1, encoding="utf-8")
-        self._episode = -1
         self._open = False
 
     def begin(self, scenario: str = "") -> None:
