@@ -10,10 +10,11 @@ Writing is crash-safe and resumable:
   the commit: a rollout interrupted before its row is written is simply run again.
 * :meth:`ResultsStore.done_keys` reads the keys of the rows present; a torn last line
   (a crash mid-write) is ignored and overwritten on the next append.
-* One writer per folder: the first write takes an exclusive lock on ``writer.lock``
-  (``flock`` on POSIX, ``msvcrt.locking`` on Windows; the file holds the writer's pid).
-  A second run into the same folder gets :class:`ResultsLocked`; the OS releases the lock
-  when the writer ends, ``kill -9`` included, so a killed run never blocks its resume.
+* One writer per folder: the first write takes the folder's
+  :class:`~riskflow_env.folder_lock.FolderLock` (``writer.lock``, holding the writer's
+  pid). A second run into the same folder gets :class:`ResultsLocked`; the OS releases
+  the lock when the writer ends, ``kill -9`` included, so a killed run never blocks its
+  resume.
 * Reading keeps the first row of each key (a folder written by two runs at once before
   the lock existed counts each rollout once) and warns about the duplicates.
 """
@@ -30,19 +31,19 @@ from typing import Any
 
 import numpy as np
 
+from riskflow_env.folder_lock import FolderLock, FolderLocked
 from riskflow_env.metrics import KinematicSamples
 
 RESULTS = "results.jsonl"
 CONFIG = "config.json"
 SAMPLES = "samples"
-LOCK = "writer.lock"
 
 
 class ConfigMismatch(ValueError):
     """The output folder holds results of another run configuration."""
 
 
-class ResultsLocked(ValueError):
+class ResultsLocked(FolderLocked):
     """Another process is writing into the output folder."""
 
 
@@ -62,34 +63,19 @@ class ResultsStore:
         self.out = Path(out)
         self.results = self.out / RESULTS
         self.config_file = self.out / CONFIG
-        self._lock: Any = None
+        self._lock = FolderLock(self.out)
 
     def lock(self) -> None:
         """Become the folder's only writer (module docstring); ResultsLocked naming the
         other writer's pid if another process holds the lock. Writing methods call it."""
-        if self._lock is not None:
-            return
-        self.out.mkdir(parents=True, exist_ok=True)
-        file = open(self.out / LOCK, "a+", encoding="utf-8")  # noqa: SIM115 (held open)
-        if not _try_lock(file):
-            file.seek(0)
-            holder = file.read(200).strip() or "unknown"
-            file.close()
-            raise ResultsLocked(
-                f"--out {self.out} is being written by another run (pid {holder}, lock file "
-                f"{self.out / LOCK}); wait for it to finish or use another --out"
-            )
-        file.seek(0)
-        file.truncate()
-        file.write(f"{os.getpid()}\n")
-        file.flush()
-        self._lock = file
+        try:
+            self._lock.acquire()
+        except FolderLocked as err:
+            raise ResultsLocked(f"--out {err}") from None
 
     def unlock(self) -> None:
         """Release the writer lock (if held); the lock file stays."""
-        if self._lock is not None:
-            self._lock.close()  # closing the file releases the lock
-            self._lock = None
+        self._lock.release()
 
     def check_config(self, config: dict[str, Any]) -> None:
         """Write ``config.json`` if absent; ConfigMismatch naming the settings that differ."""
@@ -162,23 +148,6 @@ class ResultsStore:
         """The KDD samples of a row."""
         with np.load(self.out / row["samples"]) as arrays:
             return KinematicSamples.from_arrays({k: arrays[k].astype(np.float64) for k in arrays})
-
-
-def _try_lock(file: Any) -> bool:
-    """Take an exclusive, non-blocking lock on ``file``; False if another process has it."""
-    try:
-        if os.name == "nt":
-            import msvcrt
-
-            file.seek(0)
-            msvcrt.locking(file.fileno(), msvcrt.LK_NBLCK, 1)
-        else:
-            import fcntl
-
-            fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        return False
-    return True
 
 
 def _ends_with_newline(path: Path) -> bool:

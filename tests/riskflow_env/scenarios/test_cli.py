@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from riskflow_env.folder_lock import FolderLock
 from riskflow_env.scenarios import load_bank
 from riskflow_env.scenarios.cli import GenerateOptions, generate, main
 
@@ -129,3 +130,14 @@ def test_workers_die_with_a_killed_parent(tmp_path):
     time.sleep(1.0)
     assert sorted(path.name for path in out.glob("0*.npz")) == written
     assert len(written) < 40
+
+
+def test_second_generate_into_one_bank_is_refused(tmp_path):
+    """A second run deleted the first one's temporary files; now it exits naming the pid."""
+    out = tmp_path / "bank"
+    with FolderLock(out):
+        with pytest.raises(SystemExit, match=rf"being written by another run \(pid {os.getpid()}"):
+            generate(_tiny(out, scenes=1))
+        assert not (out / "riskflow-data.json").exists()
+    generate(_tiny(out, scenes=1))  # released: the bank is written
+    assert (out / "00000-u-turn.npz").is_file()
