@@ -90,6 +90,9 @@ class Options:
     oracle: bool = False
     """also evaluate the oracle (sampling MPC that reads the adversary's plans: what is
     avoidable; needs RiskFlow nominal traffic)"""
+    trust_model: bool = False
+    """load the --runs PPO models although SB3 model files are pickles that can run code
+    (required with --runs; only for files you trust, docs/SECURITY.md)"""
     combine: str = ""
     """comma-separated results.json files of earlier runs: merge them (no new episodes)"""
 
@@ -98,6 +101,11 @@ class Options:
             raise ValueError(f"--nominal must be one of {NOMINAL}, got {self.nominal!r}")
         if self.oracle and self.nominal == "idm":
             raise ValueError("--oracle reads the traffic's plans: it needs --nominal generator")
+        if self.runs and not self.trust_model:
+            raise ValueError(
+                "--runs loads stable-baselines3 model files, which are pickles that can run "
+                "arbitrary code: add --trust-model if you trust them (docs/SECURITY.md)"
+            )
         if self.scenes < 1 or self.episodes_per_run < 1:
             raise ValueError("--scenes and --episodes-per-run must be >= 1")
 
@@ -117,7 +125,7 @@ def run_options(run: Path) -> tuple[int, dict]:
 
 def ppo_factory(path: str, policy: dict):
     """``factory(seed)`` of the PPO planner saved at ``path`` (deterministic actions)."""
-    return lambda seed: load_ppo_planner(path, True, **policy)
+    return lambda seed: load_ppo_planner(path, True, **policy, trusted=True)
 
 
 RATES = ("ego_collision_rate", "ego_offroad_rate", "ego_failure_rate")

@@ -147,6 +147,7 @@ def main(options: Options) -> dict[str, Any]:
         traffic,
         config=config,
         event_log=out / "events.jsonl",
+        event_log_mode="overwrite",  # a fresh run of the whole script
         video=video,
     ) as loop:
         record = loop.run(scenario)

@@ -192,7 +192,11 @@ def main(options: Options) -> dict[str, Any]:
     out = options.out
     out.mkdir(parents=True, exist_ok=True)
     with ClosedLoop(
-        planner, make_adversary(options), config=config, event_log=out / "events.jsonl"
+        planner,
+        make_adversary(options),
+        config=config,
+        event_log=out / "events.jsonl",
+        event_log_mode="overwrite",  # a fresh run of the whole script
     ) as loop:
         records = [loop.run(bank[i]) for i in tqdm(range(options.scenes), desc="scenes")]
     summary = summarize(records)

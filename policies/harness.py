@@ -146,6 +146,8 @@ class ClosedLoop:
         config: env configuration (episode length, termination rules).
         scenarios: where ``run(None)`` draws scenes from; default the shipped bank.
         event_log: JSON Lines file of the events of every episode; None: in memory.
+        event_log_mode: ``"new"`` (a non-empty existing file raises FileExistsError),
+            ``"append"`` or ``"overwrite"``.
         video: video file (``.gif`` or ``.mp4``, ``{episode}`` for one file per
             episode); None records nothing.
         render_config: view of the video frames.
@@ -158,6 +160,7 @@ class ClosedLoop:
         config: EnvConfig | None = None,
         scenarios: ScenarioSource | Scenario | None = None,
         event_log: str | os.PathLike | None = None,
+        event_log_mode: str = "new",
         video: str | os.PathLike | None = None,
         render_config: RenderConfig | None = None,
     ) -> None:
@@ -173,7 +176,16 @@ class ClosedLoop:
         self.base = RiskFlowParallelEnv(config=config, scenarios=scenarios)
         env: Any = self.base
         self.video = None if video is None else VideoRecorder(env, video, config=render_config)
-        self.env = EventLogWrapper(self.video or env, event_log)
+        if event_log_mode not in ("new", "append", "overwrite"):
+            raise ValueError(
+                f"event_log_mode must be 'new', 'append' or 'overwrite', got {event_log_mode!r}"
+            )
+        self.env = EventLogWrapper(
+            self.video or env,
+            event_log,
+            append=event_log_mode == "append",
+            overwrite=event_log_mode == "overwrite",
+        )
         self.records: list[EpisodeRecord] = []
 
     def __enter__(self) -> ClosedLoop:

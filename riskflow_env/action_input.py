@@ -47,8 +47,11 @@ class ActionInput:
         if isinstance(actions, Mapping) and len(actions) == len(live):
             try:  # fast path: exactly the live agents, each a finite (2,) action
                 slots = [self.slot[agent] for agent in actions]
-                values = np.array(list(actions.values()), dtype=np.float64)
-            except (KeyError, ValueError, TypeError):
+                values = np.array(list(actions.values()))
+                if values.dtype.kind not in "fiu":  # complex, str, object...: checked path
+                    raise TypeError(values.dtype)
+                values = values.astype(np.float64, copy=False)
+            except (KeyError, ValueError, TypeError, RuntimeError):
                 slots, values = None, None
             if (
                 values is not None
@@ -82,7 +85,18 @@ class ActionInput:
             raise ValueError(f"actions missing for live agents: {missing}")
         array = np.zeros((len(self.slot), 2))
         for agent, action in actions.items():
-            value = np.asarray(action, dtype=np.float64)
+            try:
+                raw = np.asarray(action)
+            except (ValueError, TypeError, RuntimeError) as error:
+                raise ValueError(
+                    f"actions[{agent!r}] must be a real (accel, yaw_rate) pair: {error}"
+                ) from None
+            if raw.dtype.kind not in "fiu":
+                raise ValueError(
+                    f"actions[{agent!r}] must hold real numbers, got dtype {raw.dtype} "
+                    f"({action!r:.60})"
+                )
+            value = raw.astype(np.float64)
             if value.shape != (2,):
                 raise ValueError(
                     f"actions[{agent!r}] must have shape (2,) = (accel, yaw_rate), "

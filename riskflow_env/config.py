@@ -11,10 +11,23 @@ def _require(condition: bool, message: str) -> None:
         raise ValueError(message)
 
 
+MAX_MAGNITUDE = 1e6  # largest |value| of a real-valued config field (float32-safe)
+
+
 def _finite(name: str, value: float) -> None:
     _require(
-        isinstance(value, (int, float)) and math.isfinite(value),
-        f"{name} must be a finite number, got {value!r}",
+        isinstance(value, (int, float))
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+        and abs(value) <= MAX_MAGNITUDE,
+        f"{name} must be a finite number within +-{MAX_MAGNITUDE:g}, got {value!r}",
+    )
+
+
+def _integer(name: str, value: int, minimum: int, maximum: int = 1_000_000) -> None:
+    _require(
+        isinstance(value, int) and not isinstance(value, bool) and minimum <= value <= maximum,
+        f"{name} must be an int in [{minimum}, {maximum}] (booleans are not ints), got {value!r}",
     )
 
 
@@ -59,6 +72,7 @@ class DynamicsConfig:
 
 
 AGENT_GROUPS = ("all", "ego", "none")
+MAX_RAY_DISTANCE = 1e4  # [m] farthest SDF sample of an observation ray
 
 
 @dataclass(frozen=True)
@@ -76,11 +90,22 @@ class ObservationConfig:
     ray_distances: tuple[float, ...] = (2.0, 5.0, 10.0, 20.0)
 
     def __post_init__(self) -> None:
-        _require(self.num_neighbors >= 0, "ObservationConfig.num_neighbors must be >= 0")
-        _require(self.ray_directions >= 0, "ObservationConfig.ray_directions must be >= 0")
+        _integer("ObservationConfig.num_neighbors", self.num_neighbors, 0, 1024)
+        _integer("ObservationConfig.ray_directions", self.ray_directions, 0, 1024)
+        if isinstance(self.ray_distances, list):
+            object.__setattr__(self, "ray_distances", tuple(self.ray_distances))
         _require(
-            all(math.isfinite(d) and d > 0 for d in self.ray_distances),
-            f"ObservationConfig.ray_distances must be positive metres, got {self.ray_distances}",
+            isinstance(self.ray_distances, tuple)
+            and len(self.ray_distances) <= 1024
+            and all(
+                isinstance(d, (int, float))
+                and not isinstance(d, bool)
+                and math.isfinite(d)
+                and 0 < d <= MAX_RAY_DISTANCE
+                for d in self.ray_distances
+            ),
+            "ObservationConfig.ray_distances must be a tuple of positive metres <= "
+            f"{MAX_RAY_DISTANCE:g}, got {self.ray_distances!r}",
         )
 
 
@@ -143,14 +168,23 @@ class EnvConfig:
     reward: RewardConfig = field(default_factory=RewardConfig)
 
     def __post_init__(self) -> None:
-        _require(
-            isinstance(self.max_agents, int) and self.max_agents >= 1,
-            f"EnvConfig.max_agents must be an int >= 1, got {self.max_agents!r}",
-        )
-        _require(
-            isinstance(self.episode_steps, int) and self.episode_steps >= 1,
-            f"EnvConfig.episode_steps must be an int >= 1, got {self.episode_steps!r}",
-        )
+        _integer("EnvConfig.max_agents", self.max_agents, 1, 100_000)
+        _integer("EnvConfig.episode_steps", self.episode_steps, 1, 10_000_000)
+        for name in ("end_with_ego", "clip_actions"):
+            _require(
+                isinstance(getattr(self, name), bool),
+                f"EnvConfig.{name} must be a bool, got {getattr(self, name)!r}",
+            )
+        for name, kind in (
+            ("dynamics", DynamicsConfig),
+            ("observation", ObservationConfig),
+            ("reward", RewardConfig),
+        ):
+            value = getattr(self, name)
+            _require(
+                isinstance(value, kind),
+                f"EnvConfig.{name} must be a {kind.__name__}, got {type(value).__name__}",
+            )
         names = set(agent_names(self.max_agents))
         for option in ("terminate_on_collision", "terminate_on_offroad"):
             value = getattr(self, option)

@@ -20,7 +20,7 @@ from __future__ import annotations
 from policies.evaluation.options import EvalOptions, Job, plan_jobs
 from policies.evaluation.registry import METHODS, MethodSpec, build_policy
 from policies.evaluation.report import build_tables, write_report
-from policies.evaluation.results import ConfigMismatch, ResultsStore
+from policies.evaluation.results import ConfigMismatch, ResultsLocked, ResultsStore
 from policies.evaluation.runner import prepare, run_evaluation
 
 __all__ = [
@@ -29,6 +29,7 @@ __all__ = [
     "EvalOptions",
     "Job",
     "MethodSpec",
+    "ResultsLocked",
     "ResultsStore",
     "build_policy",
     "build_tables",

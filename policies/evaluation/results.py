@@ -10,6 +10,13 @@ Writing is crash-safe and resumable:
   the commit: a rollout interrupted before its row is written is simply run again.
 * :meth:`ResultsStore.done_keys` reads the keys of the rows present; a torn last line
   (a crash mid-write) is ignored and overwritten on the next append.
+* One writer per folder: the first write takes the folder's
+  :class:`~riskflow_env.folder_lock.FolderLock` (``writer.lock``, holding the writer's
+  pid). A second run into the same folder gets :class:`ResultsLocked`; the OS releases
+  the lock when the writer ends, ``kill -9`` included, so a killed run never blocks its
+  resume.
+* Reading keeps the first row of each key (a folder written by two runs at once before
+  the lock existed counts each rollout once) and warns about the duplicates.
 """
 
 from __future__ import annotations
@@ -18,11 +25,13 @@ import hashlib
 import io
 import json
 import os
+import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from riskflow_env.folder_lock import FolderLock, FolderLocked
 from riskflow_env.metrics import KinematicSamples
 
 RESULTS = "results.jsonl"
@@ -32,6 +41,10 @@ SAMPLES = "samples"
 
 class ConfigMismatch(ValueError):
     """The output folder holds results of another run configuration."""
+
+
+class ResultsLocked(FolderLocked):
+    """Another process is writing into the output folder."""
 
 
 def sample_id(key: str) -> str:
@@ -50,10 +63,23 @@ class ResultsStore:
         self.out = Path(out)
         self.results = self.out / RESULTS
         self.config_file = self.out / CONFIG
+        self._lock = FolderLock(self.out)
+
+    def lock(self) -> None:
+        """Become the folder's only writer (module docstring); ResultsLocked naming the
+        other writer's pid if another process holds the lock. Writing methods call it."""
+        try:
+            self._lock.acquire()
+        except FolderLocked as err:
+            raise ResultsLocked(f"--out {err}") from None
+
+    def unlock(self) -> None:
+        """Release the writer lock (if held); the lock file stays."""
+        self._lock.release()
 
     def check_config(self, config: dict[str, Any]) -> None:
         """Write ``config.json`` if absent; ConfigMismatch naming the settings that differ."""
-        self.out.mkdir(parents=True, exist_ok=True)
+        self.lock()
         if not self.config_file.exists():
             _write_atomic(self.config_file, json.dumps(config, indent=1, sort_keys=True).encode())
             return
@@ -73,17 +99,29 @@ class ResultsStore:
         return json.loads(self.config_file.read_text()) if self.config_file.exists() else {}
 
     def rows(self) -> list[dict[str, Any]]:
-        """Every complete row (a torn last line is skipped)."""
+        """Every complete row, the first of each key (a torn last line is skipped)."""
         if not self.results.exists():
             return []
-        rows = []
+        rows: dict[str, dict[str, Any]] = {}
+        duplicates = 0
         for line in self.results.read_bytes().split(b"\n"):
             if line.strip():
                 try:
-                    rows.append(json.loads(line))
+                    row = json.loads(line)
                 except json.JSONDecodeError:
                     continue  # a torn line from an interrupted write
-        return rows
+                if row["key"] in rows:
+                    duplicates += 1
+                else:
+                    rows[row["key"]] = row
+        if duplicates:
+            warnings.warn(
+                f"{self.results}: {duplicates} duplicate row(s) ignored (the same rollout "
+                "written twice, e.g. by two runs into one --out)",
+                UserWarning,
+                stacklevel=2,
+            )
+        return list(rows.values())
 
     def done_keys(self) -> set[str]:
         """Keys of the rows present."""
@@ -91,6 +129,7 @@ class ResultsStore:
 
     def append(self, row: dict[str, Any], samples: dict[str, np.ndarray]) -> None:
         """Write one rollout: its samples, then its row (both fsynced)."""
+        self.lock()
         name = sample_id(row["key"])
         buffer = io.BytesIO()
         np.savez_compressed(buffer, **{k: np.asarray(v, np.float32) for k, v in samples.items()})

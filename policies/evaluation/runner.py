@@ -25,6 +25,7 @@ from policies.evaluation.registry import build_policy
 from policies.evaluation.results import ResultsStore
 from policies.evaluation.rollout import run_job
 from riskflow_env.config import DynamicsConfig
+from riskflow_env.processes import exit_with_parent
 
 
 def check_methods(jobs: list[Job], dt: float = DynamicsConfig().dt) -> None:
@@ -56,6 +57,7 @@ def check_methods(jobs: list[Job], dt: float = DynamicsConfig().dt) -> None:
 
 def _init_worker() -> None:
     torch.set_num_threads(1)
+    exit_with_parent()  # a killed riskflow-eval leaves no worker behind
 
 
 def _results(jobs: list[Job], workers: int) -> Iterator[tuple[dict, dict[str, np.ndarray]]]:
@@ -70,7 +72,9 @@ def _results(jobs: list[Job], workers: int) -> Iterator[tuple[dict, dict[str, np
 
 def prepare(options: EvalOptions) -> tuple[ResultsStore, list[Job]]:
     """Check the options (ValueError naming the argument) and the results folder's
-    configuration (:class:`~.results.ConfigMismatch`); returns the store and every job."""
+    configuration (:class:`~.results.ConfigMismatch`) and take its writer lock
+    (:class:`~.results.ResultsLocked` if another run holds it); returns the store (locked
+    until :func:`run_evaluation` ends) and every job."""
     store = ResultsStore(options.out)
     try:
         scenes = load_scenes(options.data, options.scenes)
@@ -78,7 +82,11 @@ def prepare(options: EvalOptions) -> tuple[ResultsStore, list[Job]]:
         raise ValueError(f"--data: {err}") from err
     jobs = plan_jobs(options, scenes)
     check_methods(jobs)
-    store.check_config(run_config(options))
+    try:
+        store.check_config(run_config(options))  # takes the folder's writer lock
+    except BaseException:
+        store.unlock()
+        raise
     return store, jobs
 
 
@@ -112,6 +120,7 @@ def run_evaluation(
             bar.update()
     finally:
         bar.close()
+        store.unlock()
     return {
         "planned": len(jobs),
         "skipped": len(jobs) - len(todo),

@@ -34,8 +34,10 @@ DEFAULT_SAMPLING_STEPS = 10  # DDIM levels of a diffusion base generator (its va
 
 def checkpoint_kind(checkpoint: Mapping[str, Any]) -> str:
     """``"meanflow"`` or ``"diffusion"``: what ``riskflow-train`` trained into ``checkpoint``."""
-    train_config = checkpoint.get("train_config")
-    kind = train_config.get("generator") if isinstance(train_config, Mapping) else None
+    kind = checkpoint.get("kind")
+    if kind is None:
+        train_config = checkpoint.get("train_config")
+        kind = train_config.get("generator") if isinstance(train_config, Mapping) else None
     return kind or "meanflow"
 
 

@@ -15,6 +15,13 @@ training            only in resumable files: raw weights, optimiser, RNG states,
                     elapsed training time [s]
 ==================  ==========================================================
 
+``save_checkpoint`` adds ``kind`` (``"meanflow"`` or ``"diffusion"``, from
+``train_config["generator"]``) and ``weights_sha256`` (:func:`weights_digest`: SHA-256
+of every ``state_dict`` tensor's name, dtype, shape and bytes). :func:`load_checkpoint`
+verifies the digest (a damaged file raises :class:`CheckpointError`; a file written
+before digests existed loads with a warning), and :func:`load_generator` refuses a
+file of another kind and floating-point weights that are not float32.
+
 Files are written to a temporary name in the target folder and renamed (atomic), so
 an interrupted save never leaves a truncated checkpoint. The shipped checkpoint
 (``policies/checkpoints/riskflow_default.pt``) has no ``training`` entry.
@@ -22,9 +29,11 @@ an interrupted save never leaves a truncated checkpoint. The shipped checkpoint
 
 from __future__ import annotations
 
+import hashlib
 import os
 import subprocess
 import tempfile
+import warnings
 from collections.abc import Mapping
 from contextlib import ExitStack
 from importlib import resources
@@ -93,8 +102,36 @@ def build_checkpoint(
     return checkpoint
 
 
+def weights_digest(state_dict: Mapping[str, Any]) -> str:
+    """SHA-256 hex digest of a state dict: every tensor's name, dtype, shape and bytes."""
+    digest = hashlib.sha256()
+    for name in sorted(state_dict):
+        tensor = state_dict[name]
+        if not isinstance(tensor, torch.Tensor):
+            raise CheckpointError(f"state_dict entry {name!r} is a {type(tensor).__name__}")
+        tensor = tensor.detach().cpu().contiguous()
+        digest.update(f"{name}|{tensor.dtype}|{tuple(tensor.shape)}|".encode())
+        digest.update(tensor.view(torch.uint8).numpy().tobytes() if tensor.numel() else b"")
+    return digest.hexdigest()
+
+
+def checkpoint_kind(checkpoint: Mapping[str, Any]) -> str:
+    """``"meanflow"`` or ``"diffusion"``: the stored ``kind``, else ``train_config``'s."""
+    kind = checkpoint.get("kind")
+    if kind is None:
+        train_config = checkpoint.get("train_config")
+        kind = train_config.get("generator") if isinstance(train_config, Mapping) else None
+    return kind or "meanflow"
+
+
 def save_checkpoint(checkpoint: Mapping[str, Any], path: str | os.PathLike) -> Path:
-    """``torch.save`` to a temporary file beside ``path``, then rename it (atomic)."""
+    """``torch.save`` to a temporary file beside ``path``, then rename it (atomic).
+
+    A checkpoint with a ``state_dict`` gets ``kind`` and ``weights_sha256`` added."""
+    checkpoint = dict(checkpoint)
+    if isinstance(checkpoint.get("state_dict"), Mapping):
+        checkpoint["kind"] = checkpoint_kind(checkpoint)
+        checkpoint["weights_sha256"] = weights_digest(checkpoint["state_dict"])
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -127,7 +164,31 @@ def load_checkpoint(path: str | os.PathLike, device: torch.device | str = "cpu")
         raise CheckpointError(f"cannot read generator checkpoint {path}: {err}") from err
     if not isinstance(checkpoint, dict):
         raise CheckpointError(f"{path} holds a {type(checkpoint).__name__}, not a checkpoint dict")
+    verify_weights(checkpoint, str(path))
     return checkpoint
+
+
+def verify_weights(checkpoint: Mapping[str, Any], source: str = "checkpoint") -> None:
+    """Check ``weights_sha256`` against the state dict (CheckpointError when they differ);
+    a checkpoint without one (written before digests existed) only warns."""
+    state = checkpoint.get("state_dict")
+    if not isinstance(state, Mapping):
+        return
+    expected = checkpoint.get("weights_sha256")
+    if expected is None:
+        warnings.warn(
+            f"{source}: checkpoint has no weights_sha256 (written by an older version); "
+            "its weights cannot be verified",
+            UserWarning,
+            stacklevel=3,
+        )
+        return
+    found = weights_digest(state)
+    if found != expected:
+        raise CheckpointError(
+            f"{source}: the weights do not match the stored weights_sha256 (damaged or "
+            f"altered file): expected {expected}, got {found}"
+        )
 
 
 def normalizer_of(checkpoint: Mapping[str, Any]) -> ActionNormalizer:
@@ -170,6 +231,12 @@ def load_generator(
                 )
             path = stack.enter_context(resources.as_file(resource))
         checkpoint = load_checkpoint(path)
+        kind = checkpoint_kind(checkpoint)
+        if kind != "meanflow":
+            raise CheckpointError(
+                f"{path} is a {kind!r} checkpoint, not a MeanFlow generator; load it with "
+                "policies.baselines.diffusion.model.load_diffusion (or load_base_generator)"
+            )
     model = RiskFlowGenerator.from_checkpoint(checkpoint, config)
     model = model.to(device).eval().requires_grad_(False)
     metadata = {key: checkpoint.get(key) for key in METADATA_KEYS}
@@ -179,9 +246,12 @@ def load_generator(
 __all__ = [
     "DEFAULT_NAME",
     "build_checkpoint",
+    "checkpoint_kind",
     "code_version",
     "load_checkpoint",
     "load_generator",
     "normalizer_of",
     "save_checkpoint",
+    "verify_weights",
+    "weights_digest",
 ]

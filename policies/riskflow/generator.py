@@ -184,9 +184,40 @@ class RiskFlowGenerator(nn.Module):
                 f"checkpoint ModelConfig differs from the expected one: {{field: (expected, "
                 f"checkpoint)}} = {diff}"
             )
+        state_dict = checkpoint.get("state_dict")
+        if not isinstance(state_dict, Mapping) or not all(
+            isinstance(v, Tensor) for v in state_dict.values()
+        ):
+            raise CheckpointError("checkpoint 'state_dict' must map names to tensors")
+        with torch.device("meta"):  # shapes and dtypes first, nothing allocated
+            skeleton = cls(saved)
+        skeleton.check_checkpoint_state(state_dict)
         model = cls(saved)
-        model.load_checkpoint_state(checkpoint["state_dict"])
+        model.load_checkpoint_state(state_dict)
         return model
+
+    def check_checkpoint_state(self, state_dict: Mapping[str, Tensor]) -> None:
+        """CheckpointError listing missing, unexpected, mis-shaped or mis-typed tensors."""
+        own = self.state_dict()
+        missing = sorted(set(own) - set(state_dict))
+        unexpected = sorted(set(state_dict) - set(own))
+        shapes = {
+            k: (tuple(own[k].shape), tuple(v.shape))
+            for k, v in state_dict.items()
+            if k in own and tuple(own[k].shape) != tuple(v.shape)
+        }
+        dtypes = {
+            k: (str(own[k].dtype), str(v.dtype))
+            for k, v in state_dict.items()
+            if k in own and own[k].dtype != v.dtype
+        }
+        if missing or unexpected or shapes or dtypes:
+            raise CheckpointError(
+                "checkpoint state dict does not fit the model: "
+                f"missing {missing}, unexpected {unexpected}, "
+                f"shape mismatches {{name: (model, checkpoint)}} {shapes}, "
+                f"dtype mismatches {{name: (model, checkpoint)}} {dtypes}"
+            )
 
     def load_checkpoint_state(self, state_dict: Mapping[str, Tensor]) -> None:
         """``load_state_dict`` that raises :class:`CheckpointError` listing every mismatch."""

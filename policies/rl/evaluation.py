@@ -108,6 +108,10 @@ class RandomPlanner:
         return self.rng.uniform([d.accel_min, -d.yaw_rate_max], [d.accel_max, d.yaw_rate_max])
 
 
+class UntrustedModelError(PermissionError):
+    """Loading a pickled (code-executing) model file without ``trusted=True``."""
+
+
 def load_ppo_planner(
     run: str,
     deterministic: bool = True,
@@ -115,8 +119,17 @@ def load_ppo_planner(
     action_repeat: int = 1,
     maneuver_features: bool = False,
     maneuver_actions: bool = False,
+    *,
+    trusted: bool = False,
 ) -> PPOPlanner:
     """A :class:`PPOPlanner` from a model file (``.zip``) saved by ``train_ego_ppo.py``;
+
+    **Security:** stable-baselines3 unpickles the model zip and the ``_vecnormalize.pkl``
+    file, so loading them runs any code they contain. Load only files you (or someone
+    you trust) wrote, and say so with ``trusted=True`` (``--trust-model`` in
+    ``examples/evaluate_ego.py``); without it this raises :class:`UntrustedModelError`
+    before reading anything (docs/SECURITY.md).
+
     the ``VecNormalize`` statistics are read from the same name with ``_vecnormalize.pkl``
     in place of ``.zip`` (checkpoints: ``ppo_N_steps.zip`` -> ``ppo_vecnormalize_N_steps.pkl``)
     when that file exists. ``base_planner``, ``action_repeat``, ``maneuver_features`` and
@@ -127,6 +140,12 @@ def load_ppo_planner(
     from stable_baselines3.common.vec_env import VecNormalize
 
     path = Path(run)
+    if trusted is not True:
+        raise UntrustedModelError(
+            f"{path}: a stable-baselines3 model (and its _vecnormalize.pkl) is a pickle that "
+            "can run arbitrary code when loaded; pass trusted=True (examples: --trust-model) "
+            "only for files you trust (docs/SECURITY.md)"
+        )
     model = PPO.load(path, device="cpu")
     stem = path.name.removesuffix(".zip")
     stats = path.with_name(stem + "_vecnormalize.pkl")

@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 
 VERSION = 1
+MAX_MEMBER_ELEMENTS = 50_000_000  # [-] largest array in a scenario / map file (= maps.MAX_PIXELS)
+MAX_FILE_ARRAY_BYTES = 1024 * 2**20  # [bytes] all arrays of one scenario / map file together
 
 
 class ScenarioFormatError(ValueError):
@@ -30,10 +32,49 @@ def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
         temporary.unlink(missing_ok=True)
 
 
+def check_npz_sizes(path: Path) -> None:
+    """Refuse ``path`` when an array it declares (read from each ``.npy`` member's header,
+    before anything is allocated) exceeds :data:`MAX_MEMBER_ELEMENTS` elements, or when
+    all of them together exceed :data:`MAX_FILE_ARRAY_BYTES` (ScenarioFormatError)."""
+    total = 0
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for info in archive.infolist():
+                if not info.filename.endswith(".npy"):
+                    continue
+                with archive.open(info) as member:
+                    version = np.lib.format.read_magic(member)
+                    if version == (1, 0):
+                        shape, _, dtype = np.lib.format.read_array_header_1_0(member)
+                    elif version == (2, 0):
+                        shape, _, dtype = np.lib.format.read_array_header_2_0(member)
+                    else:
+                        raise ValueError(f"unsupported .npy version {version}")
+                count = 1
+                for dim in shape:
+                    count *= int(dim)
+                if count > MAX_MEMBER_ELEMENTS:
+                    raise ScenarioFormatError(
+                        f"{path}: array {info.filename!r} of shape {shape} exceeds the limit "
+                        f"MAX_MEMBER_ELEMENTS = {MAX_MEMBER_ELEMENTS}"
+                    )
+                total += count * dtype.itemsize
+                if total > MAX_FILE_ARRAY_BYTES:
+                    raise ScenarioFormatError(
+                        f"{path}: arrays totalling over {MAX_FILE_ARRAY_BYTES} bytes exceed the "
+                        "limit MAX_FILE_ARRAY_BYTES"
+                    )
+    except ScenarioFormatError:
+        raise
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as error:
+        raise ScenarioFormatError(f"{path}: not a readable .npz file ({error})") from None
+
+
 def read_npz(path: Path, schema: str) -> dict[str, np.ndarray]:
     """All arrays of ``path`` after checking its ``schema`` and ``version``."""
     if not path.is_file():
         raise FileNotFoundError(f"scenario file {path} not found")
+    check_npz_sizes(path)
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {key: data[key] for key in data.files}

@@ -12,7 +12,9 @@
 seed, split, families and scene settings, never on the worker count or on which
 scenes were made before. Files appear atomically (temp name + rename), so an
 interrupted run is resumed by running the same command again: complete scenes are
-skipped. ``OUT/riskflow-data.json`` records the settings; resuming with different ones
+skipped. One run writes a bank at a time (``OUT/writer.lock``). Workers end as soon as
+the parent does (``kill -9`` included), so nothing writes into ``OUT`` once the command
+is gone. ``OUT/riskflow-data.json`` records the settings; resuming with different ones
 is refused. Scenes per minute are printed at the end.
 """
 
@@ -32,7 +34,10 @@ from pathlib import Path
 
 import numpy as np
 
+from riskflow_env.folder_lock import FolderLock, FolderLocked
 from riskflow_env.maps import FAMILIES
+from riskflow_env.processes import exit_with_parent
+from riskflow_env.scenarios._npz import check_npz_sizes
 from riskflow_env.scenarios.io import list_scenarios, save_scenario
 from riskflow_env.scenarios.naturalistic import SOURCE, SceneConfig, generate_scenario
 
@@ -87,11 +92,26 @@ def make_scene(options: GenerateOptions, index: int) -> Path:
 
 
 def generate(options: GenerateOptions) -> dict:
-    """Write the missing scenes of the bank; returns counts and the measured rate."""
+    """Write the missing scenes of the bank; returns counts and the measured rate.
+
+    One run per bank at a time: a second one into the same ``out`` exits naming the first
+    one's pid (:class:`~riskflow_env.folder_lock.FolderLock`), instead of deleting its
+    temporary files."""
+    lock = FolderLock(options.out)
+    try:
+        lock.acquire()
+    except FolderLocked as err:
+        raise SystemExit(f"riskflow-data: {err}") from None
+    try:
+        return _write_missing(options)
+    finally:
+        lock.release()
+
+
+def _write_missing(options: GenerateOptions) -> dict:
     from tqdm import tqdm
 
     out = options.out
-    out.mkdir(parents=True, exist_ok=True)
     manifest = out / MANIFEST
     if manifest.exists():
         recorded = json.loads(manifest.read_text())
@@ -118,7 +138,9 @@ def generate(options: GenerateOptions) -> dict:
             bar.update()
     else:
         context = multiprocessing.get_context("spawn")
-        with concurrent.futures.ProcessPoolExecutor(options.workers, mp_context=context) as pool:
+        with concurrent.futures.ProcessPoolExecutor(
+            options.workers, mp_context=context, initializer=exit_with_parent
+        ) as pool:
             futures = [pool.submit(make_scene, options, index) for index in todo]
             try:
                 for future in concurrent.futures.as_completed(futures):
@@ -143,6 +165,7 @@ def info(directory: Path) -> dict[str, int]:
     counts: Counter[str] = Counter()
     agents: Counter[str] = Counter()
     for path in list_scenarios(directory):
+        check_npz_sizes(path)  # sizes from the headers before anything is read
         with np.load(path, allow_pickle=False) as data:  # reads only the members used
             family = str(data["family"])
             agents[family] += int(data["length"].shape[0])

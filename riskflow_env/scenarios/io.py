@@ -159,7 +159,7 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
     arrays = read_npz(path, SCHEMA)
     if "map_ref" in arrays:
         check_arrays(path, arrays, {**_SCENE_KEYS, **_REF_KEYS})
-        ref = path.parent / str(arrays["map_ref"])
+        ref = _map_ref_path(path, str(arrays["map_ref"]))
         drivable_map = load_map(ref, expected_hash=str(arrays["map_hash"]))
     else:
         prefixed = {f"map_{key}": rule for key, rule in _MAP_KEYS.items()}
@@ -193,6 +193,21 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
         )
     except (ValueError, TypeError) as error:
         raise ScenarioFormatError(f"{path}: {error}") from None
+
+
+def _map_ref_path(path: Path, ref: str) -> Path:
+    """The map file that a scene's ``map_ref`` names: a relative path that stays inside
+    the scene's folder (absolute paths and ``..`` escapes raise ScenarioFormatError)."""
+    relative = Path(ref)
+    folder = path.parent.resolve()
+    target = (folder / relative).resolve()
+    if not ref or relative.is_absolute() or ".." in relative.parts or "\x00" in ref:
+        raise ScenarioFormatError(
+            f"{path}: map_ref {ref!r} must be a relative path inside the scene's folder"
+        )
+    if not target.is_relative_to(folder):
+        raise ScenarioFormatError(f"{path}: map_ref {ref!r} leaves the scene's folder")
+    return path.parent / relative
 
 
 def load_map(path: str | os.PathLike, expected_hash: str | None = None) -> DrivableMap:

@@ -2,9 +2,23 @@
 
 ``pickle.load`` runs whatever callable a file names, so loading a pickle from
 elsewhere can execute arbitrary code. :func:`load_data_pickle` resolves only the
-globals in :data:`ALLOWED_GLOBALS` (builtin containers and scalars, numpy array,
-dtype and scalar reconstruction) and raises ``ValueError`` naming any other one,
+globals in :data:`ALLOWED_GLOBALS` and raises ``ValueError`` naming any other one,
 before it is imported or called. Persistent ids are refused too.
+
+The unpickler never hands a file a callable that can address memory: the
+``numpy.ndarray`` constructor (shape, dtype, *buffer, offset*) is not reachable.
+``numpy.ndarray`` and ``numpy.dtype`` resolve to inert stand-ins, and arrays are
+built only through numpy's own reconstruction path (``_reconstruct`` followed by
+``__setstate__``) after the dtype (plain numeric, bool, bytes or str kinds; no
+object, structured or sub-array dtypes), the shape and the byte count have been
+checked against the raw data and the limits below. Every failure, whatever its
+cause (``MemoryError``, ``IndexError``, ``LookupError``, ``RecursionError``...),
+is raised as one ``ValueError`` naming the file.
+
+Limits (module constants, see docs/SECURITY.md): :data:`MAX_FILE_BYTES` (file
+size), :data:`MAX_ARRAY_BYTES` (one array or byte string built by a call),
+:data:`MAX_TOTAL_BYTES` (all arrays and byte strings of one file together),
+:data:`MAX_DEPTH` (container nesting).
 """
 
 from __future__ import annotations
@@ -13,6 +27,7 @@ import builtins
 import codecs
 import collections
 import io
+import math
 import pickle
 from pathlib import Path
 from typing import Any
@@ -21,31 +36,129 @@ import numpy as np
 
 try:  # numpy >= 2
     from numpy._core import multiarray as _multiarray
-    from numpy._core import numeric as _numeric
 except ImportError:  # numpy 1.x
     from numpy.core import multiarray as _multiarray  # type: ignore[no-redef]
-    from numpy.core import numeric as _numeric  # type: ignore[no-redef]
 
-_BUILTINS = ("dict", "list", "tuple", "set", "frozenset", "bytearray", "bytes", "str")
-_BUILTINS += ("int", "float", "complex", "bool")
+MAX_FILE_BYTES = 512 * 2**20  # [bytes] largest data pickle read
+MAX_ARRAY_BYTES = 256 * 2**20  # [bytes] largest single array / bytearray built
+MAX_TOTAL_BYTES = 1024 * 2**20  # [bytes] all arrays / bytearrays of one file
+MAX_DEPTH = 64  # container nesting
+MAX_DIMS = 8  # array dimensions
+_ARRAY_KINDS = frozenset("biufcSU")  # bool, ints, floats, complex, bytes, str
+
 _NUMPY_MODULES = ("numpy.core.multiarray", "numpy._core.multiarray")
 _NUMERIC_MODULES = ("numpy.core.numeric", "numpy._core.numeric")
 
-#: (module, name) -> object: everything a data pickle may refer to.
-ALLOWED_GLOBALS: dict[tuple[str, str], Any] = {
-    **{("builtins", name): getattr(builtins, name) for name in _BUILTINS},
-    ("collections", "OrderedDict"): collections.OrderedDict,
-    ("_codecs", "encode"): codecs.encode,  # protocol-2 pickles store bytes this way
-    ("numpy", "ndarray"): np.ndarray,
-    ("numpy", "dtype"): np.dtype,
-    **{(module, "_reconstruct"): _multiarray._reconstruct for module in _NUMPY_MODULES},
-    **{(module, "scalar"): _multiarray.scalar for module in _NUMPY_MODULES},
-    **{(module, "_frombuffer"): _numeric._frombuffer for module in _NUMERIC_MODULES},
-}
+
+class _Refused(ValueError):
+    """A refusal inside the unpickler (re-raised with the file name)."""
+
+
+class _NdarrayRef:
+    """Stand-in for ``numpy.ndarray``: only usable as ``_reconstruct``'s subtype."""
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        raise _Refused("calling numpy.ndarray directly is refused (buffer/offset access)")
+
+    def __reduce__(self) -> Any:  # pragma: no cover - never pickled back
+        raise TypeError("not picklable")
+
+
+_NDARRAY = _NdarrayRef()
+
+
+class _DtypeSpec:
+    """Stand-in for a ``numpy.dtype`` being unpickled: ``dtype(str)`` then state."""
+
+    def __init__(self, spec: Any, align: Any = False, copy: Any = True) -> None:
+        if not isinstance(spec, str) or len(spec) > 16:
+            raise _Refused(f"dtype spec must be a short string, got {type(spec).__name__}")
+        try:
+            dtype = np.dtype(spec)
+        except Exception as err:
+            raise _Refused(f"bad dtype {spec!r}: {err}") from None
+        self.dtype = _check_dtype(dtype)
+
+    def __setstate__(self, state: Any) -> None:
+        if not isinstance(state, tuple) or len(state) < 2:
+            raise _Refused("bad dtype state")
+        if any(part is not None for part in state[2:5]):
+            raise _Refused("structured / sub-array dtypes are refused")
+        order = state[1]
+        if order not in ("<", ">", "|", "="):
+            raise _Refused(f"bad dtype byte order {order!r}")
+        if order != "|":
+            self.dtype = self.dtype.newbyteorder(order)
+
+
+def _check_dtype(dtype: Any) -> np.dtype:
+    if isinstance(dtype, _DtypeSpec):
+        dtype = dtype.dtype
+    if not isinstance(dtype, np.dtype):
+        raise _Refused(f"expected a dtype, got {type(dtype).__name__}")
+    if dtype.kind not in _ARRAY_KINDS or dtype.hasobject or dtype.fields or dtype.subdtype:
+        raise _Refused(f"dtype {dtype!r} is refused (only bool, numeric, bytes and str)")
+    if not 0 < dtype.itemsize <= 4096:
+        raise _Refused(f"dtype {dtype!r} has an unsupported item size")
+    return dtype
+
+
+def _check_shape(shape: Any) -> tuple[int, ...]:
+    if isinstance(shape, int) and not isinstance(shape, bool):
+        shape = (shape,)
+    if not isinstance(shape, tuple) or len(shape) > MAX_DIMS:
+        raise _Refused(f"bad array shape {shape!r:.80}")
+    for dim in shape:
+        if not isinstance(dim, int) or isinstance(dim, bool) or not 0 <= dim <= 2**40:
+            raise _Refused(f"bad array shape {shape!r:.80}")
+    return shape
+
+
+class _SafeArray(np.ndarray):
+    """Array built by ``_reconstruct``; its ``__setstate__`` validates the state."""
+
+    _budget: _Budget | None = None
+
+    def __setstate__(self, state: Any) -> None:
+        if not isinstance(state, tuple) or len(state) not in (4, 5):
+            raise _Refused("bad array state")
+        if len(state) == 5:
+            if state[0] != 1:
+                raise _Refused(f"unknown array state version {state[0]!r}")
+            state = state[1:]
+        shape, dtype, fortran, raw = state
+        shape = _check_shape(shape)
+        dtype = _check_dtype(dtype)
+        if not isinstance(fortran, bool):
+            raise _Refused("bad array order flag")
+        nbytes = math.prod(shape) * dtype.itemsize
+        if self._budget is None:
+            raise _Refused("array built outside an unpickler")
+        self._budget.take(nbytes, "array")
+        if not isinstance(raw, (bytes, bytearray)) or len(raw) != nbytes:
+            held = len(raw) if isinstance(raw, (bytes, bytearray)) else type(raw).__name__
+            raise _Refused(f"array data holds {held} bytes, shape {shape} x {dtype} needs {nbytes}")
+        super().__setstate__((shape, dtype, fortran, bytes(raw)))
+
+
+class _Budget:
+    def __init__(self) -> None:
+        self.total = 0
+
+    def take(self, nbytes: int, what: str) -> None:
+        if nbytes > MAX_ARRAY_BYTES:
+            raise _Refused(
+                f"a {what} of {nbytes} bytes exceeds the limit MAX_ARRAY_BYTES = {MAX_ARRAY_BYTES}"
+            )
+        self.total += nbytes
+        if self.total > MAX_TOTAL_BYTES:
+            raise _Refused(
+                f"arrays totalling over {MAX_TOTAL_BYTES} bytes exceed the limit MAX_TOTAL_BYTES"
+            )
 
 
 class RestrictedUnpickler(pickle.Unpickler):
-    """``pickle.Unpickler`` that resolves only :data:`ALLOWED_GLOBALS`.
+    """``pickle.Unpickler`` that resolves only :data:`ALLOWED_GLOBALS` (made safe).
 
     Args:
         file: a binary file object.
@@ -55,12 +168,69 @@ class RestrictedUnpickler(pickle.Unpickler):
     def __init__(self, file: io.BufferedIOBase, source: str = "<pickle>") -> None:
         super().__init__(file)
         self.source = source
+        budget = _Budget()
+        self._budget = budget
+        array_type = type("_SafeArray", (_SafeArray,), {"_budget": budget})
+
+        def reconstruct(subtype: Any, shape: Any, dtype: Any) -> np.ndarray:
+            if subtype is not _NDARRAY:
+                raise _Refused("numpy _reconstruct of a type other than numpy.ndarray")
+            return _multiarray._reconstruct(array_type, (0,), b"b")
+
+        def scalar(dtype: Any, data: Any = None) -> Any:
+            dtype = _check_dtype(dtype)
+            if not isinstance(data, bytes) or len(data) != dtype.itemsize:
+                raise _Refused("bad numpy scalar data")
+            return np.frombuffer(data, dtype=dtype)[0]
+
+        def frombuffer(buf: Any, dtype: Any, shape: Any, order: Any) -> np.ndarray:
+            dtype = _check_dtype(dtype)
+            shape = _check_shape(shape)
+            if isinstance(buf, pickle.PickleBuffer):
+                buf = bytes(buf.raw())
+            if not isinstance(buf, (bytes, bytearray)):
+                raise _Refused("numpy _frombuffer needs bytes")
+            nbytes = math.prod(shape) * dtype.itemsize
+            budget.take(nbytes, "array")
+            if len(buf) != nbytes or order not in ("C", "F"):
+                raise _Refused("numpy _frombuffer size / order mismatch")
+            return np.frombuffer(buf, dtype=dtype).reshape(shape, order=order).copy(order="K")
+
+        def sized(kind: type) -> Any:
+            def build(*args: Any) -> Any:
+                if args and isinstance(args[0], int):
+                    budget.take(int(args[0]), kind.__name__)
+                elif args and isinstance(args[0], (str, bytes, bytearray, list, tuple)):
+                    budget.take(len(args[0]), kind.__name__)
+                elif args:
+                    raise _Refused(f"{kind.__name__}() of a {type(args[0]).__name__} is refused")
+                return kind(*args)
+
+            return build
+
+        def encode(obj: Any, encoding: str = "utf-8", errors: str = "strict") -> bytes:
+            if encoding not in ("latin1", "latin-1", "utf-8", "utf8", "ascii"):
+                raise _Refused(f"_codecs.encode with encoding {encoding!r} is refused")
+            return codecs.encode(obj, encoding, errors)
+
+        self._globals: dict[tuple[str, str], Any] = {
+            **{("builtins", name): getattr(builtins, name) for name in _PLAIN_BUILTINS},
+            ("builtins", "bytearray"): sized(bytearray),
+            ("builtins", "bytes"): sized(bytes),
+            ("collections", "OrderedDict"): collections.OrderedDict,
+            ("_codecs", "encode"): encode,
+            ("numpy", "ndarray"): _NDARRAY,
+            ("numpy", "dtype"): _DtypeSpec,
+            **{(module, "_reconstruct"): reconstruct for module in _NUMPY_MODULES},
+            **{(module, "scalar"): scalar for module in _NUMPY_MODULES},
+            **{(module, "_frombuffer"): frombuffer for module in _NUMERIC_MODULES},
+        }
 
     def find_class(self, module: str, name: str) -> Any:
         """The allowed object ``module.name``; ValueError for anything else."""
         module = {"__builtin__": "builtins"}.get(module, module)  # protocol 0-2 name
         try:
-            return ALLOWED_GLOBALS[(module, name)]
+            return self._globals[(module, name)]
         except KeyError:
             raise ValueError(
                 f"{self.source}: refusing to unpickle disallowed global '{module}.{name}'; "
@@ -69,7 +239,81 @@ class RestrictedUnpickler(pickle.Unpickler):
 
     def persistent_load(self, pid: Any) -> Any:
         """Persistent ids are refused (ValueError)."""
-        raise ValueError(f"{self.source}: refusing to unpickle a persistent id ({pid!r})")
+        raise ValueError(f"{self.source}: refusing to unpickle a persistent id ({pid!r:.80})")
+
+
+# the builtins that pickle itself writes as globals (protocols 0-5): sets before protocol 4,
+# complex numbers. dict, list, tuple, str, int, float and bool have opcodes of their own,
+# and a file calling them could only amplify (``str`` of a shared structure is exponential).
+_PLAIN_BUILTINS = ("set", "frozenset", "complex")
+
+#: (module, name): every global a data pickle may refer to (each through a checked
+#: stand-in where the plain object could allocate without bound or address memory).
+ALLOWED_GLOBALS: frozenset[tuple[str, str]] = frozenset(
+    {("builtins", name) for name in _PLAIN_BUILTINS + ("bytearray", "bytes")}
+    | {
+        ("collections", "OrderedDict"),
+        ("_codecs", "encode"),
+        ("numpy", "ndarray"),
+        ("numpy", "dtype"),
+    }
+    | {(module, name) for module in _NUMPY_MODULES for name in ("_reconstruct", "scalar")}
+    | {(module, "_frombuffer") for module in _NUMERIC_MODULES}
+)
+
+
+def _finish(root: Any) -> Any:
+    """Plain ndarrays / dtypes in place of the stand-ins; nesting depth checked.
+
+    Each container is visited once: a file that shares one list many times over (a
+    chain of ``[x, x]`` levels is a few hundred bytes for 2**60 paths) or holds a cycle
+    costs no more than its size."""
+    done: dict[int, Any] = {}
+
+    def visit(obj: Any, depth: int) -> Any:
+        if depth > MAX_DEPTH:
+            raise _Refused(f"containers nested deeper than MAX_DEPTH = {MAX_DEPTH}")
+        if isinstance(obj, _SafeArray):
+            return obj.view(np.ndarray)
+        if isinstance(obj, _DtypeSpec):
+            return obj.dtype
+        if obj is _NDARRAY:
+            raise _Refused("a bare numpy.ndarray reference is refused")
+        if not isinstance(obj, (dict, list, tuple, set, frozenset)):
+            return obj
+        if id(obj) in done:
+            return done[id(obj)]
+        if isinstance(obj, tuple):
+            if obj.__class__ is not tuple:
+                return obj
+            done[id(obj)] = result = tuple(visit(value, depth + 1) for value in obj)
+            return result
+        done[id(obj)] = obj  # mutable containers are fixed in place (cycles end here)
+        if isinstance(obj, dict):
+            for key, value in obj.items():
+                obj[key] = visit(value, depth + 1)
+        elif isinstance(obj, list):
+            for index, value in enumerate(obj):
+                obj[index] = visit(value, depth + 1)
+        else:
+            for value in obj:
+                visit(value, depth + 1)
+        return obj
+
+    return visit(root, 0)
+
+
+def _load(file: io.BufferedIOBase, source: str) -> Any:
+    try:
+        return _finish(RestrictedUnpickler(file, source=source).load())
+    except ValueError as err:
+        if str(err).startswith(source):
+            raise
+        raise ValueError(f"{source}: not a readable data pickle ({err})") from None
+    except (Exception, MemoryError, RecursionError) as err:
+        raise ValueError(
+            f"{source}: not a readable data pickle ({type(err).__name__}: {err})"
+        ) from None
 
 
 def load_data_pickle(path: str | Path) -> Any:
@@ -80,20 +324,23 @@ def load_data_pickle(path: str | Path) -> Any:
 
     Raises:
         FileNotFoundError: when ``path`` does not exist.
-        ValueError: naming the file when it refers to a disallowed global or is not a
-            readable pickle.
+        ValueError: naming the file when it refers to a disallowed global, exceeds a
+            limit or is not a readable pickle.
     """
     path = Path(path)
+    size = path.stat().st_size
+    if size > MAX_FILE_BYTES:
+        raise ValueError(
+            f"{path}: {size} bytes exceeds the limit MAX_FILE_BYTES = {MAX_FILE_BYTES}"
+        )
     with path.open("rb") as file:
-        try:
-            return RestrictedUnpickler(file, source=str(path)).load()
-        except (pickle.UnpicklingError, EOFError, AttributeError, ImportError, TypeError) as err:
-            raise ValueError(f"{path}: not a readable data pickle ({err})") from err
+        return _load(file, str(path))
 
 
 def loads_data_pickle(data: bytes, source: str = "<bytes>") -> Any:
     """:func:`load_data_pickle` for in-memory bytes; ``source`` names them in errors."""
-    try:
-        return RestrictedUnpickler(io.BytesIO(data), source=source).load()
-    except (pickle.UnpicklingError, EOFError, AttributeError, ImportError, TypeError) as err:
-        raise ValueError(f"{source}: not a readable data pickle ({err})") from err
+    if len(data) > MAX_FILE_BYTES:
+        raise ValueError(
+            f"{source}: {len(data)} bytes exceeds the limit MAX_FILE_BYTES = {MAX_FILE_BYTES}"
+        )
+    return _load(io.BytesIO(data), source)

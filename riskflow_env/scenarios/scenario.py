@@ -7,6 +7,7 @@ current one, then a reference future, each with a per-step validity mask.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -14,6 +15,11 @@ import numpy as np
 from riskflow_env.dynamics import STATE_DIM
 from riskflow_env.maps import DrivableMap
 from riskflow_env.state import HISTORY_STEPS
+
+MAX_COORDINATE = 1e6  # [m] largest |x|, |y| of a valid track state
+MAX_SPEED = 100.0  # [m/s] largest logged speed
+MAX_HEADING = 1e4  # [rad] largest |psi| (headings are unwrapped along time)
+MAX_SIZE = 50.0  # [m] largest vehicle length or width
 
 
 @dataclass(frozen=True)
@@ -69,6 +75,10 @@ class Scenario:
             if not isinstance(value, np.ndarray) or value.shape != shape:
                 got = getattr(value, "shape", type(value).__name__)
                 raise ValueError(f"Scenario.{name} must have shape {shape}, got {got}")
+        for name in ("ego_index", "history_steps"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise ValueError(f"Scenario.{name} must be an int, got {value!r}")
         if not 0 < self.history_steps <= num_steps:
             raise ValueError(
                 f"Scenario.history_steps must be in [1, {num_steps}], got {self.history_steps}"
@@ -81,8 +91,32 @@ class Scenario:
             raise ValueError("Scenario: the ego must be valid at the current step")
         if not np.all(np.isfinite(states[self.valid])):
             raise ValueError("Scenario.states has NaN or inf at valid steps")
-        if np.any(self.length <= 0) or np.any(self.width <= 0):
-            raise ValueError("Scenario.length and Scenario.width must be > 0 m")
+        observed = states[self.valid]
+        if np.any(np.abs(observed[:, :2]) > MAX_COORDINATE):
+            raise ValueError(
+                f"Scenario.states has a position beyond +-{MAX_COORDINATE:g} m at a valid step"
+            )
+        speeds = observed[:, 2]
+        if np.any(speeds < 0) or np.any(speeds > MAX_SPEED):
+            raise ValueError(
+                f"Scenario.states has a speed outside [0, {MAX_SPEED:g}] m/s at a valid step "
+                f"(got {float(speeds.min()):g} .. {float(speeds.max()):g})"
+            )
+        if np.any(np.abs(observed[:, 3]) > MAX_HEADING):
+            raise ValueError(f"Scenario.states has a heading beyond +-{MAX_HEADING:g} rad")
+        for name in ("length", "width"):
+            size = getattr(self, name)
+            if not np.all(np.isfinite(size)) or np.any(size <= 0) or np.any(size > MAX_SIZE):
+                raise ValueError(
+                    f"Scenario.{name} must be finite, > 0 and <= {MAX_SIZE:g} m, got {size!r}"
+                )
+        dt = self.dt
+        if (
+            isinstance(dt, bool)
+            or not isinstance(dt, (int, float, np.floating, np.integer))
+            or not (math.isfinite(dt) and dt > 0)
+        ):
+            raise ValueError(f"Scenario.dt must be a finite number > 0 s, got {dt!r}")
         if self.agent_ids and len(self.agent_ids) != num_agents:
             raise ValueError(
                 f"Scenario.agent_ids must name all {num_agents} agents, got {len(self.agent_ids)}"

@@ -44,6 +44,7 @@ from riskflow_env.state import HISTORY_STEPS
 DT = 0.1  # [s] time step of scenarios
 MIN_FUTURE_STEPS = 100  # reference future padded to at least this many steps (10 s)
 VEHICLE = "VEHICLE"
+MAX_STEPS = 20_000  # [0.1 s] longest recording after resampling to 10 Hz (2000 s)
 DEFAULT_SIZE = (4.5, 2.0)  # [m] (length, width) of tracks that give none
 
 
@@ -107,6 +108,12 @@ def scenario_from_description(
     )
 
     times = _times(metadata, xy.shape[1], source)
+    span = (times[-1] - times[0]) / DT
+    if span + 1 > MAX_STEPS:
+        raise ValueError(
+            f"{source}: the recording spans {times[-1] - times[0]:.3g} s = {span + 1:.3g} steps "
+            f"at 10 Hz, over the limit MAX_STEPS = {MAX_STEPS}"
+        )
     grid = np.arange(int(np.floor((times[-1] - times[0]) / DT + 1e-6)) + 1) * DT + times[0]
     if len(times) != len(grid) or not np.allclose(times, grid, atol=1e-6):
         xy, heading, velocity, valid = _resample(times, grid, xy, heading, velocity, valid)
@@ -201,9 +208,17 @@ def _times(metadata: Mapping, steps: int, source: str) -> np.ndarray:
     """(T,) [s] time stamps of the recorded steps."""
     ts = metadata.get("ts")
     if ts is not None and np.size(ts) == steps:
-        times = np.asarray(ts, dtype=np.float64).reshape(-1)
+        try:
+            times = np.asarray(ts, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            raise ValueError(f"{source}: metadata['ts'] must be numbers") from None
     else:
-        rate = float(metadata.get("sample_rate", DT))
+        try:
+            rate = float(metadata.get("sample_rate", DT))
+        except (TypeError, ValueError):
+            raise ValueError(f"{source}: metadata['sample_rate'] must be a number") from None
+        if not (np.isfinite(rate) and rate > 0):
+            raise ValueError(f"{source}: metadata['sample_rate'] must be positive, got {rate}")
         times = np.arange(steps) * rate
     if steps < 1 or not np.all(np.isfinite(times)) or np.any(np.diff(times) <= 0):
         raise ValueError(f"{source}: time stamps must be finite and increasing")

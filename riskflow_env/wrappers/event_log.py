@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 import weakref
 from pathlib import Path
 from typing import Any
@@ -91,9 +92,63 @@ def contact_kind(point: np.ndarray, xy: np.ndarray, yaw: float, length: float, w
 
 
 def read_event_log(path: str | os.PathLike) -> list[dict[str, Any]]:
-    """The events of a JSON Lines log, in order (blank lines skipped)."""
+    """The events of a JSON Lines log, in order (blank lines skipped).
+
+    A torn final line (a run killed mid-write: no newline at the end and not valid JSON)
+    is skipped with a warning; a bad line anywhere else raises ValueError naming it."""
     with open(path, encoding="utf-8") as file:
-        return [json.loads(line) for line in file if line.strip()]
+        lines = file.read().split("\n")
+    events = []
+    for number, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            events.append(json.loads(line))
+        except json.JSONDecodeError as error:
+            if number == len(lines):  # the last line, without its newline: torn
+                warnings.warn(
+                    f"{path}: skipping a torn last line (line {number}: {line[:60]!r})",
+                    UserWarning,
+                    stacklevel=2,
+                )
+                break
+            raise ValueError(f"{path}: line {number} is not valid JSON ({error})") from None
+    return events
+
+
+def _drop_torn_tail(path: Path) -> None:
+    """Truncate ``path`` after its last newline (a killed run's partial line), warning."""
+    with open(path, "rb+") as file:
+        file.seek(0, os.SEEK_END)
+        size = file.tell()
+        if size == 0:
+            return
+        file.seek(max(size - 1, 0))
+        if file.read(1) == b"\n":
+            return
+        file.seek(0)
+        data = file.read()
+        keep = data.rfind(b"\n") + 1
+        warnings.warn(
+            f"{path}: dropping a torn last line ({size - keep} bytes) before appending",
+            UserWarning,
+            stacklevel=3,
+        )
+        file.truncate(keep)
+
+
+def _last_episode(path: Path) -> int:
+    """The ``episode`` of the last event in ``path`` (-1 if none), read line by line."""
+    last = b""
+    with open(path, "rb") as file:
+        for line in file:
+            if line.strip():
+                last = line
+    try:
+        episode = json.loads(last)["episode"] if last else -1
+    except (ValueError, KeyError, TypeError):
+        return -1
+    return episode if isinstance(episode, int) and not isinstance(episode, bool) else -1
 
 
 def _round(value: Any) -> Any:
@@ -109,18 +164,38 @@ class EventRecorder:
 
     Args:
         path: JSON Lines file to write, or None to keep the events in memory only.
-        append: append to an existing file instead of overwriting it.
+        append: append to an existing file (a torn last line of a killed run is dropped;
+            episode numbers continue after the file's last one).
+        overwrite: replace an existing non-empty file. Without ``append`` or
+            ``overwrite``, a non-empty file raises FileExistsError (a killed run's log
+            is never destroyed silently).
     """
 
-    def __init__(self, path: str | os.PathLike | None = None, append: bool = False) -> None:
+    def __init__(
+        self,
+        path: str | os.PathLike | None = None,
+        append: bool = False,
+        overwrite: bool = False,
+    ) -> None:
         self.path = None if path is None else Path(path)
         self.events: list[dict[str, Any]] = []
         self._file = None
+        self._episode = -1  # the episode being recorded; begin() moves to the next
+        if append and overwrite:
+            raise ValueError("EventRecorder: append and overwrite exclude each other")
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
+            exists = self.path.is_file() and self.path.stat().st_size > 0
+            if exists and not (append or overwrite):
+                raise FileExistsError(
+                    f"event log {self.path} already holds events (a previous or killed run?); "
+                    "pass append=True to continue it or overwrite=True to replace it"
+                )
+            if exists and append:
+                _drop_torn_tail(self.path)
+                self._episode = _last_episode(self.path)  # a resumed log keeps counting
             mode = "a" if append else "w"
             self._file = open(self.path, mode, buffering=1, encoding="utf-8")
-        self._episode = -1
         self._open = False
 
     def begin(self, scenario: str = "") -> None:
@@ -272,7 +347,9 @@ class EventLogWrapper(BaseParallelWrapper):
     Args:
         env: the env, or a wrapper of it (its ``unwrapped`` must be a RiskFlow env).
         path: JSON Lines file to write; None keeps events in memory only.
-        append: append to ``path`` instead of overwriting it.
+        append: append to ``path`` (e.g. when resuming a killed run).
+        overwrite: replace a non-empty ``path``; without ``append`` or ``overwrite`` a
+            non-empty file raises FileExistsError.
 
     Use as a context manager so that a crash still writes the episode's summary::
 
@@ -281,10 +358,14 @@ class EventLogWrapper(BaseParallelWrapper):
     """
 
     def __init__(
-        self, env: Any, path: str | os.PathLike | None = None, append: bool = False
+        self,
+        env: Any,
+        path: str | os.PathLike | None = None,
+        append: bool = False,
+        overwrite: bool = False,
     ) -> None:
         super().__init__(env)
-        self.recorder = EventRecorder(path, append)
+        self.recorder = EventRecorder(path, append, overwrite)
         self._finalizer = weakref.finalize(self, self.recorder.close, "exit")
 
     @property

@@ -239,7 +239,7 @@ def test_train_then_evaluate_tiny_budget(tmp_path):
     out = run(
         "evaluate_ego.py", "--runs", run_dir, "--scenes", "2", "--seeds", "0",
         "--episode-steps", "10", "--guidance-steps", "2", "--planning-interval", "1.0",
-        "--oracle", "--out", eval_dir,
+        "--oracle", "--out", eval_dir, "--trust-model",
     )  # fmt: skip
     results = json.loads((eval_dir / "results.json").read_text())
     rows = {(row["planner"], row["traffic"]) for row in results["summary"]}

@@ -2,8 +2,16 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
 import pytest
 
+from riskflow_env.folder_lock import FolderLock
 from riskflow_env.scenarios import load_bank
 from riskflow_env.scenarios.cli import GenerateOptions, generate, main
 
@@ -74,3 +82,62 @@ def test_command_line(tmp_path, capsys):
     assert "1 scenes" in printed and "u-turn" in printed and "split train" in printed
     with pytest.raises(SystemExit):
         main(["generate", "--families", "nowhere", "--out", str(out)])
+
+
+def _children(pid: int) -> list[int]:
+    """Live (not zombie) processes whose parent is ``pid`` (Linux /proc)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid and fields[0] != "Z":
+            found.append(int(stat.parent.name))
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_workers_die_with_a_killed_parent(tmp_path):
+    """Issue 19: after kill -9 of `generate --workers 2` the workers kept writing, then
+    slept forever. Now they end within seconds and write nothing more."""
+    out = tmp_path / "bank"
+    command = [sys.executable, "-m", "riskflow_env.scenarios.cli", "generate", "--out", str(out)]
+    command += ["--families", "u-turn", "--scenes", "40", "--workers", "2", "--future-steps", "10"]
+    parent = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 240
+        while not list(out.glob("0*.npz")) and time.monotonic() < deadline:
+            assert parent.poll() is None, "riskflow-data ended early"
+            time.sleep(0.2)
+        workers = _children(parent.pid)
+        assert len(workers) >= 2, "no worker processes found"
+    finally:
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait()
+    deadline = time.monotonic() + 20
+    while any(_alive(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(pid) for pid in workers), "a worker outlived its parent"
+    written = sorted(path.name for path in out.glob("0*.npz"))
+    time.sleep(1.0)
+    assert sorted(path.name for path in out.glob("0*.npz")) == written
+    assert len(written) < 40
+
+
+def test_second_generate_into_one_bank_is_refused(tmp_path):
+    """A second run deleted the first one's temporary files; now it exits naming the pid."""
+    out = tmp_path / "bank"
+    with FolderLock(out):
+        with pytest.raises(SystemExit, match=rf"being written by another run \(pid {os.getpid()}"):
+            generate(_tiny(out, scenes=1))
+        assert not (out / "riskflow-data.json").exists()
+    generate(_tiny(out, scenes=1))  # released: the bank is written
+    assert (out / "00000-u-turn.npz").is_file()

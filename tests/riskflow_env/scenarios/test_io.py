@@ -176,7 +176,7 @@ def _rewrite(path, **changes) -> None:
         ({"name": np.array(3)}, "'name' has dtype"),
         ({"ego_index": np.array(7)}, "ego_index must be in"),
         ({"ego_index": np.array(2)}, "ego must be valid at the current step"),
-        ({"length": np.array([4.5, -1.0, 2.0])}, "length and Scenario.width must be > 0"),
+        ({"length": np.array([4.5, -1.0, 2.0])}, "Scenario.length must be finite, > 0"),
         ({"map_drivable": np.zeros((4, 4), dtype=bool)}, "invalid map"),
     ],
 )

@@ -1,0 +1,92 @@
+"""One writer per output folder: an exclusive lock file holding the writer's pid.
+
+:class:`FolderLock` takes a non-blocking exclusive lock on ``<folder>/writer.lock``
+(``fcntl.flock`` on POSIX, ``msvcrt.locking`` on Windows) and writes this process's
+pid into it. A second process gets :class:`FolderLocked` naming the holder's pid. The
+operating system drops the lock when the holder ends, ``kill -9`` included, so a killed
+run never blocks its own resume; the file itself stays (deleting it could race).
+Used by ``riskflow-eval`` (results folders) and ``riskflow-data generate`` (banks).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import IO, Any
+
+LOCK_NAME = "writer.lock"
+
+
+class FolderLocked(ValueError):
+    """Another process is writing into the folder."""
+
+
+def _try_lock(file: IO[Any]) -> bool:
+    """Take an exclusive, non-blocking lock on ``file``; False if another process has it."""
+    try:
+        if os.name == "nt":
+            import msvcrt
+
+            file.seek(0)
+            msvcrt.locking(file.fileno(), msvcrt.LK_NBLCK, 1)
+        else:
+            import fcntl
+
+            fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        return False
+    return True
+
+
+class FolderLock:
+    """The writer lock of ``folder`` (module docstring).
+
+    Args:
+        folder: the output folder (created when the lock is taken).
+    """
+
+    def __init__(self, folder: str | os.PathLike) -> None:
+        self.folder = Path(folder)
+        self.path = self.folder / LOCK_NAME
+        self._file: IO[Any] | None = None
+
+    @property
+    def held(self) -> bool:
+        """This object holds the lock."""
+        return self._file is not None
+
+    def acquire(self) -> None:
+        """Take the lock (no-op if held); FolderLocked naming the holder's pid otherwise."""
+        if self._file is not None:
+            return
+        self.folder.mkdir(parents=True, exist_ok=True)
+        file = open(self.path, "a+", encoding="utf-8")  # noqa: SIM115 (held open)
+        if not _try_lock(file):
+            file.seek(0)
+            try:
+                holder = file.read(200).strip() or "unknown"
+            except OSError:  # Windows: the locked byte cannot be read
+                holder = "unknown"
+            file.close()
+            raise FolderLocked(
+                f"{self.folder} is being written by another run (pid {holder}, lock file "
+                f"{self.path}); wait for it to finish or use another folder"
+            )
+        file.seek(0)
+        file.truncate()
+        file.write(f"{os.getpid()}\n")
+        file.flush()
+        self._file = file
+
+    def release(self) -> None:
+        """Give the lock back (if held); closing the file releases it."""
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def __enter__(self) -> FolderLock:
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()

@@ -1,0 +1,30 @@
+"""SB3 model files are pickles: loading one needs an explicit opt-in (issue 19 item 4)."""
+
+import pytest
+
+from policies.rl.evaluation import UntrustedModelError, load_ppo_planner
+
+
+def test_ppo_model_needs_trusted(tmp_path):
+    pytest.importorskip("stable_baselines3")
+    marker = tmp_path / "marker"
+    model = tmp_path / "model.zip"
+    model.write_bytes(b"PK not read")
+    with pytest.raises(UntrustedModelError, match="trusted=True"):
+        load_ppo_planner(str(model))
+    assert not marker.exists()
+
+
+def test_evaluate_ego_runs_needs_trust_model(monkeypatch):
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(
+        "evaluate_ego", Path(__file__).parents[2] / "examples" / "evaluate_ego.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(__import__("sys").modules, "evaluate_ego", module)
+    spec.loader.exec_module(module)
+    with pytest.raises(ValueError, match="--trust-model"):
+        module.Options(runs="runs/x")
+    assert module.Options(runs="runs/x", trust_model=True).trust_model

@@ -1,0 +1,137 @@
+"""Invalid values are refused at the boundary with an error naming the field (issue 19 item 3)."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from riskflow_env.config import DynamicsConfig, EnvConfig, ObservationConfig
+from riskflow_env.scenarios import ScenarioFormatError, load_scenario, save_scenario
+
+_spec = importlib.util.spec_from_file_location(
+    "_io_tests", Path(__file__).parent / "scenarios" / "test_io.py"
+)
+_io = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_io)
+_env_spec = importlib.util.spec_from_file_location(
+    "_env_tests", Path(__file__).with_name("test_env.py")
+)
+_env = importlib.util.module_from_spec(_env_spec)
+_env_spec.loader.exec_module(_env)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"max_agents": True}, "max_agents"),
+        ({"max_agents": 2.0}, "max_agents"),
+        ({"episode_steps": False}, "episode_steps"),
+        ({"clip_actions": 1}, "clip_actions"),
+        ({"observation": {"num_neighbors": 2}}, "observation"),
+    ],
+)
+def test_env_config_types(kwargs, field):
+    with pytest.raises(ValueError, match=f"EnvConfig.{field}"):
+        EnvConfig(**kwargs)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"num_neighbors": 2.5}, "num_neighbors"),
+        ({"num_neighbors": True}, "num_neighbors"),
+        ({"ray_directions": 1.5}, "ray_directions"),
+        ({"ray_distances": (1e39,)}, "ray_distances"),
+        ({"ray_distances": (float("nan"),)}, "ray_distances"),
+        ({"ray_distances": (True,)}, "ray_distances"),
+    ],
+)
+def test_observation_config_values(kwargs, field):
+    with pytest.raises(ValueError, match=f"ObservationConfig.{field}"):
+        ObservationConfig(**kwargs)
+
+
+@pytest.mark.parametrize("name", ["dt", "speed_max", "accel_max"])
+def test_dynamics_config_huge_values(name):
+    with pytest.raises(ValueError, match=f"DynamicsConfig.{name}"):
+        DynamicsConfig(**{name: 1e300})
+
+
+def test_ray_distances_list_is_accepted_as_tuple():
+    assert ObservationConfig(ray_distances=[2.0, 5.0]).ray_distances == (2.0, 5.0)
+
+
+def _bad_states(kind):
+    scenario = _io._scenario()
+    states = scenario.states.copy()
+    if kind == "negative_speed":
+        states[0, 5, 2] = -1.0
+    elif kind == "huge":
+        states[0, 5, 0] = 1e300
+    return states
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"length": np.array([np.nan, 5.0, 12.0])}, "Scenario.length"),
+        ({"width": np.array([1.9, np.nan, 2.5])}, "Scenario.width"),
+        ({"length": np.array([1e300, 5.0, 12.0])}, "Scenario.length"),
+        ({"dt": -1.0}, "Scenario.dt"),
+        ({"dt": 0.0}, "Scenario.dt"),
+        ({"dt": float("nan")}, "Scenario.dt"),
+        ({"states": "negative_speed"}, "speed"),
+        ({"states": "huge"}, "position"),
+        ({"ego_index": True}, "Scenario.ego_index"),
+    ],
+)
+def test_scenario_invalid_values(changes, message):
+    if changes.get("states") in ("negative_speed", "huge"):
+        changes = {"states": _bad_states(changes["states"])}
+    with pytest.raises(ValueError, match=message):
+        _io._scenario(**changes)
+
+
+@pytest.mark.parametrize("ref", ["/etc/passwd", "../maps/x.npz", "maps/../../x.npz"])
+def test_map_ref_must_stay_in_the_folder(tmp_path, ref):
+    bank = tmp_path / "bank"
+    bank.mkdir()
+    save_scenario(_io._scenario(), bank / "scene.npz", map_dir=bank / "maps")
+    path = bank / "scene.npz"
+    _io._rewrite(path, map_ref=np.array(ref))
+    with pytest.raises(ScenarioFormatError, match="map_ref"):
+        load_scenario(path)
+
+
+@pytest.mark.parametrize(
+    "action",
+    [
+        np.array([1 + 2j, 0.0]),
+        (1j, 0.0),
+        "ab",
+        {"a": 1},
+        np.array([np.nan, 0.0]),
+    ],
+)
+def test_bad_actions_name_the_agent(action):
+    env = _env.make_env()
+    env.reset(seed=0)
+    actions = {agent: np.zeros(2) for agent in env.agents}
+    agent = env.agents[-1]
+    actions[agent] = action
+    with pytest.raises(ValueError, match=agent):
+        env.step(actions)
+
+
+def test_tensor_with_grad_names_the_agent():
+    torch = pytest.importorskip("torch")
+    env = _env.make_env()
+    env.reset(seed=0)
+    actions = {agent: np.zeros(2) for agent in env.agents}
+    agent = env.agents[0]
+    actions[agent] = torch.zeros(2, requires_grad=True)
+    with pytest.raises(ValueError, match=agent):
+        env.step(actions)

@@ -1,0 +1,75 @@
+"""Event logs survive a killed run (issue 19 item 5)."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+from riskflow_env.wrappers import EventLogWrapper, read_event_log
+from riskflow_env.wrappers.event_log import EventRecorder
+
+_spec = importlib.util.spec_from_file_location(
+    "_event_log_tests", Path(__file__).with_name("test_event_log.py")
+)
+_tests = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_tests)
+
+VEHICLES = [(0.0, 0.0, 0.0, 0.0), (3.0, 0.0, 0.0, 0.0)]
+
+
+def _episode(path, **kwargs):
+    with EventLogWrapper(_tests.make_env(VEHICLES, steps=5), path, **kwargs) as env:
+        env.reset(seed=0)
+        while env.agents:
+            env.step({agent: (0.0, 0.0) for agent in env.agents})
+
+
+def test_restart_does_not_destroy_an_existing_log(tmp_path):
+    path = tmp_path / "events.jsonl"
+    _episode(path)
+    before = path.read_text()
+    assert before
+    with pytest.raises(FileExistsError, match="append=True"):
+        EventLogWrapper(_tests.make_env(VEHICLES), path)
+    assert path.read_text() == before
+    _episode(path, append=True)
+    assert len(read_event_log(path)) == 2 * len(before.splitlines())
+    _episode(path, overwrite=True)
+    assert path.read_text() == before
+
+
+def test_empty_existing_file_is_fine(tmp_path):
+    path = tmp_path / "events.jsonl"
+    path.touch()
+    _episode(path)
+    assert read_event_log(path)
+
+
+def test_append_and_overwrite_exclude_each_other(tmp_path):
+    with pytest.raises(ValueError, match="exclude"):
+        EventRecorder(tmp_path / "x.jsonl", append=True, overwrite=True)
+
+
+def test_torn_last_line_is_skipped_with_a_warning(tmp_path):
+    path = tmp_path / "events.jsonl"
+    path.write_text('{"event": "a"}\n{"event": "b"}\n{"event": "summ')
+    with pytest.warns(UserWarning, match="torn"):
+        assert read_event_log(path) == [{"event": "a"}, {"event": "b"}]
+
+
+def test_bad_middle_line_raises(tmp_path):
+    path = tmp_path / "events.jsonl"
+    path.write_text('{"event": "a"}\n{"eve\n{"event": "b"}\n')
+    with pytest.raises(ValueError, match="line 2"):
+        read_event_log(path)
+
+
+def test_append_after_a_torn_line_drops_it(tmp_path):
+    path = tmp_path / "events.jsonl"
+    path.write_text('{"event": "a"}\n{"event": "summ')
+    with pytest.warns(UserWarning, match="torn"):
+        _episode(path, append=True)
+    events = read_event_log(path)
+    assert events[0] == {"event": "a"} and len(events) > 1
