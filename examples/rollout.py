@@ -33,6 +33,7 @@ from policies.riskflow.checkpoint import load_generator
 from policies.riskflow.dataclass_cli import parse_dataclass
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import Scenario, load_scenario, shipped_bank
+from riskflow_env.scenarios.scenarionet import load_scenarionet
 
 VIDEO_FORMATS = ("gif", "mp4", "none")
 TRAFFIC = ("riskflow", "replay")
@@ -43,7 +44,7 @@ class Options:
     """Options of ``rollout.py``."""
 
     scenario: str = "0"
-    """index into the shipped evaluation bank (0-104), or a scenario file (.npz)"""
+    """index into the shipped evaluation bank (0-104), or a scenario file (.npz or ScenarioNet .pkl)"""
     k: str = "5"
     """size of the controllable set A_c: an int >= 0 (0: unguided generator) or 'all'"""
     planning_interval: float = 0.5
@@ -91,9 +92,18 @@ def load_scene(spec: str) -> Scenario:
         if not 0 <= index < len(bank):
             raise SystemExit(f"--scenario {spec}: the shipped bank has scenes 0-{len(bank) - 1}")
         return bank[index]
-    if not Path(spec).is_file():
+    path = Path(spec)
+    if not path.is_file():
         raise SystemExit(f"--scenario {spec!r}: no such scenario file (or give a bank index)")
-    return load_scenario(spec)
+    suffix = path.suffix.lower()
+    if suffix == ".pkl":
+        return load_scenarionet(path)
+    if suffix != ".npz":
+        raise SystemExit(
+            f"--scenario {spec!r}: unknown scenario format {suffix or '(no suffix)'!r}; expected "
+            "a bank index, a RiskFlow scenario file (.npz) or a ScenarioNet pickle (.pkl)"
+        )
+    return load_scenario(path)
 
 
 def make_traffic(options: Options) -> RiskFlowAdversary | ReplayPolicy:

@@ -154,8 +154,15 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
         FileNotFoundError: no such file (or its referenced map file is missing).
         ScenarioFormatError: wrong schema or version, missing keys, wrong shapes or
             dtypes, NaN/inf at valid steps, or an invalid map; the message names the file.
+            A ``.pkl`` file (a ScenarioNet pickle) is refused with a pointer to
+            :func:`riskflow_env.scenarios.scenarionet.load_scenarionet`.
     """
     path = Path(path)
+    if path.suffix.lower() == ".pkl":
+        raise ScenarioFormatError(
+            f"{path}: load_scenario reads RiskFlow .npz scenario files; for a ScenarioNet "
+            "pickle use riskflow_env.scenarios.scenarionet.load_scenarionet(path)"
+        )
     arrays = read_npz(path, SCHEMA)
     if "map_ref" in arrays:
         check_arrays(path, arrays, {**_SCENE_KEYS, **_REF_KEYS})
