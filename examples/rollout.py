@@ -44,7 +44,7 @@ class Options:
     """Options of ``rollout.py``."""
 
     scenario: str = "0"
-    """index into the shipped evaluation bank (0-104), or a scenario file (.npz or ScenarioNet .pkl)"""
+    """shipped evaluation bank index (0-104), or a scenario file (.npz or ScenarioNet .pkl)"""
     k: str = "5"
     """size of the controllable set A_c: an int >= 0 (0: unguided generator) or 'all'"""
     planning_interval: float = 0.5
