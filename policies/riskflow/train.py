@@ -22,7 +22,8 @@ made a step 20x slower). Validation (``evaluate.evaluate``) runs every
 EMA, optimiser, step and random state, so the result equals an uninterrupted run on
 the CPU); ``OUT/generator.pt`` is the same without the training state, the file to
 ship; ``OUT/metrics.jsonl`` logs training and validation metrics. Windows are cached
-in ``DATA/cache/`` and the action statistics in ``DATA/norm_stats.json``.
+in ``DATA/cache/`` and the action statistics in ``DATA/norm_stats.json``; for the shipped
+bank (or a read-only ``DATA``) both go to the user cache (``policies.riskflow.data_cache``).
 
 ``--generator diffusion`` trains the DDPM denoiser of the CTG / CTG++ / CCDiff-style
 baselines in this same loop (same network, data, EMA and validation; objective and

@@ -1,0 +1,41 @@
+"""Where files derived from a scene folder (window caches, action statistics) are written.
+
+Beside the data (``<folder>/cache/``, ``<folder>/norm_stats.json``) when the folder is
+writable and outside the installed packages; otherwise (the shipped bank in
+``riskflow_env/assets``, anything inside the ``riskflow_env`` or ``policies`` package
+folders, a read-only folder) in the user cache, ``platformdirs.user_cache_dir("riskflow-env")``
+(``~/.cache/riskflow-env`` on Linux; ``RISKFLOW_CACHE_DIR`` overrides it), under
+``data/<folder name>-<16 hex digits of a SHA-256 of its absolute path>/``, so an install
+never changes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+from platformdirs import user_cache_dir
+
+import policies
+import riskflow_env
+
+CACHE_ENV = "RISKFLOW_CACHE_DIR"
+PACKAGE_DIRS = tuple(
+    Path(package.__file__).resolve().parent for package in (riskflow_env, policies)
+)
+
+
+def user_cache() -> Path:
+    """The user cache folder of riskflow-env (``$RISKFLOW_CACHE_DIR`` when set)."""
+    return Path(os.environ.get(CACHE_ENV) or user_cache_dir("riskflow-env"))
+
+
+def derived_dir(folder: str | os.PathLike) -> Path:
+    """The folder that receives the files derived from scene folder ``folder``."""
+    folder = Path(folder).resolve()
+    inside = any(folder.is_relative_to(package) for package in PACKAGE_DIRS)
+    if not inside and os.access(folder, os.W_OK):
+        return folder
+    key = hashlib.sha256(str(folder).encode()).hexdigest()[:16]
+    return user_cache() / "data" / f"{folder.name}-{key}"
