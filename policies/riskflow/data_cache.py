@@ -15,8 +15,6 @@ import hashlib
 import os
 from pathlib import Path
 
-from platformdirs import user_cache_dir
-
 import policies
 import riskflow_env
 
@@ -28,7 +26,11 @@ PACKAGE_DIRS = tuple(
 
 def user_cache() -> Path:
     """The user cache folder of riskflow-env (``$RISKFLOW_CACHE_DIR`` when set)."""
-    return Path(os.environ.get(CACHE_ENV) or user_cache_dir("riskflow-env"))
+    if os.environ.get(CACHE_ENV):
+        return Path(os.environ[CACHE_ENV])
+    from platformdirs import user_cache_dir  # only needed when a folder is redirected
+
+    return Path(user_cache_dir("riskflow-env"))
 
 
 def derived_dir(folder: str | os.PathLike) -> Path:
