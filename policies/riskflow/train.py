@@ -271,7 +271,9 @@ def train(options: TrainOptions) -> dict[str, Any]:
     started = time.perf_counter()
     budget = 60.0 * options.time_budget_min if options.time_budget_min > 0 else math.inf
     interval = 0.5 if sys.stderr.isatty() else 30.0  # [s]: a log file gets few lines
-    bar = tqdm(options.steps, "riskflow-train", initial=step, unit="step", mininterval=interval)
+    bar = tqdm(
+        total=options.steps, desc="riskflow-train", initial=step, unit="step", mininterval=interval
+    )
     sums: dict[str, list[float]] = {}
     epoch, batches = -1, np.zeros((0, options.batch_size), dtype=np.int64)
     with (out / METRICS_LOG).open("a") as log:
