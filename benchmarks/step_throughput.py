@@ -21,7 +21,6 @@ may be shared; the best round is the least disturbed one).
 
 from __future__ import annotations
 
-import argparse
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -31,6 +30,7 @@ import highway_env  # noqa: F401 - registers highway-v0
 import numpy as np
 
 import riskflow_env
+from policies.riskflow.dataclass_cli import parse_dataclass
 from riskflow_env import batched
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import HighwayTrafficSource, TrafficConfig, place_traffic
@@ -43,28 +43,21 @@ EPISODE_SECONDS = 10  # [s] episode length of both simulators
 class Options:
     """Benchmark options."""
 
-    seconds: float = 2.0  # timed seconds per simulator, per round and row
-    rounds: int = 3  # interleaved rounds; the best rate of each simulator is reported
-    vehicles: tuple[int, ...] = (8, 16, 32, 64)  # vehicles per scene, ego included
-    batch_agents: tuple[int, ...] = (8, 32)  # agent slots per scene of the batched rows
-    batch_scenes: tuple[int, ...] = (1, 16, 128)  # scenes per batch
+    seconds: float = 2.0
+    """timed seconds per simulator, per round and row"""
+    rounds: int = 3
+    """interleaved rounds; the best rate of each simulator is reported"""
+    vehicles: tuple[int, ...] = (8, 16, 32, 64)
+    """vehicles per scene, ego included"""
+    batch_agents: tuple[int, ...] = (8, 32)
+    """agent slots per scene of the batched rows"""
+    batch_scenes: tuple[int, ...] = (1, 16, 128)
+    """scenes per batch"""
 
 
-def _parse() -> Options:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    defaults = Options()
-    parser.add_argument("--seconds", type=float, default=defaults.seconds)
-    parser.add_argument("--rounds", type=int, default=defaults.rounds)
-    parser.add_argument("--vehicles", type=int, nargs="+", default=list(defaults.vehicles))
-    parser.add_argument("--batch-agents", type=int, nargs="+", default=list(defaults.batch_agents))
-    parser.add_argument("--batch-scenes", type=int, nargs="+", default=list(defaults.batch_scenes))
-    args = parser.parse_args()
-    return Options(
-        seconds=args.seconds,
-        rounds=args.rounds,
-        vehicles=tuple(args.vehicles),
-        batch_agents=tuple(args.batch_agents),
-        batch_scenes=tuple(args.batch_scenes),
+def _parse(argv: list[str] | None = None) -> Options:
+    return parse_dataclass(
+        Options, argv, prog="step_throughput.py", description=__doc__.split("\n")[0]
     )
 
 
