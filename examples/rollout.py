@@ -14,8 +14,9 @@ a scenario saved by ``stress_test_planner.py`` replays what happened).
 
 Prints the events (collisions, off-road excursions) and the metrics; writes to ``--out``
 (default ``outputs/rollout/``): ``rollout.gif`` (or ``.mp4``) with the plans drawn (cyan:
-base plans; red, haloed vehicles: guided plans of ``A_c``), ``events.jsonl`` (the event
-log, ``riskflow_env.wrappers.read_event_log`` reads it) and ``metrics.json``.
+base plans; purple, haloed vehicles: guided plans of ``A_c``; red: collisions; yellow:
+off-road), ``events.jsonl`` (the event log, ``riskflow_env.wrappers.read_event_log``
+reads it) and ``metrics.json``.
 """
 
 from __future__ import annotations
