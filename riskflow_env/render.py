@@ -9,7 +9,9 @@ SDF, lane centrelines faint), trails (the last ``trail_seconds`` of ``scene.hist
 overlays (polylines pushed by a scene policy, e.g. planned trajectories), vehicles (boxes
 with a heading mark; ego orange with a white outline, others blue, done vehicles grey;
 highlighted agents haloed in their overlay's colour), event markers (collisions: red
-outline and a ring between the pair; off-road: amber outline) and a text line.
+outline and a ring between the pair; off-road: amber outline) and a text line: time, ego
+speed, collision events so far (a pair coming into contact, counted as the event log and
+the harness's ``collisions`` metric count them) and vehicles off the road now.
 
 The view is north-up (world +x right, +y up), centred on the ego (``follow_ego``) or
 fitted to the whole map. The map layer is cached as a tile twice the view's size and
@@ -25,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from riskflow_env.events import contact_pairs
 from riskflow_env.geometry import FRONT, LEFT, RIGHT, box_corners, footprint_points
 
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
@@ -104,6 +107,8 @@ class SceneRenderer:
             raise ValueError(f"render_mode must be 'rgb_array' or 'human', got {render_mode!r}")
         self.render_mode = render_mode
         self.config = config or RenderConfig()
+        self.collision_events = 0  # collision events since reset (see contact_pairs)
+        self._contacts: set[tuple[int, int]] = set()
         self.overlays: dict[str, Overlay] = {}
         self._surface = pygame.Surface((self.config.width_px, self.config.height_px))
         self._tile: tuple[Any, float, int, int, pygame.Surface] | None = None
@@ -113,11 +118,17 @@ class SceneRenderer:
 
     # ------------------------------------------------------------------ hooks
     def reset(self, env: Any) -> None:
-        """New episode: drop the previous episode's overlays."""
+        """New episode: drop the previous episode's overlays, restart the collision count."""
         self.overlays.clear()
+        self._contacts = contact_pairs(env.last_events.collisions)
+        self.collision_events = len(self._contacts)
 
     def record(self, env: Any) -> None:
-        """Called after every step. Trails come from ``scene.history``: nothing to keep."""
+        """Called after every step: counts the collision events (trails come from
+        ``scene.history``)."""
+        contacts = contact_pairs(env.last_events.collisions)
+        self.collision_events += len(contacts - self._contacts)
+        self._contacts = contacts
 
     def set_overlay(
         self,
@@ -302,7 +313,7 @@ class SceneRenderer:
         if self._font is None:
             pygame.font.init()
             self._font = pygame.font.Font(None, 22)
-        collisions = int(np.triu(events.collisions).sum())
+        collisions = self.collision_events
         text = (
             f"t = {view.step * view.dt:4.1f} s   ego {view.current[0, 2]:4.1f} m/s   "
             f"collisions {collisions}   off-road {int(events.offroad.sum())}"

@@ -145,3 +145,21 @@ def test_no_renderer_without_render_mode():
     env = make_env([(0.0, 0.0, 10.0, 0.0)])
     env.step({"ego": np.zeros(2)})
     assert env._renderer is None  # nothing drawn on the hot path
+
+
+def test_collision_counter_counts_events_like_the_event_log():
+    """A car drives through the standing ego (contact, then apart), then into a parked car:
+    2 collision events, whatever is in contact on the last frame."""
+    from riskflow_env.wrappers import EventLogWrapper
+
+    vehicles = [(0.0, 0.0, 0.0, 0.0), (-10.0, 0.0, 20.0, 0.0), (12.0, 0.0, 0.0, 0.0)]
+    env = EventLogWrapper(make_env(vehicles, render_mode="rgb_array", steps=12))
+    env.reset(seed=0)
+    base = env.unwrapped
+    base.render()
+    while env.agents:
+        env.step({agent: np.zeros(2, np.float32) for agent in env.agents})
+    summary = env.events[-1]
+    assert summary["event"] == "episode_summary" and summary["collisions"] == 2
+    assert base._renderer.collision_events == 2
+    assert len(riskflow_env.events.contact_pairs(base.last_events.collisions)) == 1
