@@ -153,3 +153,12 @@ def test_rows_are_json_without_nan(tiny_run):
     out, _ = tiny_run
     for line in (out / "results.jsonl").read_text().splitlines():
         json.loads(line, parse_constant=lambda name: pytest.fail(f"{name} in results"))
+
+
+def test_cs_rs_markers_on_one_point_are_spread():
+    from policies.evaluation.plots import SPREAD, spread
+
+    placed = spread({"ctg": (0.0, 1.0), "ctgpp": (0.001, 1.0), "idm": (0.7, 0.0)})
+    assert placed["idm"] == (0.7, 0.0)
+    assert placed["ctgpp"][0] - placed["ctg"][0] == pytest.approx(SPREAD)
+    assert placed == spread({"ctg": (0.0, 1.0), "ctgpp": (0.001, 1.0), "idm": (0.7, 0.0)})
