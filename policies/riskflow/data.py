@@ -310,9 +310,9 @@ def load_or_compute_stats(
     ``directory`` inside the installed packages or not writable keeps them in the user
     cache instead (:func:`policies.riskflow.data_cache.derived_dir`).
     """
-    for path in (Path(directory) / STATS_FILENAME, derived_dir(directory) / STATS_FILENAME):
-        if path.is_file():
-            return ActionNormalizer.load(path)
+    path = derived_dir(directory) / STATS_FILENAME
+    if path.is_file():
+        return ActionNormalizer.load(path)
     normalizer = compute_action_stats(dataset)
     path.parent.mkdir(parents=True, exist_ok=True)
     normalizer.save(path)

@@ -58,6 +58,7 @@ from policies.riskflow.evaluate import evaluate
 from policies.riskflow.generator import RiskFlowGenerator
 from policies.riskflow.meanflow import flow_matching_loss, meanflow_loss
 from policies.riskflow.time_sampler import TimeSampler
+from riskflow_env.scenarios.io import require_scenarios
 
 CHECKPOINT, GENERATOR, METRICS_LOG = "checkpoint.pt", "generator.pt", "metrics.jsonl"
 GENERATORS = ("meanflow", "diffusion")
@@ -194,6 +195,12 @@ def train(options: TrainOptions) -> dict[str, Any]:
     device, out = options.device, Path(options.out)
     if options.resume and not (out / CHECKPOINT).is_file():
         raise SystemExit(f"riskflow-train: --resume: no checkpoint at {out / CHECKPOINT}")
+    for flag, folder in (("--data", options.data), ("--val-data", options.val_data)):
+        try:
+            if folder is not None:
+                require_scenarios(folder)
+        except OSError as err:  # missing, a file, no scene files
+            raise SystemExit(f"riskflow-train: {flag}: {err}") from None
     try:
         splits = (options.data, options.val_data, options.val_fraction, options.stride)
         train_set, val_set = load_splits(*splits)

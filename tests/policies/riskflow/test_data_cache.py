@@ -45,3 +45,15 @@ def test_read_only_folders_use_the_user_cache(monkeypatch, tmp_path):
         assert derived_dir(data).is_relative_to(tmp_path / "user-cache")
     finally:
         data.chmod(0o755)
+
+
+def test_the_user_cache_key_follows_the_folder_contents(monkeypatch, tmp_path):
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "user-cache"))
+    monkeypatch.setattr("policies.riskflow.data_cache.PACKAGE_DIRS", (tmp_path,))
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "a.npz").write_bytes(b"one")
+    first = derived_dir(data)
+    assert first.is_relative_to(tmp_path / "user-cache") and derived_dir(data) == first
+    (data / "a.npz").write_bytes(b"three")  # new scenes: new statistics, not stale ones
+    assert derived_dir(data) != first

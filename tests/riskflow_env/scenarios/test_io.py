@@ -238,3 +238,12 @@ def test_pickle_points_to_load_scenarionet(tmp_path):
     path.write_bytes(b"\x80\x04N.")
     with pytest.raises(ScenarioFormatError, match="load_scenarionet"):
         load_scenario(path)
+
+
+def test_bank_errors_name_the_expected_format(tmp_path):
+    pickled = tmp_path / "scene.pkl"
+    pickled.write_bytes(b"\x80\x04N.")
+    with pytest.raises(NotADirectoryError, match=r"is a file.*load_scenarionet"):
+        load_bank(pickled)
+    with pytest.raises(FileNotFoundError, match=r"ScenarioNet pickles.*load_scenarionet"):
+        load_bank(tmp_path)
