@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 from pathlib import Path
 
@@ -81,7 +82,7 @@ def _cs_rs(tables: list[Table], colors: dict, path: Path) -> Path:
                   ncol=legend_columns, frameon=False)  # fmt: skip
     figure.suptitle(
         "CS against RS (up and right is better)\n"
-        f"methods on one point are drawn side by side, {SPREAD} apart in RS",
+        f"markers closer than {SPREAD} are drawn side by side, {SPREAD} apart in RS",
         fontsize=11,
     )
     legend_height = 0.25 * math.ceil(len(handles) / legend_columns) + 0.2  # [inch]
@@ -92,20 +93,32 @@ def _cs_rs(tables: list[Table], colors: dict, path: Path) -> Path:
 
 
 def spread(points: dict[str, tuple[float, float]]) -> dict[str, tuple[float, float]]:
-    """``points`` with each group of near-equal points (within ``SPREAD`` of the group's
-    first) laid side by side in x, ``SPREAD`` apart, centred on that first point; the
-    layout depends only on the points and the labels' order."""
-    groups: list[list[str]] = []
-    for label in points:
-        x, y = points[label]
-        group = next((g for g in groups if math.dist(points[g[0]], (x, y)) < SPREAD), None)
-        group.append(label) if group is not None else groups.append([label])
-    placed = {}
-    for group in groups:
-        x, y = points[group[0]]
-        for i, label in enumerate(group):
-            placed[label] = (x + (i - (len(group) - 1) / 2) * SPREAD, y)
-    return placed
+    """``points`` laid out so that no two markers are closer than ``SPREAD``.
+
+    Markers closer than ``SPREAD`` (after layout) form a group, drawn side by side in x,
+    ``SPREAD`` apart, in the order of their x (then of the labels), centred on the group's
+    mean x, each at its own y; groups that then touch are merged and laid out again. The
+    layout depends only on the points and the labels' order.
+    """
+    order = {label: i for i, label in enumerate(points)}
+    groups = [[label] for label in points]
+    while True:
+        placed = {}
+        for group in groups:
+            group.sort(key=lambda label: (points[label][0], order[label]))
+            centre = sum(points[label][0] for label in group) / len(group)
+            for i, label in enumerate(group):
+                placed[label] = (centre + (i - (len(group) - 1) / 2) * SPREAD, points[label][1])
+        touching = next(
+            ((a, b) for a, b in itertools.combinations(range(len(groups)), 2)
+             if any(math.dist(placed[p], placed[q]) < SPREAD * (1 - 1e-9)
+                    for p in groups[a] for q in groups[b])),
+            None,
+        )  # fmt: skip
+        if touching is None:
+            return {label: placed[label] for label in points}
+        a, b = touching
+        groups[a] += groups.pop(b)
 
 
 def _realism(tables: list[Table], colors: dict, path: Path) -> Path:
