@@ -163,3 +163,22 @@ def test_collision_counter_counts_events_like_the_event_log():
     assert summary["event"] == "episode_summary" and summary["collisions"] == 2
     assert base._renderer.collision_events == 2
     assert len(riskflow_env.events.contact_pairs(base.last_events.collisions)) == 1
+
+
+def test_legend_names_the_labelled_overlays_on_the_frame():
+    env = make_env([(0.0, 0.0, 0.0, 0.0), (10.0, -4.0, 0.0, 0.0)])
+    renderer = SceneRenderer("rgb_array")
+    plans = np.zeros((2, 20, 2))
+    plans[:, :, 0] = np.linspace(0.0, 30.0, 20)
+    renderer.set_overlay("a", plans, mask=[False, True], color=(1, 2, 3), label="base plans")
+    renderer.set_overlay("b", plans, mask=[False, False], color=(4, 5, 6), label="guided plans")
+    assert renderer.legend() == [
+        ("base plans", (1, 2, 3)),  # "guided plans" has nothing to draw: not listed
+        ("collision", render.COLLISION),
+        ("off-road", render.OFFROAD_MARK),
+    ]
+    corner = renderer.render(env)[-80:, :60]  # the legend box, bottom left
+    for color in ((1, 2, 3), render.COLLISION, render.OFFROAD_MARK):
+        assert has_color(corner, color)
+    renderer.clear_overlay("a")
+    assert renderer.legend() == []  # no labelled overlay on the frame: no legend
