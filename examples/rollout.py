@@ -15,8 +15,8 @@ a scenario saved by ``stress_test_planner.py`` replays what happened).
 Prints the events (collisions, off-road excursions) and the metrics; writes to ``--out``
 (default ``outputs/rollout/``): ``rollout.gif`` (or ``.mp4``) with the plans drawn (cyan:
 base plans; purple, haloed vehicles: guided plans of ``A_c``; red: collisions; amber:
-off-road; a legend on the frame), ``events.jsonl`` (the event log, ``read_event_log``
-reads it) and ``metrics.json``.
+off-road; a legend on the frame), ``events.jsonl`` (the event log,
+``riskflow_env.wrappers.read_event_log`` reads it) and ``metrics.json``.
 """
 
 from __future__ import annotations
