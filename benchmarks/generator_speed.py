@@ -21,6 +21,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
+from tqdm import tqdm
 
 from policies.riskflow.config import ModelConfig
 from policies.riskflow.data import ActionNormalizer
@@ -72,7 +73,7 @@ def median_ms(options: Options, *fns: Callable[[], object]) -> list[float]:
             fn()
     sync()
     times: list[list[float]] = [[] for _ in fns]
-    for _ in range(options.repeats):
+    for _ in tqdm(range(options.repeats), "timed repetitions", leave=False):  # stderr
         for fn, samples in zip(fns, times, strict=True):
             start = time.perf_counter()
             fn()

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 import riskflow_env
 from policies.riskflow.config import ModelConfig
@@ -122,7 +123,7 @@ def median_ms(options: Options, fns: dict[str, Callable[[], object]]) -> dict[st
         for fn in fns.values():
             fn()
     times: dict[str, list[float]] = {name: [] for name in fns}
-    for _ in range(options.repeats):
+    for _ in tqdm(range(options.repeats), "timed repetitions", leave=False):  # stderr
         for name, fn in fns.items():
             start = time.perf_counter()
             fn()

@@ -203,9 +203,9 @@ def main(argv: list[str] | None = None) -> None:
     bar = tqdm(total=episodes, desc="episodes", unit="episode")
 
     def advance(label: str) -> None:
-        """``evaluate``'s progress callback: one (planner, traffic, seed) ran every scene."""
+        """``evaluate``'s progress callback: one episode ran."""
         bar.set_postfix_str(label, refresh=False)
-        bar.update(count)
+        bar.update()
 
     results, per_run, paired = {}, {}, []
     for run in runs:
