@@ -15,16 +15,17 @@ Batches are synthetic (``policies.riskflow.synthetic``): speed does not depend o
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
+from tqdm import tqdm
 
 from policies.riskflow.config import ModelConfig
 from policies.riskflow.data import ActionNormalizer
+from policies.riskflow.dataclass_cli import parse_dataclass
 from policies.riskflow.generator import RiskFlowGenerator
 from policies.riskflow.meanflow import flow_matching_loss, meanflow_loss
 from policies.riskflow.sampler import base_velocity
@@ -38,27 +39,26 @@ NORMALIZER = ActionNormalizer(mean=(0.0, 0.0), std=(1.0, 0.03))  # synthetic-dat
 class Options:
     """Benchmark options."""
 
-    device: str = "cpu"  # torch device
-    threads: int = 0  # torch CPU threads; 0 keeps torch's default
-    repeats: int = 30  # timed repetitions per row (the median is reported)
-    warmup: int = 5  # untimed repetitions before each row
-    agents: tuple[int, ...] = (8, 16, 32)  # agent counts of the latency rows
-    train_scenes: int = 16  # scenes per training batch
-    train_agents: int = 16  # agent slots per training scene
+    device: str = "cpu"
+    """torch device"""
+    threads: int = 0
+    """torch CPU threads; 0 keeps torch's default"""
+    repeats: int = 30
+    """timed repetitions per row (the median is reported)"""
+    warmup: int = 5
+    """untimed repetitions before each row"""
+    agents: tuple[int, ...] = (8, 16, 32)
+    """agent counts of the latency rows"""
+    train_scenes: int = 16
+    """scenes per training batch"""
+    train_agents: int = 16
+    """agent slots per training scene"""
 
 
-def _parse() -> Options:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    defaults = Options()
-    parser.add_argument("--device", default=defaults.device)
-    parser.add_argument("--threads", type=int, default=defaults.threads)
-    parser.add_argument("--repeats", type=int, default=defaults.repeats)
-    parser.add_argument("--warmup", type=int, default=defaults.warmup)
-    parser.add_argument("--agents", type=int, nargs="+", default=list(defaults.agents))
-    parser.add_argument("--train-scenes", type=int, default=defaults.train_scenes)
-    parser.add_argument("--train-agents", type=int, default=defaults.train_agents)
-    args = parser.parse_args()
-    return Options(**{**vars(args), "agents": tuple(args.agents)})
+def _parse(argv: list[str] | None = None) -> Options:
+    return parse_dataclass(
+        Options, argv, prog="generator_speed.py", description=__doc__.split("\n")[0]
+    )
 
 
 def median_ms(options: Options, *fns: Callable[[], object]) -> list[float]:
@@ -73,7 +73,7 @@ def median_ms(options: Options, *fns: Callable[[], object]) -> list[float]:
             fn()
     sync()
     times: list[list[float]] = [[] for _ in fns]
-    for _ in range(options.repeats):
+    for _ in tqdm(range(options.repeats), "timed repetitions", leave=False):  # stderr
         for fn, samples in zip(fns, times, strict=True):
             start = time.perf_counter()
             fn()

@@ -20,7 +20,6 @@ shipped checkpoint the default-size model is randomly initialised.
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import time
 from collections.abc import Callable
@@ -28,10 +27,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 import riskflow_env
 from policies.riskflow.config import ModelConfig
 from policies.riskflow.data import ActionNormalizer, collate_windows
+from policies.riskflow.dataclass_cli import parse_dataclass
 from policies.riskflow.encoder import ENCODER_KEYS
 from policies.riskflow.generator import RiskFlowGenerator
 from policies.riskflow.guidance_losses import adversarial_loss
@@ -49,21 +50,26 @@ FALLBACK_NORMALIZER = ActionNormalizer(mean=(-0.11, -0.02), std=(1.09, 0.12))  #
 class Options:
     """Benchmark options."""
 
-    agents: int = 20  # vehicles in the scene (the ego included)
-    k: int = 5  # size of the controllable set A_c
-    guidance_steps: int = 30  # K_g (also the re-sampling peer's sample count)
-    threads: int = 1  # torch CPU threads while planning (0: torch's default)
-    device: str = "cpu"  # torch device
-    repeats: int = 30  # timed cycles per method (the median is reported)
-    warmup: int = 3  # untimed cycles per method first
+    agents: int = 20
+    """vehicles in the scene (the ego included)"""
+    k: int = 5
+    """size of the controllable set A_c"""
+    guidance_steps: int = 30
+    """K_g (also the re-sampling peer's sample count)"""
+    threads: int = 1
+    """torch CPU threads while planning (0: torch's default)"""
+    device: str = "cpu"
+    """torch device"""
+    repeats: int = 30
+    """timed cycles per method (the median is reported)"""
+    warmup: int = 3
+    """untimed cycles per method first"""
 
 
-def _parse() -> Options:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    defaults = Options()
-    for name, value in vars(defaults).items():
-        parser.add_argument(f"--{name.replace('_', '-')}", type=type(value), default=value)
-    return Options(**vars(parser.parse_args()))
+def _parse(argv: list[str] | None = None) -> Options:
+    return parse_dataclass(
+        Options, argv, prog="planning_speed.py", description=__doc__.split("\n")[0]
+    )
 
 
 def load_model(device: str) -> tuple[RiskFlowGenerator, ActionNormalizer, str]:
@@ -117,7 +123,7 @@ def median_ms(options: Options, fns: dict[str, Callable[[], object]]) -> dict[st
         for fn in fns.values():
             fn()
     times: dict[str, list[float]] = {name: [] for name in fns}
-    for _ in range(options.repeats):
+    for _ in tqdm(range(options.repeats), "timed repetitions", leave=False):  # stderr
         for name, fn in fns.items():
             start = time.perf_counter()
             fn()

@@ -21,7 +21,6 @@ may be shared; the best round is the least disturbed one).
 
 from __future__ import annotations
 
-import argparse
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -29,8 +28,10 @@ from dataclasses import dataclass
 import gymnasium
 import highway_env  # noqa: F401 - registers highway-v0
 import numpy as np
+from tqdm import tqdm
 
 import riskflow_env
+from policies.riskflow.dataclass_cli import parse_dataclass
 from riskflow_env import batched
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import HighwayTrafficSource, TrafficConfig, place_traffic
@@ -43,28 +44,21 @@ EPISODE_SECONDS = 10  # [s] episode length of both simulators
 class Options:
     """Benchmark options."""
 
-    seconds: float = 2.0  # timed seconds per simulator, per round and row
-    rounds: int = 3  # interleaved rounds; the best rate of each simulator is reported
-    vehicles: tuple[int, ...] = (8, 16, 32, 64)  # vehicles per scene, ego included
-    batch_agents: tuple[int, ...] = (8, 32)  # agent slots per scene of the batched rows
-    batch_scenes: tuple[int, ...] = (1, 16, 128)  # scenes per batch
+    seconds: float = 2.0
+    """timed seconds per simulator, per round and row"""
+    rounds: int = 3
+    """interleaved rounds; the best rate of each simulator is reported"""
+    vehicles: tuple[int, ...] = (8, 16, 32, 64)
+    """vehicles per scene, ego included"""
+    batch_agents: tuple[int, ...] = (8, 32)
+    """agent slots per scene of the batched rows"""
+    batch_scenes: tuple[int, ...] = (1, 16, 128)
+    """scenes per batch"""
 
 
-def _parse() -> Options:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    defaults = Options()
-    parser.add_argument("--seconds", type=float, default=defaults.seconds)
-    parser.add_argument("--rounds", type=int, default=defaults.rounds)
-    parser.add_argument("--vehicles", type=int, nargs="+", default=list(defaults.vehicles))
-    parser.add_argument("--batch-agents", type=int, nargs="+", default=list(defaults.batch_agents))
-    parser.add_argument("--batch-scenes", type=int, nargs="+", default=list(defaults.batch_scenes))
-    args = parser.parse_args()
-    return Options(
-        seconds=args.seconds,
-        rounds=args.rounds,
-        vehicles=tuple(args.vehicles),
-        batch_agents=tuple(args.batch_agents),
-        batch_scenes=tuple(args.batch_scenes),
+def _parse(argv: list[str] | None = None) -> Options:
+    return parse_dataclass(
+        Options, argv, prog="step_throughput.py", description=__doc__.split("\n")[0]
     )
 
 
@@ -165,12 +159,15 @@ def batched_run(agents: int, scenes: int, observations: bool) -> Callable:
 
 def main() -> None:
     options = _parse()
-    print("PettingZoo API (full observations for every agent) vs highway-env, dt = 0.1 s")
-    print(
+    rows = len(options.vehicles) + 2 * len(options.batch_agents) * len(options.batch_scenes)
+    bar = tqdm(total=rows, desc="benchmark rows", unit="row", leave=False)  # on stderr
+    write = bar.write  # a table line on stdout, above the bar
+    write("PettingZoo API (full observations for every agent) vs highway-env, dt = 0.1 s")
+    write(
         "| vehicles | highway-env vehicle-steps/s | riskflow env steps/s "
         "| riskflow agent-steps/s | ratio |"
     )
-    print("| ---: | ---: | ---: | ---: | ---: |")
+    write("| ---: | ---: | ---: | ---: | ---: |")
     for vehicles in options.vehicles:
         runs = {"highway": highway_env_run(vehicles), "riskflow": riskflow_run(vehicles)}
         best = dict.fromkeys(runs, 0.0)
@@ -178,20 +175,23 @@ def main() -> None:
             for name, run in runs.items():
                 best[name] = max(best[name], rate(run, options.seconds))
         env_steps = best["riskflow"] * runs["riskflow"].steps_per_agent_step
-        print(
+        write(
             f"| {vehicles} | {best['highway']:,.0f} | {env_steps:,.0f} "
             f"| {best['riskflow']:,.0f} | {best['riskflow'] / best['highway']:.1f}x |"
         )
+        bar.update()
 
-    print("\nBatched stepping (riskflow_env.batched, numpy float64, one map per batch)")
-    print("| agents A | scenes B | observations | agent-steps/s |")
-    print("| ---: | ---: | :---: | ---: |")
+    write("\nBatched stepping (riskflow_env.batched, numpy float64, one map per batch)")
+    write("| agents A | scenes B | observations | agent-steps/s |")
+    write("| ---: | ---: | :---: | ---: |")
     for agents in options.batch_agents:
         for scenes in options.batch_scenes:
             for observations in (True, False):
                 run = batched_run(agents, scenes, observations)
                 best = max(rate(run, options.seconds) for _ in range(options.rounds))
-                print(f"| {agents} | {scenes} | {'yes' if observations else 'no'} | {best:,.0f} |")
+                write(f"| {agents} | {scenes} | {'yes' if observations else 'no'} | {best:,.0f} |")
+                bar.update()
+    bar.close()
 
 
 if __name__ == "__main__":

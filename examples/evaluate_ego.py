@@ -29,6 +29,8 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from tqdm import tqdm
+
 from policies.harness import wilson_interval
 from policies.planners import (
     ConstantVelocityPlanner,
@@ -196,9 +198,25 @@ def main(argv: list[str] | None = None) -> None:
         )
     )
     traffics = (adversarial, nominal)
+    runs = [Path(r) for r in options.runs.split(",") if r]
+    baselines = dict(BASELINES) if options.baselines else {}
+    if options.oracle:
+        baselines["oracle"] = lambda seed: OraclePlanner()
+    baseline_seeds = [int(s) for s in options.seeds.split(",") if s]
+    episodes = (
+        len(traffics)
+        * count
+        * (len(runs) * 2 * options.episodes_per_run + len(baselines) * len(baseline_seeds))
+    )
+    bar = tqdm(total=episodes, desc="episodes", unit="episode")
+
+    def advance(label: str) -> None:
+        """``evaluate``'s progress callback: one episode ran."""
+        bar.set_postfix_str(label, refresh=False)
+        bar.update()
 
     results, per_run, paired = {}, {}, []
-    for run in [Path(r) for r in options.runs.split(",") if r]:
+    for run in runs:
         seed, policy = run_options(run)
         seeds = [seed * 100 + i for i in range(options.episodes_per_run)]
         planners = {
@@ -208,7 +226,7 @@ def main(argv: list[str] | None = None) -> None:
                 (f"{options.label}-initial", "initial_model"),
             )
         }
-        records = evaluate(planners, traffics, scenes, seeds, config, progress=print)
+        records = evaluate(planners, traffics, scenes, seeds, config, progress=advance)
         for (name, traffic), episodes in records.items():
             results.setdefault((name, traffic), []).extend(episodes)
             per_run[f"{name} (seed {seed})", traffic] = summarize_ego(episodes)
@@ -218,12 +236,9 @@ def main(argv: list[str] | None = None) -> None:
                 counts = paired_counts(trained, untrained, metric)
                 row = {"planner": options.label, "run": f"seed {seed}", "traffic": traffic.label}
                 paired.append(row | {"metric": metric, **counts})
-    baselines = dict(BASELINES) if options.baselines else {}
-    if options.oracle:
-        baselines["oracle"] = lambda seed: OraclePlanner()
     if baselines:
-        seeds = [int(s) for s in options.seeds.split(",") if s]
-        results |= evaluate(baselines, traffics, scenes, seeds, config, progress=print)
+        results |= evaluate(baselines, traffics, scenes, baseline_seeds, config, progress=advance)
+    bar.close()
 
     summaries = {key: summarize_ego(episodes) for key, episodes in results.items()}
     write_report(summaries, per_run, paired, adversarial.label, options.out)

@@ -14,8 +14,9 @@ a scenario saved by ``stress_test_planner.py`` replays what happened).
 
 Prints the events (collisions, off-road excursions) and the metrics; writes to ``--out``
 (default ``outputs/rollout/``): ``rollout.gif`` (or ``.mp4``) with the plans drawn (cyan:
-base plans; red, haloed vehicles: guided plans of ``A_c``), ``events.jsonl`` (the event
-log, ``riskflow_env.wrappers.read_event_log`` reads it) and ``metrics.json``.
+base plans; purple, haloed vehicles: guided plans of ``A_c``; red: collisions; amber:
+off-road; a legend on the frame), ``events.jsonl`` (the event log,
+``riskflow_env.wrappers.read_event_log`` reads it) and ``metrics.json``.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from policies.riskflow.checkpoint import load_generator
 from policies.riskflow.dataclass_cli import parse_dataclass
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import Scenario, load_scenario, shipped_bank
+from riskflow_env.scenarios.scenarionet import load_scenarionet
 
 VIDEO_FORMATS = ("gif", "mp4", "none")
 TRAFFIC = ("riskflow", "replay")
@@ -43,7 +45,7 @@ class Options:
     """Options of ``rollout.py``."""
 
     scenario: str = "0"
-    """index into the shipped evaluation bank (0-104), or a scenario file (.npz)"""
+    """shipped evaluation bank index (0-104), or a scenario file (.npz or ScenarioNet .pkl)"""
     k: str = "5"
     """size of the controllable set A_c: an int >= 0 (0: unguided generator) or 'all'"""
     planning_interval: float = 0.5
@@ -91,9 +93,18 @@ def load_scene(spec: str) -> Scenario:
         if not 0 <= index < len(bank):
             raise SystemExit(f"--scenario {spec}: the shipped bank has scenes 0-{len(bank) - 1}")
         return bank[index]
-    if not Path(spec).is_file():
+    path = Path(spec)
+    if not path.is_file():
         raise SystemExit(f"--scenario {spec!r}: no such scenario file (or give a bank index)")
-    return load_scenario(spec)
+    suffix = path.suffix.lower()
+    if suffix == ".pkl":
+        return load_scenarionet(path)
+    if suffix != ".npz":
+        raise SystemExit(
+            f"--scenario {spec!r}: unknown scenario format {suffix or '(no suffix)'!r}; expected "
+            "a bank index, a RiskFlow scenario file (.npz) or a ScenarioNet pickle (.pkl)"
+        )
+    return load_scenario(path)
 
 
 def make_traffic(options: Options) -> RiskFlowAdversary | ReplayPolicy:

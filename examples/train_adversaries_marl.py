@@ -36,6 +36,7 @@ from policies.rl.marl import (
     marl_vec_env,
     rollout_ego_collisions,
 )
+from policies.rl.progress import StepProgressBar
 
 
 @dataclass(frozen=True)
@@ -105,7 +106,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     model.set_logger(configure(str(out), ["csv", "stdout"]))
     before = ego_hit_rate(model, options, reward)
-    model.learn(options.total_timesteps)
+    model.learn(options.total_timesteps, callback=StepProgressBar(options.total_timesteps, "PPO"))
     model.save(out / "model")
     after = ego_hit_rate(model, options, reward)
     results = {"untrained": before, "trained": after}

@@ -56,6 +56,7 @@ from policies.riskflow.dataclass_cli import parse_dataclass
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.curriculum import CurriculumCallback, LinearCurriculum, OutcomeCallback
 from policies.rl.envs import EgoEnvConfig, make_env
+from policies.rl.progress import StepProgressBar
 from riskflow_env.config import EnvConfig, RewardConfig
 
 VEC_ENVS = ("subproc", "dummy")
@@ -236,7 +237,11 @@ def train(options: Options) -> Path:
         end=AdversaryStage(options.k_end, options.lambda_adv_end, options.target_end),
         ramp_fraction=options.ramp_fraction,
     )
-    callbacks = [CurriculumCallback(curriculum, options.total_timesteps), OutcomeCallback()]
+    callbacks = [
+        CurriculumCallback(curriculum, options.total_timesteps),
+        OutcomeCallback(),
+        StepProgressBar(options.total_timesteps, "PPO ego"),
+    ]
     if options.checkpoint_every > 0:
         callbacks.append(
             CheckpointCallback(

@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 
+import numpy as np
+
 from riskflow_env._array import Array, namespace
 from riskflow_env.dynamics import YAW
 from riskflow_env.geometry import footprint_points, pairwise_overlap
@@ -44,6 +46,16 @@ class FrameEvents:
     def offroad(self) -> Array:
         """(..., A) bool, at least one footprint sample is off the road."""
         return self.offroad_fraction > 0.0
+
+
+def contact_pairs(collisions: Array) -> set[tuple[int, int]]:
+    """The slot pairs ``(i, j)``, ``i < j``, in contact in one scene's (A, A) ``collisions``.
+
+    A collision *event* is a pair entering this set (absent at the previous step): the
+    event log (``collisions`` of its summary, the harness metric) and the renderer's
+    on-screen counter both count them so.
+    """
+    return {(i, j) for i, j in np.argwhere(np.triu(np.asarray(collisions))).tolist()}
 
 
 def detect(

@@ -9,7 +9,9 @@ SDF, lane centrelines faint), trails (the last ``trail_seconds`` of ``scene.hist
 overlays (polylines pushed by a scene policy, e.g. planned trajectories), vehicles (boxes
 with a heading mark; ego orange with a white outline, others blue, done vehicles grey;
 highlighted agents haloed in their overlay's colour), event markers (collisions: red
-outline and a ring between the pair; off-road: amber outline) and a text line.
+outline and a ring between the pair; off-road: amber outline) and a text line: time, ego
+speed, collision events so far (a pair coming into contact, counted as the event log and
+the harness's ``collisions`` metric count them) and vehicles off the road now.
 
 The view is north-up (world +x right, +y up), centred on the ego (``follow_ego``) or
 fitted to the whole map. The map layer is cached as a tile twice the view's size and
@@ -25,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from riskflow_env.events import contact_pairs
 from riskflow_env.geometry import FRONT, LEFT, RIGHT, box_corners, footprint_points
 
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
@@ -57,7 +60,8 @@ class RenderConfig:
         follow_ego: centre the view on the ego; when False, fit the whole map.
         trail_seconds: trail length [s], at most the history length (3 s).
         show_lanes: draw lane centrelines.
-        show_text: draw the status line (time, ego speed, event counts).
+        show_text: draw the status line (time, ego speed, event counts) and, when a
+            labelled overlay is on the frame, the legend (overlays and event marks).
     """
 
     width_px: int = 640
@@ -82,13 +86,14 @@ class RenderConfig:
 class Overlay:
     """One overlay, as validated by :meth:`SceneRenderer.set_overlay`: ``trajectories``
     (A, T, 2) [m], ``mask`` (A, T) bool, ``colors`` (A, 3) uint8, ``highlight`` slots or
-    names, ``width`` [px]."""
+    names, ``width`` [px], ``label`` (legend entry; empty: none)."""
 
     trajectories: np.ndarray
     mask: np.ndarray
     colors: np.ndarray
     highlight: tuple[int | str, ...]
     width: int
+    label: str = ""
 
 
 class SceneRenderer:
@@ -104,20 +109,29 @@ class SceneRenderer:
             raise ValueError(f"render_mode must be 'rgb_array' or 'human', got {render_mode!r}")
         self.render_mode = render_mode
         self.config = config or RenderConfig()
+        self.collision_events = 0  # collision events since reset (see contact_pairs)
+        self._contacts: set[tuple[int, int]] = set()
         self.overlays: dict[str, Overlay] = {}
         self._surface = pygame.Surface((self.config.width_px, self.config.height_px))
         self._tile: tuple[Any, float, int, int, pygame.Surface] | None = None
         self._font: pygame.font.Font | None = None
+        self._small_font: pygame.font.Font | None = None
         self._window: pygame.Surface | None = None
         self._clock: pygame.time.Clock | None = None
 
     # ------------------------------------------------------------------ hooks
     def reset(self, env: Any) -> None:
-        """New episode: drop the previous episode's overlays."""
+        """New episode: drop the previous episode's overlays, restart the collision count."""
         self.overlays.clear()
+        self._contacts = contact_pairs(env.last_events.collisions)
+        self.collision_events = len(self._contacts)
 
     def record(self, env: Any) -> None:
-        """Called after every step. Trails come from ``scene.history``: nothing to keep."""
+        """Called after every step: counts the collision events (trails come from
+        ``scene.history``)."""
+        contacts = contact_pairs(env.last_events.collisions)
+        self.collision_events += len(contacts - self._contacts)
+        self._contacts = contacts
 
     def set_overlay(
         self,
@@ -127,6 +141,7 @@ class SceneRenderer:
         color: Iterable[int] | np.ndarray = PLAN,
         highlight: Iterable[int | str] = (),
         width: int = 2,
+        label: str = "",
     ) -> None:
         """Draw ``trajectories`` on every frame until replaced, cleared or the env resets.
 
@@ -137,6 +152,8 @@ class SceneRenderer:
             color: (3,) RGB for all agents or (A, 3) per agent, ints in [0, 255].
             highlight: slot indices or agent names to halo (e.g. the controllable set).
             width: line width [px], >= 1.
+            label: legend entry (in the first agent's colour) while the overlay has a
+                point to draw; empty: none.
         """
         points = np.asarray(trajectories, dtype=np.float64)
         if points.ndim != 3 or points.shape[-1] != 2:
@@ -154,7 +171,8 @@ class SceneRenderer:
             raise ValueError(f"color must be (3,) or (A, 3) ints in [0, 255], got {colors!r}")
         if isinstance(width, bool) or not isinstance(width, int) or width < 1:
             raise ValueError(f"width must be an int >= 1 [px], got {width!r}")
-        self.overlays[name] = Overlay(points, valid, colors.astype(np.uint8), (*highlight,), width)
+        colors = colors.astype(np.uint8)
+        self.overlays[name] = Overlay(points, valid, colors, (*highlight,), width, label)
 
     def clear_overlay(self, name: str | None = None) -> None:
         """Remove overlay ``name``, or all overlays when None."""
@@ -221,6 +239,7 @@ class SceneRenderer:
             pygame.draw.circle(self._surface, COLLISION, middle, max(8, scale * 1.2), 3)
         if cfg.show_text:
             self._draw_text(view, events)
+            self._draw_legend()
         return self._surface
 
     def _draw_vehicles(self, view: Any, events: Any, to_px: Any) -> None:
@@ -302,7 +321,8 @@ class SceneRenderer:
         if self._font is None:
             pygame.font.init()
             self._font = pygame.font.Font(None, 22)
-        collisions = int(np.triu(events.collisions).sum())
+            self._small_font = pygame.font.Font(None, 18)
+        collisions = self.collision_events
         text = (
             f"t = {view.step * view.dt:4.1f} s   ego {view.current[0, 2]:4.1f} m/s   "
             f"collisions {collisions}   off-road {int(events.offroad.sum())}"
@@ -312,6 +332,31 @@ class SceneRenderer:
         box.fill((0, 0, 0, 150))
         self._surface.blit(box, (6, 6))
         self._surface.blit(label, (12, 10))
+
+    def legend(self) -> list[tuple[str, Color]]:
+        """(label, colour) of the legend: the labelled overlays with a point to draw, then
+        the collision and off-road marks; empty (no legend) without such an overlay."""
+        entries = {o.label: tuple(o.colors[0].tolist()) for o in self.overlays.values()
+                   if o.label and o.mask.any()}  # fmt: skip
+        if not entries:
+            return []
+        return [*entries.items(), ("collision", COLLISION), ("off-road", OFFROAD_MARK)]
+
+    def _draw_legend(self) -> None:
+        entries = self.legend()
+        if not entries:
+            return
+        rows = [(self._small_font.render(text, True, TEXT), color) for text, color in entries]
+        line = max(label.get_height() for label, _ in rows) + 2
+        box = pygame.Surface((max(label.get_width() for label, _ in rows) + 38,
+                              line * len(rows) + 8), pygame.SRCALPHA)  # fmt: skip
+        box.fill((0, 0, 0, 150))
+        top = self.config.height_px - box.get_height() - 6
+        self._surface.blit(box, (6, top))
+        for i, (label, color) in enumerate(rows):
+            y = top + 4 + i * line
+            pygame.draw.line(self._surface, color, (12, y + line // 2), (30, y + line // 2), 3)
+            self._surface.blit(label, (36, y))
 
 
 def _map_colors(sdf_px: np.ndarray) -> np.ndarray:

@@ -61,6 +61,7 @@ def main(path: Path = FRAME) -> None:
         mask=view.present,
         color=(215, 215, 215),
         width=1,
+        label="straight plans",
     )
     mask = np.zeros(view.num_agents, bool)
     mask[controllable] = True
@@ -70,6 +71,7 @@ def main(path: Path = FRAME) -> None:
         mask=mask,
         color=(205, 90, 255),
         highlight=controllable.tolist(),
+        label="guided plans (A_c, haloed)",
     )
     iio.imwrite(path, renderer.render(env))
     print(f"wrote {path}")

@@ -58,15 +58,23 @@ def parser() -> argparse.ArgumentParser:
     return parser
 
 
+def report_parser() -> argparse.ArgumentParser:
+    """The parser of ``riskflow-eval report``."""
+    report = argparse.ArgumentParser(
+        prog=f"{PROG} report", formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    report.add_argument("--out", required=True, help="results folder of a riskflow-eval run")
+    report.add_argument("--no-plots", action="store_true", help="tables only")
+    return report
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of ``riskflow-eval``."""
     argv = list(sys.argv[1:] if argv is None else argv)
     from policies.evaluation.report import write_report  # after argv: --help stays fast
 
     if argv[:1] == ["report"]:
-        report = argparse.ArgumentParser(prog=f"{PROG} report")
-        report.add_argument("--out", required=True, help="results folder of a riskflow-eval run")
-        report.add_argument("--no-plots", action="store_true", help="tables only")
+        report = report_parser()
         args = report.parse_args(argv[1:])
         try:
             print(f"wrote {write_report(args.out, plots=not args.no_plots)}")

@@ -1,14 +1,17 @@
 """The report's PNG plots (matplotlib, Agg backend).
 
-* ``cs_rs_T<interval>.png``: CS against RS, one panel per K (each table's own CS / RS);
+* ``cs_rs_T<interval>.png``: CS against RS, one panel per K (each table's own CS / RS),
+  three panels a row; methods on (nearly) the same point are drawn side by side
+  (:func:`spread`) so that none hides another;
 * ``realism_vs_horizon_K<k>.png``: raw realism metrics (ORR, ADE, FDE, KDD, WOSAC)
-  against the planning interval, one line per method;
+  against the planning interval (the time between re-plans), one line per method;
 * ``speed.png``: mean rollout time and mean planning-cycle time per method, at K=5,
   T=0.5 s when present (else the first table), log scale.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from pathlib import Path
 
@@ -24,6 +27,7 @@ REALISM_PANELS = (
 )  # fmt: skip
 SPEED_TABLE = (5, 0.5)
 MARKERS = "osD^vP*Xh<>"
+SPREAD = 0.05  # RS distance between markers of methods on (nearly) the same point
 
 
 def _colors(labels: list[str]) -> dict[str, tuple]:
@@ -51,41 +55,91 @@ def write_plots(tables: list[Table], out: Path) -> list[Path]:
 
 
 def _cs_rs(tables: list[Table], colors: dict, path: Path) -> Path:
-    figure, axes = plt.subplots(1, len(tables), figsize=(4 * len(tables) + 2.5, 4), squeeze=False)
-    for axis, table in zip(axes[0], tables, strict=True):
-        for label, values in table.metrics.items():
-            rs, cs = values["rs"], values["cs"]
-            if math.isnan(rs) or math.isnan(cs):
-                continue
-            index = list(colors).index(label)
-            axis.scatter(rs, cs, color=colors[label], s=60, alpha=0.85, label=label,
-                         marker=MARKERS[index % len(MARKERS)])  # fmt: skip
+    columns = min(3, len(tables))
+    rows = math.ceil(len(tables) / columns)
+    width = max(4.6 * columns, 7.5)
+    figure, axes = plt.subplots(rows, columns, figsize=(width, 4.2 * rows + 1.6), squeeze=False)
+    labels = list(colors)
+    for axis, table in zip(axes.flat, tables, strict=False):
+        points = {
+            label: (values["rs"], values["cs"])
+            for label, values in table.metrics.items()
+            if not (math.isnan(values["rs"]) or math.isnan(values["cs"]))
+        }
+        for label, (rs, cs) in spread(points).items():
+            index = labels.index(label)
+            marker = MARKERS[index % len(MARKERS)]
+            axis.scatter(rs, cs, s=55, facecolors="none", edgecolors=colors[label],
+                         linewidths=1.6, label=label, marker=marker)  # fmt: skip
         axis.set(title=table.title, xlabel="RS (realism)", ylabel="CS (safety-criticality)",
-                 xlim=(-0.1, 1.15), ylim=(-0.1, 1.15))  # fmt: skip
+                 xlim=(-0.15, 1.15), ylim=(-0.1, 1.1))  # fmt: skip
         axis.grid(alpha=0.3)
-    handles = {h.get_label(): h for a in axes[0] for h in a.collections}
-    figure.legend(handles.values(), handles.keys(), loc="center right", fontsize=8)
-    figure.suptitle("CS against RS (up and right is better)")
-    figure.tight_layout(rect=(0, 0, 0.8, 1))
+    for axis in axes.flat[len(tables) :]:
+        axis.set_visible(False)
+    handles = {h.get_label(): h for a in axes.flat for h in a.collections}
+    legend_columns = max(1, min(4, int(width // 3.2)))
+    figure.legend(handles.values(), handles.keys(), loc="lower center", fontsize=9,
+                  ncol=legend_columns, frameon=False)  # fmt: skip
+    figure.suptitle(
+        "CS against RS (up and right is better)\n"
+        f"markers closer than {SPREAD} are drawn side by side, {SPREAD} apart in RS",
+        fontsize=11,
+    )
+    legend_height = 0.25 * math.ceil(len(handles) / legend_columns) + 0.2  # [inch]
+    figure.tight_layout(rect=(0, legend_height / figure.get_figheight(), 1, 1))
     figure.savefig(path, dpi=110)
     plt.close(figure)
     return path
 
 
+def spread(points: dict[str, tuple[float, float]]) -> dict[str, tuple[float, float]]:
+    """``points`` laid out so that no two markers are closer than ``SPREAD``.
+
+    Markers closer than ``SPREAD`` (after layout) form a group, drawn side by side in x,
+    ``SPREAD`` apart, in the order of their x (then of the labels), centred on the group's
+    mean x, each at its own y; groups that then touch are merged and laid out again. The
+    layout depends only on the points and the labels' order.
+    """
+    order = {label: i for i, label in enumerate(points)}
+    groups = [[label] for label in points]
+    while True:
+        placed = {}
+        for group in groups:
+            group.sort(key=lambda label: (points[label][0], order[label]))
+            centre = sum(points[label][0] for label in group) / len(group)
+            for i, label in enumerate(group):
+                placed[label] = (centre + (i - (len(group) - 1) / 2) * SPREAD, points[label][1])
+        touching = next(
+            ((a, b) for a, b in itertools.combinations(range(len(groups)), 2)
+             if any(math.dist(placed[p], placed[q]) < SPREAD * (1 - 1e-9)
+                    for p in groups[a] for q in groups[b])),
+            None,
+        )  # fmt: skip
+        if touching is None:
+            return {label: placed[label] for label in points}
+        a, b = touching
+        groups[a] += groups.pop(b)
+
+
 def _realism(tables: list[Table], colors: dict, path: Path) -> Path:
-    figure, axes = plt.subplots(1, len(REALISM_PANELS), figsize=(3.3 * len(REALISM_PANELS), 3.4))
+    figure, axes = plt.subplots(2, 3, figsize=(13, 7.5))
     tables = sorted(tables, key=lambda t: t.interval or 0.0)
-    for axis, (key, name) in zip(axes, REALISM_PANELS, strict=True):
+    for axis, (key, name) in zip(axes.flat, REALISM_PANELS, strict=False):
         for label in colors:
             points = [(t.interval or 0.0, t.metrics[label][key]) for t in tables
                       if label in t.metrics and not math.isnan(t.metrics[label][key])]  # fmt: skip
             if points:
                 x, y = zip(*points, strict=True)
-                axis.plot(x, y, "o-", color=colors[label], label=label)
-        axis.set(title=name, xlabel="planning interval [s]")
+                index = list(colors).index(label)
+                axis.plot(x, y, "-", marker=MARKERS[index % len(MARKERS)], color=colors[label],
+                          label=label)  # fmt: skip
+        axis.set(title=name, xlabel="planning interval T (re-plan every T s)")
         axis.grid(alpha=0.3)
-    axes[0].legend(fontsize=7)
-    figure.suptitle(f"Realism against the planning horizon, K={_name(tables[0].k)}")
+    legend = axes.flat[-1]
+    legend.axis("off")
+    handles, names = axes.flat[0].get_legend_handles_labels()
+    legend.legend(handles, names, loc="center", fontsize=10, frameon=False)
+    figure.suptitle(f"Realism against the planning interval, K={_name(tables[0].k)}")
     figure.tight_layout()
     figure.savefig(path, dpi=110)
     plt.close(figure)

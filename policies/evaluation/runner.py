@@ -26,6 +26,7 @@ from policies.evaluation.results import ResultsStore
 from policies.evaluation.rollout import run_job
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.processes import exit_with_parent
+from riskflow_env.scenarios import ScenarioFormatError
 
 
 def check_methods(jobs: list[Job], dt: float = DynamicsConfig().dt) -> None:
@@ -78,7 +79,7 @@ def prepare(options: EvalOptions) -> tuple[ResultsStore, list[Job]]:
     store = ResultsStore(options.out)
     try:
         scenes = load_scenes(options.data, options.scenes)
-    except FileNotFoundError as err:
+    except (OSError, ScenarioFormatError) as err:  # missing, a file, not a scene file
         raise ValueError(f"--data: {err}") from err
     jobs = plan_jobs(options, scenes)
     check_methods(jobs)

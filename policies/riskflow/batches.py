@@ -1,10 +1,11 @@
 """Training batches: the train / validation split, cached windows, seeded batch order.
 
 Windows come from ``WindowDataset`` (``docs/WINDOWS.md``), cached as ``.npz`` under the
-scene folder's ``cache/``. The batch order of an epoch is a pure function of (seed,
-epoch), so a resumed run sees the same batches as an uninterrupted one; batches are
-drawn from pools sorted by agent count, which halves the padding (and the step time:
-20.8 against 10.4 windows/s on the validation bank, 19 against 30 agent slots).
+scene folder's ``cache/`` (the user cache for the shipped bank: ``data_cache``). The
+batch order of an epoch is a pure function of (seed, epoch), so a resumed run sees the
+same batches as an uninterrupted one; batches are drawn from pools sorted by agent count,
+which halves the padding (and the step time: 20.8 against 10.4 windows/s on the
+validation bank, 19 against 30 agent slots).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 import torch
 
 from policies.riskflow.data import WindowDataset, collate_windows
+from policies.riskflow.data_cache import derived_dir
 from riskflow_env.scenarios.io import list_scenarios, load_scenario
 
 
@@ -23,6 +25,9 @@ def load_splits(
     data: Path, val_data: Path | None, val_fraction: float, stride: int
 ) -> tuple[WindowDataset, WindowDataset]:
     """Training and validation windows, cached under ``<folder>/cache/``.
+
+    A folder inside the installed packages or not writable keeps its cache in the user
+    cache instead (:func:`policies.riskflow.data_cache.derived_dir`).
 
     Args:
         data: scene folder (``riskflow-data generate``) of the training split.
@@ -33,12 +38,14 @@ def load_splits(
         stride: steps between windows of a scene (``WindowDataset``).
     """
     name = f"windows-stride{stride}"
+    caches = {}
     for folder in (data, val_data):
         if folder is not None:
-            (folder / "cache").mkdir(parents=True, exist_ok=True)
+            caches[folder] = derived_dir(folder) / "cache"
+            caches[folder].mkdir(parents=True, exist_ok=True)
     if val_data is not None:
         train, val = (
-            WindowDataset(folder, None, stride, folder / "cache" / f"{name}.npz")
+            WindowDataset(folder, None, stride, caches[folder] / f"{name}.npz")
             for folder in (data, val_data)
         )
         return train, val
@@ -52,7 +59,7 @@ def load_splits(
     datasets = []
     for role, part in (("train", order[count:]), ("val", order[:count])):
         scenes = [load_scenario(paths[i]) for i in sorted(part)]
-        cache = data / "cache" / f"{name}-val{val_fraction:g}-{role}.npz"
+        cache = caches[data] / f"{name}-val{val_fraction:g}-{role}.npz"
         datasets.append(WindowDataset(scenes, None, stride, cache))
     return datasets[0], datasets[1]
 

@@ -7,8 +7,8 @@ made; they are packed into a few flat arrays (agents of all windows end to end),
 rebuilt when the scenes, the config or the stride change.
 
 Normalisation statistics (per-channel mean and std of the valid ``actions``) are computed
-once over the training split and kept as ``norm_stats.json`` beside the data
-(:func:`load_or_compute_stats`).
+once over the training split and kept as ``norm_stats.json`` beside the data, or in the
+user cache for the shipped bank (:func:`load_or_compute_stats`, ``data_cache``).
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from policies.riskflow.data_cache import derived_dir
 from riskflow_env._array import Array, asarray_like
 from riskflow_env.dynamics import ACTION_DIM
 from riskflow_env.scenarios.scenario import Scenario
@@ -305,9 +306,11 @@ def load_or_compute_stats(
 ) -> ActionNormalizer:
     """``directory/norm_stats.json`` if present, else computed over ``dataset`` and saved.
 
-    Pass the training split: the statistics are computed once and then reused.
+    Pass the training split: the statistics are computed once and then reused. A
+    ``directory`` inside the installed packages or not writable keeps them in the user
+    cache instead (:func:`policies.riskflow.data_cache.derived_dir`).
     """
-    path = Path(directory) / STATS_FILENAME
+    path = derived_dir(directory) / STATS_FILENAME
     if path.is_file():
         return ActionNormalizer.load(path)
     normalizer = compute_action_stats(dataset)

@@ -1,9 +1,10 @@
 """Command lines generated from a frozen options dataclass (CleanRL style, no extra dependency).
 
 Each field becomes ``--field-name``; its type (``int``, ``float``, ``str``, ``Path``,
-``X | None``) parses the value, ``bool`` fields become ``--x / --no-x``, fields without
-a default are required, and the help text is the field's attribute docstring (the
-string literal written under it)::
+``X | None``) parses the value, ``tuple[X, ...]`` fields take several values, ``bool``
+fields become ``--x / --no-x``, fields without a default are required, and the help
+text is the field's attribute docstring (the string literal written under it),
+followed by the default::
 
     @dataclass(frozen=True)
     class Options:
@@ -55,6 +56,8 @@ def dataclass_parser(cls: type, prog: str, description: str = "") -> argparse.Ar
             kwargs["default"] = field.default
         if hint is bool:
             kwargs["action"] = argparse.BooleanOptionalAction
+        elif typing.get_origin(hint) is tuple:
+            kwargs.update(nargs="+", type=typing.get_args(hint)[0])
         else:  # X or X | None
             kwargs["type"] = next(
                 a for a in typing.get_args(hint) or (hint,) if a is not type(None)
@@ -68,7 +71,8 @@ def parse_dataclass(
 ) -> T:
     """Parse ``argv`` (``sys.argv[1:]`` if None) into an instance of the dataclass ``cls``."""
     parser = dataclass_parser(cls, prog or cls.__name__, description)
+    values = vars(parser.parse_args(argv))
     try:
-        return cls(**vars(parser.parse_args(argv)))
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
     except ValueError as err:
         parser.error(str(err))

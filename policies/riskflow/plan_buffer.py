@@ -361,13 +361,16 @@ class PlanBufferPolicy(ABC):
             return
         others = self.plan_mask & ~self.controllable
         prefix = self.overlay_prefix
-        renderer.set_overlay(f"{prefix}_base", self.plans[..., :2], others, BASE_COLOR)
+        renderer.set_overlay(
+            f"{prefix}_base", self.plans[..., :2], others, BASE_COLOR, label="base plans"
+        )
         renderer.set_overlay(
             f"{prefix}_guided",
             self.plans[..., :2],
             self.controllable,
             GUIDED_COLOR,
             highlight=tuple(int(i) for i in np.flatnonzero(self.controllable)),
+            label="guided plans (A_c, haloed)",
         )
 
 

@@ -22,7 +22,8 @@ made a step 20x slower). Validation (``evaluate.evaluate``) runs every
 EMA, optimiser, step and random state, so the result equals an uninterrupted run on
 the CPU); ``OUT/generator.pt`` is the same without the training state, the file to
 ship; ``OUT/metrics.jsonl`` logs training and validation metrics. Windows are cached
-in ``DATA/cache/`` and the action statistics in ``DATA/norm_stats.json``.
+in ``DATA/cache/`` and the action statistics in ``DATA/norm_stats.json``; for the shipped
+bank (or a read-only ``DATA``) both go to the user cache (``policies.riskflow.data_cache``).
 
 ``--generator diffusion`` trains the DDPM denoiser of the CTG / CTG++ / CCDiff-style
 baselines in this same loop (same network, data, EMA and validation; objective and
@@ -57,6 +58,7 @@ from policies.riskflow.evaluate import evaluate
 from policies.riskflow.generator import RiskFlowGenerator
 from policies.riskflow.meanflow import flow_matching_loss, meanflow_loss
 from policies.riskflow.time_sampler import TimeSampler
+from riskflow_env.scenarios.io import require_scenarios
 
 CHECKPOINT, GENERATOR, METRICS_LOG = "checkpoint.pt", "generator.pt", "metrics.jsonl"
 GENERATORS = ("meanflow", "diffusion")
@@ -193,6 +195,12 @@ def train(options: TrainOptions) -> dict[str, Any]:
     device, out = options.device, Path(options.out)
     if options.resume and not (out / CHECKPOINT).is_file():
         raise SystemExit(f"riskflow-train: --resume: no checkpoint at {out / CHECKPOINT}")
+    for flag, folder in (("--data", options.data), ("--val-data", options.val_data)):
+        try:
+            if folder is not None:
+                require_scenarios(folder)
+        except OSError as err:  # missing, a file, no scene files
+            raise SystemExit(f"riskflow-train: {flag}: {err}") from None
     try:
         splits = (options.data, options.val_data, options.val_fraction, options.stride)
         train_set, val_set = load_splits(*splits)
@@ -270,7 +278,9 @@ def train(options: TrainOptions) -> dict[str, Any]:
     started = time.perf_counter()
     budget = 60.0 * options.time_budget_min if options.time_budget_min > 0 else math.inf
     interval = 0.5 if sys.stderr.isatty() else 30.0  # [s]: a log file gets few lines
-    bar = tqdm(options.steps, "riskflow-train", initial=step, unit="step", mininterval=interval)
+    bar = tqdm(
+        total=options.steps, desc="riskflow-train", initial=step, unit="step", mininterval=interval
+    )
     sums: dict[str, list[float]] = {}
     epoch, batches = -1, np.zeros((0, options.batch_size), dtype=np.int64)
     with (out / METRICS_LOG).open("a") as log:

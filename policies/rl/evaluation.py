@@ -194,7 +194,8 @@ def evaluate(
         seeds: seeds of the adversary's noise and of the random planner.
         config: env configuration (default: the library's, 10 s episodes ending at an
             ego collision or off-road).
-        progress: called with a label after each (planner, traffic, seed).
+        progress: called after each episode with its label (planner, traffic, seed),
+            e.g. a tqdm bar's update.
 
     Returns:
         ``{(planner name, traffic label): records}`` in (seed, scene) order.
@@ -211,8 +212,8 @@ def evaluate(
                 with ClosedLoop(planner, others, config) as loop:
                     for scene in scenes:
                         records.append(loop.run(scene, seed=seed))
-                if progress is not None:
-                    progress(f"{name} vs {traffic.label}, seed {seed}")
+                        if progress is not None:
+                            progress(f"{name} vs {traffic.label}, seed {seed}")
     return results
 
 

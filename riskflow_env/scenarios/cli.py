@@ -181,25 +181,37 @@ def info(directory: Path) -> dict[str, int]:
     return dict(counts)
 
 
-def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="riskflow-data", description=__doc__.split("\n")[0])
+def build_parser() -> argparse.ArgumentParser:
+    """The ``riskflow-data`` parser (subcommands ``generate`` and ``info``)."""
+    formatter = argparse.ArgumentDefaultsHelpFormatter
+    parser = argparse.ArgumentParser(
+        prog="riskflow-data", description=__doc__.split("\n")[0], formatter_class=formatter
+    )
     commands = parser.add_subparsers(dest="command", required=True)
-    gen = commands.add_parser("generate", help="record highway-env IDM/MOBIL scenes")
-    gen.add_argument("--out", type=Path, required=True, help="folder of the bank")
-    gen.add_argument("--families", nargs="+", choices=FAMILIES, default=list(FAMILIES))
-    gen.add_argument("--scenes", type=int, default=100, help="number of scenes")
+    gen = commands.add_parser(
+        "generate", help="record highway-env IDM/MOBIL scenes", formatter_class=formatter
+    )
+    gen.add_argument("--out", type=Path, required=True, help="folder of the bank (scenes, maps/)")
+    gen.add_argument("--families", nargs="+", choices=FAMILIES, default=list(FAMILIES),
+                     help="road families, assigned round-robin to scene indices")  # fmt: skip
+    gen.add_argument("--scenes", type=int, default=100, help="number of scenes in the bank")
     gen.add_argument("--seed", type=int, default=0, help="root seed")
-    gen.add_argument("--split", choices=tuple(SPLIT_KEYS), default="train")
-    gen.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes")
-    gen.add_argument("--future-steps", type=int, default=100, help="future steps per scene")
-    show = commands.add_parser("info", help="count the scenes of a bank per family")
-    show.add_argument("directory", type=Path)
+    gen.add_argument("--split", choices=tuple(SPLIT_KEYS), default="train",
+                     help="separate seed streams for train and eval banks")  # fmt: skip
+    gen.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+                     help="worker processes (results do not depend on it)")  # fmt: skip
+    gen.add_argument("--future-steps", type=int, default=100,
+                     help="reference future per scene [steps of 0.1 s]")  # fmt: skip
+    show = commands.add_parser(
+        "info", help="count the scenes of a bank per family", formatter_class=formatter
+    )
+    show.add_argument("directory", type=Path, help="folder of the bank")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``riskflow-data`` console script."""
-    args = _parser().parse_args(argv)
+    args = build_parser().parse_args(argv)
     if args.command == "info":
         info(args.directory)
         return 0

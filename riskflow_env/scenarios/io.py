@@ -154,8 +154,15 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
         FileNotFoundError: no such file (or its referenced map file is missing).
         ScenarioFormatError: wrong schema or version, missing keys, wrong shapes or
             dtypes, NaN/inf at valid steps, or an invalid map; the message names the file.
+            A ``.pkl`` file (a ScenarioNet pickle) is refused with a pointer to
+            :func:`riskflow_env.scenarios.scenarionet.load_scenarionet`.
     """
     path = Path(path)
+    if path.suffix.lower() == ".pkl":
+        raise ScenarioFormatError(
+            f"{path}: load_scenario reads RiskFlow .npz scenario files; for a ScenarioNet "
+            "pickle use riskflow_env.scenarios.scenarionet.load_scenarionet(path)"
+        )
     arrays = read_npz(path, SCHEMA)
     if "map_ref" in arrays:
         check_arrays(path, arrays, {**_SCENE_KEYS, **_REF_KEYS})
@@ -277,19 +284,44 @@ def map_hash(arrays: dict[str, np.ndarray]) -> str:
 
 
 def list_scenarios(directory: str | os.PathLike) -> list[Path]:
-    """Sorted paths of the scene files (``*.npz``) directly in ``directory``."""
+    """Sorted paths of the scene files (``*.npz``) directly in ``directory``.
+
+    Raises:
+        FileNotFoundError: ``directory`` does not exist.
+        NotADirectoryError: ``directory`` is a file (the message names the loader of one
+            file: :func:`load_scenario` for ``.npz``, ``load_scenarionet`` for ``.pkl``).
+    """
     directory = Path(directory)
+    if directory.is_file():
+        raise NotADirectoryError(
+            f"{directory} is a file, not a scenario directory (a folder of .npz scene files "
+            f"written by riskflow-data generate); {_ONE_FILE}"
+        )
     if not directory.is_dir():
         raise FileNotFoundError(f"scenario directory {directory} does not exist")
     return sorted(path for path in directory.glob("*.npz") if path.is_file())
 
 
-def load_bank(directory: str | os.PathLike) -> ScenarioBank:
-    """All scenes of ``directory`` (see :func:`list_scenarios`) as a :class:`ScenarioBank`."""
+def require_scenarios(directory: str | os.PathLike) -> list[Path]:
+    """:func:`list_scenarios`, and FileNotFoundError when ``directory`` holds no scene file
+    (the message says when it holds ScenarioNet pickles instead)."""
     paths = list_scenarios(directory)
     if not paths:
-        raise FileNotFoundError(f"no scenario files (*.npz) in {directory}")
-    return ScenarioBank([load_scenario(path) for path in paths])
+        pickles = any(Path(directory).glob("*.pkl"))
+        hint = f": it holds ScenarioNet pickles (*.pkl); {_ONE_FILE}" if pickles else ""
+        raise FileNotFoundError(f"no scenario files (*.npz) in {directory}{hint}")
+    return paths
+
+
+def load_bank(directory: str | os.PathLike) -> ScenarioBank:
+    """All scenes of ``directory`` (see :func:`require_scenarios`) as a :class:`ScenarioBank`."""
+    return ScenarioBank([load_scenario(path) for path in require_scenarios(directory)])
+
+
+_ONE_FILE = (
+    "load one scene with riskflow_env.scenarios.load_scenario (.npz) or "
+    "riskflow_env.scenarios.scenarionet.load_scenarionet (ScenarioNet .pkl)"
+)
 
 
 def shipped_bank(split: str = "eval") -> ScenarioBank:

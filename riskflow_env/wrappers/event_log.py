@@ -54,6 +54,7 @@ import shapely
 from pettingzoo.utils import BaseParallelWrapper
 
 from riskflow_env.dynamics import SPEED, YAW
+from riskflow_env.events import contact_pairs
 from riskflow_env.geometry import box_corners
 
 
@@ -224,7 +225,7 @@ class EventRecorder:
             self.begin(view.scenario.name)
         self._step, self._dt, self._names = view.step, view.dt, view.agent_names
         names = self._names
-        pairs = {tuple(p) for p in np.argwhere(np.triu(events.collisions)).tolist()}
+        pairs = contact_pairs(events.collisions)
         for pair in sorted(set(self._collisions) - pairs):
             self._end_collision(pair, "separated", self._step)
         for i, j in sorted(pairs - set(self._collisions)):

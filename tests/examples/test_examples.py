@@ -125,3 +125,24 @@ def test_my_planner_returns_bounded_actions(monkeypatch):
         observation[0] = abs(observation[0])
         accel, yaw_rate = module.my_planner(observation, None)
         assert -8.0 <= accel <= 5.0 and abs(yaw_rate) <= 1.0
+
+
+def _example(name: str, monkeypatch):
+    """Import ``examples/<name>.py`` as a module (its dataclasses find their module)."""
+    spec = importlib.util.spec_from_file_location(f"example_{name}", EXAMPLES / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, spec.name, module)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_rollout_scenario_formats(monkeypatch, tmp_path):
+    rollout = _example("rollout", monkeypatch)
+    pickled = tmp_path / "toy.pkl"
+    pickled.write_bytes(b"")
+    monkeypatch.setattr(rollout, "load_scenarionet", lambda path: ("scenarionet", path))
+    assert rollout.load_scene(str(pickled)) == ("scenarionet", pickled)
+    other = tmp_path / "scene.json"
+    other.write_text("{}")
+    with pytest.raises(SystemExit, match=r"--scenario .*\.npz.*\.pkl"):
+        rollout.load_scene(str(other))

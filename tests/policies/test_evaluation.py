@@ -153,3 +153,30 @@ def test_rows_are_json_without_nan(tiny_run):
     out, _ = tiny_run
     for line in (out / "results.jsonl").read_text().splitlines():
         json.loads(line, parse_constant=lambda name: pytest.fail(f"{name} in results"))
+
+
+def test_cs_rs_markers_on_one_point_are_spread():
+    from policies.evaluation.plots import SPREAD, spread
+
+    placed = spread({"ctg": (0.0, 1.0), "ctgpp": (0.001, 1.0), "idm": (0.7, 0.0)})
+    assert placed["idm"] == (0.7, 0.0)
+    assert placed["ctgpp"][0] - placed["ctg"][0] == pytest.approx(SPREAD)
+    assert placed == spread({"ctg": (0.0, 1.0), "ctgpp": (0.001, 1.0), "idm": (0.7, 0.0)})
+
+
+def test_cs_rs_markers_never_overlap_after_the_spread():
+    """A row of methods at CS = 1 (the K=10 panel of docs/results/ksweep): chains of near
+    points are laid out as one group, so no marker lands on another group's."""
+    import itertools
+    import math
+
+    from policies.evaluation.plots import SPREAD, spread
+
+    rs = {"ccdiff": 0.09, "ctg": 0.13, "ctgpp": 0.168, "riskflow": 0.192, "strive": 0.23}
+    placed = spread({label: (x, 1.0) for label, x in rs.items()} | {"bits": (0.48, 0.75)})
+    for a, b in itertools.combinations(placed, 2):
+        assert math.dist(placed[a], placed[b]) >= SPREAD - 1e-12, (a, b)
+    assert [label for label, _ in sorted(placed.items(), key=lambda kv: kv[1][0])][:5] == [
+        *rs
+    ]  # the order along RS is kept
+    assert placed["bits"] == (0.48, 0.75)

@@ -145,3 +145,40 @@ def test_no_renderer_without_render_mode():
     env = make_env([(0.0, 0.0, 10.0, 0.0)])
     env.step({"ego": np.zeros(2)})
     assert env._renderer is None  # nothing drawn on the hot path
+
+
+def test_collision_counter_counts_events_like_the_event_log():
+    """A car drives through the standing ego (contact, then apart), then into a parked car:
+    2 collision events, whatever is in contact on the last frame."""
+    from riskflow_env.wrappers import EventLogWrapper
+
+    vehicles = [(0.0, 0.0, 0.0, 0.0), (-10.0, 0.0, 20.0, 0.0), (12.0, 0.0, 0.0, 0.0)]
+    env = EventLogWrapper(make_env(vehicles, render_mode="rgb_array", steps=12))
+    env.reset(seed=0)
+    base = env.unwrapped
+    base.render()
+    while env.agents:
+        env.step({agent: np.zeros(2, np.float32) for agent in env.agents})
+    summary = env.events[-1]
+    assert summary["event"] == "episode_summary" and summary["collisions"] == 2
+    assert base._renderer.collision_events == 2
+    assert len(riskflow_env.events.contact_pairs(base.last_events.collisions)) == 1
+
+
+def test_legend_names_the_labelled_overlays_on_the_frame():
+    env = make_env([(0.0, 0.0, 0.0, 0.0), (10.0, -4.0, 0.0, 0.0)])
+    renderer = SceneRenderer("rgb_array")
+    plans = np.zeros((2, 20, 2))
+    plans[:, :, 0] = np.linspace(0.0, 30.0, 20)
+    renderer.set_overlay("a", plans, mask=[False, True], color=(1, 2, 3), label="base plans")
+    renderer.set_overlay("b", plans, mask=[False, False], color=(4, 5, 6), label="guided plans")
+    assert renderer.legend() == [
+        ("base plans", (1, 2, 3)),  # "guided plans" has nothing to draw: not listed
+        ("collision", render.COLLISION),
+        ("off-road", render.OFFROAD_MARK),
+    ]
+    corner = renderer.render(env)[-80:, :60]  # the legend box, bottom left
+    for color in ((1, 2, 3), render.COLLISION, render.OFFROAD_MARK):
+        assert has_color(corner, color)
+    renderer.clear_overlay("a")
+    assert renderer.legend() == []  # no labelled overlay on the frame: no legend

@@ -154,3 +154,32 @@ def test_batch_order_is_seeded_and_buckets_agent_counts():
     spread = np.ptp(agents[order], axis=1).mean()
     plain = np.ptp(agents[batch_order(agents, 4, 1, seed=1, epoch=2)], axis=1).mean()
     assert spread < 0.5 * plain, (spread, plain)
+
+
+def test_bad_data_folders_name_the_argument(banks, tmp_path, tiny_config):
+    pickled = tmp_path / "scene.pkl"
+    pickled.write_bytes(b"")
+    args = tiny_args(banks, tmp_path / "run", tiny_config)
+    args[args.index("--data") + 1] = str(pickled)
+    with pytest.raises(SystemExit, match=r"--data: .*is a file.*load_scenarionet"):
+        train_main(args)
+    args = tiny_args(banks, tmp_path / "run", tiny_config)
+    args[args.index("--val-data") + 1] = str(tmp_path / "missing")
+    with pytest.raises(SystemExit, match=r"--val-data: .*does not exist"):
+        train_main(args)
+
+
+def test_training_on_the_shipped_bank_writes_nothing_into_the_package(
+    monkeypatch, tmp_path, tiny_config
+):
+    """Window caches and norm_stats.json of the installed bank go to the user cache."""
+    from policies.riskflow.data_cache import CACHE_ENV
+    from riskflow_env.scenarios.io import ASSETS
+
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "user-cache"))
+    before = sorted(ASSETS.rglob("*"))
+    args = tiny_args((ASSETS / "train", None), tmp_path / "run", tiny_config, steps=1)
+    del args[args.index("--val-data") : args.index("--val-data") + 2]
+    assert train_main([*args, "--stride", "80"]) == 0
+    assert sorted(ASSETS.rglob("*")) == before
+    assert list((tmp_path / "user-cache").rglob("norm_stats.json"))

@@ -231,3 +231,19 @@ def test_missing_or_altered_map_file(tmp_path):
         np.savez(handle, **header, **arrays)
     with pytest.raises(ScenarioFormatError, match="differs from the referenced"):
         load_map(map_path, expected_hash="0123456789abcdef")
+
+
+def test_pickle_points_to_load_scenarionet(tmp_path):
+    path = tmp_path / "scene.pkl"
+    path.write_bytes(b"\x80\x04N.")
+    with pytest.raises(ScenarioFormatError, match="load_scenarionet"):
+        load_scenario(path)
+
+
+def test_bank_errors_name_the_expected_format(tmp_path):
+    pickled = tmp_path / "scene.pkl"
+    pickled.write_bytes(b"\x80\x04N.")
+    with pytest.raises(NotADirectoryError, match=r"is a file.*load_scenarionet"):
+        load_bank(pickled)
+    with pytest.raises(FileNotFoundError, match=r"ScenarioNet pickles.*load_scenarionet"):
+        load_bank(tmp_path)

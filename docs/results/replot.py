@@ -1,0 +1,59 @@
+"""Redraw the CS-RS and realism plots of the committed result folders from their report.md.
+
+    python docs/results/replot.py docs/results/ksweep docs/results/horizon docs/results/ablation
+
+``riskflow-eval report`` needs the per-rollout KDD samples, which are not committed
+(docs/RESULTS.md); the metric tables of ``report.md`` hold every value these plots show
+(rounded to 3 decimals). ``speed.png`` and ``report.md`` are left as they are.
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+from pathlib import Path
+
+from policies.evaluation.plots import _colors, _cs_rs, _name, _realism
+from policies.evaluation.report import METRIC_COLUMNS, Table
+
+HEADING = re.compile(r"^## K=(\S+), T=(\S+?)(?: s)? \((\d+) scenes")
+
+
+def tables_from_report(path: Path) -> list[Table]:
+    """The metric tables of a ``report.md`` (timings left empty)."""
+    tables, lines = [], path.read_text().splitlines()
+    for number, line in enumerate(lines):
+        match = HEADING.match(line)
+        if not match:
+            continue
+        k, interval, scenes = match.groups()
+        metrics = {}
+        for row in lines[number + 4 :]:
+            if not row.startswith("|"):
+                break
+            cells = [cell.strip() for cell in row.strip("|").split("|")]
+            values = [float("nan") if c == "n/a" else float(c) for c in cells[2:]]
+            metrics[cells[0]] = dict(zip((key for key, _ in METRIC_COLUMNS), values, strict=True))
+        k_value = None if k == "-" else k if k == "all" else int(k)
+        tables.append(Table(k_value, None if interval == "-" else float(interval), int(scenes),
+                            metrics, {}))  # fmt: skip
+    return tables
+
+
+def replot(folder: Path) -> list[Path]:
+    tables = tables_from_report(folder / "report.md")
+    colors = _colors(sorted({label for table in tables for label in table.metrics}))
+    files = []
+    for interval in dict.fromkeys(table.interval for table in tables):
+        group = [t for t in tables if t.interval == interval]
+        files.append(_cs_rs(group, colors, folder / f"cs_rs_T{_name(interval)}.png"))
+    for k in dict.fromkeys(table.k for table in tables):
+        group = [t for t in tables if t.k == k]
+        if len(group) > 1:  # a line needs several intervals
+            files.append(_realism(group, colors, folder / f"realism_vs_horizon_K{_name(k)}.png"))
+    return files
+
+
+if __name__ == "__main__":
+    for argument in sys.argv[1:]:
+        print("\n".join(str(path) for path in replot(Path(argument))))

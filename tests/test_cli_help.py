@@ -1,0 +1,73 @@
+"""Every option of every command line (examples, benchmarks, console scripts) has help text
+that shows its default."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+from policies.evaluation.cli import parser as eval_parser
+from policies.evaluation.cli import report_parser
+from policies.riskflow.dataclass_cli import dataclass_parser
+from policies.riskflow.train import TrainOptions
+from riskflow_env.scenarios.cli import build_parser as data_parser
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPTS = sorted(
+    str(path.relative_to(ROOT)) for folder in ("examples", "benchmarks")
+    for path in (ROOT / folder).glob("*.py")
+)  # fmt: skip
+NEEDS_RL = ("examples/train_ego_ppo.py", "examples/train_adversaries_marl.py")
+
+
+def _script_parser(relative: str, monkeypatch) -> argparse.ArgumentParser:
+    if relative in NEEDS_RL:
+        pytest.importorskip("stable_baselines3", reason="the rl extra is not installed")
+    path = ROOT / relative
+    spec = importlib.util.spec_from_file_location(f"cli_help_{path.stem}", path)
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, spec.name, module)  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return dataclass_parser(module.Options, path.name)
+
+
+def _actions(parser: argparse.ArgumentParser):
+    """(parser, action) of every option and positional, subcommands included."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                yield from _actions(sub)
+        elif not isinstance(action, argparse._HelpAction):
+            yield parser, action
+
+
+def _check(parser: argparse.ArgumentParser) -> None:
+    for owner, action in _actions(parser):
+        name = "/".join(action.option_strings) or action.dest
+        assert action.help and action.help.strip(), f"{owner.prog} {name}: no help text"
+        if action.option_strings and not action.required:
+            shown = owner._get_formatter()._get_help_string(action)
+            assert "%(default)" in shown, f"{owner.prog} {name}: the default is not shown"
+
+
+@pytest.mark.parametrize("relative", SCRIPTS)
+def test_script_options_have_help_and_defaults(relative, monkeypatch):
+    _check(_script_parser(relative, monkeypatch))
+
+
+@pytest.mark.parametrize(
+    "build",
+    [
+        data_parser,
+        lambda: dataclass_parser(TrainOptions, "riskflow-train"),
+        eval_parser,
+        report_parser,
+    ],
+    ids=["riskflow-data", "riskflow-train", "riskflow-eval", "riskflow-eval report"],
+)
+def test_console_script_options_have_help_and_defaults(build):
+    _check(build())
