@@ -97,14 +97,15 @@ def load_scene(spec: str) -> Scenario:
     if not path.is_file():
         raise SystemExit(f"--scenario {spec!r}: no such scenario file (or give a bank index)")
     suffix = path.suffix.lower()
-    if suffix == ".pkl":
-        return load_scenarionet(path)
-    if suffix != ".npz":
+    if suffix not in (".npz", ".pkl"):
         raise SystemExit(
             f"--scenario {spec!r}: unknown scenario format {suffix or '(no suffix)'!r}; expected "
             "a bank index, a RiskFlow scenario file (.npz) or a ScenarioNet pickle (.pkl)"
         )
-    return load_scenario(path)
+    try:
+        return load_scenarionet(path) if suffix == ".pkl" else load_scenario(path)
+    except (ValueError, KeyError, OSError) as err:  # a file of that suffix it cannot read
+        raise SystemExit(f"--scenario {spec!r}: {err}") from None
 
 
 def make_traffic(options: Options) -> RiskFlowAdversary | ReplayPolicy:

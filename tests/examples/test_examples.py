@@ -146,3 +146,7 @@ def test_rollout_scenario_formats(monkeypatch, tmp_path):
     other.write_text("{}")
     with pytest.raises(SystemExit, match=r"--scenario .*\.npz.*\.pkl"):
         rollout.load_scene(str(other))
+    broken = tmp_path / "broken.npz"
+    broken.write_bytes(b"not a zip")
+    with pytest.raises(SystemExit, match=r"--scenario .*broken\.npz"):
+        rollout.load_scene(str(broken))

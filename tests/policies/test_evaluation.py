@@ -180,3 +180,12 @@ def test_cs_rs_markers_never_overlap_after_the_spread():
         *rs
     ]  # the order along RS is kept
     assert placed["bits"] == (0.48, 0.75)
+
+
+def test_data_that_is_not_a_scene_folder_names_the_argument(tmp_path, capsys):
+    pickled = tmp_path / "scene.pkl"
+    pickled.write_bytes(b"")
+    with pytest.raises(SystemExit):
+        main(["--data", str(pickled), "--methods", "idm", "--out", str(tmp_path / "out")])
+    error = capsys.readouterr().err
+    assert "--data:" in error and "is a file" in error and "load_scenarionet" in error
