@@ -1,7 +1,7 @@
 """One 10 s closed-loop episode: the IDM ego planner against the RiskFlow adversary.
 
-    python examples/rollout.py                          # shipped scene 0, K = 5
-    python examples/rollout.py --scenario 12 --k all --target ego --video mp4
+    python examples/rollout.py                          # shipped scene 0, K = 5, target ego
+    python examples/rollout.py --scenario 12 --k all --target others --video mp4
     python examples/rollout.py --scenario outputs/stress_test/worst/00-merge-eval-s0-00001.npz \\
         --traffic replay                                # watch a saved scenario again
 
@@ -50,8 +50,8 @@ class Options:
     """size of the controllable set A_c: an int >= 0 (0: unguided generator) or 'all'"""
     planning_interval: float = 0.5
     """time between re-plans of the adversary [s], a multiple of 0.1 s"""
-    target: str = "others"
-    """what A_c is pulled toward: 'others' (the paper's) or 'ego' (stress testing)"""
+    target: str = "ego"
+    """what A_c is pulled toward: 'ego' (stress testing the ego) or 'others' (the paper's)"""
     seed: int = 0
     """noise seed of the adversary (same seed, same rollout)"""
     out: Path = Path("outputs/rollout")
