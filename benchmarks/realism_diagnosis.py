@@ -22,9 +22,9 @@ Curved roads are the roundabout, racetrack, U-turn and intersection families.
 
 from __future__ import annotations
 
-import argparse
 import time
 from collections import Counter
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -32,6 +32,7 @@ from policies.baselines import NominalGenerator
 from policies.harness import ClosedLoop
 from policies.planners import IDMPlanner
 from policies.riskflow.checkpoint import load_generator
+from policies.riskflow.dataclass_cli import parse_dataclass
 from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import SPEED, YAW
 from riskflow_env.geometry import footprint_points, pairwise_overlap
@@ -159,17 +160,27 @@ def report(result: dict) -> str:
     return "\n".join(lines)
 
 
+@dataclass(frozen=True)
+class Options:
+    """Benchmark options."""
+
+    scenes: int = 21
+    """first N scenes of the shipped evaluation bank (1 to 105)"""
+    checkpoint: str | None = None
+    """generator checkpoint (default: the shipped one)"""
+    seed: int = 0
+    """noise seed of the generator"""
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.scenes <= 105:
+            raise ValueError(f"--scenes must be in [1, 105], got {self.scenes}")
+
+
 def main(argv: list[str] | None = None) -> str:
     """Entry point: run, print and return the tables."""
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    args = parse_dataclass(
+        Options, argv, prog="realism_diagnosis.py", description=__doc__.split("\n")[0]
     )
-    parser.add_argument("--scenes", type=int, default=21, help="first N eval scenes (<= 105)")
-    parser.add_argument("--checkpoint", default=None, help="generator (default: the shipped one)")
-    parser.add_argument("--seed", type=int, default=0, help="noise seed of the generator")
-    args = parser.parse_args(argv)
-    if not 1 <= args.scenes <= 105:
-        parser.error(f"--scenes must be in [1, 105], got {args.scenes}")
     start = time.perf_counter()
     text = report(diagnose(args.scenes, args.checkpoint, args.seed))
     print(text)

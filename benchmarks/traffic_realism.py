@@ -30,7 +30,7 @@ every scene)::
 
 from __future__ import annotations
 
-import argparse
+import dataclasses
 import json
 import multiprocessing
 import os
@@ -38,6 +38,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -45,6 +46,7 @@ import numpy as np
 from policies.evaluation.options import SHIPPED, EvalOptions, Job, run_config
 from policies.evaluation.registry import method_spec
 from policies.evaluation.rollout import rollout_episode
+from policies.riskflow.dataclass_cli import parse_dataclass
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.metrics import (
     KinematicSamples,
@@ -80,51 +82,53 @@ COLUMNS = (  # (key, header, format)
 )
 
 
-def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+@dataclass(frozen=True)
+class Options:
+    """Benchmark options."""
+
+    checkpoint: tuple[str, ...] = (str(SHIPPED_CHECKPOINT),)
+    """generator checkpoints, one row each (named by the file)"""
+    baselines: tuple[str, ...] = BASELINES
+    """reference methods of riskflow-eval measured in the same run"""
+    bank: str | None = None
+    """scenario directory; default: the shipped evaluation bank"""
+    scenes: int = 14
+    """number of scenes, spread evenly over the road families"""
+    full: bool = False
+    """every scene of the bank"""
+    seeds: tuple[int, ...] = (0,)
+    """rollout seeds"""
+    duration: float = 10.0
+    """[s] episode length"""
+    interval: float = 0.5
+    """[s] planning interval of the generator"""
+    ego: str = "idm"
+    """ego planner (riskflow-eval --ego)"""
+    device: str = "cpu"
+    """torch device of the generator"""
+    workers: int = 1
+    """worker processes (spawned, one torch thread each)"""
+    out: str | None = None
+    """write the rows as JSON to this file"""
+
+    def __post_init__(self) -> None:
+        if self.scenes < 1 or self.workers < 1:
+            raise ValueError(
+                f"--scenes and --workers must be >= 1, got {self.scenes} and {self.workers}"
+            )
+        if not self.duration > 0 or not self.interval > 0:
+            raise ValueError(
+                f"--duration and --interval must be > 0, got {self.duration} and {self.interval}"
+            )
+        for path in self.checkpoint:
+            if not Path(path).is_file():
+                raise ValueError(f"--checkpoint: no file {path}")
+
+
+def parse_args(argv: Sequence[str] | None = None) -> Options:
+    return parse_dataclass(
+        Options, argv, prog="traffic_realism.py", description=__doc__.split("\n\n")[0]
     )
-    parser.add_argument(
-        "--checkpoint",
-        nargs="+",
-        default=[str(SHIPPED_CHECKPOINT)],
-        help="generator checkpoints, one row each (named by the file)",
-    )
-    parser.add_argument(
-        "--baselines",
-        nargs="*",
-        default=list(BASELINES),
-        help="reference methods of riskflow-eval measured in the same run",
-    )
-    parser.add_argument(
-        "--bank", default=None, help="scenario directory; default: the shipped evaluation bank"
-    )
-    parser.add_argument(
-        "--scenes",
-        type=int,
-        default=14,
-        help="number of scenes, spread evenly over the road families",
-    )
-    parser.add_argument("--full", action="store_true", help="every scene of the bank")
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="rollout seeds")
-    parser.add_argument("--duration", type=float, default=10.0, help="[s] episode length")
-    parser.add_argument(
-        "--interval", type=float, default=0.5, help="[s] planning interval of the generator"
-    )
-    parser.add_argument("--ego", default="idm", help="ego planner (riskflow-eval --ego)")
-    parser.add_argument("--device", default="cpu", help="torch device of the generator")
-    parser.add_argument(
-        "--workers", type=int, default=1, help="worker processes (spawned, one torch thread each)"
-    )
-    parser.add_argument("--out", default=None, help="write the rows as JSON to this file")
-    args = parser.parse_args(argv)
-    if args.scenes < 1 or args.workers < 1:
-        parser.error("--scenes and --workers must be >= 1")
-    for path in args.checkpoint:
-        if not Path(path).is_file():
-            parser.error(f"--checkpoint: no file {path}")
-    return args
 
 
 def pick_scenes(scenes: Sequence[Scenario], count: int) -> list[int]:
@@ -199,7 +203,7 @@ def summarise(label: str, results: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def _jobs(args: argparse.Namespace, scenes: Sequence[Scenario], picked: list[int]) -> list[Job]:
+def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[Job]:
     base = run_config(EvalOptions(data=args.bank, ego=args.ego, duration=args.duration))
     period = round(args.interval / DynamicsConfig().dt)  # steps per planning cycle
     base |= {"wosac": True, "device": args.device, "period": period}
@@ -268,12 +272,12 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     scenes = [bank[i] for i in range(len(bank))]
     picked = list(range(len(scenes))) if args.full else pick_scenes(scenes, args.scenes)
     if args.bank is None:
-        args.bank = SHIPPED
+        args = dataclasses.replace(args, bank=SHIPPED)
     jobs = _jobs(args, scenes, picked)
     dt = DynamicsConfig().dt
-    config = {"bank": args.bank, "scenes": [scenes[i].name for i in picked], "seeds": args.seeds,
+    config = {"bank": args.bank, "scenes": [scenes[i].name for i in picked], "seeds": list(args.seeds),
               "duration_s": args.duration, "interval_s": args.interval, "dt": dt, "ego": args.ego,
-              "checkpoints": args.checkpoint}  # fmt: skip
+              "checkpoints": list(args.checkpoint)}  # fmt: skip
     print(f"{len(picked)} scenes ({len({scenes[i].family for i in picked})} families) x "
           f"{len(args.seeds)} seeds x {len(jobs) // max(len(picked) * len(args.seeds), 1)} "
           f"methods, {args.duration:g} s closed loop, {args.ego} ego", file=sys.stderr)  # fmt: skip

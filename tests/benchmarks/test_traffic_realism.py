@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import sys
 import json
 from pathlib import Path
 
@@ -14,6 +15,7 @@ SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "traffic_realism.p
 def _module():
     spec = importlib.util.spec_from_file_location("traffic_realism", SCRIPT)
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its Options dataclass looks its module up
     spec.loader.exec_module(module)
     return module
 
