@@ -37,8 +37,8 @@ import os
 import sys
 import time
 from collections.abc import Sequence
-from pathlib import Path
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -275,8 +275,8 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
         args = dataclasses.replace(args, bank=SHIPPED)
     jobs = _jobs(args, scenes, picked)
     dt = DynamicsConfig().dt
-    config = {"bank": args.bank, "scenes": [scenes[i].name for i in picked], "seeds": list(args.seeds),
-              "duration_s": args.duration, "interval_s": args.interval, "dt": dt, "ego": args.ego,
+    config = {"bank": args.bank, "scenes": [scenes[i].name for i in picked],
+              "seeds": list(args.seeds), "duration_s": args.duration, "interval_s": args.interval, "dt": dt, "ego": args.ego,
               "checkpoints": list(args.checkpoint)}  # fmt: skip
     print(f"{len(picked)} scenes ({len({scenes[i].family for i in picked})} families) x "
           f"{len(args.seeds)} seeds x {len(jobs) // max(len(picked) * len(args.seeds), 1)} "
