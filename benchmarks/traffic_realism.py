@@ -275,9 +275,16 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
         args = dataclasses.replace(args, bank=SHIPPED)
     jobs = _jobs(args, scenes, picked)
     dt = DynamicsConfig().dt
-    config = {"bank": args.bank, "scenes": [scenes[i].name for i in picked],
-              "seeds": list(args.seeds), "duration_s": args.duration, "interval_s": args.interval, "dt": dt, "ego": args.ego,
-              "checkpoints": list(args.checkpoint)}  # fmt: skip
+    config = {
+        "bank": args.bank,
+        "scenes": [scenes[i].name for i in picked],
+        "seeds": list(args.seeds),
+        "duration_s": args.duration,
+        "interval_s": args.interval,
+        "dt": dt,
+        "ego": args.ego,
+        "checkpoints": list(args.checkpoint),
+    }
     print(f"{len(picked)} scenes ({len({scenes[i].family for i in picked})} families) x "
           f"{len(args.seeds)} seeds x {len(jobs) // max(len(picked) * len(args.seeds), 1)} "
           f"methods, {args.duration:g} s closed loop, {args.ego} ego", file=sys.stderr)  # fmt: skip
