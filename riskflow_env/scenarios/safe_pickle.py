@@ -1,5 +1,11 @@
 """A restricted unpickler for data files: builtin containers and numpy arrays only.
 
+Containers: the builtin ones, ``collections.OrderedDict`` and
+``collections.defaultdict`` with a builtin factory (``list``, ``int``, ``dict``...;
+ScenarioNet / MetaDrive write ``defaultdict(int)`` into
+``metadata["number_summary"]``). The builtin types are reachable only as such a
+factory: calling one from a file is refused.
+
 ``pickle.load`` runs whatever callable a file names, so loading a pickle from
 elsewhere can execute arbitrary code. :func:`load_data_pickle` resolves only the
 globals in :data:`ALLOWED_GLOBALS` and raises ``ValueError`` naming any other one,
@@ -23,6 +29,7 @@ size), :data:`MAX_ARRAY_BYTES` (one array or byte string built by a call),
 
 from __future__ import annotations
 
+import _compat_pickle
 import builtins
 import codecs
 import collections
@@ -65,6 +72,45 @@ class _NdarrayRef:
 
 
 _NDARRAY = _NdarrayRef()
+
+
+class _BuiltinType:
+    """Stand-in for a builtin type (``list``, ``int``...): a ``defaultdict`` factory only.
+
+    ``collections.defaultdict(list)`` pickles as a reference to ``builtins.list``;
+    calling the plain type from a file could amplify (``list`` of a long string), so
+    the token refuses every call and :func:`_default_dict` swaps in the real type."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        raise _Refused(f"calling builtins.{self.name} is refused (only a defaultdict factory)")
+
+    def __reduce__(self) -> Any:  # pragma: no cover - never pickled back
+        raise TypeError("not picklable")
+
+
+# builtin types a ScenarioNet / MetaDrive file may name as a ``defaultdict`` factory
+# (metadrive's ScenarioDescription writes ``defaultdict(int)`` in
+# ``metadata["number_summary"]``); tokens, never called.
+_FACTORY_NAMES = ("list", "int", "float", "dict", "str", "tuple", "bool")
+_FACTORY_TOKENS = {name: _BuiltinType(name) for name in _FACTORY_NAMES}
+
+
+def _default_dict(factory: Any = None, *args: Any) -> collections.defaultdict:
+    """``collections.defaultdict(factory)`` for a builtin factory (or None) only; the
+    items arrive afterwards through the pickle's SETITEMS."""
+    if args:
+        raise _Refused("collections.defaultdict with initial items in its call is refused")
+    if isinstance(factory, _BuiltinType):
+        factory = getattr(builtins, factory.name)
+    elif factory not in (None, set, frozenset, complex):
+        raise _Refused(
+            f"collections.defaultdict factory {type(factory).__name__} is refused "
+            f"(allowed: None or builtins {', '.join(_FACTORY_NAMES)}, set, frozenset, complex)"
+        )
+    return collections.defaultdict(factory)
 
 
 class _DtypeSpec:
@@ -217,7 +263,9 @@ class RestrictedUnpickler(pickle.Unpickler):
             **{("builtins", name): getattr(builtins, name) for name in _PLAIN_BUILTINS},
             ("builtins", "bytearray"): sized(bytearray),
             ("builtins", "bytes"): sized(bytes),
+            **{("builtins", name): token for name, token in _FACTORY_TOKENS.items()},
             ("collections", "OrderedDict"): collections.OrderedDict,
+            ("collections", "defaultdict"): _default_dict,
             ("_codecs", "encode"): encode,
             ("numpy", "ndarray"): _NDARRAY,
             ("numpy", "dtype"): _DtypeSpec,
@@ -228,9 +276,12 @@ class RestrictedUnpickler(pickle.Unpickler):
 
     def find_class(self, module: str, name: str) -> Any:
         """The allowed object ``module.name``; ValueError for anything else."""
-        module = {"__builtin__": "builtins"}.get(module, module)  # protocol 0-2 name
+        # Python 2 names (protocols 0-2 write ``__builtin__.long`` for ``int``), mapped as
+        # pickle's own find_class does; the result is still looked up in the allowlist
+        key = _compat_pickle.NAME_MAPPING.get((module, name), (module, name))
+        key = (_compat_pickle.IMPORT_MAPPING.get(key[0], key[0]), key[1])
         try:
-            return self._globals[(module, name)]
+            return self._globals[key]
         except KeyError:
             raise ValueError(
                 f"{self.source}: refusing to unpickle disallowed global '{module}.{name}'; "
@@ -250,9 +301,10 @@ _PLAIN_BUILTINS = ("set", "frozenset", "complex")
 #: (module, name): every global a data pickle may refer to (each through a checked
 #: stand-in where the plain object could allocate without bound or address memory).
 ALLOWED_GLOBALS: frozenset[tuple[str, str]] = frozenset(
-    {("builtins", name) for name in _PLAIN_BUILTINS + ("bytearray", "bytes")}
+    {("builtins", name) for name in _PLAIN_BUILTINS + ("bytearray", "bytes") + _FACTORY_NAMES}
     | {
         ("collections", "OrderedDict"),
+        ("collections", "defaultdict"),
         ("_codecs", "encode"),
         ("numpy", "ndarray"),
         ("numpy", "dtype"),
@@ -279,6 +331,8 @@ def _finish(root: Any) -> Any:
             return obj.dtype
         if obj is _NDARRAY:
             raise _Refused("a bare numpy.ndarray reference is refused")
+        if isinstance(obj, _BuiltinType):
+            raise _Refused(f"a bare builtins.{obj.name} reference is refused")
         if not isinstance(obj, (dict, list, tuple, set, frozenset)):
             return obj
         if id(obj) in done:
@@ -291,6 +345,8 @@ def _finish(root: Any) -> Any:
         done[id(obj)] = obj  # mutable containers are fixed in place (cycles end here)
         if isinstance(obj, dict):
             for key, value in obj.items():
+                if isinstance(key, (_BuiltinType, _NdarrayRef)):
+                    raise _Refused("a type reference as a dict key is refused")
                 obj[key] = visit(value, depth + 1)
         elif isinstance(obj, list):
             for index, value in enumerate(obj):
