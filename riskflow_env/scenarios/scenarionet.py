@@ -38,6 +38,7 @@ import numpy as np
 from riskflow_env.dynamics import wrap_angle
 from riskflow_env.scenarios.safe_pickle import load_data_pickle
 from riskflow_env.scenarios.scenario import Scenario
+from riskflow_env.scenarios.scenarionet_features import feature_bounds
 from riskflow_env.scenarios.scenarionet_map import build_map
 from riskflow_env.state import HISTORY_STEPS
 
@@ -46,6 +47,8 @@ MIN_FUTURE_STEPS = 100  # reference future padded to at least this many steps (1
 VEHICLE = "VEHICLE"
 MAX_STEPS = 20_000  # [0.1 s] longest recording after resampling to 10 Hz (2000 s)
 DEFAULT_SIZE = (4.5, 2.0)  # [m] (length, width) of tracks that give none
+ROLLOUT_SECONDS = 10.0  # [s] closed-loop episode the cropped map must leave room for
+CROP_MARGIN_RANGE = (50.0, 200.0)  # [m] bounds on the automatic crop margin
 
 
 def load_scenarionet(
@@ -54,6 +57,8 @@ def load_scenarionet(
     current_index: int | None = None,
     min_future_steps: int = MIN_FUTURE_STEPS,
     margin: float = 5.0,
+    crop: bool = True,
+    crop_margin: float | None = None,
 ) -> Scenario:
     """Load one ScenarioNet / MetaDrive scenario-description pickle as a :class:`Scenario`.
 
@@ -66,6 +71,11 @@ def load_scenarionet(
             current one; default ``history_steps - 1`` = 30 (3 s of history).
         min_future_steps: the reference future has at least this many steps [0.1 s].
         margin: off-road border around the road [m].
+        crop: crop the map to the logged vehicles' bounding box plus ``crop_margin``;
+            False builds the map of the whole recording area.
+        crop_margin: [m] >= 0 added on every side of the vehicles' bounding box; None:
+            the distance covered in :data:`ROLLOUT_SECONDS` at the 95th percentile of
+            the logged vehicle speeds, clipped to :data:`CROP_MARGIN_RANGE`.
 
     Returns:
         A Scenario named ``"scenarionet/<scenario id>"`` with ``dt`` 0.1 s.
@@ -75,7 +85,14 @@ def load_scenarionet(
         raise FileNotFoundError(f"load_scenarionet: no such file {path}")
     description = load_data_pickle(path)
     return scenario_from_description(
-        description, resolution, current_index, min_future_steps, margin, source=str(path)
+        description,
+        resolution,
+        current_index,
+        min_future_steps,
+        margin,
+        source=str(path),
+        crop=crop,
+        crop_margin=crop_margin,
     )
 
 
@@ -86,6 +103,8 @@ def scenario_from_description(
     min_future_steps: int = MIN_FUTURE_STEPS,
     margin: float = 5.0,
     source: str = "<description>",
+    crop: bool = True,
+    crop_margin: float | None = None,
 ) -> Scenario:
     """:func:`load_scenarionet` for an already loaded description dict."""
     for key in ("tracks", "map_features", "metadata"):
@@ -118,12 +137,18 @@ def scenario_from_description(
     if len(times) != len(grid) or not np.allclose(times, grid, atol=1e-6):
         xy, heading, velocity, valid = _resample(times, grid, xy, heading, velocity, valid)
     speed = np.linalg.norm(velocity, axis=-1) if velocity is not None else _speed_from_xy(xy, valid)
+    coverage = feature_bounds(description["map_features"])
+    if coverage is not None:  # beyond the map data nothing is known: not a logged off-road
+        valid = valid & _inside(xy, coverage)
 
     now = HISTORY_STEPS - 1 if current_index is None else int(current_index)
     if not 0 <= now < len(grid):
         raise ValueError(f"current_index must be in [0, {len(grid)}) for {source}, got {now}")
     if not valid[0, now]:
-        raise ValueError(f"{source}: the SDC {sdc!r} is not valid at current_index {now}")
+        raise ValueError(
+            f"{source}: the SDC {sdc!r} is not valid at current_index {now} (no logged state, "
+            "or a position beyond the map features' extent)"
+        )
     future = max(len(grid) - now - 1, int(min_future_steps))
     index = now - (HISTORY_STEPS - 1) + np.arange(HISTORY_STEPS + future)
     inside = (index >= 0) & (index < len(grid))
@@ -140,8 +165,15 @@ def scenario_from_description(
     length, width = size[keep, 0], size[keep, 1]
     name = str(metadata.get("scenario_id", metadata.get("id", description.get("id", ""))))
     all_xy = xy[valid]
+    region = _crop_region(all_xy, speed[valid], crop_margin, source) if crop else None
     drivable_map = build_map(
-        description["map_features"], resolution, margin, f"scenarionet/{name}", all_xy, source
+        description["map_features"],
+        resolution,
+        margin,
+        f"scenarionet/{name}",
+        all_xy,
+        source,
+        region=region,
     )
     return Scenario(
         map=drivable_map,
@@ -155,6 +187,26 @@ def scenario_from_description(
         dt=DT,
         history_steps=HISTORY_STEPS,
     )
+
+
+def _crop_region(
+    xy: np.ndarray, speed: np.ndarray, crop_margin: float | None, source: str
+) -> tuple[float, float, float, float]:
+    """(xmin, ymin, xmax, ymax) [m]: the box of the valid vehicle positions ``xy`` (P, 2)
+    grown by ``crop_margin`` (None: see :func:`load_scenarionet`)."""
+    if crop_margin is None:
+        reach = ROLLOUT_SECONDS * float(np.percentile(speed, 95)) if speed.size else 0.0
+        crop_margin = float(np.clip(reach, *CROP_MARGIN_RANGE))
+    elif not (np.isfinite(crop_margin) and crop_margin >= 0):
+        raise ValueError(f"crop_margin must be a finite number >= 0 [m], got {crop_margin!r}")
+    low, high = xy.min(axis=0) - crop_margin, xy.max(axis=0) + crop_margin
+    return float(low[0]), float(low[1]), float(high[0]), float(high[1])
+
+
+def _inside(xy: np.ndarray, box: tuple[float, float, float, float]) -> np.ndarray:
+    """(...) bool: points ``xy`` (..., 2) [m] inside ``box`` (xmin, ymin, xmax, ymax)."""
+    x, y = xy[..., 0], xy[..., 1]
+    return (x >= box[0]) & (x <= box[2]) & (y >= box[1]) & (y <= box[3])
 
 
 def _stack_tracks(states: list, ids: list[str], source: str) -> tuple:

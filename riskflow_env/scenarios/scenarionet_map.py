@@ -1,23 +1,32 @@
 """Drivable maps from ScenarioNet / MetaDrive ``map_features``.
 
-Lanes are the features whose type starts with ``LANE`` (bike lanes excepted). The
-drivable area is, in order of preference:
+Feature types, lane widths and surfaces are read as each ScenarioNet converter writes
+them (:mod:`~riskflow_env.scenarios.scenarionet_features`). The drivable area is, in
+order of preference:
 
 1. the lanes' ``polygon`` outlines where they have one, plus the surfaces of the lanes
    without one (centreline offset by +-width/2, :func:`~riskflow_env.maps.road_polygons`;
-   nuScenes lane connectors have no polygon), plus ``DRIVEWAY`` polygons, plus the
-   area enclosed (even-odd) by closed road lines with ids ``boundary_<k>``: the
-   nuScenes converter writes the rings of the map's drivable-area layer that way;
-2. with no polygon at all, the lane surfaces from centrelines and widths
-   (:func:`~riskflow_env.maps.from_lanes`);
+   nuScenes lane connectors and every Waymo lane have no polygon), plus the area
+   enclosed (even-odd) by closed road lines with ids ``boundary_<k>`` (the nuScenes and
+   nuPlan converters write the rings of the map's drivable-area layer that way);
+2. with no polygon at all, the lane surfaces from centrelines and widths;
 3. with no lane at all, the faces enclosed by the road edges (``ROAD_EDGE_*``
-   polylines, closed by their convex hull) that logged vehicles drive through.
+   polylines, closed by their convex hull) that logged vehicles drive through;
 
-Lane width: the feature's ``width`` when given, else polygon area / centreline length
-(clipped to [2, 6] m), else the median of those, else :data:`DEFAULT_LANE_WIDTH`.
+plus, in every case, the drivable surfaces that are not lanes (driveways, parking:
+:data:`~riskflow_env.scenarios.scenarionet_features.SURFACE_TYPES`). Those count as
+drivable area only: the lane graph (``DrivableMap.lanes``) holds lanes alone.
+
+Cropping: with ``region`` (xmin, ymin, xmax, ymax) [m], only the features that reach
+into it are read and the drivable area is clipped to it, so the raster's size and the
+build time follow the region the scenario uses, not the whole recording area.
+
+Lane width: the feature's ``width`` when it gives one, else polygon area / centreline
+length (clipped to [2, 6] m), else the median of those, else :data:`DEFAULT_LANE_WIDTH`.
 Successors come from ``exit_lanes``; files without any (nuScenes) get them from the
 geometry: lane B continues lane A when B starts within :data:`SUCCESSOR_MAX_GAP` of
-A's end with a heading change below :data:`SUCCESSOR_MAX_TURN`.
+A's end with a heading change below :data:`SUCCESSOR_MAX_TURN`. A malformed feature
+raises ``ValueError`` naming the file and the feature id.
 """
 
 from __future__ import annotations
@@ -30,23 +39,14 @@ import shapely
 
 from riskflow_env.dynamics import wrap_angle
 from riskflow_env.maps import DrivableMap, Lane, from_polygons, road_polygons
+from riskflow_env.scenarios import scenarionet_features as feat
 
 DEFAULT_LANE_WIDTH = 3.5  # [m] width of lanes whose file gives neither width nor polygon
 LANE_WIDTH_RANGE = (2.0, 6.0)  # [m] bounds on widths estimated from polygons
 SUCCESSOR_MAX_GAP = 1.0  # [m] farthest a successor may start from a lane's end
 SUCCESSOR_MAX_TURN = np.pi / 4  # [rad] largest heading change from a lane to a successor
+REGION_SLACK = 20.0  # [m] features this close to the region are read (their surface may reach in)
 KMH, MPH = 1.0 / 3.6, 0.44704  # [m/s] per km/h and per mph
-
-
-def _points(value: Any, what: str, min_points: int) -> np.ndarray | None:
-    """(K, 2) float [m] from a (K, 2|3) sequence; None when too short or not finite."""
-    array = np.asarray(value, dtype=np.float64)
-    if array.ndim != 2 or array.shape[1] < 2:
-        raise ValueError(f"{what} must have shape (K, 2) or (K, 3), got {array.shape}")
-    array = array[:, :2]
-    if len(array) < min_points or not np.all(np.isfinite(array)):
-        return None
-    return array
 
 
 def _speed_limit(feature: Mapping) -> float | None:
@@ -57,11 +57,6 @@ def _speed_limit(feature: Mapping) -> float | None:
     return None
 
 
-def _is_lane(feature: Mapping) -> bool:
-    kind = str(feature.get("type", ""))
-    return kind.startswith("LANE") and kind != "LANE_BIKE_LANE"
-
-
 def build_map(
     features: Mapping[Any, Mapping],
     resolution: float = 0.5,
@@ -69,6 +64,7 @@ def build_map(
     name: str = "",
     vehicle_xy: np.ndarray | None = None,
     source: str = "<map_features>",
+    region: tuple[float, float, float, float] | None = None,
 ) -> DrivableMap:
     """DrivableMap with lanes from a ScenarioNet ``map_features`` dict.
 
@@ -79,30 +75,45 @@ def build_map(
         name: label of the map.
         vehicle_xy: (P, 2) [m] logged vehicle positions; used only by the road-edge
             fallback to pick the faces that are road.
-        source: name of the data quoted in errors.
+        source: name of the data quoted in errors (the file).
+        region: (xmin, ymin, xmax, ymax) [m] to crop the map to, or None for all of it.
     """
     if not isinstance(features, Mapping):
         raise ValueError(f"{source}: map_features must be a dict, got {type(features).__name__}")
-    centrelines, outlines, widths, raw = {}, {}, {}, {}
+    if region is not None:
+        region = tuple(float(v) for v in region)
+        if (
+            len(region) != 4
+            or not np.all(np.isfinite(region))
+            or region[2] <= region[0]
+            or (region[3] <= region[1])
+        ):
+            raise ValueError(f"region must be finite (xmin, ymin, xmax, ymax) [m], got {region}")
+    reach = None if region is None else _grow(region, REGION_SLACK)
+    centrelines, outlines, widths, raw, surfaces = {}, {}, {}, {}, []
     for key, feature in features.items():
-        if not isinstance(feature, Mapping) or not _is_lane(feature):
+        if not isinstance(feature, Mapping):
+            continue
+        what = f"{source}: map feature {key!s} ({feature.get('type')})"
+        if feat.is_surface(feature):
+            surface = feat.polygon(feature.get("polygon", np.zeros((0, 2))), f"{what} polygon")
+            if surface is not None and feat.touches(_outline(surface), reach):
+                surfaces.append(surface)
+            continue
+        if not feat.is_lane(feature):
             continue
         lane_id = str(key)
-        line = _points(
-            feature.get("polyline", np.zeros((0, 2))), f"{source}: lane {lane_id} polyline", 2
-        )
-        if line is None or np.all(line == line[0]):
+        line = feat.points(feature.get("polyline", np.zeros((0, 2))), f"{what} polyline", 2)
+        if line is None or np.all(line == line[0]) or not feat.touches(line, reach):
             continue
         centrelines[lane_id], raw[lane_id] = line, feature
         if feature.get("polygon") is not None:
-            outline = _points(feature["polygon"], f"{source}: lane {lane_id} polygon", 3)
+            outline = feat.polygon(feature["polygon"], f"{what} polygon")
             if outline is not None:
-                polygon = shapely.make_valid(shapely.Polygon(outline))
-                if polygon.area > 0:
-                    outlines[lane_id] = polygon
-        width = feature.get("width")
-        if width is not None and np.size(width) > 0 and np.all(np.isfinite(width)):
-            widths[lane_id] = float(np.median(width))
+                outlines[lane_id] = outline
+        width = feat.lane_width(feature, what)
+        if width is not None:
+            widths[lane_id] = width
         elif lane_id in outlines:
             length = float(np.sum(np.linalg.norm(np.diff(line, axis=0), axis=1)))
             widths[lane_id] = float(np.clip(outlines[lane_id].area / length, *LANE_WIDTH_RANGE))
@@ -117,30 +128,49 @@ def build_map(
         }
     else:
         successors = _infer_successors(ids, centrelines)
-    lanes = tuple(
-        Lane(
-            centrelines[i],
-            widths.get(i, default_width),
-            i,
-            speed_limit=_speed_limit(raw[i]),
-            successors=successors[i],
-        )
-        for i in ids
-    )
+    lanes = []
+    for i in ids:
+        try:
+            lanes.append(
+                Lane(
+                    centrelines[i],
+                    widths.get(i, default_width),
+                    i,
+                    speed_limit=_speed_limit(raw[i]),
+                    successors=successors[i],
+                )
+            )
+        except ValueError as err:
+            raise ValueError(f"{source}: map feature {i} ({raw[i].get('type')}): {err}") from None
+    lanes = tuple(lanes)
 
     polygons = list(outlines.values())
     polygons += road_polygons(tuple(lane for lane in lanes if lane.lane_id not in outlines))
-    for key, feature in features.items():
-        if isinstance(feature, Mapping) and feature.get("type") == "DRIVEWAY":
-            outline = _points(feature.get("polygon", np.zeros((0, 2))), f"{source}: {key}", 3)
-            if outline is not None:
-                polygons.append(shapely.make_valid(shapely.Polygon(outline)))
-    polygons.append(_boundary_area(features))
+    polygons.append(_boundary_area(features, reach))
     polygons = [p for p in polygons if isinstance(p, (shapely.Polygon, shapely.MultiPolygon))]
     polygons = [p for p in polygons if p.area > 0]
     if not polygons:
         polygons = _edge_faces(features, vehicle_xy, source)
+    polygons += surfaces
+    if region is not None:
+        area = shapely.clip_by_rect(shapely.union_all(polygons), *region)
+        parts = [
+            p for p in shapely.get_parts(area) if isinstance(p, shapely.Polygon) and p.area > 0
+        ]
+        if not parts:
+            raise ValueError(f"{source}: no drivable area inside the region {region} [m]")
+        polygons = [shapely.MultiPolygon(parts)]
     return from_polygons(polygons, resolution=resolution, margin=margin, lanes=lanes, name=name)
+
+
+def _grow(region: tuple[float, float, float, float], by: float) -> tuple:
+    return region[0] - by, region[1] - by, region[2] + by, region[3] + by
+
+
+def _outline(shape: shapely.Geometry) -> np.ndarray:
+    """(2, 2) [m] corners of a geometry's bounding box (for :func:`feat.touches`)."""
+    xmin, ymin, xmax, ymax = shape.bounds
+    return np.array([[xmin, ymin], [xmax, ymax]])
 
 
 def _infer_successors(ids: list[str], centrelines: dict[str, np.ndarray]) -> dict[str, tuple]:
@@ -162,15 +192,19 @@ def _infer_successors(ids: list[str], centrelines: dict[str, np.ndarray]) -> dic
     return {lane: tuple(ids[j] for j in np.flatnonzero(linked[i])) for i, lane in enumerate(ids)}
 
 
-def _boundary_area(features: Mapping[Any, Mapping]) -> shapely.Geometry:
-    """Even-odd fill of the closed road lines with ids ``boundary_<k>`` (empty if none)."""
+def _boundary_area(features: Mapping[Any, Mapping], reach: tuple | None) -> shapely.Geometry:
+    """Even-odd fill of the closed road lines with ids ``boundary_<k>`` (empty if none).
+
+    A ring is kept whole when its bounding box meets ``reach`` (a ring around a hole
+    must stay with the ring around it; the caller clips the result)."""
     area = shapely.Polygon()
     rings = []
     for key, feature in features.items():
         if str(key).startswith("boundary_") and isinstance(feature, Mapping):
             points = np.asarray(feature.get("polyline", np.zeros((0, 2))), dtype=np.float64)
             if points.ndim == 2 and len(points) >= 4 and np.allclose(points[0, :2], points[-1, :2]):
-                rings.append(shapely.make_valid(shapely.Polygon(points[:, :2])))
+                if feat.touches(points[:, :2], reach):
+                    rings.append(shapely.make_valid(shapely.Polygon(points[:, :2])))
     for ring in sorted(rings, key=lambda ring: -ring.area):
         area = shapely.symmetric_difference(area, ring)
     parts = [p for p in shapely.get_parts(area) if isinstance(p, shapely.Polygon)]
@@ -184,7 +218,7 @@ def _edge_faces(
     lines = []
     for key, feature in features.items():
         if isinstance(feature, Mapping) and str(feature.get("type", "")).startswith("ROAD_EDGE"):
-            points = _points(feature.get("polyline", np.zeros((0, 2))), f"{source}: {key}", 2)
+            points = feat.points(feature.get("polyline", np.zeros((0, 2))), f"{source}: {key}", 2)
             if points is not None:
                 lines.append(shapely.LineString(points))
     if not lines:

@@ -1,0 +1,157 @@
+"""Reading ScenarioNet / MetaDrive ``map_features``: types, points, lane widths, surfaces.
+
+Field conventions come from ScenarioNet's converters
+(https://github.com/metadriverse/scenarionet, ``scenarionet/converter/<source>/utils.py``):
+
+* Lanes: type ``LANE_*`` (``LANE_SURFACE_STREET``, ``LANE_FREEWAY``,
+  ``LANE_SURFACE_UNSTRUCTURE`` for nuScenes lane connectors, ``LANE_UNKNOWN``;
+  ``LANE_BIKE_LANE`` is not for cars), ``polyline`` (K, 2|3), optional ``polygon``,
+  ``exit_lanes``, ``speed_limit_kmh`` / ``speed_limit_mph``, optional ``width``.
+* Lane ``width`` by source (:func:`lane_width`):
+
+  - Waymo (``compute_width``): an (N, 2) float32 array per centreline point: the
+    distances to the left and to the right lane boundary, a side with no boundary
+    filled from the other, both 0 where the lane has no boundary at all. Full width
+    = left + right per point.
+  - Argoverse 2: an (N, 2) array of zeros (widths not computed): no width.
+  - nuScenes, nuPlan: no ``width``; a ``polygon`` outline instead.
+  - a scalar or an (N,) array: the full width (MetaDrive's own exports).
+
+* Drivable surfaces apart from lanes (:data:`SURFACE_TYPES`, with a ``polygon``):
+  Waymo ``DRIVEWAY`` (dataset 1.2+), and parking areas (``PARKING_LOT``,
+  ``CARPARK_AREA``) for converters that export nuScenes' / nuPlan's carpark layer.
+  Crosswalks, speed bumps, stop signs and sidewalks are not surface of their own:
+  where they lie on the road, the road's own polygons cover them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import shapely
+
+SURFACE_TYPES = frozenset({"DRIVEWAY", "PARKING_LOT", "CARPARK_AREA"})
+NOT_CAR_LANES = frozenset({"LANE_BIKE_LANE"})
+BOUNDARY_WIDTH_RANGE = (1.0, 12.0)  # [m] full widths taken from boundary distances (Waymo)
+
+
+def points(value: Any, what: str, min_points: int) -> np.ndarray | None:
+    """(K, 2) float [m] from a (K, 2|3) sequence; None when too short or not finite.
+
+    Raises:
+        ValueError naming ``what`` when the array is not (K, 2|3) numbers.
+    """
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be numbers of shape (K, 2) or (K, 3)") from None
+    if array.ndim != 2 or array.shape[1] < 2:
+        raise ValueError(f"{what} must have shape (K, 2) or (K, 3), got {array.shape}")
+    array = array[:, :2]
+    if len(array) < min_points or not np.all(np.isfinite(array)):
+        return None
+    return array
+
+
+def is_lane(feature: Mapping) -> bool:
+    """Whether a feature is a lane that cars drive on (type ``LANE_*``, not a bike lane)."""
+    kind = str(feature.get("type", ""))
+    return kind.startswith("LANE") and kind not in NOT_CAR_LANES
+
+
+def is_surface(feature: Mapping) -> bool:
+    """Whether a feature is a drivable surface polygon (:data:`SURFACE_TYPES`)."""
+    return str(feature.get("type", "")) in SURFACE_TYPES
+
+
+def lane_width(feature: Mapping, what: str) -> float | None:
+    """Full lane width [m] from a feature's ``width`` (module docstring), or None.
+
+    None when the feature has no width or only zeros (Argoverse 2, lanes without
+    boundaries); the caller falls back to the polygon, then the map's median.
+
+    Raises:
+        ValueError naming ``what`` for widths of another shape, negative or not finite.
+    """
+    raw = feature.get("width")
+    if raw is None:
+        return None
+    try:
+        width = np.asarray(raw, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} width must be numbers [m], got {type(raw).__name__}") from None
+    if width.size == 0:
+        return None
+    if width.ndim > 2 or (width.ndim == 2 and width.shape[1] not in (1, 2)):
+        raise ValueError(
+            f"{what} width must be a number, (N,) or (N, 2) [m] (distances to the left and "
+            f"right boundary, as ScenarioNet's Waymo converter writes), got shape {width.shape}"
+        )
+    if not np.all(np.isfinite(width)) or np.any(width < 0):
+        raise ValueError(f"{what} width must be finite and >= 0 [m]")
+    if width.ndim == 2 and width.shape[1] == 2:
+        left, right = width[:, 0], width[:, 1]
+        full = np.where(left > 0, left, right) + np.where(right > 0, right, left)
+        full = full[full > 0]
+        if not full.size:
+            return None
+        return float(np.clip(np.median(full), *BOUNDARY_WIDTH_RANGE))
+    full = width.reshape(-1)
+    full = full[full > 0]
+    return float(np.median(full)) if full.size else None
+
+
+def polygon(value: Any, what: str) -> shapely.Geometry | None:
+    """Valid shapely polygon [m] from a (K, 2|3) outline, or None when it has no area."""
+    outline = points(value, what, 3)
+    if outline is None:
+        return None
+    shape = shapely.make_valid(shapely.Polygon(outline))
+    parts = [p for p in shapely.get_parts(shape) if isinstance(p, shapely.Polygon) and p.area > 0]
+    if not parts:
+        return None
+    return parts[0] if len(parts) == 1 else shapely.MultiPolygon(parts)
+
+
+def feature_bounds(features: Mapping[Any, Any]) -> tuple[float, float, float, float] | None:
+    """(xmin, ymin, xmax, ymax) [m] of every finite point of every feature's
+    ``polyline`` / ``polygon`` / ``position``: how far the map data reaches.
+    None when there is no point."""
+    lows, highs = [], []
+    for feature in features.values():
+        if not isinstance(feature, Mapping):
+            continue
+        for key in ("polyline", "polygon", "position"):
+            value = feature.get(key)
+            if value is None:
+                continue
+            try:
+                array = np.asarray(value, dtype=np.float64)
+            except (TypeError, ValueError):
+                continue
+            array = array.reshape(-1, array.shape[-1])[:, :2] if array.ndim >= 1 else array
+            if array.ndim != 2 or array.shape[1] != 2:
+                continue
+            array = array[np.all(np.isfinite(array), axis=1)]
+            if len(array):
+                lows.append(array.min(axis=0))
+                highs.append(array.max(axis=0))
+    if not lows:
+        return None
+    low, high = np.min(lows, axis=0), np.max(highs, axis=0)
+    return float(low[0]), float(low[1]), float(high[0]), float(high[1])
+
+
+def touches(array: np.ndarray, region: tuple[float, float, float, float] | None) -> bool:
+    """Whether the bounding box of ``array`` (K, 2) [m] meets ``region`` (None: always)."""
+    if region is None:
+        return True
+    low, high = array.min(axis=0), array.max(axis=0)
+    return bool(
+        low[0] <= region[2]
+        and high[0] >= region[0]
+        and low[1] <= region[3]
+        and high[1] >= region[1]
+    )
