@@ -60,15 +60,60 @@ def rasterize(
 ) -> np.ndarray:
     """Boolean raster of the pixels whose centre lies in ``geometry``.
 
-    Points on the boundary count as inside (``shapely.intersects_xy``), so a pixel
-    centre exactly on a lane edge is drivable.
+    Polygons are filled by scanlines (:func:`fill_rings`): an even-odd fill of all
+    their rings, which is their union when they do not overlap (a shapely union
+    never does; an invalid geometry is repaired first). A pixel centre exactly on a
+    left or lower edge counts as inside, one on a right or upper edge as outside.
+    Other geometries go through
+    ``shapely.intersects_xy`` (boundary points inside).
 
     Returns:
         (H, W) bool.
     """
+    parts = shapely.get_parts(geometry)
+    if len(parts) and all(isinstance(p, shapely.Polygon) for p in parts):
+        if not shapely.is_valid(geometry):  # e.g. overlapping parts: even-odd needs a union
+            geometry = shapely.union_all(shapely.make_valid(parts))
+        return fill_rings(geometry, origin, shape, resolution)
     x, y = pixel_centres(origin, shape, resolution)
     shapely.prepare(geometry)
     return np.asarray(shapely.intersects_xy(geometry, x, y), dtype=bool)
+
+
+def fill_rings(
+    geometry: shapely.Geometry, origin: np.ndarray, shape: tuple[int, int], resolution: float
+) -> np.ndarray:
+    """(H, W) bool even-odd scanline fill of every ring of a (Multi)Polygon.
+
+    For each pixel row, the crossings of the row's centre line with the ring edges are
+    found at once for all edges (an edge spans the rows whose centre v satisfies
+    ``min(v0, v1) <= v < max(v0, v1)``, so a shared vertex counts once); each crossing
+    toggles the pixels whose centre lies at or right of it, and an exclusive-or scan
+    along the row gives the inside. Cost: the number of crossings plus H * W.
+    """
+    height, width = shape
+    rings = []
+    for polygon in shapely.get_parts(geometry):
+        if isinstance(polygon, shapely.Polygon) and not polygon.is_empty:
+            rings += [polygon.exterior, *polygon.interiors]
+    inside = np.zeros((height, width + 1), dtype=bool)
+    if not rings:
+        return inside[:, :width]
+    coords = [np.asarray(ring.coords)[:, :2] for ring in rings]
+    start = (np.concatenate([c[:-1] for c in coords]) - origin) / resolution - 0.5
+    end = (np.concatenate([c[1:] for c in coords]) - origin) / resolution - 0.5
+    low = np.clip(np.ceil(np.minimum(start[:, 1], end[:, 1])), 0, height).astype(np.int64)
+    high = np.clip(np.ceil(np.maximum(start[:, 1], end[:, 1])), 0, height).astype(np.int64)
+    count = np.maximum(high - low, 0)
+    edge = np.repeat(np.arange(len(count)), count)
+    first = np.cumsum(count) - count
+    row = low[edge] + np.arange(len(edge)) - first[edge]
+    (u0, v0), (u1, v1) = start[edge].T, end[edge].T
+    u = u0 + (row - v0) / (v1 - v0) * (u1 - u0)  # v1 != v0 on every spanned row
+    col = np.clip(np.ceil(u), 0, width).astype(np.int64)
+    flat, hits = np.unique(row * (width + 1) + col, return_counts=True)
+    inside.reshape(-1)[flat[hits % 2 == 1]] = True
+    return np.logical_xor.accumulate(inside, axis=1)[:, :width]
 
 
 def signed_distance(drivable: np.ndarray, resolution: float) -> np.ndarray:

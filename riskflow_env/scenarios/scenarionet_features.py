@@ -117,9 +117,10 @@ def polygon(value: Any, what: str) -> shapely.Geometry | None:
 
 def feature_bounds(features: Mapping[Any, Any]) -> tuple[float, float, float, float] | None:
     """(xmin, ymin, xmax, ymax) [m] of every finite point of every feature's
-    ``polyline`` / ``polygon`` / ``position``: how far the map data reaches.
-    None when there is no point."""
-    lows, highs = [], []
+    ``polyline`` / ``polygon`` (K, 2|3) and ``position`` (2|3,): how far the map data
+    reaches. None when there is no point. Values of other shapes are skipped here
+    (the map builder reports malformed features)."""
+    arrays = []
     for feature in features.values():
         if not isinstance(feature, Mapping):
             continue
@@ -127,20 +128,17 @@ def feature_bounds(features: Mapping[Any, Any]) -> tuple[float, float, float, fl
             value = feature.get(key)
             if value is None:
                 continue
-            try:
-                array = np.asarray(value, dtype=np.float64)
-            except (TypeError, ValueError):
+            array = np.asarray(value)
+            if array.dtype.kind not in "fiu" or array.ndim not in (1, 2) or array.shape[-1] < 2:
                 continue
-            array = array.reshape(-1, array.shape[-1])[:, :2] if array.ndim >= 1 else array
-            if array.ndim != 2 or array.shape[1] != 2:
-                continue
-            array = array[np.all(np.isfinite(array), axis=1)]
-            if len(array):
-                lows.append(array.min(axis=0))
-                highs.append(array.max(axis=0))
-    if not lows:
+            arrays.append(array[None, :2] if array.ndim == 1 else array[:, :2])
+    if not arrays:
         return None
-    low, high = np.min(lows, axis=0), np.max(highs, axis=0)
+    xy = np.concatenate(arrays).astype(np.float64)
+    xy = xy[np.all(np.isfinite(xy), axis=1)]
+    if not len(xy):
+        return None
+    low, high = xy.min(axis=0), xy.max(axis=0)
     return float(low[0]), float(low[1]), float(high[0]), float(high[1])
 
 
