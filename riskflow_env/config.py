@@ -150,6 +150,11 @@ class EnvConfig:
             "none", or a tuple of agent names.
         terminate_on_offroad: same, for driving off the road.
         end_with_ego: when the ego is done, truncate every other agent too.
+        leave_when_log_ends: an agent other than the ego leaves the scene (truncated,
+            no longer present: no obstacle, no events) at the first step after its
+            logged reference ends (``Scenario.valid`` False from there on), as log
+            validity masks do in Waymax; for recorded scenes whose vehicles enter and
+            leave. False keeps every agent for the whole episode.
         clip_actions: clip actions to the action space (the dynamics bounds); when False,
             an out-of-bounds action raises ValueError instead.
         dynamics: unicycle bounds and time step.
@@ -162,6 +167,7 @@ class EnvConfig:
     terminate_on_collision: str | tuple[str, ...] = "ego"
     terminate_on_offroad: str | tuple[str, ...] = "ego"
     end_with_ego: bool = True
+    leave_when_log_ends: bool = False
     clip_actions: bool = True
     dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
     observation: ObservationConfig = field(default_factory=ObservationConfig)
@@ -170,7 +176,7 @@ class EnvConfig:
     def __post_init__(self) -> None:
         _integer("EnvConfig.max_agents", self.max_agents, 1, 100_000)
         _integer("EnvConfig.episode_steps", self.episode_steps, 1, 10_000_000)
-        for name in ("end_with_ego", "clip_actions"):
+        for name in ("end_with_ego", "leave_when_log_ends", "clip_actions"):
             _require(
                 isinstance(getattr(self, name), bool),
                 f"EnvConfig.{name} must be a bool, got {getattr(self, name)!r}",

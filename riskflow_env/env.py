@@ -124,6 +124,7 @@ class RiskFlowParallelEnv(ParallelEnv):
         self._scenario: Scenario | None = None
         self._events: event_detection.FrameEvents | None = None
         self._scenario_rows = np.full(self.config.max_agents, -1)
+        self._log_end = np.zeros(self.config.max_agents, dtype=np.int64)
         self._renderer: Any = None
 
     # ------------------------------------------------------------------ spaces
@@ -202,6 +203,7 @@ class RiskFlowParallelEnv(ParallelEnv):
         self._scenario_rows = np.full(self.config.max_agents, -1)
         self._scenario_rows[: rows.size] = rows
         self._scene = simulator.reset(scenario, self.config.max_agents, rows)
+        self._log_end = simulator.log_end_steps(scenario, rows, self.config.max_agents)
         self.agents = [self.possible_agents[i] for i in np.flatnonzero(self._scene.present)]
         evaluation = self._evaluate(self._scene)
         observations, _, infos = self._agent_dicts(evaluation, self.agents)
@@ -222,8 +224,12 @@ class RiskFlowParallelEnv(ParallelEnv):
             raise RuntimeError("step() called after the episode ended: call reset() first")
         action_array = self._action_input.to_array(actions, self.agents)
         scene = simulator.step(self._scene, action_array, self.config.dynamics)
-        evaluation = self._evaluate(scene)
         live = scene.active
+        left = np.zeros(self.config.max_agents, dtype=bool)
+        if self.config.leave_when_log_ends:  # gone before this step's events are detected
+            left = live & (scene.step > self._log_end)
+            scene = scene.replace(present=scene.present & ~left, active=live & ~left)
+        evaluation = self._evaluate(scene)
         terminated, truncated = simulator.episode_end(
             live,
             evaluation.events,
@@ -232,6 +238,7 @@ class RiskFlowParallelEnv(ParallelEnv):
             scene.step >= self.config.episode_steps,
             self.config.end_with_ego,
         )
+        truncated = truncated | (left & ~terminated)
         done = terminated | truncated
         self._scene = scene.replace(active=live & ~done)
 

@@ -96,6 +96,27 @@ def reset(scenario: Scenario, max_agents: int, rows: np.ndarray | None = None) -
     )
 
 
+def log_end_steps(scenario: Scenario, rows: np.ndarray, max_agents: int) -> np.ndarray:
+    """(A,) int: per slot, the last episode step at which its logged reference is valid.
+
+    Step k of an episode is scenario step ``current_index + k``. The ego (slot 0) and
+    empty slots get a step no episode reaches; an agent whose log has no valid step
+    after the current one gets 0.
+
+    Args:
+        scenario: the scene the episode started from.
+        rows: (n,) scenario rows in the slots, ego first (:func:`select_agents`).
+        max_agents: number of slots A.
+    """
+    never = np.iinfo(np.int64).max
+    ends = np.full(max_agents, never, dtype=np.int64)
+    future = scenario.valid[rows, scenario.current_index :]  # (n, F), step 0 = now
+    last = future.shape[1] - 1 - np.argmax(future[:, ::-1], axis=1)
+    ends[: rows.size] = np.where(future.any(axis=1), last, 0)
+    ends[0] = never
+    return ends
+
+
 def advance(
     current: Array, present: Array, active: Array, actions: Array, config: DynamicsConfig
 ) -> tuple[Array, Array]:
