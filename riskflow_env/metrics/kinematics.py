@@ -61,6 +61,22 @@ def kinematic_series(
     }
 
 
+def kinematic_p95(states: np.ndarray, valid: np.ndarray, dt: float) -> dict[str, float]:
+    """95th percentile of |value| of each feature of :func:`kinematic_series` over its
+    valid samples (e.g. raw vs filtered logs); NaN for a feature without samples.
+
+    Args:
+        states: (A, T, 4) (x [m], y [m], v [m/s], psi [rad]).
+        valid: (A, T) bool.
+        dt: time step [s].
+    """
+    result = {}
+    for name, (values, ok) in kinematic_series(states, valid, dt).items():
+        samples = np.abs(values[ok])
+        result[name] = float(np.percentile(samples, 95)) if samples.size else float("nan")
+    return result
+
+
 def kinematic_values(
     states: np.ndarray, valid: np.ndarray, record: RolloutRecord
 ) -> dict[str, np.ndarray]:

@@ -23,8 +23,13 @@ arrays only) and turns it into a :class:`Scenario`:
   nearest valid state (never NaN), with ``valid`` False.
 * Sizes: median length and width over the valid steps; swapped when the length is the
   smaller (the nuScenes converter stores the SDC's that way).
-* Map: :func:`~riskflow_env.scenarios.scenarionet_map.build_map` (lane polygons, lane
-  centrelines with successors and speed limits). Traffic lights are not used.
+* Map: :func:`~riskflow_env.scenarios.scenarionet_map.build_map` (every converter's
+  lane widths and surfaces, lane centrelines with successors and speed limits), cropped
+  to the box of the logged vehicle positions plus a margin that leaves room for a 10 s
+  rollout (``crop``, ``crop_margin``). Logged positions beyond the extent of the map
+  features are invalid steps (the map knows nothing there). Traffic lights are not used.
+* ``smooth=True``: the tracks are replaced by their Savitzky-Golay kinematic reference
+  filtering (:mod:`~riskflow_env.scenarios.smoothing`).
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ from riskflow_env.scenarios.safe_pickle import load_data_pickle
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.scenarios.scenarionet_features import feature_bounds
 from riskflow_env.scenarios.scenarionet_map import build_map
+from riskflow_env.scenarios.smoothing import smooth_tracks
 from riskflow_env.state import HISTORY_STEPS
 
 DT = 0.1  # [s] time step of scenarios
@@ -59,6 +65,7 @@ def load_scenarionet(
     margin: float = 5.0,
     crop: bool = True,
     crop_margin: float | None = None,
+    smooth: bool = False,
 ) -> Scenario:
     """Load one ScenarioNet / MetaDrive scenario-description pickle as a :class:`Scenario`.
 
@@ -76,6 +83,9 @@ def load_scenarionet(
         crop_margin: [m] >= 0 added on every side of the vehicles' bounding box; None:
             the distance covered in :data:`ROLLOUT_SECONDS` at the 95th percentile of
             the logged vehicle speeds, clipped to :data:`CROP_MARGIN_RANGE`.
+        smooth: replace the logged tracks by their kinematic reference filtering
+            (:func:`~riskflow_env.scenarios.smoothing.smooth_tracks`, Savitzky-Golay);
+            False keeps the raw logs.
 
     Returns:
         A Scenario named ``"scenarionet/<scenario id>"`` with ``dt`` 0.1 s.
@@ -93,6 +103,7 @@ def load_scenarionet(
         source=str(path),
         crop=crop,
         crop_margin=crop_margin,
+        smooth=smooth,
     )
 
 
@@ -105,6 +116,7 @@ def scenario_from_description(
     source: str = "<description>",
     crop: bool = True,
     crop_margin: float | None = None,
+    smooth: bool = False,
 ) -> Scenario:
     """:func:`load_scenarionet` for an already loaded description dict."""
     for key in ("tracks", "map_features", "metadata"):
@@ -160,6 +172,8 @@ def scenario_from_description(
         [xy[:, index], speed[:, index, None], heading[:, index, None]], axis=-1
     )[keep]
     window_valid = window_valid[keep]
+    if smooth:
+        states = smooth_tracks(states, window_valid, DT)
     states = _hold_nearest_valid(states, window_valid)
     states[..., 3] = np.unwrap(states[..., 3], axis=1)
     length, width = size[keep, 0], size[keep, 1]

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from riskflow_env.metrics.kinematics import kinematic_p95
 from riskflow_env.scenarios.safe_pickle import loads_data_pickle
 from riskflow_env.scenarios.scenarionet import load_scenarionet, scenario_from_description
 from riskflow_env.scenarios.scenarionet_map import build_map
@@ -200,3 +201,13 @@ def test_real_samples_moving_vehicles_are_on_the_map(samples):
         moving = scenario.valid & (scenario.states[..., 2] > 1.0)
         inside = scenario.map.is_drivable(scenario.states[..., :2][moving])
         assert inside.mean() >= 0.95, f"{scenario.name}: {inside.mean():.3f} on the map"
+
+
+def test_real_samples_filtered_references_are_smooth(samples):
+    for path, scenario in zip(SAMPLES, samples, strict=True):
+        smooth = load_scenarionet(path, smooth=True)
+        moving = scenario.valid & (scenario.states[..., 2] > 1.0) & (smooth.states[..., 2] > 1.0)
+        raw_p95 = kinematic_p95(scenario.states, moving, scenario.dt)
+        smooth_p95 = kinematic_p95(smooth.states, moving, smooth.dt)
+        assert smooth_p95["jerk"] < raw_p95["jerk"] / 5, (scenario.name, raw_p95, smooth_p95)
+        assert smooth_p95["longitudinal_acceleration"] < 4.0, (scenario.name, smooth_p95)
