@@ -80,7 +80,7 @@ def load_scenarionet(
         margin: off-road border around the road [m].
         crop: crop the map to the logged vehicles' bounding box plus ``crop_margin``;
             False builds the map of the whole recording area.
-        crop_margin: [m] >= 0 added on every side of the vehicles' bounding box; None:
+        crop_margin: [m] > 0 added on every side of the vehicles' bounding box; None:
             the distance covered in :data:`ROLLOUT_SECONDS` at the 95th percentile of
             the logged vehicle speeds, clipped to :data:`CROP_MARGIN_RANGE`.
         smooth: replace the logged tracks by their kinematic reference filtering
@@ -211,8 +211,8 @@ def _crop_region(
     if crop_margin is None:
         reach = ROLLOUT_SECONDS * float(np.percentile(speed, 95)) if speed.size else 0.0
         crop_margin = float(np.clip(reach, *CROP_MARGIN_RANGE))
-    elif not (np.isfinite(crop_margin) and crop_margin >= 0):
-        raise ValueError(f"crop_margin must be a finite number >= 0 [m], got {crop_margin!r}")
+    elif not (np.isfinite(crop_margin) and crop_margin > 0):
+        raise ValueError(f"crop_margin must be a finite number > 0 [m], got {crop_margin!r}")
     low, high = xy.min(axis=0) - crop_margin, xy.max(axis=0) + crop_margin
     return float(low[0]), float(low[1]), float(high[0]), float(high[1])
 

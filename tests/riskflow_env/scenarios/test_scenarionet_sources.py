@@ -156,5 +156,6 @@ def test_crop_drops_far_lanes_and_checks_the_margin():
     scenario = scenario_from_description(data)
     assert "far" not in {lane.lane_id for lane in scenario.map.lanes}
     assert scenario.map.bounds[3] < 200.0
-    with pytest.raises(ValueError, match="crop_margin"):
-        scenario_from_description(data, crop_margin=-1.0)
+    for bad in (-1.0, 0.0, float("nan")):
+        with pytest.raises(ValueError, match="crop_margin"):
+            scenario_from_description(data, crop_margin=bad)
