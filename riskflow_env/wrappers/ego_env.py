@@ -87,9 +87,14 @@ class EgoEnv(gymnasium.Env):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
-        """Start an episode (``options`` as :meth:`RiskFlowParallelEnv.reset`)."""
+        """Start an episode (``options`` as :meth:`RiskFlowParallelEnv.reset`). With a
+        ``seed``, a policy that has ``reseed(seed)`` (the learned adversaries) is reseeded
+        too, so two resets with the same seed give the same episode."""
         super().reset(seed=seed)
         observations, infos = self.parallel_env.reset(seed=seed, options=options)
+        reseed = getattr(self.policy, "reseed", None)
+        if seed is not None and callable(reseed):
+            reseed(seed)  # a seeded reset repeats the episode, the policy's noise included
         self.policy.reset(self.parallel_env.view())
         return observations[EGO], infos[EGO]
 
