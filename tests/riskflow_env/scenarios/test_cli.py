@@ -84,6 +84,62 @@ def test_command_line(tmp_path, capsys):
         main(["generate", "--families", "nowhere", "--out", str(out)])
 
 
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--seed", "-1"], "argument --seed: expected an int >= 0, got '-1'"),
+        (["--scenes", "-3"], "argument --scenes: expected an int >= 0, got '-3'"),
+        (["--workers", "0"], "argument --workers: expected an int >= 1, got '0'"),
+        (["--future-steps", "x"], "argument --future-steps: expected an int >= 1, got 'x'"),
+    ],
+)
+def test_bad_numbers_are_usage_errors_before_anything_is_written(args, message, tmp_path, capsys):
+    """Issue 19: `--seed -1` wrote the manifest, then died with a traceback."""
+    out = tmp_path / "bank"
+    with pytest.raises(SystemExit) as exit_info:
+        main(["generate", "--families", "u-turn", "--scenes", "1", "--out", str(out), *args])
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_out_that_is_a_file_is_a_usage_error(tmp_path, capsys):
+    existing = tmp_path / "bank.txt"
+    existing.write_text("keep me")
+    with pytest.raises(SystemExit) as exit_info:
+        main(["generate", "--families", "u-turn", "--scenes", "1", "--out", str(existing)])
+    assert exit_info.value.code == 2
+    assert f"--out: {existing} exists and is not a folder" in capsys.readouterr().err
+    assert existing.read_text() == "keep me"
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"seed": -1}, "seed must be an int >= 0"),
+        ({"scenes": True}, "scenes must be an int >= 0"),
+        ({"workers": 0}, "workers must be an int >= 1"),
+        ({"split": "test"}, "split must be one of"),
+        ({"families": ("moon",)}, "families must be a non-empty subset"),
+    ],
+)
+def test_generate_options_are_validated(changes, message, tmp_path):
+    with pytest.raises(ValueError, match=message):
+        _tiny(tmp_path / "bank", **changes)
+    assert not (tmp_path / "bank").exists()
+
+
+def test_scenes_beyond_a_previous_run_are_made_in_full(tmp_path):
+    """`--scenes N` means indices 0 .. N-1, generated procedurally: a bank of 1 scene
+    grows to 3, never silently fewer."""
+    out = tmp_path / "bank"
+    assert generate(_tiny(out, scenes=1))["written"] == 1
+    assert generate(_tiny(out, scenes=3)) | {"seconds": 0, "per_minute": 0} == {
+        "written": 2, "skipped": 1, "seconds": 0, "per_minute": 0
+    }  # fmt: skip
+    assert len(load_bank(out).scenarios) == 3
+
+
 def _children(pid: int) -> list[int]:
     """Live (not zombie) processes whose parent is ``pid`` (Linux /proc)."""
     found = []
