@@ -89,7 +89,8 @@ def test_any_failure_inside_the_loader_becomes_value_error(error, tmp_path, monk
         raise error("deep inside")
 
     monkeypatch.setattr(scenarionet, "build_map", fail)
-    with pytest.raises(ValueError, match=rf"{re.escape(str(path))}: .*{error.__name__}: .*deep inside"):
+    message = rf"{re.escape(str(path))}: .*{error.__name__}: .*deep inside"
+    with pytest.raises(ValueError, match=message):
         load_scenarionet(path)
 
 
