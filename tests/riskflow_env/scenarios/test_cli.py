@@ -197,3 +197,50 @@ def test_second_generate_into_one_bank_is_refused(tmp_path):
         assert not (out / "riskflow-data.json").exists()
     generate(_tiny(out, scenes=1))  # released: the bank is written
     assert (out / "00000-u-turn.npz").is_file()
+
+
+KILLED_GENERATE = """
+import os, signal, sys
+from riskflow_env.scenarios import cli
+
+real_replace, renamed = os.replace, []
+
+
+def replace(source, target):  # kill -9 just before the third scene file appears
+    if os.path.dirname(target) == sys.argv[1]:
+        renamed.append(target)
+        if len(renamed) == 3:
+            os.kill(os.getpid(), signal.SIGKILL)
+    real_replace(source, target)
+
+
+os.replace = replace
+cli.main(["generate", "--out", sys.argv[1], *sys.argv[2:]])
+"""
+
+
+@pytest.mark.reliability
+def test_kill_9_then_resume_gives_the_uninterrupted_bank(tmp_path):
+    """Issue 19 deliverable 6: `riskflow-data generate` killed -9 while writing a scene
+    (its temporary file on disk), then the same command again: the bank is the one an
+    uninterrupted run writes, byte for byte."""
+    args = ["--families", "u-turn", "merge", "--scenes", "5", "--seed", "7", "--workers", "1"]
+    args += ["--future-steps", "10"]
+    killed = tmp_path / "killed"
+    child = subprocess.run(
+        [sys.executable, "-c", KILLED_GENERATE, str(killed), *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert child.returncode == -signal.SIGKILL, child.stderr[-2000:]
+    assert len(list(killed.glob("0*.npz"))) == 2
+    assert list(killed.glob(".*.tmp"))  # the scene being written when killed
+    assert main(["generate", "--out", str(killed), *args]) == 0
+    reference = tmp_path / "reference"
+    assert main(["generate", "--out", str(reference), *args]) == 0
+    killed_files, reference_files = _files(killed), _files(reference)
+    for files in (killed_files, reference_files):
+        files.pop("writer.lock")  # holds the last writer's pid
+    assert sorted(killed_files) == sorted(reference_files)
+    assert killed_files == reference_files
