@@ -64,6 +64,7 @@ def test_results_rows_and_schema(tiny_run):
     assert idm["k"] is None and idm["interval"] is None  # one run serves every table
 
 
+@pytest.mark.reliability
 def test_resume_skips_finished_rows_and_keeps_numbers(tiny_run, tmp_path):
     full, _ = tiny_run
     out = tmp_path / "resumed"
@@ -79,6 +80,7 @@ def test_resume_skips_finished_rows_and_keeps_numbers(tiny_run, tmp_path):
     assert _numbers(out) == _numbers(full)  # nothing duplicated, same numbers
 
 
+@pytest.mark.reliability
 def test_worker_count_does_not_change_results(tiny_run, tmp_path):
     full, _ = tiny_run
     out = tmp_path / "workers"
@@ -88,6 +90,7 @@ def test_worker_count_does_not_change_results(tiny_run, tmp_path):
     assert _numbers(out) == expected
 
 
+@pytest.mark.reliability
 def test_config_mismatch_is_refused(tiny_run):
     out, _ = tiny_run
     with pytest.raises(ConfigMismatch, match="ego"):
@@ -111,6 +114,7 @@ def test_report_command(tiny_run, capsys):
     assert "report.md" in capsys.readouterr().out
 
 
+@pytest.mark.reliability
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
@@ -143,6 +147,7 @@ def test_bad_arguments_name_the_argument(argv, message, tmp_path, capsys):
     assert message in capsys.readouterr().err
 
 
+@pytest.mark.reliability
 @pytest.mark.parametrize(
     "argv", [["--seeds", "-1"], ["--device", "nope"], ["--scenes", "1000"], ["--k", "-1"]]
 )
@@ -157,6 +162,7 @@ def test_bad_arguments_write_nothing(argv, tmp_path, capsys):
     assert not out.exists()
 
 
+@pytest.mark.reliability
 def test_out_that_is_a_file_names_the_argument(tmp_path, capsys):
     existing = tmp_path / "results.txt"
     existing.write_text("keep me")
@@ -168,6 +174,7 @@ def test_out_that_is_a_file_names_the_argument(tmp_path, capsys):
     assert existing.read_text() == "keep me"
 
 
+@pytest.mark.reliability
 def test_cuda_device_without_cuda_names_the_argument():
     if torch.cuda.is_available():
         pytest.skip("this machine has CUDA")
@@ -187,6 +194,7 @@ def test_every_method_builds(name):
     assert isinstance(policy, ScenePolicy)
 
 
+@pytest.mark.reliability
 def test_rows_are_json_without_nan(tiny_run):
     out, _ = tiny_run
     for line in (out / "results.jsonl").read_text().splitlines():
@@ -220,6 +228,7 @@ def test_cs_rs_markers_never_overlap_after_the_spread():
     assert placed["bits"] == (0.48, 0.75)
 
 
+@pytest.mark.reliability
 def test_data_that_is_not_a_scene_folder_names_the_argument(tmp_path, capsys):
     pickled = tmp_path / "scene.pkl"
     pickled.write_bytes(b"")

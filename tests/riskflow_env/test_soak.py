@@ -12,8 +12,9 @@ and every step:
 * every live vehicle is inside the map's raster, or flagged off-road (the map counts
   everything beyond its raster as off-road): ``info["offroad_fraction"] > 0``.
 
-10,000 steps run in the default test run (``reliability``); 100,000 steps are a
-``slow`` test (``python -m pytest -m slow``).
+10,000 steps run in the default test run and in ``python -m pytest -m reliability``;
+100,000 steps are a ``slow`` test only (``python -m pytest -m slow``), so that neither
+the default run nor the reliability suite takes minutes.
 """
 
 from __future__ import annotations
@@ -98,8 +99,7 @@ def test_soak_10k_random_steps():
     assert counts["offroad"] > 0  # random driving leaves the road: the checks saw it
 
 
-@pytest.mark.slow
-@pytest.mark.reliability
+@pytest.mark.slow  # not `reliability`: `-m reliability` replaces the default `-m 'not slow'`
 def test_soak_100k_random_steps():
     counts = soak(100_000, seed=1)
     assert counts["steps"] == 100_000 and counts["resets"] > 10

@@ -32,6 +32,7 @@ def _files(directory) -> dict[str, bytes]:
     }
 
 
+@pytest.mark.reliability
 def test_one_or_two_workers_write_identical_files(tmp_path):
     generate(_tiny(tmp_path / "one", workers=1))
     generate(_tiny(tmp_path / "two", workers=2))
@@ -45,6 +46,7 @@ def test_one_or_two_workers_write_identical_files(tmp_path):
     assert all(scene.future_steps == 10 for scene in bank.scenarios)
 
 
+@pytest.mark.reliability
 def test_resume_skips_complete_scenes_and_redoes_missing_ones(tmp_path):
     out = tmp_path / "bank"
     assert generate(_tiny(out))["written"] == 2
@@ -66,6 +68,7 @@ def test_resume_skips_complete_scenes_and_redoes_missing_ones(tmp_path):
     assert "00002-u-turn.npz" in after and not list(out.glob(".*.tmp"))
 
 
+@pytest.mark.reliability
 def test_resume_with_other_settings_is_refused(tmp_path):
     generate(_tiny(tmp_path, scenes=1))
     with pytest.raises(SystemExit, match="other settings"):
@@ -84,6 +87,7 @@ def test_command_line(tmp_path, capsys):
         main(["generate", "--families", "nowhere", "--out", str(out)])
 
 
+@pytest.mark.reliability
 @pytest.mark.parametrize(
     ("args", "message"),
     [
@@ -103,6 +107,7 @@ def test_bad_numbers_are_usage_errors_before_anything_is_written(args, message, 
     assert not out.exists()
 
 
+@pytest.mark.reliability
 def test_out_that_is_a_file_is_a_usage_error(tmp_path, capsys):
     existing = tmp_path / "bank.txt"
     existing.write_text("keep me")
@@ -113,6 +118,7 @@ def test_out_that_is_a_file_is_a_usage_error(tmp_path, capsys):
     assert existing.read_text() == "keep me"
 
 
+@pytest.mark.reliability
 @pytest.mark.parametrize(
     ("changes", "message"),
     [
@@ -129,6 +135,7 @@ def test_generate_options_are_validated(changes, message, tmp_path):
     assert not (tmp_path / "bank").exists()
 
 
+@pytest.mark.reliability
 def test_scenes_beyond_a_previous_run_are_made_in_full(tmp_path):
     """`--scenes N` means indices 0 .. N-1, generated procedurally: a bank of 1 scene
     grows to 3, never silently fewer."""
@@ -160,6 +167,7 @@ def _alive(pid: int) -> bool:
         return False
 
 
+@pytest.mark.reliability
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_workers_die_with_a_killed_parent(tmp_path):
     """Issue 19: after kill -9 of `generate --workers 2` the workers kept writing, then
@@ -188,6 +196,7 @@ def test_workers_die_with_a_killed_parent(tmp_path):
     assert len(written) < 40
 
 
+@pytest.mark.reliability
 def test_second_generate_into_one_bank_is_refused(tmp_path):
     """A second run deleted the first one's temporary files; now it exits naming the pid."""
     out = tmp_path / "bank"
@@ -231,7 +240,7 @@ def test_kill_9_then_resume_gives_the_uninterrupted_bank(tmp_path):
         [sys.executable, "-c", KILLED_GENERATE, str(killed), *args],
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=600,  # a hang guard only: the machine may be loaded
     )
     assert child.returncode == -signal.SIGKILL, child.stderr[-2000:]
     assert len(list(killed.glob("0*.npz"))) == 2
