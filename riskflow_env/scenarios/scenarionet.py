@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from riskflow_env.dynamics import wrap_angle
-from riskflow_env.scenarios.safe_pickle import load_data_pickle
+from riskflow_env.scenarios.safe_pickle import errors_name_the_file, load_data_pickle
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.scenarios.scenarionet_map import build_map
 from riskflow_env.state import HISTORY_STEPS
@@ -69,6 +69,12 @@ def load_scenarionet(
 
     Returns:
         A Scenario named ``"scenarionet/<scenario id>"`` with ``dt`` 0.1 s.
+
+    Raises:
+        FileNotFoundError: when ``path`` is not a file.
+        ValueError: naming the file, for every malformed, hostile or oversized input
+            (whatever the underlying cause: ``MemoryError``, ``IndexError``,
+            ``LookupError``, ``TypeError``...).
     """
     path = Path(path)
     if not path.is_file():
@@ -87,7 +93,20 @@ def scenario_from_description(
     margin: float = 5.0,
     source: str = "<description>",
 ) -> Scenario:
-    """:func:`load_scenarionet` for an already loaded description dict."""
+    """:func:`load_scenarionet` for an already loaded description dict (every failure a
+    ``ValueError`` naming ``source``)."""
+    with errors_name_the_file(source, "a readable ScenarioNet scenario"):
+        return _scenario(description, resolution, current_index, min_future_steps, margin, source)
+
+
+def _scenario(
+    description: Mapping[str, Any],
+    resolution: float,
+    current_index: int | None,
+    min_future_steps: int,
+    margin: float,
+    source: str,
+) -> Scenario:
     for key in ("tracks", "map_features", "metadata"):
         if not isinstance(description, Mapping) or not isinstance(description.get(key), Mapping):
             raise ValueError(f"{source}: a scenario description needs a dict {key!r}")

@@ -38,7 +38,7 @@ import numpy as np
 from policies.base import ScenePolicy
 from policies.baselines.idm import IDMPolicy
 from riskflow_env.config import EnvConfig
-from riskflow_env.env import RiskFlowParallelEnv
+from riskflow_env.env import RiskFlowParallelEnv, check_reset_arguments
 from riskflow_env.scenarios import Scenario, ScenarioSource
 
 EGO = "ego"
@@ -90,6 +90,7 @@ class EgoEnv(gymnasium.Env):
         """Start an episode (``options`` as :meth:`RiskFlowParallelEnv.reset`). With a
         ``seed``, a policy that has ``reseed(seed)`` (the learned adversaries) is reseeded
         too, so two resets with the same seed give the same episode."""
+        seed, options = check_reset_arguments(seed, options)
         super().reset(seed=seed)
         observations, infos = self.parallel_env.reset(seed=seed, options=options)
         reseed = getattr(self.policy, "reseed", None)

@@ -31,6 +31,7 @@ def _others(env: EgoEnv, seed: int) -> np.ndarray:
     return np.stack(states)
 
 
+@pytest.mark.reliability
 def test_same_seed_same_episode_on_one_env(env):
     first = _others(env, seed=5)
     _others(env, seed=9)  # an episode in between moves the policy's own episode counter

@@ -14,6 +14,8 @@ import pytest
 from riskflow_env.scenarios import safe_pickle
 from riskflow_env.scenarios.safe_pickle import load_data_pickle, loads_data_pickle
 
+pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+
 
 def i8(value):
     return b"\x8a\x08" + struct.pack("<q", value)
