@@ -40,8 +40,9 @@ class EvalOptions:
     """controllable-set sizes K: ints >= 0 or 'all'"""
     interval: tuple[float, ...] = (0.5,)
     """[s] planning intervals (multiples of the env dt, 0.1 s)"""
-    scenes: int = 100
-    """number of scenes (the first ones of the source; more than it holds is an error)"""
+    scenes: int | None = None
+    """number of scenes, the first ones of the source (not given: all of them; more than it
+    holds is an error)"""
     data: str | None = None
     """scenario directory (riskflow-data output); default: the shipped evaluation scenes"""
     seeds: tuple[int, ...] = (0,)
@@ -193,7 +194,7 @@ def check_options(options: EvalOptions, dt: float = DynamicsConfig().dt) -> None
         method_spec(name)
     if len(set(options.methods)) != len(options.methods):
         raise ValueError(f"--methods: repeated method in {options.methods}")
-    if options.scenes < 1:
+    if options.scenes is not None and options.scenes < 1:
         raise ValueError(f"--scenes must be >= 1, got {options.scenes}")
     if options.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {options.workers}")

@@ -16,7 +16,10 @@ def test_pettingzoo_max_cycles_test():
     """PettingZoo's check counts turns per *possible* agent and expects most of them live,
     so the scenes fill every slot here (the default bank's scenes fill 8-32 of 32)."""
     full = {
-        "config": EnvConfig(max_agents=8),
+        # nobody terminates: PettingZoo's check resets unseeded and steps random actions
+        "config": EnvConfig(
+            max_agents=8, terminate_on_collision="none", terminate_on_offroad="none"
+        ),
         "scenarios": HighwayTrafficSource(
             TrafficConfig(families=("highway",), num_vehicles=(8, 8))
         ),

@@ -217,7 +217,7 @@ def test_shared_references_do_not_hang():
     assert len(data) < 1200
     start = time.perf_counter()
     loaded = loads_data_pickle(data)
-    assert time.perf_counter() - start < 2.0
+    assert time.perf_counter() - start < 60.0  # a hang guard (walking each path: days)
     assert loaded[0] is loaded[1]  # sharing kept, not expanded
 
 
