@@ -18,6 +18,9 @@ IDM ego, closed loop, ``--duration`` seconds. The rollouts are ``riskflow-eval``
   plan (step index 0 mod the planning interval) and at the other steps
   (:func:`~riskflow_env.metrics.jerk_steps`; the first simulated step, which follows
   the log, is in neither); the JSON has every phase (``jerk_p95_by_phase``);
+* ``still_kept``: of the vehicles that stand still in the log (logged positions within
+  0.5 m), the share the simulation keeps within 2 m of their log
+  (:func:`~riskflow_env.metrics.standstill_drift`; NaN without such vehicles);
 * ``wosac`` (mean per-rollout metametric), ``kdd``, ``ade`` / ``fde`` [m], ``wall_s``
   (rollouts and metrics, summed over this row's rollouts).
 
@@ -56,6 +59,7 @@ from riskflow_env.metrics import (
     kinematic_samples,
     method_metrics,
     rollout_metrics,
+    standstill_drift,
     wosac_scene,
 )
 from riskflow_env.scenarios import Scenario, load_bank, shipped_bank
@@ -64,6 +68,7 @@ SHIPPED_CHECKPOINT = (
     Path(__file__).resolve().parents[1] / "policies/checkpoints/riskflow_default.pt"
 )
 BASELINES = ("idm", "replay")
+STILL_RADIUS = 2.0  # [m] a vehicle that stands still in the log may drift this far
 COLUMNS = (  # (key, header, format)
     ("veh_coll", "veh. in coll.", "{:.3f}"),
     ("scr_nonego", "SCR non-ego", "{:.2f}"),
@@ -74,6 +79,7 @@ COLUMNS = (  # (key, header, format)
     ("lat_p95", "p95 lat. acc.", "{:.2f}"),
     ("jerk_replan_p95", "p95 jerk re-plan", "{:.2f}"),
     ("jerk_within_p95", "p95 jerk within", "{:.2f}"),
+    ("still_kept", "still within 2 m", "{:.3f}"),
     ("wosac", "WOSAC", "{:.3f}"),
     ("kdd", "KDD", "{:.3f}"),
     ("ade", "ADE", "{:.2f}"),
@@ -151,12 +157,15 @@ def measure(job: Job) -> dict[str, Any]:
     hit = collisions(record)
     involved = collision_involvement(hit.pairs, record.ego_index) & record.evaluated
     jerk, step = jerk_steps(record)
+    still, drift = standstill_drift(record)
     return {
         "label": job.run["label"],
         "metrics": rollout_metrics(record),
         "vehicles": int(record.evaluated.sum()),
         "involved": int(involved.sum()),
         "nonego_collision": bool(involved.any()),
+        "still": int(still.sum()),
+        "still_kept": int((drift[still] <= STILL_RADIUS).sum()),
         "samples": kinematic_samples(record),
         "jerk": jerk,
         "step": step,
@@ -180,6 +189,7 @@ def summarise(label: str, results: list[dict[str, Any]]) -> dict[str, Any]:
     period = results[0]["period"]
     phase = np.where(step > 0, step % period, -1)  # step 0 follows the log: no re-plan
     vehicles = sum(r["vehicles"] for r in results)
+    still, nan = sum(r["still"] for r in results), float("nan")
     return {
         "label": label,
         "rollouts": len(results),
@@ -190,6 +200,7 @@ def summarise(label: str, results: list[dict[str, Any]]) -> dict[str, Any]:
         "scr": agg["scr"],
         "orr": agg["orr"],
         "orr_fp": agg["orr_footprint"],
+        "still_kept": sum(r["still_kept"] for r in results) / max(still, 1) if still else nan,
         "jerk_p95": _p95(pooled["jerk"]),
         "lat_p95": _p95(pooled["lateral_acceleration"]),
         "jerk_replan_p95": _p95(jerk[phase == 0]),

@@ -19,7 +19,8 @@ class ScenePolicy(Protocol):
 
     ``reset(view)`` is called once at the start of an episode, then ``act(view)`` every
     env step; ``act`` returns ``{agent: (accel [m/s^2], yaw_rate [rad/s])}`` for the live
-    agents it controls. Policies see only the read-only :class:`SceneView`.
+    agents it controls. Policies see only the read-only :class:`SceneView`. A stochastic
+    policy may also have ``reseed(seed)``, which ``EgoEnv.reset(seed=...)`` calls.
     """
 
     def reset(self, view: SceneView) -> None:

@@ -8,6 +8,7 @@ the AEC view of the same env. See :mod:`riskflow_env.env` for agents, spaces and
 
 from __future__ import annotations
 
+import dataclasses
 from importlib.metadata import PackageNotFoundError, version
 
 import gymnasium
@@ -25,17 +26,27 @@ if "RiskFlowEgo-v0" not in gymnasium.registry:
     gymnasium.register(id="RiskFlowEgo-v0", entry_point="riskflow_env.wrappers.ego_env:EgoEnv")
 
 
-def parallel_env(**kwargs) -> RiskFlowParallelEnv:
+def parallel_env(*, max_cycles: int | None = None, **kwargs) -> RiskFlowParallelEnv:
     """The ``riskflow_v0`` PettingZoo ``ParallelEnv``; keyword arguments as
-    :class:`RiskFlowParallelEnv` (``config``, ``scenarios``, ``render_mode``)."""
+    :class:`RiskFlowParallelEnv` (``config``, ``scenarios``, ``render_mode``).
+
+    ``max_cycles`` (PettingZoo's name for the episode length) sets the config's
+    ``episode_steps``: every agent is truncated after that many steps."""
+    if max_cycles is not None:
+        config = kwargs.get("config") or EnvConfig()
+        if not isinstance(config, EnvConfig):
+            raise TypeError(f"config must be an EnvConfig, got {type(config).__name__}")
+        if isinstance(max_cycles, bool) or not isinstance(max_cycles, int) or max_cycles < 1:
+            raise ValueError(f"max_cycles must be an int >= 1 (steps), got {max_cycles!r}")
+        kwargs["config"] = dataclasses.replace(config, episode_steps=max_cycles)
     return RiskFlowParallelEnv(**kwargs)
 
 
-def env(**kwargs):
+def env(*, max_cycles: int | None = None, **kwargs):
     """The AEC (turn-by-turn) view of :func:`parallel_env`, for AEC-only libraries."""
     from pettingzoo.utils.conversions import parallel_to_aec
 
-    return parallel_to_aec(parallel_env(**kwargs))
+    return parallel_to_aec(parallel_env(max_cycles=max_cycles, **kwargs))
 
 
 __all__ = [

@@ -184,9 +184,9 @@ class RiskFlowParallelEnv(ParallelEnv):
                 same episode.
             options: ``{"scenario": Scenario}`` starts from that scene.
         """
+        seed, options = check_reset_arguments(seed, options)
         if seed is not None:
             self._rng = np.random.default_rng(seed)
-        options = dict(options or {})
         unknown = sorted(set(options) - {"scenario"})
         if unknown:  # tolerated (the PettingZoo API test passes extra keys), but reported
             gymnasium.logger.warn(f"reset(options=...) ignores unknown keys {unknown}")
@@ -335,6 +335,27 @@ class RiskFlowParallelEnv(ParallelEnv):
             for agent, i in pairs
         }
         return observations, rewards, infos
+
+
+def check_reset_arguments(seed: Any, options: Any) -> tuple[int | None, dict[str, Any]]:
+    """``reset``'s arguments checked: ``seed`` None or an int >= 0 (gymnasium's seeding
+    rule; a bool is not an int), ``options`` None or a dict. Returns ``(seed as a Python
+    int or None, options as a new dict)``; TypeError / ValueError naming the argument."""
+    if seed is not None:
+        if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)):
+            raise TypeError(
+                f"reset(seed=...) must be None or an int >= 0, got {type(seed).__name__} "
+                f"({seed!r:.40})"
+            )
+        if seed < 0:
+            raise ValueError(f"reset(seed=...) must be None or an int >= 0, got {seed}")
+        seed = int(seed)
+    if options is not None and not isinstance(options, Mapping):
+        raise TypeError(
+            "reset(options=...) must be None or a dict such as {'scenario': Scenario}, "
+            f"got {type(options).__name__} ({options!r:.40})"
+        )
+    return seed, dict(options or {})
 
 
 def _collision_partners(collisions: np.ndarray, names: Sequence[str]) -> dict[int, list[str]]:

@@ -6,6 +6,7 @@ pid into it. A second process gets :class:`FolderLocked` naming the holder's pid
 operating system drops the lock when the holder ends, ``kill -9`` included, so a killed
 run never blocks its own resume; the file itself stays (deleting it could race).
 Used by ``riskflow-eval`` (results folders) and ``riskflow-data generate`` (banks).
+:func:`check_output_folder` checks such a folder before anything is written.
 """
 
 from __future__ import annotations
@@ -19,6 +20,17 @@ LOCK_NAME = "writer.lock"
 
 class FolderLocked(ValueError):
     """Another process is writing into the folder."""
+
+
+def check_output_folder(folder: str | os.PathLike, option: str = "--out") -> None:
+    """ValueError naming ``option`` when ``folder``, or its nearest existing parent, is
+    not a folder (an existing file would make the writer's ``mkdir`` fail)."""
+    path = Path(folder)
+    for existing in (path, *path.parents):
+        if existing.exists():
+            if not existing.is_dir():
+                raise ValueError(f"{option}: {existing} exists and is not a folder")
+            return
 
 
 def _try_lock(file: IO[Any]) -> bool:

@@ -17,10 +17,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import torch
 
 from policies.evaluation.ego import EGO_PLANNERS
 from policies.evaluation.registry import method_options, method_spec
 from riskflow_env.config import DynamicsConfig
+from riskflow_env.folder_lock import check_output_folder
 from riskflow_env.scenarios import Scenario, load_bank, shipped_bank
 
 SCHEMA = 1  # results.jsonl row layout version
@@ -38,12 +40,13 @@ class EvalOptions:
     """controllable-set sizes K: ints >= 0 or 'all'"""
     interval: tuple[float, ...] = (0.5,)
     """[s] planning intervals (multiples of the env dt, 0.1 s)"""
-    scenes: int = 100
-    """number of scenes (the first ones of the source)"""
+    scenes: int | None = None
+    """number of scenes, the first ones of the source (not given: all of them; more than it
+    holds is an error)"""
     data: str | None = None
     """scenario directory (riskflow-data output); default: the shipped evaluation scenes"""
     seeds: tuple[int, ...] = (0,)
-    """rollout seeds (one rollout per scene and seed)"""
+    """rollout seeds, ints >= 0 (one rollout per scene and seed)"""
     ego: str = "idm"
     """ego planner under test: idm, cv (constant velocity) or replay (its log)"""
     target: str = "others"
@@ -148,10 +151,39 @@ def run_config(options: EvalOptions) -> dict[str, Any]:
     }
 
 
-def load_scenes(data: str | None, count: int) -> list[Scenario]:
-    """The first ``count`` scenes of ``data`` (a directory) or of the shipped bank."""
+def load_scenes(data: str | None, count: int | None = None) -> list[Scenario]:
+    """The first ``count`` scenes (default: all) of ``data`` (a directory) or of the
+    shipped bank; ValueError naming ``--scenes`` when the source holds fewer."""
     bank = shipped_bank("eval") if data in (None, SHIPPED) else load_bank(data)
-    return [bank[i] for i in range(min(count, len(bank)))]
+    if count is None:
+        count = len(bank)
+    if count > len(bank):
+        source = "the shipped evaluation bank" if data in (None, SHIPPED) else f"--data {data}"
+        raise ValueError(
+            f"--scenes {count}: {source} holds only {len(bank)} scenes; "
+            f"give --scenes {len(bank)} or fewer"
+        )
+    return [bank[i] for i in range(count)]
+
+
+def check_device(device: str) -> None:
+    """ValueError naming ``--device`` unless ``device`` is a torch device this machine has."""
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        raise ValueError(
+            f"--device: {device!r} is not a torch device (expected e.g. 'cpu', 'cuda', 'cuda:0')"
+        ) from None
+    if parsed.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise ValueError(f"--device {device}: CUDA is not available on this machine")
+        if parsed.index is not None and parsed.index >= count:
+            raise ValueError(f"--device {device}: this machine has {count} CUDA device(s)")
+    elif parsed.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"--device {device}: MPS is not available on this machine")
+    elif parsed.type not in ("cpu", "cuda", "mps"):
+        raise ValueError(f"--device: {device!r} is not supported (expected cpu, cuda or mps)")
 
 
 def check_options(options: EvalOptions, dt: float = DynamicsConfig().dt) -> None:
@@ -162,7 +194,7 @@ def check_options(options: EvalOptions, dt: float = DynamicsConfig().dt) -> None
         method_spec(name)
     if len(set(options.methods)) != len(options.methods):
         raise ValueError(f"--methods: repeated method in {options.methods}")
-    if options.scenes < 1:
+    if options.scenes is not None and options.scenes < 1:
         raise ValueError(f"--scenes must be >= 1, got {options.scenes}")
     if options.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {options.workers}")
@@ -177,6 +209,11 @@ def check_options(options: EvalOptions, dt: float = DynamicsConfig().dt) -> None
         raise ValueError(f"--diffusion-steps must be >= 1, got {options.diffusion_steps}")
     if not options.seeds:
         raise ValueError("--seeds: give at least one seed")
+    bad_seeds = [seed for seed in options.seeds if seed < 0]
+    if bad_seeds:
+        raise ValueError(f"--seeds must be ints >= 0, got {bad_seeds[0]}")
+    check_device(options.device)
+    check_output_folder(options.out, "--out")
 
 
 def plan_jobs(options: EvalOptions, scenes: list[Scenario]) -> list[Job]:

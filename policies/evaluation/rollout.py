@@ -34,7 +34,7 @@ _WARM: set[tuple] = set()  # (label, k, interval) this process has warmed up
 
 @functools.cache
 def _scenes(data: str) -> tuple[Scenario, ...]:
-    return tuple(load_scenes(data, 10**9))
+    return tuple(load_scenes(data))
 
 
 def job_scenario(job: Job) -> Scenario:

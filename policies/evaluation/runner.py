@@ -85,6 +85,9 @@ def prepare(options: EvalOptions) -> tuple[ResultsStore, list[Job]]:
     check_methods(jobs)
     try:
         store.check_config(run_config(options))  # takes the folder's writer lock
+    except OSError as err:  # e.g. the folder cannot be created
+        store.unlock()
+        raise ValueError(f"--out: {err}") from err
     except BaseException:
         store.unlock()
         raise

@@ -158,6 +158,15 @@ class PlanBufferPolicy(ABC):
         return k
 
     # ----------------------------------------------------------- ScenePolicy
+    def reseed(self, seed: int) -> None:
+        """Restart the noise stream from ``seed``: the episodes after this call draw the same
+        noise as those of a fresh policy built with ``seed`` (``EgoEnv.reset(seed=...)``
+        calls it, so that a seeded reset repeats the episode bit for bit)."""
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"seed must be an int >= 0, got {seed!r}")
+        self.seed = int(seed)
+        self._episode = -1
+
     def reset(self, view: SceneView) -> None:
         """New episode: drop the plans; the next ``act`` plans cycle 0."""
         interval = self.planning_interval / view.dt

@@ -10,6 +10,7 @@ metric          per rollout                              over rollouts
 SCR, ego rate   :func:`collisions`                       :func:`collision_rates`
 ORR             :func:`offroad` (centroid, footprint)    :func:`offroad_rates`
 ADE, FDE        :func:`displacement_errors`              :func:`displacement_means`
+still drift     :func:`standstill_drift` (log-parked)    --
 KDD             :func:`kinematic_samples`                :func:`kdd`
 CS, RS          --                                       :func:`safety_realism_scores`
 WOSAC realism   --                                       :func:`wosac_scene` (N rollouts
@@ -26,6 +27,7 @@ from riskflow_env.metrics.displacement import (
     DisplacementResult,
     displacement_errors,
     displacement_means,
+    standstill_drift,
 )
 from riskflow_env.metrics.kinematics import (
     KINEMATIC_FEATURES,
@@ -80,6 +82,7 @@ __all__ = [
     "offroad",
     "offroad_rates",
     "rollout_metrics",
+    "standstill_drift",
     "safety_realism_scores",
     "wosac_aggregate",
     "wosac_scene",

@@ -81,3 +81,30 @@ def displacement_means(results: Sequence[DisplacementResult]) -> tuple[float, fl
     if not sum(a.size for a in ade):
         return float("nan"), float("nan")
     return float(np.mean(np.concatenate(ade))), float(np.mean(np.concatenate(fde)))
+
+
+def standstill_drift(
+    record: RolloutRecord, still_distance: float = 0.5
+) -> tuple[np.ndarray, np.ndarray]:
+    """How far the vehicles that stand still in the log are moved by the simulation.
+
+    A vehicle *stands still* when it is evaluated and every logged position over the
+    scored steps lies within ``still_distance`` [m] of its logged position at the first
+    scored step (parked cars, a queue that never moves). Its drift is the largest
+    ``||xy - xy_ref||`` over the scored steps where both tracks are valid.
+
+    Returns:
+        ``(still, drift)``: (A,) bool, the vehicle stands still in the log and has a
+        masked step; (A,) largest position error [m], NaN where ``still`` is False.
+    """
+    if not still_distance >= 0:
+        raise ValueError(f"still_distance must be >= 0 [m], got {still_distance!r}")
+    error, mask = position_errors(record)
+    logged = record.scored(record.reference_valid)
+    first = np.argmax(logged, axis=1)
+    start = record.reference[np.arange(logged.shape[0]), first, :2]
+    spread = np.linalg.norm(record.reference[..., :2] - start[:, None], axis=-1)
+    still = logged.any(axis=1) & np.all(~logged | (spread <= still_distance), axis=1)
+    still &= mask.any(axis=1)
+    drift = np.where(still, np.where(mask, error, 0.0).max(axis=1), np.nan)
+    return still, drift

@@ -28,13 +28,13 @@ import os
 import sys
 import time
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from riskflow_env.folder_lock import FolderLock, FolderLocked
+from riskflow_env.folder_lock import FolderLock, FolderLocked, check_output_folder
 from riskflow_env.maps import FAMILIES
 from riskflow_env.processes import exit_with_parent
 from riskflow_env.scenarios._npz import check_npz_sizes
@@ -63,6 +63,17 @@ class GenerateOptions:
     """worker processes (results do not depend on it)"""
     future_steps: int = 100
     """reference future per scene [steps of 0.1 s]"""
+
+    def __post_init__(self) -> None:
+        for name, minimum in (("scenes", 0), ("seed", 0), ("workers", 1), ("future_steps", 1)):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
+                raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}")
+        if self.split not in SPLIT_KEYS:
+            raise ValueError(f"split must be one of {tuple(SPLIT_KEYS)}, got {self.split!r}")
+        unknown = [family for family in self.families if family not in FAMILIES]
+        if unknown or not self.families:
+            raise ValueError(f"families must be a non-empty subset of {FAMILIES}, got {unknown}")
 
     def settings(self) -> dict:
         """What the files depend on (recorded in the manifest)."""
@@ -181,6 +192,21 @@ def info(directory: Path) -> dict[str, int]:
     return dict(counts)
 
 
+def int_at_least(minimum: int) -> Callable[[str], int]:
+    """An argparse ``type``: an int >= ``minimum``, else a usage error naming the option."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an int >= {minimum}, got {text!r}")
+        return value
+
+    return parse
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``riskflow-data`` parser (subcommands ``generate`` and ``info``)."""
     formatter = argparse.ArgumentDefaultsHelpFormatter
@@ -194,13 +220,15 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--out", type=Path, required=True, help="folder of the bank (scenes, maps/)")
     gen.add_argument("--families", nargs="+", choices=FAMILIES, default=list(FAMILIES),
                      help="road families, assigned round-robin to scene indices")  # fmt: skip
-    gen.add_argument("--scenes", type=int, default=100, help="number of scenes in the bank")
-    gen.add_argument("--seed", type=int, default=0, help="root seed")
+    gen.add_argument("--scenes", type=int_at_least(0), default=100,
+                     help="number of scenes in the bank (indices 0 .. N-1, generated "
+                     "procedurally: any N is made in full)")  # fmt: skip
+    gen.add_argument("--seed", type=int_at_least(0), default=0, help="root seed (an int >= 0)")
     gen.add_argument("--split", choices=tuple(SPLIT_KEYS), default="train",
                      help="separate seed streams for train and eval banks")  # fmt: skip
-    gen.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+    gen.add_argument("--workers", type=int_at_least(1), default=os.cpu_count() or 1,
                      help="worker processes (results do not depend on it)")  # fmt: skip
-    gen.add_argument("--future-steps", type=int, default=100,
+    gen.add_argument("--future-steps", type=int_at_least(1), default=100,
                      help="reference future per scene [steps of 0.1 s]")  # fmt: skip
     show = commands.add_parser(
         "info", help="count the scenes of a bank per family", formatter_class=formatter
@@ -211,12 +239,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``riskflow-data`` console script."""
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
     if args.command == "info":
         info(args.directory)
         return 0
-    if args.scenes < 0 or args.workers < 1 or args.future_steps < 1:
-        raise SystemExit("riskflow-data: --scenes >= 0, --workers >= 1, --future-steps >= 1")
+    try:
+        check_output_folder(args.out, "--out")
+    except ValueError as err:
+        parser.error(str(err))
     options = GenerateOptions(
         out=args.out,
         families=tuple(dict.fromkeys(args.families)),

@@ -33,9 +33,11 @@ import _compat_pickle
 import builtins
 import codecs
 import collections
+import contextlib
 import io
 import math
 import pickle
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -359,17 +361,28 @@ def _finish(root: Any) -> Any:
     return visit(root, 0)
 
 
-def _load(file: io.BufferedIOBase, source: str) -> Any:
+@contextlib.contextmanager
+def errors_name_the_file(source: str, what: str = "a readable data pickle") -> Iterator[None]:
+    """Inside the block, every failure becomes one ``ValueError`` naming ``source``.
+
+    ``MemoryError``, ``IndexError``, ``LookupError``, ``TypeError``, ``RecursionError``,
+    ``OverflowError``... (any ``Exception``) are re-raised as ``ValueError("<source>: not
+    <what> (<type>: <message>)")``; a ``ValueError`` whose message already names
+    ``source`` passes unchanged. ``KeyboardInterrupt``, ``SystemExit`` and other
+    ``BaseException`` s that are not ``Exception`` s pass through untouched."""
     try:
-        return _finish(RestrictedUnpickler(file, source=source).load())
+        yield
     except ValueError as err:
-        if str(err).startswith(source):
+        if source in str(err):
             raise
-        raise ValueError(f"{source}: not a readable data pickle ({err})") from None
-    except (Exception, MemoryError, RecursionError) as err:
-        raise ValueError(
-            f"{source}: not a readable data pickle ({type(err).__name__}: {err})"
-        ) from None
+        raise ValueError(f"{source}: not {what} ({err})") from None
+    except Exception as err:  # MemoryError and RecursionError are Exceptions
+        raise ValueError(f"{source}: not {what} ({type(err).__name__}: {err})") from None
+
+
+def _load(file: io.BufferedIOBase, source: str) -> Any:
+    with errors_name_the_file(source):
+        return _finish(RestrictedUnpickler(file, source=source).load())
 
 
 def load_data_pickle(path: str | Path) -> Any:

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from riskflow_env.dynamics import wrap_angle
-from riskflow_env.scenarios.safe_pickle import load_data_pickle
+from riskflow_env.scenarios.safe_pickle import errors_name_the_file, load_data_pickle
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.scenarios.scenarionet_features import feature_bounds
 from riskflow_env.scenarios.scenarionet_map import build_map
@@ -89,6 +89,12 @@ def load_scenarionet(
 
     Returns:
         A Scenario named ``"scenarionet/<scenario id>"`` with ``dt`` 0.1 s.
+
+    Raises:
+        FileNotFoundError: when ``path`` is not a file.
+        ValueError: naming the file, for every malformed, hostile or oversized input
+            (whatever the underlying cause: ``MemoryError``, ``IndexError``,
+            ``LookupError``, ``TypeError``...).
     """
     path = Path(path)
     if not path.is_file():
@@ -118,7 +124,33 @@ def scenario_from_description(
     crop_margin: float | None = None,
     smooth: bool = False,
 ) -> Scenario:
-    """:func:`load_scenarionet` for an already loaded description dict."""
+    """:func:`load_scenarionet` for an already loaded description dict (every failure a
+    ``ValueError`` naming ``source``)."""
+    with errors_name_the_file(source, "a readable ScenarioNet scenario"):
+        return _scenario(
+            description,
+            resolution,
+            current_index,
+            min_future_steps,
+            margin,
+            source,
+            crop,
+            crop_margin,
+            smooth,
+        )
+
+
+def _scenario(
+    description: Mapping[str, Any],
+    resolution: float,
+    current_index: int | None,
+    min_future_steps: int,
+    margin: float,
+    source: str,
+    crop: bool,
+    crop_margin: float | None,
+    smooth: bool,
+) -> Scenario:
     for key in ("tracks", "map_features", "metadata"):
         if not isinstance(description, Mapping) or not isinstance(description.get(key), Mapping):
             raise ValueError(f"{source}: a scenario description needs a dict {key!r}")

@@ -38,7 +38,7 @@ import numpy as np
 from policies.base import ScenePolicy
 from policies.baselines.idm import IDMPolicy
 from riskflow_env.config import EnvConfig
-from riskflow_env.env import RiskFlowParallelEnv
+from riskflow_env.env import RiskFlowParallelEnv, check_reset_arguments
 from riskflow_env.scenarios import Scenario, ScenarioSource
 
 EGO = "ego"
@@ -87,9 +87,15 @@ class EgoEnv(gymnasium.Env):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
-        """Start an episode (``options`` as :meth:`RiskFlowParallelEnv.reset`)."""
+        """Start an episode (``options`` as :meth:`RiskFlowParallelEnv.reset`). With a
+        ``seed``, a policy that has ``reseed(seed)`` (the learned adversaries) is reseeded
+        too, so two resets with the same seed give the same episode."""
+        seed, options = check_reset_arguments(seed, options)
         super().reset(seed=seed)
         observations, infos = self.parallel_env.reset(seed=seed, options=options)
+        reseed = getattr(self.policy, "reseed", None)
+        if seed is not None and callable(reseed):
+            reseed(seed)  # a seeded reset repeats the episode, the policy's noise included
         self.policy.reset(self.parallel_env.view())
         return observations[EGO], infos[EGO]
 

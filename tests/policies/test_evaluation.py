@@ -6,6 +6,7 @@ import json
 from dataclasses import replace
 
 import pytest
+import torch
 
 from policies.base import ScenePolicy
 from policies.evaluation import (
@@ -18,6 +19,7 @@ from policies.evaluation import (
     write_report,
 )
 from policies.evaluation.cli import main
+from policies.evaluation.options import check_device
 
 # tiny: 2 scenes, 1 s episodes, RiskFlow with a 2-step guidance budget
 TINY = EvalOptions(
@@ -62,6 +64,7 @@ def test_results_rows_and_schema(tiny_run):
     assert idm["k"] is None and idm["interval"] is None  # one run serves every table
 
 
+@pytest.mark.reliability
 def test_resume_skips_finished_rows_and_keeps_numbers(tiny_run, tmp_path):
     full, _ = tiny_run
     out = tmp_path / "resumed"
@@ -77,6 +80,7 @@ def test_resume_skips_finished_rows_and_keeps_numbers(tiny_run, tmp_path):
     assert _numbers(out) == _numbers(full)  # nothing duplicated, same numbers
 
 
+@pytest.mark.reliability
 def test_worker_count_does_not_change_results(tiny_run, tmp_path):
     full, _ = tiny_run
     out = tmp_path / "workers"
@@ -86,6 +90,7 @@ def test_worker_count_does_not_change_results(tiny_run, tmp_path):
     assert _numbers(out) == expected
 
 
+@pytest.mark.reliability
 def test_config_mismatch_is_refused(tiny_run):
     out, _ = tiny_run
     with pytest.raises(ConfigMismatch, match="ego"):
@@ -109,6 +114,7 @@ def test_report_command(tiny_run, capsys):
     assert "report.md" in capsys.readouterr().out
 
 
+@pytest.mark.reliability
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
@@ -127,6 +133,10 @@ def test_report_command(tiny_run, capsys):
         (["--set", "nope.steps=3"], "unknown method 'nope'"),
         (["--set", "riskflow.lambda_map=-1"], "--methods riskflow"),
         (["--data", "/nonexistent/dir"], "--data"),
+        (["--seeds", "0", "-1"], "--seeds must be ints >= 0, got -1"),
+        (["--device", "nope"], "--device: 'nope' is not a torch device"),
+        (["--device", "meta"], "--device: 'meta' is not supported"),
+        (["--scenes", "1000"], "--scenes 1000: the shipped evaluation bank holds only"),
     ],
 )
 def test_bad_arguments_name_the_argument(argv, message, tmp_path, capsys):
@@ -135,6 +145,41 @@ def test_bad_arguments_name_the_argument(argv, message, tmp_path, capsys):
         main([*argv, *scenes, "--out", str(tmp_path / "bad")])
     assert exit_info.value.code == 2
     assert message in capsys.readouterr().err
+
+
+@pytest.mark.reliability
+@pytest.mark.parametrize(
+    "argv", [["--seeds", "-1"], ["--device", "nope"], ["--scenes", "1000"], ["--k", "-1"]]
+)
+def test_bad_arguments_write_nothing(argv, tmp_path, capsys):
+    """Issue 19: `--seeds -1` wrote config.json, then died in a worker with a traceback."""
+    out = tmp_path / "out"
+    scenes = [] if "--scenes" in argv else ["--scenes", "1"]
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--methods", "idm", *argv, *scenes, "--out", str(out)])
+    assert exit_info.value.code == 2
+    assert argv[0] in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.reliability
+def test_out_that_is_a_file_names_the_argument(tmp_path, capsys):
+    existing = tmp_path / "results.txt"
+    existing.write_text("keep me")
+    for out in (existing, existing / "sub"):
+        with pytest.raises(SystemExit) as exit_info:
+            main(["--methods", "idm", "--scenes", "1", "--out", str(out)])
+        assert exit_info.value.code == 2
+        assert f"--out: {existing} exists and is not a folder" in capsys.readouterr().err
+    assert existing.read_text() == "keep me"
+
+
+@pytest.mark.reliability
+def test_cuda_device_without_cuda_names_the_argument():
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    with pytest.raises(ValueError, match="--device cuda: CUDA is not available"):
+        check_device("cuda")
 
 
 def test_list(capsys):
@@ -149,6 +194,7 @@ def test_every_method_builds(name):
     assert isinstance(policy, ScenePolicy)
 
 
+@pytest.mark.reliability
 def test_rows_are_json_without_nan(tiny_run):
     out, _ = tiny_run
     for line in (out / "results.jsonl").read_text().splitlines():
@@ -182,6 +228,7 @@ def test_cs_rs_markers_never_overlap_after_the_spread():
     assert placed["bits"] == (0.48, 0.75)
 
 
+@pytest.mark.reliability
 def test_data_that_is_not_a_scene_folder_names_the_argument(tmp_path, capsys):
     pickled = tmp_path / "scene.pkl"
     pickled.write_bytes(b"")

@@ -4,6 +4,8 @@ import pytest
 
 from policies.rl.evaluation import UntrustedModelError, load_ppo_planner
 
+pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+
 
 def test_ppo_model_needs_trusted(tmp_path):
     pytest.importorskip("stable_baselines3")

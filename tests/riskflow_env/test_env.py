@@ -46,6 +46,7 @@ def rollout(env, seed: int, steps: int = 30) -> list:
     return trace + [env.scene.history.copy()]
 
 
+@pytest.mark.reliability
 def test_same_seed_same_rollout_bit_for_bit():
     first, second = rollout(make_env(), seed=7), rollout(make_env(), seed=7)
     assert len(first) == len(second)

@@ -8,6 +8,8 @@ import pytest
 
 from riskflow_env.folder_lock import LOCK_NAME, FolderLock, FolderLocked
 
+pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+
 
 def test_second_lock_is_refused_until_the_first_is_released(tmp_path):
     first, second = FolderLock(tmp_path / "out"), FolderLock(tmp_path / "out")

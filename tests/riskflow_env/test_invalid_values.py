@@ -10,6 +10,9 @@ import pytest
 
 from riskflow_env.config import DynamicsConfig, EnvConfig, ObservationConfig
 from riskflow_env.scenarios import ScenarioFormatError, load_scenario, save_scenario
+from riskflow_env.wrappers import EgoEnv
+
+pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
 
 _spec = importlib.util.spec_from_file_location(
     "_io_tests", Path(__file__).parent / "scenarios" / "test_io.py"
@@ -135,3 +138,30 @@ def test_tensor_with_grad_names_the_agent():
     actions[agent] = torch.zeros(2, requires_grad=True)
     with pytest.raises(ValueError, match=agent):
         env.step(actions)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "message"),
+    [
+        ({"seed": -1}, ValueError, r"reset\(seed=...\) must be None or an int >= 0, got -1"),
+        ({"seed": 1.5}, TypeError, r"reset\(seed=...\) must be None or an int >= 0, got float"),
+        ({"seed": True}, TypeError, r"reset\(seed=...\) must be None or an int >= 0, got bool"),
+        ({"seed": "0"}, TypeError, r"reset\(seed=...\) must be None or an int >= 0, got str"),
+        ({"options": "str"}, TypeError, r"reset\(options=...\) must be None or a dict"),
+        ({"options": [("scenario", 1)]}, TypeError, r"reset\(options=...\) must be None or a dict"),
+    ],
+)
+@pytest.mark.parametrize("kind", ["parallel", "ego"])
+def test_bad_reset_arguments_name_the_argument(kind, kwargs, error, message):
+    """Issue 19: `reset(options="str")` and `reset(seed=-1)` failed deep inside (dict
+    update, numpy's SeedSequence). gymnasium's seeding refuses negative seeds too."""
+    env = _env.make_env() if kind == "parallel" else EgoEnv(env=_env.make_env())
+    with pytest.raises(error, match=message):
+        env.reset(**kwargs)
+
+
+def test_numpy_integer_seed_is_the_same_seed():
+    first = _env.make_env().reset(seed=np.int64(3))[0]
+    second = _env.make_env().reset(seed=3)[0]
+    assert first.keys() == second.keys()
+    assert all(np.array_equal(first[agent], second[agent]) for agent in first)

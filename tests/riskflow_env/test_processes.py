@@ -12,7 +12,10 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+pytestmark = [
+    pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc"),
+    pytest.mark.reliability,  # docs/RELIABILITY.md
+]
 
 # the parent starts one child, prints its pid, then waits to be killed
 POOL_PARENT = """

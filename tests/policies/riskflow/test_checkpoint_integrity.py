@@ -16,6 +16,8 @@ from policies.riskflow.checkpoint import (
 )
 from policies.riskflow.generator import CheckpointError
 
+pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+
 SHIPPED = "policies/checkpoints/riskflow_default.pt"
 DIFFUSION = "policies/checkpoints/diffusion_default.pt"
 

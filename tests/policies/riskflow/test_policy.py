@@ -147,6 +147,7 @@ def test_guidance_changes_only_the_controllable_vehicles(model):
     assert policy.guidance_losses.shape == (11, 2)
 
 
+@pytest.mark.reliability
 def test_same_seed_same_closed_loop_rollout(model):
     histories = []
     for seed in (11, 11, 12):

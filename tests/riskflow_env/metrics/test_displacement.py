@@ -5,7 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from riskflow_env.metrics import RolloutRecord, displacement_errors, displacement_means
+from riskflow_env.metrics import (
+    RolloutRecord,
+    displacement_errors,
+    displacement_means,
+    standstill_drift,
+)
 
 
 def record_of(states, reference, reference_valid=None, **kwargs):
@@ -61,3 +66,21 @@ def test_agents_without_overlap_with_the_log_and_pooling(straight):
     not_evaluated = record_of(states, reference, evaluated=np.array([False, True]))
     assert displacement_errors(not_evaluated).num_agents == 1
     assert displacement_errors(not_evaluated).mean_ade == pytest.approx(0.0)
+
+
+def test_standstill_drift_only_for_vehicles_the_log_keeps_still():
+    steps = 6
+    reference = np.zeros((3, steps, 4))
+    reference[1, :, 0] = np.arange(steps) * 1.0  # moves 5 m in the log
+    reference[2, :, 0] = 10.0  # parked at x = 10
+    states = reference.copy()
+    states[0, :, 0] = np.arange(steps) * 0.5  # parked in the log, driven 2.5 m
+    states[2, 3:, 1] = 0.3  # parked, nudged 0.3 m sideways
+    valid = np.ones((3, steps), dtype=bool)
+    record = RolloutRecord(states, valid, np.full(3, 4.5), np.full(3, 2.0), reference, valid)
+    still, drift = standstill_drift(record)
+    assert still.tolist() == [True, False, True]
+    np.testing.assert_allclose(drift[still], [2.5, 0.3])
+    assert np.isnan(drift[1])
+    with pytest.raises(ValueError, match="still_distance"):
+        standstill_drift(record, still_distance=-1.0)

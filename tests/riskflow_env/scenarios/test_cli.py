@@ -32,6 +32,7 @@ def _files(directory) -> dict[str, bytes]:
     }
 
 
+@pytest.mark.reliability
 def test_one_or_two_workers_write_identical_files(tmp_path):
     generate(_tiny(tmp_path / "one", workers=1))
     generate(_tiny(tmp_path / "two", workers=2))
@@ -45,6 +46,7 @@ def test_one_or_two_workers_write_identical_files(tmp_path):
     assert all(scene.future_steps == 10 for scene in bank.scenarios)
 
 
+@pytest.mark.reliability
 def test_resume_skips_complete_scenes_and_redoes_missing_ones(tmp_path):
     out = tmp_path / "bank"
     assert generate(_tiny(out))["written"] == 2
@@ -66,6 +68,7 @@ def test_resume_skips_complete_scenes_and_redoes_missing_ones(tmp_path):
     assert "00002-u-turn.npz" in after and not list(out.glob(".*.tmp"))
 
 
+@pytest.mark.reliability
 def test_resume_with_other_settings_is_refused(tmp_path):
     generate(_tiny(tmp_path, scenes=1))
     with pytest.raises(SystemExit, match="other settings"):
@@ -82,6 +85,66 @@ def test_command_line(tmp_path, capsys):
     assert "1 scenes" in printed and "u-turn" in printed and "split train" in printed
     with pytest.raises(SystemExit):
         main(["generate", "--families", "nowhere", "--out", str(out)])
+
+
+@pytest.mark.reliability
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--seed", "-1"], "argument --seed: expected an int >= 0, got '-1'"),
+        (["--scenes", "-3"], "argument --scenes: expected an int >= 0, got '-3'"),
+        (["--workers", "0"], "argument --workers: expected an int >= 1, got '0'"),
+        (["--future-steps", "x"], "argument --future-steps: expected an int >= 1, got 'x'"),
+    ],
+)
+def test_bad_numbers_are_usage_errors_before_anything_is_written(args, message, tmp_path, capsys):
+    """Issue 19: `--seed -1` wrote the manifest, then died with a traceback."""
+    out = tmp_path / "bank"
+    with pytest.raises(SystemExit) as exit_info:
+        main(["generate", "--families", "u-turn", "--scenes", "1", "--out", str(out), *args])
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.reliability
+def test_out_that_is_a_file_is_a_usage_error(tmp_path, capsys):
+    existing = tmp_path / "bank.txt"
+    existing.write_text("keep me")
+    with pytest.raises(SystemExit) as exit_info:
+        main(["generate", "--families", "u-turn", "--scenes", "1", "--out", str(existing)])
+    assert exit_info.value.code == 2
+    assert f"--out: {existing} exists and is not a folder" in capsys.readouterr().err
+    assert existing.read_text() == "keep me"
+
+
+@pytest.mark.reliability
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"seed": -1}, "seed must be an int >= 0"),
+        ({"scenes": True}, "scenes must be an int >= 0"),
+        ({"workers": 0}, "workers must be an int >= 1"),
+        ({"split": "test"}, "split must be one of"),
+        ({"families": ("moon",)}, "families must be a non-empty subset"),
+    ],
+)
+def test_generate_options_are_validated(changes, message, tmp_path):
+    with pytest.raises(ValueError, match=message):
+        _tiny(tmp_path / "bank", **changes)
+    assert not (tmp_path / "bank").exists()
+
+
+@pytest.mark.reliability
+def test_scenes_beyond_a_previous_run_are_made_in_full(tmp_path):
+    """`--scenes N` means indices 0 .. N-1, generated procedurally: a bank of 1 scene
+    grows to 3, never silently fewer."""
+    out = tmp_path / "bank"
+    assert generate(_tiny(out, scenes=1))["written"] == 1
+    assert generate(_tiny(out, scenes=3)) | {"seconds": 0, "per_minute": 0} == {
+        "written": 2, "skipped": 1, "seconds": 0, "per_minute": 0
+    }  # fmt: skip
+    assert len(load_bank(out).scenarios) == 3
 
 
 def _children(pid: int) -> list[int]:
@@ -104,6 +167,7 @@ def _alive(pid: int) -> bool:
         return False
 
 
+@pytest.mark.reliability
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_workers_die_with_a_killed_parent(tmp_path):
     """Issue 19: after kill -9 of `generate --workers 2` the workers kept writing, then
@@ -132,6 +196,7 @@ def test_workers_die_with_a_killed_parent(tmp_path):
     assert len(written) < 40
 
 
+@pytest.mark.reliability
 def test_second_generate_into_one_bank_is_refused(tmp_path):
     """A second run deleted the first one's temporary files; now it exits naming the pid."""
     out = tmp_path / "bank"
@@ -141,3 +206,50 @@ def test_second_generate_into_one_bank_is_refused(tmp_path):
         assert not (out / "riskflow-data.json").exists()
     generate(_tiny(out, scenes=1))  # released: the bank is written
     assert (out / "00000-u-turn.npz").is_file()
+
+
+KILLED_GENERATE = """
+import os, signal, sys
+from riskflow_env.scenarios import cli
+
+real_replace, renamed = os.replace, []
+
+
+def replace(source, target):  # kill -9 just before the third scene file appears
+    if os.path.dirname(target) == sys.argv[1]:
+        renamed.append(target)
+        if len(renamed) == 3:
+            os.kill(os.getpid(), signal.SIGKILL)
+    real_replace(source, target)
+
+
+os.replace = replace
+cli.main(["generate", "--out", sys.argv[1], *sys.argv[2:]])
+"""
+
+
+@pytest.mark.reliability
+def test_kill_9_then_resume_gives_the_uninterrupted_bank(tmp_path):
+    """Issue 19 deliverable 6: `riskflow-data generate` killed -9 while writing a scene
+    (its temporary file on disk), then the same command again: the bank is the one an
+    uninterrupted run writes, byte for byte."""
+    args = ["--families", "u-turn", "merge", "--scenes", "5", "--seed", "7", "--workers", "1"]
+    args += ["--future-steps", "10"]
+    killed = tmp_path / "killed"
+    child = subprocess.run(
+        [sys.executable, "-c", KILLED_GENERATE, str(killed), *args],
+        capture_output=True,
+        text=True,
+        timeout=600,  # a hang guard only: the machine may be loaded
+    )
+    assert child.returncode == -signal.SIGKILL, child.stderr[-2000:]
+    assert len(list(killed.glob("0*.npz"))) == 2
+    assert list(killed.glob(".*.tmp"))  # the scene being written when killed
+    assert main(["generate", "--out", str(killed), *args]) == 0
+    reference = tmp_path / "reference"
+    assert main(["generate", "--out", str(reference), *args]) == 0
+    killed_files, reference_files = _files(killed), _files(reference)
+    for files in (killed_files, reference_files):
+        files.pop("writer.lock")  # holds the last writer's pid
+    assert sorted(killed_files) == sorted(reference_files)
+    assert killed_files == reference_files

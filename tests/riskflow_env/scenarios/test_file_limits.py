@@ -14,6 +14,8 @@ from riskflow_env.scenarios.io import load_map, load_scenario
 from riskflow_env.scenarios.safe_pickle import loads_data_pickle
 from riskflow_env.scenarios.scenarionet import load_scenarionet
 
+pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+
 _spec = importlib.util.spec_from_file_location(
     "_scenarionet_tests", Path(__file__).with_name("test_scenarionet.py")
 )

@@ -14,6 +14,8 @@ import pytest
 from riskflow_env.scenarios import safe_pickle
 from riskflow_env.scenarios.safe_pickle import load_data_pickle, loads_data_pickle
 
+pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+
 
 def i8(value):
     return b"\x8a\x08" + struct.pack("<q", value)
@@ -215,7 +217,7 @@ def test_shared_references_do_not_hang():
     assert len(data) < 1200
     start = time.perf_counter()
     loaded = loads_data_pickle(data)
-    assert time.perf_counter() - start < 2.0
+    assert time.perf_counter() - start < 60.0  # a hang guard (walking each path: days)
     assert loaded[0] is loaded[1]  # sharing kept, not expanded
 
 

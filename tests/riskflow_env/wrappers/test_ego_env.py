@@ -75,6 +75,7 @@ def test_random_rollout_reward_is_sum_of_terms(family):
     assert trace[-1][2] or trace[-1][3]
 
 
+@pytest.mark.reliability
 def test_same_seed_same_rollout_bit_for_bit():
     first = rollout(EgoEnv(**small_kwargs()), seed=5)
     second = rollout(EgoEnv(**small_kwargs()), seed=5)

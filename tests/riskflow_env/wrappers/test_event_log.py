@@ -163,6 +163,7 @@ def test_open_events_close_at_episode_end_and_reset():
     assert of(env.events, "collision_end")[1]["duration"] == pytest.approx(0.6)  # steps 0..5
 
 
+@pytest.mark.reliability
 def test_exception_in_with_block_writes_summary(tmp_path):
     path = tmp_path / "crash.jsonl"
     with (
@@ -179,6 +180,7 @@ def test_exception_in_with_block_writes_summary(tmp_path):
     ]
 
 
+@pytest.mark.reliability
 def test_unclosed_wrapper_finishes_its_log_when_collected(tmp_path):
     path = tmp_path / "dropped.jsonl"
     env = EventLogWrapper(make_env([(0.0, 0.0, 0.0, 0.0), (3.0, 0.0, 0.0, 0.0)]), path)
@@ -216,6 +218,7 @@ while env.agents:
 """
 
 
+@pytest.mark.reliability
 def test_killed_run_leaves_every_detected_event_on_disk(tmp_path):
     path = tmp_path / "killed.jsonl"
     child = subprocess.Popen(

@@ -10,6 +10,8 @@ import pytest
 from riskflow_env.wrappers import EventLogWrapper, read_event_log
 from riskflow_env.wrappers.event_log import EventRecorder
 
+pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+
 _spec = importlib.util.spec_from_file_location(
     "_event_log_tests", Path(__file__).with_name("test_event_log.py")
 )

@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import importlib.util
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
 from riskflow_env.wrappers import EventLogWrapper, read_event_log
+
+pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
 
 _spec = importlib.util.spec_from_file_location(
     "_event_log_tests", Path(__file__).with_name("test_event_log.py")
@@ -44,3 +49,68 @@ def test_append_after_a_kill_mid_episode(tmp_path):
         _run(path, 1, append=True)
     episodes = [e["episode"] for e in read_event_log(path)]
     assert episodes == sorted(episodes) and episodes[-1] == 2  # 1 was the killed one
+
+
+KILLED = """
+import os, signal, sys
+import numpy as np
+sys.path.insert(0, sys.argv[2])
+from test_event_log import make_env
+from riskflow_env.wrappers import EventLogWrapper
+
+vehicles = [tuple(map(float, v.split(","))) for v in sys.argv[3].split(";")]
+env = EventLogWrapper(make_env(vehicles, steps=20), sys.argv[1])
+for episode in range(3):
+    env.reset(seed=0)
+    while env.agents:
+        env.step({agent: np.zeros(2) for agent in env.agents})
+        if episode == 1 and env.unwrapped.scene.step == 10:
+            os.kill(os.getpid(), signal.SIGKILL)  # kill -9 mid-episode, nothing closed
+"""
+
+# two pairs that collide at different steps of every 20-step episode
+KILL_VEHICLES = [(0.0, 0.0, 10.0, 0.0), (6.0, 0.0, 0.0, 0.0), (0.0, 6.0, 10.0, 0.0),
+                 (14.0, 6.0, 0.0, 0.0)]  # fmt: skip
+
+
+def _events_by_episode(path):
+    episodes = {}
+    for event in read_event_log(path):
+        episodes.setdefault(event["episode"], []).append(
+            {k: v for k, v in event.items() if k != "episode"}
+        )
+    return episodes
+
+
+def test_kill_9_mid_episode_then_resume_loses_nothing(tmp_path):
+    """Issue 19 deliverable 6: kill -9 of a logging run, then a resume with append=True:
+    every event detected before the kill is on disk, the resumed episodes continue the
+    numbering and log what an uninterrupted run logs."""
+    reference = tmp_path / "reference.jsonl"
+    with EventLogWrapper(_tests.make_env(KILL_VEHICLES, steps=20), reference) as env:
+        for _ in range(3):
+            env.reset(seed=0)
+            while env.agents:
+                env.step({agent: (0.0, 0.0) for agent in env.agents})
+    path = tmp_path / "killed.jsonl"
+    vehicles = ";".join(",".join(map(str, v)) for v in KILL_VEHICLES)
+    child = subprocess.run(
+        [sys.executable, "-c", KILLED, str(path), str(Path(__file__).parent), vehicles],
+        capture_output=True,
+        text=True,
+        timeout=600,  # a hang guard only: the machine may be loaded
+    )
+    assert child.returncode == -signal.SIGKILL, child.stderr[-2000:]
+    expected = _events_by_episode(reference)
+    killed = _events_by_episode(path)
+    assert killed[0] == expected[0]  # the finished episode, summary included
+    before_kill = [e for e in expected[1] if e["step"] <= 10 and e["event"] != "episode_summary"]
+    assert killed[1] == before_kill and before_kill  # every event detected before the kill
+    with EventLogWrapper(_tests.make_env(KILL_VEHICLES, steps=20), path, append=True) as env:
+        for _ in range(2):  # the killed episode again, then the last one
+            env.reset(seed=0)
+            while env.agents:
+                env.step({agent: (0.0, 0.0) for agent in env.agents})
+    resumed = _events_by_episode(path)
+    assert sorted(resumed) == [0, 1, 2, 3]
+    assert resumed[2] == expected[1] and resumed[3] == expected[2]

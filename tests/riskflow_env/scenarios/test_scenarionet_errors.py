@@ -1,0 +1,116 @@
+"""Malformed ScenarioNet files: every failure is one ValueError naming the file (issue 19).
+
+The safe loader is documented to raise ``ValueError`` naming the file; a malformed
+description used to escape as ``TypeError``, ``IndexError``, ``MemoryError`` or a
+``ValueError`` from numpy that did not say which file was wrong.
+"""
+
+from __future__ import annotations
+
+import copy
+import importlib.util
+import pickle
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from riskflow_env.scenarios import scenarionet
+from riskflow_env.scenarios.safe_pickle import errors_name_the_file
+from riskflow_env.scenarios.scenarionet import load_scenarionet
+
+pytestmark = pytest.mark.reliability
+
+_spec = importlib.util.spec_from_file_location(
+    "_scenarionet_tests", Path(__file__).with_name("test_scenarionet.py")
+)
+_tests = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_tests)
+
+# values that are wrong almost anywhere in a description
+BAD_VALUES = {
+    "str": "x",
+    "int": 3,
+    "none": None,
+    "empty-dict": {},
+    "3d-array": np.zeros((2, 3, 4)),
+    "str-array": np.array(["a", "b"]),
+}
+
+
+def _key_paths(tree, prefix=()):
+    """Every key path of the nested dicts of ``tree``."""
+    for key, value in tree.items():
+        yield (*prefix, key)
+        if isinstance(value, dict):
+            yield from _key_paths(value, (*prefix, key))
+
+
+def _malformed():
+    base = _tests._description()
+    for path in _key_paths(base):
+        for name, value in BAD_VALUES.items():
+            description = copy.deepcopy(base)
+            parent = description
+            for key in path[:-1]:
+                parent = parent[key]
+            parent[path[-1]] = value
+            yield "/".join(map(str, path)) + "=" + name, description
+
+
+def test_malformed_descriptions_raise_value_error_naming_the_file(tmp_path):
+    escaped = []
+    count = 0
+    for label, description in _malformed():
+        path = tmp_path / "scene.pkl"
+        path.write_bytes(pickle.dumps(description))
+        count += 1
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                load_scenarionet(path)
+        except ValueError as err:
+            if str(path) not in str(err):
+                escaped.append(f"{label}: ValueError without the file name: {err}")
+        except Exception as err:
+            escaped.append(f"{label}: {type(err).__name__}: {err}")
+    assert count > 200
+    assert not escaped, "\n".join(escaped[:20])
+
+
+@pytest.mark.parametrize("error", [MemoryError, IndexError, LookupError, KeyError, TypeError])
+def test_any_failure_inside_the_loader_becomes_value_error(error, tmp_path, monkeypatch):
+    path = tmp_path / "scene.pkl"
+    path.write_bytes(pickle.dumps(_tests._description()))
+
+    def fail(*args, **kwargs):
+        raise error("deep inside")
+
+    monkeypatch.setattr(scenarionet, "build_map", fail)
+    message = rf"{re.escape(str(path))}: .*{error.__name__}: .*deep inside"
+    with pytest.raises(ValueError, match=message):
+        load_scenarionet(path)
+
+
+@pytest.mark.parametrize("error", [KeyboardInterrupt, SystemExit, GeneratorExit])
+def test_interrupts_are_not_swallowed(error, tmp_path, monkeypatch):
+    path = tmp_path / "scene.pkl"
+    path.write_bytes(pickle.dumps(_tests._description()))
+
+    def interrupt(*args, **kwargs):
+        raise error()
+
+    monkeypatch.setattr(scenarionet, "build_map", interrupt)
+    with pytest.raises(error):
+        load_scenarionet(path)
+
+
+def test_value_error_that_names_the_file_passes_unchanged():
+    with pytest.raises(ValueError, match=r"^a\.pkl: precise reason$"):
+        with errors_name_the_file("a.pkl"):
+            raise ValueError("a.pkl: precise reason")
+    with pytest.raises(ValueError, match=r"^a\.pkl: not a readable data pickle \(vague\)$"):
+        with errors_name_the_file("a.pkl"):
+            raise ValueError("vague")
