@@ -200,7 +200,7 @@ def summarise(label: str, results: list[dict[str, Any]]) -> dict[str, Any]:
         "scr": agg["scr"],
         "orr": agg["orr"],
         "orr_fp": agg["orr_footprint"],
-        "still_kept": sum(r["still_kept"] for r in results) / max(still, 1) if still else nan,
+        "still_kept": sum(r["still_kept"] for r in results) / still if still else nan,
         "jerk_p95": _p95(pooled["jerk"]),
         "lat_p95": _p95(pooled["lateral_acceleration"]),
         "jerk_replan_p95": _p95(jerk[phase == 0]),
