@@ -20,25 +20,15 @@ The kind of a checkpoint file is read from its ``train_config["generator"]``
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
-from typing import Any
 
 import torch
 
+from policies.riskflow.checkpoint import checkpoint_kind, load_checkpoint
 from policies.riskflow.data import ActionNormalizer
 from policies.riskflow.generator import RiskFlowGenerator
 
 GENERATOR_KINDS = ("meanflow", "diffusion")
 DEFAULT_SAMPLING_STEPS = 10  # DDIM levels of a diffusion base generator (its validation's)
-
-
-def checkpoint_kind(checkpoint: Mapping[str, Any]) -> str:
-    """``"meanflow"`` or ``"diffusion"``: what ``riskflow-train`` trained into ``checkpoint``."""
-    kind = checkpoint.get("kind")
-    if kind is None:
-        train_config = checkpoint.get("train_config")
-        kind = train_config.get("generator") if isinstance(train_config, Mapping) else None
-    return kind or "meanflow"
 
 
 def generator_kind(model: object) -> str:
@@ -76,8 +66,6 @@ def load_base_generator(
     if kind is not None and kind not in GENERATOR_KINDS:
         raise ValueError(f"generator must be one of {GENERATOR_KINDS} or a model, got {kind!r}")
     if checkpoint is not None:
-        from policies.riskflow.checkpoint import load_checkpoint
-
         found = checkpoint_kind(load_checkpoint(checkpoint))
         if kind is not None and kind != found:
             raise ValueError(f"generator={kind!r}, but checkpoint {checkpoint} is a {found} model")
