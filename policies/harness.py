@@ -180,12 +180,16 @@ class ClosedLoop:
             raise ValueError(
                 f"event_log_mode must be 'new', 'append' or 'overwrite', got {event_log_mode!r}"
             )
-        self.env = EventLogWrapper(
-            self.video or env,
-            event_log,
-            append=event_log_mode == "append",
-            overwrite=event_log_mode == "overwrite",
-        )
+        try:
+            self.env = EventLogWrapper(
+                self.video or env,
+                event_log,
+                append=event_log_mode == "append",
+                overwrite=event_log_mode == "overwrite",
+            )
+        except BaseException:  # e.g. an existing log refused: leave nothing open
+            (self.video or env).close()
+            raise
         self.records: list[EpisodeRecord] = []
 
     def __enter__(self) -> ClosedLoop:

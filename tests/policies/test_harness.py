@@ -9,6 +9,7 @@ from policies.baselines import IDMPolicy, ReplayPolicy
 from policies.harness import METRICS, ClosedLoop, mean_interval, summarize, wilson_interval
 from policies.planners import ConstantVelocityPlanner, IDMPlanner
 from riskflow_env.config import EnvConfig
+from riskflow_env.env import RiskFlowParallelEnv
 from riskflow_env.maps import Lane, from_lanes
 from riskflow_env.metrics import rollout_metrics
 from riskflow_env.scenarios import Scenario, load_scenario, save_scenario, shipped_bank
@@ -120,3 +121,13 @@ def test_summarize(record):
         assert summary["time_to_first_ego_collision"] == {
             "value": None, "low": None, "high": None, "n": 0
         }  # fmt: skip
+
+
+def test_a_refused_event_log_leaves_nothing_open(scene, tmp_path, monkeypatch):
+    log = tmp_path / "events.jsonl"
+    log.write_text("{}\n")
+    closed = []
+    monkeypatch.setattr(RiskFlowParallelEnv, "close", lambda self: closed.append(self))
+    with pytest.raises(FileExistsError):
+        ClosedLoop(IDMPlanner(), IDMPolicy(), config=CONFIG, scenarios=scene, event_log=log)
+    assert len(closed) == 1
