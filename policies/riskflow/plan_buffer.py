@@ -159,9 +159,7 @@ class PlanBufferPolicy(ABC):
 
     # ----------------------------------------------------------- ScenePolicy
     def reseed(self, seed: int) -> None:
-        """Restart the noise stream from ``seed``: the episodes after this call draw the same
-        noise as those of a fresh policy built with ``seed`` (``EgoEnv.reset(seed=...)``
-        calls it, so that a seeded reset repeats the episode bit for bit)."""
+        """Restart the noise as a fresh policy built with ``seed`` (``EgoEnv.reset(seed=)``)."""
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed must be an int >= 0, got {seed!r}")
         self.seed = int(seed)
