@@ -26,12 +26,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from policies.baselines import ReplayPolicy
 from policies.harness import METRICS, ClosedLoop
 from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
 from policies.riskflow.checkpoint import load_generator
 from policies.riskflow.dataclass_cli import parse_dataclass
+from riskflow_env.agents import ReplayPolicy
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import Scenario, load_scenario, shipped_bank
 from riskflow_env.scenarios.scenarionet import load_scenarionet

@@ -1,13 +1,14 @@
 """Scene policies that drive the non-ego vehicles (docs/ARCHITECTURE.md).
 
 The scene policies are importable from here, loaded on first use (``import policies``
-stays light; ``policies.base`` needs no torch):
+stays light):
 
 * ``RiskFlowAdversary``: MeanFlow generator, TTC ranking, output-space guidance;
 * ``StriveAdversary``: STRIVE-style, optimises the generator's noise of ``A_c``;
 * ``NominalGenerator``: the unguided learned generator (BITS-like nominal traffic);
 * ``DiffusionAdversary``: CTG-, CTG++- and CCDiff-style guided diffusion;
-* ``IDMPolicy``, ``ReplayPolicy``, ``ConstantVelocityPolicy``: rule-based and log replay.
+* ``IDMPolicy``, ``ReplayPolicy``, ``ConstantVelocityPolicy``: rule-based and log replay,
+  from :mod:`riskflow_env.agents` (the env's own traffic).
 """
 
 from __future__ import annotations
@@ -19,9 +20,9 @@ _EXPORTS = {
     "StriveAdversary": "policies.baselines.strive",
     "NominalGenerator": "policies.baselines.nominal",
     "DiffusionAdversary": "policies.baselines.diffusion.policy",
-    "IDMPolicy": "policies.baselines.idm",
-    "ReplayPolicy": "policies.baselines.replay",
-    "ConstantVelocityPolicy": "policies.baselines.constant_velocity",
+    "IDMPolicy": "riskflow_env.agents.idm",
+    "ReplayPolicy": "riskflow_env.agents.replay",
+    "ConstantVelocityPolicy": "riskflow_env.agents.constant_velocity",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -1,60 +1,14 @@
-"""The ``ScenePolicy`` protocol: what every traffic model (replay, IDM, RiskFlow, the
-baselines) implements, so that one harness can drive and compare them all."""
+"""The scene-policy contract, re-exported where policies are written.
+
+:class:`ScenePolicy` lives beside :class:`~riskflow_env.view.SceneView` in
+:mod:`riskflow_env.view`, and the helpers every policy uses (:func:`controlled_mask`,
+:func:`actions_dict`) in :mod:`riskflow_env.agents.base`: the env drives its traffic
+through them without importing ``policies`` (docs/ARCHITECTURE.md).
+"""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Protocol, runtime_checkable
+from riskflow_env.agents.base import CONTROLLED_GROUPS, actions_dict, controlled_mask
+from riskflow_env.view import ScenePolicy
 
-import numpy as np
-
-from riskflow_env.view import SceneView
-
-CONTROLLED_GROUPS = ("others", "all")
-
-
-@runtime_checkable
-class ScenePolicy(Protocol):
-    """Drives a set of vehicles in a scene.
-
-    ``reset(view)`` is called once at the start of an episode, then ``act(view)`` every
-    env step; ``act`` returns ``{agent: (accel [m/s^2], yaw_rate [rad/s])}`` for the live
-    agents it controls. Policies see only the read-only :class:`SceneView`. A stochastic
-    policy may also have ``reseed(seed)``, which ``EgoEnv.reset(seed=...)`` calls.
-    """
-
-    def reset(self, view: SceneView) -> None:
-        """Prepare for a new episode."""
-        ...
-
-    def act(self, view: SceneView) -> dict[str, np.ndarray]:
-        """Actions of the live agents this policy controls."""
-        ...
-
-
-def controlled_mask(view: SceneView, controlled: str | Sequence[str]) -> np.ndarray:
-    """(A,) bool: the live slots a policy with ``controlled`` drives.
-
-    Args:
-        view: the scene.
-        controlled: ``"others"`` (every vehicle but the ego), ``"all"``, or agent names.
-    """
-    if isinstance(controlled, str):
-        if controlled not in CONTROLLED_GROUPS:
-            raise ValueError(
-                f"controlled must be one of {CONTROLLED_GROUPS} or a sequence of agent names, "
-                f"got {controlled!r}"
-            )
-        mask = np.ones(view.num_agents, dtype=bool)
-        if controlled == "others":
-            mask[0] = False
-    else:
-        mask = np.zeros(view.num_agents, dtype=bool)
-        for name in controlled:
-            mask[view.slot(name)] = True
-    return mask & view.active
-
-
-def actions_dict(view: SceneView, mask: np.ndarray, actions: np.ndarray) -> dict[str, np.ndarray]:
-    """``{name: actions[slot]}`` for the slots in ``mask``; actions (A, 2)."""
-    return {view.agent_names[i]: actions[i] for i in np.flatnonzero(mask)}
+__all__ = ["CONTROLLED_GROUPS", "ScenePolicy", "actions_dict", "controlled_mask"]

@@ -31,7 +31,6 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from policies.base import ScenePolicy
 from policies.planners.base import EgoPlanner, as_action, reset_planner
 from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import YAW
@@ -40,6 +39,7 @@ from riskflow_env.geometry import separation
 from riskflow_env.metrics import RolloutRecord
 from riskflow_env.render import RenderConfig
 from riskflow_env.scenarios import Scenario, ScenarioSource
+from riskflow_env.view import ScenePolicy
 from riskflow_env.wrappers import EventLogWrapper, VideoRecorder
 
 EGO = "ego"

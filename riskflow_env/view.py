@@ -1,12 +1,16 @@
-"""``SceneView``: the read-only window through which policies see a scene.
+"""``SceneView``, the read-only window through which policies see a scene, and
+``ScenePolicy``, the protocol of what drives vehicles through it.
 
 Policies never touch env internals: they get a frozen view whose arrays are read-only
-(writing to them raises), built from the env's current state.
+(writing to them raises), built from the env's current state. Every traffic model (the
+env's own agents in :mod:`riskflow_env.agents`, the learned adversaries in ``policies``)
+implements :class:`ScenePolicy`, so one harness drives and compares them all.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -99,3 +103,22 @@ class SceneView:
     def live_agents(self) -> tuple[str, ...]:
         """Names of the active (live) agents."""
         return tuple(self.agent_names[i] for i in np.flatnonzero(self.active))
+
+
+@runtime_checkable
+class ScenePolicy(Protocol):
+    """Drives a set of vehicles in a scene.
+
+    ``reset(view)`` is called once at the start of an episode, then ``act(view)`` every
+    env step; ``act`` returns ``{agent: (accel [m/s^2], yaw_rate [rad/s])}`` for the live
+    agents it controls. Policies see only the read-only :class:`SceneView`. A stochastic
+    policy may also have ``reseed(seed)``, which ``EgoEnv.reset(seed=...)`` calls.
+    """
+
+    def reset(self, view: SceneView) -> None:
+        """Prepare for a new episode."""
+        ...
+
+    def act(self, view: SceneView) -> dict[str, np.ndarray]:
+        """Actions of the live agents this policy controls."""
+        ...

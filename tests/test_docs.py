@@ -29,11 +29,11 @@ from pathlib import Path
 
 import pytest
 
+from tests.samples import SCENARIONET_DIR
+
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
-SAMPLE_DIR = Path(
-    os.environ.get("RISKFLOW_SCENARIONET_DIR", ROOT / "../shared/data/scenarionet")
-).resolve()
+SAMPLE_DIR = SCENARIONET_DIR
 TIMEOUT = 600  # [s] per block
 LINKED = ("examples", "benchmarks", "docs", "tests", "pyproject.toml")
 

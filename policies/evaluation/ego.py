@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from policies.baselines import ReplayPolicy
 from policies.planners import ConstantVelocityPlanner, EgoPlanner, IDMPlanner, SamplingMPCPlanner
+from riskflow_env.agents import ReplayPolicy
 from riskflow_env.view import SceneView
 
 

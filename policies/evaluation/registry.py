@@ -16,7 +16,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from policies.base import ScenePolicy
+from riskflow_env.view import ScenePolicy
 
 SHARED = ("k", "planning_interval", "target", "seed", "device")
 DIFFUSION_STEPS_OPTION = "sampling_steps"  # the DiffusionAdversary argument --diffusion-steps sets
@@ -47,19 +47,19 @@ def _nominal() -> type:
 
 
 def _idm() -> type:
-    from policies.baselines import IDMPolicy
+    from riskflow_env.agents import IDMPolicy
 
     return IDMPolicy
 
 
 def _replay() -> type:
-    from policies.baselines import ReplayPolicy
+    from riskflow_env.agents import ReplayPolicy
 
     return ReplayPolicy
 
 
 def _constant_velocity() -> type:
-    from policies.baselines import ConstantVelocityPolicy
+    from riskflow_env.agents import ConstantVelocityPolicy
 
     return ConstantVelocityPolicy
 

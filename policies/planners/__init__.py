@@ -1,7 +1,7 @@
 """Ego planners to stress-test: callables ``planner(observation, view) -> action``.
 
 * :class:`IDMPlanner` — IDM lane following that reacts to the vehicles ahead
-  (:class:`~policies.baselines.idm.IDMPolicy` restricted to the ego);
+  (:class:`~riskflow_env.agents.idm.IDMPolicy` restricted to the ego);
 * :class:`LaneKeepingPlanner` — the IDM planner's steering at constant speed;
 * :class:`SamplingMPCPlanner` — sampling MPC against constant-velocity predictions of the
   other vehicles (evades; far fewer collisions than IDM under the adversary);

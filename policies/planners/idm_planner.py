@@ -1,13 +1,13 @@
 """IDM ego planner: lane following with car following and yielding, for the ego alone.
 
-It is :class:`~policies.baselines.idm.IDMPolicy` restricted to one vehicle (one
+It is :class:`~riskflow_env.agents.idm.IDMPolicy` restricted to one vehicle (one
 implementation of IDM in the code base): each step the ego is matched to a lane of the
 map's lane graph and steers with pure pursuit toward a point ahead along it (taking, at
 forks, the lanes of its logged route: the ego's reference future plays the part of a
 route planner's output); its acceleration is the IDM acceleration toward its desired
 speed, with the nearest vehicle ahead in its corridor, the end of a dead-end lane and
 predicted crossing conflicts as leaders (it yields to every other vehicle). See
-:mod:`policies.baselines.idm` for the details and :class:`~policies.baselines.idm.IDMParams`
+:mod:`riskflow_env.agents.idm` for the details and :class:`~riskflow_env.agents.idm.IDMParams`
 for the parameters.
 """
 
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from policies.baselines.idm import IDMParams, IDMPolicy
+from riskflow_env.agents.idm import IDMParams, IDMPolicy
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.view import SceneView
 

@@ -14,8 +14,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from policies.base import ScenePolicy
 from policies.riskflow.ranking import check_k
+from riskflow_env.view import ScenePolicy
 
 TRAFFIC_KINDS = ("riskflow", "idm")
 TARGETS = ("others", "ego")
@@ -92,7 +92,7 @@ def make_traffic(config: ScenePolicyConfig, seed: int = 0, generator=None, norma
         normalizer: its action normaliser.
     """
     if config.kind == "idm":
-        from policies.baselines.idm import IDMPolicy
+        from riskflow_env.agents.idm import IDMPolicy
 
         return IDMPolicy(controlled="others")
     from policies.riskflow import RiskFlowAdversary

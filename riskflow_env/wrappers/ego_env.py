@@ -12,8 +12,8 @@ Action space        the ego's action space: ``Box([accel_min, -yaw_rate_max],
 Reward              the ego's reward; ``info["reward_terms"]`` breaks it into terms
 Termination         the ego terminates (collision / off-road, per ``EnvConfig``) or is
                     truncated (``episode_steps``, default 100 = 10 s)
-Other vehicles      a :class:`~policies.base.ScenePolicy` (default
-                    :class:`~policies.baselines.idm.IDMPolicy` with
+Other vehicles      a :class:`~riskflow_env.view.ScenePolicy` (default
+                    :class:`~riskflow_env.agents.IDMPolicy` with
                     ``controlled="others"``: IDM car following and lane keeping)
 ==================  ==============================================================
 
@@ -35,11 +35,11 @@ from typing import Any
 import gymnasium
 import numpy as np
 
-from policies.base import ScenePolicy
-from policies.baselines.idm import IDMPolicy
+from riskflow_env.agents.idm import IDMPolicy
 from riskflow_env.config import EnvConfig
 from riskflow_env.env import RiskFlowParallelEnv, check_reset_arguments
 from riskflow_env.scenarios import Scenario, ScenarioSource
+from riskflow_env.view import ScenePolicy
 
 EGO = "ego"
 

@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 import torch
 
-from policies.baselines import ReplayPolicy
 from policies.harness import ClosedLoop
 from policies.riskflow.checkpoint import DEFAULT_NAME, build_checkpoint, save_checkpoint
 from policies.riskflow.config import ModelConfig
 from policies.riskflow.data import ActionNormalizer
 from policies.riskflow.generator import RiskFlowGenerator
+from riskflow_env.agents import ReplayPolicy
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import load_scenario
 from riskflow_env.wrappers import read_event_log

@@ -8,7 +8,6 @@ from dataclasses import replace
 import pytest
 import torch
 
-from policies.base import ScenePolicy
 from policies.evaluation import (
     METHODS,
     ConfigMismatch,
@@ -20,6 +19,7 @@ from policies.evaluation import (
 )
 from policies.evaluation.cli import main
 from policies.evaluation.options import check_device
+from riskflow_env.view import ScenePolicy
 
 # tiny: 2 scenes, 1 s episodes, RiskFlow with a 2-step guidance budget
 TINY = EvalOptions(

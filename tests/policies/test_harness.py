@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from policies.baselines import IDMPolicy, ReplayPolicy
 from policies.harness import METRICS, ClosedLoop, mean_interval, summarize, wilson_interval
 from policies.planners import ConstantVelocityPlanner, IDMPlanner
+from riskflow_env.agents import IDMPolicy, ReplayPolicy
 from riskflow_env.config import EnvConfig
 from riskflow_env.env import RiskFlowParallelEnv
 from riskflow_env.maps import Lane, from_lanes

@@ -209,7 +209,7 @@ def test_training_env_normalised_actions_outcome_and_stage():
 
 
 def test_apply_stage_rejects_traffic_without_adversary():
-    from policies.baselines.idm import IDMPolicy
+    from riskflow_env.agents.idm import IDMPolicy
 
     with pytest.raises(TypeError, match="RiskFlow adversary"):
         apply_stage(IDMPolicy(), AdversaryStage())

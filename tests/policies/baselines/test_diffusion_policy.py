@@ -9,7 +9,6 @@ import pytest
 import torch
 
 import riskflow_env
-from policies.base import ScenePolicy
 from policies.baselines.diffusion.model import DiffusionDenoiser, load_diffusion
 from policies.baselines.diffusion.policy import PHASES, DiffusionAdversary
 from policies.baselines.diffusion.sampling import plans_from_sample, reverse_chain
@@ -26,6 +25,7 @@ from riskflow_env.maps import Lane, from_lanes
 from riskflow_env.scenarios import HighwayTrafficSource, Scenario
 from riskflow_env.scenarios.io import save_scenario
 from riskflow_env.scenarios.windows import window_from_view
+from riskflow_env.view import ScenePolicy
 
 TINY = ModelConfig(
     encoder_dim=16, head_dim=32, context_dim=32, edge_dim=8, num_heads=2, encoder_layers=1,

@@ -7,10 +7,10 @@ from importlib import resources
 import numpy as np
 import pytest
 
-from policies.base import ScenePolicy
 from policies.baselines.diffusion.sampling import OneCallSampler
 from policies.baselines.nominal import NominalGenerator
 from policies.riskflow.policy import RiskFlowAdversary
+from riskflow_env.view import ScenePolicy
 
 
 def test_is_riskflow_k0_bit_for_bit_in_closed_loop(tiny_meanflow, tiny_normalizer, closed_loop):

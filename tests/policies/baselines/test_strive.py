@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from policies.base import ScenePolicy
 from policies.baselines.diffusion.sampling import OneCallSampler
 from policies.baselines.strive import StriveAdversary
 from policies.riskflow.policy import PHASES, RiskFlowAdversary
+from riskflow_env.view import ScenePolicy
 
 
 @pytest.fixture

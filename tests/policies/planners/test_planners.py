@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 import riskflow_env
-from policies.baselines import ConstantVelocityPolicy, IDMPolicy
 from policies.harness import ClosedLoop
 from policies.planners import (
     PLANNERS,
@@ -16,6 +15,7 @@ from policies.planners import (
     as_action,
     reset_planner,
 )
+from riskflow_env.agents import ConstantVelocityPolicy, IDMPolicy
 from riskflow_env.config import DynamicsConfig, EnvConfig
 from riskflow_env.maps import Lane, from_lanes
 from riskflow_env.scenarios import Scenario, shipped_bank

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from policies.baselines import ConstantVelocityPolicy
 from policies.harness import ClosedLoop
 from policies.planners import (
     IDMPlanner,
@@ -16,6 +15,7 @@ from policies.planners import (
 )
 from policies.planners.sampling_mpc import ConstantVelocityPrediction, candidate_actions
 from policies.riskflow import RiskFlowAdversary
+from riskflow_env.agents import ConstantVelocityPolicy
 from tests.policies.planners.test_planners import start, stopped_car_scene
 
 

@@ -13,12 +13,9 @@ from riskflow_env.metrics.kinematics import kinematic_p95
 from riskflow_env.scenarios.safe_pickle import loads_data_pickle
 from riskflow_env.scenarios.scenarionet import load_scenarionet, scenario_from_description
 from riskflow_env.scenarios.scenarionet_map import build_map
+from tests.samples import SCENARIONET_DIR
 
-DATA_DIR = Path(
-    os.environ.get(
-        "RISKFLOW_SCENARIONET_DIR", Path(__file__).parents[3] / "../shared/data/scenarionet"
-    )
-)
+DATA_DIR = SCENARIONET_DIR
 SAMPLES = sorted(DATA_DIR.glob("*.pkl")) if DATA_DIR.is_dir() else []
 MISSING = (
     f"no ScenarioNet sample pickles (*.pkl) in {DATA_DIR.resolve()}: the nuScenes samples"

@@ -8,7 +8,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import riskflow_env  # noqa: F401 - registers RiskFlowEgo-v0
-from policies.base import actions_dict, controlled_mask
+from riskflow_env.agents.base import actions_dict, controlled_mask
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import HighwayTrafficSource, TrafficConfig
 from riskflow_env.wrappers import EgoEnv

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 import riskflow_env
-from policies.base import ScenePolicy
-from policies.baselines.constant_velocity import ConstantVelocityPolicy
+from riskflow_env.agents.constant_velocity import ConstantVelocityPolicy
+from riskflow_env.view import ScenePolicy
 
 
 def test_keeps_speed_and_heading():

@@ -33,7 +33,7 @@ from typing import Literal
 
 import numpy as np
 
-from policies.base import actions_dict, controlled_mask
+from riskflow_env.agents.base import actions_dict, controlled_mask
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import SPEED, YAW, inverse, wrap_angle
 from riskflow_env.scenarios.scenario import Scenario

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 import riskflow_env
-from policies.base import ScenePolicy
-from policies.baselines.idm import IDMParams, IDMPolicy
+from riskflow_env.agents.idm import IDMParams, IDMPolicy
 from riskflow_env.config import EnvConfig
 from riskflow_env.maps import Lane, from_lanes
 from riskflow_env.scenarios import HighwayTrafficSource, Scenario, TrafficConfig
+from riskflow_env.view import ScenePolicy
 
 
 def _env(family: str) -> riskflow_env.env.RiskFlowParallelEnv:

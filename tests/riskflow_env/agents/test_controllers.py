@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from policies.controllers import (
+from riskflow_env.agents.controllers import (
     arc_frame,
     idm_acceleration,
     pure_pursuit,
     speed_control,
 )
-from policies.lane_graph import LaneGraph
+from riskflow_env.agents.lane_graph import LaneGraph
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.maps import Lane, from_lanes
 

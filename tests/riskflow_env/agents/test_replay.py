@@ -2,25 +2,19 @@
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 import riskflow_env
-from policies.base import ScenePolicy
-from policies.baselines.replay import ReplayPolicy
+from riskflow_env.agents.replay import ReplayPolicy
 from riskflow_env.config import EnvConfig
 from riskflow_env.maps import Lane, from_lanes
 from riskflow_env.scenarios import HighwayTrafficSource, Scenario
+from riskflow_env.view import ScenePolicy
+from tests.samples import SCENARIONET_DIR
 
 CONFIG = EnvConfig(terminate_on_collision="none", terminate_on_offroad="none")
-DATA_DIR = Path(
-    os.environ.get(
-        "RISKFLOW_SCENARIONET_DIR", Path(__file__).parents[2] / "../shared/data/scenarionet"
-    )
-)
+DATA_DIR = SCENARIONET_DIR
 SAMPLE = DATA_DIR / "sd_nuscenes_v1.0-mini_scene-0061.pkl"
 
 

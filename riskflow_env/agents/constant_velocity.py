@@ -6,7 +6,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from policies.base import actions_dict, controlled_mask
+from riskflow_env.agents.base import actions_dict, controlled_mask
 from riskflow_env.view import SceneView
 
 

@@ -3,7 +3,7 @@
 Every step, for all controlled vehicles at once (no loop over agents):
 
 1. Lane keeping: each vehicle is matched to a lane (distance plus heading penalty,
-   :class:`~policies.lane_graph.LaneGraph`) and steers with pure pursuit toward a
+   :class:`~riskflow_env.agents.lane_graph.LaneGraph`) and steers with pure pursuit toward a
    point ``lookahead`` metres ahead along that lane and its successors. At forks it
    takes the lanes its reference future (the log) visits, if ``follow_log_route``
    and the scenario has one; else the straightest successor that does not run into
@@ -39,14 +39,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from policies.base import actions_dict, controlled_mask
-from policies.controllers import (
+from riskflow_env.agents.base import actions_dict, controlled_mask
+from riskflow_env.agents.controllers import (
     arc_curvature,
     arc_frame,
     idm_acceleration,
     pure_pursuit,
 )
-from policies.lane_graph import LaneGraph
+from riskflow_env.agents.lane_graph import LaneGraph
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import SPEED, YAW
 from riskflow_env.maps import DrivableMap

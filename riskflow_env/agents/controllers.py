@@ -7,7 +7,7 @@
   Helbing, "Congested traffic states in empirical observations and microscopic
   simulations", Phys. Rev. E 62, 1805, 2000).
 
-Lane matching and lookups along lanes live in :mod:`policies.lane_graph`. All arrays
+Lane matching and lookups along lanes live in :mod:`riskflow_env.agents.lane_graph`. All arrays
 are numpy; ``N`` is the number of agents queried.
 """
 
