@@ -31,15 +31,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from policies.dataclass_cli import parse_dataclass
 from policies.harness import wilson_interval
-from policies.planners import (
-    ConstantVelocityPlanner,
-    IDMPlanner,
-    LaneKeepingPlanner,
-    OraclePlanner,
-    SamplingMPCPlanner,
-)
-from policies.riskflow.dataclass_cli import parse_dataclass
+from policies.planners import OraclePlanner, make_planner
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.evaluation import RandomPlanner, evaluate, load_ppo_planner, summarize_ego
 from policies.rl.paired import PAIRED_OUTCOMES, paired_counts
@@ -49,10 +43,10 @@ from riskflow_env.scenarios import shipped_bank
 
 NOMINAL = ("generator", "idm")
 BASELINES = {
-    "idm": lambda seed: IDMPlanner(),
-    "lane_keeping": lambda seed: LaneKeepingPlanner(),
-    "sampling_mpc": lambda seed: SamplingMPCPlanner(),
-    "constant_velocity": lambda seed: ConstantVelocityPlanner(),
+    **{
+        name: lambda seed, name=name: make_planner(name)
+        for name in ("idm", "lane_keeping", "sampling_mpc", "constant_velocity")
+    },
     "random": lambda seed: RandomPlanner(seed),
 }
 

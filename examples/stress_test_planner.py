@@ -44,11 +44,11 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from policies.dataclass_cli import parse_dataclass
 from policies.harness import ClosedLoop, EpisodeRecord, summarize
-from policies.planners import PLANNERS, EgoPlanner
+from policies.learned.checkpoint import load_generator
+from policies.planners import PLANNERS, EgoPlanner, make_planner
 from policies.riskflow import RiskFlowAdversary
-from policies.riskflow.checkpoint import load_generator
-from policies.riskflow.dataclass_cli import parse_dataclass
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import save_scenario, shipped_bank
 from riskflow_env.view import SceneView
@@ -125,13 +125,9 @@ class Options:
             raise ValueError("--scenes and --steps must be >= 1, --worst >= 0")
 
 
-def make_planner(name: str, config: EnvConfig) -> EgoPlanner:
-    """A built-in planner by name, or :func:`my_planner`."""
-    if name == "my_planner":
-        return my_planner
-    if name in ("idm", "lane_keeping", "sampling_mpc"):
-        return PLANNERS[name](dynamics=config.dynamics)
-    return PLANNERS[name]()
+def planner_named(name: str, config: EnvConfig) -> EgoPlanner:
+    """A built-in planner by name (with the env's dynamics bounds), or :func:`my_planner`."""
+    return my_planner if name == "my_planner" else make_planner(name, config.dynamics)
 
 
 def make_adversary(options: Options) -> RiskFlowAdversary:
@@ -188,7 +184,7 @@ def main(options: Options) -> dict[str, Any]:
     if options.scenes > len(bank):
         raise SystemExit(f"--scenes {options.scenes}: the shipped bank has {len(bank)} scenes")
     config = EnvConfig(episode_steps=options.steps)
-    planner = make_planner(options.planner, config)
+    planner = planner_named(options.planner, config)
     out = options.out
     out.mkdir(parents=True, exist_ok=True)
     with ClosedLoop(

@@ -19,14 +19,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from policies.evaluation.ego import EGO_PLANNERS
 from policies.evaluation.registry import method_options, method_spec
+from policies.learned.guidance_losses import TARGETS
+from policies.planners import PLANNERS
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.folder_lock import check_output_folder
 from riskflow_env.scenarios import Scenario, load_bank, shipped_bank
 
 SCHEMA = 1  # results.jsonl row layout version
-TARGETS = ("others", "ego")
 SHIPPED = "shipped:eval"  # the data source name of the shipped evaluation scenes
 
 
@@ -48,7 +48,7 @@ class EvalOptions:
     seeds: tuple[int, ...] = (0,)
     """rollout seeds, ints >= 0 (one rollout per scene and seed)"""
     ego: str = "idm"
-    """ego planner under test: idm, cv (constant velocity) or replay (its log)"""
+    """ego planner under test, a name of policies.planners.PLANNERS (idm, sampling_mpc...)"""
     target: str = "others"
     """guidance target: 'others' (the paper's) or 'ego'"""
     duration: float = 10.0
@@ -198,8 +198,8 @@ def check_options(options: EvalOptions, dt: float = DynamicsConfig().dt) -> None
         raise ValueError(f"--scenes must be >= 1, got {options.scenes}")
     if options.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {options.workers}")
-    if options.ego not in EGO_PLANNERS:
-        raise ValueError(f"--ego must be one of {tuple(EGO_PLANNERS)}, got {options.ego!r}")
+    if options.ego not in PLANNERS:
+        raise ValueError(f"--ego must be one of {tuple(PLANNERS)}, got {options.ego!r}")
     if options.target not in TARGETS:
         raise ValueError(f"--target must be one of {TARGETS}, got {options.target!r}")
     steps = options.duration / dt

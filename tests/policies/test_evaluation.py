@@ -94,7 +94,7 @@ def test_worker_count_does_not_change_results(tiny_run, tmp_path):
 def test_config_mismatch_is_refused(tiny_run):
     out, _ = tiny_run
     with pytest.raises(ConfigMismatch, match="ego"):
-        run_evaluation(replace(TINY, out=str(out), ego="cv"), progress=False)
+        run_evaluation(replace(TINY, out=str(out), ego="constant_velocity"), progress=False)
 
 
 def test_report(tiny_run):
