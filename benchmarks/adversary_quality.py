@@ -21,11 +21,11 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from policies.dataclass_cli import parse_dataclass
 from policies.harness import ClosedLoop, summarize
+from policies.learned.checkpoint import load_generator
 from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
-from policies.riskflow.checkpoint import load_generator
-from policies.riskflow.dataclass_cli import parse_dataclass
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
 

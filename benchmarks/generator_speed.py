@@ -8,7 +8,7 @@ Prints a table:
   and with plain flow matching (``r = t``, no JVP) on the same batch, their ratio
   (target <= 2.5x) and training throughput in scenes per second.
 
-Batches are synthetic (``policies.riskflow.synthetic``): speed does not depend on the data.
+Batches are synthetic (``policies.learned.synthetic``): speed does not depend on the data.
 
     python benchmarks/generator_speed.py [--threads 1] [--device cpu] [--repeats 30]
 """
@@ -23,13 +23,13 @@ from dataclasses import dataclass
 import torch
 from tqdm import tqdm
 
-from policies.riskflow.config import ModelConfig
-from policies.riskflow.data import ActionNormalizer
-from policies.riskflow.dataclass_cli import parse_dataclass
-from policies.riskflow.generator import RiskFlowGenerator
+from policies.dataclass_cli import parse_dataclass
+from policies.learned.config import ModelConfig
+from policies.learned.data import ActionNormalizer
+from policies.learned.generator import RiskFlowGenerator
+from policies.learned.sampler import base_velocity
+from policies.learned.synthetic import synthetic_batch
 from policies.riskflow.meanflow import flow_matching_loss, meanflow_loss
-from policies.riskflow.sampler import base_velocity
-from policies.riskflow.synthetic import synthetic_batch
 from policies.riskflow.time_sampler import TimeSampler
 
 NORMALIZER = ActionNormalizer(mean=(0.0, 0.0), std=(1.0, 0.03))  # synthetic-data scale

@@ -30,18 +30,18 @@ import torch
 from tqdm import tqdm
 
 import riskflow_env
-from policies.riskflow.config import ModelConfig
-from policies.riskflow.data import ActionNormalizer, collate_windows
-from policies.riskflow.dataclass_cli import parse_dataclass
-from policies.riskflow.encoder import ENCODER_KEYS
-from policies.riskflow.generator import RiskFlowGenerator
-from policies.riskflow.guidance_losses import adversarial_loss
+from policies.dataclass_cli import parse_dataclass
+from policies.learned.config import ModelConfig
+from policies.learned.data import ActionNormalizer, collate_windows
+from policies.learned.encoder import ENCODER_KEYS
+from policies.learned.generator import RiskFlowGenerator
+from policies.learned.guidance_losses import adversarial_loss
+from policies.learned.ranking import rank_window
+from policies.learned.sampler import sample
+from policies.learned.windows import window_from_view
 from policies.riskflow.policy import PHASES, RiskFlowAdversary
-from policies.riskflow.ranking import rank_window
-from policies.riskflow.sampler import sample
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
-from riskflow_env.scenarios.windows import window_from_view
 
 FALLBACK_NORMALIZER = ActionNormalizer(mean=(-0.11, -0.02), std=(1.09, 0.12))  # shipped-data scale
 
@@ -75,7 +75,7 @@ def _parse(argv: list[str] | None = None) -> Options:
 def load_model(device: str) -> tuple[RiskFlowGenerator, ActionNormalizer, str]:
     """The shipped generator, or a random default-size one if it is not there."""
     try:
-        from policies.riskflow.checkpoint import load_generator
+        from policies.learned.checkpoint import load_generator
 
         model, normalizer, _ = load_generator(device=device)
         return model, normalizer, "shipped checkpoint"

@@ -29,10 +29,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from policies.baselines import NominalGenerator
+from policies.dataclass_cli import parse_dataclass
 from policies.harness import ClosedLoop
+from policies.learned.checkpoint import load_generator
 from policies.planners import IDMPlanner
-from policies.riskflow.checkpoint import load_generator
-from policies.riskflow.dataclass_cli import parse_dataclass
 from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import SPEED, YAW
 from riskflow_env.geometry import footprint_points, pairwise_overlap

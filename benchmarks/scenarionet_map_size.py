@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import shapely
 
-from policies.riskflow.dataclass_cli import parse_dataclass
+from policies.dataclass_cli import parse_dataclass
 from riskflow_env.scenarios.safe_pickle import load_data_pickle
 from riskflow_env.scenarios.scenarionet import scenario_from_description
 

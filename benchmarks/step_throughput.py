@@ -31,7 +31,7 @@ import numpy as np
 from tqdm import tqdm
 
 import riskflow_env
-from policies.riskflow.dataclass_cli import parse_dataclass
+from policies.dataclass_cli import parse_dataclass
 from riskflow_env import batched
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import HighwayTrafficSource, TrafficConfig, place_traffic

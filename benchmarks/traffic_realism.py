@@ -46,10 +46,10 @@ from typing import Any
 
 import numpy as np
 
+from policies.dataclass_cli import parse_dataclass
 from policies.evaluation.options import SHIPPED, EvalOptions, Job, run_config
 from policies.evaluation.registry import method_spec
 from policies.evaluation.rollout import rollout_episode
-from policies.riskflow.dataclass_cli import parse_dataclass
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.metrics import (
     KinematicSamples,

@@ -26,11 +26,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from policies.dataclass_cli import parse_dataclass
 from policies.harness import METRICS, ClosedLoop
+from policies.learned.checkpoint import load_generator
 from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
-from policies.riskflow.checkpoint import load_generator
-from policies.riskflow.dataclass_cli import parse_dataclass
 from riskflow_env.agents import ReplayPolicy
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import Scenario, load_scenario, shipped_bank

@@ -27,8 +27,8 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.utils import set_random_seed
 
+from policies.dataclass_cli import parse_dataclass
 from policies.harness import wilson_interval
-from policies.riskflow.dataclass_cli import parse_dataclass
 from policies.rl.marl import (
     AdversaryRewardConfig,
     FixedEgoParallelEnv,

@@ -31,14 +31,20 @@ T = TypeVar("T")
 
 
 def field_docs(cls: type) -> dict[str, str]:
-    """``{field: docstring}`` of the attribute docstrings of a dataclass's fields."""
-    body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
-    return {
-        node.target.id: doc.value.value
-        for node, doc in zip(body, body[1:], strict=False)
-        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)
-        if isinstance(doc, ast.Expr) and isinstance(doc.value, ast.Constant)
-    }
+    """``{field: docstring}`` of the attribute docstrings of a dataclass's fields (those
+    of its dataclass bases included)."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if not dataclasses.is_dataclass(klass):
+            continue
+        body = ast.parse(textwrap.dedent(inspect.getsource(klass))).body[0].body
+        docs |= {
+            node.target.id: doc.value.value
+            for node, doc in zip(body, body[1:], strict=False)
+            if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)
+            if isinstance(doc, ast.Expr) and isinstance(doc.value, ast.Constant)
+        }
+    return docs
 
 
 def dataclass_parser(cls: type, prog: str, description: str = "") -> argparse.ArgumentParser:

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
+from policies.dataclass_cli import dataclass_parser
 from policies.evaluation.cli import parser as eval_parser
 from policies.evaluation.cli import report_parser
-from policies.riskflow.dataclass_cli import dataclass_parser
-from policies.riskflow.train import TrainOptions
+from policies.train import TrainOptions
 from riskflow_env.scenarios.cli import build_parser as data_parser
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -111,3 +111,42 @@ print("ok", len(sys.modules))
     )
     assert result.returncode == 0, result.stderr[-3000:]
     assert result.stdout.startswith("ok")
+
+
+def _layer(module: str) -> str:
+    """A module's layer: its sub-package (``policies.learned``), or the module itself when
+    it sits directly in a top-level package (``policies.harness``, ``riskflow_env.env``)."""
+    path = ROOT.joinpath(*module.split("."))
+    if (path / "__init__.py").is_file():
+        return module
+    parent = module.rpartition(".")[0]
+    return module if "." not in parent else parent
+
+
+def test_no_module_imports_another_that_imports_it_back():
+    assert cycles(module_imports()) == []
+
+
+def test_no_layer_imports_another_that_imports_it_back():
+    """Cycles between sub-packages hide behind lazy imports (e.g. the shared layer loading
+    a baseline's model inside a function): none may exist."""
+    graph: dict[str, set[str]] = {}
+    for module, targets in module_imports().items():
+        layer = _layer(module)
+        graph.setdefault(layer, set()).update(_layer(t) for t in targets)
+    graph = {
+        layer: {t for t in targets if t in graph and t != layer} for layer, targets in graph.items()
+    }
+    assert cycles(graph) == []
+
+
+def test_the_shared_layer_imports_no_adversary():
+    """``policies.learned`` is what RiskFlow, STRIVE-style and the diffusion baselines
+    share: it imports none of them."""
+    above = ("policies.riskflow", "policies.baselines", "policies.evaluation", "policies.rl")
+    upward = {
+        module: sorted(t for t in targets if t.startswith(above) or t == "policies.train")
+        for module, targets in module_imports().items()
+        if module.startswith("policies.learned")
+    }
+    assert not {m: t for m, t in upward.items() if t}

@@ -36,10 +36,10 @@ import os
 
 import torch
 
-from policies.riskflow.generator import RiskFlowGenerator
-from policies.riskflow.meanflow import Normalizer
+from policies.learned.data import Normalizer
+from policies.learned.generator import RiskFlowGenerator
+from policies.learned.windows import WindowConfig
 from policies.riskflow.policy import RiskFlowAdversary
-from riskflow_env.scenarios.windows import WindowConfig
 
 
 class NominalGenerator(RiskFlowAdversary):

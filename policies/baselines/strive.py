@@ -70,20 +70,20 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from policies.riskflow.generator import RiskFlowGenerator
+from policies.learned.data import Normalizer
+from policies.learned.generator import RiskFlowGenerator
+from policies.learned.guidance_losses import adversarial_loss, map_term, target_rows
+from policies.learned.plan_buffer import EncodedView
+from policies.learned.ranking import DEFAULT_THRESHOLD
+from policies.learned.sampler import base_velocity
+from policies.learned.windows import WindowConfig
 from policies.riskflow.guidance import (
     GuidanceConfig,
     GuidanceResult,
     GuidanceScene,
     plans_from_velocity,
 )
-from policies.riskflow.guidance_losses import adversarial_loss, map_term, target_rows
-from policies.riskflow.meanflow import Normalizer
-from policies.riskflow.plan_buffer import EncodedView
 from policies.riskflow.policy import RiskFlowAdversary
-from policies.riskflow.ranking import DEFAULT_THRESHOLD
-from policies.riskflow.sampler import base_velocity
-from riskflow_env.scenarios.windows import WindowConfig
 
 DEFAULT_LAMBDA_PRIOR = 1.0  # weight of ||eps_c||^2 / 2 [per unit of normalised noise^2]
 

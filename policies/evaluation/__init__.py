@@ -4,11 +4,11 @@
 module              concept
 ==================  ==============================================================
 ``registry``        the methods: name -> policy class, variant, options (``--list``)
-``ego``             the ego planners under test (``--ego idm|cv|replay|mpc``)
 ``options``         the typed options and the grid of rollouts (jobs, row keys)
 ``rollout``         one rollout: policy + ego, closed loop, metrics, timing
 ``results``         the results folder: config check, fsynced rows, KDD samples
 ``runner``          skip finished rollouts, run the rest in worker processes
+``table``           one (K, interval) comparison: what the report prints and plots
 ``report``          tables per (K, interval): raw metrics, CS / RS, timing
 ``plots``           CS vs RS, realism vs horizon, speed (PNG)
 ``cli``             the ``riskflow-eval`` command line

@@ -21,9 +21,9 @@ import typing
 from collections.abc import Sequence
 from typing import Any
 
+from policies.dataclass_cli import field_docs
 from policies.evaluation.options import EvalOptions
 from policies.evaluation.registry import method_list
-from policies.riskflow.dataclass_cli import field_docs
 
 PROG = "riskflow-eval"
 

@@ -20,7 +20,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from policies.evaluation.report import Table  # noqa: E402
+from policies.evaluation.table import Table  # noqa: E402
 
 REALISM_PANELS = (
     ("orr", "ORR"), ("ade", "ADE [m]"), ("fde", "FDE [m]"), ("kdd", "KDD"), ("wosac", "WOSAC"),

@@ -13,13 +13,13 @@ samples), the mean of the per-rollout WOSAC scores, and CS / RS
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from policies.evaluation.results import ResultsStore
+from policies.evaluation.table import Table
 from riskflow_env.metrics import method_metrics, safety_realism_scores
 
 REFERENCE_METHOD = "riskflow"  # timing ratios are to this label when present
@@ -35,32 +35,6 @@ METRIC_COLUMNS = (
     ("cs", "CS"),
     ("rs", "RS"),
 )
-
-
-@dataclass(frozen=True)
-class Table:
-    """The comparison at one (K, planning interval).
-
-    Attributes:
-        k: K (None: only methods without K).
-        interval: planning interval [s] (None: only methods without one).
-        scenes: (scene, seed) pairs every method of the table finished.
-        metrics: ``{label: {metric: value}}``, CS and RS included.
-        timing: ``{label: {name: value}}`` (seconds, milliseconds as named).
-    """
-
-    k: int | str | None
-    interval: float | None
-    scenes: int
-    metrics: dict[str, dict[str, float]]
-    timing: dict[str, dict[str, float]]
-
-    @property
-    def title(self) -> str:
-        """``K=5, T=0.5 s``."""
-        k = "-" if self.k is None else self.k
-        interval = "-" if self.interval is None else f"{self.interval:g} s"
-        return f"K={k}, T={interval}"
 
 
 def _nan(value: Any) -> float:
@@ -212,7 +186,7 @@ def write_report(out: str | Path, plots: bool = True) -> Path:
         lines += ["", f"## {table.title} ({table.scenes} scenes x seeds)", ""]
         lines += [metrics_markdown(table), "", timing, "", timing_markdown(table)]
     if plots:
-        from policies.evaluation.plots import write_plots
+        from policies.evaluation.plots import write_plots  # matplotlib only when plotting
 
         files = write_plots(tables, store.out)
         lines += ["", "## Plots", ""] + [f"![{f.stem}]({f.name})" for f in files]

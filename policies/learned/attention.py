@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from policies.riskflow.embeddings import MLP
+from policies.learned.embeddings import MLP
 
 
 class Attention(nn.Module):

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from policies.riskflow.data import WindowDataset, collate_windows
-from policies.riskflow.data_cache import derived_dir
+from policies.learned.data import WindowDataset, collate_windows
+from policies.learned.data_cache import derived_dir
 from riskflow_env.scenarios.io import list_scenarios, load_scenario
 
 
@@ -27,7 +27,7 @@ def load_splits(
     """Training and validation windows, cached under ``<folder>/cache/``.
 
     A folder inside the installed packages or not writable keeps its cache in the user
-    cache instead (:func:`policies.riskflow.data_cache.derived_dir`).
+    cache instead (:func:`policies.learned.data_cache.derived_dir`).
 
     Args:
         data: scene folder (``riskflow-data generate``) of the training split.

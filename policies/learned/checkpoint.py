@@ -42,9 +42,9 @@ from typing import Any
 
 import torch
 
-from policies.riskflow.config import ModelConfig
-from policies.riskflow.data import ActionNormalizer
-from policies.riskflow.generator import CheckpointError, RiskFlowGenerator
+from policies.learned.config import ModelConfig
+from policies.learned.data import ActionNormalizer
+from policies.learned.generator import CheckpointError, RiskFlowGenerator
 
 DEFAULT_NAME = "riskflow_default.pt"
 METADATA_KEYS = ("version", "train_config", "step", "metrics")

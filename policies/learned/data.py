@@ -1,7 +1,7 @@
 """Scene-centric training windows as a torch ``Dataset``, batching, action normalisation.
 
 Windows follow docs/WINDOWS.md and are built by
-:func:`riskflow_env.scenarios.windows.window_from_scenario`, once, when the dataset is
+:func:`policies.learned.windows.window_from_scenario`, once, when the dataset is
 made; they are packed into a few flat arrays (agents of all windows end to end), so
 ``__getitem__`` only slices. ``cache_path`` keeps the packed arrays in an ``.npz`` file,
 rebuilt when the scenes, the config or the stride change.
@@ -21,23 +21,24 @@ import os
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
+from torch import Tensor
 from torch.utils.data import Dataset
 
-from policies.riskflow.data_cache import derived_dir
-from riskflow_env._array import Array, asarray_like
-from riskflow_env.dynamics import ACTION_DIM
-from riskflow_env.scenarios.scenario import Scenario
-from riskflow_env.scenarios.windows import (
+from policies.learned.data_cache import derived_dir
+from policies.learned.windows import (
     AGENT_KEYS,
     PAD_INDEX,
     PAIR_KEYS,
     WindowConfig,
     window_from_scenario,
 )
+from riskflow_env._array import Array, asarray_like
+from riskflow_env.dynamics import ACTION_DIM
+from riskflow_env.scenarios.scenario import Scenario
 
 STATS_FILENAME = "norm_stats.json"
 WINDOW_KEYS = AGENT_KEYS + PAIR_KEYS
@@ -215,6 +216,18 @@ def collate_windows(items: Sequence[Mapping[str, Array]]) -> dict[str, torch.Ten
     return batch
 
 
+class Normalizer(Protocol):
+    """Per-channel action normalisation (:class:`ActionNormalizer` is one)."""
+
+    def normalize(self, actions: Tensor) -> Tensor:
+        """Physical ``(..., 2)`` (accel [m/s^2], yaw rate [rad/s]) -> normalised."""
+        ...
+
+    def denormalize(self, actions: Tensor) -> Tensor:
+        """Normalised ``(..., 2)`` -> physical units."""
+        ...
+
+
 @dataclass(frozen=True)
 class ActionNormalizer:
     """Per-channel affine normalisation of actions: ``z = (a - mean) / std``.
@@ -308,7 +321,7 @@ def load_or_compute_stats(
 
     Pass the training split: the statistics are computed once and then reused. A
     ``directory`` inside the installed packages or not writable keeps them in the user
-    cache instead (:func:`policies.riskflow.data_cache.derived_dir`).
+    cache instead (:func:`policies.learned.data_cache.derived_dir`).
     """
     path = derived_dir(directory) / STATS_FILENAME
     if path.is_file():

@@ -28,10 +28,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from policies.riskflow.attention import TransformerBlock, edge_bias, social_mask
-from policies.riskflow.config import HISTORY_FEATURES, ModelConfig
-from policies.riskflow.embeddings import MLP, masked_mean
-from policies.riskflow.map_encoder import MapEncoder
+from policies.learned.attention import TransformerBlock, edge_bias, social_mask
+from policies.learned.config import HISTORY_FEATURES, ModelConfig
+from policies.learned.embeddings import MLP, masked_mean
+from policies.learned.map_encoder import MapEncoder
 
 # Keys the encoder reads, with their shapes (B, A: batch and agent axes).
 ENCODER_KEYS = {

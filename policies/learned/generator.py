@@ -26,10 +26,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from policies.riskflow.attention import Attention, edge_bias
-from policies.riskflow.config import ModelConfig
-from policies.riskflow.embeddings import MLP, TimeEmbedding
-from policies.riskflow.encoder import SceneContext, SceneEncoder
+from policies.learned.attention import Attention, edge_bias
+from policies.learned.config import ModelConfig
+from policies.learned.embeddings import MLP, TimeEmbedding
+from policies.learned.encoder import SceneContext, SceneEncoder
 
 CHECKPOINT_FORMAT = "riskflow-generator/1"
 

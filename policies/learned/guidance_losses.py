@@ -11,6 +11,8 @@ comparison between them is a comparison of how they guide, not of what they opti
 
 from __future__ import annotations
 
+from enum import Enum
+
 import torch
 from torch import Tensor
 
@@ -19,6 +21,8 @@ from riskflow_env.geometry import footprint_points
 from riskflow_env.maps import DrivableMap
 
 __all__ = [
+    "TARGETS",
+    "Target",
     "MapTerm",
     "adversarial_loss",
     "adversarial_value_and_gradient",
@@ -26,6 +30,18 @@ __all__ = [
     "map_term",
     "target_rows",
 ]
+
+
+class Target(str, Enum):
+    """Whom the adversarial term pulls the controllable vehicles toward."""
+
+    OTHERS = "others"
+    """every present vehicle outside ``A_c``, the ego included (the RiskFlow paper's)"""
+    EGO = "ego"
+    """the ego only (stress-testing an ego planner)"""
+
+
+TARGETS = tuple(target.value for target in Target)  # ("others", "ego")
 
 
 def target_rows(present: Tensor, controllable: Tensor, ego: int, target: str) -> Tensor:
@@ -38,12 +54,12 @@ def target_rows(present: Tensor, controllable: Tensor, ego: int, target: str) ->
         target: ``"others"`` (the paper's: every present agent outside ``A_c``, the ego
             included) or ``"ego"`` (the ego only, for stress-testing an ego planner).
     """
-    if target == "ego":
+    if target not in TARGETS:
+        raise ValueError(f"target must be one of {TARGETS}; got {target!r}")
+    if target == Target.EGO:
         targets = torch.zeros_like(present, dtype=torch.bool)
         targets[ego] = True
         return targets
-    if target != "others":
-        raise ValueError(f"target must be 'others' or 'ego'; got {target!r}")
     return present.bool() & ~controllable.bool()
 
 

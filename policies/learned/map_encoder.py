@@ -1,7 +1,7 @@
 """Map encoder: a small CNN over each agent's rotated, agent-centred map crop.
 
 Gives the map embedding ``m_i`` of the RiskFlow context ``C_i = f(h_i, m_i, e_i.)``
-(docs/GENERATOR.md). The crops come from ``riskflow_env.scenarios.windows``
+(docs/GENERATOR.md). The crops come from ``policies.learned.windows``
 (``map_crops``: drivable share and SDF [m] clipped to +-10 m, 48 x 48 px at 1 m/px).
 """
 
@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from policies.riskflow.config import ModelConfig
+from policies.learned.config import ModelConfig
 
 
 class MapEncoder(nn.Module):

@@ -39,13 +39,13 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from policies.riskflow.config import ModelConfig
-from policies.riskflow.data import collate_windows
-from policies.riskflow.encoder import ENCODER_KEYS, SceneContext
-from policies.riskflow.ranking import Ranking, check_k
+from policies.learned.config import ModelConfig
+from policies.learned.data import collate_windows
+from policies.learned.encoder import ENCODER_KEYS, SceneContext
+from policies.learned.ranking import Ranking, check_k
+from policies.learned.windows import WindowConfig, window_from_view
 from riskflow_env.agents.base import actions_dict, controlled_mask
 from riskflow_env.dynamics import inverse, rollout
-from riskflow_env.scenarios.windows import WindowConfig, window_from_view
 from riskflow_env.view import SceneView
 
 BASE_COLOR = (70, 200, 235)  # overlay of the unguided plans

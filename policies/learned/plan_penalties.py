@@ -31,7 +31,7 @@ from torch import Tensor
 from riskflow_env.dynamics import YAW, X, Y
 from riskflow_env.geometry import separation
 
-SDF_CHANNEL = 1  # riskflow_env.scenarios.windows.CROP_LAYERS = ("drivable", "sdf")
+SDF_CHANNEL = 1  # policies.learned.windows.CROP_LAYERS = ("drivable", "sdf")
 
 
 def overlap_penalty(trajectory: Tensor, batch: Mapping[str, Tensor], valid: Tensor) -> Tensor:

@@ -13,9 +13,9 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor
 
-from policies.riskflow.encoder import SceneContext
-from policies.riskflow.generator import RiskFlowGenerator
-from policies.riskflow.meanflow import Normalizer
+from policies.learned.data import Normalizer
+from policies.learned.encoder import SceneContext
+from policies.learned.generator import RiskFlowGenerator
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout
 

@@ -19,7 +19,7 @@ from riskflow_env.dynamics import rollout
 from riskflow_env.risk import pairwise_features
 
 ROAD_HALF_WIDTH = 6.0  # [m]
-SDF_CLIP = 10.0  # [m], as riskflow_env.scenarios.windows.WindowConfig.sdf_clip
+SDF_CLIP = 10.0  # [m], as policies.learned.windows.WindowConfig.sdf_clip
 
 
 def _smooth_noise(shape: tuple[int, ...], steps: int, gen: torch.Generator) -> Tensor:

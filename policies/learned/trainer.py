@@ -1,33 +1,21 @@
-"""``riskflow-train``: train the RiskFlow generator on a scenario bank.
+"""The training loop every generator kind shares; the objective is an argument.
 
-::
-
-    riskflow-data generate --out data/train --scenes 626 --split train --seed 0
-    riskflow-data generate --out data/val --scenes 140 --split eval --seed 1
-    riskflow-train --data data/train --val-data data/val --out runs/riskflow --lr 5e-4
-
-One step: a batch of windows (``docs/WINDOWS.md``), noise ``eps`` and times ``(t, r)``
-(``TimeSampler``: logit-normal, ``r = t`` for 20 %; always with ``--flow-matching``),
-the MeanFlow objective (``meanflow.meanflow_loss``; ``flow_matching_loss`` for the
-reference), Adam, gradient-norm clipping, and the EMA of the weights (``ema.EMA``),
-which is what is validated and saved. The loss is the trajectory-space error plus
-``action_weight`` (default 1) times the normalised action error: positions barely see
-high-frequency action noise, so without it one-step plans keep the noise of ``eps``
-(pilot: jerk 16 m/s^3 against 4.6 with it, the data's 7.2; ADE 1.58 against 1.51 m).
-Use one thread per process on a small shared machine (two threads on two busy cores
-made a step 20x slower). Validation (``evaluate.evaluate``) runs every
-``--eval-every`` steps on a fixed subset of the validation windows.
+:func:`fit` runs ``options.steps`` optimiser steps on batches of windows
+(``docs/WINDOWS.md``): the :class:`Objective`'s loss (MeanFlow's in
+``policies.riskflow.meanflow``, the DDPM's in ``policies.baselines.diffusion.train``),
+Adam, gradient-norm clipping and the EMA of the weights (``ema.EMA``), which is what is
+validated and saved. Validation (``validation.evaluate``) samples the objective's
+``sampler(ema_model)`` every ``--eval-every`` steps on a fixed subset of the validation
+windows. Use one thread per process on a small shared machine (two threads on two busy
+cores made a step 20x slower).
 
 ``OUT/checkpoint.pt`` is the resumable state (``--resume`` continues from it: model,
 EMA, optimiser, step and random state, so the result equals an uninterrupted run on
 the CPU); ``OUT/generator.pt`` is the same without the training state, the file to
 ship; ``OUT/metrics.jsonl`` logs training and validation metrics. Windows are cached
 in ``DATA/cache/`` and the action statistics in ``DATA/norm_stats.json``; for the shipped
-bank (or a read-only ``DATA``) both go to the user cache (``policies.riskflow.data_cache``).
-
-``--generator diffusion`` trains the DDPM denoiser of the CTG / CTG++ / CCDiff-style
-baselines in this same loop (same network, data, EMA and validation; objective and
-sampler from ``policies.baselines.diffusion.train``; docs/BASELINES.md).
+bank (or a read-only ``DATA``) both go to the user cache (``policies.learned.data_cache``).
+``riskflow-train`` (:mod:`policies.train`) is the command line over it.
 """
 
 from __future__ import annotations
@@ -37,38 +25,57 @@ import math
 import sys
 import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
+from torch import Tensor
 from tqdm import tqdm
 
-from policies.riskflow.batches import batch_order, collated, load_splits
-from policies.riskflow.checkpoint import build_checkpoint, load_checkpoint, normalizer_of
-from policies.riskflow.checkpoint import save_checkpoint as write
-from policies.riskflow.config import ModelConfig
-from policies.riskflow.data import ActionNormalizer
-from policies.riskflow.data import load_or_compute_stats as action_stats
-from policies.riskflow.dataclass_cli import parse_dataclass
-from policies.riskflow.ema import EMA
-from policies.riskflow.evaluate import evaluate
-from policies.riskflow.generator import RiskFlowGenerator
-from policies.riskflow.meanflow import flow_matching_loss, meanflow_loss
-from policies.riskflow.time_sampler import TimeSampler
+from policies.learned.batches import batch_order, collated, load_splits
+from policies.learned.checkpoint import build_checkpoint, load_checkpoint, normalizer_of
+from policies.learned.checkpoint import save_checkpoint as write
+from policies.learned.config import ModelConfig
+from policies.learned.data import ActionNormalizer
+from policies.learned.data import load_or_compute_stats as action_stats
+from policies.learned.ema import EMA
+from policies.learned.generator import RiskFlowGenerator
+from policies.learned.validation import evaluate
 from riskflow_env.scenarios.io import require_scenarios
 
 CHECKPOINT, GENERATOR, METRICS_LOG = "checkpoint.pt", "generator.pt", "metrics.jsonl"
-GENERATORS = ("meanflow", "diffusion")
 # torch.func.jvp's first call warns that torch.jit.script is deprecated (torch's own use).
 warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.*", category=DeprecationWarning)
 
 
+class Objective(Protocol):
+    """What a generator kind plugs into :func:`fit`."""
+
+    kind: str
+    """the generator kind written to the checkpoint (``"meanflow"``, ``"diffusion"``)"""
+
+    def loss(
+        self,
+        model: RiskFlowGenerator,
+        batch: Mapping[str, Tensor],
+        normalizer: ActionNormalizer,
+        generator: torch.Generator,
+        **weights: float,
+    ) -> tuple[Tensor, dict[str, Tensor]]:
+        """One step's loss and metrics; noise and times come from ``generator``."""
+        ...
+
+    def sampler(self, model: RiskFlowGenerator) -> Any:
+        """``model`` as the one-call sampler that validation draws plans from."""
+        ...
+
+
 @dataclass(frozen=True)
-class TrainOptions:
-    """Options of ``riskflow-train``."""
+class LoopOptions:
+    """Options of the training loop (``riskflow-train`` adds the generator's)."""
 
     data: Path
     """scenario directory written by `riskflow-data generate` (training scenes)"""
@@ -88,20 +95,6 @@ class TrainOptions:
     """EMA decay of the weights per step"""
     grad_clip: float = 1.0
     """maximum global gradient norm (inf: no clipping)"""
-    flow_matching: bool = False
-    """train the plain flow-matching reference (r = t always, sampled in one Euler step)"""
-    generator: str = "meanflow"
-    """'meanflow' (RiskFlow) or 'diffusion' (the DDPM of the CTG/CTG++/CCDiff baselines)"""
-    diffusion_steps: int = 100
-    """--generator diffusion: number of diffusion levels K"""
-    diffusion_schedule: str = "cosine"
-    """--generator diffusion: noise schedule, 'cosine' or 'linear'"""
-    diffusion_prediction: str = "v"
-    """--generator diffusion: parameterisation, 'v' (x0 with a skip), 'sample' (x0) or 'epsilon'"""
-    val_sampling_steps: int = 10
-    """--generator diffusion: deterministic DDIM levels of the validation samples"""
-    equal_fraction: float = 0.2
-    """share of MeanFlow samples with r = t"""
     action_weight: float = 1.0
     """weight of the normalised action MSE added to the trajectory-space loss (smooth plans)"""
     heading_weight: float = 0.0
@@ -135,25 +128,20 @@ class TrainOptions:
     time_budget_min: float = 0.0
     """stop cleanly and save after this many minutes of this run (0: no limit)"""
 
-    def __post_init__(self) -> None:
+    def rules(self) -> dict[str, bool]:
+        """``{rule: holds}`` of the option checks (subclasses add theirs)."""
         counts = (self.steps, self.batch_size, self.stride, self.bucket, self.eval_every)
-        rules = {
+        return {
             "--steps, --batch-size, --stride, --bucket, --eval-every, --log-every, "
             "--num-samples >= 1": min(*counts, self.log_every, self.num_samples) >= 1,
             "--lr > 0": self.lr > 0,
             "--grad-clip > 0": self.grad_clip > 0,
             "0 <= --ema-decay < 1": 0 <= self.ema_decay < 1,
             "0 < --val-fraction < 1": 0 < self.val_fraction < 1,
-            f"--generator in {GENERATORS}": self.generator in GENERATORS,
-            "--flow-matching only with --generator meanflow": not (
-                self.flow_matching and self.generator != "meanflow"
-            ),
-            "--diffusion-steps, --val-sampling-steps >= 1": min(
-                self.diffusion_steps, self.val_sampling_steps
-            )
-            >= 1,
         }
-        broken = [rule for rule, holds in rules.items() if not holds]
+
+    def __post_init__(self) -> None:
+        broken = [rule for rule, holds in self.rules().items() if not holds]
         if broken:
             raise ValueError(f"riskflow-train needs {'; '.join(broken)}")
 
@@ -167,7 +155,7 @@ def model_config(text: str) -> ModelConfig:
     )
 
 
-def _plain(options: TrainOptions) -> dict[str, Any]:
+def _plain(options: LoopOptions) -> dict[str, Any]:
     return {k: str(v) if isinstance(v, Path) else v for k, v in vars(options).items()}
 
 
@@ -186,8 +174,9 @@ def _set_rng_state(noise: torch.Generator, state: dict[str, Any]) -> None:
     np.random.set_state(("MT19937", key, numpy["pos"], numpy["has_gauss"], numpy["gauss"]))  # noqa: NPY002
 
 
-def train(options: TrainOptions) -> dict[str, Any]:
-    """Train (or, with ``options.resume``, continue); returns the last metrics logged."""
+def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
+    """Train with ``objective`` (or, with ``options.resume``, continue); returns the last
+    metrics logged."""
     torch.manual_seed(options.seed)
     np.random.seed(options.seed)  # noqa: NPY002 (not used by training; seeded for callers)
     if options.threads > 0:
@@ -208,11 +197,6 @@ def train(options: TrainOptions) -> dict[str, Any]:
         raise SystemExit(f"riskflow-train: {err}") from None
     config = model_config(options.model)
     model = RiskFlowGenerator(config).to(device)
-    objective = None
-    if options.generator == "diffusion":
-        from policies.baselines.diffusion.train import DiffusionObjective
-
-        objective = DiffusionObjective.from_options(options)
     ema = EMA(model, options.ema_decay)
     optimizer = torch.optim.Adam(model.parameters(), lr=options.lr)
     noise = torch.Generator(device).manual_seed(options.seed)  # eps and (t, r)
@@ -222,7 +206,7 @@ def train(options: TrainOptions) -> dict[str, Any]:
         if "training" not in state:
             raise SystemExit(f"riskflow-train: {out / CHECKPOINT} holds no training state")
         trained = state.get("train_config", {}).get("generator", "meanflow")
-        if trained != options.generator:
+        if trained != objective.kind:
             raise SystemExit(f"riskflow-train: --resume: {out} trained --generator {trained}")
         ema.model.load_state_dict(RiskFlowGenerator.from_checkpoint(state, config).state_dict())
         model.load_checkpoint_state(state["training"]["raw_state_dict"])
@@ -241,9 +225,6 @@ def train(options: TrainOptions) -> dict[str, Any]:
         val_indices = np.sort(
             np.random.default_rng(0).choice(val_indices, options.val_windows, False)
         )
-    sampler = TimeSampler(
-        equal_fraction=options.equal_fraction, flow_matching=options.flow_matching
-    )
     weights = {
         name: getattr(options, name)
         for name in ("heading_weight", "action_weight", "collision_weight", "offroad_weight")
@@ -254,10 +235,9 @@ def train(options: TrainOptions) -> dict[str, Any]:
             collated(val_set, val_indices[i : i + options.batch_size], device)
             for i in range(0, len(val_indices), options.batch_size)
         )
-        sampler_model = ema.model if objective is None else objective.sampler(ema.model)
         result = evaluate(
-            sampler_model, batches, normalizer, num_samples=options.num_samples,
-            seed=options.seed, flow_matching=options.flow_matching,
+            objective.sampler(ema.model), batches, normalizer,
+            num_samples=options.num_samples, seed=options.seed,
         )  # fmt: skip
         return {f"val_{k}": v for k, v in result.items()}
 
@@ -268,7 +248,8 @@ def train(options: TrainOptions) -> dict[str, Any]:
             "rng": _rng_state(noise),
             "elapsed_s": elapsed,
         }
-        common = {"step": step, "train_config": _plain(options), "metrics": metrics}
+        config = _plain(options) | {"generator": objective.kind}
+        common = {"step": step, "train_config": config, "metrics": metrics}
         write(
             build_checkpoint(ema.model, normalizer, training=training, **common), out / CHECKPOINT
         )
@@ -292,15 +273,7 @@ def train(options: TrainOptions) -> dict[str, Any]:
                     agents, options.batch_size, options.bucket, options.seed, epoch
                 )
             batch = collated(train_set, batches[step % per_epoch], device)
-            if objective is not None:
-                loss, values = objective.loss(model, batch, normalizer, noise, **weights)
-            else:
-                eps = torch.randn(batch["actions"].shape, generator=noise, device=device)
-                t, r = sampler(options.batch_size, generator=noise, device=device)
-                if options.flow_matching:
-                    loss, values = flow_matching_loss(model, batch, normalizer, eps, t, **weights)
-                else:
-                    loss, values = meanflow_loss(model, batch, normalizer, eps, t, r, **weights)
+            loss, values = objective.loss(model, batch, normalizer, noise, **weights)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             values["grad_norm"] = torch.nn.utils.clip_grad_norm_(
@@ -337,13 +310,3 @@ def train(options: TrainOptions) -> dict[str, Any]:
                 break
     bar.close()
     return metrics
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``riskflow-train`` console script."""
-    train(parse_dataclass(TrainOptions, argv, "riskflow-train", __doc__.split("\n")[0]))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -24,10 +24,9 @@ from collections.abc import Iterable, Mapping
 import torch
 from torch import Tensor
 
-from policies.riskflow.encoder import SceneContext
-from policies.riskflow.generator import RiskFlowGenerator
-from policies.riskflow.meanflow import Normalizer
-from policies.riskflow.sampler import draw_noise, sample
+from policies.learned.data import Normalizer
+from policies.learned.generator import RiskFlowGenerator
+from policies.learned.sampler import draw_noise, sample
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
 
@@ -43,28 +42,6 @@ METRICS = (
     "yaw_accel_rms",
     "data_yaw_accel_rms",
 )
-
-
-class OneStepFlowMatching:
-    """A flow-matching model (trained with ``r = t`` only) seen as a one-step sampler.
-
-    Its network is the instantaneous velocity ``v(z, t) = u_theta(z, t, t)``; one Euler
-    step from noise is ``a = eps + v(eps, 0)``. This adapter answers
-    ``average_velocity(z, t, r)`` with ``u_theta(z, t, t)``, so ``sampler.sample``
-    (which asks for ``u(eps, 0, 1)``) takes exactly that step.
-    """
-
-    def __init__(self, model: RiskFlowGenerator) -> None:
-        self.model = model
-        self.config = model.config
-
-    def encode(self, batch: Mapping[str, Tensor]) -> SceneContext:
-        """The wrapped model's scene context."""
-        return self.model.encode(batch)
-
-    def average_velocity(self, z: Tensor, t: Tensor, r: Tensor, scene: SceneContext) -> Tensor:
-        """``u_theta(z, t, t; C)``; ``r`` is ignored."""
-        return self.model.average_velocity(z, t, t, scene)
 
 
 def displacement_errors(
@@ -111,26 +88,23 @@ def evaluate(
     *,
     num_samples: int = 6,
     seed: int = 0,
-    flow_matching: bool = False,
     dynamics: DynamicsConfig = DEFAULT_CONFIG,
 ) -> dict[str, float]:
     """Validation metrics of ``model`` (see the module docstring) over ``batches``.
 
     Args:
-        model: the generator (evaluate the EMA weights).
+        model: a one-call sampler (``encode``, ``average_velocity``, ``config``): the
+            generator, or what an objective's ``sampler`` makes of it (EMA weights).
         batches: collated windows with the future keys, on the model's device.
         normalizer: action normalisation of the model.
         num_samples: ``K`` of minADE / minFDE.
         seed: seed of the noise.
-        flow_matching: the model was trained as plain flow matching (``r = t``):
-            sample it with one Euler step (:class:`OneStepFlowMatching`).
         dynamics: time step and bounds of the rollouts.
 
     Returns:
         ``{name: value}`` for every name in :data:`METRICS`, plus ``agents`` (agents
         measured) and ``windows``.
     """
-    sampler_model = OneStepFlowMatching(model) if flow_matching else model
     sums = dict.fromkeys(METRICS, 0.0)
     counts = {"agents": 0.0, "windows": 0.0, "jerk": 0.0, "data_jerk": 0.0}
     generator: torch.Generator | None = None
@@ -140,9 +114,9 @@ def evaluate(
             generator = torch.Generator(scene.context.device).manual_seed(seed)
         steps = model.config.future_steps
         eps = draw_noise(scene, steps, generator=generator)
-        actions, trajectories = sample(sampler_model, scene, eps, normalizer, dynamics=dynamics)
+        actions, trajectories = sample(model, scene, eps, normalizer, dynamics=dynamics)
         _, many = sample(
-            sampler_model,
+            model,
             scene,
             None,
             normalizer,

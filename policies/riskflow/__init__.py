@@ -1,30 +1,24 @@
-"""The RiskFlow adversary: window data, encoder, MeanFlow generator, guidance, policy."""
+"""The RiskFlow adversary: what is RiskFlow's on top of the shared layer (:mod:`policies.learned`).
 
-from policies.riskflow.config import ModelConfig
-from policies.riskflow.encoder import SceneContext, SceneEncoder
-from policies.riskflow.generator import CheckpointError, MeanFlowHead, RiskFlowGenerator
+* :mod:`~policies.riskflow.meanflow`: the MeanFlow objective (and the flow-matching
+  reference) over the shared network;
+* :mod:`~policies.riskflow.time_sampler`: the ``(t, r)`` sampler of training;
+* :mod:`~policies.riskflow.guidance`: output-space gradient guidance of the top-K plans;
+* :mod:`~policies.riskflow.base_generator`: which generator the adversary plans with;
+* :mod:`~policies.riskflow.policy`: :class:`RiskFlowAdversary`, the scene policy;
+* :mod:`~policies.train`: ``riskflow-train``.
+"""
+
 from policies.riskflow.guidance import GuidanceConfig, guide
 from policies.riskflow.meanflow import flow_matching_loss, meanflow_loss
 from policies.riskflow.policy import RiskFlowAdversary
-from policies.riskflow.ranking import Ranking, causal_ranking
-from policies.riskflow.sampler import base_velocity, sample
 from policies.riskflow.time_sampler import TimeSampler
 
 __all__ = [
-    "CheckpointError",
     "GuidanceConfig",
-    "MeanFlowHead",
-    "ModelConfig",
-    "Ranking",
     "RiskFlowAdversary",
-    "RiskFlowGenerator",
-    "SceneContext",
-    "SceneEncoder",
     "TimeSampler",
-    "base_velocity",
-    "causal_ranking",
     "flow_matching_loss",
     "guide",
     "meanflow_loss",
-    "sample",
 ]

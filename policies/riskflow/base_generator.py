@@ -4,7 +4,7 @@
 thing from its generator: ``u0 = average_velocity(eps, 0, 1; C)``, the residual whose
 ``eps + u0`` is every agent's normalised plan. Two kinds provide it:
 
-* ``"meanflow"``: :class:`~policies.riskflow.generator.RiskFlowGenerator`, one forward
+* ``"meanflow"``: :class:`~policies.learned.generator.RiskFlowGenerator`, one forward
   pass (``policies/checkpoints/riskflow_default.pt``);
 * ``"diffusion"``: the DDPM denoiser of the diffusion baselines
   (``policies/checkpoints/diffusion_default.pt``) wrapped in
@@ -23,9 +23,9 @@ import os
 
 import torch
 
-from policies.riskflow.checkpoint import checkpoint_kind, load_checkpoint
-from policies.riskflow.data import ActionNormalizer
-from policies.riskflow.generator import RiskFlowGenerator
+from policies.learned.checkpoint import checkpoint_kind, load_checkpoint
+from policies.learned.data import ActionNormalizer
+from policies.learned.generator import RiskFlowGenerator
 
 GENERATOR_KINDS = ("meanflow", "diffusion")
 DEFAULT_SAMPLING_STEPS = 10  # DDIM levels of a diffusion base generator (its validation's)
@@ -74,7 +74,7 @@ def load_base_generator(
     if kind == "meanflow":
         if sampling_steps is not None:
             raise ValueError("sampling_steps applies to a diffusion generator only")
-        from policies.riskflow.checkpoint import load_generator
+        from policies.learned.checkpoint import load_generator
 
         model, normalizer, _ = load_generator(checkpoint, device=device)
         return model, normalizer, kind

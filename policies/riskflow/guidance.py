@@ -70,19 +70,19 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from policies.riskflow.guidance_losses import (
+from policies.learned.data import Normalizer
+from policies.learned.guidance_losses import (
+    TARGETS,
     adversarial_loss,
     adversarial_value_and_gradient,
     map_loss,
     map_term,
     target_rows,
 )
-from policies.riskflow.meanflow import Normalizer
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout, rollout_with_vjp
 from riskflow_env.maps import DrivableMap
 
-TARGETS = ("others", "ego")
 OPTIMIZERS = ("gradient", "adam")
 _ADAM_BETAS = (0.9, 0.999)
 
@@ -188,7 +188,7 @@ def plans_from_velocity(
 ) -> tuple[Tensor, Tensor]:
     """Actions ``clip(denorm(eps + u))`` (0 for absent agents) and their rollout.
 
-    The same operations as :func:`policies.riskflow.sampler.sample`, so ``u = u0`` gives
+    The same operations as :func:`policies.learned.sampler.sample`, so ``u = u0`` gives
     the unguided plans exactly. Shapes: ``(..., A, T, 2)``, ``state (..., A, 4)``,
     ``agent_mask (..., A)``; returns ``(..., A, T, 2)`` and ``(..., A, T, 4)``.
     """

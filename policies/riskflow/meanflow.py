@@ -33,31 +33,19 @@ loss.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import Protocol
 
 import torch
 from torch import Tensor
 
-from policies.riskflow.encoder import SceneContext
-from policies.riskflow.generator import RiskFlowGenerator
-from policies.riskflow.plan_penalties import offroad_penalty, overlap_penalty
+from policies.learned.data import Normalizer
+from policies.learned.encoder import SceneContext
+from policies.learned.generator import RiskFlowGenerator
+from policies.learned.trajectory_loss import LOSS_KEYS, target_actions, trajectory_loss
+from policies.riskflow.time_sampler import TimeSampler
 from riskflow_env.config import DynamicsConfig
-from riskflow_env.dynamics import DEFAULT_CONFIG, rollout, wrap_angle
+from riskflow_env.dynamics import DEFAULT_CONFIG
 
 DUDT_CLIP = 0.03  # c: bound of sg(du/dt) in the reconstruction (RiskFlow paper).
-LOSS_KEYS = ("future", "future_valid", "actions", "actions_valid")
-
-
-class Normalizer(Protocol):
-    """Per-channel action normalisation (``policies.riskflow.data.ActionNormalizer``)."""
-
-    def normalize(self, actions: Tensor) -> Tensor:
-        """Physical ``(..., 2)`` (accel [m/s^2], yaw rate [rad/s]) -> normalised."""
-        ...
-
-    def denormalize(self, actions: Tensor) -> Tensor:
-        """Normalised ``(..., 2)`` -> physical units."""
-        ...
 
 
 def _time_as(t: Tensor) -> Tensor:
@@ -112,76 +100,6 @@ def meanflow_target(v: Tensor, dudt: Tensor, t: Tensor, r: Tensor) -> Tensor:
     average velocity when ``v`` is the marginal velocity and ``du/dt`` is exact.
     """
     return v - (t - r) * dudt
-
-
-def target_actions(batch: Mapping[str, Tensor], normalizer: Normalizer) -> Tensor:
-    """``a*``: normalised ``batch["actions"]``, 0 (the mean action) where not valid."""
-    valid = batch["actions_valid"].bool()[..., None]
-    return torch.where(valid, normalizer.normalize(batch["actions"]), 0.0)
-
-
-def trajectory_loss(
-    a_hat: Tensor,
-    batch: Mapping[str, Tensor],
-    scene: SceneContext,
-    normalizer: Normalizer,
-    heading_weight: float = 0.0,
-    dynamics: DynamicsConfig = DEFAULT_CONFIG,
-    collision_weight: float = 0.0,
-    offroad_weight: float = 0.0,
-) -> tuple[Tensor, dict[str, Tensor]]:
-    """Masked squared error of the rolled-out reconstruction to the reference future,
-    plus the optional realism penalties of :mod:`policies.riskflow.plan_penalties`.
-
-    Args:
-        a_hat: ``(B, A, T, 2)`` normalised reconstructed actions.
-        batch: ``future (B, A, T, 4)``, ``future_valid (B, A, T)`` (scene frame).
-        scene: the encoder output (current states and agent mask).
-        normalizer: action normalisation.
-        heading_weight: weight [m^2/rad^2] of ``heading_mse`` in the loss.
-        dynamics: time step and bounds of the rollout.
-        collision_weight: weight of ``overlap`` (squared penetration depth of decoded box
-            pairs [m^2]); needs ``length``, ``width`` in the batch.
-        offroad_weight: weight of ``offroad`` (squared excess of the planned centres'
-            SDF [m^2], from ``map_crops``).
-
-    Returns:
-        ``loss = position_mse + heading_weight * heading_mse + collision_weight *
-        overlap + offroad_weight * offroad`` (means over valid agent steps, per step:
-        ``|p_hat - p|^2`` [m^2]) and detached metrics ``position_mse``, ``heading_mse``
-        [rad^2], ``ade`` [m], ``fde`` [m] (at the last valid step), and ``overlap`` /
-        ``offroad`` when their weight is not 0.
-    """
-    trajectory = rollout(scene.state, normalizer.denormalize(a_hat), dynamics)  # (B, A, T, 4)
-    future = batch["future"]
-    mask = batch["future_valid"].bool() & scene.agent_mask[..., None]
-    weight = mask.to(a_hat.dtype)
-    count = weight.sum().clamp(min=1.0)
-    squared = ((trajectory[..., :2] - future[..., :2]) ** 2).sum(dim=-1)  # (B, A, T) [m^2]
-    heading = wrap_angle(trajectory[..., 3] - future[..., 3]) ** 2
-    position_mse = (squared * weight).sum() / count
-    heading_mse = (heading * weight).sum() / count
-    loss = position_mse + heading_weight * heading_mse
-    penalties = {}
-    if collision_weight:
-        penalties["overlap"] = overlap_penalty(trajectory, batch, mask)
-        loss = loss + collision_weight * penalties["overlap"]
-    if offroad_weight:
-        penalties["offroad"] = offroad_penalty(trajectory, batch, scene.state, mask)
-        loss = loss + offroad_weight * penalties["offroad"]
-    with torch.no_grad():
-        distance = squared.detach().sqrt()
-        steps = torch.arange(mask.shape[-1], device=mask.device)
-        last = torch.where(mask, steps, -1).max(dim=-1).values  # (B, A), -1: none valid
-        has_last = last >= 0
-        final = distance.gather(-1, last.clamp(min=0)[..., None])[..., 0]
-        metrics = {
-            "position_mse": position_mse.detach(),
-            "heading_mse": heading_mse.detach(),
-            "ade": (distance * weight).sum() / count,
-            "fde": (final * has_last).sum() / has_last.sum().clamp(min=1),
-        } | {name: value.detach() for name, value in penalties.items()}
-    return loss, metrics
 
 
 def meanflow_loss(
@@ -299,3 +217,65 @@ def _loss(
     metrics["action_mse"] = action_mse.detach()
     metrics["loss"] = loss.detach()
     return loss, metrics
+
+
+class OneStepFlowMatching:
+    """A flow-matching model (trained with ``r = t`` only) seen as a one-step sampler.
+
+    Its network is the instantaneous velocity ``v(z, t) = u_theta(z, t, t)``; one Euler
+    step from noise is ``a = eps + v(eps, 0)``. This adapter answers
+    ``average_velocity(z, t, r)`` with ``u_theta(z, t, t)``, so ``sampler.sample``
+    (which asks for ``u(eps, 0, 1)``) takes exactly that step.
+    """
+
+    def __init__(self, model: RiskFlowGenerator) -> None:
+        self.model = model
+        self.config = model.config
+
+    def encode(self, batch: Mapping[str, Tensor]) -> SceneContext:
+        """The wrapped model's scene context."""
+        return self.model.encode(batch)
+
+    def average_velocity(self, z: Tensor, t: Tensor, r: Tensor, scene: SceneContext) -> Tensor:
+        """``u_theta(z, t, t; C)``; ``r`` is ignored."""
+        return self.model.average_velocity(z, t, t, scene)
+
+
+class MeanFlowObjective:
+    """The ``--generator meanflow`` objective of the training loop
+    (:func:`policies.learned.trainer.fit`).
+
+    Per step: ``eps`` of the batch's action shape, then ``(t, r)`` from ``times``, both
+    from the run's seeded generator (so ``--resume`` stays exact), and
+    :func:`meanflow_loss` (:func:`flow_matching_loss` for the plain flow-matching
+    reference, whose validation samples one Euler step, :class:`OneStepFlowMatching`).
+
+    Args:
+        times: the ``(t, r)`` sampler.
+        flow_matching: train the flow-matching reference (``r = t``).
+    """
+
+    kind = "meanflow"
+
+    def __init__(self, times: TimeSampler, flow_matching: bool = False) -> None:
+        self.times, self.flow_matching = times, flow_matching
+
+    def loss(
+        self,
+        model: RiskFlowGenerator,
+        batch: Mapping[str, Tensor],
+        normalizer: Normalizer,
+        generator: torch.Generator,
+        **weights: float,
+    ) -> tuple[Tensor, dict[str, Tensor]]:
+        """One step's loss and metrics (``weights`` as :func:`meanflow_loss`)."""
+        device = batch["actions"].device
+        eps = torch.randn(batch["actions"].shape, generator=generator, device=device)
+        t, r = self.times(eps.shape[0], generator=generator, device=device)
+        if self.flow_matching:
+            return flow_matching_loss(model, batch, normalizer, eps, t, **weights)
+        return meanflow_loss(model, batch, normalizer, eps, t, r, **weights)
+
+    def sampler(self, model: RiskFlowGenerator) -> RiskFlowGenerator | OneStepFlowMatching:
+        """What validation samples: the model's one step (one Euler step for flow matching)."""
+        return OneStepFlowMatching(model) if self.flow_matching else model

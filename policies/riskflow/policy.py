@@ -6,8 +6,8 @@ It drives every non-ego vehicle. Every planning cycle (``planning_interval``, 0.
 
 1. ``window_from_view`` -> one window (ego frame; docs/WINDOWS.md);
 2. one encoder pass and one MeanFlow pass for all agents: ``u0 = u_theta(eps, 0, 1; C)``,
-   base plans ``a = clip(denorm(eps + u0))`` (:mod:`policies.riskflow.sampler`);
-3. TTC causal ranking -> the controllable set ``A_c`` (:mod:`policies.riskflow.ranking`);
+   base plans ``a = clip(denorm(eps + u0))`` (:mod:`policies.learned.sampler`);
+3. TTC causal ranking -> the controllable set ``A_c`` (:mod:`policies.learned.ranking`);
 4. output-space guidance of the ``A_c`` rows (:mod:`policies.riskflow.guidance`).
 
 The vehicles outside ``A_c`` follow their base plans, those in ``A_c`` the guided ones;
@@ -21,7 +21,7 @@ env keeps them): their plan is their current pose at speed 0, and they are never
 Determinism: the noise ``eps`` of cycle ``c`` of episode ``e`` (``reset`` count from 0)
 comes from a ``torch.Generator`` seeded with ``(seed, e, c)``, so the same seed gives the
 same closed-loop rollout, bit for bit, on one machine (same device and thread count).
-The schedule, plan buffer, seeding and overlays are :class:`~policies.riskflow.plan_buffer.
+The schedule, plan buffer, seeding and overlays are :class:`~policies.learned.plan_buffer.
 PlanBufferPolicy`'s, shared with the diffusion baselines.
 
 Generator (:mod:`policies.riskflow.base_generator`): the shipped MeanFlow model by
@@ -41,17 +41,9 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from policies.riskflow.base_generator import generator_kind, load_base_generator
-from policies.riskflow.generator import RiskFlowGenerator
-from policies.riskflow.guidance import (
-    GuidanceConfig,
-    GuidanceResult,
-    GuidanceScene,
-    guide,
-    plans_from_velocity,
-)
-from policies.riskflow.meanflow import Normalizer
-from policies.riskflow.plan_buffer import (
+from policies.learned.data import Normalizer
+from policies.learned.generator import RiskFlowGenerator
+from policies.learned.plan_buffer import (
     BASE_COLOR,
     GUIDED_COLOR,
     EncodedView,
@@ -60,9 +52,17 @@ from policies.riskflow.plan_buffer import (
     default_window_config,
     hold_still,
 )
-from policies.riskflow.ranking import DEFAULT_THRESHOLD, rank_window
-from policies.riskflow.sampler import base_velocity
-from riskflow_env.scenarios.windows import WindowConfig
+from policies.learned.ranking import DEFAULT_THRESHOLD, rank_window
+from policies.learned.sampler import base_velocity
+from policies.learned.windows import WindowConfig
+from policies.riskflow.base_generator import generator_kind, load_base_generator
+from policies.riskflow.guidance import (
+    GuidanceConfig,
+    GuidanceResult,
+    GuidanceScene,
+    guide,
+    plans_from_velocity,
+)
 from riskflow_env.view import SceneView
 
 if TYPE_CHECKING:

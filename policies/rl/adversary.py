@@ -14,11 +14,11 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from policies.riskflow.ranking import check_k
+from policies.learned.guidance_losses import TARGETS
+from policies.learned.ranking import check_k
 from riskflow_env.view import ScenePolicy
 
 TRAFFIC_KINDS = ("riskflow", "idm")
-TARGETS = ("others", "ego")
 
 
 @dataclass(frozen=True)

@@ -13,10 +13,10 @@ import pytest
 import torch
 
 from policies.harness import ClosedLoop
-from policies.riskflow.checkpoint import DEFAULT_NAME, build_checkpoint, save_checkpoint
-from policies.riskflow.config import ModelConfig
-from policies.riskflow.data import ActionNormalizer
-from policies.riskflow.generator import RiskFlowGenerator
+from policies.learned.checkpoint import DEFAULT_NAME, build_checkpoint, save_checkpoint
+from policies.learned.config import ModelConfig
+from policies.learned.data import ActionNormalizer
+from policies.learned.generator import RiskFlowGenerator
 from riskflow_env.agents import ReplayPolicy
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import load_scenario

@@ -1,9 +1,10 @@
-"""Fixtures of the one-step adversary tests: tiny random generators and a straight road.
+"""Fixtures of the policy tests: tiny random generators and a straight road.
 
 ``tiny_meanflow`` / ``tiny_denoiser`` are randomly initialised and perturbed (the
 adaLN-Zero head starts as ``u = 0``), so plans depend on the noise and on the scene;
 ``road_view()`` is the first view of six cars at 12 m/s on a 12 m wide road;
-``closed_loop(policy, n)`` runs it for ``n`` steps with the ego holding its speed.
+``closed_loop(policy, n)`` runs it for ``n`` steps with the ego holding its speed;
+``tiny_config``, ``normalizer`` and ``make_model`` serve the generator tests.
 """
 
 from __future__ import annotations
@@ -13,9 +14,9 @@ import pytest
 import torch
 
 import riskflow_env
-from policies.riskflow.config import ModelConfig
-from policies.riskflow.data import ActionNormalizer
-from policies.riskflow.generator import RiskFlowGenerator
+from policies.learned.config import ModelConfig
+from policies.learned.data import ActionNormalizer
+from policies.learned.generator import RiskFlowGenerator
 from riskflow_env.config import EnvConfig
 from riskflow_env.maps import Lane, from_lanes
 from riskflow_env.scenarios import Scenario
@@ -104,3 +105,47 @@ def closed_loop():
         return env, emitted
 
     return run
+
+
+# Generator tests: tiny configs, rough action statistics, perturbed models.
+
+
+@pytest.fixture
+def tiny_config() -> ModelConfig:
+    return TINY_MODEL
+
+
+@pytest.fixture
+def normalizer() -> ActionNormalizer:
+    """Rough statistics of ``synthetic_batch`` actions (accel [m/s^2], yaw rate [rad/s])."""
+    return ActionNormalizer(mean=(0.0, 0.0), std=(1.0, 0.03))
+
+
+def randomized(model: RiskFlowGenerator, seed: int, scale: float = 0.2) -> RiskFlowGenerator:
+    """``model`` with noise added to every parameter.
+
+    The adaLN-Zero head starts as ``u = 0``; derivative tests need a non-trivial ``u``.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for param in model.parameters():
+            noise = torch.randn(param.shape, generator=gen, dtype=torch.float64)
+            param.add_(scale * noise.to(param.dtype))
+    return model
+
+
+@pytest.fixture
+def make_model():
+    """``make_model(config, seed, dtype=..., randomize=True)`` -> a (perturbed) generator."""
+
+    def make(
+        config: ModelConfig = TINY_MODEL,
+        seed: int = 0,
+        dtype: torch.dtype = torch.float32,
+        randomize: bool = True,
+    ) -> RiskFlowGenerator:
+        torch.manual_seed(seed)
+        model = RiskFlowGenerator(config).to(dtype)
+        return randomized(model, seed) if randomize else model
+
+    return make

@@ -2,7 +2,7 @@
 
 All three bend the plans of a controllable set ``A_c`` at *every* denoising level,
 minimising RiskFlow's own ``L = lambda_adv L_adv + lambda_map L_map``
-(:mod:`policies.riskflow.guidance_losses`; definitions, signs and weights in
+(:mod:`policies.learned.guidance_losses`; definitions, signs and weights in
 :mod:`policies.riskflow.guidance`), so that only the guidance mechanism differs:
 
 * ``gradient="mean"`` (**CTG**, Zhong et al. 2023, "Guided Conditional Diffusion for
@@ -16,7 +16,7 @@ minimising RiskFlow's own ``L = lambda_adv L_adv + lambda_map L_map``
   it (one gradient per level: each needs a backward pass through the network).
 * **CCDiff** (Lin et al. 2025, "Causal Composition Diffusion Model for Closed-loop Traffic
   Generation") is CTG's mean guidance on the ``A_c`` chosen by the TTC causal ranking
-  (:mod:`policies.riskflow.ranking`); CTG and CTG++ take the ``K`` vehicles nearest the
+  (:mod:`policies.learned.ranking`); CTG and CTG++ take the ``K`` vehicles nearest the
   ego (they have no notion of criticality). The choice of ``A_c`` is the policy's.
 
 Step: each gradient is normalised per agent (divided by its RMS over the plan) and
@@ -52,11 +52,10 @@ from policies.baselines.diffusion.sampling import (
     plans_from_sample,
     reverse_chain,
 )
-from policies.riskflow.encoder import SceneContext
-from policies.riskflow.guidance import TARGETS
-from policies.riskflow.guidance_losses import adversarial_loss, map_term, target_rows
-from policies.riskflow.meanflow import Normalizer
-from policies.riskflow.plan_buffer import hold_still
+from policies.learned.data import Normalizer
+from policies.learned.encoder import SceneContext
+from policies.learned.guidance_losses import TARGETS, adversarial_loss, map_term, target_rows
+from policies.learned.plan_buffer import hold_still
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
 from riskflow_env.maps import DrivableMap

@@ -3,7 +3,7 @@
 CTG (Zhong et al. 2023, "Guided Conditional Diffusion for Controllable Traffic
 Simulation") and CTG++ (Zhong et al. 2023, "Language-Guided Traffic Simulation via
 Scene-Level Diffusion") denoise future trajectories with a transformer over the scene
-context. Here the denoiser *is* :class:`~policies.riskflow.generator.RiskFlowGenerator`
+context. Here the denoiser *is* :class:`~policies.learned.generator.RiskFlowGenerator`
 (same scene encoder, same adaLN-Zero head with temporal and social attention), with the
 MeanFlow time pair ``(t, r)`` replaced by the diffusion level: ``t = r = tau_k`` with
 ``tau_k = 1 - (k + 1) / K`` (noise near 0, data near 1, as in this project's flow
@@ -40,11 +40,11 @@ import torch
 from torch import Tensor
 
 from policies.baselines.diffusion.schedule import SCHEDULES, DiffusionSchedule, ScheduleConfig
-from policies.riskflow.checkpoint import METADATA_KEYS, load_checkpoint, normalizer_of
-from policies.riskflow.config import ModelConfig
-from policies.riskflow.data import ActionNormalizer
-from policies.riskflow.encoder import SceneContext
-from policies.riskflow.generator import CheckpointError, RiskFlowGenerator
+from policies.learned.checkpoint import METADATA_KEYS, load_checkpoint, normalizer_of
+from policies.learned.config import ModelConfig
+from policies.learned.data import ActionNormalizer
+from policies.learned.encoder import SceneContext
+from policies.learned.generator import CheckpointError, RiskFlowGenerator
 
 DEFAULT_NAME = "diffusion_default.pt"
 PREDICTIONS = ("v", "sample", "epsilon")

@@ -2,12 +2,12 @@
 
 DDPM training (Ho et al. 2020): a level ``k ~ U{0, .., K-1}`` per scene, noise ``eps``,
 ``x_k = sqrt(alpha_bar_k) a* + sqrt(1 - alpha_bar_k) eps`` from the normalised
-ground-truth actions ``a*`` (``policies.riskflow.meanflow.target_actions``), one pass of
+ground-truth actions ``a*`` (``policies.learned.trajectory_loss.target_actions``), one pass of
 the denoiser, and
 
 * ``prediction="v"`` (default) or ``"sample"`` (CTG-like): RiskFlow's *same* reconstruction loss on
   ``x0_hat``: the trajectory-space error of ``rollout(denorm(x0_hat))`` against the
-  reference future (``meanflow.trajectory_loss``) plus ``action_weight`` times the
+  reference future (``policies.learned.trajectory_loss``) plus ``action_weight`` times the
   normalised action error, exactly what ``meanflow_loss`` puts on its ``a_hat``, so
   the two generators differ in how they generate, not in what they are fit to;
 * ``prediction="epsilon"``: the "simple" loss ``|eps_hat - eps|^2`` (Ho et al. 2020).
@@ -23,7 +23,8 @@ import torch
 from torch import Tensor
 
 from policies.baselines.diffusion.model import DiffusionDenoiser
-from policies.riskflow.meanflow import LOSS_KEYS, Normalizer, target_actions, trajectory_loss
+from policies.learned.data import Normalizer
+from policies.learned.trajectory_loss import LOSS_KEYS, target_actions, trajectory_loss
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG
 
@@ -59,7 +60,7 @@ def diffusion_loss(
         action_weight: weight of the normalised action error (not ``"epsilon"``).
         dynamics: time step and bounds of the rollout.
         collision_weight, offroad_weight: weights of the realism penalties on the
-            decoded ``x0_hat`` (``policies.riskflow.meanflow.trajectory_loss``; not
+            decoded ``x0_hat`` (``policies.learned.trajectory_loss``; not
             ``"epsilon"``).
 
     Returns:

@@ -1,13 +1,13 @@
 """``DiffusionAdversary``: the CTG-, CTG++- and CCDiff-style scene policies.
 
 The same closed-loop machinery as ``RiskFlowAdversary``
-(:class:`~policies.riskflow.plan_buffer.PlanBufferPolicy`: re-plan every
+(:class:`~policies.learned.plan_buffer.PlanBufferPolicy`: re-plan every
 ``planning_interval``, plan buffer, seeded noise per (seed, episode, cycle), done
 vehicles standing still, world-frame plans, overlays); one planning cycle is
 
 1. ``window_from_view`` -> one window, one encoder pass (the scene context);
 2. the controllable set ``A_c``: the ``k`` live vehicles nearest the ego (``"ctg"``,
-   ``"ctgpp"``) or the TTC causal ranking (``"ccdiff"``; :mod:`policies.riskflow.ranking`);
+   ``"ctgpp"``) or the TTC causal ranking (``"ccdiff"``; :mod:`policies.learned.ranking`);
 3. the unguided reverse chain (DDPM with all ``K`` levels, or DDIM with
    ``sampling_steps``), then the guided chain of ``A_c`` (:mod:`.guided`): gradient of
    RiskFlow's ``L_adv + L_map`` on the transition mean (``"ctg"``, ``"ccdiff"``) or
@@ -31,14 +31,14 @@ from policies.baselines.diffusion.guided import (
 )
 from policies.baselines.diffusion.model import DiffusionDenoiser, load_diffusion
 from policies.baselines.diffusion.sampling import chain_noise
-from policies.riskflow.meanflow import Normalizer
-from policies.riskflow.plan_buffer import (
+from policies.learned.data import Normalizer
+from policies.learned.plan_buffer import (
     PlanBufferPolicy,
     check_model_pair,
     default_window_config,
 )
-from policies.riskflow.ranking import DEFAULT_THRESHOLD, NO_GROUP, Ranking, rank_window
-from riskflow_env.scenarios.windows import WindowConfig
+from policies.learned.ranking import DEFAULT_THRESHOLD, NO_GROUP, Ranking, rank_window
+from policies.learned.windows import WindowConfig
 from riskflow_env.view import SceneView
 
 PHASES = ("window", "encoder", "ranking", "denoising", "guidance")

@@ -8,7 +8,7 @@ A chain starts from ``x_{K-1} = noise[0]`` and takes the transitions of
 
 :class:`OneCallSampler` makes a denoiser look like a one-step generator
 (``average_velocity(eps, 0, 1; C) = chain(eps) - eps`` with deterministic DDIM), so
-``policies.riskflow.sampler.sample`` and ``policies.riskflow.evaluate.evaluate`` (the
+``policies.learned.sampler.sample`` and ``policies.learned.validation.evaluate`` (the
 validation of ``riskflow-train``) work on it unchanged.
 """
 
@@ -18,8 +18,8 @@ import torch
 from torch import Tensor
 
 from policies.baselines.diffusion.model import DiffusionDenoiser
-from policies.riskflow.encoder import SceneContext
-from policies.riskflow.meanflow import Normalizer
+from policies.learned.data import Normalizer
+from policies.learned.encoder import SceneContext
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout
 
@@ -85,7 +85,7 @@ def plans_from_sample(
 
     Shapes: ``x0 (..., A, T, 2)``, ``state (..., A, 4)``, ``agent_mask (..., A)``; returns
     ``(..., A, T, 2)`` [m/s^2, rad/s] and ``(..., A, T, 4)`` states, the same operations
-    as ``policies.riskflow.sampler.sample``.
+    as ``policies.learned.sampler.sample``.
     """
     actions = clip_actions(normalizer.denormalize(x0), dynamics)
     actions = actions * agent_mask[..., None, None].to(actions.dtype)

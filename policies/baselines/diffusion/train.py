@@ -1,6 +1,6 @@
 """``riskflow-train --generator diffusion``: the diffusion denoiser's training objective.
 
-There is one training loop (``policies.riskflow.train``: batches, Adam, gradient
+There is one training loop (``policies.learned.trainer.fit``: batches, Adam, gradient
 clipping, EMA, validation, checkpoints, resume); this module is the objective it plugs in
 for ``--generator diffusion``: per step, noise ``eps`` and levels ``k ~ U{0..K-1}`` from
 the run's seeded noise generator (so ``--resume`` stays exact) and
@@ -28,8 +28,8 @@ from torch import Tensor
 from policies.baselines.diffusion.model import DiffusionConfig, DiffusionDenoiser
 from policies.baselines.diffusion.objective import diffusion_loss, draw_levels
 from policies.baselines.diffusion.sampling import OneCallSampler
-from policies.riskflow.generator import RiskFlowGenerator
-from policies.riskflow.meanflow import Normalizer
+from policies.learned.data import Normalizer
+from policies.learned.generator import RiskFlowGenerator
 
 
 class DiffusionObjective:
@@ -39,6 +39,8 @@ class DiffusionObjective:
         diffusion: levels, schedule, parameterisation.
         val_sampling_steps: DDIM levels of the validation samples.
     """
+
+    kind = "diffusion"
 
     def __init__(self, diffusion: DiffusionConfig, val_sampling_steps: int = 10) -> None:
         self.diffusion = diffusion

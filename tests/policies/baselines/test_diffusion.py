@@ -20,13 +20,13 @@ from policies.baselines.diffusion.sampling import (
     plans_from_sample,
     reverse_chain,
 )
-from policies.riskflow.config import ModelConfig
-from policies.riskflow.data import ActionNormalizer
-from policies.riskflow.evaluate import evaluate
-from policies.riskflow.generator import RiskFlowGenerator
-from policies.riskflow.guidance_losses import adversarial_loss
-from policies.riskflow.sampler import sample
-from policies.riskflow.synthetic import synthetic_batch
+from policies.learned.config import ModelConfig
+from policies.learned.data import ActionNormalizer
+from policies.learned.generator import RiskFlowGenerator
+from policies.learned.guidance_losses import adversarial_loss
+from policies.learned.sampler import sample
+from policies.learned.synthetic import synthetic_batch
+from policies.learned.validation import evaluate
 
 TINY = ModelConfig(
     encoder_dim=16, head_dim=32, context_dim=32, edge_dim=8, num_heads=2, encoder_layers=1,

@@ -12,19 +12,19 @@ import riskflow_env
 from policies.baselines.diffusion.model import DiffusionDenoiser, load_diffusion
 from policies.baselines.diffusion.policy import PHASES, DiffusionAdversary
 from policies.baselines.diffusion.sampling import plans_from_sample, reverse_chain
-from policies.riskflow.checkpoint import load_generator
-from policies.riskflow.config import ModelConfig
-from policies.riskflow.data import ActionNormalizer, collate_windows
-from policies.riskflow.encoder import ENCODER_KEYS
-from policies.riskflow.generator import CheckpointError, RiskFlowGenerator
-from policies.riskflow.train import GENERATOR, METRICS_LOG
-from policies.riskflow.train import main as train_main
+from policies.learned.checkpoint import load_generator
+from policies.learned.config import ModelConfig
+from policies.learned.data import ActionNormalizer, collate_windows
+from policies.learned.encoder import ENCODER_KEYS
+from policies.learned.generator import CheckpointError, RiskFlowGenerator
+from policies.learned.windows import window_from_view
+from policies.train import GENERATOR, METRICS_LOG
+from policies.train import main as train_main
 from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG
 from riskflow_env.maps import Lane, from_lanes
 from riskflow_env.scenarios import HighwayTrafficSource, Scenario
 from riskflow_env.scenarios.io import save_scenario
-from riskflow_env.scenarios.windows import window_from_view
 from riskflow_env.view import ScenePolicy
 
 TINY = ModelConfig(

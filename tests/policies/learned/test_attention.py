@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from policies.riskflow.attention import Attention, social_mask
+from policies.learned.attention import Attention, social_mask
 
 
 def _attention(seed=0):

@@ -7,17 +7,17 @@ import dataclasses
 import pytest
 import torch
 
-from policies.riskflow import checkpoint as checkpoint_module
-from policies.riskflow.checkpoint import (
+from policies.learned import checkpoint as checkpoint_module
+from policies.learned.checkpoint import (
     build_checkpoint,
     code_version,
     load_checkpoint,
     load_generator,
     save_checkpoint,
 )
-from policies.riskflow.generator import CheckpointError, RiskFlowGenerator
-from policies.riskflow.sampler import sample
-from policies.riskflow.synthetic import synthetic_batch
+from policies.learned.generator import CheckpointError, RiskFlowGenerator
+from policies.learned.sampler import sample
+from policies.learned.synthetic import synthetic_batch
 
 
 def _write(path, model, stats, **overrides):

@@ -8,13 +8,13 @@ import warnings
 import pytest
 import torch
 
-from policies.riskflow.checkpoint import (
+from policies.learned.checkpoint import (
     load_checkpoint,
     load_generator,
     save_checkpoint,
     weights_digest,
 )
-from policies.riskflow.generator import CheckpointError
+from policies.learned.generator import CheckpointError
 
 pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
 

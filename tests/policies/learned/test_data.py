@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from policies.riskflow.data import (
+from policies.learned.data import (
     STATS_FILENAME,
     ActionNormalizer,
     WindowDataset,
@@ -19,8 +19,8 @@ from policies.riskflow.data import (
     load_or_compute_stats,
     window_indices,
 )
+from policies.learned.windows import PAIR_KEYS, WindowConfig, window_from_scenario
 from riskflow_env.scenarios import HighwayTrafficSource
-from riskflow_env.scenarios.windows import PAIR_KEYS, WindowConfig, window_from_scenario
 
 STRIDE = 16
 

@@ -6,9 +6,9 @@ import os
 
 import pytest
 
-from policies.riskflow.batches import load_splits
-from policies.riskflow.data import STATS_FILENAME, load_or_compute_stats
-from policies.riskflow.data_cache import CACHE_ENV, derived_dir
+from policies.learned.batches import load_splits
+from policies.learned.data import STATS_FILENAME, load_or_compute_stats
+from policies.learned.data_cache import CACHE_ENV, derived_dir
 from riskflow_env.scenarios.io import ASSETS
 
 
@@ -49,7 +49,7 @@ def test_read_only_folders_use_the_user_cache(monkeypatch, tmp_path):
 
 def test_the_user_cache_key_follows_the_folder_contents(monkeypatch, tmp_path):
     monkeypatch.setenv(CACHE_ENV, str(tmp_path / "user-cache"))
-    monkeypatch.setattr("policies.riskflow.data_cache.PACKAGE_DIRS", (tmp_path,))
+    monkeypatch.setattr("policies.learned.data_cache.PACKAGE_DIRS", (tmp_path,))
     data = tmp_path / "data"
     data.mkdir()
     (data / "a.npz").write_bytes(b"one")

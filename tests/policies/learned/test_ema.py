@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch import nn
 
-from policies.riskflow.ema import EMA
+from policies.learned.ema import EMA
 
 
 def test_update_is_the_moving_average():

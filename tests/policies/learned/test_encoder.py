@@ -8,8 +8,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from policies.riskflow.encoder import history_features
-from policies.riskflow.synthetic import synthetic_batch
+from policies.learned.encoder import history_features
+from policies.learned.synthetic import synthetic_batch
 
 
 def _rigid(batch, angle: float, shift: tuple[float, float]):

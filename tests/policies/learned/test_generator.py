@@ -8,11 +8,11 @@ import io
 import pytest
 import torch
 
-from policies.riskflow.config import ModelConfig
-from policies.riskflow.generator import CheckpointError, RiskFlowGenerator
+from policies.learned.config import ModelConfig
+from policies.learned.generator import CheckpointError, RiskFlowGenerator
+from policies.learned.sampler import sample
+from policies.learned.synthetic import synthetic_batch
 from policies.riskflow.meanflow import meanflow_loss
-from policies.riskflow.sampler import sample
-from policies.riskflow.synthetic import synthetic_batch
 from policies.riskflow.time_sampler import TimeSampler
 
 

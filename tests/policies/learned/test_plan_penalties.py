@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from policies.riskflow.plan_penalties import offroad_penalty, overlap_penalty
+from policies.learned.plan_penalties import offroad_penalty, overlap_penalty
 
 
 def _states(xy, yaw=0.0):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from policies.riskflow.ranking import (
+from policies.learned.ranking import (
     NO_GROUP,
     causal_ranking,
     check_k,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from policies.riskflow.sampler import base_velocity, sample
-from policies.riskflow.synthetic import synthetic_batch
+from policies.learned.sampler import base_velocity, sample
+from policies.learned.synthetic import synthetic_batch
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
 
 B, A, T = 2, 6, 52

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 import torch
 
-from policies.riskflow.batches import batch_order
-from policies.riskflow.checkpoint import load_checkpoint, load_generator
-from policies.riskflow.config import ModelConfig
-from policies.riskflow.dataclass_cli import parse_dataclass
-from policies.riskflow.generator import CheckpointError
-from policies.riskflow.train import CHECKPOINT, GENERATOR, METRICS_LOG, TrainOptions
-from policies.riskflow.train import main as train_main
+from policies.dataclass_cli import parse_dataclass
+from policies.learned.batches import batch_order
+from policies.learned.checkpoint import load_checkpoint, load_generator
+from policies.learned.config import ModelConfig
+from policies.learned.generator import CheckpointError
+from policies.train import CHECKPOINT, GENERATOR, METRICS_LOG, TrainOptions
+from policies.train import main as train_main
 from riskflow_env.scenarios import HighwayTrafficSource
 from riskflow_env.scenarios.io import save_scenario
 
@@ -122,7 +122,7 @@ def test_cli_subprocess_smoke(banks, tmp_path, tiny_config):
     out = tmp_path / "cli"
     args = tiny_args(banks, out, tiny_config, steps=1)
     done = subprocess.run(
-        [sys.executable, "-m", "policies.riskflow.train", *args],
+        [sys.executable, "-m", "policies.train", *args],
         cwd=ROOT,
         capture_output=True,
         text=True,
@@ -173,7 +173,7 @@ def test_training_on_the_shipped_bank_writes_nothing_into_the_package(
     monkeypatch, tmp_path, tiny_config
 ):
     """Window caches and norm_stats.json of the installed bank go to the user cache."""
-    from policies.riskflow.data_cache import CACHE_ENV
+    from policies.learned.data_cache import CACHE_ENV
     from riskflow_env.scenarios.io import ASSETS
 
     monkeypatch.setenv(CACHE_ENV, str(tmp_path / "user-cache"))

@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from policies.riskflow.evaluate import METRICS, OneStepFlowMatching, displacement_errors, evaluate
-from policies.riskflow.synthetic import synthetic_batch
+from policies.learned.synthetic import synthetic_batch
+from policies.learned.validation import METRICS, displacement_errors, evaluate
 
 
 def test_displacement_errors_closed_form():
@@ -55,19 +55,3 @@ def _constant_velocity_future(batch):
 
     state = batch["history"][:, :, -1]
     return rollout(state, torch.zeros_like(batch["actions"]))
-
-
-def test_one_step_flow_matching_asks_for_the_instantaneous_velocity(make_model, tiny_config):
-    model = make_model(tiny_config)
-    calls = []
-
-    def spy(z, t, r, scene):
-        calls.append((t.clone(), r.clone()))
-        return torch.zeros_like(z)
-
-    model.average_velocity = spy
-    adapter = OneStepFlowMatching(model)
-    scene = model.encode(synthetic_batch(2, 3))
-    t, r = torch.zeros(2), torch.ones(2)
-    adapter.average_velocity(torch.zeros(2, 3, 52, 2), t, r, scene)
-    torch.testing.assert_close(calls[0][1], t)

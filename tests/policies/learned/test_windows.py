@@ -8,16 +8,16 @@ import numpy as np
 import pytest
 
 import riskflow_env
-from riskflow_env import dynamics
-from riskflow_env.config import DynamicsConfig
-from riskflow_env.risk import NUM_PAIR_FEATURES
-from riskflow_env.scenarios import HighwayTrafficSource, Scenario, TrafficConfig
-from riskflow_env.scenarios.windows import (
+from policies.learned.windows import (
     FUTURE_KEYS,
     WindowConfig,
     window_from_scenario,
     window_from_view,
 )
+from riskflow_env import dynamics
+from riskflow_env.config import DynamicsConfig
+from riskflow_env.risk import NUM_PAIR_FEATURES
+from riskflow_env.scenarios import HighwayTrafficSource, Scenario, TrafficConfig
 
 H, F, S = 31, 52, 48
 

@@ -8,8 +8,11 @@ import numpy as np
 import pytest
 import torch
 
+from policies.learned.data import ActionNormalizer
+from policies.learned.guidance_losses import MapTerm
+from policies.learned.sampler import base_velocity, sample
+from policies.learned.synthetic import synthetic_batch
 from policies.riskflow import guidance
-from policies.riskflow.data import ActionNormalizer
 from policies.riskflow.guidance import (
     GuidanceConfig,
     GuidanceScene,
@@ -19,9 +22,6 @@ from policies.riskflow.guidance import (
     map_loss,
     plans_from_velocity,
 )
-from policies.riskflow.guidance_losses import MapTerm
-from policies.riskflow.sampler import base_velocity, sample
-from policies.riskflow.synthetic import synthetic_batch
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
 from riskflow_env.maps import Lane, from_lanes
 
@@ -300,7 +300,7 @@ def test_closed_form_gradient_and_plans_equal_the_autograd_path(monkeypatch):
 
 
 def test_target_rows_others_ego_and_bad_target():
-    from policies.riskflow.guidance_losses import target_rows
+    from policies.learned.guidance_losses import target_rows
 
     present = torch.tensor([True, True, True, False, True])
     controllable = torch.tensor([False, True, False, False, False])
@@ -320,7 +320,7 @@ def test_target_rows_others_ego_and_bad_target():
 def test_map_term_is_none_without_map_or_weight():
     from types import SimpleNamespace
 
-    from policies.riskflow.guidance_losses import map_term
+    from policies.learned.guidance_losses import map_term
 
     size = torch.ones(2)
     scene = SimpleNamespace(drivable_map=None, frame=torch.zeros(3), length=size, width=size)

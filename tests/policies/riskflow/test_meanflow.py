@@ -8,19 +8,19 @@ import numpy as np
 import pytest
 import torch
 
-from policies.riskflow.data import collate_windows
+from policies.learned.data import collate_windows
+from policies.learned.synthetic import synthetic_batch
+from policies.learned.trajectory_loss import target_actions, trajectory_loss
+from policies.learned.windows import window_from_scenario
 from policies.riskflow.meanflow import (
     DUDT_CLIP,
+    OneStepFlowMatching,
     average_velocity_jvp,
     flow_matching_loss,
     meanflow_loss,
     meanflow_target,
-    target_actions,
-    trajectory_loss,
 )
-from policies.riskflow.synthetic import synthetic_batch
 from riskflow_env.scenarios import HighwayTrafficSource
-from riskflow_env.scenarios.windows import window_from_scenario
 
 
 def _times(batch_size: int, dtype: torch.dtype = torch.float32):
@@ -184,3 +184,19 @@ def test_loss_runs_on_collated_recorded_windows(make_model, normalizer):
     loss.backward()
     assert math.isfinite(float(loss)) and float(metrics["ade"]) > 0
     assert all(torch.isfinite(p.grad).all() for p in model.parameters())
+
+
+def test_one_step_flow_matching_asks_for_the_instantaneous_velocity(make_model, tiny_config):
+    model = make_model(tiny_config)
+    calls = []
+
+    def spy(z, t, r, scene):
+        calls.append((t.clone(), r.clone()))
+        return torch.zeros_like(z)
+
+    model.average_velocity = spy
+    adapter = OneStepFlowMatching(model)
+    scene = model.encode(synthetic_batch(2, 3))
+    t, r = torch.zeros(2), torch.ones(2)
+    adapter.average_velocity(torch.zeros(2, 3, 52, 2), t, r, scene)
+    torch.testing.assert_close(calls[0][1], t)

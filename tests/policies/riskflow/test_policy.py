@@ -9,15 +9,15 @@ import pytest
 import torch
 
 import riskflow_env
-from policies.riskflow.data import ActionNormalizer, collate_windows
-from policies.riskflow.encoder import ENCODER_KEYS
+from policies.learned.data import ActionNormalizer, collate_windows
+from policies.learned.encoder import ENCODER_KEYS
+from policies.learned.sampler import sample
+from policies.learned.windows import window_from_view
 from policies.riskflow.policy import PHASES, RiskFlowAdversary
-from policies.riskflow.sampler import sample
 from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG
 from riskflow_env.maps import Lane, from_lanes
 from riskflow_env.scenarios import Scenario
-from riskflow_env.scenarios.windows import window_from_view
 from riskflow_env.view import ScenePolicy
 
 NORMALIZER = ActionNormalizer(mean=(0.0, 0.0), std=(0.5, 0.02))

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from policies.baselines.diffusion.sampling import OneCallSampler
+from policies.learned.checkpoint import build_checkpoint, load_checkpoint, save_checkpoint
+from policies.learned.data import collate_windows
+from policies.learned.encoder import ENCODER_KEYS
+from policies.learned.sampler import sample
+from policies.learned.windows import window_from_view
 from policies.riskflow.base_generator import checkpoint_kind, load_base_generator
-from policies.riskflow.checkpoint import build_checkpoint, load_checkpoint, save_checkpoint
-from policies.riskflow.data import collate_windows
-from policies.riskflow.encoder import ENCODER_KEYS
 from policies.riskflow.policy import RiskFlowAdversary
-from policies.riskflow.sampler import sample
-from riskflow_env.scenarios.windows import window_from_view
 
 
 def planned(policy, road_view):

@@ -1,0 +1,19 @@
+"""What every learned adversary shares (RiskFlow, STRIVE-style, the diffusion baselines).
+
+* model input: :mod:`~policies.learned.windows` (a scene as the model sees it,
+  docs/WINDOWS.md), :mod:`~policies.learned.data`, :mod:`~policies.learned.batches`,
+  :mod:`~policies.learned.data_cache`, :mod:`~policies.learned.synthetic`;
+* the network: :mod:`~policies.learned.config`, :mod:`~policies.learned.encoder`
+  (with :mod:`~policies.learned.map_encoder`, :mod:`~policies.learned.attention`,
+  :mod:`~policies.learned.embeddings`), :mod:`~policies.learned.generator` (the
+  velocity head every generator kind trains), :mod:`~policies.learned.checkpoint`;
+* sampling and validation of a one-call generator: :mod:`~policies.learned.sampler`,
+  :mod:`~policies.learned.validation`, :mod:`~policies.learned.ema`;
+* the adversary's loop: :mod:`~policies.learned.plan_buffer` (receding-horizon plans),
+  :mod:`~policies.learned.ranking` (TTC causal ranking of the controllable set),
+  :mod:`~policies.learned.guidance_losses` (the adversarial and map objective),
+  :mod:`~policies.learned.plan_penalties` (collision / off-road penalties of plans).
+
+Nothing here imports :mod:`policies.riskflow` or :mod:`policies.baselines`
+(docs/ARCHITECTURE.md); import the submodules directly.
+"""

@@ -1,0 +1,93 @@
+"""The trajectory-space loss every generator kind trains with (MeanFlow and diffusion).
+
+A reconstruction ``a_hat`` of the normalised action plan is de-normalised, rolled out
+through ``riskflow_env.dynamics.rollout`` from every agent's current state and compared
+with the reference future positions (optionally headings), plus the optional collision
+and off-road penalties of :mod:`policies.learned.plan_penalties` (RiskFlow paper,
+trajectory-space reconstruction; docs/GENERATOR.md).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import torch
+from torch import Tensor
+
+from policies.learned.data import Normalizer
+from policies.learned.encoder import SceneContext
+from policies.learned.plan_penalties import offroad_penalty, overlap_penalty
+from riskflow_env.config import DynamicsConfig
+from riskflow_env.dynamics import DEFAULT_CONFIG, rollout, wrap_angle
+
+LOSS_KEYS = ("future", "future_valid", "actions", "actions_valid")
+
+
+def target_actions(batch: Mapping[str, Tensor], normalizer: Normalizer) -> Tensor:
+    """``a*``: normalised ``batch["actions"]``, 0 (the mean action) where not valid."""
+    valid = batch["actions_valid"].bool()[..., None]
+    return torch.where(valid, normalizer.normalize(batch["actions"]), 0.0)
+
+
+def trajectory_loss(
+    a_hat: Tensor,
+    batch: Mapping[str, Tensor],
+    scene: SceneContext,
+    normalizer: Normalizer,
+    heading_weight: float = 0.0,
+    dynamics: DynamicsConfig = DEFAULT_CONFIG,
+    collision_weight: float = 0.0,
+    offroad_weight: float = 0.0,
+) -> tuple[Tensor, dict[str, Tensor]]:
+    """Masked squared error of the rolled-out reconstruction to the reference future,
+    plus the optional realism penalties of :mod:`policies.learned.plan_penalties`.
+
+    Args:
+        a_hat: ``(B, A, T, 2)`` normalised reconstructed actions.
+        batch: ``future (B, A, T, 4)``, ``future_valid (B, A, T)`` (scene frame).
+        scene: the encoder output (current states and agent mask).
+        normalizer: action normalisation.
+        heading_weight: weight [m^2/rad^2] of ``heading_mse`` in the loss.
+        dynamics: time step and bounds of the rollout.
+        collision_weight: weight of ``overlap`` (squared penetration depth of decoded box
+            pairs [m^2]); needs ``length``, ``width`` in the batch.
+        offroad_weight: weight of ``offroad`` (squared excess of the planned centres'
+            SDF [m^2], from ``map_crops``).
+
+    Returns:
+        ``loss = position_mse + heading_weight * heading_mse + collision_weight *
+        overlap + offroad_weight * offroad`` (means over valid agent steps, per step:
+        ``|p_hat - p|^2`` [m^2]) and detached metrics ``position_mse``, ``heading_mse``
+        [rad^2], ``ade`` [m], ``fde`` [m] (at the last valid step), and ``overlap`` /
+        ``offroad`` when their weight is not 0.
+    """
+    trajectory = rollout(scene.state, normalizer.denormalize(a_hat), dynamics)  # (B, A, T, 4)
+    future = batch["future"]
+    mask = batch["future_valid"].bool() & scene.agent_mask[..., None]
+    weight = mask.to(a_hat.dtype)
+    count = weight.sum().clamp(min=1.0)
+    squared = ((trajectory[..., :2] - future[..., :2]) ** 2).sum(dim=-1)  # (B, A, T) [m^2]
+    heading = wrap_angle(trajectory[..., 3] - future[..., 3]) ** 2
+    position_mse = (squared * weight).sum() / count
+    heading_mse = (heading * weight).sum() / count
+    loss = position_mse + heading_weight * heading_mse
+    penalties = {}
+    if collision_weight:
+        penalties["overlap"] = overlap_penalty(trajectory, batch, mask)
+        loss = loss + collision_weight * penalties["overlap"]
+    if offroad_weight:
+        penalties["offroad"] = offroad_penalty(trajectory, batch, scene.state, mask)
+        loss = loss + offroad_weight * penalties["offroad"]
+    with torch.no_grad():
+        distance = squared.detach().sqrt()
+        steps = torch.arange(mask.shape[-1], device=mask.device)
+        last = torch.where(mask, steps, -1).max(dim=-1).values  # (B, A), -1: none valid
+        has_last = last >= 0
+        final = distance.gather(-1, last.clamp(min=0)[..., None])[..., 0]
+        metrics = {
+            "position_mse": position_mse.detach(),
+            "heading_mse": heading_mse.detach(),
+            "ade": (distance * weight).sum() / count,
+            "fde": (final * has_last).sum() / has_last.sum().clamp(min=1),
+        } | {name: value.detach() for name, value in penalties.items()}
+    return loss, metrics
