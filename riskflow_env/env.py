@@ -94,8 +94,7 @@ class RiskFlowParallelEnv(ParallelEnv):
         self.source = as_source(scenarios) if scenarios is not None else shipped_bank("eval")
         self.possible_agents = list(self.config.agent_names)
         self._slot = {name: index for index, name in enumerate(self.possible_agents)}
-        self._terminate_on_collision = np.array(self.config.selects("terminate_on_collision"))
-        self._terminate_on_offroad = np.array(self.config.selects("terminate_on_offroad"))
+        self._termination_masks = simulator.termination_masks(self.config)
 
         dynamics = self.config.dynamics
         self._action_low = np.array([dynamics.accel_min, -dynamics.yaw_rate_max])
@@ -205,7 +204,8 @@ class RiskFlowParallelEnv(ParallelEnv):
         self._scene = simulator.reset(scenario, self.config.max_agents, rows)
         self._log_end = simulator.log_end_steps(scenario, rows, self.config.max_agents)
         self.agents = [self.possible_agents[i] for i in np.flatnonzero(self._scene.present)]
-        evaluation = self._evaluate(self._scene)
+        evaluation = simulator.evaluate(self._scene, self.map, self.config)
+        self._events = evaluation.events
         observations, _, infos = self._agent_dicts(evaluation, self.agents)
         if self._renderer is not None:
             self._renderer.reset(self)
@@ -223,29 +223,21 @@ class RiskFlowParallelEnv(ParallelEnv):
         if not self.agents:
             raise RuntimeError("step() called after the episode ended: call reset() first")
         action_array = self._action_input.to_array(actions, self.agents)
-        scene = simulator.step(self._scene, action_array, self.config.dynamics)
-        live = scene.active
-        left = np.zeros(self.config.max_agents, dtype=bool)
-        if self.config.leave_when_log_ends:  # gone before this step's events are detected
-            left = live & (scene.step > self._log_end)
-            scene = scene.replace(present=scene.present & ~left, active=live & ~left)
-        evaluation = self._evaluate(scene)
-        terminated, truncated = simulator.episode_end(
-            live,
-            evaluation.events,
-            self._terminate_on_collision,
-            self._terminate_on_offroad,
-            scene.step >= self.config.episode_steps,
-            self.config.end_with_ego,
+        self._scene, transition = simulator.transition(
+            self._scene,
+            action_array,
+            self.map,
+            self.config,
+            log_end=self._log_end if self.config.leave_when_log_ends else None,
+            masks=self._termination_masks,
         )
-        truncated = truncated | (left & ~terminated)
-        done = terminated | truncated
-        self._scene = scene.replace(active=live & ~done)
-
+        self._events = transition.events
         agents = self.agents
-        observations, rewards, infos = self._agent_dicts(evaluation, agents)
+        observations, rewards, infos = self._agent_dicts(transition.evaluation, agents)
         slot = self._slot
-        terminated, truncated, done = terminated.tolist(), truncated.tolist(), done.tolist()
+        terminated, truncated = transition.terminated, transition.truncated
+        done = (terminated | truncated).tolist()
+        terminated, truncated = terminated.tolist(), truncated.tolist()
         terminations = {agent: terminated[slot[agent]] for agent in agents}
         truncations = {agent: truncated[slot[agent]] for agent in agents}
         self.agents = [agent for agent in agents if not done[slot[agent]]]
@@ -299,12 +291,6 @@ class RiskFlowParallelEnv(ParallelEnv):
         if agent not in self._slot:
             raise self._action_input.unknown_agent_error(agent)
         return agent
-
-    def _evaluate(self, scene: SceneState) -> simulator.Evaluation:
-        """Features, events, observations and rewards of ``scene`` (kept as last_events)."""
-        evaluation = simulator.evaluate(scene, self.map, self.config)
-        self._events = evaluation.events
-        return evaluation
 
     def _agent_dicts(
         self, evaluation: simulator.Evaluation, agents: Sequence[str]

@@ -1,11 +1,16 @@
-"""Pure simulator functions: ``reset(scenario) -> SceneState``, ``step(state, actions)``,
-``evaluate(state)`` (events, observations, rewards) and ``episode_end`` (done flags).
+"""Pure simulator functions: ``reset(scenario) -> SceneState`` and
+``transition(state, actions) -> (state, Transition)``, the one step sequence of the env
+and of batched stepping:
 
-The env (:mod:`riskflow_env.env`) is a thin stateful shell over these; they can be used
-directly, e.g. to roll many scenes without the PettingZoo plumbing
-(:mod:`riskflow_env.batched` steps a batch of scenes with the same functions).
-``advance``, ``evaluate`` and ``episode_end`` take leading dims ``(..., A)`` and numpy
-arrays or torch tensors.
+1. :func:`step`: the unicycle moves the live agents (:func:`advance`), the history rolls;
+2. vehicles whose log has ended leave, when asked (``log_end``);
+3. :func:`evaluate`: risk features, collision / off-road events, observations, rewards;
+4. :func:`episode_end`: which live agents terminate or are truncated; they become
+   inactive (they stay in the scene as standing obstacles).
+
+The env (:mod:`riskflow_env.env`) is a thin stateful shell over these;
+:mod:`riskflow_env.batched` runs them over a batch of scenes. Every function takes a
+:class:`SceneState` with leading dims ``(..., A)``, as numpy arrays or torch tensors.
 """
 
 from __future__ import annotations
@@ -148,14 +153,15 @@ def step(state: SceneState, actions: np.ndarray, config: DynamicsConfig) -> Scen
     """Advance every agent by one time step (see :func:`advance`).
 
     Args:
-        state: the current scene state.
-        actions: (A, 2) float (accel [m/s^2], yaw rate [rad/s]); rows of inactive slots
+        state: the current scene state (leading dims ``(..., A)``).
+        actions: (..., A, 2) float (accel [m/s^2], yaw rate [rad/s]); rows of inactive slots
             are ignored. Actions are clipped to the dynamics bounds by the model.
         config: dynamics bounds and time step.
     """
     new, applied = advance(state.current, state.present, state.active, actions, config)
-    history = np.concatenate([state.history[:, 1:], new[:, None]], axis=1)
-    history_valid = np.concatenate([state.history_valid[:, 1:], state.present[:, None]], axis=1)
+    xp = namespace(new)
+    history = xp.concat([state.history[..., 1:, :], new[..., None, :]], axis=-2)
+    history_valid = xp.concat([state.history_valid[..., 1:], state.present[..., None]], axis=-1)
     return state.replace(
         history=history, history_valid=history_valid, last_action=applied, step=state.step + 1
     )
@@ -188,9 +194,8 @@ def evaluate(
     """Risk features, events, observations and rewards of ``state``.
 
     Args:
-        state: a :class:`SceneState`, or any object with ``current`` (..., A, 4),
-            ``last_action`` (..., A, 2), ``length``, ``width`` (..., A) [m] and
-            ``present`` (..., A) bool (a batch of scenes sharing ``drivable_map``).
+        state: a :class:`SceneState` (leading dims ``(..., A)``: a batch of scenes
+            shares ``drivable_map``).
         drivable_map: the map.
         config: observation, reward and dynamics settings.
         observations: compute the observations (skip them for pure simulation).
@@ -241,3 +246,96 @@ def episode_end(
         ego_done = (terminated[..., 0] | truncated[..., 0])[..., None]
         truncated = truncated | (ego_done & active & ~terminated)
     return terminated, truncated
+
+
+@dataclass(frozen=True)
+class Transition:
+    """What one step reports (the arrays behind the env's per-agent dicts).
+
+    Attributes:
+        evaluation: features, events, observations and rewards after the step.
+        terminated: (..., A) bool, live agents that terminated at this step.
+        truncated: (..., A) bool, live agents truncated at this step (time up, the
+            ego's episode ended, or their log ended).
+    """
+
+    evaluation: Evaluation
+    terminated: Array
+    truncated: Array
+
+    @property
+    def observations(self) -> Array | None:
+        """(..., A, D) float32 (zeros for empty slots), or None if not requested."""
+        return self.evaluation.observations
+
+    @property
+    def rewards(self) -> Array:
+        """(..., A) reward of every slot (meaningful for the live ones)."""
+        return self.evaluation.reward
+
+    @property
+    def reward_terms(self) -> dict[str, Array]:
+        """Term name -> (..., A) weighted reward term."""
+        return self.evaluation.reward_terms
+
+    @property
+    def events(self) -> FrameEvents:
+        """Collisions (..., A, A) and off-road flags (..., A)."""
+        return self.evaluation.events
+
+
+def termination_masks(config: EnvConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(A,) bool slots that terminate on a collision, and on leaving the road."""
+    return (
+        np.array(config.selects("terminate_on_collision")),
+        np.array(config.selects("terminate_on_offroad")),
+    )
+
+
+def transition(
+    state: SceneState,
+    actions: Array,
+    drivable_map: DrivableMap,
+    config: EnvConfig,
+    *,
+    observations: bool = True,
+    log_end: Array | None = None,
+    masks: tuple[Array, Array] | None = None,
+) -> tuple[SceneState, Transition]:
+    """Advance ``state`` by ``config.dynamics.dt`` (the module docstring's sequence).
+
+    Args:
+        state: one scene or a batch sharing ``drivable_map`` (numpy or torch).
+        actions: (..., A, 2) (accel [m/s^2], yaw rate [rad/s]), same backend; rows of
+            inactive slots are ignored; clipped to the dynamics bounds.
+        drivable_map: the map.
+        config: the env configuration (dynamics, observation, reward, termination).
+        observations: compute the observations (skip them for pure simulation).
+        log_end: (..., A) int, the last step of each vehicle's log: a live vehicle leaves
+            the scene (not present, truncated) once ``state.step`` passes it, before this
+            step's events are detected (``EnvConfig.leave_when_log_ends``); None: never.
+        masks: :func:`termination_masks` of ``config``, precomputed (None: computed).
+
+    Returns:
+        The next state (agents done at this step made inactive) and the step's report.
+    """
+    moved = step(state, actions, config.dynamics)
+    live = moved.active
+    left = None
+    if log_end is not None:
+        left = live & (moved.step > log_end)
+        moved = moved.replace(present=moved.present & ~left, active=live & ~left)
+    evaluation = evaluate(moved, drivable_map, config, observations=observations)
+    collision, offroad = termination_masks(config) if masks is None else masks
+    terminated, truncated = episode_end(
+        live,
+        evaluation.events,
+        asarray_like(collision, live),
+        asarray_like(offroad, live),
+        moved.step >= config.episode_steps,
+        config.end_with_ego,
+    )
+    if left is not None:
+        truncated = truncated | (left & ~terminated)
+    done = terminated | truncated
+    return moved.replace(active=live & ~done), Transition(evaluation, terminated, truncated)

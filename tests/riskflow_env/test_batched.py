@@ -7,10 +7,11 @@ import pytest
 import torch
 
 import riskflow_env
-from riskflow_env import batched
+from riskflow_env import batched, simulator
 from riskflow_env.config import EnvConfig
 from riskflow_env.maps import from_highway_env
 from riskflow_env.scenarios import place_traffic
+from riskflow_env.state import SceneState
 
 SLOTS = 10
 CONFIG = EnvConfig(
@@ -85,9 +86,12 @@ def test_errors():
     state = batched.reset_batch(scenarios[:1], SLOTS)
     with pytest.raises(ValueError, match=r"\(B, A, 2\)"):
         batched.step_batch(state, np.zeros((1, SLOTS)), scenarios[0].map, CONFIG)
-    with pytest.raises(ValueError, match="current"):
-        batched.BatchState(
-            current=np.zeros((SLOTS, 4)),
+    with pytest.raises(ValueError, match="must be a batch"):
+        batched.step_batch(env_state(scenarios[0]), np.zeros((SLOTS, 2)), scenarios[0].map, CONFIG)
+    with pytest.raises(ValueError, match="history must have shape"):
+        SceneState(
+            history=np.zeros((SLOTS, 4)),
+            history_valid=np.ones((SLOTS, 1), bool),
             last_action=np.zeros((SLOTS, 2)),
             length=np.ones(SLOTS),
             width=np.ones(SLOTS),
@@ -96,3 +100,22 @@ def test_errors():
         )
     with pytest.raises(ValueError, match="at least one"):
         batched.reset_batch([], SLOTS)
+
+
+def env_state(scenario):
+    return simulator.reset(scenario, SLOTS)
+
+
+def test_a_batch_of_one_is_the_env_transition_with_its_history():
+    """The env's state (31-step history) and a stacked batch of it step alike."""
+    scenario = scenes(count=1)[0]
+    single = env_state(scenario)
+    batch = SceneState.stack([single])
+    actions = np.random.default_rng(3).uniform(-1.0, 1.0, (SLOTS, 2))
+    single, report = simulator.transition(single, actions, scenario.map, CONFIG)
+    batch, batch_report = simulator.transition(batch, actions[None], scenario.map, CONFIG)
+    np.testing.assert_array_equal(batch.history[0], single.history)
+    np.testing.assert_array_equal(batch.history_valid[0], single.history_valid)
+    np.testing.assert_array_equal(batch_report.observations[0], report.observations)
+    np.testing.assert_array_equal(batch_report.terminated[0], report.terminated)
+    assert batch.batch_shape == (1,) and single.batch_shape == ()
