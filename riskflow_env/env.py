@@ -323,6 +323,23 @@ class RiskFlowParallelEnv(ParallelEnv):
         return observations, rewards, infos
 
 
+def wrapped_env(
+    env: RiskFlowParallelEnv | None,
+    config: EnvConfig | None,
+    scenarios: ScenarioSource | Sequence[Scenario] | Scenario | None,
+    render_mode: str | None,
+) -> RiskFlowParallelEnv:
+    """The parallel env a wrapper runs on: ``env`` when given (then the other arguments
+    must be None), else one built from ``config``, ``scenarios`` and ``render_mode``."""
+    if env is None:
+        return RiskFlowParallelEnv(config=config, scenarios=scenarios, render_mode=render_mode)
+    if not isinstance(env, RiskFlowParallelEnv):
+        raise TypeError(f"env must be a RiskFlowParallelEnv, got {type(env).__name__}")
+    if config is not None or scenarios is not None or render_mode is not None:
+        raise ValueError("pass either env or (config, scenarios, render_mode), not both")
+    return env
+
+
 def check_reset_arguments(seed: Any, options: Any) -> tuple[int | None, dict[str, Any]]:
     """``reset``'s arguments checked: ``seed`` None or an int >= 0 (gymnasium's seeding
     rule; a bool is not an int), ``options`` None or a dict. Returns ``(seed as a Python

@@ -27,6 +27,7 @@ from pettingzoo import ParallelEnv
 from policies.planners.base import EgoPlanner, as_action, reset_planner
 from riskflow_env.config import EnvConfig
 from riskflow_env.env import RiskFlowParallelEnv
+from riskflow_env.wrappers.vector import sb3_vec_env
 
 EGO = "ego"
 
@@ -208,34 +209,10 @@ def marl_vec_env(
     reward: AdversaryRewardConfig | None = None,
 ):
     """An SB3 ``VecEnv`` of ``num_envs`` scenes x ``slots - 1`` learned adversaries each
-    (SuperSuit ``pettingzoo_env_to_vec_env_v1`` + ``concat_vec_envs_v1``, in process)."""
-    import supersuit
-
+    (:func:`riskflow_env.wrappers.sb3_vec_env`: SuperSuit ``pettingzoo_env_to_vec_env_v1``
+    + ``concat_vec_envs_v1``, in process, with the seed SB3 calls)."""
     env = FixedEgoParallelEnv(full_roster_env(slots, episode_steps), planner, reward)
-    vec_env = supersuit.pettingzoo_env_to_vec_env_v1(env)
-    concat = supersuit.concat_vec_envs_v1(vec_env, num_envs, num_cpus=0, base_class="gymnasium")
-    return _seedable(concat)
-
-
-def _seedable(concat):
-    """SuperSuit's SB3 wrapper, with the ``seed`` that SB3 >= 2 calls (``PPO(seed=...)``,
-    ``VecEnv.seed``) and SuperSuit <= 3.11 lacks: the seed is passed to the next reset
-    (scene ``i`` gets ``seed + i``)."""
-    from supersuit.vector.sb3_vector_wrapper import SB3VecEnvWrapper
-
-    class SeededSB3VecEnv(SB3VecEnvWrapper):
-        _next_seed: int | None = None
-
-        def seed(self, seed: int | None = None) -> list[int | None]:
-            self._next_seed = seed
-            return [None if seed is None else seed + i for i in range(self.num_envs)]
-
-        def reset(self, seed: int | None = None, options: dict | None = None):
-            seed, self._next_seed = (self._next_seed if seed is None else seed), None
-            observations, self.reset_infos = self.venv.reset(seed=seed, options=options)
-            return observations
-
-    return SeededSB3VecEnv(concat)
+    return sb3_vec_env(env, num_envs)
 
 
 def rollout_ego_collisions(

@@ -6,7 +6,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from riskflow_env.view import SceneView
+from riskflow_env.view import ScenePolicy, SceneView
 
 CONTROLLED_GROUPS = ("others", "all")
 
@@ -37,3 +37,45 @@ def controlled_mask(view: SceneView, controlled: str | Sequence[str]) -> np.ndar
 def actions_dict(view: SceneView, mask: np.ndarray, actions: np.ndarray) -> dict[str, np.ndarray]:
     """``{name: actions[slot]}`` for the slots in ``mask``; actions (A, 2)."""
     return {view.agent_names[i]: actions[i] for i in np.flatnonzero(mask)}
+
+
+def check_policy(policy: object) -> ScenePolicy:
+    """``policy`` itself if it is a :class:`ScenePolicy`; TypeError naming it otherwise."""
+    if not isinstance(policy, ScenePolicy):
+        raise TypeError(
+            "policy must be a ScenePolicy (with reset(view) and act(view)), "
+            f"got {type(policy).__name__}"
+        )
+    return policy
+
+
+def restart_policy(policy: ScenePolicy, view: SceneView, seed: int | None) -> None:
+    """Start a policy's episode: with a ``seed``, a policy that has ``reseed(seed)`` (the
+    learned adversaries) is reseeded first, so a seeded env reset repeats the episode bit
+    for bit, the policy's noise included; then ``policy.reset(view)``."""
+    reseed = getattr(policy, "reseed", None)
+    if seed is not None and callable(reseed):
+        reseed(seed)
+    policy.reset(view)
+
+
+def policy_actions(
+    policy: ScenePolicy, view: SceneView, driven: Sequence[str], role: str
+) -> dict[str, np.ndarray]:
+    """``policy.act(view)``, checked: actions for exactly the live agents ``driven``.
+
+    Args:
+        policy: the scene policy.
+        view: the scene.
+        driven: the live agents the policy must drive (none: the policy is not asked).
+        role: who they are, for the error message (e.g. ``"other than the ego"``).
+    """
+    proposed = policy.act(view) if driven else {}
+    unexpected = sorted(set(proposed) - set(driven))
+    missing = [agent for agent in driven if agent not in proposed]
+    if unexpected or missing:
+        raise ValueError(
+            f"policy {type(policy).__name__} must act for exactly the live agents {role}; "
+            f"missing {missing}, unexpected {unexpected}"
+        )
+    return proposed

@@ -35,9 +35,10 @@ from typing import Any
 import gymnasium
 import numpy as np
 
+from riskflow_env.agents.base import check_policy, policy_actions, restart_policy
 from riskflow_env.agents.idm import IDMPolicy
 from riskflow_env.config import EnvConfig
-from riskflow_env.env import RiskFlowParallelEnv, check_reset_arguments
+from riskflow_env.env import RiskFlowParallelEnv, check_reset_arguments, wrapped_env
 from riskflow_env.scenarios import Scenario, ScenarioSource
 from riskflow_env.view import ScenePolicy
 
@@ -65,21 +66,11 @@ class EgoEnv(gymnasium.Env):
         render_mode: str | None = None,
         env: RiskFlowParallelEnv | None = None,
     ) -> None:
-        if env is None:
-            env = RiskFlowParallelEnv(config=config, scenarios=scenarios, render_mode=render_mode)
-        elif not isinstance(env, RiskFlowParallelEnv):
-            raise TypeError(f"env must be a RiskFlowParallelEnv, got {type(env).__name__}")
-        elif config is not None or scenarios is not None or render_mode is not None:
-            raise ValueError("pass either env or (config, scenarios, render_mode), not both")
+        env = wrapped_env(env, config, scenarios, render_mode)
         if policy is None:
             policy = IDMPolicy(controlled="others", dynamics=env.config.dynamics)
-        if not isinstance(policy, ScenePolicy):
-            raise TypeError(
-                "policy must be a ScenePolicy (with reset(view) and act(view)), "
-                f"got {type(policy).__name__}"
-            )
         self.parallel_env = env
-        self.policy = policy
+        self.policy = check_policy(policy)
         self.render_mode = env.render_mode
         self.observation_space = env.observation_space(EGO)
         self.action_space = env.action_space(EGO)
@@ -93,10 +84,7 @@ class EgoEnv(gymnasium.Env):
         seed, options = check_reset_arguments(seed, options)
         super().reset(seed=seed)
         observations, infos = self.parallel_env.reset(seed=seed, options=options)
-        reseed = getattr(self.policy, "reseed", None)
-        if seed is not None and callable(reseed):
-            reseed(seed)  # a seeded reset repeats the episode, the policy's noise included
-        self.policy.reset(self.parallel_env.view())
+        restart_policy(self.policy, self.parallel_env.view(), seed)
         return observations[EGO], infos[EGO]
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -106,14 +94,7 @@ class EgoEnv(gymnasium.Env):
         if EGO not in env.agents:
             raise RuntimeError("step() called after the ego's episode ended: call reset() first")
         others = [agent for agent in env.agents if agent != EGO]
-        proposed = self.policy.act(env.view()) if others else {}
-        unexpected = sorted(set(proposed) - set(others))
-        missing = [agent for agent in others if agent not in proposed]
-        if unexpected or missing:
-            raise ValueError(
-                f"policy {type(self.policy).__name__} must act for exactly the live agents "
-                f"other than the ego; missing {missing}, unexpected {unexpected}"
-            )
+        proposed = policy_actions(self.policy, env.view(), others, "other than the ego")
         actions = {EGO: action, **proposed}
         observations, rewards, terminations, truncations, infos = env.step(actions)
         return (
