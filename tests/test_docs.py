@@ -14,12 +14,16 @@ docs/*.md runs, in a scratch folder, in a subprocess.
   commands that write (``--out runs/...``, ``cp ... policies/checkpoints/...``) write
   into the scratch folder, never into the repository or the installed package.
 * ``INSTEAD`` lists the commands that are not run as such, each with what runs instead.
+* A Python block that imports an optional library (``OPTIONAL``: RLlib, TorchRL) is
+  marked ``marl`` and skipped, with the extra to install as the reason, where the library
+  is missing (``.ci/run`` runs them in its second environment).
 * Blocks too slow even at their smallest size are marked ``slow`` (``SLOW``, with why),
   run with ``python -m pytest -m slow``.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import re
 import shutil
@@ -106,11 +110,24 @@ SLOW: dict[str, str] = {
     # evaluation episodes against the adversary): about 110 s even at 64 timesteps.
     "docs/RL.md-0-bash": "PPO training and evaluation scripts, about 110 s",
     # The README's 3 RL scripts: about 50 s at their smallest.
-    "README.md-11-bash": "PPO training and evaluation scripts, about 50 s",
+    "README.md-15-bash": "PPO training and evaluation scripts, about 50 s",
     # 5 riskflow-eval runs (20 one-scene rollouts of 9 methods, STRIVE and DDIM included):
     # about 60 s, mostly process start-up and model loading.
     "docs/RESULTS.md-0-bash": "five riskflow-eval runs, about 60 s",
 }
+
+
+# Optional libraries: top-level module -> the extra that installs it.
+OPTIONAL: dict[str, str] = {"ray": "rllib", "torchrl": "torchrl"}
+
+
+def optional_imports(code: str) -> list[str]:
+    """The ``OPTIONAL`` modules a Python block imports."""
+    return [
+        module
+        for module in OPTIONAL
+        if re.search(rf"^\s*(?:import|from)\s+{module}\b", code, re.MULTILINE)
+    ]
 
 
 def blocks() -> list[tuple[Path, int, str, str]]:
@@ -176,7 +193,10 @@ PARAMS = [
         language,
         code,
         id=block_id(path, index, language, code),
-        marks=[pytest.mark.slow] if block_id(path, index, language, code) in SLOW else [],
+        marks=[
+            *([pytest.mark.slow] if block_id(path, index, language, code) in SLOW else []),
+            *([pytest.mark.marl] if language == "python" and optional_imports(code) else []),
+        ],
     )
     for path, index, language, code in blocks()
 ]
@@ -195,6 +215,12 @@ def test_blocks_are_collected_and_complete() -> None:
 def test_block_runs(path: Path, language: str, code: str, tmp_path: Path) -> None:
     folder = scratch(tmp_path)
     if language == "python":
+        for module in optional_imports(code):
+            if importlib.util.find_spec(module) is None:
+                pytest.skip(
+                    f"{module} is not installed (pip install -e '.[{OPTIONAL[module]}]'): "
+                    "the snippet imports it"
+                )
         if ".pkl" in code:
             samples = sorted(SAMPLE_DIR.glob("*.pkl")) if SAMPLE_DIR.is_dir() else []
             if not samples:
