@@ -15,7 +15,7 @@ docs/*.md runs, in a scratch folder, in a subprocess.
   into the scratch folder, never into the repository or the installed package.
 * ``INSTEAD`` lists the commands that are not run as such, each with what runs instead.
 * A Python block that imports an optional library (``OPTIONAL``: RLlib, TorchRL) is
-  marked ``marl`` and skipped, with the extra to install as the reason, where the library
+  marked ``extras`` and skipped, with the extra to install as the reason, where the library
   is missing (``.ci/run`` runs them in its second environment).
 * Blocks too slow even at their smallest size are marked ``slow`` (``SLOW``, with why),
   run with ``python -m pytest -m slow``.
@@ -195,7 +195,7 @@ PARAMS = [
         id=block_id(path, index, language, code),
         marks=[
             *([pytest.mark.slow] if block_id(path, index, language, code) in SLOW else []),
-            *([pytest.mark.marl] if language == "python" and optional_imports(code) else []),
+            *([pytest.mark.extras] if language == "python" and optional_imports(code) else []),
         ],
     )
     for path, index, language, code in blocks()

@@ -10,6 +10,7 @@ every row of a results file; the per-job ones are in each row's key.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import zlib
@@ -62,7 +63,14 @@ class EvalOptions:
     wosac: bool = True
     """compute the WOSAC-style likelihood per rollout"""
     workers: int = 1
-    """worker processes (each with one torch thread); 1 runs in this process"""
+    """worker processes (each with one torch thread); 1 runs in this process; with --backend
+    ray, the CPUs of the local Ray instance"""
+    backend: str = "local"
+    """where the rollouts run: 'local' (this process or --workers processes) or 'ray' (Ray
+    tasks; needs the ray extra)"""
+    address: str | None = None
+    """with --backend ray: the Ray cluster to use ('auto', 'ray://host:10001'); default: a
+    local Ray with --workers CPUs"""
     device: str = "cpu"
     """torch device of the learned methods"""
     out: str = "outputs/eval"
@@ -198,6 +206,7 @@ def check_options(options: EvalOptions, dt: float = DynamicsConfig().dt) -> None
         raise ValueError(f"--scenes must be >= 1, got {options.scenes}")
     if options.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {options.workers}")
+    check_backend(options.backend, options.address)
     if options.ego not in PLANNERS:
         raise ValueError(f"--ego must be one of {tuple(PLANNERS)}, got {options.ego!r}")
     if options.target not in TARGETS:
@@ -214,6 +223,20 @@ def check_options(options: EvalOptions, dt: float = DynamicsConfig().dt) -> None
         raise ValueError(f"--seeds must be ints >= 0, got {bad_seeds[0]}")
     check_device(options.device)
     check_output_folder(options.out, "--out")
+
+
+BACKENDS = ("local", "ray")
+
+
+def check_backend(backend: str, address: str | None) -> None:
+    """ValueError naming ``--backend`` / ``--address`` when they do not fit together or Ray
+    is missing."""
+    if backend not in BACKENDS:
+        raise ValueError(f"--backend must be one of {BACKENDS}, got {backend!r}")
+    if address is not None and backend != "ray":
+        raise ValueError("--address is a Ray cluster address: give it with --backend ray")
+    if backend == "ray" and importlib.util.find_spec("ray") is None:
+        raise ValueError("--backend ray needs Ray: pip install -e '.[ray]'")
 
 
 def plan_jobs(options: EvalOptions, scenes: list[Scenario]) -> list[Job]:

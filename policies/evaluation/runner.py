@@ -3,10 +3,11 @@
 :func:`run_evaluation` plans the jobs (:func:`~.options.plan_jobs`), checks every method
 once in this process (its options build a policy, its plan horizon covers the planning
 intervals), drops the jobs whose rows are already in the results file, and runs the rest
-in ``workers`` processes (spawned, one torch thread each) or in this process, with a
-progress bar. The parent alone writes the results file, each row as soon as its rollout
-returns. Every rollout is a function of its job only, so the worker count changes the
-order of the rows, never their numbers.
+in ``workers`` processes (spawned, one torch thread each), in this process, or as Ray
+tasks (``--backend ray``, :mod:`~.ray_backend`), with a progress bar. The parent alone
+writes the results file, each row as soon as its rollout returns. Every rollout is a
+function of its job only, so the worker count and the backend change the order of the
+rows, never their numbers.
 """
 
 from __future__ import annotations
@@ -61,7 +62,13 @@ def _init_worker() -> None:
     exit_with_parent()  # a killed riskflow-eval leaves no worker behind
 
 
-def _results(jobs: list[Job], workers: int) -> Iterator[tuple[dict, dict[str, np.ndarray]]]:
+def _results(jobs: list[Job], options: EvalOptions) -> Iterator[tuple[dict, dict[str, np.ndarray]]]:
+    workers = options.workers
+    if options.backend == "ray":
+        from policies.evaluation.ray_backend import ray_results
+
+        yield from ray_results(jobs, workers, options.address)
+        return
     if workers <= 1:
         for job in jobs:
             yield run_job(job)
@@ -118,7 +125,7 @@ def run_evaluation(
     if len(todo) < len(jobs):
         bar.write(f"{len(jobs) - len(todo)} of {len(jobs)} rollouts already in {store.results}")
     try:
-        for row, samples in _results(todo, options.workers):
+        for row, samples in _results(todo, options):
             store.append(row, samples)
             bar.set_postfix_str(f"{row['label']} {row['scene']}", refresh=False)
             bar.update()

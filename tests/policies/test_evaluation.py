@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 from dataclasses import replace
 
@@ -88,6 +89,35 @@ def test_worker_count_does_not_change_results(tiny_run, tmp_path):
     run_evaluation(options, progress=False)
     expected = {k: v for k, v in _numbers(full).items() if v["method"] in ("riskflow", "idm")}
     assert _numbers(out) == expected
+
+
+@pytest.mark.extras
+@pytest.mark.skipif(
+    importlib.util.find_spec("ray") is None,
+    reason="ray is not installed (pip install -e '.[ray]'; .ci/run installs it)",
+)
+def test_ray_backend_gives_the_local_results_and_resumes(tiny_run, tmp_path):
+    """--backend ray on a local Ray with 2 CPUs: the same rows, bit for bit, as the local
+    backend; a second run finds them all in the results file."""
+    full, _ = tiny_run
+    out = tmp_path / "ray"
+    options = replace(TINY, out=str(out), methods=("riskflow", "idm"), workers=2, backend="ray")
+    assert run_evaluation(options, progress=False)["ran"] == 4
+    expected = {k: v for k, v in _numbers(full).items() if v["method"] in ("riskflow", "idm")}
+    assert _numbers(out) == expected
+    assert run_evaluation(options, progress=False)["ran"] == 0
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"backend": "dask"}, "--backend must be one of"),
+        ({"address": "auto"}, "--address is a Ray cluster address"),
+    ],
+)
+def test_bad_backend_names_the_argument(changes, message, tmp_path):
+    with pytest.raises(ValueError, match=message):
+        run_evaluation(replace(TINY, out=str(tmp_path / "bad"), **changes), progress=False)
 
 
 @pytest.mark.reliability

@@ -49,7 +49,7 @@ def test_seeded_reset_repeats_the_adversary_bit_for_bit(make_env):
     np.testing.assert_array_equal(others(5), first)
 
 
-@pytest.mark.marl
+@pytest.mark.extras
 @pytest.mark.skipif(
     importlib.util.find_spec("ray") is None,
     reason="ray[rllib] is not installed (pip install -e '.[rllib]'; .ci/run installs it)",

@@ -13,7 +13,7 @@ from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import HighwayTrafficSource, TrafficConfig
 from riskflow_env.wrappers import FixedRosterEnv
 
-pytestmark = pytest.mark.marl
+pytestmark = pytest.mark.extras
 REASON = "ray[rllib] is not installed (pip install -e '.[rllib]'; .ci/run installs it)"
 ray = pytest.importorskip("ray", reason=REASON)
 pettingzoo_env = pytest.importorskip("ray.rllib.env.wrappers.pettingzoo_env", reason=REASON)

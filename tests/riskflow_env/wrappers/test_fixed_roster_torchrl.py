@@ -10,7 +10,7 @@ from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import HighwayTrafficSource, TrafficConfig
 from riskflow_env.wrappers import FixedRosterEnv
 
-pytestmark = pytest.mark.marl
+pytestmark = pytest.mark.extras
 torchrl_pettingzoo = pytest.importorskip(
     "torchrl.envs.libs.pettingzoo",
     reason="torchrl is not installed (pip install -e '.[torchrl]'; .ci/run installs it)",
