@@ -1,0 +1,58 @@
+"""The RLlib examples (``policies.rl.rllib``): options, and each script run as a user would
+with a tiny budget, one of them sampling in a Ray actor (the ``rllib`` extra)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from policies.rl.rllib import RLlibOptions
+
+ROOT = Path(__file__).resolve().parents[2]
+TINY = ("--iterations", "1", "--train-batch", "40", "--minibatch", "20", "--epochs", "1",
+        "--episode-steps", "10", "--num-cpus", "2")  # fmt: skip
+needs_ray = pytest.mark.skipif(
+    importlib.util.find_spec("ray") is None,
+    reason="ray[rllib] is not installed (pip install -e '.[rllib]'; .ci/run installs it)",
+)
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"iterations": 0}, "--iterations must be >= 1"),
+        ({"num_env_runners": -1}, "--num-env-runners must be >= 0"),
+        ({"train_batch": 10, "minibatch": 20}, "--minibatch must be <= --train-batch"),
+    ],
+)
+def test_bad_options_name_the_argument(changes, message):
+    with pytest.raises(ValueError, match=message):
+        RLlibOptions(**changes)
+
+
+def run(script: str, out: Path, *args: str) -> list[dict]:
+    command = [sys.executable, str(ROOT / "examples" / script), *TINY, "--out", str(out), *args]
+    done = subprocess.run(command, capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "iteration 1:" in done.stdout
+    assert (out / "checkpoint").is_dir()
+    return json.loads((out / "progress.json").read_text())
+
+
+@pytest.mark.extras
+@needs_ray
+def test_train_adversaries_rllib_with_an_env_runner(tmp_path):
+    (row,) = run("train_adversaries_rllib.py", tmp_path, "--num-env-runners", "1")
+    assert row["env_steps"] >= 40 and row["env_steps_per_s"] > 0
+
+
+@pytest.mark.extras
+@needs_ray
+def test_train_ego_rllib_against_the_riskflow_adversary(tmp_path):
+    (row,) = run("train_ego_rllib.py", tmp_path, "--max-agents", "6", "--k", "1")
+    assert row["env_steps"] >= 40
