@@ -38,11 +38,7 @@ def main(argv: list[str] | None = None) -> None:
     options = parse_dataclass(Options, argv, prog="train_adversaries_rllib.py", description=__doc__)
     env_config = {"slots": options.slots, "episode_steps": options.episode_steps}
     adversaries = [f"agent_{i}" for i in range(1, options.slots)]
-    algorithm = build_ppo(adversaries_env, env_config, {"shared": adversaries}, options)
-    try:
-        train(algorithm, options)
-    finally:
-        algorithm.stop()
+    train(build_ppo(adversaries_env, env_config, {"shared": adversaries}, options), options)
 
 
 if __name__ == "__main__":

@@ -42,11 +42,7 @@ def main(argv: list[str] | None = None) -> None:
         "planning_interval": options.planning_interval,
         "seed": options.seed,
     }
-    algorithm = build_ppo(ego_vs_riskflow_env, env_config, {"ego": ["ego"]}, options)
-    try:
-        train(algorithm, options)
-    finally:
-        algorithm.stop()
+    train(build_ppo(ego_vs_riskflow_env, env_config, {"ego": ["ego"]}, options), options)
 
 
 if __name__ == "__main__":

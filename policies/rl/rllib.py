@@ -136,6 +136,14 @@ def build_ppo(
 
 
 def train(algorithm, options: RLlibOptions) -> list[dict[str, float]]:
+    """``algorithm`` trained (:func:`_iterations`), then stopped, also on an error."""
+    try:
+        return _iterations(algorithm, options)
+    finally:
+        algorithm.stop()
+
+
+def _iterations(algorithm, options: RLlibOptions) -> list[dict[str, float]]:
     """Run ``options.iterations`` PPO iterations; per iteration: env steps sampled so far,
     wall time [s], env steps per second of the whole iteration (sampling and learning)
     and the mean episode return, printed and written to ``<out>/progress.json``, with a

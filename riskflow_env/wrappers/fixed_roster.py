@@ -96,12 +96,7 @@ class FixedRosterEnv(ParallelEnv):
             ValueError (False: give actions for exactly the live roster agents).
     """
 
-    metadata = {
-        "name": "riskflow_fixed_roster_v0",
-        "render_modes": ["rgb_array", "human"],
-        "render_fps": 10,
-        "is_parallelizable": True,
-    }
+    metadata = {**RiskFlowParallelEnv.metadata, "name": "riskflow_fixed_roster_v0"}
 
     def __init__(
         self,

@@ -4,8 +4,6 @@ adversary) and RLlib PPO on it (the ``rllib`` extra)."""
 
 from __future__ import annotations
 
-import importlib.util
-
 import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test, parallel_seed_test
@@ -50,24 +48,12 @@ def test_seeded_reset_repeats_the_adversary_bit_for_bit(make_env):
 
 
 @pytest.mark.extras
-@pytest.mark.skipif(
-    importlib.util.find_spec("ray") is None,
-    reason="ray[rllib] is not installed (pip install -e '.[rllib]'; .ci/run installs it)",
-)
-def test_rllib_ppo_ego_against_the_riskflow_adversary(make_env):
-    import ray
+def test_rllib_ppo_ego_against_the_riskflow_adversary(make_env, local_ray):
     from ray.rllib.algorithms.ppo import PPOConfig
     from ray.rllib.env.wrappers.pettingzoo_env import ParallelPettingZooEnv
     from ray.tune.registry import register_env
 
     register_env("riskflow_ego_vs_adversary_test", lambda c: ParallelPettingZooEnv(make_env(c)))
-    ray.init(
-        num_cpus=2,
-        include_dashboard=False,
-        log_to_driver=False,
-        configure_logging=False,
-        ignore_reinit_error=True,
-    )
     config = (
         PPOConfig()
         .environment("riskflow_ego_vs_adversary_test")
@@ -83,4 +69,3 @@ def test_rllib_ppo_ego_against_the_riskflow_adversary(make_env):
         assert np.isfinite(result["env_runners"]["episode_return_mean"])
     finally:
         algorithm.stop()
-        ray.shutdown()

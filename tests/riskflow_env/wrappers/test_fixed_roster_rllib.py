@@ -1,7 +1,8 @@
 """RLlib PPO (new API stack) on ``ParallelPettingZooEnv(FixedRosterEnv(...))``: one shared
 policy for every vehicle of scenes with padded slots (the ``rllib`` extra).
 
-The local Ray instance gets 2 CPUs; the env runs in the driver (``num_env_runners=0``).
+The local Ray instance (``tests/conftest.py``) gets 2 CPUs; the env runs in the driver
+(``num_env_runners=0``).
 """
 
 from __future__ import annotations
@@ -15,7 +16,6 @@ from riskflow_env.wrappers import FixedRosterEnv
 
 pytestmark = pytest.mark.extras
 REASON = "ray[rllib] is not installed (pip install -e '.[rllib]'; .ci/run installs it)"
-ray = pytest.importorskip("ray", reason=REASON)
 pettingzoo_env = pytest.importorskip("ray.rllib.env.wrappers.pettingzoo_env", reason=REASON)
 ppo = pytest.importorskip("ray.rllib.algorithms.ppo", reason=REASON)
 
@@ -32,19 +32,6 @@ def make_env(config: dict | None = None):
     return pettingzoo_env.ParallelPettingZooEnv(env)
 
 
-@pytest.fixture(scope="module")
-def local_ray():
-    ray.init(
-        num_cpus=2,
-        include_dashboard=False,
-        log_to_driver=False,
-        configure_logging=False,
-        ignore_reinit_error=True,
-    )
-    yield
-    ray.shutdown()
-
-
 def test_episodes_close_for_rllib():
     """RLlib's wrapper ends an episode when all agents are terminated or all truncated."""
     env = make_env()
@@ -58,7 +45,9 @@ def test_episodes_close_for_rllib():
 
 
 def test_ppo_new_api_stack_one_shared_policy(local_ray):
-    ray.tune.registry.register_env("riskflow_fixed_roster_test", make_env)
+    from ray.tune.registry import register_env
+
+    register_env("riskflow_fixed_roster_test", make_env)
     config = (
         ppo.PPOConfig()
         .environment("riskflow_fixed_roster_test")
