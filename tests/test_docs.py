@@ -14,8 +14,9 @@ docs/*.md runs, in a scratch folder, in a subprocess.
   commands that write (``--out runs/...``, ``cp ... policies/checkpoints/...``) write
   into the scratch folder, never into the repository or the installed package.
 * ``INSTEAD`` lists the commands that are not run as such, each with what runs instead.
-* A Python block that imports an optional library (``OPTIONAL``: RLlib, TorchRL) is
-  marked ``extras`` and skipped, with the extra to install as the reason, where the library
+* A block that needs an optional library (``OPTIONAL``: Ray / RLlib, TorchRL), a Python
+  block by importing it, a bash block by an option (``OPTIONAL_FLAGS``), is marked
+  ``extras`` and skipped, with the extra to install as the reason, where the library
   is missing (``.ci/run`` runs them in its second environment).
 * Blocks too slow even at their smallest size are marked ``slow`` (``SLOW``, with why),
   run with ``python -m pytest -m slow``.
@@ -117,17 +118,31 @@ SLOW: dict[str, str] = {
 }
 
 
-# Optional libraries: top-level module -> the extra that installs it.
-OPTIONAL: dict[str, str] = {"ray": "rllib", "torchrl": "torchrl"}
+# Optional libraries: module -> the extra that installs it (the first match names the extra).
+OPTIONAL: dict[str, str] = {"ray.rllib": "rllib", "ray": "ray", "torchrl": "torchrl"}
 
 
-def optional_imports(code: str) -> list[str]:
-    """The ``OPTIONAL`` modules a Python block imports."""
+# Shell options that need an optional library: option -> its top-level module.
+OPTIONAL_FLAGS: dict[str, str] = {"--backend ray": "ray"}
+
+
+def optional_imports(code: str, language: str = "python") -> list[str]:
+    """The ``OPTIONAL`` modules a block needs: those a Python block imports, those the
+    options of a bash block run (``OPTIONAL_FLAGS``)."""
+    if language == "bash":
+        return sorted({module for flag, module in OPTIONAL_FLAGS.items() if flag in code})
     return [
         module
         for module in OPTIONAL
-        if re.search(rf"^\s*(?:import|from)\s+{module}\b", code, re.MULTILINE)
+        if re.search(rf"^\s*(?:import|from)\s+{re.escape(module)}\b", code, re.MULTILINE)
     ]
+
+
+def installed(module: str) -> bool:
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ModuleNotFoundError:  # its parent package is missing
+        return False
 
 
 def blocks() -> list[tuple[Path, int, str, str]]:
@@ -195,7 +210,7 @@ PARAMS = [
         id=block_id(path, index, language, code),
         marks=[
             *([pytest.mark.slow] if block_id(path, index, language, code) in SLOW else []),
-            *([pytest.mark.extras] if language == "python" and optional_imports(code) else []),
+            *([pytest.mark.extras] if optional_imports(code, language) else []),
         ],
     )
     for path, index, language, code in blocks()
@@ -214,13 +229,13 @@ def test_blocks_are_collected_and_complete() -> None:
 @pytest.mark.parametrize(("path", "language", "code"), PARAMS)
 def test_block_runs(path: Path, language: str, code: str, tmp_path: Path) -> None:
     folder = scratch(tmp_path)
+    for module in optional_imports(code, language):
+        if not installed(module):
+            pytest.skip(
+                f"{module} is not installed (pip install -e '.[{OPTIONAL[module]}]'): "
+                "the block needs it"
+            )
     if language == "python":
-        for module in optional_imports(code):
-            if importlib.util.find_spec(module) is None:
-                pytest.skip(
-                    f"{module} is not installed (pip install -e '.[{OPTIONAL[module]}]'): "
-                    "the snippet imports it"
-                )
         if ".pkl" in code:
             samples = sorted(SAMPLE_DIR.glob("*.pkl")) if SAMPLE_DIR.is_dir() else []
             if not samples:
