@@ -73,6 +73,7 @@ from torch import Tensor
 from policies.learned.data import Normalizer
 from policies.learned.guidance_losses import (
     TARGETS,
+    ObjectiveConfig,
     adversarial_loss,
     adversarial_value_and_gradient,
     map_loss,
@@ -88,51 +89,32 @@ _ADAM_BETAS = (0.9, 0.999)
 
 
 @dataclass(frozen=True)
-class GuidanceConfig:
-    """Options of output-space guidance.
+class GuidanceConfig(ObjectiveConfig):
+    """Options of output-space guidance: the shared objective's
+    (:class:`~policies.learned.guidance_losses.ObjectiveConfig`: ``lambda_adv``,
+    ``lambda_map``, ``horizon``, ``target``, ``map_margin``, ``map_decay``) and the
+    optimiser's.
 
     Attributes:
         steps: ``K_g`` guidance steps (0: the base plans).
         step_size: the Adam learning rate [normalised action units per step], or
             ``gamma`` [normalised action units per unit of gradient] for ``"gradient"``
             (e.g. 3e-3 with the default weights).
-        lambda_adv: weight of ``L_adv`` [1/m]; > 0 is adversarial (module docstring).
-        lambda_map: weight of ``L_map`` [1/m^2], >= 0.
-        horizon: ``T_g`` plan steps of ``L_adv``; None: the whole plan.
-        target: ``"others"`` (paper) or ``"ego"`` (stress testing).
-        map_margin: footprint samples closer than this to the road edge are penalised [m].
-        map_decay: ``w_t = map_decay ** t``, in (0, 1].
         optimizer: ``"adam"`` or ``"gradient"`` (plain steps, the paper's).
     """
 
     steps: int = 30
     step_size: float = 0.1
-    lambda_adv: float = 50.0
-    lambda_map: float = 1.0
-    horizon: int | None = None
-    target: str = "others"
-    map_margin: float = 0.2
-    map_decay: float = 0.98
     optimizer: str = "adam"
 
-    def __post_init__(self) -> None:
-        def int_at_least(value: object, low: int) -> bool:
-            return isinstance(value, int) and not isinstance(value, bool) and value >= low
-
-        reals = ("step_size", "lambda_adv", "lambda_map", "map_margin", "map_decay")
-        checks = [
-            (int_at_least(self.steps, 0), "steps must be an int >= 0"),
-            (self.horizon is None or int_at_least(self.horizon, 1), "horizon must be None or >= 1"),
-            (all(math.isfinite(getattr(self, name)) for name in reals), f"{reals} must be finite"),
-            (self.step_size > 0, "step_size must be > 0"),
-            (self.lambda_map >= 0, "lambda_map must be >= 0"),
-            (0 < self.map_decay <= 1, "map_decay must be in (0, 1]"),
-            (self.target in TARGETS, f"target must be one of {TARGETS}"),
+    def checks(self) -> list[tuple[bool, str]]:
+        """The objective's rules and the optimiser's."""
+        steps_ok = isinstance(self.steps, int) and not isinstance(self.steps, bool)
+        return super().checks() + [
+            (steps_ok and self.steps >= 0, "steps must be an int >= 0"),
+            (math.isfinite(self.step_size) and self.step_size > 0, "step_size must be > 0"),
             (self.optimizer in OPTIMIZERS, f"optimizer must be one of {OPTIMIZERS}"),
         ]
-        for ok, message in checks:
-            if not ok:
-                raise ValueError(f"GuidanceConfig: {message}; got {self}")
 
 
 @dataclass(frozen=True)
