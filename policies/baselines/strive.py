@@ -64,21 +64,18 @@ guidance projects instead). Cost: ``K_g`` generator forward+backward passes per 
 
 from __future__ import annotations
 
-import os
+from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from policies.learned.data import Normalizer
+from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.guidance_losses import adversarial_loss, map_term, target_rows
 from policies.learned.plan_buffer import EncodedView
-from policies.learned.ranking import DEFAULT_THRESHOLD
 from policies.learned.sampler import base_velocity
-from policies.learned.windows import WindowConfig
 from policies.riskflow.guidance import (
-    GuidanceConfig,
     GuidanceResult,
     GuidanceScene,
     plans_from_velocity,
@@ -92,27 +89,17 @@ class StriveAdversary(RiskFlowAdversary):
     """STRIVE-style adversary for every non-ego vehicle (module docstring).
 
     Args:
-        k: size of ``A_c`` (int >= 0) or ``"all"``; 0 gives the unguided generator.
-        planning_interval: time between re-plans [s] (a multiple of ``dt``).
-        target: ``"others"`` or ``"ego"`` (RiskFlow's).
-        guidance_steps: ``K_g`` latent optimisation steps per cycle.
-        lambda_adv: weight of ``L_adv`` [1/m]; > 0 is more adversarial.
-        lambda_map: weight of ``L_map`` [1/m^2], >= 0.
+        config: the shared options (:class:`~policies.learned.adversary_config.AdversaryConfig`:
+            ``k``, ``target``, ``lambda_adv``, ``lambda_map``, ``seed``, ...; the same
+            ``eps`` as ``RiskFlowAdversary`` with the same seed), or as keywords.
         lambda_prior: weight of the latent prior ``||eps_c||^2 / 2``, >= 0.
-        guidance_horizon: ``T_g`` [steps] of ``L_adv``; None: whole plan.
-        step_size: Adam learning rate [normalised noise units per step], or ``gamma``
-            of plain steps.
-        optimizer: ``"adam"`` (default) or ``"gradient"``.
-        rank_threshold: risk-graph edge threshold of the TTC causal ranking.
-        seed: noise seed (the same ``eps`` as ``RiskFlowAdversary`` with this seed).
-        device: torch device.
         generator: a MeanFlow ``RiskFlowGenerator`` (with ``normalizer``), ``"meanflow"``,
             or None (the shipped one, or ``checkpoint``'s); a diffusion generator is
             refused (no one-step latent to differentiate through).
-        normalizer: the model's action normalisation (required with a model object).
-        checkpoint: a MeanFlow ``riskflow-train`` checkpoint file.
-        window_config: window options (default: the model's training windows).
-        threads: torch CPU threads while planning; None keeps torch's setting.
+        **options: ``RiskFlowAdversary``'s: ``guidance_steps`` (``K_g`` latent optimisation
+            steps per cycle), ``step_size`` (Adam learning rate [normalised noise units
+            per step], or ``gamma`` of plain steps), ``optimizer``, ``normalizer``,
+            ``checkpoint``, and the shared options as keywords.
 
     After each cycle: ``guidance_losses`` ((K_g + 1, 2): ``L_adv``, ``L_map`` before each
     step and after the last), ``prior_losses`` ((K_g + 1,): ``||eps_c||^2 / 2``) and
@@ -123,49 +110,18 @@ class StriveAdversary(RiskFlowAdversary):
 
     def __init__(
         self,
-        k: int | str = 5,
-        planning_interval: float = 0.5,
-        target: str = "others",
-        guidance_steps: int = 30,
-        lambda_adv: float = 50.0,
-        lambda_map: float = 1.0,
+        config: AdversaryConfig | None = None,
+        *,
         lambda_prior: float = DEFAULT_LAMBDA_PRIOR,
-        guidance_horizon: int | None = None,
-        step_size: float = GuidanceConfig.step_size,
-        optimizer: str = GuidanceConfig.optimizer,
-        rank_threshold: float = DEFAULT_THRESHOLD,
-        seed: int = 0,
-        device: torch.device | str = "cpu",
         generator: RiskFlowGenerator | str | None = None,
-        normalizer: Normalizer | None = None,
-        checkpoint: str | os.PathLike | None = None,
-        window_config: WindowConfig | None = None,
-        threads: int | None = 1,
+        **options: Any,
     ) -> None:
         if not (isinstance(lambda_prior, (int, float)) and 0 <= lambda_prior < float("inf")):
             raise ValueError(f"lambda_prior must be a finite number >= 0, got {lambda_prior!r}")
-        if generator == "diffusion":
+        if generator == "diffusion" or "sampling_steps" in options:
             raise ValueError(_NOT_DIFFUSION)
         self.lambda_prior = float(lambda_prior)
-        super().__init__(
-            k=k,
-            planning_interval=planning_interval,
-            target=target,
-            guidance_steps=guidance_steps,
-            lambda_adv=lambda_adv,
-            lambda_map=lambda_map,
-            guidance_horizon=guidance_horizon,
-            step_size=step_size,
-            optimizer=optimizer,
-            rank_threshold=rank_threshold,
-            seed=seed,
-            device=device,
-            generator=generator,
-            normalizer=normalizer,
-            checkpoint=checkpoint,
-            window_config=window_config,
-            threads=threads,
-        )
+        super().__init__(config, generator=generator, **options)
         if self.generator_kind != "meanflow":
             raise ValueError(_NOT_DIFFUSION)
 

@@ -11,11 +11,11 @@ signature; :func:`build_policy` makes one policy for one rollout.
 
 from __future__ import annotations
 
-import inspect
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from policies.learned.adversary_config import option_names
 from riskflow_env.view import ScenePolicy
 
 SHARED = ("k", "planning_interval", "target", "seed", "device")
@@ -105,13 +105,8 @@ class MethodSpec:
 
     def option_names(self) -> tuple[str, ...]:
         """Keyword arguments ``--set`` may give (the class's, minus shared and fixed ones)."""
-        parameters = inspect.signature(self.policy_class().__init__).parameters
-        return tuple(
-            name
-            for name, p in parameters.items()
-            if name != "self" and name not in SHARED and name not in self.fixed
-            if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
-        )
+        names = option_names(self.policy_class())
+        return tuple(name for name in names if name not in SHARED and name not in self.fixed)
 
 
 _ADVERSARY = "adversarial guidance on the top-K agents"
