@@ -48,8 +48,8 @@ import numpy as np
 
 from policies.dataclass_cli import parse_dataclass
 from policies.evaluation.options import SHIPPED, EvalOptions, Job, run_config
-from policies.evaluation.registry import method_spec
 from policies.evaluation.rollout import rollout_episode
+from policies.registry import method_spec
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.metrics import (
     KinematicSamples,

@@ -20,7 +20,7 @@ from collections.abc import Sequence
 
 from policies.dataclass_cli import dataclass_parser
 from policies.evaluation.options import EvalOptions
-from policies.evaluation.registry import method_list
+from policies.registry import method_list
 
 PROG = "riskflow-eval"
 

@@ -19,9 +19,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from policies.evaluation.registry import method_options, method_spec
 from policies.learned.guidance_losses import TARGETS
 from policies.planners import PLANNERS
+from policies.registry import method_options, method_spec
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.folder_lock import check_output_folder
 from riskflow_env.scenarios import Scenario, load_bank, shipped_bank

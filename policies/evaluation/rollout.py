@@ -21,9 +21,9 @@ import numpy as np
 import torch
 
 from policies.evaluation.options import Job, load_scenes, method_label
-from policies.evaluation.registry import build_policy
 from policies.harness import ClosedLoop, EpisodeRecord
 from policies.planners import make_planner
+from policies.registry import build_policy
 from riskflow_env.config import EnvConfig
 from riskflow_env.metrics import RolloutRecord, kinematic_samples, rollout_metrics, wosac_scene
 from riskflow_env.scenarios import Scenario

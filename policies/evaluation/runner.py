@@ -21,9 +21,9 @@ import torch
 from tqdm import tqdm
 
 from policies.evaluation.options import EvalOptions, Job, load_scenes, plan_jobs, run_config
-from policies.evaluation.registry import build_policy
 from policies.evaluation.results import ResultsStore
 from policies.evaluation.rollout import run_job
+from policies.registry import build_policy
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.processes import exit_with_parent
 from riskflow_env.scenarios import ScenarioFormatError

@@ -1,12 +1,14 @@
-"""The methods ``riskflow-eval`` compares: name -> how to build its scene policy.
+"""The scene-policy registry: name -> how to build that policy (``riskflow-eval``
+compares these methods; the RL recipes and the examples build their traffic here too).
 
 Every method is a :class:`MethodSpec`: a loader that imports its policy class (lazily,
 so a method whose module is missing fails only when it is asked for, naming the
 module), the fixed keyword arguments that make the variant (``riskflow-noadv`` is
 RiskFlow with ``lambda_adv=0``), and which of the shared arguments the class takes
 (``k``, ``planning_interval``, ``target``, ``seed``, ``device``). Method options
-(``--set key=value``) are further keyword arguments of the class, checked against its
-signature; :func:`build_policy` makes one policy for one rollout.
+(``--set key=value``) are further keyword arguments of the class, checked against
+:func:`~policies.learned.adversary_config.option_names`; :func:`build_policy` makes one
+policy for one rollout.
 """
 
 from __future__ import annotations
