@@ -30,6 +30,7 @@ Divisions use safe denominators under ``where`` so torch gradients stay finite a
 from __future__ import annotations
 
 from riskflow_env._array import Array, device, namespace
+from riskflow_env.geometry import to_frame
 
 TAU_MAX = 20.0  # [s] TTC horizon; TTC is clipped to [0, TAU_MAX] and risk 0 at TAU_MAX.
 MAX_INTERACTION_DISTANCE = 50.0  # [m] centre distance beyond which pairs are ignored.
@@ -76,8 +77,8 @@ def _pair_geometry(state: Array, length: Array, width: Array, tau_max: float):
 
     # World-frame offsets rotated by -psi_i into i's frame.
     wx, wy, wvx, wvy = x_j - x_i, y_j - y_i, vx_j - vx_i, vy_j - vy_i
-    dx, dy = c_i * wx + s_i * wy, -s_i * wx + c_i * wy
-    dvx, dvy = c_i * wvx + s_i * wvy, -s_i * wvx + c_i * wvy
+    dx, dy = to_frame(wx, wy, c_i, s_i)
+    dvx, dvy = to_frame(wvx, wvy, c_i, s_i)
     cos_dpsi, sin_dpsi = xp.cos(psi_j - psi_i), xp.sin(psi_j - psi_i)
 
     abs_c, abs_s = xp.abs(cos_dpsi), xp.abs(sin_dpsi)
