@@ -4,7 +4,7 @@
 error names its argument) and expands it into :class:`Job` s, one per (method, K,
 planning interval, scene, seed). A method without K (or without a planning interval)
 gets one job per scene and seed for all K (or intervals): its key has ``k`` (or
-``interval``) None. The run-level settings (:func:`run_config`) must be the same for
+``interval``) None. The run-level settings (:class:`RunConfig`) must be the same for
 every row of a results file; the per-job ones are in each row's key.
 """
 
@@ -22,7 +22,7 @@ import torch
 from policies.learned.guidance_losses import TARGETS
 from policies.planners import PLANNERS
 from policies.registry import method_options, method_spec
-from riskflow_env.config import DynamicsConfig
+from riskflow_env.config import DynamicsConfig, EnvConfig
 from riskflow_env.folder_lock import check_output_folder
 from riskflow_env.scenarios import Scenario, load_bank, shipped_bank
 
@@ -82,7 +82,7 @@ class Job:
     scene: str
     scene_index: int
     seed: int
-    run: dict[str, Any]  # run_config(...) plus wosac and device
+    run: RunConfig
 
     @property
     def key(self) -> str:
@@ -139,16 +139,62 @@ def check_interval(interval: float, dt: float, horizon_s: float | None) -> float
     return round(steps) * dt
 
 
-def run_config(options: EvalOptions) -> dict[str, Any]:
-    """Settings every row of one results file shares (``config.json``)."""
-    return {
-        "schema": SCHEMA,
-        "data": options.data or SHIPPED,
-        "ego": options.ego,
-        "target": options.target,
-        "duration": options.duration,
-        "stop_at_ego_collision": options.stop_at_ego_collision,
-    }
+@dataclass(frozen=True)
+class RunConfig:
+    """The run-level settings of a rollout: what every row of one results file shares
+    (``config.json``, :meth:`as_json`), plus how the worker runs it (``wosac``, ``device``:
+    not part of the results' identity).
+
+    Attributes:
+        data: the scene source (a folder, or ``"shipped:eval"``).
+        ego: the ego planner (a name of ``policies.planners.PLANNERS``).
+        target: the guidance target (``"others"`` or ``"ego"``).
+        duration: rollout length [s].
+        stop_at_ego_collision: end the episode at the ego's first collision.
+        wosac: compute the WOSAC-style score of each rollout.
+        device: torch device of the learned policies.
+    """
+
+    data: str
+    ego: str
+    target: str
+    duration: float
+    stop_at_ego_collision: bool
+    wosac: bool = True
+    device: str = "cpu"
+
+    @classmethod
+    def from_options(cls, options: EvalOptions) -> RunConfig:
+        """The run settings of ``options``."""
+        return cls(
+            data=options.data or SHIPPED,
+            ego=options.ego,
+            target=options.target,
+            duration=options.duration,
+            stop_at_ego_collision=options.stop_at_ego_collision,
+            wosac=options.wosac,
+            device=options.device,
+        )
+
+    def as_json(self) -> dict[str, Any]:
+        """``config.json``: the settings every row of the results file shares."""
+        return {
+            "schema": SCHEMA,
+            "data": self.data,
+            "ego": self.ego,
+            "target": self.target,
+            "duration": self.duration,
+            "stop_at_ego_collision": self.stop_at_ego_collision,
+        }
+
+    def env_config(self, dt: float) -> EnvConfig:
+        """Episode length and termination of the run (full episodes unless stopping at
+        an ego collision; nobody ends on leaving the road)."""
+        return EnvConfig(
+            episode_steps=round(self.duration / dt),
+            terminate_on_collision="ego" if self.stop_at_ego_collision else "none",
+            terminate_on_offroad="none",
+        )
 
 
 def load_scenes(data: str | None, count: int | None = None) -> list[Scenario]:
@@ -223,7 +269,7 @@ def plan_jobs(options: EvalOptions, scenes: list[Scenario]) -> list[Job]:
     ks = list(dict.fromkeys(parse_k(text) for text in options.k))
     intervals = list(dict.fromkeys(check_interval(t, dt, None) for t in options.interval))
     per_method = method_options(options.methods, options.overrides, options.diffusion_steps)
-    run = run_config(options) | {"wosac": options.wosac, "device": options.device}
+    run = RunConfig.from_options(options)
     jobs = []
     for method in options.methods:
         spec = method_spec(method)

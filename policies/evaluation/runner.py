@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from policies.evaluation.options import EvalOptions, Job, load_scenes, plan_jobs, run_config
+from policies.evaluation.options import EvalOptions, Job, RunConfig, load_scenes, plan_jobs
 from policies.evaluation.results import ResultsStore
 from policies.evaluation.rollout import run_job
 from policies.registry import build_policy
@@ -42,7 +42,7 @@ def check_methods(jobs: list[Job], dt: float = DynamicsConfig().dt) -> None:
         try:
             policy = build_policy(
                 method, job.options, k=job.k, planning_interval=job.interval,
-                target=job.run["target"], seed=0, device=job.run["device"],
+                target=job.run.target, seed=0, device=job.run.device,
             )  # fmt: skip
         except (TypeError, ValueError) as err:
             given = ", ".join(f"{k}={v!r}" for k, v in job.options.items()) or "defaults"
@@ -84,7 +84,8 @@ def prepare(options: EvalOptions) -> tuple[ResultsStore, list[Job]]:
     jobs = plan_jobs(options, scenes)
     check_methods(jobs)
     try:
-        store.check_config(run_config(options))  # takes the folder's writer lock
+        # takes the folder's writer lock
+        store.check_config(RunConfig.from_options(options).as_json())
     except OSError as err:  # e.g. the folder cannot be created
         store.unlock()
         raise ValueError(f"--out: {err}") from err
