@@ -62,10 +62,12 @@ class Objective(Protocol):
         model: RiskFlowGenerator,
         batch: Mapping[str, Tensor],
         normalizer: ActionNormalizer,
+        eps: Tensor,
         generator: torch.Generator,
         **weights: float,
     ) -> tuple[Tensor, dict[str, Tensor]]:
-        """One step's loss and metrics; noise and times come from ``generator``."""
+        """One step's loss and metrics from the noise ``eps`` (the batch's action shape);
+        further draws (times, levels) come from ``generator``."""
         ...
 
     def sampler(self, model: RiskFlowGenerator) -> Any:
@@ -273,7 +275,8 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
                     agents, options.batch_size, options.bucket, options.seed, epoch
                 )
             batch = collated(train_set, batches[step % per_epoch], device)
-            loss, values = objective.loss(model, batch, normalizer, noise, **weights)
+            eps = torch.randn(batch["actions"].shape, generator=noise, device=device)
+            loss, values = objective.loss(model, batch, normalizer, eps, noise, **weights)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             values["grad_norm"] = torch.nn.utils.clip_grad_norm_(
