@@ -36,6 +36,7 @@ import collections
 import contextlib
 import io
 import math
+import os
 import pickle
 from collections.abc import Iterator
 from pathlib import Path
@@ -404,6 +405,23 @@ def load_data_pickle(path: str | Path) -> Any:
         )
     with path.open("rb") as file:
         return _load(file, str(path))
+
+
+def read_data_file(path: str | Path) -> bytes:
+    """The bytes of data file ``path``, at most :data:`MAX_FILE_BYTES` of them (read in one
+    bounded call: a file that grows, or a device that never ends, is refused too).
+
+    Raises:
+        FileNotFoundError: when ``path`` does not exist.
+        ValueError: naming the file when it holds more than :data:`MAX_FILE_BYTES`.
+    """
+    path = Path(path)
+    with path.open("rb") as file:
+        size = os.fstat(file.fileno()).st_size
+        data = file.read(MAX_FILE_BYTES + 1) if size <= MAX_FILE_BYTES else b""
+    if size > MAX_FILE_BYTES or len(data) > MAX_FILE_BYTES:
+        raise ValueError(f"{path}: over {MAX_FILE_BYTES} bytes, the limit MAX_FILE_BYTES")
+    return data
 
 
 def loads_data_pickle(data: bytes, source: str = "<bytes>") -> Any:

@@ -34,6 +34,7 @@ arrays only) and turns it into a :class:`Scenario`:
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -41,7 +42,13 @@ from typing import Any
 import numpy as np
 
 from riskflow_env.dynamics import wrap_angle
-from riskflow_env.scenarios.safe_pickle import errors_name_the_file, load_data_pickle
+from riskflow_env.scenarios.map_cache import MapCache, file_digest
+from riskflow_env.scenarios.safe_pickle import (
+    errors_name_the_file,
+    load_data_pickle,
+    loads_data_pickle,
+    read_data_file,
+)
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.scenarios.scenarionet_features import feature_bounds
 from riskflow_env.scenarios.scenarionet_map import build_map
@@ -66,6 +73,7 @@ def load_scenarionet(
     crop: bool = True,
     crop_margin: float | None = None,
     smooth: bool = False,
+    map_cache: MapCache | None = None,
 ) -> Scenario:
     """Load one ScenarioNet / MetaDrive scenario-description pickle as a :class:`Scenario`.
 
@@ -86,6 +94,10 @@ def load_scenarionet(
         smooth: replace the logged tracks by their kinematic reference filtering
             (:func:`~riskflow_env.scenarios.smoothing.smooth_tracks`, Savitzky-Golay);
             False keeps the raw logs.
+        map_cache: keep the built map on disk, keyed by the file's content hash and the
+            map settings (:class:`~riskflow_env.scenarios.map_cache.MapCache`), and read
+            it back instead of building it when the same file is loaded again; None
+            builds the map every time.
 
     Returns:
         A Scenario named ``"scenarionet/<scenario id>"`` with ``dt`` 0.1 s.
@@ -99,7 +111,11 @@ def load_scenarionet(
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"load_scenarionet: no such file {path}")
-    description = load_data_pickle(path)
+    if map_cache is None:
+        description, digest = load_data_pickle(path), None
+    else:
+        data = read_data_file(path)
+        description, digest = loads_data_pickle(data, str(path)), file_digest(data)
     return scenario_from_description(
         description,
         resolution,
@@ -110,6 +126,8 @@ def load_scenarionet(
         crop=crop,
         crop_margin=crop_margin,
         smooth=smooth,
+        map_cache=map_cache,
+        file_digest=digest,
     )
 
 
@@ -123,9 +141,13 @@ def scenario_from_description(
     crop: bool = True,
     crop_margin: float | None = None,
     smooth: bool = False,
+    map_cache: MapCache | None = None,
+    file_digest: str | None = None,
 ) -> Scenario:
     """:func:`load_scenarionet` for an already loaded description dict (every failure a
-    ``ValueError`` naming ``source``)."""
+    ``ValueError`` naming ``source``); the map goes through ``map_cache`` when both it
+    and ``file_digest`` (the content hash of the description's file) are given."""
+    cache = (map_cache, file_digest) if map_cache is not None and file_digest else None
     with errors_name_the_file(source, "a readable ScenarioNet scenario"):
         return _scenario(
             description,
@@ -137,6 +159,7 @@ def scenario_from_description(
             crop,
             crop_margin,
             smooth,
+            cache,
         )
 
 
@@ -150,6 +173,7 @@ def _scenario(
     crop: bool,
     crop_margin: float | None,
     smooth: bool,
+    cache: tuple[MapCache, str] | None,
 ) -> Scenario:
     for key in ("tracks", "map_features", "metadata"):
         if not isinstance(description, Mapping) or not isinstance(description.get(key), Mapping):
@@ -212,7 +236,8 @@ def _scenario(
     name = str(metadata.get("scenario_id", metadata.get("id", description.get("id", ""))))
     all_xy = xy[valid]
     region = _crop_region(all_xy, speed[valid], crop_margin, source) if crop else None
-    drivable_map = build_map(
+    build = functools.partial(
+        build_map,
         description["map_features"],
         resolution,
         margin,
@@ -221,6 +246,13 @@ def _scenario(
         source,
         region=region,
     )
+    if cache is None:
+        drivable_map = build()
+    else:
+        map_cache, digest = cache
+        settings = {"resolution": float(resolution), "margin": float(margin), "region": region}
+        key = map_cache.key(digest, name=f"scenarionet/{name}", **settings)
+        drivable_map = map_cache.get_or_build(key, build)
     return Scenario(
         map=drivable_map,
         states=states,
