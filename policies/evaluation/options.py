@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,7 +25,9 @@ from policies.planners import PLANNERS
 from policies.registry import method_options, method_spec
 from riskflow_env.config import DynamicsConfig, EnvConfig
 from riskflow_env.folder_lock import check_output_folder
-from riskflow_env.scenarios import Scenario, load_bank, shipped_bank
+from riskflow_env.scenarios import ScenarioBank, shipped_bank
+from riskflow_env.scenarios.folders import open_scenes
+from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
 SCHEMA = 1  # results.jsonl row layout version
 SHIPPED = "shipped:eval"  # the data source name of the shipped evaluation scenes
@@ -44,7 +47,8 @@ class EvalOptions:
     """number of scenes, the first ones of the source (not given: all of them; more than it
     holds is an error)"""
     data: str | None = None
-    """scenario directory (riskflow-data output); default: the shipped evaluation scenes"""
+    """scene folder: riskflow-data output (.npz) or a ScenarioNet dataset (dataset_summary.pkl,
+    read scene by scene); default: the shipped evaluation scenes"""
     seeds: tuple[int, ...] = (0,)
     """rollout seeds, ints >= 0 (one rollout per scene and seed)"""
     ego: str = "idm"
@@ -197,19 +201,37 @@ class RunConfig:
         )
 
 
-def load_scenes(data: str | None, count: int | None = None) -> list[Scenario]:
-    """The first ``count`` scenes (default: all) of ``data`` (a directory) or of the
-    shipped bank; ValueError naming ``--scenes`` when the source holds fewer."""
-    bank = shipped_bank("eval") if data in (None, SHIPPED) else load_bank(data)
+def open_data(data: str | None) -> ScenarioBank | ScenarioNetDataset:
+    """The scenes of ``--data``: the shipped evaluation bank (None), a folder of ``.npz``
+    scenes (loaded) or a ScenarioNet dataset folder (read scene by scene when a rollout
+    needs it: :func:`riskflow_env.scenarios.folders.open_scenes`); ValueError naming
+    ``--data`` when it is none of them."""
+    if data in (None, SHIPPED):
+        return shipped_bank("eval")
+    try:
+        return open_scenes(data)
+    except (OSError, ValueError) as err:  # missing, a file, no scenes, a malformed index
+        raise ValueError(f"--data: {err}") from err
+
+
+def scene_names(data: str | None, count: int | None = None) -> list[str]:
+    """The names of the first ``count`` scenes (default: all) of ``data`` (see
+    :func:`open_data`); ValueError naming ``--scenes`` when the source holds fewer, or
+    ``--data`` when one of those scenes' files is missing. Reads no ScenarioNet scene."""
+    scenes = open_data(data)
     if count is None:
-        count = len(bank)
-    if count > len(bank):
+        count = len(scenes)
+    if count > len(scenes):
         source = "the shipped evaluation bank" if data in (None, SHIPPED) else f"--data {data}"
         raise ValueError(
-            f"--scenes {count}: {source} holds only {len(bank)} scenes; "
-            f"give --scenes {len(bank)} or fewer"
+            f"--scenes {count}: {source} holds only {len(scenes)} scenes; "
+            f"give --scenes {len(scenes)} or fewer"
         )
-    return [bank[i] for i in range(count)]
+    if isinstance(scenes, ScenarioNetDataset):
+        missing = scenes.subset(range(count)).missing_files()
+        if missing:
+            raise ValueError(f"--data: {len(missing)} scenario file(s) missing, e.g. {missing[0]}")
+    return list(scenes.names[:count])
 
 
 def check_device(device: str) -> None:
@@ -262,8 +284,9 @@ def check_options(options: EvalOptions, dt: float = DynamicsConfig().dt) -> None
     check_output_folder(options.out, "--out")
 
 
-def plan_jobs(options: EvalOptions, scenes: list[Scenario]) -> list[Job]:
-    """Every rollout the options ask for, in a fixed order (ValueError on bad arguments)."""
+def plan_jobs(options: EvalOptions, scenes: Sequence[str]) -> list[Job]:
+    """Every rollout the options ask for, in a fixed order (ValueError on bad arguments);
+    ``scenes``: the names of the scenes (:func:`scene_names`), in order."""
     dt = DynamicsConfig().dt
     check_options(options, dt)
     ks = list(dict.fromkeys(parse_k(text) for text in options.k))
@@ -277,11 +300,8 @@ def plan_jobs(options: EvalOptions, scenes: list[Scenario]) -> list[Job]:
             for interval in intervals if spec.uses_interval else [None]:
                 for index, scene in enumerate(scenes):
                     for seed in options.seeds:
-                        job = Job(
-                            method, per_method[method], k, interval, scene.name, index, seed, run
-                        )
+                        job = Job(method, per_method[method], k, interval, scene, index, seed, run)
                         jobs.append(job)
-    names = [scene.name for scene in scenes]
-    if len(set(names)) != len(names):
+    if len(set(scenes)) != len(scenes):
         raise ValueError("--data: scene names must be unique (they key the results rows)")
     return list({job.key: job for job in jobs}.values())

@@ -20,25 +20,27 @@ from typing import Any
 import numpy as np
 import torch
 
-from policies.evaluation.options import Job, load_scenes, method_label
+from policies.evaluation.options import Job, method_label, open_data
 from policies.harness import ClosedLoop, EpisodeRecord
 from policies.planners import make_planner
 from policies.registry import build_policy
 from riskflow_env.config import EnvConfig
 from riskflow_env.metrics import RolloutRecord, kinematic_samples, rollout_metrics, wosac_scene
-from riskflow_env.scenarios import Scenario
+from riskflow_env.scenarios import Scenario, ScenarioBank
+from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
 HISTORY = 2  # logged steps prepended as context (WOSAC's central differences)
 _WARM: set[tuple] = set()  # (label, k, interval) this process has warmed up
 
 
 @functools.cache
-def _scenes(data: str) -> tuple[Scenario, ...]:
-    return tuple(load_scenes(data))
+def _scenes(data: str) -> ScenarioBank | ScenarioNetDataset:
+    return open_data(data)
 
 
 def job_scenario(job: Job) -> Scenario:
-    """The job's scene (the source is loaded once per process)."""
+    """The job's scene (the source is opened once per process; a ScenarioNet scene is
+    read when a job needs it)."""
     scene = _scenes(job.run.data)[job.scene_index]
     if scene.name != job.scene:
         raise RuntimeError(f"scene {job.scene_index} of {job.run.data} is {scene.name!r}, "

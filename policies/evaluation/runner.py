@@ -20,13 +20,12 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from policies.evaluation.options import EvalOptions, Job, RunConfig, load_scenes, plan_jobs
+from policies.evaluation.options import EvalOptions, Job, RunConfig, plan_jobs, scene_names
 from policies.evaluation.results import ResultsStore
 from policies.evaluation.rollout import run_job
 from policies.registry import build_policy
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.processes import exit_with_parent
-from riskflow_env.scenarios import ScenarioFormatError
 
 
 def check_methods(jobs: list[Job], dt: float = DynamicsConfig().dt) -> None:
@@ -77,11 +76,7 @@ def prepare(options: EvalOptions) -> tuple[ResultsStore, list[Job]]:
     (:class:`~.results.ResultsLocked` if another run holds it); returns the store (locked
     until :func:`run_evaluation` ends) and every job."""
     store = ResultsStore(options.out)
-    try:
-        scenes = load_scenes(options.data, options.scenes)
-    except (OSError, ScenarioFormatError) as err:  # missing, a file, not a scene file
-        raise ValueError(f"--data: {err}") from err
-    jobs = plan_jobs(options, scenes)
+    jobs = plan_jobs(options, scene_names(options.data, options.scenes))
     check_methods(jobs)
     try:
         # takes the folder's writer lock
