@@ -12,7 +12,10 @@ settings. :class:`MapCache` keeps each built map as a map file
 * the source of the map-building code (:data:`BUILDER_MODULES`), so that a new version
   of the converter never reads a map built by an old one.
 
-The default folder is ``maps/`` in the user cache (:mod:`riskflow_env.user_cache`:
+The file holds the map's lanes, drivable mask and signed distance field (the same
+arrays as the built map, bit for bit: a scene reads the same from the cache as built, so
+a rollout does not depend on the cache's state); about 0.4-0.5 MB for a cropped nuScenes
+map. The default folder is ``maps/`` in the user cache (:mod:`riskflow_env.user_cache`:
 ``~/.cache/riskflow-env`` on Linux, ``RISKFLOW_CACHE_DIR`` overrides it). Each map is
 written to a temporary file of its own and renamed into place, so concurrent writers
 (evaluation workers, several runs) never expose a partial file: the last rename wins, and
@@ -112,7 +115,7 @@ class MapCache:
         self.misses += 1
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            write_map_arrays(path, map_to_arrays(drivable_map))
+            write_map_arrays(path, map_to_arrays(drivable_map, include_sdf=True))
         except OSError as err:  # read-only or full disk: the scene still loads
             warnings.warn(f"map cache: cannot write {path} ({err})", stacklevel=2)
         return drivable_map
