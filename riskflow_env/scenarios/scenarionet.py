@@ -50,7 +50,7 @@ from riskflow_env.scenarios.safe_pickle import (
     read_data_file,
 )
 from riskflow_env.scenarios.scenario import Scenario
-from riskflow_env.scenarios.scenarionet_features import feature_bounds
+from riskflow_env.scenarios.scenarionet_features import feature_bounds, real_array
 from riskflow_env.scenarios.scenarionet_map import build_map
 from riskflow_env.scenarios.smoothing import smooth_tracks
 from riskflow_env.state import HISTORY_STEPS
@@ -299,15 +299,16 @@ def _stack_tracks(states: list, ids: list[str], source: str) -> tuple:
         for key in ("position", "heading", "valid"):
             if key not in state:
                 raise ValueError(f"{source}: track {track_id!r} state has no {key!r}")
-        position = np.asarray(state["position"], dtype=np.float64)
+        what = f"{source}: track {track_id!r}"
+        position = real_array(state["position"], f"{what} position")
         steps = steps if steps is not None else len(position)
         if position.ndim != 2 or position.shape[1] < 2 or len(position) != steps:
             raise ValueError(
                 f"{source}: track {track_id!r} position must have shape ({steps}, 2 or 3), "
                 f"got {position.shape}"
             )
-        valid = np.asarray(state["valid"]).reshape(-1).astype(bool)
-        heading = np.asarray(state["heading"], dtype=np.float64).reshape(-1)
+        valid = real_array(state["valid"], f"{what} valid").reshape(-1) != 0
+        heading = real_array(state["heading"], f"{what} heading").reshape(-1)
         for key, value in (("valid", valid), ("heading", heading)):
             if value.shape != (steps,):
                 raise ValueError(f"{source}: track {track_id!r} {key} must have shape ({steps},)")
@@ -316,12 +317,12 @@ def _stack_tracks(states: list, ids: list[str], source: str) -> tuple:
         fields["heading"].append(heading)
         fields["valid"].append(valid)
         velocity = state.get("velocity")
-        velocity = None if velocity is None else np.asarray(velocity, dtype=np.float64)
+        velocity = None if velocity is None else real_array(velocity, f"{what} velocity")
         fields["velocity"].append(
             velocity if velocity is not None and velocity.shape == (steps, 2) else None
         )
         for column, key in enumerate(("length", "width")):
-            values = np.asarray(state.get(key, ()), dtype=np.float64).reshape(-1)
+            values = real_array(state.get(key, ()), f"{what} {key}").reshape(-1)
             values = values[valid] if values.shape == (steps,) else values
             values = values[np.isfinite(values) & (values > 0)]
             size[row, column] = np.median(values) if values.size else DEFAULT_SIZE[column]
@@ -338,10 +339,7 @@ def _times(metadata: Mapping, steps: int, source: str) -> np.ndarray:
     """(T,) [s] time stamps of the recorded steps."""
     ts = metadata.get("ts")
     if ts is not None and np.size(ts) == steps:
-        try:
-            times = np.asarray(ts, dtype=np.float64).reshape(-1)
-        except (TypeError, ValueError):
-            raise ValueError(f"{source}: metadata['ts'] must be numbers") from None
+        times = real_array(ts, f"{source}: metadata['ts']").reshape(-1)
     else:
         try:
             rate = float(metadata.get("sample_rate", DT))
