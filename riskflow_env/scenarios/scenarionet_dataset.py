@@ -45,6 +45,9 @@ from riskflow_env.scenarios.scenarionet import MIN_FUTURE_STEPS, load_scenarione
 SUMMARY_FILE = "dataset_summary.pkl"
 MAPPING_FILE = "dataset_mapping.pkl"
 INDEX_FILES = (SUMMARY_FILE, MAPPING_FILE)
+#: per-track and per-step summary entries not kept in memory (most of a summary's size:
+#: about 75 KB of Python objects per nuScenes scene with them, a few KB without)
+BULKY_METADATA = ("object_summary", "ts")
 
 
 def is_scenario_file(name: str) -> bool:
@@ -76,6 +79,13 @@ class ScenarioNetDataset:
             (:class:`~riskflow_env.scenarios.map_cache.MapCache`), a ``MapCache`` of
             your own, or False to build every map.
         keep: how many loaded scenes stay in memory (least recently used dropped), >= 0.
+
+    Attributes:
+        files, folders, names: per scene, in the summary's order: the file name, its
+            folder relative to ``folder``, the scene name.
+        summaries: per scene, the metadata the summary holds, without the per-track and
+            per-step entries (:data:`BULKY_METADATA`): ``sdc_id``, ``number_summary``
+            (counts of objects per type, moving objects...), the dataset's own fields.
 
     Raises:
         FileNotFoundError: ``folder`` does not exist, or holds neither
@@ -130,7 +140,10 @@ class ScenarioNetDataset:
         self.keep = keep
         summary, mapping = read_index(folder)
         self.files = tuple(summary)
-        self.summaries = tuple(summary.values())
+        self.summaries = tuple(
+            {key: value for key, value in metadata.items() if key not in BULKY_METADATA}
+            for metadata in summary.values()
+        )
         self.folders = tuple(mapping[name] for name in self.files)
         self.names = _names(self.files, self.summaries)
         self._loaded: OrderedDict[int, Scenario] = OrderedDict()
