@@ -28,6 +28,7 @@ Scene names are ``"scenarionet/<scenario id>"`` from the summary (``scenario_id`
 
 from __future__ import annotations
 
+import inspect
 import os
 from collections import OrderedDict
 from collections.abc import Mapping, Sequence
@@ -40,7 +41,7 @@ import numpy as np
 from riskflow_env.scenarios.map_cache import MapCache
 from riskflow_env.scenarios.safe_pickle import load_data_pickle
 from riskflow_env.scenarios.scenario import Scenario
-from riskflow_env.scenarios.scenarionet import MIN_FUTURE_STEPS, load_scenarionet
+from riskflow_env.scenarios.scenarionet import load_scenarionet
 
 SUMMARY_FILE = "dataset_summary.pkl"
 MAPPING_FILE = "dataset_mapping.pkl"
@@ -72,13 +73,14 @@ class ScenarioNetDataset:
 
     Args:
         folder: the dataset folder (the one holding ``dataset_summary.pkl``).
-        resolution, current_index, min_future_steps, margin, crop, crop_margin, smooth:
-            how each scene is loaded, as :func:`~riskflow_env.scenarios.scenarionet.
-            load_scenarionet` takes them.
         map_cache: the disk cache of converted maps: True (default) for the user cache's
             (:class:`~riskflow_env.scenarios.map_cache.MapCache`), a ``MapCache`` of
             your own, or False to build every map.
         keep: how many loaded scenes stay in memory (least recently used dropped), >= 0.
+        **options: how each scene is loaded: the keyword arguments of
+            :func:`~riskflow_env.scenarios.scenarionet.load_scenarionet` (``resolution``,
+            ``current_index``, ``min_future_steps``, ``margin``, ``crop``,
+            ``crop_margin``, ``smooth``), its defaults for those not given.
 
     Attributes:
         files, folders, names: per scene, in the summary's order: the file name, its
@@ -103,15 +105,9 @@ class ScenarioNetDataset:
     def __init__(
         self,
         folder: str | os.PathLike,
-        resolution: float = 0.5,
-        current_index: int | None = None,
-        min_future_steps: int = MIN_FUTURE_STEPS,
-        margin: float = 5.0,
-        crop: bool = True,
-        crop_margin: float | None = None,
-        smooth: bool = False,
         map_cache: MapCache | bool = True,
         keep: int = 4,
+        **options: Any,
     ) -> None:
         folder = Path(folder)
         if folder.is_file():
@@ -127,15 +123,7 @@ class ScenarioNetDataset:
         if not isinstance(map_cache, (bool, MapCache)):
             raise TypeError(f"map_cache must be a bool or a MapCache, got {map_cache!r}")
         self.folder = folder
-        self.options = {
-            "resolution": resolution,
-            "current_index": current_index,
-            "min_future_steps": min_future_steps,
-            "margin": margin,
-            "crop": crop,
-            "crop_margin": crop_margin,
-            "smooth": smooth,
-        }
+        self.options = _load_options(options)
         self.map_cache = MapCache() if map_cache is True else (map_cache or None)
         self.keep = keep
         summary, mapping = read_index(folder)
@@ -240,6 +228,20 @@ class ScenarioNetDataset:
         if not -len(self) <= index < len(self):
             raise IndexError(f"scene index {index} out of range for {len(self)} scenes")
         return int(index) % len(self)
+
+
+def _load_options(options: dict[str, Any]) -> dict[str, Any]:
+    """Every scene-loading option of :func:`load_scenarionet`, ``options`` over its
+    defaults; TypeError naming an option it does not take."""
+    signature = inspect.signature(load_scenarionet)
+    taken = [name for name in signature.parameters if name not in ("path", "map_cache")]
+    unknown = sorted(set(options) - set(taken))
+    if unknown:
+        raise TypeError(
+            f"ScenarioNetDataset: unknown option(s) {unknown}; scenes are loaded with the "
+            f"options of load_scenarionet: {', '.join(taken)}"
+        )
+    return {name: options.get(name, signature.parameters[name].default) for name in taken}
 
 
 def read_index(folder: Path) -> tuple[dict[str, Mapping], dict[str, str]]:

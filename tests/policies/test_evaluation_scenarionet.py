@@ -9,20 +9,11 @@ import pytest
 
 from policies.evaluation import EvalOptions, ResultsStore, run_evaluation
 from policies.evaluation.cli import main
-from riskflow_env.user_cache import CACHE_ENV
 from tests.riskflow_env.scenarios.scenarionet_datasets import (
     MAPPING,
     toy_descriptions,
     write_dataset,
 )
-
-
-@pytest.fixture
-def toy(tmp_path, monkeypatch):
-    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "user-cache"))
-    folder = tmp_path / "sd_toy"
-    write_dataset(folder, toy_descriptions(3))
-    return folder
 
 
 def _options(data, out, **changes) -> EvalOptions:
@@ -36,8 +27,8 @@ def _numbers(out) -> dict[str, dict]:
             for row in rows}  # fmt: skip
 
 
-def test_eval_reads_only_the_scenes_it_runs(toy, tmp_path):
-    summary = run_evaluation(_options(toy, tmp_path / "one"), progress=False)
+def test_eval_reads_only_the_scenes_it_runs(scenarionet_toy, tmp_path):
+    summary = run_evaluation(_options(scenarionet_toy, tmp_path / "one"), progress=False)
     assert summary["ran"] == 4
     rows = ResultsStore(tmp_path / "one").rows()
     assert {row["scene"] for row in rows} == {
@@ -46,20 +37,19 @@ def test_eval_reads_only_the_scenes_it_runs(toy, tmp_path):
     }
     maps = list((tmp_path / "user-cache" / "maps").glob("*.npz"))
     assert len(maps) == 2  # the third scene was never read
-    run_evaluation(_options(toy, tmp_path / "two", workers=2), progress=False)
+    run_evaluation(_options(scenarionet_toy, tmp_path / "two", workers=2), progress=False)
     assert _numbers(tmp_path / "two") == _numbers(tmp_path / "one")
 
 
 @pytest.mark.reliability
-def test_bad_dataset_folders_name_the_argument(toy, tmp_path, capsys):
+def test_bad_dataset_folders_name_the_argument(scenarionet_toy, tmp_path, capsys):
     out = tmp_path / "out"
-    (toy / MAPPING).write_bytes(pickle.dumps({"sd_x.pkl": ""}))
+    (scenarionet_toy / MAPPING).write_bytes(pickle.dumps({"sd_x.pkl": ""}))
     with pytest.raises(SystemExit):
-        main(["--data", str(toy), "--methods", "idm", "--out", str(out)])
+        main(["--data", str(scenarionet_toy), "--methods", "idm", "--out", str(out)])
     error = capsys.readouterr().err
-    assert (
-        f"--data: {toy / MAPPING}: no entry for sd_nuscenes_v1.0-mini_nuscenes-toy-0.pkl" in error
-    )
+    missing = "no entry for sd_nuscenes_v1.0-mini_nuscenes-toy-0.pkl"
+    assert f"--data: {scenarionet_toy / MAPPING}: {missing}" in error
     write_dataset(tmp_path / "sd_other", toy_descriptions(2))
     next((tmp_path / "sd_other").glob("*/*toy-1.pkl")).unlink()
     with pytest.raises(SystemExit):

@@ -13,16 +13,6 @@ from policies.train import GENERATOR
 from policies.train import main as train_main
 from riskflow_env.scenarios.map_cache import MapCache
 from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
-from riskflow_env.user_cache import CACHE_ENV
-from tests.riskflow_env.scenarios.scenarionet_datasets import toy_descriptions, write_dataset
-
-
-@pytest.fixture
-def toy(tmp_path, monkeypatch):
-    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "user-cache"))
-    folder = tmp_path / "sd_toy"
-    write_dataset(folder, toy_descriptions(4))
-    return folder
 
 
 def _args(data, out, config, *extra: str) -> list[str]:
@@ -34,8 +24,8 @@ def _args(data, out, config, *extra: str) -> list[str]:
     ]  # fmt: skip
 
 
-def test_windows_of_a_dataset_match_the_loaded_scenes(toy, tmp_path):
-    dataset = ScenarioNetDataset(toy, map_cache=MapCache(tmp_path / "maps"))
+def test_windows_of_a_dataset_match_the_loaded_scenes(scenarionet_toy, tmp_path):
+    dataset = ScenarioNetDataset(scenarionet_toy, map_cache=MapCache(tmp_path / "maps"))
     lazy = WindowDataset(dataset, stride=16)
     eager = WindowDataset([dataset.load(i) for i in range(len(dataset))], stride=16)
     assert len(lazy) == len(eager) > 0
@@ -46,25 +36,25 @@ def test_windows_of_a_dataset_match_the_loaded_scenes(toy, tmp_path):
 
 
 def test_train_on_a_dataset_folder_then_from_the_window_cache(
-    toy, tmp_path, tiny_config, monkeypatch
+    scenarionet_toy, tmp_path, tiny_config, monkeypatch
 ):
-    assert train_main(_args(toy, tmp_path / "run", tiny_config)) == 0
+    assert train_main(_args(scenarionet_toy, tmp_path / "run", tiny_config)) == 0
     assert (tmp_path / "run" / GENERATOR).is_file()
-    cached = {path.name for path in (toy / "cache").iterdir()}
+    cached = {path.name for path in (scenarionet_toy / "cache").iterdir()}
     assert {"windows-stride16-val0.25-train.npz", "windows-stride16-val0.25-val.npz"} <= cached
-    assert (toy / "norm_stats.json").is_file()
+    assert (scenarionet_toy / "norm_stats.json").is_file()
 
     def refuse(self, index):
         raise AssertionError("a scene was read although its windows are cached")
 
     monkeypatch.setattr(ScenarioNetDataset, "load", refuse)
-    assert train_main(_args(toy, tmp_path / "again", tiny_config)) == 0
+    assert train_main(_args(scenarionet_toy, tmp_path / "again", tiny_config)) == 0
 
 
-def test_bad_dataset_folder_names_the_argument(toy, tmp_path, tiny_config):
-    next(toy.glob("*/*toy-2.pkl")).unlink()
+def test_bad_dataset_folder_names_the_argument(scenarionet_toy, tmp_path, tiny_config):
+    next(scenarionet_toy.glob("*/*toy-2.pkl")).unlink()
     with pytest.raises(SystemExit, match=r"riskflow-train: --data: .*1 scenario file\(s\) listed"):
-        train_main(_args(toy, tmp_path / "run", tiny_config))
-    (toy / "dataset_summary.pkl").write_bytes(b"\x80\x04N.")
+        train_main(_args(scenarionet_toy, tmp_path / "run", tiny_config))
+    (scenarionet_toy / "dataset_summary.pkl").write_bytes(b"\x80\x04N.")
     with pytest.raises(SystemExit, match=r"--data: .*dataset_summary.pkl: expected a dict"):
-        train_main(_args(toy, tmp_path / "run", tiny_config))
+        train_main(_args(scenarionet_toy, tmp_path / "run", tiny_config))

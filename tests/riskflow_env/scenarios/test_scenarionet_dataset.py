@@ -245,6 +245,8 @@ def test_bad_folders_and_scene_files_name_the_path(toy, tmp_path):
         ScenarioNetDataset(tmp_path / "empty")
     with pytest.raises(ValueError, match="keep must be an int >= 0"):
         ScenarioNetDataset(toy, keep=-1)
+    with pytest.raises(TypeError, match=r"unknown option\(s\) \['smoth'\]; .* smooth"):
+        ScenarioNetDataset(toy, smoth=True)
     copy = _copy(toy, tmp_path)
     dataset = ScenarioNetDataset(copy, map_cache=False)  # opens: scene files are not read
     dataset.path(0).unlink()
