@@ -8,7 +8,8 @@ N = copies x scenes files, in ScenarioNet's layout (``dataset_summary.pkl``,
 1. Opening the folder (:class:`~riskflow_env.scenarios.scenarionet_dataset.
    ScenarioNetDataset`: the index files only) against loading all N scenes into a list,
    with the converted-map cache empty (every map built and written) and full (every map
-   read back); the memory column is the arrays held (tracks, masks, map rasters).
+   read back); the memory column is the arrays held (tracks, masks, map rasters). A
+   last row opens an index of ``--index-scenes`` entries (no scene files behind it).
 2. Per scene of ``--data``: building its map (cache miss: build + write) against reading
    it back (hit), cropped (the default) and the whole recording area (``crop=False``);
    medians of ``--repeats`` loads, each with a fresh cache for the misses.
@@ -44,6 +45,8 @@ class Options:
     """copies of each scene in the timed dataset"""
     repeats: int = 3
     """timed loads per row of the per-scene table (the median is reported)"""
+    index_scenes: int = 5000
+    """summary entries of the index-only dataset whose opening is timed too (0: none)"""
 
 
 def replicate(source: Dataset, copies: int, folder: Path) -> None:
@@ -59,9 +62,22 @@ def replicate(source: Dataset, copies: int, folder: Path) -> None:
             description["id"] = metadata["id"] = metadata["scenario_id"] = scene_id
             name = f"sd_bench_v0_{scene_id}.pkl"
             (sub / name).write_bytes(pickle.dumps(description))
-            summary[name], mapping[name] = dict(metadata), sub.name
+            summary[name], mapping[name] = pickle.loads(pickle.dumps(metadata)), sub.name
     (folder / SUMMARY_FILE).write_bytes(pickle.dumps(summary))
     (folder / MAPPING_FILE).write_bytes(pickle.dumps(mapping))
+
+
+def index_only(source: Dataset, scenes: int, folder: Path) -> None:
+    """A dataset index of ``scenes`` entries (each a copy of a ``source`` scene's
+    metadata), without the scenario files: what opening costs at that size."""
+    metadata = [load_data_pickle(source.path(i))["metadata"] for i in range(len(source))]
+    summary = {
+        f"sd_bench_v0_{k}.pkl": pickle.loads(pickle.dumps(metadata[k % len(metadata)]))
+        for k in range(scenes)
+    }
+    folder.mkdir(parents=True)
+    (folder / SUMMARY_FILE).write_bytes(pickle.dumps(summary))
+    (folder / MAPPING_FILE).write_bytes(pickle.dumps(dict.fromkeys(summary, "")))
 
 
 def held_mb(scenes: list[Scenario]) -> float:
@@ -106,6 +122,13 @@ def main(options: Options) -> None:
         print("| | time [s] | arrays held [MB] |\n|---|---|---|")
         for what, seconds, held in open_vs_load(root / "sd_bench", root / "maps"):
             print(f"| {what} | {seconds:.3f} | {held:.1f} |")
+        if options.index_scenes:
+            index_only(source, options.index_scenes, root / "sd_index")
+            start = time.perf_counter()
+            Dataset(root / "sd_index", map_cache=False)
+            seconds = time.perf_counter() - start
+            size = (root / "sd_index" / SUMMARY_FILE).stat().st_size / 2**20
+            print(f"| open {options.index_scenes} scenes ({size:.0f} MB summary) | {seconds:.3f} |")
         print("\n| scene | crop | miss: build + write [s] | hit: read [s] | cached map [MB] |")
         print("|---|---|---|---|---|")
         for index in range(len(source)):

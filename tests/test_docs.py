@@ -83,7 +83,7 @@ SMALLEST: list[tuple[str, str]] = [
     (r"python benchmarks/traffic_realism\.py", "--scenes 1 --duration 1"),
     (r"python benchmarks/realism_diagnosis\.py", "--scenes 1"),
     (r"python benchmarks/scenarionet_map_size\.py", "--area 600 --repeats 1 --vehicles 5"),
-    (r"python benchmarks/scenarionet_dataset\.py", "--copies 1 --repeats 1"),
+    (r"python benchmarks/scenarionet_dataset\.py", "--copies 1 --repeats 1 --index-scenes 10"),
     (r"python examples/stress_test_planner\.py", "--scenes 1 --steps 5"),
     (
         r"python examples/train_ego_ppo\.py",
