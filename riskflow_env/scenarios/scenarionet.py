@@ -30,6 +30,10 @@ arrays only) and turns it into a :class:`Scenario`:
   features are invalid steps (the map knows nothing there). Traffic lights are not used.
 * ``smooth=True``: the tracks are replaced by their Savitzky-Golay kinematic reference
   filtering (:mod:`~riskflow_env.scenarios.smoothing`).
+* ``map_cache``: the built map is kept on disk, keyed by the file's content hash
+  (:mod:`~riskflow_env.scenarios.map_cache`); a whole dataset folder is read by
+  :class:`~riskflow_env.scenarios.scenarionet_dataset.ScenarioNetDataset`.
+* Arrays must hold real numbers: complex values are refused, not cast.
 """
 
 from __future__ import annotations
