@@ -47,9 +47,9 @@ from typing import Any
 import numpy as np
 
 from policies.dataclass_cli import parse_dataclass
-from policies.evaluation.options import SHIPPED, EvalOptions, Job, run_config
-from policies.evaluation.registry import method_spec
+from policies.evaluation.options import SHIPPED, EvalOptions, Job, RunConfig
 from policies.evaluation.rollout import rollout_episode
+from policies.registry import method_spec
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.metrics import (
     KinematicSamples,
@@ -150,16 +150,26 @@ def pick_scenes(scenes: Sequence[Scenario], count: int) -> list[int]:
     return sorted(picked[:count])
 
 
-def measure(job: Job) -> dict[str, Any]:
+@dataclass(frozen=True)
+class RealismJob:
+    """One rollout of the benchmark: the evaluation job, its row label and the
+    planning period [steps] (for jerk per step of the re-plan cycle)."""
+
+    job: Job
+    label: str
+    period: int
+
+
+def measure(item: RealismJob) -> dict[str, Any]:
     """One rollout and its per-rollout numbers and samples."""
     start = time.perf_counter()
-    _, record, _ = rollout_episode(job)
+    _, record, _ = rollout_episode(item.job)
     hit = collisions(record)
     involved = collision_involvement(hit.pairs, record.ego_index) & record.evaluated
     jerk, step = jerk_steps(record)
     still, drift = standstill_drift(record)
     return {
-        "label": job.run["label"],
+        "label": item.label,
         "metrics": rollout_metrics(record),
         "vehicles": int(record.evaluated.sum()),
         "involved": int(involved.sum()),
@@ -169,7 +179,7 @@ def measure(job: Job) -> dict[str, Any]:
         "samples": kinematic_samples(record),
         "jerk": jerk,
         "step": step,
-        "period": job.run["period"],
+        "period": item.period,
         "wosac": float(wosac_scene([record])["metametric"]),
         "wall_s": time.perf_counter() - start,
     }
@@ -214,10 +224,10 @@ def summarise(label: str, results: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[Job]:
-    base = run_config(EvalOptions(data=args.bank, ego=args.ego, duration=args.duration))
+def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[RealismJob]:
+    options = EvalOptions(data=args.bank, ego=args.ego, duration=args.duration, device=args.device)
+    run = RunConfig.from_options(options)
     period = round(args.interval / DynamicsConfig().dt)  # steps per planning cycle
-    base |= {"wosac": True, "device": args.device, "period": period}
     names = [Path(p).name for p in args.checkpoint]
     unique = len(set(names)) == len(names)
     methods = [("bits", {"checkpoint": str(Path(p).resolve())}, n if unique else p)
@@ -228,14 +238,12 @@ def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[
         interval = args.interval if method_spec(method).uses_interval else None
         for index in picked:
             for seed in args.seeds:
-                run = base | {"label": label}
-                jobs.append(
-                    Job(method, options, None, interval, scenes[index].name, index, seed, run)
-                )
+                job = Job(method, options, None, interval, scenes[index].name, index, seed, run)
+                jobs.append(RealismJob(job, label, period))
     return jobs
 
 
-def _results(jobs: list[Job], workers: int):
+def _results(jobs: list[RealismJob], workers: int):
     if workers <= 1:
         yield from map(measure, jobs)
         return
@@ -301,9 +309,9 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
           f"methods, {args.duration:g} s closed loop, {args.ego} ego", file=sys.stderr)  # fmt: skip
     per_label: dict[str, list[dict[str, Any]]] = {}
     for job in jobs:
-        per_label.setdefault(job.run["label"], [])
+        per_label.setdefault(job.label, [])
     rows: list[dict[str, Any]] = []
-    expected = {label: sum(j.run["label"] == label for j in jobs) for label in per_label}
+    expected = {label: sum(j.label == label for j in jobs) for label in per_label}
     for done, result in enumerate(_results(jobs, args.workers), 1):
         label = result["label"]
         per_label[label].append(result)

@@ -32,12 +32,12 @@ from pathlib import Path
 from tqdm import tqdm
 
 from policies.dataclass_cli import parse_dataclass
-from policies.harness import wilson_interval
 from policies.planners import OraclePlanner, make_planner
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.evaluation import RandomPlanner, evaluate, load_ppo_planner, summarize_ego
 from policies.rl.paired import PAIRED_OUTCOMES, paired_counts
 from policies.rl.report import markdown_table, paired_table, plot_summaries, plot_training
+from policies.statistics import wilson_interval
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
 

@@ -28,7 +28,6 @@ from typing import Any
 
 from policies.dataclass_cli import parse_dataclass
 from policies.harness import METRICS, ClosedLoop
-from policies.learned.checkpoint import load_generator
 from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
 from riskflow_env.agents import ReplayPolicy
@@ -112,17 +111,13 @@ def make_traffic(options: Options) -> RiskFlowAdversary | ReplayPolicy:
     """The scene policy of every vehicle but the ego."""
     if options.traffic == "replay":
         return ReplayPolicy(controlled="others", mode="open_loop")
-    model = {}
-    if options.checkpoint is not None:
-        generator, normalizer, _ = load_generator(options.checkpoint, device=options.device)
-        model = {"generator": generator, "normalizer": normalizer}
     return RiskFlowAdversary(
         k=options.controllable,
         planning_interval=options.planning_interval,
         target=options.target,
         seed=options.seed,
         device=options.device,
-        **model,
+        checkpoint=options.checkpoint,
     )
 
 

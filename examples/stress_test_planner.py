@@ -46,7 +46,6 @@ from tqdm import tqdm
 
 from policies.dataclass_cli import parse_dataclass
 from policies.harness import ClosedLoop, EpisodeRecord, summarize
-from policies.learned.checkpoint import load_generator
 from policies.planners import PLANNERS, EgoPlanner, make_planner
 from policies.riskflow import RiskFlowAdversary
 from riskflow_env.config import EnvConfig
@@ -132,17 +131,13 @@ def planner_named(name: str, config: EnvConfig) -> EgoPlanner:
 
 def make_adversary(options: Options) -> RiskFlowAdversary:
     """The RiskFlow adversary of the options (shipped checkpoint unless ``--checkpoint``)."""
-    model = {}
-    if options.checkpoint is not None:
-        generator, normalizer, _ = load_generator(options.checkpoint, device=options.device)
-        model = {"generator": generator, "normalizer": normalizer}
     return RiskFlowAdversary(
         k=options.k if options.k == "all" else int(options.k),
         planning_interval=options.planning_interval,
         target=options.target,
         seed=options.seed,
         device=options.device,
-        **model,
+        checkpoint=options.checkpoint,
     )
 
 

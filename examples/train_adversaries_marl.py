@@ -28,7 +28,6 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.utils import set_random_seed
 
 from policies.dataclass_cli import parse_dataclass
-from policies.harness import wilson_interval
 from policies.rl.marl import (
     AdversaryRewardConfig,
     FixedEgoParallelEnv,
@@ -37,6 +36,7 @@ from policies.rl.marl import (
     rollout_ego_collisions,
 )
 from policies.rl.progress import StepProgressBar
+from policies.statistics import wilson_interval
 
 
 @dataclass(frozen=True)

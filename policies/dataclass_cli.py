@@ -2,9 +2,9 @@
 
 Each field becomes ``--field-name``; its type (``int``, ``float``, ``str``, ``Path``,
 ``X | None``) parses the value, ``tuple[X, ...]`` fields take several values, ``bool``
-fields become ``--x / --no-x``, fields without a default are required, and the help
-text is the field's attribute docstring (the string literal written under it),
-followed by the default::
+fields become ``--x / --no-x``, fields without a default are required, a field's
+``metadata={"flag": "--other"}`` renames its flag, and the help text is the field's
+attribute docstring (the string literal written under it), followed by the default::
 
     @dataclass(frozen=True)
     class Options:
@@ -68,7 +68,8 @@ def dataclass_parser(cls: type, prog: str, description: str = "") -> argparse.Ar
             kwargs["type"] = next(
                 a for a in typing.get_args(hint) or (hint,) if a is not type(None)
             )
-        parser.add_argument("--" + field.name.replace("_", "-"), **kwargs)
+        flag = field.metadata.get("flag", "--" + field.name.replace("_", "-"))
+        parser.add_argument(flag, **kwargs)
     return parser
 
 

@@ -29,9 +29,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from policies.planners.base import EgoPlanner, as_action, reset_planner
+from policies.statistics import mean_interval, wilson_interval
 from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import YAW
 from riskflow_env.env import RiskFlowParallelEnv
@@ -293,28 +293,6 @@ def _record(base: RiskFlowParallelEnv, frames: list, events: tuple) -> EpisodeRe
 
 def _share(flags: np.ndarray, mask: np.ndarray) -> float:
     return float(flags[mask].mean()) if mask.any() else 0.0
-
-
-def wilson_interval(successes: int, trials: int, confidence: float = 0.95) -> tuple[float, float]:
-    """Wilson score interval of a binomial proportion; (nan, nan) without trials."""
-    if trials == 0:
-        return math.nan, math.nan
-    interval = stats.binomtest(successes, trials).proportion_ci(confidence, method="wilson")
-    return float(interval.low), float(interval.high)
-
-
-def mean_interval(
-    values: list[float], confidence: float = 0.95, resamples: int = 2000
-) -> tuple[float, float]:
-    """Percentile-bootstrap interval of the mean of ``values`` (seeded: deterministic;
-    inside the range of the data); (nan, nan) for fewer than two values."""
-    values = np.asarray(values, dtype=np.float64)
-    if values.size < 2:
-        return math.nan, math.nan
-    draws = np.random.default_rng(0).integers(values.size, size=(resamples, values.size))
-    means = values[draws].mean(axis=1)
-    low, high = np.quantile(means, [0.5 - confidence / 2, 0.5 + confidence / 2])
-    return float(low), float(high)
 
 
 def summarize(records: list[EpisodeRecord], confidence: float = 0.95) -> dict[str, dict]:

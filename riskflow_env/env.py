@@ -25,10 +25,12 @@ Arguments (``parallel_env(config=None, scenarios=None, render_mode=None)``):
 
 * ``config``: :class:`~riskflow_env.config.EnvConfig` (slots, episode length,
   termination rules, action clipping, dynamics bounds, observation and reward settings).
-* ``scenarios``: a :class:`~riskflow_env.scenarios.Scenario`, a sequence of them, or a
-  ``ScenarioSource``; default: the shipped naturalistic bank's evaluation split
-  (:func:`~riskflow_env.scenarios.shipped_bank`, highway-env IDM/MOBIL recordings on 7
-  road families). ``reset(options={"scenario": s})`` starts from a given scene instead.
+* ``scenarios``: a :class:`~riskflow_env.scenarios.Scenario`, a sequence of them, a
+  ``ScenarioSource``, or a folder (:func:`~riskflow_env.scenarios.folders.open_scenes`:
+  a ScenarioNet dataset, read lazily, or RiskFlow ``.npz`` scenes); default: the shipped
+  naturalistic bank's evaluation split (:func:`~riskflow_env.scenarios.shipped_bank`,
+  highway-env IDM/MOBIL recordings on 7 road families). ``reset(seed)`` draws the scene
+  from the seeded generator; ``reset(options={"scenario": s})`` starts from a given one.
 * ``render_mode``: ``None``, ``"rgb_array"`` or ``"human"``.
 
 Termination: an agent terminates when it collides (or drives off the road) and
@@ -44,6 +46,7 @@ Version history:
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -79,7 +82,7 @@ class RiskFlowParallelEnv(ParallelEnv):
     def __init__(
         self,
         config: EnvConfig | None = None,
-        scenarios: ScenarioSource | Sequence[Scenario] | Scenario | None = None,
+        scenarios: ScenarioSource | Sequence[Scenario] | Scenario | str | os.PathLike | None = None,
         render_mode: str | None = None,
     ) -> None:
         if config is not None and not isinstance(config, EnvConfig):
@@ -91,6 +94,10 @@ class RiskFlowParallelEnv(ParallelEnv):
             )
         self.config = config or EnvConfig()
         self.render_mode = render_mode
+        if isinstance(scenarios, (str, os.PathLike)):
+            from riskflow_env.scenarios.folders import open_scenes  # lazy: loaders of files
+
+            scenarios = open_scenes(scenarios)
         self.source = as_source(scenarios) if scenarios is not None else shipped_bank("eval")
         self.possible_agents = list(self.config.agent_names)
         self._slot = {name: index for index, name in enumerate(self.possible_agents)}

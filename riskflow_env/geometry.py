@@ -41,6 +41,23 @@ _ALONG = (1.0, 1.0, -1.0, -1.0, 1.0, 0.0, -1.0, 0.0, 0.0)
 _ACROSS = (-1.0, 1.0, 1.0, -1.0, 0.0, 1.0, 0.0, -1.0, 0.0)
 
 
+def to_frame(dx: Array, dy: Array, cos: Array, sin: Array) -> tuple[Array, Array]:
+    """World offsets ``(dx, dy)`` [m] into a frame of heading ``psi`` given as
+    ``cos psi``, ``sin psi``: ``(forward, left)`` [m] (x ahead, y to the left).
+
+    Every frame change of the project goes through this pair (vehicle frames, the ego's
+    scene frame, pair frames); they take ``cos`` and ``sin`` so that a caller computes
+    them once for many offsets. numpy or torch, any broadcastable shapes.
+    """
+    return cos * dx + sin * dy, -sin * dx + cos * dy
+
+
+def from_frame(forward: Array, left: Array, cos: Array, sin: Array) -> tuple[Array, Array]:
+    """The inverse of :func:`to_frame`: offsets in a frame of heading ``psi`` back to
+    world offsets ``(dx, dy)`` [m]."""
+    return cos * forward - sin * left, sin * forward + cos * left
+
+
 def footprint_points(xy: Array, yaw: Array, length: Array, width: Array) -> Array:
     """Samples of a vehicle's footprint in world coordinates.
 

@@ -26,6 +26,7 @@ import numpy as np
 from riskflow_env._array import Array, namespace
 from riskflow_env.config import ObservationConfig
 from riskflow_env.dynamics import YAW
+from riskflow_env.geometry import from_frame
 from riskflow_env.maps import DrivableMap
 from riskflow_env.maps.sampling import constant_like
 from riskflow_env.risk import NUM_PAIR_FEATURES
@@ -72,7 +73,8 @@ def sample_points(current: Array, config: ObservationConfig) -> Array:
     cos, sin = xp.cos(yaw), xp.sin(yaw)
     offsets = constant_like(_sample_offsets(config), current)
     forward, left = offsets[0], offsets[1]  # (P,) each, centre first
-    return xp.stack([x + (cos * forward - sin * left), y + (sin * forward + cos * left)], axis=-1)
+    dx, dy = from_frame(forward, left, cos, sin)
+    return xp.stack([x + dx, y + dy], axis=-1)
 
 
 def observe(

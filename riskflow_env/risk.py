@@ -30,13 +30,13 @@ Divisions use safe denominators under ``where`` so torch gradients stay finite a
 from __future__ import annotations
 
 from riskflow_env._array import Array, device, namespace
+from riskflow_env.geometry import to_frame
 
 TAU_MAX = 20.0  # [s] TTC horizon; TTC is clipped to [0, TAU_MAX] and risk 0 at TAU_MAX.
 MAX_INTERACTION_DISTANCE = 50.0  # [m] centre distance beyond which pairs are ignored.
 
 FEATURE_NAMES = ("dx", "dy", "cos_dpsi", "sin_dpsi", "dvx", "dvy", "norm_distance", "risk")
 NUM_PAIR_FEATURES = len(FEATURE_NAMES)
-_RISK = FEATURE_NAMES.index("risk")
 
 
 def _check_inputs(state: Array, length: Array, width: Array, valid: Array | None = None) -> None:
@@ -76,8 +76,8 @@ def _pair_geometry(state: Array, length: Array, width: Array, tau_max: float):
 
     # World-frame offsets rotated by -psi_i into i's frame.
     wx, wy, wvx, wvy = x_j - x_i, y_j - y_i, vx_j - vx_i, vy_j - vy_i
-    dx, dy = c_i * wx + s_i * wy, -s_i * wx + c_i * wy
-    dvx, dvy = c_i * wvx + s_i * wvy, -s_i * wvx + c_i * wvy
+    dx, dy = to_frame(wx, wy, c_i, s_i)
+    dvx, dvy = to_frame(wvx, wvy, c_i, s_i)
     cos_dpsi, sin_dpsi = xp.cos(psi_j - psi_i), xp.sin(psi_j - psi_i)
 
     abs_c, abs_s = xp.abs(cos_dpsi), xp.abs(sin_dpsi)
@@ -171,6 +171,23 @@ def pairwise_features(
       mask: (..., A, A) bool; False on the diagonal, for pairs with an invalid agent
         and for pairs farther apart than ``max_distance``.
     """
+    geo, mask = _masked_geometry(state, length, width, valid, tau_max, max_distance)
+    xp = namespace(state, length, width)
+    geo["norm_distance"] = geo["distance"] / geo["size_scale"]
+    geo["risk"] = risk_weight(geo["ttc"], tau_max)
+    features = xp.stack([geo[name] for name in FEATURE_NAMES], axis=-1)
+    return xp.where(mask[..., None], features, 0.0), mask
+
+
+def _masked_geometry(
+    state: Array,
+    length: Array,
+    width: Array,
+    valid: Array | None,
+    tau_max: float,
+    max_distance: float,
+) -> tuple[dict[str, Array], Array]:
+    """``_pair_geometry`` and the pair mask of ``pairwise_features``."""
     _check_inputs(state, length, width, valid)
     xp = namespace(state, length, width)
     geo = _pair_geometry(state, length, width, tau_max)
@@ -180,10 +197,29 @@ def pairwise_features(
     if valid is not None:
         valid = xp.astype(valid, xp.bool)
         mask = mask & valid[..., :, None] & valid[..., None, :]
-    geo["norm_distance"] = geo["distance"] / geo["size_scale"]
-    geo["risk"] = risk_weight(geo["ttc"], tau_max)
-    features = xp.stack([geo[name] for name in FEATURE_NAMES], axis=-1)
-    return xp.where(mask[..., None], features, 0.0), mask
+    return geo, mask
+
+
+def pair_risk(
+    state: Array,
+    length: Array,
+    width: Array,
+    valid: Array | None = None,
+    tau_max: float = TAU_MAX,
+    max_distance: float = MAX_INTERACTION_DISTANCE,
+) -> tuple[Array, Array]:
+    """The ``risk`` channel of :func:`pairwise_features` and its mask, without building
+    the other features (what the rewards need when no observation is asked for).
+
+    Args: as ``pairwise_features``.
+
+    Returns:
+      risk: (..., A, A) in [0, 1], 0 wherever ``mask`` is False.
+      mask: (..., A, A) bool, as ``pairwise_features``.
+    """
+    geo, mask = _masked_geometry(state, length, width, valid, tau_max, max_distance)
+    xp = namespace(state, length, width)
+    return xp.where(mask, risk_weight(geo["ttc"], tau_max), 0.0), mask
 
 
 def risk_matrix(
@@ -201,5 +237,4 @@ def risk_matrix(
     Returns:
       (..., A, A) risk in [0, 1], 0 wherever the pair mask is False.
     """
-    features, _ = pairwise_features(state, length, width, valid, tau_max, max_distance)
-    return features[..., _RISK]
+    return pair_risk(state, length, width, valid, tau_max, max_distance)[0]

@@ -29,7 +29,7 @@ from riskflow_env.geometry import NUM_FOOTPRINT_POINTS, footprint_points
 from riskflow_env.maps import DrivableMap
 from riskflow_env.observations import observe, sample_points
 from riskflow_env.rewards import reward_terms
-from riskflow_env.risk import pairwise_features
+from riskflow_env.risk import pair_risk, pairwise_features
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.state import HISTORY_STEPS, SceneState
 
@@ -172,7 +172,9 @@ class Evaluation:
     """Everything the env reports about one state (leading dims ``(..., A)``).
 
     Attributes:
-        pair_features: (..., A, A, 8) from :func:`riskflow_env.risk.pairwise_features`.
+        pair_features: (..., A, A, 8) from :func:`riskflow_env.risk.pairwise_features`,
+            or None when the observations were not requested (only the risk channel is
+            computed then, for the rewards).
         pair_mask: (..., A, A) bool, observed pairs.
         events: collisions and off-road flags.
         observations: (..., A, D) float32, or None when not requested.
@@ -180,7 +182,7 @@ class Evaluation:
         reward: (..., A) the sum of the terms.
     """
 
-    pair_features: Array
+    pair_features: Array | None
     pair_mask: Array
     events: FrameEvents
     observations: Array | None
@@ -202,7 +204,12 @@ def evaluate(
     """
     current = state.current
     xp = namespace(current)
-    features, mask = pairwise_features(current, state.length, state.width, state.present)
+    if observations:
+        features, mask = pairwise_features(current, state.length, state.width, state.present)
+        risk = features[..., RISK_INDEX]
+    else:  # the rewards need the risk channel only
+        features = None
+        risk, mask = pair_risk(current, state.length, state.width, state.present)
     # One map lookup for the footprints (events) and the SDF samples (observations).
     points = footprint_points(current[..., :2], current[..., YAW], state.length, state.width)
     if observations:
@@ -213,7 +220,7 @@ def evaluate(
     if observations:
         sdf = sdf[..., NUM_FOOTPRINT_POINTS:]
         rows = observe(state, features, mask, drivable_map, config.observation, sdf=sdf)
-    terms = reward_terms(state, events, features[..., RISK_INDEX], config.reward, config.dynamics)
+    terms = reward_terms(state, events, risk, config.reward, config.dynamics)
     return Evaluation(features, mask, events, rows, terms, sum(terms.values()))
 
 

@@ -3,7 +3,11 @@ docs/*.md runs, in a scratch folder, in a subprocess.
 
 * Python blocks run as written (``python snippet.py``). A block that reads a ScenarioNet
   sample (``*.pkl``) gets the sample pickles copied in from ``RISKFLOW_SCENARIONET_DIR``
-  (default ``../shared/data/scenarionet``) and is skipped, with that reason, without them.
+  (default ``../shared/data/scenarionet``); a block (python or bash) that names the
+  dataset folder ``sd_nuscenes_mini`` gets them as a ScenarioNet dataset folder there,
+  written as ScenarioNet's converter writes one
+  (tests/riskflow_env/scenarios/scenarionet_datasets.py), with the user cache in the
+  scratch folder. Both are skipped, with that reason, without the samples.
 * Bash blocks run as one ``bash -e`` script "at their smallest size": ``SIZES`` rewrites
   every size option the block gives and ``SMALLEST`` adds the size options a command
   leaves at a large default (a later occurrence of an option wins in argparse, so the
@@ -34,11 +38,14 @@ from pathlib import Path
 
 import pytest
 
+from riskflow_env.user_cache import CACHE_ENV
+from tests.riskflow_env.scenarios.scenarionet_datasets import write_dataset
 from tests.samples import SCENARIONET_DIR
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 SAMPLE_DIR = SCENARIONET_DIR
+SAMPLE_DATASET = "sd_nuscenes_mini"  # the samples as a ScenarioNet dataset folder
 TIMEOUT = 600  # [s] per block
 LINKED = ("examples", "benchmarks", "docs", "tests", "pyproject.toml")
 
@@ -65,6 +72,7 @@ SIZES: dict[str, str] = {
     "--duration": "1",  # riskflow-eval episode length [s]
     "--diffusion-steps": "2",  # riskflow-eval DDIM levels of the diffusion methods
     "--time-budget-min": "1",
+    "--copies": "1",  # benchmarks/scenarionet_dataset.py: copies of each scene
 }
 
 # Program (regex on the command) -> size options added right after it. The first match
@@ -80,6 +88,7 @@ SMALLEST: list[tuple[str, str]] = [
     (r"python benchmarks/traffic_realism\.py", "--scenes 1 --duration 1"),
     (r"python benchmarks/realism_diagnosis\.py", "--scenes 1"),
     (r"python benchmarks/scenarionet_map_size\.py", "--area 600 --repeats 1 --vehicles 5"),
+    (r"python benchmarks/scenarionet_dataset\.py", "--copies 1 --repeats 1 --index-scenes 10"),
     (r"python examples/stress_test_planner\.py", "--scenes 1 --steps 5"),
     (
         r"python examples/train_ego_ppo\.py",
@@ -111,7 +120,7 @@ SLOW: dict[str, str] = {
     # evaluation episodes against the adversary): about 110 s even at 64 timesteps.
     "docs/RL.md-0-bash": "PPO training and evaluation scripts, about 110 s",
     # The README's 3 RL scripts: about 50 s at their smallest.
-    "README.md-15-bash": "PPO training and evaluation scripts, about 50 s",
+    "README.md-16-bash": "PPO training and evaluation scripts, about 50 s",
     # 5 riskflow-eval runs (20 one-scene rollouts of 9 methods, STRIVE and DDIM included):
     # about 60 s, mostly process start-up and model loading.
     "docs/RESULTS.md-0-bash": "five riskflow-eval runs, about 60 s",
@@ -193,8 +202,8 @@ def scratch(tmp_path: Path) -> Path:
     return tmp_path
 
 
-def environment() -> dict[str, str]:
-    env = dict(os.environ)
+def environment(**extra: str) -> dict[str, str]:
+    env = dict(os.environ) | extra
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
     env["PYTHONDONTWRITEBYTECODE"] = "1"  # nothing written next to the repository's files
     env.setdefault("SDL_VIDEODRIVER", "dummy")
@@ -235,23 +244,33 @@ def test_block_runs(path: Path, language: str, code: str, tmp_path: Path) -> Non
                 f"{module} is not installed (pip install -e '.[{OPTIONAL[module]}]'): "
                 "the block needs it"
             )
+    extra = {}
+    reads = (language == "python" and ".pkl" in code) or SAMPLE_DATASET in code
+    if reads:
+        samples = sorted(SAMPLE_DIR.glob("*.pkl")) if SAMPLE_DIR.is_dir() else []
+        if not samples:
+            pytest.skip(
+                f"no ScenarioNet sample pickles in {SAMPLE_DIR}: the snippet reads them;"
+                " set RISKFLOW_SCENARIONET_DIR to their folder"
+            )
+        for sample in samples:
+            shutil.copy(sample, folder / sample.name)
+        if SAMPLE_DATASET in code:
+            write_dataset(folder / SAMPLE_DATASET, samples)
+            extra[CACHE_ENV] = str(folder / "user-cache")
     if language == "python":
-        if ".pkl" in code:
-            samples = sorted(SAMPLE_DIR.glob("*.pkl")) if SAMPLE_DIR.is_dir() else []
-            if not samples:
-                pytest.skip(
-                    f"no ScenarioNet sample pickles in {SAMPLE_DIR}: the snippet reads one;"
-                    " set RISKFLOW_SCENARIONET_DIR to their folder"
-                )
-            for sample in samples:
-                shutil.copy(sample, folder / sample.name)
         (folder / "snippet.py").write_text(code, encoding="utf-8")
         command = [sys.executable, "snippet.py"]
     else:
         (folder / "commands.sh").write_text(smallest(code), encoding="utf-8")
         command = ["bash", "-e", "commands.sh"]
     done = subprocess.run(
-        command, cwd=folder, env=environment(), capture_output=True, text=True, timeout=TIMEOUT
+        command,
+        cwd=folder,
+        env=environment(**extra),
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT,
     )
     assert done.returncode == 0, (
         f"{path.name}: block failed\n--- ran\n{(folder / command[-1]).read_text()}"

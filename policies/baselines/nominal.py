@@ -36,6 +36,7 @@ import os
 
 import torch
 
+from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.data import Normalizer
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.windows import WindowConfig
@@ -73,18 +74,17 @@ class NominalGenerator(RiskFlowAdversary):
         window_config: WindowConfig | None = None,
         threads: int | None = 1,
     ) -> None:
+        config = AdversaryConfig(
+            k=0, planning_interval=planning_interval, seed=seed, device=device,
+            window_config=window_config, threads=threads,
+        )  # fmt: skip
         super().__init__(
-            k=0,
-            planning_interval=planning_interval,
+            config,
             guidance_steps=0,
-            seed=seed,
-            device=device,
             generator=generator,
             normalizer=normalizer,
             checkpoint=checkpoint,
             sampling_steps=sampling_steps,
-            window_config=window_config,
-            threads=threads,
         )
 
 

@@ -2,83 +2,37 @@
 
 STRIVE (Rempe et al. 2022, "Generating Useful Accident-Prone Driving Scenarios via a
 Learned Traffic Prior", CVPR) makes a scenario adversarial by optimising the *latent
-codes* of a learned traffic model, so that the decoded scene stays likely under the
-model. Here the learned traffic model is RiskFlow's MeanFlow generator and its latent is
-the input noise ``eps`` (standard normal, one (T, 2) block per agent): every planning
-cycle runs RiskFlow's pipeline (:class:`~policies.riskflow.policy.RiskFlowAdversary`:
-window, encoder, base plans ``eps + u_theta(eps, 0, 1; C)``, TTC causal ranking of the
-top-``K`` ``A_c``) and then, instead of guiding the output ``u``, takes ``K_g`` steps on
-the ``A_c`` rows of ``eps``::
+codes* of a learned traffic model. Here the model is RiskFlow's MeanFlow generator and its
+latent the input noise ``eps``: every planning cycle runs RiskFlow's pipeline (window,
+encoder, base plans ``eps + u_theta(eps, 0, 1; C)``, TTC ranking of ``A_c``) and then,
+instead of guiding the output ``u``, takes ``K_g`` steps on the ``A_c`` rows of ``eps``::
 
     eps_c <- step(grad_{eps_c} L),   L = lambda_adv L_adv + lambda_map L_map
-                                          + lambda_prior ||eps_c||^2 / 2,
-    plans = clip(denorm(eps + u_theta(eps, 0, 1; C)))   (eps with its A_c rows = eps_c)
+                                          + lambda_prior ||eps_c||^2 / 2
 
-so each step is a forward *and backward* pass of the generator head over the whole scene
-(the scene context ``C`` is computed once, without gradients). ``L_adv``, ``L_map``,
-their weights, sign convention (``lambda_adv > 0`` is more adversarial), targets (base
-plans of everyone outside ``A_c``, detached; ``target="ego"``: the ego's), horizon and
-the step rule (Adam with learning rate ``step_size``, or plain steps) are RiskFlow's
-(:mod:`policies.riskflow.guidance`), so a comparison with RiskFlow isolates *latent*
-against *output-space* optimisation. ``||eps_c||^2 / 2`` is ``-log N(eps_c; 0, I)`` up to a
-constant: the prior term of STRIVE, exact for this latent.
-
-**Who changes.** The generator decodes the scene jointly, so moving ``eps_c`` also moves
-the decoded plans of the other vehicles (they react through social attention; STRIVE
-re-decodes the whole scene). Here only the ``A_c`` rows of the decoded plan are used; the
-other vehicles keep their base plans bit for bit (their ``eps`` is fixed and they are not
-re-decoded), as with RiskFlow and the diffusion baselines (CCDiff-style inpainting).
-Reasons: the comparison stays on the one difference under test; STRIVE holds its other
-agents plausible with further terms (latents near their initial values, no collisions
-among them or with the map) that are not part of this comparison's objective; and every
-vehicle reacts to the others at the next re-plan (0.5 s), as with RiskFlow. ``k = 0`` (or
-no eligible vehicle) gives exactly the unguided generator.
-
-**Mapping to the original, and what is simplified**
-
-========================================  =============================================
-STRIVE                                    here
-========================================  =============================================
-CVAE traffic model: graph network         the MeanFlow generator (scene encoder +
-encoder/decoder, learned conditional      social-attention head); latent = input noise
-prior ``p(z | scene)`` per agent          ``eps``, prior ``N(0, I)``
-adversarial term: planner collides with   RiskFlow's ``L_adv`` (distance to the nearest
-an adversary, softly chosen among agents  target) on the TTC-ranked top-``K`` ``A_c``
-prior term ``-log p(z)``, weighted        ``lambda_prior ||eps_c||^2 / 2``
-per attacker / other agent
-latents of all agents optimised; others   only ``A_c``'s latents; others hold their base
-kept near their initial latents, no       plans (above)
-collisions among them
-environment-collision term                RiskFlow's ``L_map`` (SDF footprint penalty)
-Adam, 200 iterations, lr 0.05, offline    ``K_g = 30`` steps per 0.5 s cycle, closed loop
-rule-based planner in the loop, then a    no separate solution-optimisation stage, no
-solution-optimisation stage and a         planner in the optimisation, no filtering
-feasibility filter
-========================================  =============================================
-
-Actions are clipped to the dynamics bounds after decoding (as for every generator
-sample); a latent that decodes beyond a bound gets no gradient along it (the output-space
-guidance projects instead). Cost: ``K_g`` generator forward+backward passes per cycle
-(RiskFlow: ``K_g`` rollouts of the ``A_c`` rows only); timings in docs/BASELINES.md.
+each a forward and backward pass of the generator head (the scene context is computed
+once). ``L_adv``, ``L_map``, their weights, targets, horizon and step rule are RiskFlow's
+(:mod:`policies.riskflow.guidance`), so the comparison isolates latent against
+output-space optimisation; the other vehicles keep their base plans bit for bit, and
+``k = 0`` is the unguided generator exactly. docs/BASELINES.md ("STRIVE-style") maps each
+part to the original, says what is simplified and why, and gives the measured effect and
+cost.
 """
 
 from __future__ import annotations
 
-import os
+from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from policies.learned.data import Normalizer
+from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.guidance_losses import adversarial_loss, map_term, target_rows
 from policies.learned.plan_buffer import EncodedView
-from policies.learned.ranking import DEFAULT_THRESHOLD
 from policies.learned.sampler import base_velocity
-from policies.learned.windows import WindowConfig
 from policies.riskflow.guidance import (
-    GuidanceConfig,
     GuidanceResult,
     GuidanceScene,
     plans_from_velocity,
@@ -92,27 +46,17 @@ class StriveAdversary(RiskFlowAdversary):
     """STRIVE-style adversary for every non-ego vehicle (module docstring).
 
     Args:
-        k: size of ``A_c`` (int >= 0) or ``"all"``; 0 gives the unguided generator.
-        planning_interval: time between re-plans [s] (a multiple of ``dt``).
-        target: ``"others"`` or ``"ego"`` (RiskFlow's).
-        guidance_steps: ``K_g`` latent optimisation steps per cycle.
-        lambda_adv: weight of ``L_adv`` [1/m]; > 0 is more adversarial.
-        lambda_map: weight of ``L_map`` [1/m^2], >= 0.
+        config: the shared options (:class:`~policies.learned.adversary_config.AdversaryConfig`:
+            ``k``, ``target``, ``lambda_adv``, ``lambda_map``, ``seed``, ...; the same
+            ``eps`` as ``RiskFlowAdversary`` with the same seed), or as keywords.
         lambda_prior: weight of the latent prior ``||eps_c||^2 / 2``, >= 0.
-        guidance_horizon: ``T_g`` [steps] of ``L_adv``; None: whole plan.
-        step_size: Adam learning rate [normalised noise units per step], or ``gamma``
-            of plain steps.
-        optimizer: ``"adam"`` (default) or ``"gradient"``.
-        rank_threshold: risk-graph edge threshold of the TTC causal ranking.
-        seed: noise seed (the same ``eps`` as ``RiskFlowAdversary`` with this seed).
-        device: torch device.
         generator: a MeanFlow ``RiskFlowGenerator`` (with ``normalizer``), ``"meanflow"``,
             or None (the shipped one, or ``checkpoint``'s); a diffusion generator is
             refused (no one-step latent to differentiate through).
-        normalizer: the model's action normalisation (required with a model object).
-        checkpoint: a MeanFlow ``riskflow-train`` checkpoint file.
-        window_config: window options (default: the model's training windows).
-        threads: torch CPU threads while planning; None keeps torch's setting.
+        **options: ``RiskFlowAdversary``'s: ``guidance_steps`` (``K_g`` latent optimisation
+            steps per cycle), ``step_size`` (Adam learning rate [normalised noise units
+            per step], or ``gamma`` of plain steps), ``optimizer``, ``normalizer``,
+            ``checkpoint``, and the shared options as keywords.
 
     After each cycle: ``guidance_losses`` ((K_g + 1, 2): ``L_adv``, ``L_map`` before each
     step and after the last), ``prior_losses`` ((K_g + 1,): ``||eps_c||^2 / 2``) and
@@ -123,49 +67,18 @@ class StriveAdversary(RiskFlowAdversary):
 
     def __init__(
         self,
-        k: int | str = 5,
-        planning_interval: float = 0.5,
-        target: str = "others",
-        guidance_steps: int = 30,
-        lambda_adv: float = 50.0,
-        lambda_map: float = 1.0,
+        config: AdversaryConfig | None = None,
+        *,
         lambda_prior: float = DEFAULT_LAMBDA_PRIOR,
-        guidance_horizon: int | None = None,
-        step_size: float = GuidanceConfig.step_size,
-        optimizer: str = GuidanceConfig.optimizer,
-        rank_threshold: float = DEFAULT_THRESHOLD,
-        seed: int = 0,
-        device: torch.device | str = "cpu",
         generator: RiskFlowGenerator | str | None = None,
-        normalizer: Normalizer | None = None,
-        checkpoint: str | os.PathLike | None = None,
-        window_config: WindowConfig | None = None,
-        threads: int | None = 1,
+        **options: Any,
     ) -> None:
         if not (isinstance(lambda_prior, (int, float)) and 0 <= lambda_prior < float("inf")):
             raise ValueError(f"lambda_prior must be a finite number >= 0, got {lambda_prior!r}")
-        if generator == "diffusion":
+        if generator == "diffusion" or "sampling_steps" in options:
             raise ValueError(_NOT_DIFFUSION)
         self.lambda_prior = float(lambda_prior)
-        super().__init__(
-            k=k,
-            planning_interval=planning_interval,
-            target=target,
-            guidance_steps=guidance_steps,
-            lambda_adv=lambda_adv,
-            lambda_map=lambda_map,
-            guidance_horizon=guidance_horizon,
-            step_size=step_size,
-            optimizer=optimizer,
-            rank_threshold=rank_threshold,
-            seed=seed,
-            device=device,
-            generator=generator,
-            normalizer=normalizer,
-            checkpoint=checkpoint,
-            window_config=window_config,
-            threads=threads,
-        )
+        super().__init__(config, generator=generator, **options)
         if self.generator_kind != "meanflow":
             raise ValueError(_NOT_DIFFUSION)
 

@@ -3,7 +3,6 @@
 ==================  ==============================================================
 module              concept
 ==================  ==============================================================
-``registry``        the methods: name -> policy class, variant, options (``--list``)
 ``options``         the typed options and the grid of rollouts (jobs, row keys)
 ``rollout``         one rollout: policy + ego, closed loop, metrics, timing
 ``results``         the results folder: config check, fsynced rows, KDD samples
@@ -13,15 +12,17 @@ module              concept
 ``plots``           CS vs RS, realism vs horizon, speed (PNG)
 ``cli``             the ``riskflow-eval`` command line
 ==================  ==============================================================
+
+The methods it compares are those of :mod:`policies.registry` (one name per scene policy).
 """
 
 from __future__ import annotations
 
 from policies.evaluation.options import EvalOptions, Job, plan_jobs
-from policies.evaluation.registry import METHODS, MethodSpec, build_policy
 from policies.evaluation.report import build_tables, write_report
 from policies.evaluation.results import ConfigMismatch, ResultsLocked, ResultsStore
 from policies.evaluation.runner import prepare, run_evaluation
+from policies.registry import METHODS, MethodSpec, build_policy
 
 __all__ = [
     "METHODS",

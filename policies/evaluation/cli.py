@@ -15,45 +15,23 @@ usage error naming the argument.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
-import typing
 from collections.abc import Sequence
-from typing import Any
 
-from policies.dataclass_cli import field_docs
+from policies.dataclass_cli import dataclass_parser
 from policies.evaluation.options import EvalOptions
-from policies.evaluation.registry import method_list
+from policies.registry import method_list
 
 PROG = "riskflow-eval"
 
 
-def _flag(field: dataclasses.Field) -> str:
-    return field.metadata.get("flag", "--" + field.name.replace("_", "-"))
-
-
 def parser() -> argparse.ArgumentParser:
     """The run parser: one option per :class:`EvalOptions` field, plus ``--list``."""
-    parser = argparse.ArgumentParser(
-        prog=PROG,
-        description="Closed-loop evaluation; 'riskflow-eval report --out DIR' writes the "
-        "report of a results folder.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    description = (
+        "Closed-loop evaluation; 'riskflow-eval report --out DIR' writes the report of a "
+        "results folder."
     )
-    hints, docs = typing.get_type_hints(EvalOptions), field_docs(EvalOptions)
-    for field in dataclasses.fields(EvalOptions):
-        hint = hints[field.name]
-        kwargs: dict[str, Any] = {"help": docs.get(field.name, " "), "dest": field.name,
-                                  "default": field.default}  # fmt: skip
-        if hint is bool:
-            kwargs["action"] = argparse.BooleanOptionalAction
-        elif typing.get_origin(hint) is tuple:
-            kwargs.update(nargs="+", type=typing.get_args(hint)[0])
-        else:  # X or X | None
-            kwargs["type"] = next(
-                a for a in typing.get_args(hint) or (hint,) if a is not type(None)
-            )
-        parser.add_argument(_flag(field), **kwargs)
+    parser = dataclass_parser(EvalOptions, PROG, description)
     parser.add_argument("--list", action="store_true", help="list the methods and exit")
     return parser
 

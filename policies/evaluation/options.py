@@ -4,7 +4,7 @@
 error names its argument) and expands it into :class:`Job` s, one per (method, K,
 planning interval, scene, seed). A method without K (or without a planning interval)
 gets one job per scene and seed for all K (or intervals): its key has ``k`` (or
-``interval``) None. The run-level settings (:func:`run_config`) must be the same for
+``interval``) None. The run-level settings (:class:`RunConfig`) must be the same for
 every row of a results file; the per-job ones are in each row's key.
 """
 
@@ -14,18 +14,21 @@ import importlib.util
 import json
 import math
 import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import torch
 
-from policies.evaluation.registry import method_options, method_spec
 from policies.learned.guidance_losses import TARGETS
 from policies.planners import PLANNERS
-from riskflow_env.config import DynamicsConfig
+from policies.registry import method_options, method_spec
+from riskflow_env.config import DynamicsConfig, EnvConfig
 from riskflow_env.folder_lock import check_output_folder
-from riskflow_env.scenarios import Scenario, load_bank, shipped_bank
+from riskflow_env.scenarios import ScenarioBank, shipped_bank
+from riskflow_env.scenarios.folders import open_scenes
+from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
 SCHEMA = 1  # results.jsonl row layout version
 SHIPPED = "shipped:eval"  # the data source name of the shipped evaluation scenes
@@ -45,7 +48,8 @@ class EvalOptions:
     """number of scenes, the first ones of the source (not given: all of them; more than it
     holds is an error)"""
     data: str | None = None
-    """scenario directory (riskflow-data output); default: the shipped evaluation scenes"""
+    """scene folder: riskflow-data output (.npz) or a ScenarioNet dataset (dataset_summary.pkl,
+    read scene by scene); default: the shipped evaluation scenes"""
     seeds: tuple[int, ...] = (0,)
     """rollout seeds, ints >= 0 (one rollout per scene and seed)"""
     ego: str = "idm"
@@ -90,7 +94,7 @@ class Job:
     scene: str
     scene_index: int
     seed: int
-    run: dict[str, Any]  # run_config(...) plus wosac and device
+    run: RunConfig
 
     @property
     def key(self) -> str:
@@ -147,31 +151,95 @@ def check_interval(interval: float, dt: float, horizon_s: float | None) -> float
     return round(steps) * dt
 
 
-def run_config(options: EvalOptions) -> dict[str, Any]:
-    """Settings every row of one results file shares (``config.json``)."""
-    return {
-        "schema": SCHEMA,
-        "data": options.data or SHIPPED,
-        "ego": options.ego,
-        "target": options.target,
-        "duration": options.duration,
-        "stop_at_ego_collision": options.stop_at_ego_collision,
-    }
+@dataclass(frozen=True)
+class RunConfig:
+    """The run-level settings of a rollout: what every row of one results file shares
+    (``config.json``, :meth:`as_json`), plus how the worker runs it (``wosac``, ``device``:
+    not part of the results' identity).
+
+    Attributes:
+        data: the scene source (a folder, or ``"shipped:eval"``).
+        ego: the ego planner (a name of ``policies.planners.PLANNERS``).
+        target: the guidance target (``"others"`` or ``"ego"``).
+        duration: rollout length [s].
+        stop_at_ego_collision: end the episode at the ego's first collision.
+        wosac: compute the WOSAC-style score of each rollout.
+        device: torch device of the learned policies.
+    """
+
+    data: str
+    ego: str
+    target: str
+    duration: float
+    stop_at_ego_collision: bool
+    wosac: bool = True
+    device: str = "cpu"
+
+    @classmethod
+    def from_options(cls, options: EvalOptions) -> RunConfig:
+        """The run settings of ``options``."""
+        return cls(
+            data=options.data or SHIPPED,
+            ego=options.ego,
+            target=options.target,
+            duration=options.duration,
+            stop_at_ego_collision=options.stop_at_ego_collision,
+            wosac=options.wosac,
+            device=options.device,
+        )
+
+    def as_json(self) -> dict[str, Any]:
+        """``config.json``: the settings every row of the results file shares."""
+        return {
+            "schema": SCHEMA,
+            "data": self.data,
+            "ego": self.ego,
+            "target": self.target,
+            "duration": self.duration,
+            "stop_at_ego_collision": self.stop_at_ego_collision,
+        }
+
+    def env_config(self, dt: float) -> EnvConfig:
+        """Episode length and termination of the run (full episodes unless stopping at
+        an ego collision; nobody ends on leaving the road)."""
+        return EnvConfig(
+            episode_steps=round(self.duration / dt),
+            terminate_on_collision="ego" if self.stop_at_ego_collision else "none",
+            terminate_on_offroad="none",
+        )
 
 
-def load_scenes(data: str | None, count: int | None = None) -> list[Scenario]:
-    """The first ``count`` scenes (default: all) of ``data`` (a directory) or of the
-    shipped bank; ValueError naming ``--scenes`` when the source holds fewer."""
-    bank = shipped_bank("eval") if data in (None, SHIPPED) else load_bank(data)
+def open_data(data: str | None) -> ScenarioBank | ScenarioNetDataset:
+    """The scenes of ``--data``: the shipped evaluation bank (None), a folder of ``.npz``
+    scenes (loaded) or a ScenarioNet dataset folder (read scene by scene when a rollout
+    needs it: :func:`riskflow_env.scenarios.folders.open_scenes`); ValueError naming
+    ``--data`` when it is none of them."""
+    if data in (None, SHIPPED):
+        return shipped_bank("eval")
+    try:
+        return open_scenes(data)
+    except (OSError, ValueError) as err:  # missing, a file, no scenes, a malformed index
+        raise ValueError(f"--data: {err}") from err
+
+
+def scene_names(data: str | None, count: int | None = None) -> list[str]:
+    """The names of the first ``count`` scenes (default: all) of ``data`` (see
+    :func:`open_data`); ValueError naming ``--scenes`` when the source holds fewer, or
+    ``--data`` when one of those scenes' files is missing. Reads no ScenarioNet scene."""
+    scenes = open_data(data)
     if count is None:
-        count = len(bank)
-    if count > len(bank):
+        count = len(scenes)
+    if count > len(scenes):
         source = "the shipped evaluation bank" if data in (None, SHIPPED) else f"--data {data}"
         raise ValueError(
-            f"--scenes {count}: {source} holds only {len(bank)} scenes; "
-            f"give --scenes {len(bank)} or fewer"
+            f"--scenes {count}: {source} holds only {len(scenes)} scenes; "
+            f"give --scenes {len(scenes)} or fewer"
         )
-    return [bank[i] for i in range(count)]
+    if isinstance(scenes, ScenarioNetDataset):
+        missing = scenes.subset(range(count)).missing_files()
+        if missing:
+            raise ValueError(f"--data: {len(missing)} scenario file(s) missing, e.g. {missing[0]}")
+    return list(scenes.names[:count])
 
 
 def check_device(device: str) -> None:
@@ -239,14 +307,15 @@ def check_backend(backend: str, address: str | None) -> None:
         raise ValueError("--backend ray needs Ray: pip install -e '.[ray]'")
 
 
-def plan_jobs(options: EvalOptions, scenes: list[Scenario]) -> list[Job]:
-    """Every rollout the options ask for, in a fixed order (ValueError on bad arguments)."""
+def plan_jobs(options: EvalOptions, scenes: Sequence[str]) -> list[Job]:
+    """Every rollout the options ask for, in a fixed order (ValueError on bad arguments);
+    ``scenes``: the names of the scenes (:func:`scene_names`), in order."""
     dt = DynamicsConfig().dt
     check_options(options, dt)
     ks = list(dict.fromkeys(parse_k(text) for text in options.k))
     intervals = list(dict.fromkeys(check_interval(t, dt, None) for t in options.interval))
     per_method = method_options(options.methods, options.overrides, options.diffusion_steps)
-    run = run_config(options) | {"wosac": options.wosac, "device": options.device}
+    run = RunConfig.from_options(options)
     jobs = []
     for method in options.methods:
         spec = method_spec(method)
@@ -254,11 +323,8 @@ def plan_jobs(options: EvalOptions, scenes: list[Scenario]) -> list[Job]:
             for interval in intervals if spec.uses_interval else [None]:
                 for index, scene in enumerate(scenes):
                     for seed in options.seeds:
-                        job = Job(
-                            method, per_method[method], k, interval, scene.name, index, seed, run
-                        )
+                        job = Job(method, per_method[method], k, interval, scene, index, seed, run)
                         jobs.append(job)
-    names = [scene.name for scene in scenes]
-    if len(set(names)) != len(names):
+    if len(set(scenes)) != len(scenes):
         raise ValueError("--data: scene names must be unique (they key the results rows)")
     return list({job.key: job for job in jobs}.values())

@@ -2,7 +2,7 @@
 
 Writing is crash-safe and resumable:
 
-* ``config.json`` holds the run-level settings (:func:`~.options.run_config`); a run
+* ``config.json`` holds the run-level settings (:meth:`~.options.RunConfig.as_json`); a run
   with other settings into the same folder is refused (:class:`ConfigMismatch`), never
   mixed in.
 * Each finished rollout first writes its KDD samples to ``samples/<id>.npz`` (temporary

@@ -20,40 +20,32 @@ from typing import Any
 import numpy as np
 import torch
 
-from policies.evaluation.options import Job, load_scenes, method_label
-from policies.evaluation.registry import build_policy
+from policies.evaluation.options import Job, method_label, open_data
 from policies.harness import ClosedLoop, EpisodeRecord
 from policies.planners import make_planner
+from policies.registry import build_policy
 from riskflow_env.config import EnvConfig
 from riskflow_env.metrics import RolloutRecord, kinematic_samples, rollout_metrics, wosac_scene
-from riskflow_env.scenarios import Scenario
+from riskflow_env.scenarios import Scenario, ScenarioBank
+from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
 HISTORY = 2  # logged steps prepended as context (WOSAC's central differences)
 _WARM: set[tuple] = set()  # (label, k, interval) this process has warmed up
 
 
 @functools.cache
-def _scenes(data: str) -> tuple[Scenario, ...]:
-    return tuple(load_scenes(data))
+def _scenes(data: str) -> ScenarioBank | ScenarioNetDataset:
+    return open_data(data)
 
 
 def job_scenario(job: Job) -> Scenario:
-    """The job's scene (the source is loaded once per process)."""
-    scene = _scenes(job.run["data"])[job.scene_index]
+    """The job's scene (the source is opened once per process; a ScenarioNet scene is
+    read when a job needs it)."""
+    scene = _scenes(job.run.data)[job.scene_index]
     if scene.name != job.scene:
-        raise RuntimeError(f"scene {job.scene_index} of {job.run['data']} is {scene.name!r}, "
+        raise RuntimeError(f"scene {job.scene_index} of {job.run.data} is {scene.name!r}, "
                            f"expected {job.scene!r}: the scenario directory changed")  # fmt: skip
     return scene
-
-
-def env_config(run: dict[str, Any], dt: float) -> EnvConfig:
-    """Episode length and termination of the run (full episodes unless stopping at an
-    ego collision; nobody ends on leaving the road)."""
-    return EnvConfig(
-        episode_steps=round(run["duration"] / dt),
-        terminate_on_collision="ego" if run["stop_at_ego_collision"] else "none",
-        terminate_on_offroad="none",
-    )
 
 
 def json_number(value: Any) -> Any:
@@ -74,10 +66,10 @@ def _warm_up(job: Job, scenario: Scenario, config: EnvConfig) -> float:
     start = time.perf_counter()
     policy = build_policy(
         job.method, job.options, k=job.k, planning_interval=job.interval,
-        target=job.run["target"], seed=job.policy_seed, device=job.run["device"],
+        target=job.run.target, seed=job.policy_seed, device=job.run.device,
     )  # fmt: skip
     one_step = replace(config, episode_steps=1)
-    planner = make_planner(job.run["ego"])
+    planner = make_planner(job.run.ego)
     with ClosedLoop(planner, policy, config=one_step, scenarios=scenario) as loop:
         loop.run(scenario, seed=job.seed)
     _WARM.add(label)
@@ -100,11 +92,11 @@ def rollout_episode(job: Job) -> tuple[EpisodeRecord, RolloutRecord, dict[str, f
         start = time.perf_counter()
         policy = build_policy(
             job.method, job.options, k=job.k, planning_interval=job.interval,
-            target=run["target"], seed=job.policy_seed, device=run["device"],
+            target=run.target, seed=job.policy_seed, device=run.device,
         )  # fmt: skip
-        planner = make_planner(run["ego"])
+        planner = make_planner(run.ego)
         setup = time.perf_counter() - start
-        config = env_config(run, scenario.dt)
+        config = run.env_config(scenario.dt)
         warmup = _warm_up(job, scenario, config)
         with ClosedLoop(planner, policy, config=config, scenarios=scenario) as loop:
             start = time.perf_counter()
@@ -134,7 +126,7 @@ def run_job(job: Job) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     start = time.perf_counter()
     metrics = {key: json_number(v) for key, v in rollout_metrics(record).items()}
     wosac = None
-    if run["wosac"]:
+    if run.wosac:
         wosac = {key: json_number(v) for key, v in wosac_scene([record]).items()}
     samples = kinematic_samples(record).as_arrays()
     scored = time.perf_counter() - start

@@ -21,13 +21,12 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from policies.evaluation.options import EvalOptions, Job, load_scenes, plan_jobs, run_config
-from policies.evaluation.registry import build_policy
+from policies.evaluation.options import EvalOptions, Job, RunConfig, plan_jobs, scene_names
 from policies.evaluation.results import ResultsStore
 from policies.evaluation.rollout import run_job
+from policies.registry import build_policy
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.processes import exit_with_parent
-from riskflow_env.scenarios import ScenarioFormatError
 
 
 def check_methods(jobs: list[Job], dt: float = DynamicsConfig().dt) -> None:
@@ -43,7 +42,7 @@ def check_methods(jobs: list[Job], dt: float = DynamicsConfig().dt) -> None:
         try:
             policy = build_policy(
                 method, job.options, k=job.k, planning_interval=job.interval,
-                target=job.run["target"], seed=0, device=job.run["device"],
+                target=job.run.target, seed=0, device=job.run.device,
             )  # fmt: skip
         except (TypeError, ValueError) as err:
             given = ", ".join(f"{k}={v!r}" for k, v in job.options.items()) or "defaults"
@@ -84,14 +83,11 @@ def prepare(options: EvalOptions) -> tuple[ResultsStore, list[Job]]:
     (:class:`~.results.ResultsLocked` if another run holds it); returns the store (locked
     until :func:`run_evaluation` ends) and every job."""
     store = ResultsStore(options.out)
-    try:
-        scenes = load_scenes(options.data, options.scenes)
-    except (OSError, ScenarioFormatError) as err:  # missing, a file, not a scene file
-        raise ValueError(f"--data: {err}") from err
-    jobs = plan_jobs(options, scenes)
+    jobs = plan_jobs(options, scene_names(options.data, options.scenes))
     check_methods(jobs)
     try:
-        store.check_config(run_config(options))  # takes the folder's writer lock
+        # takes the folder's writer lock
+        store.check_config(RunConfig.from_options(options).as_json())
     except OSError as err:  # e.g. the folder cannot be created
         store.unlock()
         raise ValueError(f"--out: {err}") from err

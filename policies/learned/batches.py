@@ -18,7 +18,10 @@ import torch
 
 from policies.learned.data import WindowDataset, collate_windows
 from policies.learned.data_cache import derived_dir
-from riskflow_env.scenarios.io import list_scenarios, load_scenario
+from riskflow_env.scenarios.folders import scene_files
+from riskflow_env.scenarios.io import load_scenario
+from riskflow_env.scenarios.scenario import Scenario
+from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
 
 def load_splits(
@@ -30,7 +33,9 @@ def load_splits(
     cache instead (:func:`policies.learned.data_cache.derived_dir`).
 
     Args:
-        data: scene folder (``riskflow-data generate``) of the training split.
+        data: scene folder of the training split: ``.npz`` scenes (``riskflow-data
+            generate``) or a ScenarioNet dataset (read one scene at a time while the
+            windows are cut; ``riskflow_env.scenarios.folders.scene_files``).
         val_data: scene folder of the validation split; None holds out
             ``round(val_fraction * scenes)`` of ``data``'s scenes (the same ones for
             any training seed).
@@ -45,23 +50,34 @@ def load_splits(
             caches[folder].mkdir(parents=True, exist_ok=True)
     if val_data is not None:
         train, val = (
-            WindowDataset(folder, None, stride, caches[folder] / f"{name}.npz")
+            WindowDataset(_source(folder), None, stride, caches[folder] / f"{name}.npz")
             for folder in (data, val_data)
         )
         return train, val
-    paths = list_scenarios(data)
-    count = round(val_fraction * len(paths))
-    if not 0 < count < len(paths):
+    scenes = scene_files(data)
+    count = round(val_fraction * len(scenes))
+    if not 0 < count < len(scenes):
         raise ValueError(
-            f"a validation fraction {val_fraction} leaves {count} of {len(paths)} scenes"
+            f"a validation fraction {val_fraction} leaves {count} of {len(scenes)} scenes"
         )
-    order = np.random.default_rng(0).permutation(len(paths))
+    order = np.random.default_rng(0).permutation(len(scenes))
     datasets = []
     for role, part in (("train", order[count:]), ("val", order[:count])):
-        scenes = [load_scenario(paths[i]) for i in sorted(part)]
+        picked = sorted(int(i) for i in part)
+        if isinstance(scenes, ScenarioNetDataset):  # read one at a time by WindowDataset
+            source: ScenarioNetDataset | list[Scenario] = scenes.subset(picked)
+        else:
+            source = [load_scenario(scenes[i]) for i in picked]
         cache = caches[data] / f"{name}-val{val_fraction:g}-{role}.npz"
-        datasets.append(WindowDataset(scenes, None, stride, cache))
+        datasets.append(WindowDataset(source, None, stride, cache))
     return datasets[0], datasets[1]
+
+
+def _source(folder: Path) -> Path | ScenarioNetDataset:
+    """What ``WindowDataset`` reads for ``folder``: the folder of ``.npz`` scenes itself,
+    or its ScenarioNet dataset."""
+    scenes = scene_files(folder)
+    return scenes if isinstance(scenes, ScenarioNetDataset) else folder
 
 
 def batch_order(

@@ -39,6 +39,7 @@ from policies.learned.windows import (
 from riskflow_env._array import Array, asarray_like
 from riskflow_env.dynamics import ACTION_DIM
 from riskflow_env.scenarios.scenario import Scenario
+from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
 STATS_FILENAME = "norm_stats.json"
 WINDOW_KEYS = AGENT_KEYS + PAIR_KEYS
@@ -60,9 +61,13 @@ def window_indices(scenario: Scenario, config: WindowConfig, stride: int) -> np.
 
 
 def _scenes(
-    source: Sequence[Scenario] | str | os.PathLike, cache_path: str | os.PathLike | None
+    source: Sequence[Scenario] | str | os.PathLike | ScenarioNetDataset,
+    cache_path: str | os.PathLike | None,
 ) -> tuple[list[Any], Iterator]:
-    """(fingerprint parts, iterator over scenes) of an in-memory list or a directory."""
+    """(fingerprint parts, iterator over scenes) of an in-memory list, a directory or a
+    ScenarioNet dataset (each scene read when the iterator reaches it)."""
+    if isinstance(source, ScenarioNetDataset):
+        return source.fingerprint(), (source.load(i) for i in range(len(source)))
     if isinstance(source, (str, os.PathLike)):
         from riskflow_env.scenarios.io import list_scenarios, load_scenario  # lazy: optional
 
@@ -94,8 +99,9 @@ class WindowDataset(Dataset):
     """Training windows of a set of scenes, several per scene.
 
     Args:
-        source: scenes in memory, or a directory read with
-            ``riskflow_env.scenarios.io.list_scenarios`` / ``load_scenario``.
+        source: scenes in memory, a directory read with
+            ``riskflow_env.scenarios.io.list_scenarios`` / ``load_scenario``, or a
+            ``ScenarioNetDataset`` (scenes read one at a time: only the windows stay).
         config: window options (sizes, agent selection).
         stride: steps between the current steps of consecutive windows of a scene.
         cache_path: optional ``.npz`` file holding the packed windows; used when it
@@ -109,7 +115,7 @@ class WindowDataset(Dataset):
 
     def __init__(
         self,
-        source: Sequence[Scenario] | str | os.PathLike,
+        source: Sequence[Scenario] | str | os.PathLike | ScenarioNetDataset,
         config: WindowConfig | None = None,
         stride: int = 5,
         cache_path: str | os.PathLike | None = None,

@@ -4,7 +4,8 @@ Beside the data (``<folder>/cache/``, ``<folder>/norm_stats.json``) when the fol
 writable and outside the installed packages; otherwise (the shipped bank in
 ``riskflow_env/assets``, anything inside the ``riskflow_env`` or ``policies`` package
 folders, a read-only folder) in the user cache, ``platformdirs.user_cache_dir("riskflow-env")``
-(``~/.cache/riskflow-env`` on Linux; ``RISKFLOW_CACHE_DIR`` overrides it), under
+(``~/.cache/riskflow-env`` on Linux; ``RISKFLOW_CACHE_DIR`` overrides it:
+:mod:`riskflow_env.user_cache`), under
 ``data/<folder name>-<16 hex digits of a SHA-256 of its absolute path and contents
 signature>/``, so an install never changes. The signature (name, size and modification
 time of each file directly in the folder) changes when the scenes do, e.g. after an
@@ -22,20 +23,11 @@ from pathlib import Path
 
 import policies
 import riskflow_env
+from riskflow_env.user_cache import CACHE_ENV, user_cache
 
-CACHE_ENV = "RISKFLOW_CACHE_DIR"
 PACKAGE_DIRS = tuple(
     Path(package.__file__).resolve().parent for package in (riskflow_env, policies)
 )
-
-
-def user_cache() -> Path:
-    """The user cache folder of riskflow-env (``$RISKFLOW_CACHE_DIR`` when set)."""
-    if os.environ.get(CACHE_ENV):
-        return Path(os.environ[CACHE_ENV])
-    from platformdirs import user_cache_dir  # only needed when a folder is redirected
-
-    return Path(user_cache_dir("riskflow-env"))
 
 
 def derived_dir(folder: str | os.PathLike) -> Path:
@@ -52,3 +44,6 @@ def contents_signature(folder: Path) -> str:
     """``name size mtime_ns`` of every file directly in ``folder``, one a line, sorted."""
     entries = sorted((e for e in os.scandir(folder) if e.is_file()), key=lambda e: e.name)
     return "\n".join(f"{e.name} {e.stat().st_size} {e.stat().st_mtime_ns}" for e in entries)
+
+
+__all__ = ["CACHE_ENV", "PACKAGE_DIRS", "contents_signature", "derived_dir", "user_cache"]

@@ -32,6 +32,7 @@ from policies.learned.attention import TransformerBlock, edge_bias, social_mask
 from policies.learned.config import HISTORY_FEATURES, ModelConfig
 from policies.learned.embeddings import MLP, masked_mean
 from policies.learned.map_encoder import MapEncoder
+from riskflow_env.geometry import to_frame
 
 # Keys the encoder reads, with their shapes (B, A: batch and agent axes).
 ENCODER_KEYS = {
@@ -95,8 +96,7 @@ def history_features(batch: Mapping[str, Tensor]) -> Tensor:
     size = torch.broadcast_to(batch["length"][..., None], dx.shape)
     features = torch.stack(
         [
-            cos0 * dx + sin0 * dy,
-            -sin0 * dx + cos0 * dy,
+            *to_frame(dx, dy, cos0, sin0),
             torch.cos(dpsi),
             torch.sin(dpsi),
             history[..., 2],

@@ -193,7 +193,7 @@ class RiskFlowGenerator(nn.Module):
             skeleton = cls(saved)
         skeleton.check_checkpoint_state(state_dict)
         model = cls(saved)
-        model.load_checkpoint_state(state_dict)
+        model.load_state_dict(state_dict)  # checked on the skeleton
         return model
 
     def check_checkpoint_state(self, state_dict: Mapping[str, Tensor]) -> None:
@@ -220,19 +220,7 @@ class RiskFlowGenerator(nn.Module):
             )
 
     def load_checkpoint_state(self, state_dict: Mapping[str, Tensor]) -> None:
-        """``load_state_dict`` that raises :class:`CheckpointError` listing every mismatch."""
-        own = self.state_dict()
-        missing = sorted(set(own) - set(state_dict))
-        unexpected = sorted(set(state_dict) - set(own))
-        shapes = {
-            k: (tuple(own[k].shape), tuple(v.shape))
-            for k, v in state_dict.items()
-            if k in own and tuple(own[k].shape) != tuple(v.shape)
-        }
-        if missing or unexpected or shapes:
-            raise CheckpointError(
-                "checkpoint state dict does not fit the model: "
-                f"missing {missing}, unexpected {unexpected}, "
-                f"shape mismatches {{name: (model, checkpoint)}} {shapes}"
-            )
+        """``load_state_dict`` after :meth:`check_checkpoint_state` (a
+        :class:`CheckpointError` lists every mismatch)."""
+        self.check_checkpoint_state(state_dict)
         self.load_state_dict(state_dict)

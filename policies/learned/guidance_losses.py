@@ -11,6 +11,8 @@ comparison between them is a comparison of how they guide, not of what they opti
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
 from enum import Enum
 
 import torch
@@ -21,6 +23,7 @@ from riskflow_env.geometry import footprint_points
 from riskflow_env.maps import DrivableMap
 
 __all__ = [
+    "ObjectiveConfig",
     "TARGETS",
     "Target",
     "MapTerm",
@@ -42,6 +45,49 @@ class Target(str, Enum):
 
 
 TARGETS = tuple(target.value for target in Target)  # ("others", "ego")
+
+
+@dataclass(frozen=True)
+class ObjectiveConfig:
+    """The guidance objective every guided adversary shares (RiskFlow, STRIVE-style, the
+    diffusion baselines): ``lambda_adv * L_adv + lambda_map * L_map``.
+
+    Attributes:
+        lambda_adv: weight of ``L_adv`` [1/m]; > 0 is adversarial (RiskFlow's convention).
+        lambda_map: weight of ``L_map`` [1/m^2], >= 0.
+        horizon: ``T_g`` plan steps of ``L_adv``; None: the whole plan.
+        target: a :class:`Target` value, ``"others"`` (paper) or ``"ego"`` (stress testing).
+        map_margin: footprint samples closer than this to the road edge are penalised [m].
+        map_decay: ``w_t = map_decay ** t`` of ``L_map``, in (0, 1].
+    """
+
+    lambda_adv: float = 50.0
+    lambda_map: float = 1.0
+    horizon: int | None = None
+    target: str = "others"
+    map_margin: float = 0.2
+    map_decay: float = 0.98
+
+    def checks(self) -> list[tuple[bool, str]]:
+        """``(holds, message)`` of every option rule (subclasses add theirs)."""
+        horizon_ok = (
+            self.horizon is None
+            or (isinstance(self.horizon, int) and not isinstance(self.horizon, bool))
+            and self.horizon >= 1
+        )
+        reals = ("lambda_adv", "lambda_map", "map_margin", "map_decay")
+        return [
+            (horizon_ok, "horizon must be None or an int >= 1"),
+            (all(math.isfinite(getattr(self, name)) for name in reals), f"{reals} must be finite"),
+            (self.lambda_map >= 0, "lambda_map must be >= 0"),
+            (0 < self.map_decay <= 1, "map_decay must be in (0, 1]"),
+            (self.target in TARGETS, f"target must be one of {TARGETS}"),
+        ]
+
+    def __post_init__(self) -> None:
+        for ok, message in self.checks():
+            if not ok:
+                raise ValueError(f"{type(self).__name__}: {message}; got {self}")
 
 
 def target_rows(present: Tensor, controllable: Tensor, ego: int, target: str) -> Tensor:

@@ -39,10 +39,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.config import ModelConfig
 from policies.learned.data import collate_windows
 from policies.learned.encoder import ENCODER_KEYS, SceneContext
-from policies.learned.ranking import Ranking, check_k
+from policies.learned.ranking import Ranking
 from policies.learned.windows import WindowConfig, window_from_view
 from riskflow_env.agents.base import actions_dict, controlled_mask
 from riskflow_env.dynamics import inverse, rollout
@@ -112,14 +113,9 @@ class PlanBufferPolicy(ABC):
     """Base of the plan-buffer scene policies (module docstring); drives every non-ego vehicle.
 
     Args:
-        k: size of ``A_c`` (int >= 0) or ``"all"``.
-        planning_interval: time between re-plans [s]; a multiple of the env's ``dt``
-            between ``dt`` and the plan horizon.
+        config: the shared options (K, planning interval, seed, device, threads, ...).
         horizon: plan length [steps].
         window_config: window options (its ``dynamics`` must be the env's).
-        seed: noise seed.
-        device: torch device.
-        threads: torch CPU threads while planning; None keeps torch's setting.
     """
 
     overlay_prefix = "riskflow"
@@ -127,35 +123,20 @@ class PlanBufferPolicy(ABC):
     stitch_steps: int = 5  # [steps] re-plan blend (module docstring); 0: switch at once
 
     def __init__(
-        self,
-        k: int | str,
-        planning_interval: float,
-        horizon: int,
-        window_config: WindowConfig,
-        seed: int = 0,
-        device: torch.device | str = "cpu",
-        threads: int | None = 1,
+        self, config: AdversaryConfig, horizon: int, window_config: WindowConfig, /
     ) -> None:
-        self.k = self.check_options(k, planning_interval, threads)
-        self.planning_interval = float(planning_interval)
+        self.config = config
+        self.k = config.k
+        self.planning_interval = float(config.planning_interval)
+        self.rank_threshold = float(config.rank_threshold)
         self.horizon = int(horizon)
         self.window_config = window_config
         self.dynamics = window_config.dynamics
-        self.seed = int(seed)
-        self.device = torch.device(device)
-        self.threads = threads
+        self.seed = config.seed
+        self.device = torch.device(config.device)
+        self.threads = config.threads
         self._episode = -1
         self._clear()
-
-    @staticmethod
-    def check_options(k: int | str, planning_interval: float, threads: int | None) -> int | str:
-        """Validate the shared options (subclasses call it before loading a model); returns k."""
-        k = check_k(k)
-        if not (isinstance(planning_interval, (int, float)) and planning_interval > 0):
-            raise ValueError(f"planning_interval must be > 0 [s], got {planning_interval!r}")
-        if threads is not None and (not isinstance(threads, int) or threads < 1):
-            raise ValueError(f"threads must be None or an int >= 1, got {threads!r}")
-        return k
 
     # ----------------------------------------------------------- ScenePolicy
     def reseed(self, seed: int) -> None:

@@ -29,7 +29,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from riskflow_env.dynamics import YAW, X, Y
-from riskflow_env.geometry import separation
+from riskflow_env.geometry import separation, to_frame
 
 SDF_CHANNEL = 1  # policies.learned.windows.CROP_LAYERS = ("drivable", "sdf")
 
@@ -92,8 +92,8 @@ def offroad_penalty(
         dx = states[..., X] - start[..., X, None]
         dy = states[..., Y] - start[..., Y, None]
         # crop_points: pixel (r, c) at forward (c - (S-1)/2) * res, left (r - (S-1)/2) * res
-        forward = (dx * cos + dy * sin) / crop_resolution
-        left = (dy * cos - dx * sin) / crop_resolution
+        forward, left = to_frame(dx, dy, cos, sin)
+        forward, left = forward / crop_resolution, left / crop_resolution
         half = (size - 1) / 2.0
         grid = torch.stack([forward / half, left / half], dim=-1)  # (x -> columns, y -> rows)
         inside = (grid.abs() <= 1.0).all(dim=-1)

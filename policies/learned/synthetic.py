@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from riskflow_env.dynamics import rollout
+from riskflow_env.geometry import to_frame
 from riskflow_env.risk import pairwise_features
 
 ROAD_HALF_WIDTH = 6.0  # [m]
@@ -37,7 +38,7 @@ def _to_frame(states: Tensor, pose: Tensor) -> Tensor:
     cos, sin = cos[:, None, None], sin[:, None, None]
     dx, dy = states[..., 0] - pose[:, None, None, 0], states[..., 1] - pose[:, None, None, 1]
     psi = states[..., 3] - pose[:, None, None, 3]
-    return torch.stack([cos * dx + sin * dy, -sin * dx + cos * dy, states[..., 2], psi], dim=-1)
+    return torch.stack([*to_frame(dx, dy, cos, sin), states[..., 2], psi], dim=-1)
 
 
 def _map_crops(current_world: Tensor, size: int) -> Tensor:

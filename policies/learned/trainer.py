@@ -44,7 +44,7 @@ from policies.learned.data import load_or_compute_stats as action_stats
 from policies.learned.ema import EMA
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.validation import evaluate
-from riskflow_env.scenarios.io import require_scenarios
+from riskflow_env.scenarios.folders import scene_files
 
 CHECKPOINT, GENERATOR, METRICS_LOG = "checkpoint.pt", "generator.pt", "metrics.jsonl"
 # torch.func.jvp's first call warns that torch.jit.script is deprecated (torch's own use).
@@ -62,10 +62,12 @@ class Objective(Protocol):
         model: RiskFlowGenerator,
         batch: Mapping[str, Tensor],
         normalizer: ActionNormalizer,
+        eps: Tensor,
         generator: torch.Generator,
         **weights: float,
     ) -> tuple[Tensor, dict[str, Tensor]]:
-        """One step's loss and metrics; noise and times come from ``generator``."""
+        """One step's loss and metrics from the noise ``eps`` (the batch's action shape);
+        further draws (times, levels) come from ``generator``."""
         ...
 
     def sampler(self, model: RiskFlowGenerator) -> Any:
@@ -78,7 +80,8 @@ class LoopOptions:
     """Options of the training loop (``riskflow-train`` adds the generator's)."""
 
     data: Path
-    """scenario directory written by `riskflow-data generate` (training scenes)"""
+    """training scenes: a folder written by `riskflow-data generate`, or a ScenarioNet dataset
+    folder (dataset_summary.pkl; scenes read one at a time when the windows are cut)"""
     out: Path = Path("runs/riskflow")
     """output folder: checkpoint.pt (resumable), generator.pt (to ship), metrics.jsonl"""
     val_data: Path | None = None
@@ -187,8 +190,8 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
     for flag, folder in (("--data", options.data), ("--val-data", options.val_data)):
         try:
             if folder is not None:
-                require_scenarios(folder)
-        except OSError as err:  # missing, a file, no scene files
+                scene_files(folder)
+        except (OSError, ValueError) as err:  # missing, a file, no scenes, a bad index
             raise SystemExit(f"riskflow-train: {flag}: {err}") from None
     try:
         splits = (options.data, options.val_data, options.val_fraction, options.stride)
@@ -273,7 +276,8 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
                     agents, options.batch_size, options.bucket, options.seed, epoch
                 )
             batch = collated(train_set, batches[step % per_epoch], device)
-            loss, values = objective.loss(model, batch, normalizer, noise, **weights)
+            eps = torch.randn(batch["actions"].shape, generator=noise, device=device)
+            loss, values = objective.loss(model, batch, normalizer, eps, noise, **weights)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             values["grad_norm"] = torch.nn.utils.clip_grad_norm_(

@@ -29,6 +29,7 @@ from policies.learned.generator import RiskFlowGenerator
 from policies.learned.sampler import draw_noise, sample
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
+from riskflow_env.metrics.displacement import masked_displacement
 
 METRICS = (
     "ade",
@@ -65,11 +66,7 @@ def displacement_errors(
     if trajectories.dim() == future.dim() + 1:  # sample axis
         future, mask = future[:, None], mask[:, None]
     distance = (trajectories[..., :2] - future[..., :2]).norm(dim=-1)  # (B, [N,] A, T)
-    count = mask.sum(dim=-1).clamp(min=1).to(distance.dtype)
-    ade = (distance * mask).sum(dim=-1) / count
-    steps = torch.arange(mask.shape[-1], device=mask.device)
-    last = torch.where(mask, steps, -1).max(dim=-1).values.expand(distance.shape[:-1])
-    fde = distance.gather(-1, last.clamp(min=0)[..., None])[..., 0] * (last >= 0)  # -1: none
+    ade, fde, _ = masked_displacement(distance, mask.expand(distance.shape))
     return ade, fde, valid
 
 

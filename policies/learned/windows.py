@@ -31,6 +31,7 @@ import numpy as np
 from riskflow_env import dynamics
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import SPEED, YAW
+from riskflow_env.geometry import to_frame
 from riskflow_env.maps import DrivableMap
 from riskflow_env.risk import MAX_INTERACTION_DISTANCE, pairwise_features
 from riskflow_env.scenarios.scenario import Scenario
@@ -154,8 +155,7 @@ def build_window(
     dx, dy = world[..., 0] - ego_pose[0], world[..., 1] - ego_pose[1]
     scene = np.stack(
         [
-            cos * dx + sin * dy,
-            -sin * dx + cos * dy,
+            *to_frame(dx, dy, cos, sin),
             world[..., SPEED],
             dynamics.wrap_angle(world[..., YAW] - ego_pose[YAW]),
         ],

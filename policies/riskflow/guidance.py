@@ -1,65 +1,26 @@
 """Output-space guidance: bend the controllable agents' plans toward risky interactions.
 
 RiskFlow (Lan et al. 2026) guides the *output* of the one-step generator, not its
-sampling path (docs/GENERATOR.md): starting from the base residual
-``u0 = u_theta(eps, 0, 1; C)`` (normalised action space), it takes ``K_g`` steps
+sampling path: starting from the base residual ``u0 = u_theta(eps, 0, 1; C)``
+(normalised action space) it takes ``K_g`` steps
 
     u <- u - gamma * M_Ac * grad_u L,      L = lambda_adv * L_adv + lambda_map * L_map,
 
-with ``a = denorm(eps + u)`` and the trajectory ``rollout(a, s0)`` (the vectorised,
-differentiable unicycle of ``riskflow_env.dynamics``). The generator is *not* re-run
-inside the loop, so each step is one rollout of the ``A_c`` rows, their SDF lookups and
-a backward pass through those only, with no autograd at all: ``L_adv`` and ``L_map`` give
-their value and their gradient with respect to the trajectories in closed form
-(``guidance_losses``: the argmin's unit vectors; the SDF's bilinear slope chained through
-the footprint), pulled back through the rollout by its closed-form vector-Jacobian
-product (``riskflow_env.dynamics.rollout_with_vjp``) and through ``denorm`` (a diagonal
-scale). Same math as differentiating op by op: the gradients agree with autograd to
-float rounding, except that an action that cannot move the plan (braking while stopped)
-gets exactly 0 rather than a rounding residue for Adam to amplify. Only ``A_c`` rows are
-optimised (they are the only variables, which is the mask ``M_Ac`` done exactly): every
-other row of ``u``, of the actions and of the trajectories is the base plan, bit for bit.
+with ``a = denorm(eps + u)`` and the trajectory ``rollout(a, s0)`` (the differentiable
+unicycle of ``riskflow_env.dynamics``). The generator is *not* re-run inside the loop:
+each step is one rollout of the ``A_c`` rows, their SDF lookups and a backward pass
+through those only, in closed form (``L_adv`` and ``L_map`` give their gradient with
+respect to the trajectories, :mod:`policies.learned.guidance_losses`; the rollout's
+vector-Jacobian product, ``riskflow_env.dynamics.rollout_with_vjp``; ``denorm`` is a
+diagonal scale); the gradients agree with autograd to float rounding. Only ``A_c`` rows
+are variables: every other row is the base plan, bit for bit. Steps are projected so that
+the actions stay inside the dynamics bounds; Adam by default, or the paper's plain steps.
 
-Terms (``i`` in ``A_c``, ``p_i^t`` its position at plan step t, scene frame [m]):
-
-* ``L_adv = sum_i (1 / T_g) sum_{t < T_g} min_{j in J} ||p_i^t - p_j^t||`` [m]: the mean,
-  over the guidance horizon ``T_g``, of the distance to the nearest target, summed over
-  ``A_c``. Targets ``J``: with ``target="others"`` (the paper's) every present agent
-  *not* in ``A_c`` (the ego included), with ``target="ego"`` the ego only (stress
-  testing an ego planner). Targets follow their base plans, detached (as in CTG, Zhong
-  et al. 2023, guidance treats the other agents' futures as given). The mean over
-  ``t`` (the paper sums) keeps ``lambda_adv`` independent of ``T_g``.
-* ``L_map = sum_i sum_t w_t sum_k relu(sdf(q_ik^t) + margin)^2`` [m^2]: the squared
-  depth by which each of the 9 footprint samples ``q_ik^t``
-  (``riskflow_env.geometry.footprint_points``) lies off the drivable area (the map's
-  SDF is negative on the road), plus a safety ``margin``; ``w_t = map_decay ** t``
-  weighs the near future (executed before the next replan) most.
-
-Sign and weight convention: guidance *minimises* ``L``. ``L_adv`` is a distance, so
-``lambda_adv > 0`` pulls ``A_c`` toward its targets: **larger lambda_adv = more
-adversarial**; ``lambda_adv < 0`` would push them away, 0 disables the term.
-``lambda_map >= 0`` keeps them on the road. The paper quotes an adversarial weight of
--50 next to a map weight of +1.0 under its own convention, in which the adversarial
-term enters with the opposite sign to the map term: a closeness term that grows as
-agents approach (like the collision losses of the tbsim / CTG guidance code), whose
-negative weight turns minimisation into attraction. Here the term is the distance
-itself, so the same intent, attraction of strength 50, is ``lambda_adv = +50``
-(the default), never ``-50`` (that pushes agents apart).
-
-Action bounds: the step is *projected* (projected gradient descent) so that
-``denorm(eps + u)`` of every ``A_c`` row stays inside the dynamics' accel and yaw-rate
-bounds; the rollout's clip is then the identity for those rows and its gradient never
-vanishes on a clipped action (a smooth squashing would alter the unguided plans too).
-Steps: Adam on ``u`` by default, or the paper's plain gradient steps
-(``optimizer="gradient"``). A plain step moves action k by ``gamma * dL/du_k``, and that
-gradient scales with ``lambda``, with the speed and with ``(T - k)^2`` (an early action
-shifts every later position), so one ``gamma`` is too weak in one scene and overshoots
-(off road, hard jerks) in another. Adam's per-coordinate normalisation makes the step a
-bounded move in normalised action units (about ``step_size`` per step: at most
-``K_g * step_size`` = 3 standard deviations of the training actions by default), the
-same in every scene; on the shipped scenes it reaches a given adversarial effect with
-about half the action change of plain steps and a lower ``L_map``. With Adam only the
-*ratio* ``lambda_adv / lambda_map`` matters.
+``L_adv`` is the mean distance over the guidance horizon to the nearest target (every
+present agent outside ``A_c``, or the ego only), ``L_map`` the decayed squared depth of
+the footprint samples off the drivable area; ``lambda_adv > 0`` is more adversarial (the
+paper's "-50" is ``+50`` here). docs/GENERATOR.md ("Output-space guidance") has the terms,
+the sign convention and why the steps are Adam steps.
 """
 
 from __future__ import annotations
@@ -73,6 +34,7 @@ from torch import Tensor
 from policies.learned.data import Normalizer
 from policies.learned.guidance_losses import (
     TARGETS,
+    ObjectiveConfig,
     adversarial_loss,
     adversarial_value_and_gradient,
     map_loss,
@@ -88,51 +50,32 @@ _ADAM_BETAS = (0.9, 0.999)
 
 
 @dataclass(frozen=True)
-class GuidanceConfig:
-    """Options of output-space guidance.
+class GuidanceConfig(ObjectiveConfig):
+    """Options of output-space guidance: the shared objective's
+    (:class:`~policies.learned.guidance_losses.ObjectiveConfig`: ``lambda_adv``,
+    ``lambda_map``, ``horizon``, ``target``, ``map_margin``, ``map_decay``) and the
+    optimiser's.
 
     Attributes:
         steps: ``K_g`` guidance steps (0: the base plans).
         step_size: the Adam learning rate [normalised action units per step], or
             ``gamma`` [normalised action units per unit of gradient] for ``"gradient"``
             (e.g. 3e-3 with the default weights).
-        lambda_adv: weight of ``L_adv`` [1/m]; > 0 is adversarial (module docstring).
-        lambda_map: weight of ``L_map`` [1/m^2], >= 0.
-        horizon: ``T_g`` plan steps of ``L_adv``; None: the whole plan.
-        target: ``"others"`` (paper) or ``"ego"`` (stress testing).
-        map_margin: footprint samples closer than this to the road edge are penalised [m].
-        map_decay: ``w_t = map_decay ** t``, in (0, 1].
         optimizer: ``"adam"`` or ``"gradient"`` (plain steps, the paper's).
     """
 
     steps: int = 30
     step_size: float = 0.1
-    lambda_adv: float = 50.0
-    lambda_map: float = 1.0
-    horizon: int | None = None
-    target: str = "others"
-    map_margin: float = 0.2
-    map_decay: float = 0.98
     optimizer: str = "adam"
 
-    def __post_init__(self) -> None:
-        def int_at_least(value: object, low: int) -> bool:
-            return isinstance(value, int) and not isinstance(value, bool) and value >= low
-
-        reals = ("step_size", "lambda_adv", "lambda_map", "map_margin", "map_decay")
-        checks = [
-            (int_at_least(self.steps, 0), "steps must be an int >= 0"),
-            (self.horizon is None or int_at_least(self.horizon, 1), "horizon must be None or >= 1"),
-            (all(math.isfinite(getattr(self, name)) for name in reals), f"{reals} must be finite"),
-            (self.step_size > 0, "step_size must be > 0"),
-            (self.lambda_map >= 0, "lambda_map must be >= 0"),
-            (0 < self.map_decay <= 1, "map_decay must be in (0, 1]"),
-            (self.target in TARGETS, f"target must be one of {TARGETS}"),
+    def checks(self) -> list[tuple[bool, str]]:
+        """The objective's rules and the optimiser's."""
+        steps_ok = isinstance(self.steps, int) and not isinstance(self.steps, bool)
+        return super().checks() + [
+            (steps_ok and self.steps >= 0, "steps must be an int >= 0"),
+            (math.isfinite(self.step_size) and self.step_size > 0, "step_size must be > 0"),
             (self.optimizer in OPTIMIZERS, f"optimizer must be one of {OPTIMIZERS}"),
         ]
-        for ok, message in checks:
-            if not ok:
-                raise ValueError(f"GuidanceConfig: {message}; got {self}")
 
 
 @dataclass(frozen=True)

@@ -245,8 +245,8 @@ class MeanFlowObjective:
     """The ``--generator meanflow`` objective of the training loop
     (:func:`policies.learned.trainer.fit`).
 
-    Per step: ``eps`` of the batch's action shape, then ``(t, r)`` from ``times``, both
-    from the run's seeded generator (so ``--resume`` stays exact), and
+    Per step: ``(t, r)`` from ``times`` after the loop's ``eps``, both from the run's
+    seeded generator (so ``--resume`` stays exact), and
     :func:`meanflow_loss` (:func:`flow_matching_loss` for the plain flow-matching
     reference, whose validation samples one Euler step, :class:`OneStepFlowMatching`).
 
@@ -265,13 +265,12 @@ class MeanFlowObjective:
         model: RiskFlowGenerator,
         batch: Mapping[str, Tensor],
         normalizer: Normalizer,
+        eps: Tensor,
         generator: torch.Generator,
         **weights: float,
     ) -> tuple[Tensor, dict[str, Tensor]]:
         """One step's loss and metrics (``weights`` as :func:`meanflow_loss`)."""
-        device = batch["actions"].device
-        eps = torch.randn(batch["actions"].shape, generator=generator, device=device)
-        t, r = self.times(eps.shape[0], generator=generator, device=device)
+        t, r = self.times(eps.shape[0], generator=generator, device=eps.device)
         if self.flow_matching:
             return flow_matching_loss(model, batch, normalizer, eps, t, **weights)
         return meanflow_loss(model, batch, normalizer, eps, t, r, **weights)

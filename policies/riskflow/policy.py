@@ -37,10 +37,11 @@ Subclasses replace how ``A_c`` is optimised by overriding :meth:`RiskFlowAdversa
 from __future__ import annotations
 
 import os
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch
 
+from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.data import Normalizer
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.plan_buffer import (
@@ -52,9 +53,8 @@ from policies.learned.plan_buffer import (
     default_window_config,
     hold_still,
 )
-from policies.learned.ranking import DEFAULT_THRESHOLD, rank_window
+from policies.learned.ranking import rank_window
 from policies.learned.sampler import base_velocity
-from policies.learned.windows import WindowConfig
 from policies.riskflow.base_generator import generator_kind, load_base_generator
 from policies.riskflow.guidance import (
     GuidanceConfig,
@@ -75,19 +75,14 @@ class RiskFlowAdversary(PlanBufferPolicy):
     """RiskFlow adversary for every non-ego vehicle (module docstring).
 
     Args:
-        k: size of ``A_c`` (int >= 0) or ``"all"``; 0 gives the unguided generator.
-        planning_interval: time between re-plans [s]; a multiple of the env's ``dt``
-            between ``dt`` and the plan horizon.
-        target: ``"others"`` (paper: pull toward any non-controllable agent) or ``"ego"``.
+        config: the options every learned adversary shares
+            (:class:`~policies.learned.adversary_config.AdversaryConfig`: ``k``,
+            ``planning_interval``, ``target``, ``lambda_adv``, ``lambda_map``,
+            ``guidance_horizon``, ``rank_threshold``, ``seed``, ``device``,
+            ``window_config``, ``threads``); or give them as keywords (``**options``).
         guidance_steps: ``K_g``.
-        lambda_adv: adversarial weight; > 0 is more adversarial (``guidance.py``).
-        lambda_map: off-road weight, >= 0.
-        guidance_horizon: ``T_g`` [steps] of the adversarial term; None: whole plan.
         step_size: Adam learning rate, or ``gamma`` of plain steps (:class:`GuidanceConfig`).
         optimizer: ``"adam"`` (default) or ``"gradient"`` (the paper's plain steps).
-        rank_threshold: risk-graph edge threshold.
-        seed: noise seed.
-        device: torch device of the model.
         generator: the base-plan generator: a model object (a ``RiskFlowGenerator``, or
             a diffusion ``OneCallSampler``; moved to ``device``, eval mode) with its
             ``normalizer``; or ``"meanflow"`` / ``"diffusion"`` to load that kind from
@@ -97,48 +92,29 @@ class RiskFlowAdversary(PlanBufferPolicy):
         checkpoint: a ``riskflow-train`` checkpoint file to load (its kind is read from
             it); not with a model object.
         sampling_steps: DDIM levels of a diffusion generator (None: 10); MeanFlow: None.
-        window_config: window options; default the training windows' for the model's
-            sizes. Its ``dynamics`` (dt and bounds) must be the env's.
-        threads: torch CPU threads while planning (restored after); None keeps torch's
-            setting. One is the default: a cycle is hundreds of tiny ops, which extra
-            threads only slow down (on CPU; irrelevant on a GPU).
+        **options: :class:`AdversaryConfig` fields, when ``config`` is not given.
     """
 
     phases = PHASES
 
     def __init__(
         self,
-        k: int | str = 5,
-        planning_interval: float = 0.5,
-        target: str = "others",
+        config: AdversaryConfig | None = None,
+        *,
         guidance_steps: int = 30,
-        lambda_adv: float = 50.0,
-        lambda_map: float = 1.0,
-        guidance_horizon: int | None = None,
         step_size: float = GuidanceConfig.step_size,
         optimizer: str = GuidanceConfig.optimizer,
-        rank_threshold: float = DEFAULT_THRESHOLD,
-        seed: int = 0,
-        device: torch.device | str = "cpu",
         generator: RiskFlowGenerator | OneCallSampler | str | None = None,
         normalizer: Normalizer | None = None,
         checkpoint: str | os.PathLike | None = None,
         sampling_steps: int | None = None,
-        window_config: WindowConfig | None = None,
-        threads: int | None = 1,
+        **options: Any,
     ) -> None:
-        self.check_options(k, planning_interval, threads)
+        config = AdversaryConfig.resolve(config, options, type(self).__name__)
         self.guidance = GuidanceConfig(
-            steps=guidance_steps,
-            step_size=step_size,
-            lambda_adv=lambda_adv,
-            lambda_map=lambda_map,
-            horizon=guidance_horizon,
-            target=target,
-            optimizer=optimizer,
+            steps=guidance_steps, step_size=step_size, optimizer=optimizer, **config.objective()
         )
-        self.rank_threshold = float(rank_threshold)
-        device = torch.device(device)
+        device = torch.device(config.device)
         if generator is None or isinstance(generator, str):
             check_model_pair(None, normalizer, "generator")
             generator, normalizer, self.generator_kind = load_base_generator(
@@ -154,11 +130,9 @@ class RiskFlowAdversary(PlanBufferPolicy):
             self.generator_kind = generator_kind(generator)
         self.model = generator.to(device).eval()
         self.normalizer = normalizer
-        config = self.model.config
-        window_config = window_config or default_window_config(config)
-        super().__init__(
-            k, planning_interval, config.future_steps, window_config, seed, device, threads
-        )
+        model_config = self.model.config
+        window_config = config.window_config or default_window_config(model_config)
+        super().__init__(config, model_config.future_steps, window_config)
 
     def _plan_cycle(self, view: SceneView) -> None:
         """One cycle: window, encoder, one MeanFlow pass, ranking, guidance (module docstring)."""

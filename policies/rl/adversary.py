@@ -91,22 +91,21 @@ def make_traffic(config: ScenePolicyConfig, seed: int = 0, generator=None, norma
         generator: a RiskFlow generator to use instead of the shipped one.
         normalizer: its action normaliser.
     """
+    from policies.registry import build_policy
+
     if config.kind == "idm":
-        from riskflow_env.agents.idm import IDMPolicy
-
-        return IDMPolicy(controlled="others")
-    from policies.riskflow import RiskFlowAdversary
-
+        return build_policy("idm", {}, k=None, planning_interval=None, target="others", seed=seed)
     stage = config.stage
-    return RiskFlowAdversary(
+    options = {"lambda_adv": stage.lambda_adv, "guidance_steps": config.guidance_steps}
+    if generator is not None:
+        options |= {"generator": generator, "normalizer": normalizer}
+    return build_policy(
+        "riskflow",
+        options,
         k=stage.k,
-        lambda_adv=stage.lambda_adv,
-        target=stage.target,
-        guidance_steps=config.guidance_steps,
         planning_interval=config.planning_interval,
+        target=stage.target,
         seed=seed,
-        generator=generator,
-        normalizer=normalizer,
     )
 
 

@@ -17,9 +17,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from policies.harness import ClosedLoop, EpisodeRecord, mean_interval, summarize
+from policies.harness import ClosedLoop, EpisodeRecord, summarize
 from policies.rl.adversary import ScenePolicyConfig, make_traffic
 from policies.rl.envs import EgoInterface
+from policies.statistics import mean_interval
 from riskflow_env.config import DynamicsConfig, EnvConfig
 from riskflow_env.scenarios import Scenario
 from riskflow_env.view import SceneView
@@ -231,7 +232,7 @@ def summarize_ego(records: Sequence[EpisodeRecord]) -> dict[str, dict[str, Any]]
     * ``progress`` [m]: distance driven by the ego (bootstrap);
     * ``time_to_first_ego_collision`` [s]: over the episodes with one (bootstrap).
     """
-    from policies.harness import wilson_interval
+    from policies.statistics import wilson_interval
 
     base = summarize(list(records))
     failures = sum(r.metrics["ego_collided"] or r.metrics["ego_offroad"] for r in records)

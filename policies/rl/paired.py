@@ -10,7 +10,6 @@ episodes.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 
@@ -36,7 +35,7 @@ def paired_counts(
     Returns:
         ``n`` episodes, ``trained`` / ``untrained`` episodes with the outcome, and the
         discordant pairs ``trained_only`` / ``untrained_only``: what
-        :func:`paired_difference` needs, and what pools across runs by summing.
+        :func:`policies.statistics.paired_difference` needs, and what pools across runs by summing.
     """
     if metric not in PAIRED_OUTCOMES:
         raise ValueError(f"metric must be one of {tuple(PAIRED_OUTCOMES)}, got {metric!r}")
@@ -54,39 +53,4 @@ def paired_counts(
         "untrained": int(b.sum()),
         "trained_only": int((a & ~b).sum()),
         "untrained_only": int((~a & b).sum()),
-    }
-
-
-def paired_difference(counts: dict[str, int], confidence: float = 0.95) -> dict[str, Any]:
-    """Trained minus untrained rate on paired episodes, with its interval and test.
-
-    The interval is the Wald interval of a difference of paired proportions,
-    ``d +- z sqrt((b + c - n d^2) / n^2)`` with ``b``, ``c`` the discordant counts
-    (Agresti, *Categorical Data Analysis*, 3rd ed., section 11.1); the p-value is the
-    exact two-sided McNemar test (a binomial test of ``b`` out of ``b + c`` at 1/2;
-    McNemar 1947). Pairing removes the between-scene variance that unpaired intervals
-    carry, so it detects a change that two overlapping Wilson intervals cannot.
-
-    Args:
-        counts: :func:`paired_counts` (or their sums over runs).
-        confidence: level of the interval.
-
-    Returns:
-        ``counts`` plus ``difference``, ``low``, ``high`` and ``p_value``.
-    """
-    from scipy import stats
-
-    n, b, c = counts["n"], counts["trained_only"], counts["untrained_only"]
-    if n == 0:
-        return {**counts, "difference": None, "low": None, "high": None, "p_value": None}
-    difference = (b - c) / n
-    z = stats.norm.ppf(0.5 + confidence / 2)
-    half = z * np.sqrt(max(b + c - n * difference**2, 0.0)) / n
-    p_value = stats.binomtest(b, b + c, 0.5).pvalue if b + c else 1.0
-    return {
-        **counts,
-        "difference": difference,
-        "low": difference - half,
-        "high": difference + half,
-        "p_value": float(p_value),
     }

@@ -54,8 +54,8 @@ def markdown_table(summaries: Summaries, metrics: tuple[str, ...] = tuple(METRIC
 def paired_table(rows: list[Mapping[str, Any]]) -> str:
     """Trained vs untrained on paired episodes (:func:`~policies.rl.paired.paired_counts`
     rows, one per run, traffic and outcome), per run and pooled over the runs ("all": the
-    counts summed), with :func:`~policies.rl.paired.paired_difference` for each."""
-    from policies.rl.paired import paired_difference
+    counts summed), with :func:`~policies.statistics.paired_difference` for each."""
+    from policies.statistics import paired_difference
 
     table: dict[tuple, dict[str, Any]] = {}
     for row in rows:

@@ -17,6 +17,7 @@ import numpy as np
 
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import SPEED, YAW
+from riskflow_env.geometry import to_frame
 
 
 def pure_pursuit(
@@ -47,8 +48,7 @@ def arc_curvature(state: np.ndarray, target: np.ndarray) -> np.ndarray:
         state: (N, 4) (x [m], y [m], v [m/s], psi [rad]); target: (N, 2) [m].
     """
     rel = target - state[:, :2]
-    cos, sin = np.cos(state[:, YAW]), np.sin(state[:, YAW])
-    lateral = -sin * rel[:, 0] + cos * rel[:, 1]
+    _, lateral = to_frame(rel[:, 0], rel[:, 1], np.cos(state[:, YAW]), np.sin(state[:, YAW]))
     return 2.0 * lateral / np.maximum(np.sum(rel * rel, axis=-1), 1e-6)
 
 

@@ -49,6 +49,7 @@ from riskflow_env.agents.controllers import (
 from riskflow_env.agents.lane_graph import LaneGraph
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import SPEED, YAW
+from riskflow_env.geometry import to_frame
 from riskflow_env.maps import DrivableMap
 from riskflow_env.view import SceneView
 
@@ -332,8 +333,7 @@ def _extents(relative: np.ndarray, length: np.ndarray, width: np.ndarray) -> tup
 
 def _in_frame(rel: np.ndarray, yaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(..., 2) world offsets -> (dx ahead, dy left) [m] in frames of heading ``yaw`` (...)."""
-    cos, sin = np.cos(yaw), np.sin(yaw)
-    return cos * rel[..., 0] + sin * rel[..., 1], -sin * rel[..., 0] + cos * rel[..., 1]
+    return to_frame(rel[..., 0], rel[..., 1], np.cos(yaw), np.sin(yaw))
 
 
 def _yield_gaps(

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from riskflow_env._array import Array, namespace
+from riskflow_env._array import device as array_device
 from riskflow_env.metrics.rollout import RolloutRecord
 
 
@@ -62,16 +64,35 @@ def position_errors(record: RolloutRecord) -> tuple[np.ndarray, np.ndarray]:
     return error, record.scored(record.valid & record.reference_valid)
 
 
+def masked_displacement(error: Array, mask: Array) -> tuple[Array, Array, Array]:
+    """Per-track ADE and FDE from position errors, for any leading dims (numpy or torch).
+
+    Args:
+        error: (..., T) position errors ``e_t`` [m].
+        mask: (..., T) bool, the steps that count.
+
+    Returns:
+        ``ade`` (...,) mean of ``e_t`` over the masked steps, ``fde`` (...,) ``e_t`` at
+        the last masked step (both 0 where no step is masked), and ``has_error`` (...,)
+        bool, the track has a masked step.
+    """
+    xp = namespace(error)
+    count = xp.sum(xp.astype(mask, error.dtype), axis=-1)
+    ade = xp.sum(xp.where(mask, error, 0.0), axis=-1) / xp.clip(count, min=1.0)
+    steps = xp.arange(mask.shape[-1], device=array_device(error))
+    last = xp.max(xp.where(mask, steps, -1), axis=-1)  # -1: no masked step
+    fde = xp.sum(xp.where(steps == last[..., None], error, 0.0), axis=-1)
+    return ade, fde, last >= 0
+
+
 def displacement_errors(record: RolloutRecord) -> DisplacementResult:
     """Per-agent ADE and FDE of one rollout."""
     error, mask = position_errors(record)
-    count = mask.sum(axis=1)
-    has_error = count > 0
-    total = np.where(mask, error, 0.0).sum(axis=1)
-    ade = np.where(has_error, total / np.maximum(count, 1), np.nan)
-    last = mask.shape[1] - 1 - np.argmax(mask[:, ::-1], axis=1)  # last masked step
-    fde = np.where(has_error, error[np.arange(error.shape[0]), last], np.nan)
-    return DisplacementResult(ade=ade, fde=fde, has_error=has_error)
+    ade, fde, has_error = masked_displacement(error, mask)
+    return DisplacementResult(
+        ade=np.where(has_error, ade, np.nan), fde=np.where(has_error, fde, np.nan),
+        has_error=has_error,
+    )  # fmt: skip
 
 
 def displacement_means(results: Sequence[DisplacementResult]) -> tuple[float, float]:

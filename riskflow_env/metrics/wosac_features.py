@@ -34,7 +34,7 @@ import math
 import numpy as np
 
 from riskflow_env.dynamics import SPEED, YAW, wrap_angle
-from riskflow_env.geometry import box_corners, separation
+from riskflow_env.geometry import box_corners, separation, to_frame
 from riskflow_env.maps import DrivableMap
 from riskflow_env.metrics.safety import footprint_sdf
 
@@ -102,7 +102,7 @@ def _pair_frame(states: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     dx, dy = x[:, None, :] - x[:, :, None], y[:, None, :] - y[:, :, None]
     cos_i, sin_i = np.cos(yaw)[:, :, None], np.sin(yaw)[:, :, None]
     dyaw = yaw[:, None, :] - yaw[:, :, None]
-    return cos_i * dx + sin_i * dy, -sin_i * dx + cos_i * dy, np.cos(dyaw), np.sin(dyaw)
+    return *to_frame(dx, dy, cos_i, sin_i), np.cos(dyaw), np.sin(dyaw)
 
 
 def box_signed_distance(states: np.ndarray, length: np.ndarray, width: np.ndarray) -> np.ndarray:
@@ -128,8 +128,7 @@ def box_signed_distance(states: np.ndarray, length: np.ndarray, width: np.ndarra
     corners = box_corners(xy, yaw, length, width)  # (T, A, 4, 2)
     rel = corners[:, None, :, :, :] - xy[:, :, None, None, :]  # (T, i, j, 4, 2)
     cos_i, sin_i = np.cos(yaw)[:, :, None, None], np.sin(yaw)[:, :, None, None]
-    forward = cos_i * rel[..., 0] + sin_i * rel[..., 1]
-    left = -sin_i * rel[..., 0] + cos_i * rel[..., 1]
+    forward, left = to_frame(rel[..., 0], rel[..., 1], cos_i, sin_i)
     out_x = np.maximum(np.abs(forward) - 0.5 * length[None, :, None, None], 0.0)
     out_y = np.maximum(np.abs(left) - 0.5 * width[None, :, None, None], 0.0)
     to_box_i = np.hypot(out_x, out_y).min(axis=-1)  # (T, i, j): corners of j to box i

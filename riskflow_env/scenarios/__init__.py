@@ -7,6 +7,10 @@
 * Files: :func:`save_scenario` / :func:`load_scenario` (versioned ``.npz``),
   :func:`load_bank` (a folder), :func:`shipped_bank` (the scenes in the package; the
   ``"eval"`` split is the env's default source).
+* Recorded data: :mod:`~riskflow_env.scenarios.scenarionet` (one ScenarioNet file),
+  :mod:`~riskflow_env.scenarios.scenarionet_dataset` (a ScenarioNet dataset folder as a
+  lazy source), :mod:`~riskflow_env.scenarios.map_cache` (converted maps on disk),
+  :mod:`~riskflow_env.scenarios.folders` (open a folder of either kind).
 """
 
 from riskflow_env.scenarios._npz import ScenarioFormatError

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import secrets
 import zipfile
 from pathlib import Path
 
@@ -18,8 +19,10 @@ class ScenarioFormatError(ValueError):
 
 
 def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """``np.savez_compressed`` with fixed zip timestamps, written to a temp name and renamed."""
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    """``np.savez_compressed`` with fixed zip timestamps, written to a temporary name of
+    its own (process id and a random token: concurrent writers never share one) and
+    renamed over ``path`` (atomic: a reader sees the old file or the whole new one)."""
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
     try:
         with zipfile.ZipFile(temporary, "w", compression=zipfile.ZIP_DEFLATED) as archive:
             for key, value in arrays.items():

@@ -139,8 +139,7 @@ def save_scenario(
         map_path = map_dir / f"{digest}.npz"
         if not map_path.exists():
             map_dir.mkdir(parents=True, exist_ok=True)
-            header = {"schema": np.array(MAP_SCHEMA), "version": np.array(VERSION)}
-            write_npz(map_path, header | map_arrays)
+            write_map_arrays(map_path, map_arrays)
         arrays["map_ref"] = np.array(os.path.relpath(map_path, path.parent))
         arrays["map_hash"] = np.array(digest)
     write_npz(path, arrays)
@@ -228,11 +227,7 @@ def load_map(path: str | os.PathLike, expected_hash: str | None = None) -> Driva
     if expected_hash is not None and expected_hash in _MAP_CACHE:
         _MAP_CACHE.move_to_end(expected_hash)
         return _MAP_CACHE[expected_hash]
-    if not path.is_file():
-        raise FileNotFoundError(f"map file {path} not found")
-    arrays = read_npz(path, MAP_SCHEMA)
-    arrays = {key: value for key, value in arrays.items() if key not in ("schema", "version")}
-    check_arrays(path, arrays, _MAP_KEYS, _OPTIONAL_MAP_KEYS)
+    arrays = read_map_arrays(path)
     digest = map_hash(arrays)
     if expected_hash is not None and digest != expected_hash:
         raise ScenarioFormatError(
@@ -243,6 +238,34 @@ def load_map(path: str | os.PathLike, expected_hash: str | None = None) -> Driva
         while len(_MAP_CACHE) > _MAP_CACHE_SIZE:
             _MAP_CACHE.popitem(last=False)
     return _MAP_CACHE[digest]
+
+
+def read_map_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """The checked arrays of map file ``path`` (no in-memory sharing: see :func:`load_map`).
+
+    Raises:
+        FileNotFoundError: no such file.
+        ScenarioFormatError: naming the file, when it is not a readable map file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"map file {path} not found")
+    arrays = read_npz(path, MAP_SCHEMA)
+    arrays = {key: value for key, value in arrays.items() if key not in ("schema", "version")}
+    check_arrays(path, arrays, _MAP_KEYS, _OPTIONAL_MAP_KEYS)
+    return arrays
+
+
+def read_map(path: str | os.PathLike) -> DrivableMap:
+    """The map of map file ``path``, read afresh (see :func:`read_map_arrays`)."""
+    return _map_from_arrays(Path(path), read_map_arrays(path))
+
+
+def write_map_arrays(path: str | os.PathLike, arrays: dict[str, np.ndarray]) -> None:
+    """Write :func:`map_to_arrays`' output as a map file (``schema="riskflow-map"``),
+    atomically (a temporary file renamed over ``path``)."""
+    header = {"schema": np.array(MAP_SCHEMA), "version": np.array(VERSION)}
+    write_npz(Path(path), header | arrays)
 
 
 def map_to_arrays(drivable_map: DrivableMap, include_sdf: bool = False) -> dict[str, np.ndarray]:

@@ -36,6 +36,7 @@ import collections
 import contextlib
 import io
 import math
+import os
 import pickle
 from collections.abc import Iterator
 from pathlib import Path
@@ -316,17 +317,24 @@ ALLOWED_GLOBALS: frozenset[tuple[str, str]] = frozenset(
 )
 
 
+# exact types that hold nothing to finish: skipped without a call (most of a summary file)
+_LEAVES = frozenset({str, int, float, bool, complex, bytes, type(None)})
+
+
 def _finish(root: Any) -> Any:
     """Plain ndarrays / dtypes in place of the stand-ins; nesting depth checked.
 
     Each container is visited once: a file that shares one list many times over (a
     chain of ``[x, x]`` levels is a few hundred bytes for 2**60 paths) or holds a cycle
-    costs no more than its size."""
+    costs no more than its size. Plain scalars and strings are passed over in the loops
+    (a ScenarioNet summary holds millions of them)."""
     done: dict[int, Any] = {}
 
     def visit(obj: Any, depth: int) -> Any:
         if depth > MAX_DEPTH:
             raise _Refused(f"containers nested deeper than MAX_DEPTH = {MAX_DEPTH}")
+        if type(obj) in _LEAVES:
+            return obj
         if isinstance(obj, _SafeArray):
             return obj.view(np.ndarray)
         if isinstance(obj, _DtypeSpec):
@@ -339,23 +347,30 @@ def _finish(root: Any) -> Any:
             return obj
         if id(obj) in done:
             return done[id(obj)]
+        if isinstance(obj, tuple) and obj.__class__ is not tuple:
+            return obj
+        if obj and depth >= MAX_DEPTH:  # its items lie deeper than MAX_DEPTH
+            raise _Refused(f"containers nested deeper than MAX_DEPTH = {MAX_DEPTH}")
         if isinstance(obj, tuple):
-            if obj.__class__ is not tuple:
-                return obj
-            done[id(obj)] = result = tuple(visit(value, depth + 1) for value in obj)
+            done[id(obj)] = result = tuple(
+                value if type(value) in _LEAVES else visit(value, depth + 1) for value in obj
+            )
             return result
         done[id(obj)] = obj  # mutable containers are fixed in place (cycles end here)
         if isinstance(obj, dict):
             for key, value in obj.items():
                 if isinstance(key, (_BuiltinType, _NdarrayRef)):
                     raise _Refused("a type reference as a dict key is refused")
-                obj[key] = visit(value, depth + 1)
+                if type(value) not in _LEAVES:
+                    obj[key] = visit(value, depth + 1)
         elif isinstance(obj, list):
             for index, value in enumerate(obj):
-                obj[index] = visit(value, depth + 1)
+                if type(value) not in _LEAVES:
+                    obj[index] = visit(value, depth + 1)
         else:
             for value in obj:
-                visit(value, depth + 1)
+                if type(value) not in _LEAVES:
+                    visit(value, depth + 1)
         return obj
 
     return visit(root, 0)
@@ -404,6 +419,23 @@ def load_data_pickle(path: str | Path) -> Any:
         )
     with path.open("rb") as file:
         return _load(file, str(path))
+
+
+def read_data_file(path: str | Path) -> bytes:
+    """The bytes of data file ``path``, at most :data:`MAX_FILE_BYTES` of them (read in one
+    bounded call: a file that grows, or a device that never ends, is refused too).
+
+    Raises:
+        FileNotFoundError: when ``path`` does not exist.
+        ValueError: naming the file when it holds more than :data:`MAX_FILE_BYTES`.
+    """
+    path = Path(path)
+    with path.open("rb") as file:
+        size = os.fstat(file.fileno()).st_size
+        data = file.read(MAX_FILE_BYTES + 1) if size <= MAX_FILE_BYTES else b""
+    if size > MAX_FILE_BYTES or len(data) > MAX_FILE_BYTES:
+        raise ValueError(f"{path}: over {MAX_FILE_BYTES} bytes, the limit MAX_FILE_BYTES")
+    return data
 
 
 def loads_data_pickle(data: bytes, source: str = "<bytes>") -> Any:

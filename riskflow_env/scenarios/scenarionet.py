@@ -30,10 +30,15 @@ arrays only) and turns it into a :class:`Scenario`:
   features are invalid steps (the map knows nothing there). Traffic lights are not used.
 * ``smooth=True``: the tracks are replaced by their Savitzky-Golay kinematic reference
   filtering (:mod:`~riskflow_env.scenarios.smoothing`).
+* ``map_cache``: the built map is kept on disk, keyed by the file's content hash
+  (:mod:`~riskflow_env.scenarios.map_cache`); a whole dataset folder is read by
+  :class:`~riskflow_env.scenarios.scenarionet_dataset.ScenarioNetDataset`.
+* Arrays must hold real numbers: complex values are refused, not cast.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -41,9 +46,15 @@ from typing import Any
 import numpy as np
 
 from riskflow_env.dynamics import wrap_angle
-from riskflow_env.scenarios.safe_pickle import errors_name_the_file, load_data_pickle
+from riskflow_env.scenarios.map_cache import MapCache, file_digest
+from riskflow_env.scenarios.safe_pickle import (
+    errors_name_the_file,
+    load_data_pickle,
+    loads_data_pickle,
+    read_data_file,
+)
 from riskflow_env.scenarios.scenario import Scenario
-from riskflow_env.scenarios.scenarionet_features import feature_bounds
+from riskflow_env.scenarios.scenarionet_features import feature_bounds, real_array
 from riskflow_env.scenarios.scenarionet_map import build_map
 from riskflow_env.scenarios.smoothing import smooth_tracks
 from riskflow_env.state import HISTORY_STEPS
@@ -66,6 +77,7 @@ def load_scenarionet(
     crop: bool = True,
     crop_margin: float | None = None,
     smooth: bool = False,
+    map_cache: MapCache | None = None,
 ) -> Scenario:
     """Load one ScenarioNet / MetaDrive scenario-description pickle as a :class:`Scenario`.
 
@@ -86,6 +98,10 @@ def load_scenarionet(
         smooth: replace the logged tracks by their kinematic reference filtering
             (:func:`~riskflow_env.scenarios.smoothing.smooth_tracks`, Savitzky-Golay);
             False keeps the raw logs.
+        map_cache: keep the built map on disk, keyed by the file's content hash and the
+            map settings (:class:`~riskflow_env.scenarios.map_cache.MapCache`), and read
+            it back instead of building it when the same file is loaded again; None
+            builds the map every time.
 
     Returns:
         A Scenario named ``"scenarionet/<scenario id>"`` with ``dt`` 0.1 s.
@@ -99,7 +115,11 @@ def load_scenarionet(
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"load_scenarionet: no such file {path}")
-    description = load_data_pickle(path)
+    if map_cache is None:
+        description, digest = load_data_pickle(path), None
+    else:
+        data = read_data_file(path)
+        description, digest = loads_data_pickle(data, str(path)), file_digest(data)
     return scenario_from_description(
         description,
         resolution,
@@ -110,6 +130,8 @@ def load_scenarionet(
         crop=crop,
         crop_margin=crop_margin,
         smooth=smooth,
+        map_cache=map_cache,
+        file_digest=digest,
     )
 
 
@@ -123,9 +145,13 @@ def scenario_from_description(
     crop: bool = True,
     crop_margin: float | None = None,
     smooth: bool = False,
+    map_cache: MapCache | None = None,
+    file_digest: str | None = None,
 ) -> Scenario:
     """:func:`load_scenarionet` for an already loaded description dict (every failure a
-    ``ValueError`` naming ``source``)."""
+    ``ValueError`` naming ``source``); the map goes through ``map_cache`` when both it
+    and ``file_digest`` (the content hash of the description's file) are given."""
+    cache = (map_cache, file_digest) if map_cache is not None and file_digest else None
     with errors_name_the_file(source, "a readable ScenarioNet scenario"):
         return _scenario(
             description,
@@ -137,6 +163,7 @@ def scenario_from_description(
             crop,
             crop_margin,
             smooth,
+            cache,
         )
 
 
@@ -150,6 +177,7 @@ def _scenario(
     crop: bool,
     crop_margin: float | None,
     smooth: bool,
+    cache: tuple[MapCache, str] | None,
 ) -> Scenario:
     for key in ("tracks", "map_features", "metadata"):
         if not isinstance(description, Mapping) or not isinstance(description.get(key), Mapping):
@@ -212,7 +240,8 @@ def _scenario(
     name = str(metadata.get("scenario_id", metadata.get("id", description.get("id", ""))))
     all_xy = xy[valid]
     region = _crop_region(all_xy, speed[valid], crop_margin, source) if crop else None
-    drivable_map = build_map(
+    build = functools.partial(
+        build_map,
         description["map_features"],
         resolution,
         margin,
@@ -221,6 +250,13 @@ def _scenario(
         source,
         region=region,
     )
+    if cache is None:
+        drivable_map = build()
+    else:
+        map_cache, digest = cache
+        settings = {"resolution": float(resolution), "margin": float(margin), "region": region}
+        key = map_cache.key(digest, name=f"scenarionet/{name}", **settings)
+        drivable_map = map_cache.get_or_build(key, build)
     return Scenario(
         map=drivable_map,
         states=states,
@@ -267,15 +303,16 @@ def _stack_tracks(states: list, ids: list[str], source: str) -> tuple:
         for key in ("position", "heading", "valid"):
             if key not in state:
                 raise ValueError(f"{source}: track {track_id!r} state has no {key!r}")
-        position = np.asarray(state["position"], dtype=np.float64)
+        what = f"{source}: track {track_id!r}"
+        position = real_array(state["position"], f"{what} position")
         steps = steps if steps is not None else len(position)
         if position.ndim != 2 or position.shape[1] < 2 or len(position) != steps:
             raise ValueError(
                 f"{source}: track {track_id!r} position must have shape ({steps}, 2 or 3), "
                 f"got {position.shape}"
             )
-        valid = np.asarray(state["valid"]).reshape(-1).astype(bool)
-        heading = np.asarray(state["heading"], dtype=np.float64).reshape(-1)
+        valid = real_array(state["valid"], f"{what} valid").reshape(-1) != 0
+        heading = real_array(state["heading"], f"{what} heading").reshape(-1)
         for key, value in (("valid", valid), ("heading", heading)):
             if value.shape != (steps,):
                 raise ValueError(f"{source}: track {track_id!r} {key} must have shape ({steps},)")
@@ -284,12 +321,12 @@ def _stack_tracks(states: list, ids: list[str], source: str) -> tuple:
         fields["heading"].append(heading)
         fields["valid"].append(valid)
         velocity = state.get("velocity")
-        velocity = None if velocity is None else np.asarray(velocity, dtype=np.float64)
+        velocity = None if velocity is None else real_array(velocity, f"{what} velocity")
         fields["velocity"].append(
             velocity if velocity is not None and velocity.shape == (steps, 2) else None
         )
         for column, key in enumerate(("length", "width")):
-            values = np.asarray(state.get(key, ()), dtype=np.float64).reshape(-1)
+            values = real_array(state.get(key, ()), f"{what} {key}").reshape(-1)
             values = values[valid] if values.shape == (steps,) else values
             values = values[np.isfinite(values) & (values > 0)]
             size[row, column] = np.median(values) if values.size else DEFAULT_SIZE[column]
@@ -306,10 +343,7 @@ def _times(metadata: Mapping, steps: int, source: str) -> np.ndarray:
     """(T,) [s] time stamps of the recorded steps."""
     ts = metadata.get("ts")
     if ts is not None and np.size(ts) == steps:
-        try:
-            times = np.asarray(ts, dtype=np.float64).reshape(-1)
-        except (TypeError, ValueError):
-            raise ValueError(f"{source}: metadata['ts'] must be numbers") from None
+        times = real_array(ts, f"{source}: metadata['ts']").reshape(-1)
     else:
         try:
             rate = float(metadata.get("sample_rate", DT))

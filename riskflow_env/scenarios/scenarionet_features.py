@@ -37,16 +37,31 @@ NOT_CAR_LANES = frozenset({"LANE_BIKE_LANE"})
 BOUNDARY_WIDTH_RANGE = (1.0, 12.0)  # [m] full widths taken from boundary distances (Waymo)
 
 
+def real_array(value: Any, what: str) -> np.ndarray:
+    """``value`` as a float64 array.
+
+    Raises:
+        ValueError naming ``what`` unless ``value`` holds real numbers (bool, int or
+        float): complex numbers are refused, not cast (the imaginary part would be lost).
+    """
+    try:
+        array = np.asarray(value)
+        if array.dtype.kind == "c":
+            raise ValueError(f"{what} holds complex numbers; expected real numbers")
+        return array.astype(np.float64, copy=False)
+    except (TypeError, ValueError) as err:
+        if what in str(err):
+            raise
+        raise ValueError(f"{what} must be real numbers, got {type(value).__name__}") from None
+
+
 def points(value: Any, what: str, min_points: int) -> np.ndarray | None:
     """(K, 2) float [m] from a (K, 2|3) sequence; None when too short or not finite.
 
     Raises:
-        ValueError naming ``what`` when the array is not (K, 2|3) numbers.
+        ValueError naming ``what`` when the array is not (K, 2|3) real numbers.
     """
-    try:
-        array = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{what} must be numbers of shape (K, 2) or (K, 3)") from None
+    array = real_array(value, what)
     if array.ndim != 2 or array.shape[1] < 2:
         raise ValueError(f"{what} must have shape (K, 2) or (K, 3), got {array.shape}")
     array = array[:, :2]
@@ -78,10 +93,7 @@ def lane_width(feature: Mapping, what: str) -> float | None:
     raw = feature.get("width")
     if raw is None:
         return None
-    try:
-        width = np.asarray(raw, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{what} width must be numbers [m], got {type(raw).__name__}") from None
+    width = real_array(raw, f"{what} width")
     if width.size == 0:
         return None
     if width.ndim > 2 or (width.ndim == 2 and width.shape[1] not in (1, 2)):

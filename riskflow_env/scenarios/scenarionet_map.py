@@ -201,7 +201,8 @@ def _boundary_area(features: Mapping[Any, Mapping], reach: tuple | None) -> shap
     rings = []
     for key, feature in features.items():
         if str(key).startswith("boundary_") and isinstance(feature, Mapping):
-            points = np.asarray(feature.get("polyline", np.zeros((0, 2))), dtype=np.float64)
+            what = f"map feature {key} (boundary ring) polyline"
+            points = feat.real_array(feature.get("polyline", np.zeros((0, 2))), what)
             if points.ndim == 2 and len(points) >= 4 and np.allclose(points[0, :2], points[-1, :2]):
                 if feat.touches(points[:, :2], reach):
                     rings.append(shapely.make_valid(shapely.Polygon(points[:, :2])))

@@ -41,6 +41,11 @@ class ScenarioBank:
     def __len__(self) -> int:
         return len(self.scenarios)
 
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The scenes' names, in order."""
+        return tuple(scenario.name for scenario in self.scenarios)
+
     def __getitem__(self, index: int) -> Scenario:
         return self.scenarios[index]
 

@@ -4,7 +4,8 @@
 adaLN-Zero head starts as ``u = 0``), so plans depend on the noise and on the scene;
 ``road_view()`` is the first view of six cars at 12 m/s on a 12 m wide road;
 ``closed_loop(policy, n)`` runs it for ``n`` steps with the ego holding its speed;
-``tiny_config``, ``normalizer`` and ``make_model`` serve the generator tests.
+``tiny_config``, ``normalizer`` and ``make_model`` serve the generator tests;
+``scenarionet_toy`` is a 4-scene ScenarioNet dataset folder (the user cache redirected).
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ from policies.learned.generator import RiskFlowGenerator
 from riskflow_env.config import EnvConfig
 from riskflow_env.maps import Lane, from_lanes
 from riskflow_env.scenarios import Scenario
+from riskflow_env.user_cache import CACHE_ENV
+from tests.riskflow_env.scenarios.scenarionet_datasets import toy_descriptions, write_dataset
 
 TINY_MODEL = ModelConfig(
     encoder_dim=16, head_dim=32, context_dim=32, edge_dim=8, num_heads=2, encoder_layers=1,
@@ -149,3 +152,13 @@ def make_model():
         return randomized(model, seed) if randomize else model
 
     return make
+
+
+@pytest.fixture
+def scenarionet_toy(tmp_path, monkeypatch):
+    """``tmp_path/sd_toy``: 4 nuScenes-form scenes as ScenarioNet's converter writes them;
+    the user cache (converted maps) in ``tmp_path/user-cache``."""
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "user-cache"))
+    folder = tmp_path / "sd_toy"
+    write_dataset(folder, toy_descriptions(4))
+    return folder

@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from policies.harness import METRICS, ClosedLoop, mean_interval, summarize, wilson_interval
+from policies.harness import METRICS, ClosedLoop, summarize
 from policies.planners import ConstantVelocityPlanner, IDMPlanner
+from policies.statistics import mean_interval, wilson_interval
 from riskflow_env.agents import IDMPolicy, ReplayPolicy
 from riskflow_env.config import EnvConfig
 from riskflow_env.env import RiskFlowParallelEnv

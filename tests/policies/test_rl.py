@@ -25,7 +25,8 @@ from policies.rl.adversary import AdversaryStage, ScenePolicyConfig, apply_stage
 from policies.rl.curriculum import LinearCurriculum  # noqa: E402
 from policies.rl.envs import EgoEnvConfig, build_env, compose_action, scale_action  # noqa: E402
 from policies.rl.marl import AdversaryRewardConfig, adversary_reward  # noqa: E402
-from policies.rl.paired import PAIRED_OUTCOMES, paired_counts, paired_difference  # noqa: E402
+from policies.rl.paired import PAIRED_OUTCOMES, paired_counts  # noqa: E402
+from policies.statistics import paired_difference  # noqa: E402
 from riskflow_env.config import DynamicsConfig, EnvConfig  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]

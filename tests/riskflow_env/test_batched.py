@@ -75,8 +75,12 @@ def test_torch_matches_numpy_and_observations_optional():
         np.testing.assert_allclose(torch_report.observations.numpy(), report.observations, **close)
         np.testing.assert_allclose(torch_report.rewards.numpy(), report.rewards, **close)
         np.testing.assert_allclose(tensors.current.numpy(), state.current, **close)
+    _, full = batched.step_batch(state, actions, drivable_map, CONFIG)
     _, bare = batched.step_batch(state, actions, drivable_map, CONFIG, observations=False)
-    assert bare.observations is None and bare.rewards.shape == (2, SLOTS)
+    assert bare.observations is None and bare.evaluation.pair_features is None
+    # without observations only the risk channel is computed: the same numbers
+    np.testing.assert_array_equal(bare.rewards, full.rewards)
+    np.testing.assert_array_equal(bare.reward_terms["risk"], full.reward_terms["risk"])
 
 
 def test_errors():

@@ -54,7 +54,12 @@ from policies.baselines.diffusion.sampling import (
 )
 from policies.learned.data import Normalizer
 from policies.learned.encoder import SceneContext
-from policies.learned.guidance_losses import TARGETS, adversarial_loss, map_term, target_rows
+from policies.learned.guidance_losses import (
+    ObjectiveConfig,
+    adversarial_loss,
+    map_term,
+    target_rows,
+)
 from policies.learned.plan_buffer import hold_still
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
@@ -64,55 +69,35 @@ GRADIENTS = ("mean", "clean")
 
 
 @dataclass(frozen=True)
-class DiffusionGuidanceConfig:
-    """Options of diffusion guidance (module docstring).
+class DiffusionGuidanceConfig(ObjectiveConfig):
+    """Options of diffusion guidance (module docstring): the shared objective's
+    (:class:`~policies.learned.guidance_losses.ObjectiveConfig`: ``lambda_adv``,
+    ``lambda_map``, ``horizon``, ``target``, ``map_margin``, ``map_decay``) and these.
 
     Attributes:
         gradient: ``"mean"`` (CTG, CCDiff) or ``"clean"`` (CTG++).
         inner_steps: gradient steps per level (``"mean"`` only; ``"clean"`` takes 1).
         step_size: per-agent RMS of one step [normalised action units].
-        lambda_adv: weight of ``L_adv`` [1/m]; > 0 is adversarial (RiskFlow's convention).
-        lambda_map: weight of ``L_map`` [1/m^2], >= 0.
-        horizon: ``T_g`` plan steps of ``L_adv``; None: the whole plan.
-        target: ``"others"`` or ``"ego"`` (as RiskFlow's ``GuidanceConfig.target``).
-        map_margin: [m] of ``L_map``.
-        map_decay: ``w_t = map_decay ** t`` of ``L_map``.
         anchor: the others follow the unguided chain (module docstring).
     """
 
     gradient: str = "mean"
     inner_steps: int = 1
     step_size: float = 0.1
-    lambda_adv: float = 50.0
-    lambda_map: float = 1.0
-    horizon: int | None = None
-    target: str = "others"
-    map_margin: float = 0.2
-    map_decay: float = 0.98
     anchor: bool = True
 
-    def __post_init__(self) -> None:
-        reals = (self.step_size, self.lambda_adv, self.lambda_map, self.map_margin, self.map_decay)
-        checks = [
+    def checks(self) -> list[tuple[bool, str]]:
+        """The objective's rules and the sampler's."""
+        inner_ok = isinstance(self.inner_steps, int) and self.inner_steps >= 1
+        return super().checks() + [
             (self.gradient in GRADIENTS, f"gradient must be one of {GRADIENTS}"),
-            (
-                isinstance(self.inner_steps, int) and self.inner_steps >= 1,
-                "inner_steps must be >= 1",
-            ),
+            (inner_ok, "inner_steps must be >= 1"),
             (
                 self.gradient == "mean" or self.inner_steps == 1,
                 "gradient 'clean' takes inner_steps 1",
             ),
-            (all(math.isfinite(v) for v in reals), "weights and sizes must be finite"),
-            (self.step_size > 0, "step_size must be > 0"),
-            (self.lambda_map >= 0, "lambda_map must be >= 0"),
-            (self.horizon is None or self.horizon >= 1, "horizon must be None or >= 1"),
-            (self.target in TARGETS, f"target must be one of {TARGETS}"),
-            (0 < self.map_decay <= 1, "map_decay must be in (0, 1]"),
+            (math.isfinite(self.step_size) and self.step_size > 0, "step_size must be > 0"),
         ]
-        for ok, message in checks:
-            if not ok:
-                raise ValueError(f"DiffusionGuidanceConfig: {message}; got {self}")
 
 
 @dataclass(frozen=True)

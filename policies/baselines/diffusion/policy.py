@@ -21,6 +21,8 @@ diffusion generator. Method mapping and simplifications: ``docs/BASELINES.md``.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
 
@@ -31,14 +33,14 @@ from policies.baselines.diffusion.guided import (
 )
 from policies.baselines.diffusion.model import DiffusionDenoiser, load_diffusion
 from policies.baselines.diffusion.sampling import chain_noise
+from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.data import Normalizer
 from policies.learned.plan_buffer import (
     PlanBufferPolicy,
     check_model_pair,
     default_window_config,
 )
-from policies.learned.ranking import DEFAULT_THRESHOLD, NO_GROUP, Ranking, rank_window
-from policies.learned.windows import WindowConfig
+from policies.learned.ranking import NO_GROUP, Ranking, rank_window
 from riskflow_env.view import SceneView
 
 PHASES = ("window", "encoder", "ranking", "denoising", "guidance")
@@ -68,27 +70,22 @@ class DiffusionAdversary(PlanBufferPolicy):
     """A guided diffusion adversary for every non-ego vehicle (module docstring).
 
     Args:
+        config: the options every learned adversary shares
+            (:class:`~policies.learned.adversary_config.AdversaryConfig`: ``k``,
+            ``planning_interval``, ``target``, ``lambda_adv``, ``lambda_map``,
+            ``guidance_horizon``, ``rank_threshold`` (``"ccdiff"``), ``seed``, ``device``,
+            ``window_config``, ``threads``); or give them as keywords (``**options``).
         variant: ``"ctg"``, ``"ctgpp"`` or ``"ccdiff"``.
-        k: size of ``A_c`` (int >= 0) or ``"all"``; 0 gives the unguided generator.
-        planning_interval: time between re-plans [s] (a multiple of ``dt``).
         sampling_steps: levels of the chain: None for all ``K`` (DDPM), fewer for DDIM.
         eta: DDIM stochasticity (1: DDPM-like ancestral noise; 0: deterministic).
-        target: ``"others"`` or ``"ego"`` (as RiskFlow's).
         step_size: per-agent RMS of one guidance step [normalised action units].
         inner_steps: guidance steps per level (``"ctg"``, ``"ccdiff"``).
-        lambda_adv: adversarial weight; > 0 is more adversarial (RiskFlow's convention).
-        lambda_map: off-road weight, >= 0.
-        guidance_horizon: ``T_g`` [steps] of ``L_adv``; None: whole plan.
         anchor: the vehicles outside ``A_c`` follow the unguided chain, bit for bit (two
             chains per cycle); False: one chain, they are denoised jointly with ``A_c``
             (:mod:`.guided`).
-        rank_threshold: risk-graph edge threshold (``"ccdiff"``).
-        seed: noise seed.
-        device: torch device.
         denoiser: the model; None loads ``policies/checkpoints/diffusion_default.pt``.
         normalizer: its action normalisation (required with ``denoiser``).
-        window_config: window options (default: the model's training windows).
-        threads: torch CPU threads while planning; None keeps torch's setting.
+        **options: :class:`AdversaryConfig` fields, when ``config`` is not given.
     """
 
     overlay_prefix = "diffusion"
@@ -96,27 +93,19 @@ class DiffusionAdversary(PlanBufferPolicy):
 
     def __init__(
         self,
+        config: AdversaryConfig | None = None,
+        *,
         variant: str = "ctg",
-        k: int | str = 5,
-        planning_interval: float = 0.5,
         sampling_steps: int | None = None,
         eta: float = 1.0,
-        target: str = "others",
         step_size: float = DiffusionGuidanceConfig.step_size,
         inner_steps: int = 1,
-        lambda_adv: float = 50.0,
-        lambda_map: float = 1.0,
-        guidance_horizon: int | None = None,
         anchor: bool = True,
-        rank_threshold: float = DEFAULT_THRESHOLD,
-        seed: int = 0,
-        device: torch.device | str = "cpu",
         denoiser: DiffusionDenoiser | None = None,
         normalizer: Normalizer | None = None,
-        window_config: WindowConfig | None = None,
-        threads: int | None = 1,
+        **options: Any,
     ) -> None:
-        self.check_options(k, planning_interval, threads)
+        config = AdversaryConfig.resolve(config, options, type(self).__name__)
         if variant not in VARIANTS:
             raise ValueError(f"variant must be one of {tuple(VARIANTS)}, got {variant!r}")
         if not 0.0 <= eta <= 1.0:
@@ -127,25 +116,19 @@ class DiffusionAdversary(PlanBufferPolicy):
             gradient=gradient,
             inner_steps=inner_steps,
             step_size=step_size,
-            lambda_adv=lambda_adv,
-            lambda_map=lambda_map,
-            horizon=guidance_horizon,
-            target=target,
             anchor=anchor,
+            **config.objective(),
         )
-        self.rank_threshold = float(rank_threshold)
-        device = torch.device(device)
+        device = torch.device(config.device)
         check_model_pair(denoiser, normalizer, "denoiser")
         if denoiser is None:
             denoiser, normalizer, _ = load_diffusion(None, device=device)
         denoiser.network.to(device).eval()
         self.denoiser, self.normalizer = denoiser, normalizer
         self.levels = denoiser.schedule.levels(sampling_steps)
-        config = denoiser.config
-        window_config = window_config or default_window_config(config)
-        super().__init__(
-            k, planning_interval, config.future_steps, window_config, seed, device, threads
-        )
+        model_config = denoiser.config
+        window_config = config.window_config or default_window_config(model_config)
+        super().__init__(config, model_config.future_steps, window_config)
 
     def _plan_cycle(self, view: SceneView) -> None:
         """One cycle: window, encoder, ``A_c``, base chain, guided chain (module docstring)."""

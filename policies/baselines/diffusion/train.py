@@ -2,8 +2,8 @@
 
 There is one training loop (``policies.learned.trainer.fit``: batches, Adam, gradient
 clipping, EMA, validation, checkpoints, resume); this module is the objective it plugs in
-for ``--generator diffusion``: per step, noise ``eps`` and levels ``k ~ U{0..K-1}`` from
-the run's seeded noise generator (so ``--resume`` stays exact) and
+for ``--generator diffusion``: per step, levels ``k ~ U{0..K-1}`` after the loop's noise
+``eps``, from the run's seeded noise generator (so ``--resume`` stays exact) and
 :func:`~policies.baselines.diffusion.objective.diffusion_loss`. Validation samples the
 EMA denoiser with deterministic DDIM (``--val-sampling-steps`` levels) through
 :class:`~policies.baselines.diffusion.sampling.OneCallSampler`, so the validation
@@ -65,13 +65,12 @@ class DiffusionObjective:
         model: RiskFlowGenerator,
         batch: Mapping[str, Tensor],
         normalizer: Normalizer,
+        eps: Tensor,
         generator: torch.Generator,
         **weights: float,
     ) -> tuple[Tensor, dict[str, Tensor]]:
         """One step's loss and metrics; ``weights``: ``heading_weight``, ``action_weight``."""
-        device = batch["actions"].device
-        eps = torch.randn(batch["actions"].shape, generator=generator, device=device)
-        k = draw_levels(eps.shape[0], self.diffusion.num_steps, generator, device)
+        k = draw_levels(eps.shape[0], self.diffusion.num_steps, generator, eps.device)
         return diffusion_loss(self.denoiser(model), batch, normalizer, eps, k, **weights)
 
     def sampler(self, model: RiskFlowGenerator) -> OneCallSampler:

@@ -103,7 +103,7 @@ def test_bad_options(strive, tiny_denoiser, tiny_normalizer, tiny_meanflow):
         ({"lambda_prior": float("nan")}, "lambda_prior"),
         ({"k": -1}, "k must be"),
         ({"planning_interval": 0.0}, "planning_interval"),
-        ({"target": "everyone"}, "GuidanceConfig: target"),
+        ({"target": "everyone"}, "target must be one of"),
         ({"guidance_steps": -1}, "GuidanceConfig: steps"),
     ):
         with pytest.raises(ValueError, match=match):

@@ -228,7 +228,7 @@ def test_bad_options(model):
         RiskFlowAdversary(generator=model)
     with pytest.raises(ValueError, match="planning_interval"):
         adversary(model, planning_interval=0.0)
-    with pytest.raises(ValueError, match="GuidanceConfig: target"):
+    with pytest.raises(ValueError, match="target must be one of"):
         adversary(model, target="everyone")
     env = riskflow_env.parallel_env(config=CONFIG, scenarios=make_scenario())
     env.reset(options={"scenario": make_scenario()})

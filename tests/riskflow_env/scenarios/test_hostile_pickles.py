@@ -123,6 +123,22 @@ def test_file_size_limit(tmp_path, monkeypatch):
         load_data_pickle(path)
 
 
+def test_file_size_limit_when_read_for_the_map_cache(tmp_path, monkeypatch):
+    """``load_scenarionet(..., map_cache=...)`` reads the bytes itself (to hash them): the
+    same limit, one bounded read, the file named."""
+    from riskflow_env.scenarios.map_cache import MapCache
+    from riskflow_env.scenarios.scenarionet import load_scenarionet
+
+    monkeypatch.setattr(safe_pickle, "MAX_FILE_BYTES", 10)
+    path = tmp_path / "big.pkl"
+    path.write_bytes(pickle.dumps(list(range(100))))
+    with pytest.raises(ValueError, match=rf"{path}: .*MAX_FILE_BYTES"):
+        safe_pickle.read_data_file(path)
+    with pytest.raises(ValueError, match=rf"{path}: .*MAX_FILE_BYTES"):
+        load_scenarionet(path, map_cache=MapCache(tmp_path / "maps"))
+    assert not (tmp_path / "maps").exists()
+
+
 def test_total_bytes_limit(monkeypatch):
     monkeypatch.setattr(safe_pickle, "MAX_TOTAL_BYTES", 1000)
     data = pickle.dumps([np.zeros(100), np.zeros(100)], protocol=2)

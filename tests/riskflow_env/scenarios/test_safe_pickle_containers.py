@@ -145,3 +145,22 @@ def test_a_type_reference_as_a_dict_key_is_refused():
     payload = b"\x80\x02}cbuiltins\nlist\nK\x01s."
     with pytest.raises(ValueError, match="dict key"):
         loads_data_pickle(payload, source="evil.pkl")
+
+
+@pytest.mark.parametrize("kind", [list, tuple, dict])
+def test_nesting_limit_is_exact_for_every_container(kind):
+    """Items nested MAX_DEPTH deep load; one level more is refused (leaves are passed over
+    without a call, containers holding them are still checked)."""
+    from riskflow_env.scenarios.safe_pickle import MAX_DEPTH
+
+    def nest(levels):
+        value = "leaf"
+        for _ in range(levels):
+            value = {"k": value} if kind is dict else kind([value])
+        return value
+
+    assert loads_data_pickle(pickle.dumps(nest(MAX_DEPTH))) == nest(MAX_DEPTH)
+    with pytest.raises(ValueError, match="nested deeper than MAX_DEPTH"):
+        loads_data_pickle(pickle.dumps(nest(MAX_DEPTH + 1)))
+    shared = [nest(MAX_DEPTH - 1)] * 3  # one list seen three times: still MAX_DEPTH deep
+    assert loads_data_pickle(pickle.dumps(shared)) == shared

@@ -114,3 +114,39 @@ def test_value_error_that_names_the_file_passes_unchanged():
     with pytest.raises(ValueError, match=r"^a\.pkl: not a readable data pickle \(vague\)$"):
         with errors_name_the_file("a.pkl"):
             raise ValueError("vague")
+
+
+def _complex_cases():
+    """(label, description) with one array the loader reads made complex, per source."""
+    from tests.riskflow_env.scenarios.scenarionet_sources import SOURCES, description
+
+    for source in SOURCES:
+        base = description(source)
+        sdc = base["metadata"]["sdc_id"]
+        lane = next(k for k, f in base["map_features"].items() if f["type"].startswith("LANE"))
+        read = ("position", "heading", "velocity", "valid", "length", "width")  # not height
+        paths = [("tracks", sdc, "state", key) for key in read]
+        paths += [("map_features", lane, key) for key in ("polyline", "polygon", "width")]
+        paths += [("metadata", "ts")]
+        for path in paths:
+            description_ = copy.deepcopy(base)
+            parent = description_
+            for key in path[:-1]:
+                parent = parent[key]
+            if path[-1] not in parent or np.asarray(parent[path[-1]]).dtype.kind not in "biuf":
+                continue
+            parent[path[-1]] = np.asarray(parent[path[-1]]).astype(np.complex128) + 1j
+            yield f"{source}:" + "/".join(map(str, path)), description_
+
+
+@pytest.mark.parametrize(("label", "description"), list(_complex_cases()))
+def test_complex_numbers_are_refused_not_cast(label, description, tmp_path):
+    """Issue 19: complex arrays were cast to float with a ComplexWarning, dropping the
+    imaginary part; now a ValueError names the file and the field."""
+    path = tmp_path / "scene.pkl"
+    path.write_bytes(pickle.dumps(description))
+    field = label.split("/")[-1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no ComplexWarning on the way
+        with pytest.raises(ValueError, match=rf"{re.escape(str(path))}: .*{field}.* complex"):
+            load_scenarionet(path)

@@ -1,21 +1,23 @@
-"""The methods ``riskflow-eval`` compares: name -> how to build its scene policy.
+"""The scene-policy registry: name -> how to build that policy (``riskflow-eval``
+compares these methods; the RL recipes and the examples build their traffic here too).
 
 Every method is a :class:`MethodSpec`: a loader that imports its policy class (lazily,
 so a method whose module is missing fails only when it is asked for, naming the
 module), the fixed keyword arguments that make the variant (``riskflow-noadv`` is
 RiskFlow with ``lambda_adv=0``), and which of the shared arguments the class takes
 (``k``, ``planning_interval``, ``target``, ``seed``, ``device``). Method options
-(``--set key=value``) are further keyword arguments of the class, checked against its
-signature; :func:`build_policy` makes one policy for one rollout.
+(``--set key=value``) are further keyword arguments of the class, checked against
+:func:`~policies.learned.adversary_config.option_names`; :func:`build_policy` makes one
+policy for one rollout.
 """
 
 from __future__ import annotations
 
-import inspect
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from policies.learned.adversary_config import option_names
 from riskflow_env.view import ScenePolicy
 
 SHARED = ("k", "planning_interval", "target", "seed", "device")
@@ -105,13 +107,8 @@ class MethodSpec:
 
     def option_names(self) -> tuple[str, ...]:
         """Keyword arguments ``--set`` may give (the class's, minus shared and fixed ones)."""
-        parameters = inspect.signature(self.policy_class().__init__).parameters
-        return tuple(
-            name
-            for name, p in parameters.items()
-            if name != "self" and name not in SHARED and name not in self.fixed
-            if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
-        )
+        names = option_names(self.policy_class())
+        return tuple(name for name in names if name not in SHARED and name not in self.fixed)
 
 
 _ADVERSARY = "adversarial guidance on the top-K agents"

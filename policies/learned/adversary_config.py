@@ -1,0 +1,143 @@
+"""``AdversaryConfig``: the options every learned adversary shares, as one typed object.
+
+RiskFlow, STRIVE-style, the unguided generator and the guided-diffusion baselines plan
+alike (:mod:`policies.learned.plan_buffer`): the size K of the controllable set, the
+planning interval, the guidance target and weights, the ranking threshold, the noise
+seed, the device, the window options and the torch threads. Each takes them as one
+``AdversaryConfig``, or as keywords that build one, next to its own options::
+
+    RiskFlowAdversary(AdversaryConfig(k=5, target="ego"), guidance_steps=20)
+    RiskFlowAdversary(k=5, target="ego", guidance_steps=20)  # the same policy
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from policies.learned.guidance_losses import TARGETS
+from policies.learned.ranking import DEFAULT_THRESHOLD, check_k
+from policies.learned.windows import WindowConfig
+
+
+@dataclass(frozen=True)
+class AdversaryConfig:
+    """Options shared by every learned adversary.
+
+    Attributes:
+        k: size of the controllable set ``A_c``: an int >= 0 or ``"all"``; 0 gives the
+            unguided generator.
+        planning_interval: time between re-plans [s]; a multiple of the env's ``dt``
+            between ``dt`` and the plan horizon.
+        target: ``"others"`` (the paper's: toward any agent outside ``A_c``) or ``"ego"``
+            (:class:`~policies.learned.guidance_losses.Target`).
+        lambda_adv: weight of ``L_adv`` [1/m]; > 0 is more adversarial.
+        lambda_map: weight of ``L_map`` [1/m^2], >= 0.
+        guidance_horizon: ``T_g`` [steps] of ``L_adv``; None: the whole plan.
+        rank_threshold: risk above which a pair is an edge of the risk graph (ranking).
+        seed: noise seed (the noise of cycle ``c`` of episode ``e`` comes from
+            ``(seed, e, c)``).
+        device: torch device of the model.
+        window_config: window options; None: the model's training windows. Its
+            ``dynamics`` (dt and bounds) must be the env's.
+        threads: torch CPU threads while planning (restored after); None keeps torch's
+            setting. One is the default: a cycle is hundreds of tiny ops, which extra
+            threads only slow down (on CPU).
+    """
+
+    k: int | str = 5
+    planning_interval: float = 0.5
+    target: str = "others"
+    lambda_adv: float = 50.0
+    lambda_map: float = 1.0
+    guidance_horizon: int | None = None
+    rank_threshold: float = DEFAULT_THRESHOLD
+    seed: int = 0
+    device: torch.device | str = "cpu"
+    window_config: WindowConfig | None = None
+    threads: int | None = 1
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "k", check_k(self.k))
+        interval = self.planning_interval
+        if not (isinstance(interval, (int, float)) and interval > 0):
+            raise ValueError(f"planning_interval must be > 0 [s], got {interval!r}")
+        threads = self.threads
+        if threads is not None and (not isinstance(threads, int) or threads < 1):
+            raise ValueError(f"threads must be None or an int >= 1, got {threads!r}")
+        if self.target not in TARGETS:
+            raise ValueError(f"target must be one of {TARGETS}, got {self.target!r}")
+        threshold = self.rank_threshold
+        if not (isinstance(threshold, (int, float)) and math.isfinite(threshold)):
+            raise ValueError(f"rank_threshold must be a finite number, got {threshold!r}")
+        seed = self.seed
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"seed must be an int >= 0, got {seed!r}")
+        object.__setattr__(self, "seed", int(seed))
+
+    @classmethod
+    def field_names(cls) -> tuple[str, ...]:
+        """The names of the shared options."""
+        return tuple(field.name for field in dataclasses.fields(cls))
+
+    @classmethod
+    def resolve(
+        cls, config: AdversaryConfig | None, options: Mapping[str, Any], owner: str
+    ) -> AdversaryConfig:
+        """``config``, or the one that ``options`` (keywords of ``owner``'s constructor,
+        each a field of this class) build; TypeError for unknown keywords or both."""
+        unknown = sorted(set(options) - set(cls.field_names()))
+        if unknown:
+            raise TypeError(
+                f"{owner} got unexpected keyword argument(s) {unknown}; the shared options "
+                f"are {cls.field_names()}"
+            )
+        if config is None:
+            return cls(**options)
+        if not isinstance(config, cls):
+            raise TypeError(f"config must be an AdversaryConfig, got {type(config).__name__}")
+        if options:
+            raise TypeError(f"{owner}: pass either config or {sorted(options)}, not both")
+        return config
+
+    def objective(self) -> dict[str, Any]:
+        """The guidance objective's options (``ObjectiveConfig`` fields) of this config."""
+        return {
+            "lambda_adv": self.lambda_adv,
+            "lambda_map": self.lambda_map,
+            "horizon": self.guidance_horizon,
+            "target": self.target,
+        }
+
+
+def option_names(cls: type) -> tuple[str, ...]:
+    """Keyword options of a scene policy class: its constructor's, those of the classes it
+    forwards ``**options`` to, and :class:`AdversaryConfig`'s fields when a constructor
+    takes a ``config`` (``riskflow-eval --set`` checks options against these)."""
+    names: list[str] = []
+    for klass in cls.__mro__:
+        init = klass.__dict__.get("__init__")
+        if init is None:
+            continue
+        parameters = inspect.signature(init).parameters
+        keywords = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+        for name, parameter in parameters.items():
+            if name in ("self", "config") or parameter.kind not in keywords:
+                continue
+            if name not in names:
+                names.append(name)
+        if "config" in parameters:
+            names += [name for name in AdversaryConfig.field_names() if name not in names]
+        if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
+            break  # this constructor takes no more than it names
+    return tuple(names)
+
+
+__all__ = ["AdversaryConfig", "option_names"]

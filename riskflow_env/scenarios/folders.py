@@ -1,0 +1,56 @@
+"""Open a folder of scenes, whichever kind it is.
+
+* a ScenarioNet dataset folder (``dataset_summary.pkl`` + ``dataset_mapping.pkl``, or
+  ScenarioNet scenario files ``sd_*.pkl`` alone): a lazy
+  :class:`~riskflow_env.scenarios.scenarionet_dataset.ScenarioNetDataset`, which reads a
+  scene when it is drawn;
+* a folder of RiskFlow ``.npz`` scene files (``riskflow-data generate``): a
+  :class:`~riskflow_env.scenarios.sources.ScenarioBank` with every scene loaded.
+
+``parallel_env(scenarios=folder)`` and ``riskflow-eval --data`` open their folder with
+:func:`open_scenes`; ``riskflow-train --data`` with :func:`scene_files` (it reads the
+scenes one at a time when it cuts their training windows).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from riskflow_env.scenarios.io import load_bank, require_scenarios
+from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset, is_scenarionet_folder
+from riskflow_env.scenarios.sources import ScenarioBank
+
+
+def open_scenes(folder: str | os.PathLike) -> ScenarioBank | ScenarioNetDataset:
+    """The scenes of ``folder`` (module docstring); both kinds have ``len``, indexing,
+    ``names`` and ``sample(rng)``.
+
+    Raises:
+        FileNotFoundError, NotADirectoryError: no such folder, a file, or no scenes in it.
+        ValueError: naming the file, for a malformed index or scene file.
+    """
+    if is_scenarionet_folder(folder):
+        return ScenarioNetDataset(folder)
+    return load_bank(folder)
+
+
+def scene_files(folder: str | os.PathLike) -> list[Path] | ScenarioNetDataset:
+    """The scenes of ``folder`` without loading any: the ``.npz`` scene files of a RiskFlow
+    folder, or a ScenarioNet dataset (whose every scenario file exists).
+
+    Raises:
+        FileNotFoundError, NotADirectoryError: no such folder, a file, no scenes in it, or
+            a scenario file that the dataset's summary lists is missing (named).
+        ValueError: naming the file, for a malformed ScenarioNet index file.
+    """
+    if not is_scenarionet_folder(folder):
+        return require_scenarios(folder)
+    dataset = ScenarioNetDataset(folder)
+    missing = dataset.missing_files()
+    if missing:
+        raise FileNotFoundError(
+            f"{folder}: {len(missing)} scenario file(s) listed in its summary are missing, "
+            f"e.g. {missing[0]}"
+        )
+    return dataset

@@ -1,0 +1,59 @@
+"""riskflow-eval --data on a ScenarioNet dataset folder: scenes read when a rollout needs
+them, the same numbers with any worker count, errors naming --data."""
+
+from __future__ import annotations
+
+import pickle
+
+import pytest
+
+from policies.evaluation import EvalOptions, ResultsStore, run_evaluation
+from policies.evaluation.cli import main
+from tests.riskflow_env.scenarios.scenarionet_datasets import (
+    MAPPING,
+    toy_descriptions,
+    write_dataset,
+)
+
+
+def _options(data, out, **changes) -> EvalOptions:
+    fields = dict(methods=("idm", "replay"), scenes=2, duration=1.0, wosac=False, report=False)
+    return EvalOptions(data=str(data), out=str(out), **(fields | changes))
+
+
+def _numbers(out) -> dict[str, dict]:
+    rows = ResultsStore(out).rows()
+    return {row["key"]: {k: v for k, v in row.items() if k not in ("timing", "samples")}
+            for row in rows}  # fmt: skip
+
+
+def test_eval_reads_only_the_scenes_it_runs(scenarionet_toy, tmp_path):
+    summary = run_evaluation(_options(scenarionet_toy, tmp_path / "one"), progress=False)
+    assert summary["ran"] == 4
+    rows = ResultsStore(tmp_path / "one").rows()
+    assert {row["scene"] for row in rows} == {
+        "scenarionet/nuscenes-toy-0",
+        "scenarionet/nuscenes-toy-1",
+    }
+    maps = list((tmp_path / "user-cache" / "maps").glob("*.npz"))
+    assert len(maps) == 2  # the third scene was never read
+    run_evaluation(_options(scenarionet_toy, tmp_path / "two", workers=2), progress=False)
+    assert _numbers(tmp_path / "two") == _numbers(tmp_path / "one")
+
+
+@pytest.mark.reliability
+def test_bad_dataset_folders_name_the_argument(scenarionet_toy, tmp_path, capsys):
+    out = tmp_path / "out"
+    (scenarionet_toy / MAPPING).write_bytes(pickle.dumps({"sd_x.pkl": ""}))
+    with pytest.raises(SystemExit):
+        main(["--data", str(scenarionet_toy), "--methods", "idm", "--out", str(out)])
+    error = capsys.readouterr().err
+    missing = "no entry for sd_nuscenes_v1.0-mini_nuscenes-toy-0.pkl"
+    assert f"--data: {scenarionet_toy / MAPPING}: {missing}" in error
+    write_dataset(tmp_path / "sd_other", toy_descriptions(2))
+    next((tmp_path / "sd_other").glob("*/*toy-1.pkl")).unlink()
+    with pytest.raises(SystemExit):
+        main(["--data", str(tmp_path / "sd_other"), "--methods", "idm", "--out", str(out)])
+    error = capsys.readouterr().err
+    assert "--data: 1 scenario file(s) missing, e.g." in error and "toy-1.pkl" in error
+    assert not out.exists()
