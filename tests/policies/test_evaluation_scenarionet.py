@@ -1,5 +1,6 @@
 """riskflow-eval --data on a ScenarioNet dataset folder: scenes read when a rollout needs
-them, the same numbers with any worker count, errors naming --data."""
+them, the same numbers with any worker count, errors naming --data; on the real nuScenes
+samples the realism metrics rank log replay over the generator over the adversary."""
 
 from __future__ import annotations
 
@@ -7,13 +8,15 @@ import pickle
 
 import pytest
 
-from policies.evaluation import EvalOptions, ResultsStore, run_evaluation
+from policies.evaluation import EvalOptions, ResultsStore, build_tables, run_evaluation
 from policies.evaluation.cli import main
+from riskflow_env.user_cache import CACHE_ENV
 from tests.riskflow_env.scenarios.scenarionet_datasets import (
     MAPPING,
     toy_descriptions,
     write_dataset,
 )
+from tests.samples import SCENARIONET_DIR, require_samples
 
 
 def _options(data, out, **changes) -> EvalOptions:
@@ -57,3 +60,26 @@ def test_bad_dataset_folders_name_the_argument(scenarionet_toy, tmp_path, capsys
     error = capsys.readouterr().err
     assert "--data: 1 scenario file(s) missing, e.g." in error and "toy-1.pkl" in error
     assert not out.exists()
+
+
+def test_realism_ranks_replay_over_the_generator_over_the_adversary(tmp_path, monkeypatch):
+    """On the real nuScenes samples (10 s, IDM ego, one seed): log replay is more realistic
+    than the unguided generator, which is more realistic than the RiskFlow adversary
+    attacking the ego, by WOSAC-style score and ADE (measured: WOSAC 0.84 / 0.59 / 0.37,
+    ADE 0.06 / 2.9 / 5.9 m); by KDD and the realism score RS replay beats both (KDD 2.1 /
+    2.8 / 2.9, RS 0.81 / 0.28 / 0.25: the last two too close to order on 4 rollouts)."""
+    require_samples()
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "user-cache"))
+    options = EvalOptions(
+        data=str(SCENARIONET_DIR), methods=("replay", "bits", "riskflow"), k=("5",),
+        seeds=(0,), duration=10.0, target="ego", out=str(tmp_path / "eval"), report=False,
+    )  # fmt: skip
+    run_evaluation(options, progress=False)
+    (table,) = build_tables(ResultsStore(tmp_path / "eval"))
+    metrics = table.metrics
+    replay, generator, adversary = (metrics[m] for m in ("replay", "bits", "riskflow"))
+    assert replay["wosac"] > generator["wosac"] > adversary["wosac"]
+    assert replay["rs"] > max(generator["rs"], adversary["rs"])
+    assert replay["kdd"] < min(generator["kdd"], adversary["kdd"])
+    assert replay["ade"] < generator["ade"] < adversary["ade"]
+    assert adversary["ego_collision_rate"] > generator["ego_collision_rate"]

@@ -13,25 +13,9 @@ from riskflow_env.metrics.kinematics import kinematic_p95
 from riskflow_env.scenarios.safe_pickle import loads_data_pickle
 from riskflow_env.scenarios.scenarionet import load_scenarionet, scenario_from_description
 from riskflow_env.scenarios.scenarionet_map import build_map
-from tests.samples import SCENARIONET_DIR
+from tests.samples import SAMPLES, SCENARIONET_DIR, require_samples
 
 DATA_DIR = SCENARIONET_DIR
-SAMPLES = sorted(DATA_DIR.glob("*.pkl")) if DATA_DIR.is_dir() else []
-MISSING = (
-    f"no ScenarioNet sample pickles (*.pkl) in {DATA_DIR.resolve()}: the nuScenes samples"
-    " are not shipped; set RISKFLOW_SCENARIONET_DIR to their folder (README, Real data)."
-    " The loader is still covered by the synthetic-description tests"
-    " (test_scenarionet_sources.py)"
-)
-
-
-def _require_samples() -> None:
-    """Skip without the samples; fail under CI (``CI`` set), where they must be present."""
-    if SAMPLES:
-        return
-    if os.environ.get("CI"):
-        pytest.fail(f"{MISSING}. CI is set: the samples are required there", pytrace=False)
-    pytest.skip(MISSING)
 
 
 def _track(xy, heading, valid, kind="VEHICLE", length=4.0, width=2.0, velocity=True):
@@ -181,7 +165,7 @@ def test_restricted_unpickler_reads_arrays_at_every_protocol(protocol):
 
 @pytest.fixture(scope="module")
 def samples():
-    _require_samples()
+    require_samples()
     return [load_scenarionet(path) for path in SAMPLES]
 
 
