@@ -10,6 +10,9 @@ validation bank, 19 against 30 agent slots).
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import json
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -18,6 +21,7 @@ import torch
 
 from policies.learned.data import WindowDataset, collate_windows
 from policies.learned.data_cache import derived_dir
+from policies.learned.recovery import RecoveryConfig
 from riskflow_env.scenarios.folders import scene_files
 from riskflow_env.scenarios.io import load_scenario
 from riskflow_env.scenarios.scenario import Scenario
@@ -25,7 +29,11 @@ from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
 
 def load_splits(
-    data: Path, val_data: Path | None, val_fraction: float, stride: int
+    data: Path,
+    val_data: Path | None,
+    val_fraction: float,
+    stride: int,
+    recovery: RecoveryConfig | None = None,
 ) -> tuple[WindowDataset, WindowDataset]:
     """Training and validation windows, cached under ``<folder>/cache/``.
 
@@ -41,18 +49,24 @@ def load_splits(
             any training seed).
         val_fraction: see ``val_data``.
         stride: steps between windows of a scene (``WindowDataset``).
+        recovery: recovery windows added to the training split only
+            (:mod:`policies.learned.recovery`); their cache has its own file.
     """
     name = f"windows-stride{stride}"
+    train_name = name
+    if recovery is not None and recovery.copies:
+        settings = json.dumps(dataclasses.asdict(recovery), sort_keys=True).encode()
+        train_name += f"-recovery-{hashlib.sha256(settings).hexdigest()[:12]}"
     caches = {}
     for folder in (data, val_data):
         if folder is not None:
             caches[folder] = derived_dir(folder) / "cache"
             caches[folder].mkdir(parents=True, exist_ok=True)
     if val_data is not None:
-        train, val = (
-            WindowDataset(_source(folder), None, stride, caches[folder] / f"{name}.npz")
-            for folder in (data, val_data)
+        train = WindowDataset(
+            _source(data), None, stride, caches[data] / f"{train_name}.npz", recovery
         )
+        val = WindowDataset(_source(val_data), None, stride, caches[val_data] / f"{name}.npz")
         return train, val
     scenes = scene_files(data)
     count = round(val_fraction * len(scenes))
@@ -68,8 +82,9 @@ def load_splits(
             source: ScenarioNetDataset | list[Scenario] = scenes.subset(picked)
         else:
             source = [load_scenario(scenes[i]) for i in picked]
-        cache = caches[data] / f"{name}-val{val_fraction:g}-{role}.npz"
-        datasets.append(WindowDataset(source, None, stride, cache))
+        prefix, extra = (train_name, recovery) if role == "train" else (name, None)
+        cache = caches[data] / f"{prefix}-val{val_fraction:g}-{role}.npz"
+        datasets.append(WindowDataset(source, None, stride, cache, extra))
     return datasets[0], datasets[1]
 
 

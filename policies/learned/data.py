@@ -29,11 +29,14 @@ from torch import Tensor
 from torch.utils.data import Dataset
 
 from policies.learned.data_cache import derived_dir
+from policies.learned.parked import add_parked
+from policies.learned.recovery import RecoveryConfig, perturb_tracks
 from policies.learned.windows import (
     AGENT_KEYS,
     PAD_INDEX,
     PAIR_KEYS,
     WindowConfig,
+    select_rows,
     window_from_scenario,
 )
 from riskflow_env._array import Array, asarray_like
@@ -105,8 +108,12 @@ class WindowDataset(Dataset):
         config: window options (sizes, agent selection).
         stride: steps between the current steps of consecutive windows of a scene.
         cache_path: optional ``.npz`` file holding the packed windows; used when it
-            matches the scenes, config and stride, written otherwise (it may sit in the
-            scene directory: it is not read as a scene).
+            matches the scenes, config, stride and recovery, written otherwise (it may sit
+            in the scene directory: it is not read as a scene).
+        recovery: add ``recovery.copies`` recovery windows per window (agents that drift
+            off their log and return: :mod:`policies.learned.recovery`; ``recovery.parked``
+            parked cars: :mod:`policies.learned.parked`); copy ``k`` of
+            the window of scene ``s`` at step ``c`` draws from ``(seed, s, c, k)``.
 
     Items are dicts of torch tensors keyed as in docs/WINDOWS.md (future keys included,
     plus ``agent_index``), A varying per item; they share memory with the dataset, so do
@@ -119,13 +126,19 @@ class WindowDataset(Dataset):
         config: WindowConfig | None = None,
         stride: int = 5,
         cache_path: str | os.PathLike | None = None,
+        recovery: RecoveryConfig | None = None,
     ) -> None:
         if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
             raise ValueError(f"stride must be an int >= 1 [steps], got {stride!r}")
+        if recovery is not None and not isinstance(recovery, RecoveryConfig):
+            raise TypeError(f"recovery must be a RecoveryConfig or None, got {recovery!r}")
         self.config = config or WindowConfig()
         self.stride = stride
+        self.recovery = recovery if recovery is not None and recovery.copies else None
         parts, scenes = _scenes(source, cache_path)
         settings = [_CACHE_VERSION, dataclasses.asdict(self.config), stride, parts]
+        if self.recovery is not None:  # caches without recovery keep their fingerprint
+            settings.append(dataclasses.asdict(self.recovery))
         fingerprint = hashlib.sha256(json.dumps(settings).encode()).hexdigest()
         packed = _load_cache(cache_path, fingerprint) if cache_path is not None else None
         if packed is None:
@@ -143,6 +156,9 @@ class WindowDataset(Dataset):
             for current in window_indices(scenario, self.config, self.stride):
                 windows.append(window_from_scenario(scenario, int(current), self.config))
                 index.append((position, int(current)))
+                for copy in range(self.recovery.copies if self.recovery else 0):
+                    windows.append(self._recovery_window(scenario, position, int(current), copy))
+                    index.append((position, int(current)))
         if not windows:
             raise ValueError(
                 "WindowDataset: no window fits (scenes need history_steps + future_steps "
@@ -152,6 +168,21 @@ class WindowDataset(Dataset):
         packed = _pack(windows)
         packed["index"] = np.array(index, dtype=np.int64).reshape(-1, 2)
         return packed
+
+    def _recovery_window(
+        self, scenario: Scenario, position: int, current: int, copy: int
+    ) -> dict[str, np.ndarray]:
+        recovery = self.recovery
+        assert recovery is not None
+        rng = np.random.default_rng([recovery.seed, position, current, copy])
+        rows = select_rows(scenario, current, self.config)
+        states = perturb_tracks(
+            scenario.states, scenario.valid, rows, current, scenario.dt, recovery, rng,
+            self.config.dynamics.yaw_rate_max,
+        )  # fmt: skip
+        moved = dataclasses.replace(scenario, states=states.astype(scenario.states.dtype))
+        moved = add_parked(moved, recovery.parked, current, rng)
+        return window_from_scenario(moved, current, self.config)
 
     def __len__(self) -> int:
         return len(self.index)

@@ -36,13 +36,19 @@ from torch import Tensor
 from tqdm import tqdm
 
 from policies.learned.batches import batch_order, collated, load_splits
-from policies.learned.checkpoint import build_checkpoint, load_checkpoint, normalizer_of
+from policies.learned.checkpoint import (
+    build_checkpoint,
+    checkpoint_kind,
+    load_checkpoint,
+    normalizer_of,
+)
 from policies.learned.checkpoint import save_checkpoint as write
 from policies.learned.config import ModelConfig
 from policies.learned.data import ActionNormalizer
 from policies.learned.data import load_or_compute_stats as action_stats
 from policies.learned.ema import EMA
 from policies.learned.generator import RiskFlowGenerator
+from policies.learned.recovery import RecoveryConfig
 from policies.learned.validation import evaluate
 from riskflow_env.scenarios.folders import scene_files
 
@@ -128,6 +134,16 @@ class LoopOptions:
     """'cpu' or 'cuda' (or 'cuda:N')"""
     resume: bool = False
     """continue from OUT/checkpoint.pt"""
+    init: Path | None = None
+    """fine-tune: start from this generator checkpoint's weights (model and EMA), model
+    config and action statistics, with a fresh optimiser (ignored with --resume)"""
+    recovery_copies: int = 0
+    """recovery windows per training window: agents drift off their log and return
+    (policies.learned.recovery; ChauffeurNet-style perturbations)"""
+    recovery_offset: float = 1.0
+    """largest lateral drift of a recovery window's agents [m]"""
+    recovery_parked: int = 0
+    """cars parked beside the road added to each recovery window (policies.learned.parked)"""
     time_budget_min: float = 0.0
     """stop cleanly and save after this many minutes of this run (0: no limit)"""
 
@@ -141,7 +157,22 @@ class LoopOptions:
             "--grad-clip > 0": self.grad_clip > 0,
             "0 <= --ema-decay < 1": 0 <= self.ema_decay < 1,
             "0 < --val-fraction < 1": 0 < self.val_fraction < 1,
+            "--recovery-copies, --recovery-parked >= 0": min(
+                self.recovery_copies, self.recovery_parked
+            )
+            >= 0,
+            "--recovery-offset >= 0": math.isfinite(self.recovery_offset)
+            and self.recovery_offset >= 0,
         }
+
+    def recovery(self) -> RecoveryConfig:
+        """The recovery windows of the training split (none when ``recovery_copies`` is 0)."""
+        return RecoveryConfig(
+            copies=self.recovery_copies,
+            offset=self.recovery_offset,
+            parked=self.recovery_parked,
+            seed=self.seed,
+        )
 
     def __post_init__(self) -> None:
         broken = [rule for rule, holds in self.rules().items() if not holds]
@@ -177,6 +208,25 @@ def _set_rng_state(noise: torch.Generator, state: dict[str, Any]) -> None:
     np.random.set_state(("MT19937", key, numpy["pos"], numpy["has_gauss"], numpy["gauss"]))  # noqa: NPY002
 
 
+def _initial(
+    options: LoopOptions, objective: Objective
+) -> tuple[RiskFlowGenerator, ActionNormalizer]:
+    """``--init``'s model and action statistics (SystemExit naming what does not fit)."""
+    try:
+        state = load_checkpoint(options.init)
+        expected = model_config(options.model) if options.model else None
+        model = RiskFlowGenerator.from_checkpoint(state, expected)
+        normalizer = normalizer_of(state)
+    except (OSError, ValueError) as err:  # missing file, CheckpointError (a ValueError)
+        raise SystemExit(f"riskflow-train: --init: {err}") from None
+    if checkpoint_kind(state) != objective.kind:
+        raise SystemExit(
+            f"riskflow-train: --init: {options.init} holds a {checkpoint_kind(state)} "
+            f"generator, not {objective.kind}"
+        )
+    return model, normalizer
+
+
 def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
     """Train with ``objective`` (or, with ``options.resume``, continue); returns the last
     metrics logged."""
@@ -187,6 +237,7 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
     device, out = options.device, Path(options.out)
     if options.resume and not (out / CHECKPOINT).is_file():
         raise SystemExit(f"riskflow-train: --resume: no checkpoint at {out / CHECKPOINT}")
+    start = None if options.resume or options.init is None else _initial(options, objective)
     for flag, folder in (("--data", options.data), ("--val-data", options.val_data)):
         try:
             if folder is not None:
@@ -195,17 +246,24 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
             raise SystemExit(f"riskflow-train: {flag}: {err}") from None
     try:
         splits = (options.data, options.val_data, options.val_fraction, options.stride)
-        train_set, val_set = load_splits(*splits)
+        train_set, val_set = load_splits(*splits, recovery=options.recovery())
     except ValueError as err:
         raise SystemExit(f"riskflow-train: {err}") from None
-    config = model_config(options.model)
+    state = load_checkpoint(out / CHECKPOINT, device) if options.resume else {}
+    if start is not None:
+        config = start[0].config
+    elif options.resume and not options.model:  # e.g. a fine-tune's, from its --init
+        config = ModelConfig.from_dict(state["config"])
+    else:
+        config = model_config(options.model)
     model = RiskFlowGenerator(config).to(device)
+    if start is not None:
+        model.load_state_dict(start[0].state_dict())
     ema = EMA(model, options.ema_decay)
     optimizer = torch.optim.Adam(model.parameters(), lr=options.lr)
     noise = torch.Generator(device).manual_seed(options.seed)  # eps and (t, r)
     step, elapsed, metrics = 0, 0.0, {}
     if options.resume:
-        state = load_checkpoint(out / CHECKPOINT, device)
         if "training" not in state:
             raise SystemExit(f"riskflow-train: {out / CHECKPOINT} holds no training state")
         trained = state.get("train_config", {}).get("generator", "meanflow")
@@ -217,6 +275,8 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
         _set_rng_state(noise, state["training"]["rng"])
         normalizer: ActionNormalizer = normalizer_of(state)
         step, elapsed, metrics = state["step"], state["training"]["elapsed_s"], state["metrics"]
+    elif start is not None:
+        normalizer = start[1]
     else:
         normalizer = action_stats(options.data, train_set)
     agents = np.array([train_set.window(i)["agent_mask"].shape[0] for i in range(len(train_set))])

@@ -99,6 +99,34 @@ def test_resume_with_another_architecture_names_the_mismatch(banks, tmp_path, ti
         train_main(tiny_args(banks, tmp_path / "empty", tiny_config, "--resume"))
 
 
+def test_init_fine_tunes_from_a_checkpoint_and_resumes(banks, tmp_path, tiny_config):
+    """--init starts from the weights and statistics of a generator file; a fine-tune
+    with recovery windows resumes like any run; a wrong --init names the problem."""
+    base = tmp_path / "base"
+    train_main(tiny_args(banks, base, tiny_config, steps=2))
+    start = load_checkpoint(base / GENERATOR)
+    tune = tmp_path / "tune"
+    args = ["--init", str(base / GENERATOR), "--recovery-copies", "1", "--lr", "1e-9"]
+    train_main(tiny_args(banks, tune, tiny_config, *args, steps=1))
+    tuned = load_checkpoint(tune / CHECKPOINT)
+    assert tuned["normalizer"] == start["normalizer"] and tuned["step"] == 1
+    assert tuned["train_config"]["init"] == str(base / GENERATOR)
+    for key, value in start["state_dict"].items():  # lr 1e-9: still the initial weights
+        torch.testing.assert_close(tuned["state_dict"][key], value, rtol=0, atol=1e-6)
+    cached = {p.name for p in (banks[0] / "cache").iterdir()}
+    assert any(name.startswith("windows-stride16-recovery-") for name in cached)
+    train_main(tiny_args(banks, tune, tiny_config, *args, "--resume", steps=2))
+    assert load_checkpoint(tune / CHECKPOINT)["step"] == 2
+    with pytest.raises(SystemExit, match="--init: no generator checkpoint"):
+        train_main(tiny_args(banks, tmp_path / "x", tiny_config, "--init", str(tmp_path / "no.pt")))
+    wider = dataclasses.replace(tiny_config, head_dim=64)
+    with pytest.raises(SystemExit, match="--init: .*head_dim"):
+        train_main(tiny_args(banks, tmp_path / "y", wider, "--init", str(base / GENERATOR)))
+    with pytest.raises(SystemExit, match="--init: .* meanflow generator, not diffusion"):
+        diffusion = ("--init", str(base / GENERATOR), "--generator", "diffusion")
+        train_main(tiny_args(banks, tmp_path / "z", tiny_config, *diffusion))
+
+
 def test_flow_matching_reference_and_time_budget(banks, tmp_path, tiny_config):
     out = tmp_path / "fm"
     train_main(tiny_args(banks, out, tiny_config, "--flow-matching", "--time-budget-min", "1e-9"))
