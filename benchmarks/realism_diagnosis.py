@@ -2,8 +2,10 @@
 
     python benchmarks/realism_diagnosis.py                      # first 21 eval scenes
     python benchmarks/realism_diagnosis.py --scenes 105 --checkpoint runs/x/generator.pt
+    python benchmarks/realism_diagnosis.py --bank DIR --scenes 4   # e.g. real scenes as .npz
 
-For each scene of the shipped evaluation bank (scenes 0..N-1: the families take turns),
+For each scene of the shipped evaluation bank (scenes 0..N-1: the families take turns;
+``--bank``: a scene folder of your own),
 the unguided generator (``NominalGenerator``, K = 0, re-planning every 0.5 s) drives every
 vehicle but an IDM ego for 10 s. Episodes run their full length (nothing terminates on a
 collision or off the road) so that every time bucket sees every scene. Printed, as
@@ -36,7 +38,7 @@ from policies.planners import IDMPlanner
 from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import SPEED, YAW
 from riskflow_env.geometry import footprint_points, pairwise_overlap
-from riskflow_env.scenarios import shipped_bank
+from riskflow_env.scenarios import load_bank, shipped_bank
 
 CURVED = ("roundabout", "racetrack", "u-turn", "intersection")
 STANDING = 0.5  # [m/s]
@@ -93,8 +95,9 @@ def collision_kinds(record) -> Counter:
     return counts
 
 
-def diagnose(scenes: int, checkpoint: str | None, seed: int) -> dict:
+def diagnose(scenes: int, checkpoint: str | None, seed: int, bank: str | None = None) -> dict:
     """Run the episodes; returns per-family rows, collision kinds and time buckets."""
+    source = shipped_bank("eval") if bank is None else load_bank(bank)
     models = {}
     if checkpoint:
         generator, normalizer, _ = load_generator(checkpoint)
@@ -105,7 +108,7 @@ def diagnose(scenes: int, checkpoint: str | None, seed: int) -> dict:
     buckets = np.zeros((5, 2))  # off-road centroid steps, live steps per 2 s bucket
     recorder = FirstPlans(policy)
     with ClosedLoop(IDMPlanner(), recorder, config=FULL_EPISODES) as loop:
-        for scenario in shipped_bank("eval").scenarios[:scenes]:
+        for scenario in source.scenarios[:scenes]:
             record = loop.run(scenario)
             plan_overlap, plan_offroad = open_loop(*recorder.first, loop.base.scene, scenario.map)
             live = record.active[:, :-1] & record.present[:, None]
@@ -117,7 +120,7 @@ def diagnose(scenes: int, checkpoint: str | None, seed: int) -> dict:
             buckets[: starts.size, 1] += np.add.reduceat(live[:, :steps].sum(0), starts)
             episode = collision_kinds(record)
             kinds.update(episode)
-            families.setdefault(scenario.family, []).append(
+            families.setdefault(scenario.family or "(no family)", []).append(
                 (
                     plan_overlap,
                     plan_offroad,
@@ -165,15 +168,17 @@ class Options:
     """Benchmark options."""
 
     scenes: int = 21
-    """first N scenes of the shipped evaluation bank (1 to 105)"""
+    """first N scenes of the bank (at least 1; fewer if the bank has fewer)"""
     checkpoint: str | None = None
     """generator checkpoint (default: the shipped one)"""
     seed: int = 0
     """noise seed of the generator"""
+    bank: str | None = None
+    """scene folder (riskflow_env.scenarios.load_bank); default: the shipped evaluation bank"""
 
     def __post_init__(self) -> None:
-        if not 1 <= self.scenes <= 105:
-            raise ValueError(f"--scenes must be in [1, 105], got {self.scenes}")
+        if self.scenes < 1:
+            raise ValueError(f"--scenes must be >= 1, got {self.scenes}")
 
 
 def main(argv: list[str] | None = None) -> str:
@@ -182,9 +187,11 @@ def main(argv: list[str] | None = None) -> str:
         Options, argv, prog="realism_diagnosis.py", description=__doc__.split("\n")[0]
     )
     start = time.perf_counter()
-    text = report(diagnose(args.scenes, args.checkpoint, args.seed))
+    result = diagnose(args.scenes, args.checkpoint, args.seed, args.bank)
+    text = report(result)
+    count = sum(len(rows) for rows in result["families"].values())
     print(text)
-    print(f"\n{args.scenes} scenes in {time.perf_counter() - start:.0f} s")
+    print(f"\n{count} scenes in {time.perf_counter() - start:.0f} s")
     return text
 
 

@@ -31,3 +31,14 @@ def test_one_scene_gives_every_table(diagnosis, capsys):
 def test_bad_scene_count(diagnosis):
     with pytest.raises(SystemExit):
         diagnosis.main(["--scenes", "0"])
+
+
+def test_a_bank_of_your_own(diagnosis, tmp_path):
+    """--bank reads a scene folder; --scenes beyond its size takes what there is."""
+    from riskflow_env.scenarios import shipped_bank
+    from riskflow_env.scenarios.io import save_scenario
+
+    scene = shipped_bank("eval")[2]  # a roundabout
+    save_scenario(scene, tmp_path / "00000-mine.npz", map_dir=tmp_path / "maps")
+    text = diagnosis.main(["--bank", str(tmp_path), "--scenes", "3"])
+    assert "| roundabout | 1 |" in text
