@@ -250,15 +250,27 @@ def test_map_gradient_matches_finite_differences():
     assert torch.equal(through_term, gradient)
 
 
+def _autograd_adversarial(xy, target_xy, horizon, target_valid):
+    """Each row's ``L_adv`` by plain autograd ops (the reference of the closed form)."""
+    targets = target_xy if target_xy.ndim == 4 else target_xy[None].expand(len(xy), -1, -1, -1)
+    distance = torch.linalg.vector_norm(xy[:, None, :horizon] - targets[:, :, :horizon], dim=-1)
+    if target_valid is not None:
+        distance = distance.masked_fill(~target_valid[..., None], torch.inf)
+    return distance.min(dim=1).values.mean(dim=1)
+
+
 def _autograd_gradient(objective, u_c, lambda_adv, lambda_map):
-    """The autograd path the closed form replaces: through the rollout and both losses."""
+    """The autograd path the closed form replaces: through the rollout and both losses.
+    Returns the gradient and each row's ``L_adv`` and ``L_map`` (as ``gradient`` does)."""
     with torch.inference_mode(False), torch.enable_grad():  # guide's loop runs in inference
         u_c = u_c.clone().requires_grad_(True)
         trajectories = rollout(objective.state, objective.actions(u_c), objective.dynamics)
-        adv = adversarial_loss(trajectories[..., :2], objective.target_xy, objective.horizon)
+        adv = _autograd_adversarial(
+            trajectories[..., :2], objective.target_xy, objective.horizon, objective.target_valid
+        )
         off_road = objective.map_term(trajectories)
-        (grad,) = torch.autograd.grad(lambda_adv * adv + lambda_map * off_road, u_c)
-    return grad, adv.detach(), off_road.detach()
+        (grad,) = torch.autograd.grad(lambda_adv * adv.sum() + lambda_map * off_road, u_c)
+    return grad, adv.detach(), objective.map_term.rows(trajectories.detach())
 
 
 def _stopping_scene() -> GuidanceScene:
