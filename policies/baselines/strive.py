@@ -30,11 +30,12 @@ from torch import Tensor
 from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.guidance_losses import adversarial_loss, map_term, target_rows
-from policies.learned.plan_buffer import EncodedView
+from policies.learned.plan_buffer import EncodedView, EncodedViews
 from policies.learned.sampler import base_velocity
 from policies.riskflow.guidance import (
     GuidanceResult,
     GuidanceScene,
+    one_scene,
     plans_from_velocity,
 )
 from policies.riskflow.policy import RiskFlowAdversary
@@ -87,7 +88,27 @@ class StriveAdversary(RiskFlowAdversary):
         self.prior_losses: np.ndarray | None = None
         self.latent: Tensor | None = None
 
+    def _plan_cycles(self, scenes, views) -> None:
+        """Scene by scene: the latent optimisation keeps one scene's generator in the loop
+        (batching it across scenes is left to do); each scene is the case B = 1 of
+        ``RiskFlowAdversary``'s batched cycle."""
+        if len(scenes) == 1:
+            super()._plan_cycles(scenes, views)
+            return
+        for scene, view in zip(scenes, views, strict=True):
+            scene._plan_cycles([scene], [view])
+
     def _guide(
+        self, scene: GuidanceScene, controllable: Tensor, observed: EncodedViews
+    ) -> GuidanceResult:
+        """Batch of one (``_plan_cycles``): :meth:`_guide_scene` of it."""
+        one = one_scene(scene, 0)
+        result = self._guide_scene(one, controllable[0], observed.view(0))
+        return GuidanceResult(
+            result.u[None], result.actions[None], result.trajectories[None], result.losses[:, None]
+        )
+
+    def _guide_scene(
         self, scene: GuidanceScene, controllable: Tensor, observed: EncodedView
     ) -> GuidanceResult:
         """``K_g`` steps on the ``A_c`` rows of ``eps`` (module docstring)."""
