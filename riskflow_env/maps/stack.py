@@ -106,16 +106,21 @@ class MapStack:
             count = len(stack)
             if len(index) and (int(index.min()) < 0 or int(index.max()) >= count):
                 raise ValueError(f"map index must be in [0, {count}), got {index}")
+            self._grids: dict[Any, tuple] = {}  # the rows' geometry, per backend and rank
 
         def _grid(self, xy: Array) -> tuple[Array, tuple]:
-            flat, grid = self.stack._tables_like(xy)
-            index = self.index
-            order = self.stack._order
-            if order is not None:
-                index = asarray_like(order, index)[index] if is_torch(index) else order[index]
-            lead = (slice(None),) + (None,) * (xy.ndim - 2)  # (C,) -> (C, 1, ..., 1)
-            names = ("height", "width", "origin_x", "origin_y", "resolution", "offset")
-            return flat, tuple(grid[name][index][lead] for name in names)
+            """The flat table and each row's raster geometry, shaped (C, 1, ..., 1) for
+            queries like ``xy`` (gathered once per backend, dtype and rank)."""
+            key = (is_torch(xy), str(getattr(xy, "device", "")), xy.dtype, xy.ndim)
+            if key not in self._grids:
+                flat, grid = self.stack._tables_like(xy)
+                index, order = self.index, self.stack._order
+                if order is not None:
+                    index = asarray_like(order, index)[index] if is_torch(index) else order[index]
+                lead = (slice(None),) + (None,) * (xy.ndim - 2)  # (C,) -> (C, 1, ..., 1)
+                names = ("height", "width", "origin_x", "origin_y", "resolution", "offset")
+                self._grids[key] = (flat, tuple(grid[name][index][lead] for name in names))
+            return self._grids[key]
 
         def sdf_at(self, xy: Array) -> Array:
             """(C, ...) [m] signed distances of ``xy`` (C, ..., 2) [m] in each row's map."""
