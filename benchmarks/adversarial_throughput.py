@@ -103,8 +103,10 @@ def measure(policy: RiskFlowAdversary, views: list[SceneView], options: Options)
     return best
 
 
-def main() -> None:
-    options = _parse()
+def main(argv: list[str] | None = None) -> list[dict]:
+    """Print the table; returns its rows (``scenes``, ``batched`` and ``loop`` [s per
+    call of all B scenes], ``phases`` of the last batched call [s])."""
+    options = _parse(argv)
     policy = RiskFlowAdversary(
         k=options.k,
         guidance_steps=options.guidance_steps,
@@ -124,9 +126,10 @@ def main() -> None:
         f"{'loop calls/s':>14}{'loop scenes/s':>15}{'ratio':>8}"
     )
     print(header)
-    phases = {}
+    phases, rows = {}, []
     for count in tqdm(options.scenes, "scene counts", leave=False):  # stderr
         best = measure(policy, views[:count], options)
+        rows.append({"scenes": count, **best})
         batched, loop = 1.0 / best["batched"], 1.0 / best["loop"]
         print(
             f"{count:>4}{batched:>17.2f}{batched * count:>18.1f}"
@@ -142,6 +145,7 @@ def main() -> None:
     print(f"{'B':>4}" + "".join(f"{name:>11}" for name in names))
     for count, timings in phases.items():
         print(f"{count:>4}" + "".join(f"{1e3 * timings[name]:>11.1f}" for name in names))
+    return rows
 
 
 if __name__ == "__main__":
