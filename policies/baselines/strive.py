@@ -21,6 +21,7 @@ cost.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -30,7 +31,7 @@ from torch import Tensor
 from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.guidance_losses import adversarial_loss, map_term, target_rows
-from policies.learned.plan_buffer import EncodedView, EncodedViews
+from policies.learned.plan_buffer import EncodedView, EncodedViews, PlanBufferPolicy
 from policies.learned.sampler import base_velocity
 from policies.riskflow.guidance import (
     GuidanceResult,
@@ -39,6 +40,7 @@ from policies.riskflow.guidance import (
     plans_from_velocity,
 )
 from policies.riskflow.policy import RiskFlowAdversary
+from riskflow_env.view import SceneView
 
 DEFAULT_LAMBDA_PRIOR = 1.0  # weight of ||eps_c||^2 / 2 [per unit of normalised noise^2]
 
@@ -88,7 +90,7 @@ class StriveAdversary(RiskFlowAdversary):
         self.prior_losses: np.ndarray | None = None
         self.latent: Tensor | None = None
 
-    def _plan_cycles(self, scenes, views) -> None:
+    def _plan_cycles(self, scenes: Sequence[PlanBufferPolicy], views: Sequence[SceneView]) -> None:
         """Scene by scene: the latent optimisation keeps one scene's generator in the loop
         (batching it across scenes is left to do); each scene is the case B = 1 of
         ``RiskFlowAdversary``'s batched cycle."""
