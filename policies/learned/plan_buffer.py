@@ -1,18 +1,26 @@
 """``PlanBufferPolicy``: the receding-horizon machinery shared by the learned adversaries.
 
-A subclass (``RiskFlowAdversary``, the diffusion baselines' ``DiffusionAdversary``)
-implements :meth:`PlanBufferPolicy._plan_cycle`: from a :class:`SceneView`, plan every
-window slot and call :meth:`PlanBufferPolicy._store`. This base does the rest:
+A subclass implements :meth:`PlanBufferPolicy._plan_cycles` (``RiskFlowAdversary``: B
+scenes in one encoder pass, one generator pass and one guidance loop) or
+:meth:`PlanBufferPolicy._plan_cycle` (one scene; the diffusion baselines'
+``DiffusionAdversary``): from the views, plan every window slot and call
+:meth:`PlanBufferPolicy._store` on each scene's policy copy. This base does the rest:
 
+* **many scenes**: :func:`plan_scenes` plans B scenes in one call, each scene a copy of
+  the policy (:meth:`PlanBufferPolicy.spawn`: the model and options shared; plan buffer,
+  schedule, episode count and noise stream its own); ``plan(view)`` is its case B = 1
+  and ``act`` re-plans through it (``due``, then ``emit``).
+  :class:`~policies.learned.batched_adversary.BatchedAdversary` drives B scenes with it;
 * **schedule**: ``act`` re-plans every ``planning_interval`` (a multiple of ``dt``) and
   otherwise emits the next action of each plan (the plan buffer);
 * **seeding**: the noise of cycle ``c`` of episode ``e`` (``reset`` count from 0) comes
   from a ``torch.Generator`` seeded with ``(seed, e, c)`` (:meth:`_noise_source`), so
   the same seed gives the same closed-loop rollout, bit for bit, on one machine;
-* **observation**: :meth:`PlanBufferPolicy._encode_view` cuts the cycle's window from
-  the view (``window_from_view``), collates it and runs the model's scene encoder (the
-  ``"window"`` and ``"encoder"`` phases of every subclass); :func:`default_window_config`
-  is the window of a model's training data;
+* **observation**: :meth:`PlanBufferPolicy._encode_views` cuts each scene's window from
+  its view (``window_from_view``), collates them and runs the model's scene encoder once
+  (the ``"window"`` and ``"encoder"`` phases of every subclass;
+  :mod:`policies.learned.encoded_views`); :func:`default_window_config` is the window of
+  a model's training data;
 * **threads**: torch CPU threads while planning (restored after);
 * **timings** per phase, world-frame plans, the controllable set and the render overlays;
 * **stitching**: a new plan does not switch the actions at once. Its first
@@ -34,7 +42,6 @@ import copy
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -42,9 +49,10 @@ import torch
 from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.config import ModelConfig
 from policies.learned.data import collate_windows
+from policies.learned.encoded_views import EncodedView, EncodedViews
 from policies.learned.encoder import ENCODER_KEYS, SceneContext
 from policies.learned.ranking import Ranking
-from policies.learned.windows import AGENT_KEYS, PAIR_KEYS, WindowConfig, window_from_view
+from policies.learned.windows import WindowConfig, window_from_view
 from riskflow_env.agents.base import actions_dict, controlled_mask
 from riskflow_env.dynamics import inverse, rollout
 from riskflow_env.maps import DrivableMap, MapStack
@@ -71,83 +79,6 @@ def check_model_pair(model: object, normalizer: object, name: str) -> None:
         raise ValueError(f"normalizer given without its {name}: pass both or neither")
     if model is not None and normalizer is None:
         raise ValueError(f"a {name} needs the normalizer it was trained with")
-
-
-@dataclass(frozen=True)
-class EncodedView:
-    """One cycle's observation of the scene (:meth:`PlanBufferPolicy._encode_view`).
-
-    Attributes:
-        window: the window dict (``docs/WINDOWS.md``; ego frame, ego in slot 0).
-        slots: (A_w,) env slot of each window row.
-        batch: the collated window (batch of one) on the policy's device.
-        scene: the encoder's :class:`SceneContext` of ``batch`` (no gradients).
-        frame: (3,) world pose of the scene frame: the ego's (x [m], y [m], psi [rad]).
-        clock: ``time.perf_counter()`` after the encoder (start of the next phase).
-    """
-
-    window: dict[str, np.ndarray]
-    slots: np.ndarray
-    batch: dict[str, torch.Tensor]
-    scene: SceneContext
-    frame: np.ndarray
-    clock: float
-
-    def frame_tensor(self) -> torch.Tensor:
-        """``frame`` as a tensor of the context's dtype and device (for ``L_map``)."""
-        state = self.scene.state
-        return torch.as_tensor(self.frame, dtype=state.dtype, device=state.device)
-
-
-@dataclass(frozen=True)
-class EncodedViews:
-    """One planning call's observation of B scenes (:meth:`PlanBufferPolicy._encode_views`).
-
-    Attributes:
-        windows: the B window dicts (``docs/WINDOWS.md``; ego frame, ego in slot 0).
-        slots: B arrays (A_b,): env slot of each window row of each scene.
-        batch: the collated windows (agents padded to A = max A_b) on the policy's device.
-        scene: the encoder's :class:`SceneContext` of ``batch`` (no gradients), (B, A, ...).
-        frames: (B, 3) world pose of each scene frame: its ego's (x [m], y [m], psi [rad]).
-        clock: ``time.perf_counter()`` after the encoder (start of the next phase).
-    """
-
-    windows: list[dict[str, np.ndarray]]
-    slots: list[np.ndarray]
-    batch: dict[str, torch.Tensor]
-    scene: SceneContext
-    frames: np.ndarray
-    clock: float
-
-    @property
-    def counts(self) -> list[int]:
-        """Agents A_b of each scene's window."""
-        return [len(slots) for slots in self.slots]
-
-    def frame_tensor(self) -> torch.Tensor:
-        """(B, 3) ``frames`` as a tensor of the context's dtype and device (for ``L_map``)."""
-        state = self.scene.state
-        return torch.as_tensor(self.frames, dtype=state.dtype, device=state.device)
-
-    def view(self, index: int) -> EncodedView:
-        """Scene ``index`` alone (its own A_b agents: no padding), as one-scene planning
-        sees it."""
-        count, pick = self.counts[index], slice(index, index + 1)
-        batch = {}
-        for key, value in self.batch.items():
-            axes = 2 if key in PAIR_KEYS else 1 if key in AGENT_KEYS else 0
-            batch[key] = value[(pick,) + (slice(0, count),) * axes]
-        scene = self.scene
-        agents, pairs = (pick, slice(0, count)), (pick, slice(0, count), slice(0, count))
-        context = SceneContext(
-            context=scene.context[agents],
-            edges=scene.edges[pairs],
-            social_mask=scene.social_mask[pairs],
-            agent_mask=scene.agent_mask[agents],
-            state=scene.state[agents],
-        )
-        window, slots = self.windows[index], self.slots[index]
-        return EncodedView(window, slots, batch, context, self.frames[index], self.clock)
 
 
 def hold_still(
