@@ -106,12 +106,16 @@ def measure(
         best["batched"] = min(best["batched"], time_calls(lambda: batch.plan(views), options.calls))
         best["loop"] = min(best["loop"], time_calls(loop, options.calls))
     best["phases"] = batch.scenes[0].timings
+    best["loop_phases"] = {
+        name: sum(copy.timings[name] for copy in alone) for name in best["phases"]
+    }
     return best
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
-    """Print the table; returns its rows (``scenes``, ``batched`` and ``loop`` [s per
-    call of all B scenes], ``phases`` of the last batched call [s])."""
+    """Print the tables; returns their rows (``scenes``, ``batched`` and ``loop`` [s per
+    planning of all B scenes], ``phases`` of the last batched call and ``loop_phases``
+    summed over the last loop's calls [s])."""
     options = _parse(argv)
     policy = RiskFlowAdversary(
         k=options.k,
@@ -142,7 +146,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         f"{'loop calls/s':>14}{'loop scenes/s':>15}{'ratio':>8}"
     )
     print(header)
-    phases, rows = {}, []
+    rows = []
     for count in tqdm(options.scenes, "scene counts", leave=False):  # stderr
         best = measure(policy, batched, views[:count], options)
         rows.append({"scenes": count, **best})
@@ -152,16 +156,18 @@ def main(argv: list[str] | None = None) -> list[dict]:
             f"{count:>4}{batched_rate:>17.2f}{batched_rate * count:>18.1f}"
             f"{loop_rate * count:>14.1f}{loop_rate * count:>15.1f}{ratio:>7.2f}x"
         )
-        phases[count] = best["phases"]
     print(
         "\nloop calls/s counts one-scene calls (= its scenes/s); ratio = batched scenes/s / "
         "loop scenes/s"
     )
-    print("\nphases of the last batched call [ms]:")
-    names = [name for name in next(iter(phases.values())) if name != "total"] + ["total"]
-    print(f"{'B':>4}" + "".join(f"{name:>11}" for name in names))
-    for count, timings in phases.items():
-        print(f"{count:>4}" + "".join(f"{1e3 * timings[name]:>11.1f}" for name in names))
+    print("\nphases [ms] of the last batched call, and summed over the last loop's B calls:")
+    names = [name for name in rows[0]["phases"] if name != "total"] + ["total"]
+    print(f"{'B':>4}{'':>8}" + "".join(f"{name:>11}" for name in names))
+    for row in rows:
+        for label, key in (("batched", "phases"), ("loop", "loop_phases")):
+            timings = row[key]
+            cells = "".join(f"{1e3 * timings[name]:>11.1f}" for name in names)
+            print(f"{row['scenes']:>4}{label:>8}{cells}")
     return rows
 
 
