@@ -30,6 +30,11 @@ diffusion baselines' denoiser run as a deterministic DDIM chain from ``eps`` ins
 with the same ranking and output-space guidance (the generator ablation of issue 7).
 ``lambda_adv = 0`` / ``lambda_map = 0`` drop a guidance term (the loss ablation).
 
+Many scenes: ``_plan_cycles`` plans B scenes in one call (``plan_scenes``,
+``BatchedAdversary``; ``plan`` is B = 1): the windows are cut and ranked scene by scene
+(numpy, a loop over scenes), everything else runs once for all of them, agents padded to
+the largest scene and masked; scene ``b`` draws its noise from its own stream.
+
 Subclasses replace how ``A_c`` is optimised by overriding :meth:`RiskFlowAdversary._guide`
 (the STRIVE-style baseline optimises the generator's input noise instead).
 """
@@ -147,10 +152,8 @@ class RiskFlowAdversary(PlanBufferPolicy):
         steps = self.model.config.future_steps
         with torch.no_grad():
             eps = scene.context.new_zeros(num_scenes, num_agents, steps, 2)
-            for index, (policy, count) in enumerate(
-                zip(scenes, counts, strict=True)
-            ):  # per-scene streams
-                eps[index, :count] = torch.randn(
+            for index, (policy, count) in enumerate(zip(scenes, counts, strict=True)):
+                eps[index, :count] = torch.randn(  # the scene's own stream, its own shape
                     (1, count, steps, 2), generator=policy._noise_source(),
                     device=self.device, dtype=scene.context.dtype,
                 )[0]  # fmt: skip
@@ -165,10 +168,8 @@ class RiskFlowAdversary(PlanBufferPolicy):
             hold_still(actions, trajectories, scene.state, done)  # the env keeps them at speed 0
         clock = self._tick("generator", observed.clock)
         controllable = np.zeros((num_scenes, num_agents), dtype=bool)
-        for index, (policy, view, window) in enumerate(
-            zip(scenes, views, observed.windows, strict=True)
-        ):
-            slots = observed.slots[index]
+        for index, (policy, view) in enumerate(zip(scenes, views, strict=True)):
+            window, slots = observed.windows[index], observed.slots[index]
             policy.ranking = rank_window(window, self.k, self.rank_threshold, view.active[slots])
             controllable[index, : len(slots)] = policy.ranking.controllable
         clock = self._tick("ranking", clock)
@@ -189,9 +190,8 @@ class RiskFlowAdversary(PlanBufferPolicy):
         )
         self._tick("guidance", clock)
         losses = result.losses.cpu().numpy()
-        for index, (policy, view, slots) in enumerate(
-            zip(scenes, views, observed.slots, strict=True)
-        ):
+        for index, (policy, view) in enumerate(zip(scenes, views, strict=True)):
+            slots = observed.slots[index]
             rows = slice(0, len(slots))
             policy.noise = eps[index, rows]
             policy._store(
