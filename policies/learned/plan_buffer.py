@@ -409,7 +409,8 @@ def plan_scenes(scenes: Sequence[PlanBufferPolicy], views: Sequence[SceneView]) 
     scene by scene. Then each scene's new plans are stitched onto its executed ones and
     its buffer restarts at its ``view.step``. ``PlanBufferPolicy.plan`` is the case B = 1.
 
-    Every scene's ``timings`` are the call's (the phases ran once for all of them).
+    Every scene's ``timings`` are the call's: its phases (they ran once for all scenes;
+    for a subclass that plans scene by scene, those of ``scenes[0]``) and its ``"total"``.
 
     Raises:
         ValueError: ``scenes`` and ``views`` differ in length or are empty, or the scenes
