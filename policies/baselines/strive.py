@@ -21,6 +21,7 @@ cost.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -30,14 +31,16 @@ from torch import Tensor
 from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.guidance_losses import adversarial_loss, map_term, target_rows
-from policies.learned.plan_buffer import EncodedView
+from policies.learned.plan_buffer import EncodedView, EncodedViews, PlanBufferPolicy
 from policies.learned.sampler import base_velocity
 from policies.riskflow.guidance import (
     GuidanceResult,
     GuidanceScene,
+    one_scene,
     plans_from_velocity,
 )
 from policies.riskflow.policy import RiskFlowAdversary
+from riskflow_env.view import SceneView
 
 DEFAULT_LAMBDA_PRIOR = 1.0  # weight of ||eps_c||^2 / 2 [per unit of normalised noise^2]
 
@@ -87,7 +90,27 @@ class StriveAdversary(RiskFlowAdversary):
         self.prior_losses: np.ndarray | None = None
         self.latent: Tensor | None = None
 
+    def _plan_cycles(self, scenes: Sequence[PlanBufferPolicy], views: Sequence[SceneView]) -> None:
+        """Scene by scene: the latent optimisation keeps one scene's generator in the loop
+        (batching it across scenes is left to do); each scene is the case B = 1 of
+        ``RiskFlowAdversary``'s batched cycle."""
+        if len(scenes) == 1:
+            super()._plan_cycles(scenes, views)
+            return
+        for scene, view in zip(scenes, views, strict=True):
+            scene._plan_cycles([scene], [view])
+
     def _guide(
+        self, scene: GuidanceScene, controllable: Tensor, observed: EncodedViews
+    ) -> GuidanceResult:
+        """Batch of one (``_plan_cycles``): :meth:`_guide_scene` of it."""
+        one = one_scene(scene, 0)
+        result = self._guide_scene(one, controllable[0], observed.view(0))
+        return GuidanceResult(
+            result.u[None], result.actions[None], result.trajectories[None], result.losses[:, None]
+        )
+
+    def _guide_scene(
         self, scene: GuidanceScene, controllable: Tensor, observed: EncodedView
     ) -> GuidanceResult:
         """``K_g`` steps on the ``A_c`` rows of ``eps`` (module docstring)."""

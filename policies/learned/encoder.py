@@ -197,7 +197,7 @@ class SceneEncoder(nn.Module):
             x = social_block(x.transpose(1, 2), token_social_mask, edge_bias(edges, bias_proj))
             x = x.transpose(1, 2)
         history = self.norm(x[:, :, -1])  # (B, A, D): the token holding the current step
-        map_embedding = self.map_encoder(batch["map_crops"])  # (B, A, D)
+        map_embedding = self.map_encoder(batch["map_crops"], agent_mask)  # (B, A, D)
         pooled_edges = masked_mean(edges, pair_mask, dim=2)  # (B, A, E)
         context = self.fusion(torch.cat([history, map_embedding, pooled_edges], dim=-1))
         return SceneContext(

@@ -20,7 +20,7 @@ from torch import Tensor
 
 from riskflow_env._array import attach_gradient, requires_grad
 from riskflow_env.geometry import footprint_points
-from riskflow_env.maps import DrivableMap
+from riskflow_env.maps import DrivableMap, MapStack
 
 __all__ = [
     "ObjectiveConfig",
@@ -28,6 +28,7 @@ __all__ = [
     "Target",
     "MapTerm",
     "adversarial_loss",
+    "adversarial_rows",
     "adversarial_value_and_gradient",
     "map_loss",
     "map_term",
@@ -94,9 +95,9 @@ def target_rows(present: Tensor, controllable: Tensor, ego: int, target: str) ->
     """(A,) bool: the agents ``L_adv`` pulls the controllable ones toward.
 
     Args:
-        present: (A,) bool agents in the scene.
-        controllable: (A,) bool ``A_c``.
-        ego: slot of the ego.
+        present: (A,) bool agents in the scene, or (B, A) for B scenes.
+        controllable: ``A_c``, the shape of ``present``.
+        ego: slot of the ego (in every scene).
         target: ``"others"`` (the paper's: every present agent outside ``A_c``, the ego
             included) or ``"ego"`` (the ego only, for stress-testing an ego planner).
     """
@@ -104,22 +105,30 @@ def target_rows(present: Tensor, controllable: Tensor, ego: int, target: str) ->
         raise ValueError(f"target must be one of {TARGETS}; got {target!r}")
     if target == Target.EGO:
         targets = torch.zeros_like(present, dtype=torch.bool)
-        targets[ego] = True
+        targets[..., ego] = True
         return targets
     return present.bool() & ~controllable.bool()
 
 
-def map_term(scene, rows: Tensor, steps: int, config) -> MapTerm | None:
+def map_term(scene, rows: Tensor, steps: int, config, scene_of_row: Tensor | None = None):
     """The :class:`MapTerm` of the controllable ``rows`` of ``scene`` (anything with
     ``drivable_map``, ``frame``, ``length`` and ``width``: a planning scene), or None when
     ``L_map`` is off (no map, or ``config.lambda_map == 0``); ``config`` has
-    ``lambda_map``, ``map_margin`` and ``map_decay`` (every guided method's config does)."""
+    ``lambda_map``, ``map_margin`` and ``map_decay`` (every guided method's config does).
+
+    Rows of several scenes (batched planning): ``scene.frame`` is (B, 3), the map a
+    :class:`~riskflow_env.maps.MapStack` of the B scenes' maps (or one map they share), and
+    ``scene_of_row`` (C,) the scene of each row; ``rows`` index the flattened agents.
+    """
     if scene.drivable_map is None or config.lambda_map == 0:
         return None
     length, width = scene.length[rows], scene.width[rows]
-    return MapTerm(
-        scene.drivable_map, scene.frame, length, width, steps, config.map_margin, config.map_decay
-    )
+    drivable_map, frame = scene.drivable_map, scene.frame
+    if scene_of_row is not None:
+        if isinstance(drivable_map, MapStack):
+            drivable_map = drivable_map.select(scene_of_row)
+        frame = frame[scene_of_row] if frame.ndim == 2 else frame
+    return MapTerm(drivable_map, frame, length, width, steps, config.map_margin, config.map_decay)
 
 
 def adversarial_loss(xy: Tensor, target_xy: Tensor, horizon: int | None = None) -> Tensor:
@@ -137,8 +146,8 @@ def adversarial_loss(xy: Tensor, target_xy: Tensor, horizon: int | None = None) 
         scalar [m]; 0 if there is no agent or no target.
     """
     if not requires_grad(xy):
-        return _adversarial(xy, target_xy, horizon, with_gradient=False)[0]
-    value, gradient = _adversarial(xy.detach(), target_xy, horizon, with_gradient=True)
+        return _adversarial(xy, target_xy, horizon, None, with_gradient=False)[0].sum()
+    value, gradient = adversarial_value_and_gradient(xy, target_xy, horizon)
     return attach_gradient(value, xy, gradient, axis=None)
 
 
@@ -151,29 +160,68 @@ def adversarial_value_and_gradient(
     vector from the nearest target to the agent for ``t < T_g`` (0 where the agent sits
     exactly on it), 0 beyond ``T_g``. No autograd graph is built.
     """
-    return _adversarial(xy.detach(), target_xy.detach(), horizon, with_gradient=True)
+    values, gradient = adversarial_rows(xy, target_xy, horizon)
+    return values.sum(), gradient
+
+
+def adversarial_rows(
+    xy: Tensor,
+    target_xy: Tensor,
+    horizon: int | None = None,
+    target_valid: Tensor | None = None,
+    with_gradient: bool = True,
+) -> tuple[Tensor, Tensor | None]:
+    """``L_adv`` of each controllable agent and its gradient, each with its own targets.
+
+    Batched planning guides the rows of several scenes at once: each row is pulled toward
+    the targets of its own scene (padded to J, ``target_valid`` marks the real ones).
+
+    Args:
+        xy: (C, T, 2) [m] controllable agents' positions.
+        target_xy: (J, T, 2) [m] targets shared by every row, or (C, J, T, 2) per row.
+        horizon: ``T_g`` steps; None: all.
+        target_valid: None (every target), or (C, J) bool, the targets of each row.
+        with_gradient: also return the gradient (C, T, 2) [m/m] (else None).
+
+    Returns:
+        (C,) [m] each row's mean nearest-target distance (0 for a row without target)
+        and its gradient; no autograd graph is built.
+    """
+    return _adversarial(xy.detach(), target_xy, horizon, target_valid, with_gradient)
 
 
 def _adversarial(
-    xy: Tensor, target_xy: Tensor, horizon: int | None, with_gradient: bool
+    xy: Tensor,
+    target_xy: Tensor,
+    horizon: int | None,
+    target_valid: Tensor | None,
+    with_gradient: bool,
 ) -> tuple[Tensor, Tensor | None]:
-    """The one implementation of :func:`adversarial_loss` (and its gradient)."""
-    near, target_xy = xy[:, :horizon], target_xy[:, :horizon].detach()
-    if near.shape[0] == 0 or target_xy.shape[0] == 0:
-        return near.sum() * 0.0, torch.zeros_like(xy) if with_gradient else None
+    """The one implementation of :func:`adversarial_rows` (and so of the loss)."""
+    near, target_xy = xy[:, :horizon], target_xy[..., :horizon, :].detach()
+    if near.shape[0] == 0 or target_xy.shape[-3] == 0:
+        zero = near.new_zeros(near.shape[0])
+        return zero, torch.zeros_like(xy) if with_gradient else None
     with torch.no_grad():
-        offsets = near[:, None] - target_xy[None]  # (C, J, T_g, 2)
-        nearest = (offsets * offsets).sum(dim=-1).argmin(dim=1)  # (C, T_g)
-    steps = torch.arange(near.shape[1], device=xy.device)
-    offset = near - target_xy[nearest, steps]  # (C, T_g, 2)
+        per_row = target_xy if target_xy.ndim == 4 else target_xy[None]
+        dx = near[:, None, :, 0] - per_row[..., 0]  # (C, J, T_g)
+        dy = near[:, None, :, 1] - per_row[..., 1]
+        squared = dx * dx + dy * dy
+        if target_valid is not None:
+            squared.masked_fill_(~target_valid[..., None], torch.inf)
+        # min over the middle axis (values and indices): several times argmin's speed.
+        nearest = squared.min(dim=1, keepdim=True).indices  # (C, 1, T_g)
+    offset = torch.stack([dx.gather(1, nearest)[:, 0], dy.gather(1, nearest)[:, 0]], dim=-1)
     distance = torch.linalg.vector_norm(offset, dim=-1)  # (C, T_g)
-    value = distance.sum() / near.shape[1]
+    if target_valid is not None:  # rows without a target: 0
+        distance = distance * target_valid.any(dim=1, keepdim=True).to(distance.dtype)
+    values = distance.sum(dim=1) / near.shape[1]
     if not with_gradient:
-        return value, None
+        return values, None
     scale = torch.where(distance > 0, distance * near.shape[1], torch.inf)  # 0 on a target
     gradient = torch.zeros_like(xy)
     gradient[:, : near.shape[1]] = offset / scale[..., None]
-    return value, gradient
+    return values, gradient
 
 
 def map_loss(
@@ -205,11 +253,23 @@ def map_loss(
 
 
 class MapTerm:
-    """``L_map`` with its constants (rotation to the world frame, ``w_t``) made once."""
+    """``L_map`` with its constants (rotation to the world frame, ``w_t``) made once.
+
+    Args:
+        drivable_map: the map (world frame), or any object with its ``sdf_at`` and
+            ``sdf_with_gradient`` taking (C, ...) queries (``MapStack.select``: a map per row).
+        frame: (3,) world pose (x [m], y [m], psi [rad]) of the scene frame, or (C, 3)
+            one per row (rows of several scenes).
+        length: (C,) [m].
+        width: (C,) [m].
+        steps: plan steps T.
+        margin: [m] added to the SDF before the penalty.
+        decay: ``w_t = decay ** t``.
+    """
 
     def __init__(
         self,
-        drivable_map: DrivableMap,
+        drivable_map: DrivableMap | MapStack.Selection,
         frame: Tensor,
         length: Tensor,
         width: Tensor,
@@ -217,9 +277,9 @@ class MapTerm:
         margin: float,
         decay: float,
     ) -> None:
-        cos, sin = torch.cos(frame[2]), torch.sin(frame[2])
-        self.rotation_t = torch.stack([torch.stack([cos, sin]), torch.stack([-sin, cos])])
-        self.origin, self.yaw = frame[:2], frame[2]
+        frame = frame[None] if frame.ndim == 1 else frame  # (1 or C, 3)
+        self.cos, self.sin = torch.cos(frame[:, 2:]), torch.sin(frame[:, 2:])  # (1 or C, 1)
+        self.origin_x, self.origin_y, self.yaw = frame[:, :1], frame[:, 1:2], frame[:, 2:]
         # The footprint samples in each vehicle's own frame, (C, 1, 9) along and across [m]
         # (``footprint_points`` at the origin with heading 0: the one definition of them).
         zero = torch.zeros_like(length)
@@ -232,37 +292,51 @@ class MapTerm:
         """Scalar ``L_map`` [m^2] of (C, T, 4) scene-frame states, differentiable with
         respect to them (value and gradient from :meth:`value_and_gradient`)."""
         if not requires_grad(trajectories):
-            return self._evaluate(trajectories, with_gradient=False)[0]
-        value, gradient = self._evaluate(trajectories.detach(), with_gradient=True)
+            return self._evaluate(trajectories, with_gradient=False)[0].sum()
+        value, gradient = self.value_and_gradient(trajectories)
         return attach_gradient(value, trajectories, gradient, axis=None)
 
     def value_and_gradient(self, trajectories: Tensor) -> tuple[Tensor, Tensor]:
         """``L_map`` [m^2] and its gradient (C, T, 4) with respect to the states
         (x, y [m^2/m], v: 0, psi [m^2/rad]); no autograd graph is built."""
+        values, gradient = self.rows_and_gradient(trajectories)
+        return values.sum(), gradient
+
+    def rows_and_gradient(self, trajectories: Tensor) -> tuple[Tensor, Tensor]:
+        """(C,) ``L_map`` [m^2] of each row and the gradient, as :meth:`value_and_gradient`."""
         return self._evaluate(trajectories.detach(), with_gradient=True)
 
+    def rows(self, trajectories: Tensor) -> Tensor:
+        """(C,) ``L_map`` [m^2] of each row (no gradient)."""
+        return self._evaluate(trajectories.detach(), with_gradient=False)[0]
+
     def _evaluate(self, trajectories: Tensor, with_gradient: bool) -> tuple[Tensor, Tensor | None]:
-        """The one implementation of the value and its (chain-rule) gradient."""
-        world = trajectories[..., :2] @ self.rotation_t + self.origin  # (C, T, 2)
+        """The one implementation of the per-row values and their (chain-rule) gradient."""
+        cos_f, sin_f = self.cos, self.sin  # the scene frame's rotation to the world
+        x_s, y_s = trajectories[..., 0], trajectories[..., 1]  # (C, T)
+        world_x = self.origin_x + cos_f * x_s - sin_f * y_s
+        world_y = self.origin_y + sin_f * x_s + cos_f * y_s
         yaw = (trajectories[..., 3] + self.yaw)[..., None]
         cos, sin = torch.cos(yaw), torch.sin(yaw)  # (C, T, 1)
         along_x, across_x = cos * self.along, sin * self.across  # (C, T, 9)
         along_y, across_y = sin * self.along, cos * self.across
-        x = world[..., :1] + along_x - across_x  # (C, T, 9)
-        y = world[..., 1:] + along_y + across_y
+        x = world_x[..., None] + along_x - across_x  # (C, T, 9)
+        y = world_y[..., None] + along_y + across_y
         points = torch.stack([x, y], dim=-1)  # == footprint_points(world, yaw, ...)
         if not with_gradient:
             depth = torch.relu(self.map.sdf_at(points) + self.margin)  # (C, T, 9)
-            return ((depth * depth).sum(dim=-1) * self.weights).sum(), None
+            return ((depth * depth).sum(dim=-1) * self.weights).sum(dim=-1), None
         sdf, sdf_gradient = self.map.sdf_with_gradient(points)  # (C, T, 9), (C, T, 9, 2)
         depth = torch.relu(sdf + self.margin)
-        value = ((depth * depth).sum(dim=-1) * self.weights).sum()
+        values = ((depth * depth).sum(dim=-1) * self.weights).sum(dim=-1)
         # dL/dq for each sample q = world + R(yaw) * local, then the chain rule to the state:
-        # world = xy @ rotation_t + origin, dq/dyaw = (-(q_y - world_y), q_x - world_x).
+        # world = R(frame) xy + origin, dq/dyaw = (-(q_y - world_y), q_x - world_x).
         slope = (2.0 * depth * self.weights[:, None])[..., None] * sdf_gradient  # (C, T, 9, 2)
-        d_xy = slope.sum(dim=-2) @ self.rotation_t.T  # (C, T, 2)
+        d_world = slope.sum(dim=-2)  # (C, T, 2)
+        d_x = cos_f * d_world[..., 0] + sin_f * d_world[..., 1]
+        d_y = -sin_f * d_world[..., 0] + cos_f * d_world[..., 1]
         d_yaw = (slope[..., 1] * (along_x - across_x) - slope[..., 0] * (along_y + across_y)).sum(
             dim=-1
         )
-        d_speed = torch.zeros_like(d_yaw)
-        return value, torch.cat([d_xy, d_speed[..., None], d_yaw[..., None]], dim=-1)
+        gradient = torch.stack([d_x, d_y, torch.zeros_like(d_yaw), d_yaw], dim=-1)
+        return values, gradient

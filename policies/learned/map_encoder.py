@@ -30,16 +30,28 @@ class MapEncoder(nn.Module):
         self.convs = nn.Sequential(*layers)
         self.proj = nn.Linear(width, out_dim)
 
-    def forward(self, crops: Tensor) -> Tensor:
+    def forward(self, crops: Tensor, agent_mask: Tensor | None = None) -> Tensor:
         """Embed map crops.
 
         Args:
             crops: ``(B, A, C, S, S)`` agent-centred crops (channels as in ``map_scale``).
+            agent_mask: optional ``(B, A)`` bool, the agents that exist; the CNN then runs
+                on their crops only (padded slots of a batch get a zero embedding, which
+                nothing reads: their context is masked).
 
         Returns:
             ``(B, A, out_dim)`` map embeddings ``m_i``.
         """
         batch, agents = crops.shape[:2]
-        x = crops.reshape(batch * agents, self.channels, self.size, self.size) * self.inv_scale
-        x = self.convs(x).mean(dim=(-2, -1))
-        return self.proj(x).reshape(batch, agents, -1)
+        if agent_mask is not None and not bool(agent_mask.all()):
+            packed = self._embed(crops[agent_mask])
+            out = packed.new_zeros(batch, agents, packed.shape[-1])
+            return out.index_put((agent_mask,), packed)
+        return self._embed(crops.reshape(batch * agents, *crops.shape[2:])).reshape(
+            batch, agents, -1
+        )
+
+    def _embed(self, crops: Tensor) -> Tensor:
+        """``(N, C, S, S)`` crops -> ``(N, out_dim)``."""
+        x = crops.reshape(crops.shape[0], self.channels, self.size, self.size) * self.inv_scale
+        return self.proj(self.convs(x).mean(dim=(-2, -1)))

@@ -1,18 +1,26 @@
 """``PlanBufferPolicy``: the receding-horizon machinery shared by the learned adversaries.
 
-A subclass (``RiskFlowAdversary``, the diffusion baselines' ``DiffusionAdversary``)
-implements :meth:`PlanBufferPolicy._plan_cycle`: from a :class:`SceneView`, plan every
-window slot and call :meth:`PlanBufferPolicy._store`. This base does the rest:
+A subclass implements :meth:`PlanBufferPolicy._plan_cycles` (``RiskFlowAdversary``: B
+scenes in one encoder pass, one generator pass and one guidance loop) or
+:meth:`PlanBufferPolicy._plan_cycle` (one scene; the diffusion baselines'
+``DiffusionAdversary``): from the views, plan every window slot and call
+:meth:`PlanBufferPolicy._store` on each scene's policy copy. This base does the rest:
 
+* **many scenes**: :func:`plan_scenes` plans B scenes in one call, each scene a copy of
+  the policy (:meth:`PlanBufferPolicy.spawn`: the model and options shared; plan buffer,
+  schedule, episode count and noise stream its own); ``plan(view)`` is its case B = 1
+  and ``act`` re-plans through it (``due``, then ``emit``).
+  :class:`~policies.learned.batched_adversary.BatchedAdversary` drives B scenes with it;
 * **schedule**: ``act`` re-plans every ``planning_interval`` (a multiple of ``dt``) and
   otherwise emits the next action of each plan (the plan buffer);
 * **seeding**: the noise of cycle ``c`` of episode ``e`` (``reset`` count from 0) comes
   from a ``torch.Generator`` seeded with ``(seed, e, c)`` (:meth:`_noise_source`), so
   the same seed gives the same closed-loop rollout, bit for bit, on one machine;
-* **observation**: :meth:`PlanBufferPolicy._encode_view` cuts the cycle's window from
-  the view (``window_from_view``), collates it and runs the model's scene encoder (the
-  ``"window"`` and ``"encoder"`` phases of every subclass); :func:`default_window_config`
-  is the window of a model's training data;
+* **observation**: :meth:`PlanBufferPolicy._encode_views` cuts each scene's window from
+  its view (``window_from_view``), collates them and runs the model's scene encoder once
+  (the ``"window"`` and ``"encoder"`` phases of every subclass;
+  :mod:`policies.learned.encoded_views`); :func:`default_window_config` is the window of
+  a model's training data;
 * **threads**: torch CPU threads while planning (restored after);
 * **timings** per phase, world-frame plans, the controllable set and the render overlays;
 * **stitching**: a new plan does not switch the actions at once. Its first
@@ -30,11 +38,10 @@ until a cycle gives them a plan; done vehicles stand still (:func:`hold_still`).
 
 from __future__ import annotations
 
+import copy
 import math
 import time
-from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -42,11 +49,13 @@ import torch
 from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.config import ModelConfig
 from policies.learned.data import collate_windows
+from policies.learned.encoded_views import EncodedView, EncodedViews
 from policies.learned.encoder import ENCODER_KEYS, SceneContext
 from policies.learned.ranking import Ranking
 from policies.learned.windows import WindowConfig, window_from_view
 from riskflow_env.agents.base import actions_dict, controlled_mask
 from riskflow_env.dynamics import inverse, rollout
+from riskflow_env.maps import DrivableMap, MapStack
 from riskflow_env.view import SceneView
 
 BASE_COLOR = (70, 200, 235)  # overlay of the unguided plans
@@ -72,44 +81,19 @@ def check_model_pair(model: object, normalizer: object, name: str) -> None:
         raise ValueError(f"a {name} needs the normalizer it was trained with")
 
 
-@dataclass(frozen=True)
-class EncodedView:
-    """One cycle's observation of the scene (:meth:`PlanBufferPolicy._encode_view`).
-
-    Attributes:
-        window: the window dict (``docs/WINDOWS.md``; ego frame, ego in slot 0).
-        slots: (A_w,) env slot of each window row.
-        batch: the collated window (batch of one) on the policy's device.
-        scene: the encoder's :class:`SceneContext` of ``batch`` (no gradients).
-        frame: (3,) world pose of the scene frame: the ego's (x [m], y [m], psi [rad]).
-        clock: ``time.perf_counter()`` after the encoder (start of the next phase).
-    """
-
-    window: dict[str, np.ndarray]
-    slots: np.ndarray
-    batch: dict[str, torch.Tensor]
-    scene: SceneContext
-    frame: np.ndarray
-    clock: float
-
-    def frame_tensor(self) -> torch.Tensor:
-        """``frame`` as a tensor of the context's dtype and device (for ``L_map``)."""
-        state = self.scene.state
-        return torch.as_tensor(self.frame, dtype=state.dtype, device=state.device)
-
-
 def hold_still(
     actions: torch.Tensor, trajectories: torch.Tensor, state: torch.Tensor, done: torch.Tensor
 ) -> None:
     """In place: ``done`` rows get zero actions and stand at their current pose, speed 0
-    (the env keeps done vehicles as obstacles). Shapes (A, T, 2), (A, T, 4), (A, 4), (A,)."""
+    (the env keeps done vehicles as obstacles). Shapes (A, T, 2), (A, T, 4), (A, 4), (A,),
+    or with a leading scene axis B on each."""
     actions[done] = 0.0
     standing = state.clone()
-    standing[:, 2] = 0.0
+    standing[..., 2] = 0.0
     trajectories[done] = standing[done, None].expand_as(trajectories[done])
 
 
-class PlanBufferPolicy(ABC):
+class PlanBufferPolicy:
     """Base of the plan-buffer scene policies (module docstring); drives every non-ego vehicle.
 
     Args:
@@ -136,6 +120,7 @@ class PlanBufferPolicy(ABC):
         self.device = torch.device(config.device)
         self.threads = config.threads
         self._episode = -1
+        self._shared: dict[str, object] = {}  # shared by spawned copies (the map stack)
         self._clear()
 
     # ----------------------------------------------------------- ScenePolicy
@@ -161,15 +146,42 @@ class PlanBufferPolicy(ABC):
 
     def act(self, view: SceneView) -> dict[str, np.ndarray]:
         """The next action of each live non-ego vehicle's plan; re-plans on schedule."""
+        if self.due(view):
+            self.plan(view)
+        return self.emit(view)
+
+    def due(self, view: SceneView) -> bool:
+        """Whether ``act(view)`` re-plans now: no plan yet, or ``planning_interval`` has
+        passed since the last one (or the view is not a later step of it)."""
         if self._episode < 0:
             raise RuntimeError("call reset(view) before act(view)")
         elapsed = None if self._plan_step is None else view.step - self._plan_step
-        if elapsed is None or not 0 <= elapsed < self.interval_steps:
-            self.plan(view)
-            elapsed = 0
+        return elapsed is None or not 0 <= elapsed < self.interval_steps
+
+    def emit(self, view: SceneView) -> dict[str, np.ndarray]:
+        """The actions of the stored plans at ``view.step`` (no re-planning)."""
+        if self._plan_step is None:
+            raise RuntimeError("no plans yet: call act(view) (or plan(view)) first")
+        elapsed = view.step - self._plan_step
+        if not 0 <= elapsed < self.plan_actions.shape[1]:
+            raise ValueError(
+                f"view.step {view.step} is outside the stored plan (planned at step "
+                f"{self._plan_step}, {self.plan_actions.shape[1]} steps)"
+            )
         actions = np.zeros((view.num_agents, 2))
         actions[self.plan_mask] = self.plan_actions[self.plan_mask, elapsed]
         return actions_dict(view, controlled_mask(view, "others"), actions)
+
+    def spawn(self, seed: int | None = None) -> PlanBufferPolicy:
+        """A copy for another scene: the same model and options (shared, not copied), its
+        own plan buffer, episode count and noise stream (``seed``; None: this policy's).
+        Copies plan together in :func:`plan_scenes`; call ``reset`` on the copy first."""
+        other = copy.copy(self)
+        other._episode = -1
+        other._clear()
+        if seed is not None:
+            other.reseed(seed)
+        return other
 
     # -------------------------------------------------------------- planning
     def _clear(self) -> None:
@@ -201,7 +213,7 @@ class PlanBufferPolicy(ABC):
 
     def plan(self, view: SceneView) -> np.ndarray:
         """Run one planning cycle now (``act`` calls it on schedule); the plan buffer
-        restarts at ``view.step``.
+        restarts at ``view.step``. The one-scene case of :func:`plan_scenes`.
 
         Returns:
             ``plans``: (A, T, 4) world-frame states (x, y [m], v [m/s], psi [rad]) after
@@ -213,25 +225,7 @@ class PlanBufferPolicy(ABC):
             ``L_map`` per guidance step) and ``timings`` ([s] per phase of ``phases``,
             and ``"total"``).
         """
-        if self._episode < 0:
-            raise RuntimeError("call reset(view) before plan(view)")
-        previous_threads = torch.get_num_threads()
-        if self.threads is not None:
-            torch.set_num_threads(self.threads)
-        previous = None
-        if self._plan_step is not None:
-            previous = (self.plan_actions, self.plan_mask, view.step - self._plan_step)
-        try:
-            start = time.perf_counter()
-            self._plan_cycle(view)
-            if previous is not None and self.stitch_steps > 0:
-                self._stitch(view, *previous)
-            self.timings["total"] = time.perf_counter() - start
-        finally:
-            if self.threads is not None:
-                torch.set_num_threads(previous_threads)
-        self._plan_step = view.step
-        self.cycles += 1
+        plan_scenes([self], [view])
         return self.plans
 
     def _stitch(self, view: SceneView, actions: np.ndarray, mask: np.ndarray, elapsed: int) -> None:
@@ -285,30 +279,71 @@ class PlanBufferPolicy(ABC):
         index = np.minimum(np.arange(elapsed, elapsed + steps), self.plans.shape[1] - 1)
         return self.plans[:, index]
 
-    def _encode_view(
-        self, view: SceneView, encode: Callable[[Mapping[str, torch.Tensor]], SceneContext]
-    ) -> EncodedView:
-        """Window, collate, encode (phases ``"window"`` and ``"encoder"``).
+    def _encode_views(
+        self,
+        views: Sequence[SceneView],
+        encode: Callable[[Mapping[str, torch.Tensor]], SceneContext],
+    ) -> EncodedViews:
+        """Windows, collate (agents padded), one encoder pass (phases ``"window"`` and
+        ``"encoder"``). The windows are cut scene by scene (a loop over scenes:
+        ``window_from_view`` is per scene, numpy).
 
         Args:
-            view: the scene now.
+            views: the B scenes now.
             encode: the model's encoder, ``batch -> SceneContext`` (run without gradients).
         """
         start = time.perf_counter()
-        window = window_from_view(view, self.window_config)
-        batch = collate_windows([{key: window[key] for key in ENCODER_KEYS}])
+        windows = [window_from_view(view, self.window_config) for view in views]
+        batch = collate_windows([{key: w[key] for key in ENCODER_KEYS} for w in windows])
         batch = {key: value.to(self.device) for key, value in batch.items()}
         clock = self._tick("window", start)
         with torch.no_grad():
             scene = encode(batch)
         clock = self._tick("encoder", clock)
-        ego = view.current[0]
-        frame = np.array([ego[0], ego[1], ego[3]])
-        return EncodedView(window, window["agent_index"], batch, scene, frame, clock)
+        frames = np.array([[v.current[0, 0], v.current[0, 1], v.current[0, 3]] for v in views])
+        slots = [w["agent_index"] for w in windows]
+        return EncodedViews(windows, slots, batch, scene, frames, clock)
 
-    @abstractmethod
+    def _encode_view(
+        self, view: SceneView, encode: Callable[[Mapping[str, torch.Tensor]], SceneContext]
+    ) -> EncodedView:
+        """:meth:`_encode_views` of one scene."""
+        return self._encode_views([view], encode).view(0)
+
+    def _map_of(self, views: Sequence[SceneView]) -> DrivableMap | MapStack:
+        """The scenes' maps for one lookup: their shared map, or a :class:`MapStack` in
+        scene order. The stack is kept (shared with spawned copies) and reused while it
+        holds every map asked for; :meth:`prepare_maps` fills it for a whole batch."""
+        maps = [view.map for view in views]
+        if all(m is maps[0] for m in maps):
+            return maps[0]
+        stack = self._shared.get("maps")
+        if stack is None or not all(id(m) in stack.positions for m in maps):
+            stack = self.prepare_maps(maps)
+        return stack.view([stack.positions[id(m)] for m in maps])
+
+    def prepare_maps(self, maps: Sequence[DrivableMap]) -> MapStack:
+        """Stack ``maps`` (distinct ones, in order) for :meth:`_map_of` (kept until a map
+        outside them is asked for)."""
+        unique = list({id(m): m for m in maps}.values())
+        stack = self._shared.get("maps")
+        if stack is None or [id(m) for m in stack.maps] != [id(m) for m in unique]:
+            stack = MapStack(unique)
+            self._shared["maps"] = stack
+        return stack
+
+    def _plan_cycles(self, scenes: Sequence[PlanBufferPolicy], views: Sequence[SceneView]) -> None:
+        """Plan every window slot of each scene and :meth:`_store` the plans on each
+        ``scenes[b]`` (``self`` is ``scenes[0]``, the planner). Subclasses that plan B
+        scenes in one pass override this; the default plans them one by one with
+        :meth:`_plan_cycle`."""
+        for scene, view in zip(scenes, views, strict=True):
+            scene._plan_cycle(view)
+
     def _plan_cycle(self, view: SceneView) -> None:
-        """Plan every window slot and :meth:`_store` the plans (subclasses)."""
+        """Plan every window slot of one scene and :meth:`_store` the plans (subclasses
+        implement this or :meth:`_plan_cycles`)."""
+        raise NotImplementedError(f"{type(self).__name__} implements no planning cycle")
 
     def _store(
         self,
@@ -362,6 +397,66 @@ class PlanBufferPolicy(ABC):
         )
 
 
+def plan_scenes(scenes: Sequence[PlanBufferPolicy], views: Sequence[SceneView]) -> None:
+    """One planning call for B scenes: ``scenes[b]`` plans ``views[b]`` now.
+
+    ``scenes`` are copies of one policy (:meth:`PlanBufferPolicy.spawn`, or the policy
+    itself): the same model and options, each with its own plan buffer, episode and noise
+    stream, so each scene's noise and plans are those of planning it alone (to float
+    rounding: padded batches run other kernels). A subclass with a batched
+    :meth:`~PlanBufferPolicy._plan_cycles` (``RiskFlowAdversary``) runs one encoder
+    pass, one generator pass and one guidance loop for all of them; the others plan
+    scene by scene. Then each scene's new plans are stitched onto its executed ones and
+    its buffer restarts at its ``view.step``. ``PlanBufferPolicy.plan`` is the case B = 1.
+
+    Every scene's ``timings`` are the call's: its phases (they ran once for all scenes;
+    for a subclass that plans scene by scene, those of ``scenes[0]``) and its ``"total"``.
+
+    Raises:
+        ValueError: ``scenes`` and ``views`` differ in length or are empty, or the scenes
+            are not copies of one policy.
+        RuntimeError: a scene was not ``reset``.
+    """
+    scenes, views = list(scenes), list(views)
+    if not scenes or len(scenes) != len(views):
+        raise ValueError(
+            f"scenes and views must be non-empty and of equal length, got {len(scenes)} "
+            f"scenes and {len(views)} views"
+        )
+    planner = scenes[0]
+    for scene in scenes:
+        if type(scene) is not type(planner) or scene._shared is not planner._shared:
+            raise ValueError("scenes must be copies of one policy (PlanBufferPolicy.spawn)")
+        if scene._episode < 0:
+            raise RuntimeError("call reset(view) before plan(view)")
+    if len({id(scene) for scene in scenes}) != len(scenes):
+        raise ValueError("scenes must be distinct policy copies (one per scene)")
+    previous_threads = torch.get_num_threads()
+    if planner.threads is not None:
+        torch.set_num_threads(planner.threads)
+    try:
+        start = time.perf_counter()
+        before = [
+            None
+            if scene._plan_step is None
+            else (scene.plan_actions, scene.plan_mask, view.step - scene._plan_step)
+            for scene, view in zip(scenes, views, strict=True)
+        ]
+        planner._plan_cycles(scenes, views)
+        for scene, view, previous in zip(scenes, views, before, strict=True):
+            if previous is not None and scene.stitch_steps > 0:
+                scene._stitch(view, *previous)
+        total = time.perf_counter() - start
+    finally:
+        if planner.threads is not None:
+            torch.set_num_threads(previous_threads)
+    timings = dict(planner.timings, total=total)
+    for scene, view in zip(scenes, views, strict=True):
+        scene.timings = dict(timings)
+        scene._plan_step = view.step
+        scene.cycles += 1
+
+
 def _to_world(plans: np.ndarray, slots: np.ndarray, num: int, frame: np.ndarray) -> np.ndarray:
     """(num, T, 4) world-frame states from scene-frame ``plans`` (A, T, 4) of ``slots``."""
     cos, sin = math.cos(frame[2]), math.sin(frame[2])
@@ -378,8 +473,10 @@ __all__ = [
     "BASE_COLOR",
     "GUIDED_COLOR",
     "EncodedView",
+    "EncodedViews",
     "PlanBufferPolicy",
     "check_model_pair",
     "default_window_config",
     "hold_still",
+    "plan_scenes",
 ]

@@ -25,6 +25,7 @@ the sign convention and why the steps are Adam steps.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -36,6 +37,7 @@ from policies.learned.guidance_losses import (
     TARGETS,
     ObjectiveConfig,
     adversarial_loss,
+    adversarial_rows,
     adversarial_value_and_gradient,
     map_loss,
     map_term,
@@ -43,7 +45,7 @@ from policies.learned.guidance_losses import (
 )
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout, rollout_with_vjp
-from riskflow_env.maps import DrivableMap
+from riskflow_env.maps import DrivableMap, MapStack
 
 OPTIMIZERS = ("gradient", "adam")
 _ADAM_BETAS = (0.9, 0.999)
@@ -80,20 +82,23 @@ class GuidanceConfig(ObjectiveConfig):
 
 @dataclass(frozen=True)
 class GuidanceScene:
-    """One scene's plans and what guidance needs about it (torch, scene frame).
+    """One scene's plans and what guidance needs about it (torch, scene frame), or B
+    scenes' (batched planning: a leading B axis on every tensor, agents padded to A).
 
     Attributes:
-        eps: (A, T, 2) noise, normalised.
+        eps: (A, T, 2) noise, normalised; (B, A, T, 2) for B scenes.
         u0: (A, T, 2) base residual ``u_theta(eps, 0, 1; C)``.
         state: (A, 4) current states (x, y [m], v [m/s], psi [rad]).
         length: (A,) [m].
         width: (A,) [m].
-        agent_mask: (A,) bool agents present.
+        agent_mask: (A,) bool agents present (False on padding).
         base_actions: (A, T, 2) :func:`plans_from_velocity` of ``u0``.
         base_trajectories: (A, T, 4) their rollout.
-        drivable_map: the scene's map (world frame); None drops ``L_map``.
-        frame: (3,) world pose (x [m], y [m], psi [rad]) of the scene frame.
-        ego: slot of the ego.
+        drivable_map: the scene's map (world frame); for B scenes a
+            :class:`~riskflow_env.maps.MapStack` of their maps in scene order, or one map
+            they all share; None drops ``L_map``.
+        frame: (3,) world pose (x [m], y [m], psi [rad]) of the scene frame; (B, 3).
+        ego: slot of the ego (in every scene).
     """
 
     eps: Tensor
@@ -113,7 +118,8 @@ class GuidanceScene:
 class GuidanceResult:
     """Guided plans: ``u``, ``actions`` (A, T, 2), ``trajectories`` (A, T, 4) (base plans
     outside ``A_c``) and ``losses`` (steps + 1, 2): ``(L_adv [m], L_map [m^2])`` before
-    each step and after the last."""
+    each step and after the last. For B scenes: (B, A, ...) and losses (steps + 1, B, 2),
+    each scene's own."""
 
     u: Tensor
     actions: Tensor
@@ -141,7 +147,13 @@ def plans_from_velocity(
 
 
 class _Objective:
-    """``(L_adv, L_map)`` of the ``A_c`` rows as a function of their residual ``u_c``."""
+    """``(L_adv, L_map)`` of the ``A_c`` rows as a function of their residual ``u_c``.
+
+    ``scene`` holds the rows of one scene, or of B scenes flattened to ``B * A`` rows
+    (``frame`` (B, 3), the map a ``MapStack`` or shared); ``rows`` (C,) index them;
+    ``target_xy`` is (J, T, 2), shared, or (C, J, T, 2) per row with ``target_valid``
+    (C, J); ``scene_of_row`` (C,) the scene of each row (None: one scene).
+    """
 
     def __init__(
         self,
@@ -151,13 +163,16 @@ class _Objective:
         normalizer: Normalizer,
         config: GuidanceConfig,
         dynamics: DynamicsConfig,
+        target_valid: Tensor | None = None,
+        scene_of_row: Tensor | None = None,
     ) -> None:
         zero = torch.zeros_like(scene.eps[:1, :1])
         self.std = normalizer.denormalize(zero + 1.0) - normalizer.denormalize(zero)
         self.offset = normalizer.denormalize(scene.eps[rows])  # a = offset + std * u_c
         self.state = scene.state[rows]
-        self.target_xy, self.horizon, self.dynamics = target_xy, config.horizon, dynamics
-        self.map_term = map_term(scene, rows, scene.eps.shape[1], config)
+        self.target_xy, self.target_valid = target_xy, target_valid
+        self.horizon, self.dynamics = config.horizon, dynamics
+        self.map_term = map_term(scene, rows, scene.eps.shape[1], config, scene_of_row)
 
     def bounds(self) -> tuple[Tensor, Tensor]:
         """(C, T, 2) lower and upper bounds of ``u_c`` that keep the actions inside the
@@ -173,35 +188,39 @@ class _Objective:
         return self.offset + self.std * u_c
 
     def __call__(self, u_c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """(C, T, 4) trajectories, ``L_adv`` [m], ``L_map`` [m^2] (no gradient)."""
+        """(C, T, 4) trajectories, (C,) ``L_adv`` [m] and (C,) ``L_map`` [m^2] of each row
+        (no gradient)."""
         trajectories = rollout(self.state, self.actions(u_c), self.dynamics)
-        adv = adversarial_loss(trajectories[..., :2], self.target_xy, self.horizon)
+        adv, _ = adversarial_rows(
+            trajectories[..., :2], self.target_xy, self.horizon, self.target_valid, False
+        )
         if self.map_term is None:
             return trajectories, adv, adv * 0.0
-        return trajectories, adv, self.map_term(trajectories)
+        return trajectories, adv, self.map_term.rows(trajectories)
 
     def gradient(self, u_c: Tensor, lambda_adv: float, lambda_map: float) -> tuple[Tensor, ...]:
         """``grad_u L`` (C, T, 2) of ``L = lambda_adv * L_adv + lambda_map * L_map``,
-        ``L_adv`` [m] and ``L_map`` [m^2].
+        and (C,) ``L_adv`` [m] and ``L_map`` [m^2] of each row.
 
         No autograd: the losses give their value and their gradient with respect to the
-        trajectories in closed form (``*_value_and_gradient``), the rollout its
-        vector-Jacobian product (``rollout_with_vjp``), and ``a = offset + std * u_c``
-        is a diagonal scale.
+        trajectories in closed form (``adversarial_rows``, ``MapTerm.rows_and_gradient``),
+        the rollout its vector-Jacobian product (``rollout_with_vjp``), and
+        ``a = offset + std * u_c`` is a diagonal scale. Rows do not interact: each row's
+        gradient is that of its own scene's loss.
         """
         # In bounds (the projection keeps them there): the rollout's clip is skipped.
         trajectories, vjp = rollout_with_vjp(
             self.state, self.actions(u_c), self.dynamics, clip=False
         )
-        adv, d_xy = adversarial_value_and_gradient(
-            trajectories[..., :2], self.target_xy, self.horizon
+        adv, d_xy = adversarial_rows(
+            trajectories[..., :2], self.target_xy, self.horizon, self.target_valid
         )
         d_trajectories = torch.zeros_like(trajectories)
         d_trajectories[..., :2] = lambda_adv * d_xy
         if self.map_term is None:
             off_road = adv * 0.0
         else:
-            off_road, d_map = self.map_term.value_and_gradient(trajectories)
+            off_road, d_map = self.map_term.rows_and_gradient(trajectories)
             d_trajectories.add_(d_map, alpha=lambda_map)
         return vjp(d_trajectories) * self.std, adv, off_road
 
@@ -215,9 +234,16 @@ def guide(
 ) -> GuidanceResult:
     """Run ``K_g`` guidance steps on the ``A_c`` rows of ``scene.u0`` (module docstring).
 
+    One scene, or B scenes in one loop (batched planning): every scene's ``A_c`` rows are
+    the variables of one optimisation whose loss is the sum of the scenes' losses. Rows do
+    not interact (each is pulled toward its own scene's targets, on its own map) and Adam
+    is per coordinate, so each scene's plans are those of guiding it alone, to float
+    rounding.
+
     Args:
-        scene: the plans and the scene.
-        controllable: (A,) bool ``A_c`` (absent agents and the ego are ignored).
+        scene: the plans and the scene (one, or B with a leading axis).
+        controllable: (A,) bool ``A_c`` ((B, A) for B scenes; absent agents and the ego
+            are ignored).
         normalizer: action normalisation.
         config: guidance options.
         dynamics: time step and bounds.
@@ -226,20 +252,75 @@ def guide(
         the :class:`GuidanceResult`; every row outside ``A_c`` equals the base plan.
     """
     config = config or GuidanceConfig()
+    single = scene.eps.ndim == 3
+    if scene.eps.ndim not in (3, 4):
+        raise ValueError(f"scene.eps must be (A, T, 2) or (B, A, T, 2), got {scene.eps.shape}")
+    if tuple(controllable.shape) != tuple(scene.agent_mask.shape):
+        raise ValueError(
+            f"controllable must have agent_mask's shape {tuple(scene.agent_mask.shape)}, "
+            f"got {tuple(controllable.shape)}"
+        )
+    if single:
+        tensors = {name: getattr(scene, name)[None] for name in _PER_AGENT}
+        scene = dataclasses.replace(scene, frame=scene.frame[None], **tensors)
+        controllable = controllable[None]
+    result = _guide_scenes(scene, controllable, normalizer, config, dynamics)
+    if not single:
+        return result
+    return GuidanceResult(
+        result.u[0], result.actions[0], result.trajectories[0], result.losses[:, 0]
+    )
+
+
+_PER_AGENT = (
+    "eps", "u0", "state", "length", "width", "agent_mask", "base_actions", "base_trajectories",
+)  # fmt: skip
+
+
+def one_scene(scene: GuidanceScene, index: int) -> GuidanceScene:
+    """Scene ``index`` of a batched :class:`GuidanceScene` (its padded agent axis kept)."""
+    drivable_map = scene.drivable_map
+    if isinstance(drivable_map, MapStack):
+        drivable_map = drivable_map.maps[index]
+    tensors = {name: getattr(scene, name)[index] for name in _PER_AGENT}
+    return dataclasses.replace(
+        scene, frame=scene.frame[index], drivable_map=drivable_map, **tensors
+    )
+
+
+def _guide_scenes(
+    scene: GuidanceScene,
+    controllable: Tensor,
+    normalizer: Normalizer,
+    config: GuidanceConfig,
+    dynamics: DynamicsConfig,
+) -> GuidanceResult:
+    """:func:`guide` of B scenes (leading axis on every tensor of ``scene``)."""
+    num_scenes, num_agents = scene.agent_mask.shape
     present = scene.agent_mask.bool()
     mask = controllable.bool() & present
-    mask[scene.ego] = False
-    rows = torch.nonzero(mask).flatten()
-    targets = target_rows(present, mask, scene.ego, config.target)
-    target_xy = scene.base_trajectories[targets, :, :2].detach()
-
+    mask[:, scene.ego] = False
+    targets = target_rows(present, mask, scene.ego, config.target)  # (B, A)
+    rows = torch.nonzero(mask.reshape(-1)).flatten()  # flat (scene, agent) indices
+    scene_of_row = torch.div(rows, num_agents, rounding_mode="floor")
     if rows.numel() == 0:  # nothing to guide: the base plans
-        losses = scene.eps.new_zeros(config.steps + 1, 2)
+        losses = scene.eps.new_zeros(config.steps + 1, num_scenes, 2)
         return GuidanceResult(scene.u0, scene.base_actions, scene.base_trajectories, losses)
-    objective = _Objective(scene, rows, target_xy, normalizer, config, dynamics)
+    flat = dataclasses.replace(
+        scene, **{name: getattr(scene, name).flatten(0, 1) for name in _PER_AGENT}
+    )
+    target_xy = scene.base_trajectories[..., :2].detach()[scene_of_row]  # (C, A, T, 2)
+    objective = _Objective(
+        flat, rows, target_xy, normalizer, config, dynamics, targets[scene_of_row], scene_of_row
+    )
+
+    def per_scene(adv: Tensor, off_road: Tensor) -> Tensor:  # (C,) x 2 -> (B, 2)
+        total = adv.new_zeros(num_scenes, 2)
+        return total.index_add_(0, scene_of_row, torch.stack([adv, off_road], dim=-1))
+
     with torch.no_grad():
         lower, upper = objective.bounds()
-        u_c = torch.minimum(torch.maximum(scene.u0[rows], lower), upper)
+        u_c = torch.minimum(torch.maximum(flat.u0[rows], lower), upper)
     first, second = torch.zeros_like(u_c), torch.zeros_like(u_c)
     history = []
     # Closed-form gradients: nothing to record, and inference mode skips autograd's
@@ -247,7 +328,7 @@ def guide(
     with torch.inference_mode():
         for step in range(config.steps):
             grad, adv, off_road = objective.gradient(u_c, config.lambda_adv, config.lambda_map)
-            history.append((adv, off_road))
+            history.append(per_scene(adv, off_road))
             if config.optimizer == "adam":
                 beta1, beta2 = _ADAM_BETAS
                 first.mul_(beta1).add_(grad, alpha=1 - beta1)
@@ -259,18 +340,19 @@ def guide(
             u_c = torch.minimum(torch.maximum(u_c - grad, lower), upper)
     with torch.no_grad():
         trajectories_c, adv, off_road = objective(u_c)
-        history.append((adv, off_road))
-        u = scene.u0.clone()
+        history.append(per_scene(adv, off_road))
+        u = flat.u0.clone()
         u[rows] = u_c
-        actions = scene.base_actions.clone()
+        actions = flat.base_actions.clone()
         actions[rows] = clip_actions(objective.actions(u_c), dynamics)
-        trajectories = scene.base_trajectories.clone()
+        trajectories = flat.base_trajectories.clone()
         trajectories[rows] = trajectories_c  # rollout clips: the same as the clipped actions'
+    lead = (num_scenes, num_agents)
     return GuidanceResult(
-        u=u,
-        actions=actions,
-        trajectories=trajectories,
-        losses=torch.stack([torch.stack(h) for h in history]),
+        u=u.reshape(*lead, *u.shape[1:]),
+        actions=actions.reshape(*lead, *actions.shape[1:]),
+        trajectories=trajectories.reshape(*lead, *trajectories.shape[1:]),
+        losses=torch.stack(history),
     )
 
 
@@ -283,6 +365,7 @@ __all__ = [
     "adversarial_loss",
     "adversarial_value_and_gradient",
     "guide",
+    "one_scene",
     "map_loss",
     "plans_from_velocity",
 ]

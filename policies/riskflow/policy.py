@@ -30,6 +30,11 @@ diffusion baselines' denoiser run as a deterministic DDIM chain from ``eps`` ins
 with the same ranking and output-space guidance (the generator ablation of issue 7).
 ``lambda_adv = 0`` / ``lambda_map = 0`` drop a guidance term (the loss ablation).
 
+Many scenes: ``_plan_cycles`` plans B scenes in one call (``plan_scenes``,
+``BatchedAdversary``; ``plan`` is B = 1): the windows are cut and ranked scene by scene
+(numpy, a loop over scenes), everything else runs once for all of them, agents padded to
+the largest scene and masked; scene ``b`` draws its noise from its own stream.
+
 Subclasses replace how ``A_c`` is optimised by overriding :meth:`RiskFlowAdversary._guide`
 (the STRIVE-style baseline optimises the generator's input noise instead).
 """
@@ -37,8 +42,10 @@ Subclasses replace how ``A_c`` is optimised by overriding :meth:`RiskFlowAdversa
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 
 from policies.learned.adversary_config import AdversaryConfig
@@ -47,7 +54,7 @@ from policies.learned.generator import RiskFlowGenerator
 from policies.learned.plan_buffer import (
     BASE_COLOR,
     GUIDED_COLOR,
-    EncodedView,
+    EncodedViews,
     PlanBufferPolicy,
     check_model_pair,
     default_window_config,
@@ -134,50 +141,72 @@ class RiskFlowAdversary(PlanBufferPolicy):
         window_config = config.window_config or default_window_config(model_config)
         super().__init__(config, model_config.future_steps, window_config)
 
-    def _plan_cycle(self, view: SceneView) -> None:
-        """One cycle: window, encoder, one MeanFlow pass, ranking, guidance (module docstring)."""
-        observed = self._encode_view(view, self.model.encode)
-        scene, slots = observed.scene, observed.slots
+    def _plan_cycles(self, scenes: Sequence[PlanBufferPolicy], views: Sequence[SceneView]) -> None:
+        """One cycle of B scenes (``scenes[b]`` plans ``views[b]``; B = 1 for ``plan``):
+        windows, one encoder pass, one MeanFlow pass, ranking, one guidance loop (module
+        docstring). Each scene draws its noise from its own stream, with the shape it has
+        alone, and the padded rows of smaller scenes are masked everywhere."""
+        observed = self._encode_views(views, self.model.encode)
+        scene, counts = observed.scene, observed.counts
+        num_scenes, num_agents = scene.agent_mask.shape
+        steps = self.model.config.future_steps
         with torch.no_grad():
-            shape = (1, len(slots), self.model.config.future_steps, 2)
-            eps = torch.randn(
-                shape, generator=self._noise_source(), device=self.device, dtype=scene.context.dtype
-            )
-            self.noise = eps[0]
-            u0 = base_velocity(self.model, eps, scene)[0]
-            eps, state, agent_mask = eps[0], scene.state[0], scene.agent_mask[0]
+            eps = scene.context.new_zeros(num_scenes, num_agents, steps, 2)
+            for index, (policy, count) in enumerate(zip(scenes, counts, strict=True)):
+                eps[index, :count] = torch.randn(  # the scene's own stream, its own shape
+                    (1, count, steps, 2), generator=policy._noise_source(),
+                    device=self.device, dtype=scene.context.dtype,
+                )[0]  # fmt: skip
+            u0 = base_velocity(self.model, eps, scene)
             actions, trajectories = plans_from_velocity(
-                eps, u0, state, agent_mask, self.normalizer, self.dynamics
+                eps, u0, scene.state, scene.agent_mask, self.normalizer, self.dynamics
             )
-            done = torch.from_numpy(~view.active[slots]).to(self.device)
-            hold_still(actions, trajectories, state, done)  # the env keeps them at speed 0
+            done = np.zeros((num_scenes, num_agents), dtype=bool)
+            for index, (view, slots) in enumerate(zip(views, observed.slots, strict=True)):
+                done[index, : len(slots)] = ~view.active[slots]
+            done = torch.from_numpy(done).to(self.device)
+            hold_still(actions, trajectories, scene.state, done)  # the env keeps them at speed 0
         clock = self._tick("generator", observed.clock)
-        self.ranking = rank_window(observed.window, self.k, self.rank_threshold, view.active[slots])
+        controllable = np.zeros((num_scenes, num_agents), dtype=bool)
+        for index, (policy, view) in enumerate(zip(scenes, views, strict=True)):
+            window, slots = observed.windows[index], observed.slots[index]
+            policy.ranking = rank_window(window, self.k, self.rank_threshold, view.active[slots])
+            controllable[index, : len(slots)] = policy.ranking.controllable
         clock = self._tick("ranking", clock)
         guidance_scene = GuidanceScene(
             eps=eps,
             u0=u0,
-            state=state,
-            length=observed.batch["length"][0],
-            width=observed.batch["width"][0],
-            agent_mask=agent_mask,
+            state=scene.state,
+            length=observed.batch["length"],
+            width=observed.batch["width"],
+            agent_mask=scene.agent_mask,
             base_actions=actions,
             base_trajectories=trajectories,
-            drivable_map=view.map,
+            drivable_map=self._map_of(views),
             frame=observed.frame_tensor(),
         )
-        controllable = torch.from_numpy(self.ranking.controllable).to(self.device)
-        result = self._guide(guidance_scene, controllable, observed)
+        result = self._guide(
+            guidance_scene, torch.from_numpy(controllable).to(self.device), observed
+        )
         self._tick("guidance", clock)
-        self._store(view, slots, result.actions, result.trajectories, trajectories, observed.frame)
-        self.guidance_losses = result.losses.cpu().numpy()
+        losses = result.losses.cpu().numpy()
+        for index, (policy, view) in enumerate(zip(scenes, views, strict=True)):
+            slots = observed.slots[index]
+            rows = slice(0, len(slots))
+            policy.noise = eps[index, rows]
+            policy._store(
+                view, slots, result.actions[index, rows], result.trajectories[index, rows],
+                trajectories[index, rows], observed.frames[index],
+            )  # fmt: skip
+            policy.guidance_losses = losses[:, index]
 
     def _guide(
-        self, scene: GuidanceScene, controllable: torch.Tensor, observed: EncodedView
+        self, scene: GuidanceScene, controllable: torch.Tensor, observed: EncodedViews
     ) -> GuidanceResult:
-        """Optimise the ``A_c`` rows (``controllable`` (A_w,) bool) of the base plans in
-        ``scene``: output-space guidance (:func:`policies.riskflow.guidance.guide`).
-        ``observed`` has the scene context, for methods that re-run the generator."""
+        """Optimise the ``A_c`` rows (``controllable`` (B, A) bool) of the base plans of the
+        B scenes in ``scene``: output-space guidance, one loop for all
+        (:func:`policies.riskflow.guidance.guide`). ``observed`` has the scene context,
+        for methods that re-run the generator."""
         return guide(scene, controllable, self.normalizer, self.guidance, self.dynamics)
 
 

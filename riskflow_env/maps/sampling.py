@@ -70,22 +70,47 @@ def _interpolate(
     extend: bool,
     with_gradient: bool,
 ) -> tuple[Array, Array | None]:
-    """The one implementation of :func:`bilinear` and :func:`bilinear_with_gradient`."""
+    """:func:`interpolate_flat` of one raster (the one implementation of :func:`bilinear`
+    and :func:`bilinear_with_gradient`)."""
     xp = namespace(xy, table)
     height, width = table.shape
-    col = (xy[..., 0] - origin[0]) / resolution - 0.5
-    row = (xy[..., 1] - origin[1]) / resolution - 0.5
-    col_c = xp.clip(col, 0.0, float(width - 1))
-    row_c = xp.clip(row, 0.0, float(height - 1))
+    grid = (height, width, origin[0], origin[1], resolution, 0)
+    return interpolate_flat(xp.reshape(table, (-1,)), xy, grid, extend, with_gradient)
+
+
+def interpolate_flat(
+    flat: Array, xy: Array, grid: tuple, extend: bool, with_gradient: bool
+) -> tuple[Array, Array | None]:
+    """Bilinear lookup in rasters stored end to end in ``flat`` (the one implementation).
+
+    Args:
+        flat: (N,) values at pixel centres of one or more rasters, row-major each.
+        xy: (..., 2) [m] world points, same backend/dtype as ``flat``.
+        grid: ``(height, width, origin_x [m], origin_y [m], resolution [m/px], offset)``
+            of the raster each point is looked up in (``offset``: index in ``flat`` of its
+            pixel [0, 0]); each a Python number (every point on the same raster) or an
+            array broadcastable to ``xy[..., 0]`` (a raster per point:
+            :class:`~riskflow_env.maps.stack.MapStack`). Heights and widths >= 2.
+        extend, with_gradient: as :func:`bilinear` / :func:`bilinear_with_gradient`.
+
+    Returns:
+        (...) values and, with ``with_gradient``, (..., 2) their gradient (else None).
+    """
+    xp = namespace(xy, flat)
+    height, width, origin_x, origin_y, resolution, offset = grid
+    col = (xy[..., 0] - origin_x) / resolution - 0.5
+    row = (xy[..., 1] - origin_y) / resolution - 0.5
+    last_col, last_row = _last(xp, width, col), _last(xp, height, row)
+    col_c = xp.clip(col, 0.0, last_col)
+    row_c = xp.clip(row, 0.0, last_row)
     # Integer bounds with maximum/minimum: the same values at a fraction of clip's cost.
     col0 = xp.maximum(xp.minimum(xp.astype(xp.floor(col_c), xp.int64), width - 2), 0)
     row0 = xp.maximum(xp.minimum(xp.astype(xp.floor(row_c), xp.int64), height - 2), 0)
     fc = col_c - xp.astype(col0, col_c.dtype)
     fr = row_c - xp.astype(row0, row_c.dtype)
-    flat = xp.reshape(table, (-1,))
-    base = row0 * width + col0
+    base = row0 * width + col0 + offset
     corners = (flat[base], flat[base + 1], flat[base + width], flat[base + width + 1])
-    if table.dtype != fc.dtype:
+    if flat.dtype != fc.dtype:
         # A float32 raster queried in float64: cast the four corners once (exactly as the
         # promotion would) rather than inside every mixed-type op.
         corners = tuple(xp.astype(value, xp.result_type(value, fc)) for value in corners)
@@ -101,8 +126,8 @@ def _interpolate(
         return value, None
     # d value / d (col, row) inside the clamp (torch's clamp passes the gradient on the
     # bounds too), then / resolution: per metre.
-    inside_c = xp.astype((col >= 0.0) & (col <= float(width - 1)), value.dtype)
-    inside_r = xp.astype((row >= 0.0) & (row <= float(height - 1)), value.dtype)
+    inside_c = xp.astype((col >= 0.0) & (col <= last_col), value.dtype)
+    inside_r = xp.astype((row >= 0.0) & (row <= last_row), value.dtype)
     d_col = ((v01 - v00) * (1 - fr) + (v11 - v10) * fr) * (inside_c / resolution)
     d_row = (bottom - top) * (inside_r / resolution)
     if extend:  # d(|q - clamp(q)| * resolution) / dxy: the unit vector off the raster
@@ -111,6 +136,13 @@ def _interpolate(
         d_col = d_col + xp.where(positive, off_c / distance, xp.zeros_like(distance))
         d_row = d_row + xp.where(positive, off_r / distance, xp.zeros_like(distance))
     return value, xp.stack([d_col, d_row], axis=-1)
+
+
+def _last(xp, size: int | Array, like: Array) -> float | Array:
+    """Index of the last pixel centre, ``size - 1``: a float, or an array of ``like``'s dtype."""
+    if isinstance(size, (int, np.integer)):
+        return float(size - 1)
+    return xp.astype(size - 1, like.dtype)
 
 
 def crop_points(xy: Array, yaw: Array, size: int, resolution: float) -> Array:

@@ -23,7 +23,7 @@ from policies.riskflow.guidance import (
     plans_from_velocity,
 )
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
-from riskflow_env.maps import Lane, from_lanes
+from riskflow_env.maps import Lane, MapStack, from_lanes
 
 NORMALIZER = ActionNormalizer(mean=(0.0, 0.0), std=(1.0, 0.1))
 ROAD = from_lanes([Lane(np.array([[-100.0, 0.0], [300.0, 0.0]]), 12.0, "road")])  # |y| < 6 m
@@ -250,15 +250,27 @@ def test_map_gradient_matches_finite_differences():
     assert torch.equal(through_term, gradient)
 
 
+def _autograd_adversarial(xy, target_xy, horizon, target_valid):
+    """Each row's ``L_adv`` by plain autograd ops (the reference of the closed form)."""
+    targets = target_xy if target_xy.ndim == 4 else target_xy[None].expand(len(xy), -1, -1, -1)
+    distance = torch.linalg.vector_norm(xy[:, None, :horizon] - targets[:, :, :horizon], dim=-1)
+    if target_valid is not None:
+        distance = distance.masked_fill(~target_valid[..., None], torch.inf)
+    return distance.min(dim=1).values.mean(dim=1)
+
+
 def _autograd_gradient(objective, u_c, lambda_adv, lambda_map):
-    """The autograd path the closed form replaces: through the rollout and both losses."""
+    """The autograd path the closed form replaces: through the rollout and both losses.
+    Returns the gradient and each row's ``L_adv`` and ``L_map`` (as ``gradient`` does)."""
     with torch.inference_mode(False), torch.enable_grad():  # guide's loop runs in inference
         u_c = u_c.clone().requires_grad_(True)
         trajectories = rollout(objective.state, objective.actions(u_c), objective.dynamics)
-        adv = adversarial_loss(trajectories[..., :2], objective.target_xy, objective.horizon)
+        adv = _autograd_adversarial(
+            trajectories[..., :2], objective.target_xy, objective.horizon, objective.target_valid
+        )
         off_road = objective.map_term(trajectories)
-        (grad,) = torch.autograd.grad(lambda_adv * adv + lambda_map * off_road, u_c)
-    return grad, adv.detach(), off_road.detach()
+        (grad,) = torch.autograd.grad(lambda_adv * adv.sum() + lambda_map * off_road, u_c)
+    return grad, adv.detach(), objective.map_term.rows(trajectories.detach())
 
 
 def _stopping_scene() -> GuidanceScene:
@@ -325,3 +337,65 @@ def test_map_term_is_none_without_map_or_weight():
     size = torch.ones(2)
     scene = SimpleNamespace(drivable_map=None, frame=torch.zeros(3), length=size, width=size)
     assert map_term(scene, torch.arange(2), 5, GuidanceConfig()) is None
+
+
+def _padded(scene: GuidanceScene, agents: int) -> GuidanceScene:
+    """``scene`` with absent agents appended up to ``agents`` (zeros, masked)."""
+    extra = agents - scene.eps.shape[0]
+    names = ("eps", "u0", "state", "length", "width", "agent_mask", "base_actions")
+    tensors = {name: getattr(scene, name) for name in (*names, "base_trajectories")}
+    return dataclasses.replace(
+        scene,
+        **{
+            name: torch.cat([value, value.new_zeros(extra, *value.shape[1:])])
+            for name, value in tensors.items()
+        },
+    )
+
+
+@pytest.mark.parametrize("target", ["others", "ego"])
+def test_batched_scenes_guide_as_each_scene_alone(target):
+    """Three scenes (4, 6 and 3 agents, padded to 6) with their own maps and frames, guided
+    in one loop: each scene's plans and losses are those of guiding it alone."""
+    narrow = from_lanes([Lane(np.array([[-50.0, 10.0], [250.0, 40.0]]), 7.0, "narrow")])
+    scenes = [
+        make_scene(HIGHWAY[:4], frame=(3.0, -1.0, 0.2), seed=1),
+        make_scene(HIGHWAY, seed=2),
+        dataclasses.replace(
+            make_scene([[0.0, 0.0, 12.0, 0.0], [12.0, 2.5, 12.0, 0.1], [-9.0, -2.0, 14.0, 0.0]],
+                       frame=(-50.0, 10.0, 0.0997), seed=3),
+            drivable_map=narrow,
+        ),
+    ]  # fmt: skip
+    controllable = [mask_of(4, [1, 3]), mask_of(6, [2, 4, 5]), mask_of(3, [1, 2])]
+    config = GuidanceConfig(steps=8, target=target)
+    alone = [guide(s, c, NORMALIZER, config) for s, c in zip(scenes, controllable, strict=True)]
+    padded = [_padded(s, 6) for s in scenes]
+    batch = GuidanceScene(
+        **{
+            name: torch.stack([getattr(s, name) for s in padded])
+            for name in ("eps", "u0", "state", "length", "width", "agent_mask", "base_actions",
+                         "base_trajectories", "frame")
+        },
+        drivable_map=MapStack([s.drivable_map for s in scenes]),
+    )  # fmt: skip
+    masks = torch.stack([torch.cat([c, c.new_zeros(6 - len(c))]) for c in controllable])
+    result = guide(batch, masks, NORMALIZER, config)
+    assert result.losses.shape == (9, 3, 2)
+    for b, single in enumerate(alone):
+        count = single.actions.shape[0]
+        torch.testing.assert_close(result.actions[b, :count], single.actions, rtol=0, atol=1e-5)
+        torch.testing.assert_close(
+            result.trajectories[b, :count], single.trajectories, rtol=0, atol=1e-4
+        )
+        torch.testing.assert_close(result.losses[:, b], single.losses, rtol=1e-5, atol=1e-5)
+        assert torch.equal(result.trajectories[b, count:], batch.base_trajectories[b, count:])
+    assert (result.losses[0, :, 1] > 0).any()  # the map term is active somewhere
+
+
+def test_guide_names_bad_shapes():
+    scene = make_scene(HIGHWAY)
+    with pytest.raises(ValueError, match="controllable"):
+        guide(scene, mask_of(5, [1]), NORMALIZER)
+    with pytest.raises(ValueError, match="scene.eps"):
+        guide(dataclasses.replace(scene, eps=scene.eps[0]), mask_of(6, [1]), NORMALIZER)

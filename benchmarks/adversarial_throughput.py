@@ -1,0 +1,175 @@
+"""Planning throughput of the K = 5 RiskFlow adversary: B scenes per call vs B one-scene calls.
+
+Issue 18, table 1. The shipped checkpoint plans the first B shipped evaluation scenes
+(``shipped_bank("eval")``, each reset in its own env) in two ways, measured in one run:
+
+* **batched**: :class:`policies.learned.batched_adversary.BatchedAdversary` plans all B
+  scenes in one call (one encoder pass, one generator pass, one guidance loop);
+* **one at a time**: today's loop, B policy copies each planning its own scene
+  (``RiskFlowAdversary.plan``, the one-scene path).
+
+Both run the same cycle (window, encoder, MeanFlow pass, TTC ranking, ``--guidance-steps``
+Adam steps on the top-``--k`` vehicles, plan stitching) on the same views. Reported per B:
+planning calls per second, scenes planned per second and the ratio of the batched
+scenes/s to the loop's. Rounds are interleaved (batched, then loop, per B) and the best
+round of each is reported (the least disturbed one on a shared machine).
+
+    python benchmarks/adversarial_throughput.py [--scenes 1 8 32] [--rounds 3] [--device cpu]
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm import tqdm
+
+import riskflow_env
+from policies.dataclass_cli import parse_dataclass
+from policies.learned.batched_adversary import BatchedAdversary
+from policies.riskflow.policy import RiskFlowAdversary
+from riskflow_env.scenarios import shipped_bank
+from riskflow_env.view import SceneView
+
+
+@dataclass(frozen=True)
+class Options:
+    """Benchmark options."""
+
+    scenes: tuple[int, ...] = (1, 8, 32)
+    """scenes per planning call (B)"""
+    k: int = 5
+    """size of the controllable set A_c in each scene"""
+    guidance_steps: int = 30
+    """K_g guidance steps per cycle"""
+    rounds: int = 3
+    """interleaved timed rounds per B; the best is reported"""
+    calls: int = 3
+    """planning calls of all B scenes per round (each way)"""
+    threads: int = 1
+    """torch CPU threads while planning one scene at a time"""
+    batched_threads: int | None = None
+    """torch CPU threads while planning B scenes per call (None: --threads); large batches
+    are big tensor ops, which more threads can share"""
+    device: str = "cpu"
+    """torch device (cuda where a GPU is present)"""
+
+
+def _parse(argv: list[str] | None = None) -> Options:
+    return parse_dataclass(
+        Options, argv, prog="adversarial_throughput.py", description=__doc__.split("\n")[0]
+    )
+
+
+def evaluation_views(count: int) -> list[SceneView]:
+    """The first views of the first ``count`` shipped evaluation scenes, an env each."""
+    bank = shipped_bank("eval")
+    if count > len(bank):
+        raise SystemExit(f"--scenes asks for {count} scenes; the evaluation bank has {len(bank)}")
+    views = []
+    for index in range(count):
+        scenario = bank[index]
+        env = riskflow_env.parallel_env(scenarios=scenario)
+        env.reset(seed=0, options={"scenario": scenario})
+        views.append(env.view())
+    return views
+
+
+def time_calls(plan, calls: int) -> float:
+    """Seconds per call of ``plan()`` (``calls`` calls)."""
+    start = time.perf_counter()
+    for _ in range(calls):
+        plan()
+    return (time.perf_counter() - start) / calls
+
+
+def measure(
+    policy: RiskFlowAdversary, batched: RiskFlowAdversary, views: list[SceneView], options: Options
+) -> dict:
+    """Best seconds per planning call of all scenes, batched (copies of ``batched``) and
+    one at a time (copies of ``policy``)."""
+    batch = BatchedAdversary(batched, len(views))
+    batch.reset(views)
+    alone = [policy.spawn(policy.seed + index) for index in range(len(views))]
+    for copy, view in zip(alone, views, strict=True):
+        copy.reset(view)
+
+    def loop() -> None:
+        for copy, view in zip(alone, views, strict=True):
+            copy.plan(view)
+
+    batch.plan(views)  # warm-up (and the map stack)
+    loop()
+    best = {"batched": float("inf"), "loop": float("inf")}
+    for _ in range(options.rounds):
+        best["batched"] = min(best["batched"], time_calls(lambda: batch.plan(views), options.calls))
+        best["loop"] = min(best["loop"], time_calls(loop, options.calls))
+    best["phases"] = batch.scenes[0].timings
+    best["loop_phases"] = {
+        name: sum(copy.timings[name] for copy in alone) for name in best["phases"]
+    }
+    return best
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    """Print the tables; returns their rows (``scenes``, ``batched`` and ``loop`` [s per
+    planning of all B scenes], ``phases`` of the last batched call and ``loop_phases``
+    summed over the last loop's calls [s])."""
+    options = _parse(argv)
+    policy = RiskFlowAdversary(
+        k=options.k,
+        guidance_steps=options.guidance_steps,
+        device=options.device,
+        threads=options.threads,
+    )
+    batched_threads = options.batched_threads or options.threads
+    batched = RiskFlowAdversary(  # the same model, planning B scenes per call
+        k=options.k,
+        guidance_steps=options.guidance_steps,
+        device=options.device,
+        threads=batched_threads,
+        generator=policy.model,
+        normalizer=policy.normalizer,
+    )
+    views = evaluation_views(max(options.scenes))
+    agents = [int(v.present.sum()) for v in views]
+    print(
+        f"RiskFlow adversary, K = {options.k}, K_g = {options.guidance_steps}, shipped "
+        f"checkpoint, device {options.device}, CPU threads: {options.threads} one at a time, "
+        f"{batched_threads} batched; shipped "
+        f"evaluation scenes 0..{len(views) - 1} ({min(agents)}-{max(agents)} vehicles, mean "
+        f"{np.mean(agents):.1f}); best of {options.rounds} rounds of {options.calls} calls\n"
+    )
+    header = (
+        f"{'B':>4}{'batched calls/s':>17}{'batched scenes/s':>18}"
+        f"{'loop calls/s':>14}{'loop scenes/s':>15}{'ratio':>8}"
+    )
+    print(header)
+    rows = []
+    for count in tqdm(options.scenes, "scene counts", leave=False):  # stderr
+        best = measure(policy, batched, views[:count], options)
+        rows.append({"scenes": count, **best})
+        batched_rate, loop_rate = 1.0 / best["batched"], 1.0 / best["loop"]
+        ratio = best["loop"] / best["batched"]
+        print(
+            f"{count:>4}{batched_rate:>17.2f}{batched_rate * count:>18.1f}"
+            f"{loop_rate * count:>14.1f}{loop_rate * count:>15.1f}{ratio:>7.2f}x"
+        )
+    print(
+        "\nloop calls/s counts one-scene calls (= its scenes/s); ratio = batched scenes/s / "
+        "loop scenes/s"
+    )
+    print("\nphases [ms] of the last batched call, and summed over the last loop's B calls:")
+    names = [name for name in rows[0]["phases"] if name != "total"] + ["total"]
+    print(f"{'B':>4}{'':>8}" + "".join(f"{name:>11}" for name in names))
+    for row in rows:
+        for label, key in (("batched", "phases"), ("loop", "loop_phases")):
+            timings = row[key]
+            cells = "".join(f"{1e3 * timings[name]:>11.1f}" for name in names)
+            print(f"{row['scenes']:>4}{label:>8}{cells}")
+    return rows
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,98 @@
+"""What one planning call observes of its scenes: windows, the collated batch, the context.
+
+:meth:`policies.learned.plan_buffer.PlanBufferPolicy._encode_views` cuts a window from
+each scene's view, collates them (agents padded to the largest scene) and runs the
+model's encoder once; :class:`EncodedViews` holds the result for B scenes and
+:class:`EncodedView` for one (what the one-scene methods, STRIVE-style and the diffusion
+baselines, work on: :meth:`EncodedViews.view` cuts scene ``b`` out, without padding).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from policies.learned.encoder import SceneContext
+from policies.learned.windows import AGENT_KEYS, PAIR_KEYS
+
+
+@dataclass(frozen=True)
+class EncodedView:
+    """One cycle's observation of the scene (:meth:`PlanBufferPolicy._encode_view`).
+
+    Attributes:
+        window: the window dict (``docs/WINDOWS.md``; ego frame, ego in slot 0).
+        slots: (A_w,) env slot of each window row.
+        batch: the collated window (batch of one) on the policy's device.
+        scene: the encoder's :class:`SceneContext` of ``batch`` (no gradients).
+        frame: (3,) world pose of the scene frame: the ego's (x [m], y [m], psi [rad]).
+        clock: ``time.perf_counter()`` after the encoder (start of the next phase).
+    """
+
+    window: dict[str, np.ndarray]
+    slots: np.ndarray
+    batch: dict[str, torch.Tensor]
+    scene: SceneContext
+    frame: np.ndarray
+    clock: float
+
+    def frame_tensor(self) -> torch.Tensor:
+        """``frame`` as a tensor of the context's dtype and device (for ``L_map``)."""
+        state = self.scene.state
+        return torch.as_tensor(self.frame, dtype=state.dtype, device=state.device)
+
+
+@dataclass(frozen=True)
+class EncodedViews:
+    """One planning call's observation of B scenes (:meth:`PlanBufferPolicy._encode_views`).
+
+    Attributes:
+        windows: the B window dicts (``docs/WINDOWS.md``; ego frame, ego in slot 0).
+        slots: B arrays (A_b,): env slot of each window row of each scene.
+        batch: the collated windows (agents padded to A = max A_b) on the policy's device.
+        scene: the encoder's :class:`SceneContext` of ``batch`` (no gradients), (B, A, ...).
+        frames: (B, 3) world pose of each scene frame: its ego's (x [m], y [m], psi [rad]).
+        clock: ``time.perf_counter()`` after the encoder (start of the next phase).
+    """
+
+    windows: list[dict[str, np.ndarray]]
+    slots: list[np.ndarray]
+    batch: dict[str, torch.Tensor]
+    scene: SceneContext
+    frames: np.ndarray
+    clock: float
+
+    @property
+    def counts(self) -> list[int]:
+        """Agents A_b of each scene's window."""
+        return [len(slots) for slots in self.slots]
+
+    def frame_tensor(self) -> torch.Tensor:
+        """(B, 3) ``frames`` as a tensor of the context's dtype and device (for ``L_map``)."""
+        state = self.scene.state
+        return torch.as_tensor(self.frames, dtype=state.dtype, device=state.device)
+
+    def view(self, index: int) -> EncodedView:
+        """Scene ``index`` alone (its own A_b agents: no padding), as one-scene planning
+        sees it."""
+        count, pick = self.counts[index], slice(index, index + 1)
+        batch = {}
+        for key, value in self.batch.items():
+            axes = 2 if key in PAIR_KEYS else 1 if key in AGENT_KEYS else 0
+            batch[key] = value[(pick,) + (slice(0, count),) * axes]
+        scene = self.scene
+        agents, pairs = (pick, slice(0, count)), (pick, slice(0, count), slice(0, count))
+        context = SceneContext(
+            context=scene.context[agents],
+            edges=scene.edges[pairs],
+            social_mask=scene.social_mask[pairs],
+            agent_mask=scene.agent_mask[agents],
+            state=scene.state[agents],
+        )
+        window, slots = self.windows[index], self.slots[index]
+        return EncodedView(window, slots, batch, context, self.frames[index], self.clock)
+
+
+__all__ = ["EncodedView", "EncodedViews"]

@@ -1,0 +1,28 @@
+"""benchmarks/adversarial_throughput.py end to end at its smallest size."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "adversarial_throughput.py"
+
+
+def _module():
+    spec = importlib.util.spec_from_file_location("adversarial_throughput", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its Options dataclass looks its module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_prints_a_row_per_scene_count(capsys):
+    bench = _module()
+    argv = ["--scenes", "1", "2", "--rounds", "1", "--calls", "1", "--guidance-steps", "2"]
+    rows = bench.main(argv)
+    assert [row["scenes"] for row in rows] == [1, 2]
+    assert all(row["batched"] > 0 and row["loop"] > 0 for row in rows)
+    assert {"window", "encoder", "generator", "ranking", "guidance"} <= set(rows[1]["phases"])
+    out = capsys.readouterr().out
+    assert "batched scenes/s" in out and "ratio" in out

@@ -1,0 +1,203 @@
+"""Batched planning: B scenes in one call give each scene the plans it gets alone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import riskflow_env
+from policies.baselines.diffusion.policy import DiffusionAdversary
+from policies.baselines.strive import StriveAdversary
+from policies.learned.batched_adversary import BatchedAdversary
+from policies.learned.plan_buffer import plan_scenes
+from policies.riskflow.policy import RiskFlowAdversary
+from riskflow_env.config import EnvConfig
+from riskflow_env.maps import Lane, from_lanes
+from riskflow_env.scenarios import Scenario
+
+CONFIG = EnvConfig(
+    max_agents=9, episode_steps=30, terminate_on_collision="none", terminate_on_offroad="none"
+)
+# Three scenes with their own maps, agent counts and headings: (road centreline end points,
+# road width [m], starts (x, y) along the road frame, speed [m/s]).
+SCENES = [
+    (((-150.0, 0.0), (500.0, 0.0)), 12.0, [(0, 0), (18, 3.5), (-12, -3.5), (9, 0.5)], 12.0),
+    (((-100.0, -80.0), (400.0, 220.0)), 8.0, [(0, 0), (14, 2.5), (-9, -2.5), (25, 0), (6, -3)],
+     9.0),
+    (((-200.0, 40.0), (300.0, 40.0)), 10.0, [(0, 0), (10, 0.2), (-15, 3), (22, -3), (35, 3),
+                                            (-30, -3), (5, 4.2)], 14.0),
+]  # fmt: skip
+
+
+def make_scenario(index: int) -> Scenario:
+    (start, end), width, starts, speed = SCENES[index]
+    start, end = np.array(start), np.array(end)
+    road = from_lanes([Lane(np.stack([start, end]), width, f"road{index}")])
+    heading = np.arctan2(*(end - start)[::-1])
+    along = (end - start) / np.linalg.norm(end - start)
+    left = np.array([-along[1], along[0]])
+    steps = 31 + 60
+    time = 0.1 * (np.arange(steps) - 30)
+    states = np.zeros((len(starts), steps, 4))
+    for row, (s, d) in enumerate(starts):
+        centre = start + 150.0 * along + s * along + d * left
+        states[row, :, :2] = centre + (speed * time)[:, None] * along
+        states[row, :, 2], states[row, :, 3] = speed, heading
+    valid = np.ones(states.shape[:2], dtype=bool)
+    num = len(starts)
+    return Scenario(road, states, valid, np.full(num, 4.5), np.full(num, 2.0), name=f"s{index}")
+
+
+def make_env(index: int):
+    scenario = make_scenario(index)
+    env = riskflow_env.parallel_env(config=CONFIG, scenarios=scenario)
+    env.reset(seed=0, options={"scenario": scenario})
+    return env
+
+
+def riskflow(model, normalizer, **kwargs) -> RiskFlowAdversary:
+    options = {"k": 2, "guidance_steps": 6, "planning_interval": 0.3, "seed": 4, **kwargs}
+    return RiskFlowAdversary(generator=model, normalizer=normalizer, **options)
+
+
+def step(env, actions) -> None:
+    if env.agents:
+        env.step({**actions, "ego": np.array([0.3, 0.02])} if "ego" in env.agents else actions)
+
+
+def close(a: np.ndarray, b: np.ndarray) -> None:
+    np.testing.assert_allclose(a, b, rtol=0, atol=2e-4, equal_nan=True)
+
+
+def test_batched_plans_equal_planning_each_scene_alone(tiny_meanflow, tiny_normalizer):
+    """Three scenes (own maps, 4, 5 and 7 agents: padded), scene 1 restarting at step 4
+    (then re-planning on its own schedule): the batch plans what three one-scene policies
+    with the same seeds plan, on the same views; the noise is the same bit for bit."""
+    seeds = [4, 11, 7]
+    batch = BatchedAdversary(riskflow(tiny_meanflow, tiny_normalizer), 3, seeds=seeds)
+    alone = [riskflow(tiny_meanflow, tiny_normalizer, seed=seed) for seed in seeds]
+    envs = [make_env(index) for index in range(3)]
+    batch.reset([env.view() for env in envs])
+    for policy, env in zip(alone, envs, strict=True):
+        policy.reset(env.view())
+    planned, guided = [], 0
+    for t in range(9):
+        if t == 4:  # a new episode in scene 1 only
+            scenario = make_scenario(1)
+            envs[1].reset(seed=0, options={"scenario": scenario})
+            batch.reset_scene(1, envs[1].view())
+            alone[1].reset(envs[1].view())
+        views = [env.view() for env in envs]
+        expected = [policy.act(view) for policy, view in zip(alone, views, strict=True)]
+        got = batch.act(views)
+        planned.append(batch.last_planned)
+        for b in range(3):
+            assert got[b].keys() == expected[b].keys()
+            for name in expected[b]:
+                close(got[b][name], expected[b][name])
+            mine, theirs = batch.scenes[b], alone[b]
+            assert mine.cycles == theirs.cycles
+            assert torch.equal(mine.noise, theirs.noise)
+            np.testing.assert_array_equal(mine.controllable, theirs.controllable)
+            close(mine.plans, theirs.plans)
+            close(mine.base_plans, theirs.base_plans)
+            close(mine.guidance_losses, theirs.guidance_losses)
+            guided += int(mine.controllable.sum())
+        for env, actions in zip(envs, expected, strict=True):
+            step(env, actions)
+    assert planned == [(0, 1, 2), (), (), (0, 1, 2), (1,), (), (0, 2), (1,), ()]
+    assert guided > 0
+
+
+def test_same_seeds_same_batched_rollout_bit_for_bit(tiny_meanflow, tiny_normalizer):
+    def rollout():
+        batch = BatchedAdversary(riskflow(tiny_meanflow, tiny_normalizer), 3)
+        envs = [make_env(index) for index in range(3)]
+        batch.reset([env.view() for env in envs])
+        out = []
+        for _ in range(4):
+            actions = batch.act([env.view() for env in envs])
+            out.append([np.stack(list(a.values())) for a in actions])
+            for env, action in zip(envs, actions, strict=True):
+                step(env, action)
+        return out
+
+    first, second = rollout(), rollout()
+    for a, b in zip(first, second, strict=True):
+        for x, y in zip(a, b, strict=True):
+            np.testing.assert_array_equal(x, y)
+
+
+def test_a_scene_noise_does_not_depend_on_the_batch(tiny_meanflow, tiny_normalizer):
+    """Scene seeds default to ``policy.seed + b``; a scene's noise is its own stream's."""
+    envs = [make_env(index) for index in range(3)]
+    views = [env.view() for env in envs]
+    batch = BatchedAdversary(riskflow(tiny_meanflow, tiny_normalizer, seed=4), 3)
+    batch.reset(views)
+    batch.plan(views)
+    single = BatchedAdversary(riskflow(tiny_meanflow, tiny_normalizer, seed=6), 1)
+    single.reset(views[2:])
+    single.plan(views[2:])
+    assert torch.equal(batch.scenes[2].noise, single.scenes[0].noise)
+    assert batch.scenes[0].timings.keys() == batch.scenes[2].timings.keys()
+
+
+@pytest.mark.parametrize("kind", ["strive", "diffusion"])
+def test_other_adversaries_plan_scene_by_scene_in_one_call(
+    kind, tiny_meanflow, tiny_denoiser, tiny_normalizer
+):
+    """STRIVE-style and the diffusion baselines take the batched call (one scene at a
+    time inside it) and plan what they plan alone."""
+    options = {"k": 1, "planning_interval": 0.3, "seed": 2}
+    if kind == "strive":
+        make = lambda seed: StriveAdversary(  # noqa: E731
+            generator=tiny_meanflow, normalizer=tiny_normalizer, guidance_steps=2,
+            **{**options, "seed": seed},
+        )  # fmt: skip
+    else:
+        make = lambda seed: DiffusionAdversary(  # noqa: E731
+            denoiser=tiny_denoiser, normalizer=tiny_normalizer, sampling_steps=3,
+            **{**options, "seed": seed},
+        )  # fmt: skip
+    envs = [make_env(index) for index in range(2)]
+    views = [env.view() for env in envs]
+    batch = BatchedAdversary(make(2), 2)
+    batch.reset(views)
+    got = batch.act(views)
+    for b, view in enumerate(views):
+        alone = make(2 + b)
+        alone.reset(view)
+        expected = alone.act(view)
+        for name in expected:
+            close(got[b][name], expected[name])
+
+
+def test_bad_input_names_the_argument(tiny_meanflow, tiny_normalizer):
+    policy = riskflow(tiny_meanflow, tiny_normalizer)
+    envs = [make_env(index) for index in range(2)]
+    views = [env.view() for env in envs]
+    with pytest.raises(ValueError, match="num_scenes"):
+        BatchedAdversary(policy, 0)
+    with pytest.raises(ValueError, match="seeds"):
+        BatchedAdversary(policy, 2, seeds=[1])
+    with pytest.raises(TypeError, match="policy"):
+        BatchedAdversary(object(), 2)
+    batch = BatchedAdversary(policy, 2)
+    with pytest.raises(ValueError, match="views"):
+        batch.reset(views[:1])
+    with pytest.raises(RuntimeError, match="reset"):
+        batch.act(views)
+    batch.reset(views)
+    with pytest.raises(ValueError, match="scenes"):
+        batch.plan(views, [0, 0])
+    with pytest.raises(ValueError, match="scenes"):
+        batch.plan(views, [2])
+    with pytest.raises(ValueError, match="index"):
+        batch.reset_scene(5, views[0])
+    other = riskflow(tiny_meanflow, tiny_normalizer)
+    other.reset(views[1])
+    with pytest.raises(ValueError, match="copies of one policy"):
+        plan_scenes([batch.scenes[0], other], views)
+    with pytest.raises(ValueError, match="equal length"):
+        plan_scenes(batch.scenes, views[:1])
