@@ -2,19 +2,11 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "adversarial_throughput.py"
+from tests.benchmarks.scripts import load_benchmark
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("adversarial_throughput", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its Options dataclass looks its module up
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("adversarial_throughput")
 
 
 def test_prints_a_row_per_scene_count(capsys):

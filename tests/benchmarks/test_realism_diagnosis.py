@@ -2,22 +2,14 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "realism_diagnosis.py"
+from tests.benchmarks.scripts import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def diagnosis():
-    spec = importlib.util.spec_from_file_location("realism_diagnosis", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its Options dataclass looks its module up
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("realism_diagnosis")
 
 
 def test_one_scene_gives_every_table(diagnosis, capsys):

@@ -2,22 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "traffic_realism.py"
+from tests.benchmarks.scripts import load_benchmark
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("traffic_realism", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its Options dataclass looks its module up
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("traffic_realism")
 
 
 def test_one_scene_rows_with_every_column(tmp_path, capsys):
