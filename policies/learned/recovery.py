@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from riskflow_env.dynamics import SPEED, YAW, wrap_angle
+from riskflow_env.geometry import from_frame
 
 
 @dataclass(frozen=True)
@@ -147,8 +148,7 @@ def perturb_tracks(
     def turned(bend: np.ndarray) -> np.ndarray:
         """The logged steps, each rotated by the heading change at its start."""
         cos, sin = np.cos(bend[:, :-1]), np.sin(bend[:, :-1])
-        x, y = steps[..., 0], steps[..., 1]
-        return np.stack([cos * x - sin * y, sin * x + cos * y], axis=-1)
+        return np.stack(from_frame(steps[..., 0], steps[..., 1], cos, sin), axis=-1)
 
     # On a curve, or with a changing speed, the main bump alone leaves up to a metre of
     # drift after it: Gauss-Newton steps on the two correction amounts (damped, as on a
