@@ -6,6 +6,9 @@
         --out data/train --seed 0 --workers 8 --split train
     riskflow-data info data/train
 
+``--stop-share P`` makes each recorded vehicle stop once in its lane with probability P
+(queues behind it, lane changes around it; :class:`~riskflow_env.scenarios.recording.DriverConfig`).
+
 ``generate`` writes scene ``i`` of family ``families[i % len(families)]`` to
 ``OUT/<i:05d>-<family>.npz`` (maps once each under ``OUT/maps/``), seeded by
 ``np.random.SeedSequence(seed, spawn_key=(split_key, i))``: the files depend on the
@@ -40,6 +43,7 @@ from riskflow_env.processes import exit_with_parent
 from riskflow_env.scenarios._npz import check_npz_sizes
 from riskflow_env.scenarios.io import list_scenarios, save_scenario
 from riskflow_env.scenarios.naturalistic import SOURCE, SceneConfig, generate_scenario
+from riskflow_env.scenarios.recording import DriverConfig
 
 SPLIT_KEYS = {"train": 0, "eval": 1}  # spawn keys: train and eval scenes never share seeds
 MANIFEST = "riskflow-data.json"
@@ -63,12 +67,16 @@ class GenerateOptions:
     """worker processes (results do not depend on it)"""
     future_steps: int = 100
     """reference future per scene [steps of 0.1 s]"""
+    stop_share: float = 0.0
+    """probability per recorded vehicle that it stops once in its lane (DriverConfig)"""
 
     def __post_init__(self) -> None:
         for name, minimum in (("scenes", 0), ("seed", 0), ("workers", 1), ("future_steps", 1)):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
                 raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}")
+        if not isinstance(self.stop_share, float | int) or not 0.0 <= self.stop_share <= 1.0:
+            raise ValueError(f"stop_share must be a number in [0, 1], got {self.stop_share!r}")
         if self.split not in SPLIT_KEYS:
             raise ValueError(f"split must be one of {tuple(SPLIT_KEYS)}, got {self.split!r}")
         unknown = [family for family in self.families if family not in FAMILIES]
@@ -76,14 +84,18 @@ class GenerateOptions:
             raise ValueError(f"families must be a non-empty subset of {FAMILIES}, got {unknown}")
 
     def settings(self) -> dict:
-        """What the files depend on (recorded in the manifest)."""
-        return {
+        """What the files depend on (recorded in the manifest; ``stop_share`` only when
+        not 0, so banks made before it existed still resume)."""
+        settings = {
             "source": SOURCE,
             "families": list(self.families),
             "seed": self.seed,
             "split": self.split,
             "future_steps": self.future_steps,
         }
+        if self.stop_share:
+            settings["stop_share"] = self.stop_share
+        return settings
 
 
 def scene_path(out: Path, index: int, family: str) -> Path:
@@ -95,7 +107,8 @@ def make_scene(options: GenerateOptions, index: int) -> Path:
     """Generate and write scene ``index`` (what each worker runs)."""
     family = options.families[index % len(options.families)]
     seed = np.random.SeedSequence(options.seed, spawn_key=(SPLIT_KEYS[options.split], index))
-    config = SceneConfig(future_steps=options.future_steps)
+    driver = DriverConfig(stop_share=float(options.stop_share))
+    config = SceneConfig(future_steps=options.future_steps, driver=driver)
     name = f"{family}-{options.split}-s{options.seed}-{index:05d}"
     scene = generate_scenario(family, np.random.default_rng(seed), config, name=name)
     path = scene_path(options.out, index, family)
@@ -207,6 +220,17 @@ def int_at_least(minimum: int) -> Callable[[str], int]:
     return parse
 
 
+def share(text: str) -> float:
+    """An argparse ``type``: a number in [0, 1], else a usage error naming the option."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``riskflow-data`` parser (subcommands ``generate`` and ``info``)."""
     formatter = argparse.ArgumentDefaultsHelpFormatter
@@ -230,6 +254,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="worker processes (results do not depend on it)")  # fmt: skip
     gen.add_argument("--future-steps", type=int_at_least(1), default=100,
                      help="reference future per scene [steps of 0.1 s]")  # fmt: skip
+    gen.add_argument("--stop-share", type=share, default=0.0,
+                     help="probability per vehicle that it stops once in its lane (a "
+                     "breakdown, a drop-off): queues, vehicles passing standing ones")  # fmt: skip
     show = commands.add_parser(
         "info", help="count the scenes of a bank per family", formatter_class=formatter
     )
@@ -256,6 +283,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         split=args.split,
         workers=args.workers,
         future_steps=args.future_steps,
+        stop_share=args.stop_share,
     )
     generate(options)
     return 0

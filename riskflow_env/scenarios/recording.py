@@ -46,6 +46,7 @@ BOUNDARY_NODES = {"intersection": ("o0", "o1", "o2", "o3")}  # besides the netwo
 CLEARANCE_WIDTH = 0.4  # [m] extra width of the boxes that must not overlap at placement
 TRUCK_FAMILIES = ("highway", "merge", "exit")  # trucks do not fit the tight curves of others
 REGULATED_FAMILIES = ("intersection", "roundabout")  # right of way at crossings / entries
+STANDING_SPEED = 0.05  # [m/s] a stopping vehicle at or below this counts as standing
 
 
 @dataclass(frozen=True)
@@ -69,6 +70,12 @@ class DriverConfig:
         truck_length, truck_width: truck sizes [m].
         truck_speed_factor: trucks' desired speed is scaled by this.
         default_speed_limit: speed limit of lanes that carry none [m/s].
+        stop_share: probability per vehicle that it makes one stop in its lane (a
+            breakdown, a drop-off, the head of a queue): it brakes to a standstill and
+            waits, so the vehicles behind queue up or change lanes around it. 0 (the
+            default) draws nothing, so banks made without stops keep their exact bits.
+        stop_start: when the stop begins, after the vehicle appears [s].
+        stop_duration: how long it stands, braking time not included [s].
     """
 
     extra_headway: tuple[float, float] = (0.2, 2.0)
@@ -88,6 +95,17 @@ class DriverConfig:
     truck_width: tuple[float, float] = (2.3, 2.6)
     truck_speed_factor: float = 0.85
     default_speed_limit: float = 20.0
+    stop_share: float = 0.0
+    stop_start: tuple[float, float] = (0.0, 25.0)
+    stop_duration: tuple[float, float] = (3.0, 20.0)
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.stop_share <= 1.0:
+            raise ValueError(f"DriverConfig.stop_share must be in [0, 1], got {self.stop_share}")
+        for name in ("stop_start", "stop_duration"):
+            low, high = getattr(self, name)
+            if not 0.0 <= low <= high:
+                raise ValueError(f"DriverConfig.{name}: need 0 <= min <= max [s], got {low, high}")
 
 
 @dataclass(frozen=True)
@@ -231,6 +249,11 @@ class _Traffic:
         vehicle.desired_speed = desired
         vehicle.is_yielding = False
         vehicle.row = -1
+        vehicle.halting = False
+        vehicle.stop_at, vehicle.stand_left = 0, 0  # its stop: first step, steps at rest
+        if cfg.stop_share > 0.0 and rng.random() < cfg.stop_share:
+            vehicle.stop_at = self.stepper.steps + round(rng.uniform(*cfg.stop_start) / DT)
+            vehicle.stand_left = max(1, round(rng.uniform(*cfg.stop_duration) / DT))
         return vehicle
 
     def gap(self, vehicle) -> float:
@@ -283,8 +306,14 @@ class _Traffic:
                 self.road.vehicles.append(vehicle)
 
     def step(self) -> None:
-        """Entries, one 0.1 s road step, then exits and removals."""
+        """Entries, stops, one 0.1 s road step, then exits and removals."""
         self.spawn()
+        if self.cfg.stop_share > 0.0:
+            now = self.stepper.steps
+            for vehicle in self.road.vehicles:  # highway-env's vehicles are objects
+                vehicle.halting = vehicle.stand_left > 0 and now >= vehicle.stop_at
+                if vehicle.halting and vehicle.speed <= STANDING_SPEED:
+                    vehicle.stand_left -= 1
         self.stepper.step()
         self.remove_leaving()
 

@@ -25,6 +25,8 @@ REGULATION_PERIOD = 5  # [steps] right-of-way checks every 0.5 s (highway-env: 2
 CONFLICT_HORIZON = 3.0  # [s] highway-env's RegulatedRoad prediction horizon
 MAX_YAW_RATE = 1.0  # [rad/s] steering is capped so the yaw rate stays within (env default)
 CONFLICT_MARGIN = 20.0  # [m] added to the reach of the conflict broad phase (extents)
+STOP_EASE_SPEED = 2.0  # [m/s] a halting vehicle below this brakes less, in proportion
+STOP_MIN_SPEED = 0.1  # [m/s] floor of that speed, so a halting vehicle does come to rest
 
 
 class RoadStepper:
@@ -266,7 +268,11 @@ def traffic_vehicle_class() -> type:
     * a stopped vehicle may still change lanes (highway-env's MOBIL skips vehicles below
       1 m/s, so a queue at a lane end, e.g. the merge lane's, would wait forever); MOBIL
       then evaluates it as if moving at 1 m/s;
-    * its lane can be updated by :class:`RoadStepper` for all vehicles at once.
+    * its lane can be updated by :class:`RoadStepper` for all vehicles at once;
+    * while its ``halting`` flag is set (a stop drawn by the recorder), it brakes to a
+      standstill at its comfortable deceleration, in proportion to its speed below
+      ``STOP_EASE_SPEED`` (no jerk spike at rest), and stays there; IDM's own braking
+      applies when it asks for more.
 
     Built on first use: importing highway-env (and pygame) takes most of a second.
     """
@@ -291,6 +297,15 @@ def traffic_vehicle_class() -> type:
             sin_beta = min(1.0, MAX_YAW_RATE * self.LENGTH / 2 / max(self.speed, 1e-3))
             limit = float(np.arctan(2 * np.tan(np.arcsin(sin_beta))))
             return float(np.clip(steering, -limit, limit))
+
+        def acceleration(self, ego_vehicle, front_vehicle=None, rear_vehicle=None) -> float:
+            acceleration = super().acceleration(ego_vehicle, front_vehicle, rear_vehicle)
+            if not getattr(ego_vehicle, "halting", False):
+                return acceleration
+            speed = max(float(ego_vehicle.speed), 0.0)
+            comfort = -float(ego_vehicle.COMFORT_ACC_MIN)
+            braking = comfort * min(1.0, max(speed, STOP_MIN_SPEED) / STOP_EASE_SPEED)
+            return min(acceleration, -braking)
 
         def on_state_update(self) -> None:
             if not getattr(self.road, "lane_updates_deferred", False):

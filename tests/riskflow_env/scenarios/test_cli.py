@@ -87,6 +87,12 @@ def test_command_line(tmp_path, capsys):
         main(["generate", "--families", "nowhere", "--out", str(out)])
 
 
+def test_stop_share_is_recorded_only_when_used(tmp_path):
+    """Banks made before ``--stop-share`` existed keep resuming: the key is absent at 0."""
+    assert "stop_share" not in _tiny(tmp_path / "a").settings()
+    assert _tiny(tmp_path / "b", stop_share=0.2).settings()["stop_share"] == 0.2
+
+
 @pytest.mark.reliability
 @pytest.mark.parametrize(
     ("args", "message"),
@@ -95,6 +101,7 @@ def test_command_line(tmp_path, capsys):
         (["--scenes", "-3"], "argument --scenes: expected an int >= 0, got '-3'"),
         (["--workers", "0"], "argument --workers: expected an int >= 1, got '0'"),
         (["--future-steps", "x"], "argument --future-steps: expected an int >= 1, got 'x'"),
+        (["--stop-share", "1.5"], "argument --stop-share: expected a number in [0, 1], got '1.5'"),
     ],
 )
 def test_bad_numbers_are_usage_errors_before_anything_is_written(args, message, tmp_path, capsys):
@@ -127,6 +134,7 @@ def test_out_that_is_a_file_is_a_usage_error(tmp_path, capsys):
         ({"workers": 0}, "workers must be an int >= 1"),
         ({"split": "test"}, "split must be one of"),
         ({"families": ("moon",)}, "families must be a non-empty subset"),
+        ({"stop_share": -0.1}, "stop_share must be a number in"),
     ],
 )
 def test_generate_options_are_validated(changes, message, tmp_path):

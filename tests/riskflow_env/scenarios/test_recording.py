@@ -84,6 +84,43 @@ def test_recorded_tracks_reproduce_themselves_through_the_unicycle(family):
     np.testing.assert_allclose(rolled[..., :2], states[:, 1:, :2], atol=1e-6)
 
 
+def test_stopping_vehicles_stand_for_their_drawn_time():
+    """``stop_share``: vehicles stop once in their lane and stand for the drawn time
+    (braking not counted); without stops no highway vehicle stands."""
+    driver = DriverConfig(stop_share=1.0, stop_start=(1.0, 2.0), stop_duration=(4.0, 4.0))
+    recording = record_traffic("highway", np.random.default_rng(0), 160, 5, driver)
+    speed, valid = recording.states[..., 2], recording.valid
+    standing = ((speed < 0.05) & valid).sum(axis=1)
+    assert (standing >= 35).sum() >= 10
+    plain = record_traffic("highway", np.random.default_rng(0), 160, 5)
+    assert ((plain.states[..., 2] < 0.05) & plain.valid).sum() == 0
+
+
+def test_a_halting_vehicle_brakes_at_its_comfortable_rate_easing_near_rest():
+    import gymnasium
+    import highway_env  # noqa: F401
+
+    from riskflow_env.scenarios.road_stepper import STOP_EASE_SPEED, traffic_vehicle_class
+
+    road = gymnasium.make("highway-v0").unwrapped.road
+    vehicle = traffic_vehicle_class()(road, [0.0, 0.0], 0.0, 20.0, target_speed=20.0)
+    vehicle.COMFORT_ACC_MIN = -3.0
+    assert vehicle.acceleration(vehicle) == pytest.approx(0.0, abs=1e-9)  # cruising
+    vehicle.halting = True
+    assert vehicle.acceleration(vehicle) == pytest.approx(-3.0)
+    vehicle.speed = STOP_EASE_SPEED / 2
+    assert vehicle.acceleration(vehicle) == pytest.approx(-1.5)
+    vehicle.speed = 0.0
+    assert -0.2 < vehicle.acceleration(vehicle) < 0.0
+
+
+def test_driver_config_is_validated():
+    with pytest.raises(ValueError, match="stop_share must be in"):
+        DriverConfig(stop_share=1.5)
+    with pytest.raises(ValueError, match="stop_duration"):
+        DriverConfig(stop_duration=(5.0, 1.0))
+
+
 def test_same_generator_state_same_recording():
     a = record_traffic("u-turn", np.random.default_rng(1), steps=30, warmup_steps=5)
     b = record_traffic("u-turn", np.random.default_rng(1), steps=30, warmup_steps=5)
