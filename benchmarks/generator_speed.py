@@ -107,7 +107,7 @@ def training_steps(model: RiskFlowGenerator, options: Options) -> tuple[float, f
         t, r = TimeSampler(flow_matching=flow_matching)(
             scenes, generator=gen, device=options.device
         )
-        eps = torch.randn(batch["actions"].shape, generator=gen, device=options.device)
+        eps = torch.randn(batch.actions.shape, generator=gen, device=options.device)
         if flow_matching:
             loss, _ = flow_matching_loss(model, batch, NORMALIZER, eps, t)
         else:

@@ -32,12 +32,12 @@ from tqdm import tqdm
 import riskflow_env
 from policies.dataclass_cli import parse_dataclass
 from policies.learned.config import ModelConfig
-from policies.learned.data import ActionNormalizer, collate_windows
-from policies.learned.encoder import ENCODER_KEYS
+from policies.learned.data import ActionNormalizer
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.guidance_losses import adversarial_loss
 from policies.learned.ranking import rank_window
 from policies.learned.sampler import sample
+from policies.learned.window_types import collate_windows
 from policies.learned.windows import window_from_view
 from policies.riskflow.policy import PHASES, RiskFlowAdversary
 from riskflow_env.config import EnvConfig
@@ -92,7 +92,7 @@ def scene_view(agents: int):
         if scenario.valid[:, scenario.current_index].sum() < agents:
             continue
         env.reset(seed=0, options={"scenario": scenario})
-        if window_from_view(env.view())["agent_mask"].sum() == agents:
+        if window_from_view(env.view()).agent_mask.sum() == agents:
             return env.view(), scenario.name
     raise SystemExit(f"no shipped evaluation scene has {agents} vehicles within the window")
 
@@ -100,8 +100,7 @@ def scene_view(agents: int):
 def resampling_cycle(policy: RiskFlowAdversary, view, samples: int) -> None:
     """Peer: window, encoder, ``samples`` plans in one pass, ranking, pick by ``L_adv``."""
     window = window_from_view(view, policy.window_config)
-    batch = collate_windows([{key: window[key] for key in ENCODER_KEYS}])
-    batch = {key: value.to(policy.device) for key, value in batch.items()}
+    batch = collate_windows([window]).to(policy.device)
     generator = torch.Generator(device=policy.device).manual_seed(0)
     with torch.no_grad():
         scene = policy.model.encode(batch)

@@ -1,7 +1,8 @@
 """What every learned adversary shares (RiskFlow, STRIVE-style, the diffusion baselines).
 
-* model input: :mod:`~policies.learned.windows` (a scene as the model sees it,
-  docs/WINDOWS.md), :mod:`~policies.learned.data`, :mod:`~policies.learned.batches`,
+* model input: :mod:`~policies.learned.window_types` (``Window``, ``WindowBatch``:
+  a scene as the model sees it, docs/WINDOWS.md), :mod:`~policies.learned.windows`
+  (building them), :mod:`~policies.learned.data`, :mod:`~policies.learned.batches`,
   :mod:`~policies.learned.data_cache`, :mod:`~policies.learned.synthetic`;
 * the network: :mod:`~policies.learned.config`, :mod:`~policies.learned.encoder`
   (with :mod:`~policies.learned.map_encoder`, :mod:`~policies.learned.attention`,

@@ -19,9 +19,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from policies.learned.data import WindowDataset, collate_windows
+from policies.learned.data import WindowDataset
 from policies.learned.data_cache import derived_dir
 from policies.learned.recovery import RecoveryConfig
+from policies.learned.window_types import WindowBatch, collate_windows
 from riskflow_env.scenarios.folders import scene_files
 from riskflow_env.scenarios.io import load_scenario
 from riskflow_env.scenarios.scenario import Scenario
@@ -115,9 +116,6 @@ def batch_order(
     return batches[torch.randperm(len(batches), generator=gen).numpy()]
 
 
-def collated(
-    dataset: WindowDataset, indices: Sequence[int], device: str
-) -> dict[str, torch.Tensor]:
+def collated(dataset: WindowDataset, indices: Sequence[int], device: str) -> WindowBatch:
     """``collate_windows`` of ``dataset[indices]``, on ``device``."""
-    items = [dataset[int(i)] for i in indices]
-    return {k: v.to(device) for k, v in collate_windows(items).items()}
+    return collate_windows([dataset[int(i)] for i in indices]).to(device)

@@ -24,28 +24,22 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
-import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
 from policies.learned.data_cache import derived_dir
 from policies.learned.parked import add_parked
 from policies.learned.recovery import RecoveryConfig, perturb_tracks
-from policies.learned.windows import (
-    AGENT_KEYS,
-    PAD_INDEX,
-    PAIR_KEYS,
-    WindowConfig,
-    select_rows,
-    window_from_scenario,
-)
+from policies.learned.window_types import AGENT_FIELDS, PAIR_FIELDS, Window
+from policies.learned.windows import WindowConfig, select_rows, window_from_scenario
 from riskflow_env._array import Array, asarray_like
 from riskflow_env.dynamics import ACTION_DIM
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
 STATS_FILENAME = "norm_stats.json"
-WINDOW_KEYS = AGENT_KEYS + PAIR_KEYS
+# The packed arrays (and the cache file) are keyed by the Window field names; the layout
+# is unchanged since version 1, so caches written before Window existed stay valid.
 _CACHE_VERSION = 1
 
 
@@ -87,12 +81,15 @@ def _scenes(
     return parts, iter(scenes)
 
 
-def _pack(windows: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
-    """Windows end to end: agent keys along A, pair keys flattened to (A * A, ...)."""
-    counts = np.array([w["history"].shape[0] for w in windows], dtype=np.int64)
-    packed = {key: np.concatenate([w[key] for w in windows]) for key in AGENT_KEYS}
-    for key in PAIR_KEYS:
-        packed[key] = np.concatenate([w[key].reshape(-1, *w[key].shape[2:]) for w in windows])
+def _pack(windows: list[Window]) -> dict[str, np.ndarray]:
+    """Windows end to end, keyed by field name: agent fields along A, pair fields
+    flattened to (A * A, ...); ``agent_offsets`` / ``pair_offsets`` (W + 1,) mark where
+    each window starts."""
+    counts = np.array([w.num_agents for w in windows], dtype=np.int64)
+    packed = {name: np.concatenate([getattr(w, name) for w in windows]) for name in AGENT_FIELDS}
+    for name in PAIR_FIELDS:
+        arrays = [getattr(w, name) for w in windows]
+        packed[name] = np.concatenate([a.reshape(-1, *a.shape[2:]) for a in arrays])
     packed["agent_offsets"] = np.concatenate([[0], np.cumsum(counts)])
     packed["pair_offsets"] = np.concatenate([[0], np.cumsum(counts**2)])
     return packed
@@ -115,9 +112,10 @@ class WindowDataset(Dataset):
             parked cars: :mod:`policies.learned.parked`); copy ``k`` of
             the window of scene ``s`` at step ``c`` draws from ``(seed, s, c, k)``.
 
-    Items are dicts of torch tensors keyed as in docs/WINDOWS.md (future keys included,
-    plus ``agent_index``), A varying per item; they share memory with the dataset, so do
-    not modify them in place. ``index[i] = (scene position, current step)`` of item i.
+    Items are :class:`~policies.learned.window_types.Window` objects with the future
+    fields, A varying per item (:func:`~policies.learned.window_types.collate_windows`
+    batches them); their arrays are views into the dataset's, so do not modify them in
+    place. ``index[i] = (scene position, current step)`` of item i.
     """
 
     def __init__(
@@ -171,7 +169,7 @@ class WindowDataset(Dataset):
 
     def _recovery_window(
         self, scenario: Scenario, position: int, current: int, copy: int
-    ) -> dict[str, np.ndarray]:
+    ) -> Window:
         recovery = self.recovery
         assert recovery is not None
         rng = np.random.default_rng([recovery.seed, position, current, copy])
@@ -187,21 +185,25 @@ class WindowDataset(Dataset):
     def __len__(self) -> int:
         return len(self.index)
 
-    def window(self, item: int) -> dict[str, np.ndarray]:
-        """Window ``item`` as numpy arrays (views into the packed arrays)."""
+    def window(self, item: int) -> Window:
+        """Window ``item`` (numpy views into the packed arrays)."""
         if not -len(self) <= item < len(self):
             raise IndexError(f"window index {item} out of range for {len(self)} windows")
         item %= len(self)
         a0, a1 = self._agent_offsets[item : item + 2]
         p0, p1 = self._pair_offsets[item : item + 2]
-        window = {key: self._arrays[key][a0:a1] for key in AGENT_KEYS}
-        for key in PAIR_KEYS:
-            array = self._arrays[key][p0:p1]
-            window[key] = array.reshape(a1 - a0, a1 - a0, *array.shape[1:])
-        return window
+        fields = {name: self._arrays[name][a0:a1] for name in AGENT_FIELDS}
+        for name in PAIR_FIELDS:
+            array = self._arrays[name][p0:p1]
+            fields[name] = array.reshape(a1 - a0, a1 - a0, *array.shape[1:])
+        return Window(**fields)
 
-    def __getitem__(self, item: int) -> dict[str, torch.Tensor]:
-        return {key: torch.from_numpy(value) for key, value in self.window(item).items()}
+    def __getitem__(self, item: int) -> Window:
+        return self.window(item)
+
+    def agent_counts(self) -> np.ndarray:
+        """(W,) int64 agents ``A`` of each window."""
+        return np.diff(self._agent_offsets)
 
     def valid_actions(self) -> np.ndarray:
         """(M, 2) float32 every valid action of every window (for statistics)."""
@@ -216,41 +218,6 @@ def _load_cache(path: str | os.PathLike, fingerprint: str) -> dict[str, np.ndarr
         if "fingerprint" not in data or str(data["fingerprint"]) != fingerprint:
             return None
         return {key: data[key] for key in data.files if key != "fingerprint"}
-
-
-def collate_windows(items: Sequence[Mapping[str, Array]]) -> dict[str, torch.Tensor]:
-    """Stack windows into a batch, padding the agent axis to the largest A in the batch.
-
-    Padded slots are 0 / False (``agent_index``: -1), so every mask is False there.
-
-    Args:
-        items: windows (dicts of torch tensors or numpy arrays) with the same keys.
-
-    Returns:
-        dict of tensors with a leading batch axis B: agent keys (B, A_max, ...), pair
-        keys (B, A_max, A_max, ...), any other key stacked as is.
-    """
-    if not items:
-        raise ValueError("collate_windows needs at least one window")
-    keys = set(items[0])
-    if any(set(item) != keys for item in items):
-        raise ValueError("collate_windows: all windows must have the same keys")
-    counts = [int(item["agent_mask"].shape[0]) for item in items]
-    size = max(counts)
-    batch = {}
-    for key in items[0]:
-        tensors = [torch.as_tensor(item[key]) for item in items]
-        if key not in WINDOW_KEYS:
-            batch[key] = torch.stack(tensors)
-            continue
-        pad_axes = 2 if key in PAIR_KEYS else 1
-        shape = (len(items),) + (size,) * pad_axes + tuple(tensors[0].shape[pad_axes:])
-        fill = PAD_INDEX if key == "agent_index" else 0
-        out = torch.full(shape, fill, dtype=tensors[0].dtype)
-        for row, (tensor, count) in enumerate(zip(tensors, counts, strict=True)):
-            out[(row,) + (slice(0, count),) * pad_axes] = tensor
-        batch[key] = out
-    return batch
 
 
 class Normalizer(Protocol):
@@ -329,20 +296,20 @@ class ActionNormalizer:
 
 
 def compute_action_stats(
-    dataset: WindowDataset | Sequence[Mapping[str, Array]], min_std: float = 1e-3
+    dataset: WindowDataset | Sequence[Window], min_std: float = 1e-3
 ) -> ActionNormalizer:
     """Per-channel mean and std of the valid actions of ``dataset`` (float64 sums).
 
     Args:
         dataset: a :class:`WindowDataset` (read from its packed arrays) or any sequence of
-            windows with ``actions`` (A, T, 2) and ``actions_valid`` (A, T).
+            windows with the future fields.
         min_std: floor on the std (a channel that never varies, e.g. accel of
             constant-speed traffic, would otherwise divide by ~0) [m/s^2, rad/s].
     """
     if isinstance(dataset, WindowDataset):
         actions = dataset.valid_actions()
     else:
-        chunks = [np.asarray(w["actions"])[np.asarray(w["actions_valid"])] for w in dataset]
+        chunks = [np.asarray(w.actions)[np.asarray(w.actions_valid)] for w in dataset]
         actions = np.concatenate(chunks) if chunks else np.zeros((0, ACTION_DIM))
     if actions.shape[0] == 0:
         raise ValueError("compute_action_stats: the dataset has no valid action")
@@ -352,7 +319,7 @@ def compute_action_stats(
 
 
 def load_or_compute_stats(
-    directory: str | os.PathLike, dataset: WindowDataset | Sequence[Mapping[str, Array]]
+    directory: str | os.PathLike, dataset: WindowDataset | Sequence[Window]
 ) -> ActionNormalizer:
     """``directory/norm_stats.json`` if present, else computed over ``dataset`` and saved.
 
@@ -373,7 +340,6 @@ __all__ = [
     "STATS_FILENAME",
     "ActionNormalizer",
     "WindowDataset",
-    "collate_windows",
     "compute_action_stats",
     "load_or_compute_stats",
     "window_indices",

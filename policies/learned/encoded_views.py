@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from policies.learned.encoder import SceneContext
-from policies.learned.windows import AGENT_KEYS, PAIR_KEYS
+from policies.learned.window_types import Window, WindowBatch
 
 
 @dataclass(frozen=True)
@@ -23,17 +23,18 @@ class EncodedView:
     """One cycle's observation of the scene (:meth:`PlanBufferPolicy._encode_view`).
 
     Attributes:
-        window: the window dict (``docs/WINDOWS.md``; ego frame, ego in slot 0).
+        window: the :class:`Window` (``docs/WINDOWS.md``; ego frame, ego in slot 0; no
+            future fields).
         slots: (A_w,) env slot of each window row.
-        batch: the collated window (batch of one) on the policy's device.
+        batch: the collated window (batch of one, no padding) on the policy's device.
         scene: the encoder's :class:`SceneContext` of ``batch`` (no gradients).
         frame: (3,) world pose of the scene frame: the ego's (x [m], y [m], psi [rad]).
         clock: ``time.perf_counter()`` after the encoder (start of the next phase).
     """
 
-    window: dict[str, np.ndarray]
+    window: Window
     slots: np.ndarray
-    batch: dict[str, torch.Tensor]
+    batch: WindowBatch
     scene: SceneContext
     frame: np.ndarray
     clock: float
@@ -49,7 +50,8 @@ class EncodedViews:
     """One planning call's observation of B scenes (:meth:`PlanBufferPolicy._encode_views`).
 
     Attributes:
-        windows: the B window dicts (``docs/WINDOWS.md``; ego frame, ego in slot 0).
+        windows: the B :class:`Window` objects (``docs/WINDOWS.md``; ego frame, ego in
+            slot 0; no future fields).
         slots: B arrays (A_b,): env slot of each window row of each scene.
         batch: the collated windows (agents padded to A = max A_b) on the policy's device.
         scene: the encoder's :class:`SceneContext` of ``batch`` (no gradients), (B, A, ...).
@@ -57,9 +59,9 @@ class EncodedViews:
         clock: ``time.perf_counter()`` after the encoder (start of the next phase).
     """
 
-    windows: list[dict[str, np.ndarray]]
+    windows: list[Window]
     slots: list[np.ndarray]
-    batch: dict[str, torch.Tensor]
+    batch: WindowBatch
     scene: SceneContext
     frames: np.ndarray
     clock: float
@@ -78,10 +80,7 @@ class EncodedViews:
         """Scene ``index`` alone (its own A_b agents: no padding), as one-scene planning
         sees it."""
         count, pick = self.counts[index], slice(index, index + 1)
-        batch = {}
-        for key, value in self.batch.items():
-            axes = 2 if key in PAIR_KEYS else 1 if key in AGENT_KEYS else 0
-            batch[key] = value[(pick,) + (slice(0, count),) * axes]
+        batch = self.batch.scenes(index, index + 1, count)
         scene = self.scene
         agents, pairs = (pick, slice(0, count)), (pick, slice(0, count), slice(0, count))
         context = SceneContext(

@@ -14,14 +14,13 @@ with ``h_i`` the history embedding at the current token. The encoder does not de
 on the flow variables ``(z, t, r)``, so the MeanFlow objective runs it once, outside
 its JVP (``meanflow.py``).
 
-Input: a batch of training windows (``docs/WINDOWS.md``): dict of tensors with a
-leading batch axis ``B`` and a padded agent axis ``A``.
+Input: a :class:`~policies.learned.window_types.WindowBatch` (``docs/WINDOWS.md``):
+tensors with a leading batch axis ``B`` and a padded agent axis ``A``.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
@@ -32,10 +31,11 @@ from policies.learned.attention import TransformerBlock, edge_bias, social_mask
 from policies.learned.config import HISTORY_FEATURES, ModelConfig
 from policies.learned.embeddings import MLP, masked_mean
 from policies.learned.map_encoder import MapEncoder
+from policies.learned.window_types import WindowBatch
 from riskflow_env.geometry import to_frame
 
-# Keys the encoder reads, with their shapes (B, A: batch and agent axes).
-ENCODER_KEYS = {
+# Fields the encoder reads, with their shapes (B, A: batch and agent axes).
+ENCODER_FIELDS = {
     "history": ("B", "A", "history_steps", 4),
     "history_valid": ("B", "A", "history_steps"),
     "agent_mask": ("B", "A"),
@@ -47,34 +47,28 @@ ENCODER_KEYS = {
 }
 
 
-def check_batch(batch: Mapping[str, Tensor], config: ModelConfig) -> tuple[int, int]:
+def check_batch(batch: WindowBatch, config: ModelConfig) -> tuple[int, int]:
     """Validate the encoder's inputs; return ``(B, A)``.
 
     Raises:
-        KeyError: naming a missing key.
-        ValueError: naming a key whose shape is not the expected one.
+        TypeError: ``batch`` is not a :class:`WindowBatch`.
+        ValueError: naming a field whose shape is not the one ``config`` expects.
     """
-    missing = [key for key in ENCODER_KEYS if key not in batch]
-    if missing:
-        raise KeyError(f"batch lacks key(s) {missing}; see docs/WINDOWS.md")
-    if batch["history"].ndim != 4:
-        raise ValueError(
-            f"batch['history'] must be (B, A, T, 4), got {tuple(batch['history'].shape)}"
-        )
-    sizes = {"B": batch["history"].shape[0], "A": batch["history"].shape[1]}
-    for key, spec in ENCODER_KEYS.items():
+    if not isinstance(batch, WindowBatch):
+        raise TypeError(f"the encoder takes a WindowBatch (docs/WINDOWS.md), got {type(batch)}")
+    sizes = {"B": batch.batch_size, "A": batch.num_agents}
+    for name, spec in ENCODER_FIELDS.items():
         expected = tuple(
             sizes[d] if d in sizes else getattr(config, d) if isinstance(d, str) else d
             for d in spec
         )
-        if tuple(batch[key].shape) != expected:
-            raise ValueError(
-                f"batch[{key!r}] must have shape {spec} = {expected}, got {tuple(batch[key].shape)}"
-            )
+        shape = tuple(getattr(batch, name).shape)
+        if shape != expected:
+            raise ValueError(f"batch.{name} must have shape {spec} = {expected}, got {shape}")
     return sizes["B"], sizes["A"]
 
 
-def history_features(batch: Mapping[str, Tensor]) -> Tensor:
+def history_features(batch: WindowBatch) -> Tensor:
     """Each agent's history in its own current frame.
 
     Args:
@@ -88,12 +82,12 @@ def history_features(batch: Mapping[str, Tensor]) -> Tensor:
         heading change, speed [m/s], validity, length and width [m]; zero where the
         step is not observed.
     """
-    history, valid = batch["history"], batch["history_valid"]
+    history, valid = batch.history, batch.history_valid
     current = history[:, :, -1:, :]  # (B, A, 1, 4)
     cos0, sin0 = torch.cos(current[..., 3]), torch.sin(current[..., 3])
     dx, dy = history[..., 0] - current[..., 0], history[..., 1] - current[..., 1]
     dpsi = history[..., 3] - current[..., 3]
-    size = torch.broadcast_to(batch["length"][..., None], dx.shape)
+    size = torch.broadcast_to(batch.length[..., None], dx.shape)
     features = torch.stack(
         [
             *to_frame(dx, dy, cos0, sin0),
@@ -102,7 +96,7 @@ def history_features(batch: Mapping[str, Tensor]) -> Tensor:
             history[..., 2],
             valid.to(history.dtype),
             size,
-            torch.broadcast_to(batch["width"][..., None], dx.shape),
+            torch.broadcast_to(batch.width[..., None], dx.shape),
         ],
         dim=-1,
     )
@@ -166,11 +160,11 @@ class SceneEncoder(nn.Module):
         self.map_encoder = MapEncoder(config, dim)
         self.fusion = MLP(2 * dim + config.edge_dim, config.context_dim, config.context_dim)
 
-    def _tokens(self, batch: Mapping[str, Tensor]) -> tuple[Tensor, Tensor]:
+    def _tokens(self, batch: WindowBatch) -> tuple[Tensor, Tensor]:
         """History tokens ``(B, A, N, D)`` and their validity ``(B, A, N)``."""
         patch, tokens = self.config.history_patch, self.config.history_tokens
         features = history_features(batch) * self.history_inv_scale  # (B, A, T, F)
-        valid = batch["history_valid"]
+        valid = batch.history_valid
         pad = tokens * patch - features.shape[2]  # zero steps in front of the oldest one
         features = F.pad(features, (0, 0, pad, 0))
         valid = F.pad(valid, (pad, 0))
@@ -178,12 +172,12 @@ class SceneEncoder(nn.Module):
         x = self.token_proj(features.reshape(batch_size, agents, tokens, -1)) + self.token_pos
         return x, valid.reshape(batch_size, agents, tokens, patch).any(dim=-1)
 
-    def forward(self, batch: Mapping[str, Tensor]) -> SceneContext:
-        """Encode a batch of windows (``docs/WINDOWS.md``; extra keys are ignored)."""
+    def forward(self, batch: WindowBatch) -> SceneContext:
+        """Encode a batch of windows (``docs/WINDOWS.md``; the future fields are ignored)."""
         check_batch(batch, self.config)
-        agent_mask, pair_mask = batch["agent_mask"].bool(), batch["pair_mask"].bool()
+        agent_mask, pair_mask = batch.agent_mask.bool(), batch.pair_mask.bool()
         x, token_valid = self._tokens(batch)  # (B, A, N, D), (B, A, N)
-        edges = self.edge_mlp(batch["pair_features"] * self.pair_inv_scale)  # (B, A, A, E)
+        edges = self.edge_mlp(batch.pair_features * self.pair_inv_scale)  # (B, A, A, E)
         social = social_mask(pair_mask, agent_mask)  # (B, A, A)
         temporal_mask = token_valid[:, :, None, :]  # (B, A, 1, N): keys with observations
         # Social keys: other agents observed at this token; an existing agent always sees itself.
@@ -197,7 +191,7 @@ class SceneEncoder(nn.Module):
             x = social_block(x.transpose(1, 2), token_social_mask, edge_bias(edges, bias_proj))
             x = x.transpose(1, 2)
         history = self.norm(x[:, :, -1])  # (B, A, D): the token holding the current step
-        map_embedding = self.map_encoder(batch["map_crops"], agent_mask)  # (B, A, D)
+        map_embedding = self.map_encoder(batch.map_crops, agent_mask)  # (B, A, D)
         pooled_edges = masked_mean(edges, pair_mask, dim=2)  # (B, A, E)
         context = self.fusion(torch.cat([history, map_embedding, pooled_edges], dim=-1))
         return SceneContext(
@@ -205,5 +199,5 @@ class SceneEncoder(nn.Module):
             edges=edges,
             social_mask=social,
             agent_mask=agent_mask,
-            state=batch["history"][:, :, -1],
+            state=batch.history[:, :, -1],
         )

@@ -30,6 +30,7 @@ from policies.learned.attention import Attention, edge_bias
 from policies.learned.config import ModelConfig
 from policies.learned.embeddings import MLP, TimeEmbedding
 from policies.learned.encoder import SceneContext, SceneEncoder
+from policies.learned.window_types import WindowBatch
 
 CHECKPOINT_FORMAT = "riskflow-generator/1"
 
@@ -129,7 +130,7 @@ class RiskFlowGenerator(nn.Module):
         self.encoder = SceneEncoder(self.config)
         self.head = MeanFlowHead(self.config)
 
-    def encode(self, batch: Mapping[str, Tensor]) -> SceneContext:
+    def encode(self, batch: WindowBatch) -> SceneContext:
         """Context of a batch of windows (``docs/WINDOWS.md``)."""
         return self.encoder(batch)
 
@@ -140,7 +141,7 @@ class RiskFlowGenerator(nn.Module):
             raise ValueError(f"z must have shape (B, A, T, 2) = {expected}, got {tuple(z.shape)}")
         return self.head(z, t, r, scene)
 
-    def forward(self, batch: Mapping[str, Tensor], z: Tensor, t: Tensor, r: Tensor) -> Tensor:
+    def forward(self, batch: WindowBatch, z: Tensor, t: Tensor, r: Tensor) -> Tensor:
         """``u_theta(z, t, r; C(batch))``: ``(B, A, T, 2)``."""
         return self.average_velocity(z, t, r, self.encode(batch))
 

@@ -41,17 +41,17 @@ from __future__ import annotations
 import copy
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
 
 from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.config import ModelConfig
-from policies.learned.data import collate_windows
 from policies.learned.encoded_views import EncodedView, EncodedViews
-from policies.learned.encoder import ENCODER_KEYS, SceneContext
+from policies.learned.encoder import SceneContext
 from policies.learned.ranking import Ranking
+from policies.learned.window_types import WindowBatch, collate_windows
 from policies.learned.windows import WindowConfig, window_from_view
 from riskflow_env.agents.base import actions_dict, controlled_mask
 from riskflow_env.dynamics import inverse, rollout
@@ -282,7 +282,7 @@ class PlanBufferPolicy:
     def _encode_views(
         self,
         views: Sequence[SceneView],
-        encode: Callable[[Mapping[str, torch.Tensor]], SceneContext],
+        encode: Callable[[WindowBatch], SceneContext],
     ) -> EncodedViews:
         """Windows, collate (agents padded), one encoder pass (phases ``"window"`` and
         ``"encoder"``). The windows are cut scene by scene (a loop over scenes:
@@ -294,18 +294,17 @@ class PlanBufferPolicy:
         """
         start = time.perf_counter()
         windows = [window_from_view(view, self.window_config) for view in views]
-        batch = collate_windows([{key: w[key] for key in ENCODER_KEYS} for w in windows])
-        batch = {key: value.to(self.device) for key, value in batch.items()}
+        batch = collate_windows(windows).to(self.device)
         clock = self._tick("window", start)
         with torch.no_grad():
             scene = encode(batch)
         clock = self._tick("encoder", clock)
         frames = np.array([[v.current[0, 0], v.current[0, 1], v.current[0, 3]] for v in views])
-        slots = [w["agent_index"] for w in windows]
+        slots = [w.agent_index for w in windows]
         return EncodedViews(windows, slots, batch, scene, frames, clock)
 
     def _encode_view(
-        self, view: SceneView, encode: Callable[[Mapping[str, torch.Tensor]], SceneContext]
+        self, view: SceneView, encode: Callable[[WindowBatch], SceneContext]
     ) -> EncodedView:
         """:meth:`_encode_views` of one scene."""
         return self._encode_views([view], encode).view(0)

@@ -22,19 +22,18 @@ the position MSE [m^2] of the trajectory loss.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from policies.learned.window_types import WindowBatch
 from riskflow_env.dynamics import YAW, X, Y
 from riskflow_env.geometry import separation, to_frame
 
 SDF_CHANNEL = 1  # policies.learned.windows.CROP_LAYERS = ("drivable", "sdf")
 
 
-def overlap_penalty(trajectory: Tensor, batch: Mapping[str, Tensor], valid: Tensor) -> Tensor:
+def overlap_penalty(trajectory: Tensor, batch: WindowBatch, valid: Tensor) -> Tensor:
     """Mean squared penetration depth of decoded box pairs [m^2].
 
     Args:
@@ -46,7 +45,7 @@ def overlap_penalty(trajectory: Tensor, batch: Mapping[str, Tensor], valid: Tens
         Scalar: the sum over unordered pairs and steps of ``relu(-separation)^2``
         divided by the number of valid agent-steps.
     """
-    length, width = batch["length"], batch["width"]
+    length, width = batch.length, batch.width
 
     def pairwise(states: Tensor) -> Tensor:  # (B, A, A, T) signed separation [m]
         xy, yaw = states[..., [X, Y]], states[..., YAW]
@@ -59,14 +58,14 @@ def overlap_penalty(trajectory: Tensor, batch: Mapping[str, Tensor], valid: Tens
     upper = torch.ones(num_agents, num_agents, dtype=torch.bool, device=valid.device).triu(1)
     pairs = valid[:, :, None] & valid[:, None] & upper[None, :, :, None]
     with torch.no_grad():
-        pairs = pairs & (pairwise(batch["future"]) > 0.0)  # the reference does not overlap
+        pairs = pairs & (pairwise(batch.future) > 0.0)  # the reference does not overlap
     depth = torch.relu(-pairwise(trajectory)) * pairs
     return (depth**2).sum() / valid.sum().clamp(min=1)
 
 
 def offroad_penalty(
     trajectory: Tensor,
-    batch: Mapping[str, Tensor],
+    batch: WindowBatch,
     start: Tensor,
     valid: Tensor,
     crop_resolution: float = 1.0,
@@ -84,7 +83,7 @@ def offroad_penalty(
     Returns:
         Scalar, see the module docstring.
     """
-    crops = batch["map_crops"][:, :, SDF_CHANNEL]  # (B, A, S, S)
+    crops = batch.map_crops[:, :, SDF_CHANNEL]  # (B, A, S, S)
     size = crops.shape[-1]
     cos, sin = torch.cos(start[..., YAW])[..., None], torch.sin(start[..., YAW])[..., None]
 
@@ -107,9 +106,9 @@ def offroad_penalty(
         )
         return sampled.reshape(b, a, t), inside
 
-    half_width = 0.5 * batch["width"][..., None]
+    half_width = 0.5 * batch.width[..., None]
     with torch.no_grad():
-        reference, _ = sdf_at(batch["future"])
+        reference, _ = sdf_at(batch.future)
         allowance = torch.relu(reference + half_width)
     planned, inside = sdf_at(trajectory)
     excess = torch.relu(planned + half_width - allowance) * (valid & inside)

@@ -29,13 +29,13 @@ structure of the scene's interactions (docs/ARCHITECTURE.md):
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
+from policies.learned.window_types import Window
 from riskflow_env.risk import FEATURE_NAMES
 
 DEFAULT_THRESHOLD = 0.5  # risk above which a pair is an edge (TTC < 10 s with tau_max = 20 s)
@@ -168,7 +168,7 @@ def causal_ranking(
 
 
 def rank_window(
-    window: Mapping[str, np.ndarray],
+    window: Window,
     k: int | str,
     threshold: float = DEFAULT_THRESHOLD,
     candidates: np.ndarray | None = None,
@@ -186,10 +186,10 @@ def rank_window(
         candidates: optional (A,) bool, agents that may be chosen (e.g. the live ones);
             every agent of the window still takes part in the risk graph.
     """
-    risk = np.asarray(window["pair_features"])[..., RISK_CHANNEL]
-    current = np.asarray(window["history"])[:, -1, :2]
+    risk = np.asarray(window.pair_features)[..., RISK_CHANNEL]
+    current = np.asarray(window.history)[:, -1, :2]
     distance = np.linalg.norm(current - current[0], axis=-1)
-    agent_mask = np.asarray(window["agent_mask"], dtype=bool)
+    agent_mask = np.asarray(window.agent_mask, dtype=bool)
     ranking = causal_ranking(risk, agent_mask, k, threshold=threshold, distance_to_ego=distance)
     if candidates is None:
         return ranking

@@ -8,14 +8,13 @@ scene in the batch (and, with ``num_samples``, every sample).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-
 import torch
 from torch import Tensor
 
 from policies.learned.data import Normalizer
 from policies.learned.encoder import SceneContext
 from policies.learned.generator import RiskFlowGenerator
+from policies.learned.window_types import WindowBatch
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout
 
@@ -58,7 +57,7 @@ def draw_noise(
 @torch.no_grad()
 def sample(
     model: RiskFlowGenerator,
-    scene_or_batch: SceneContext | Mapping[str, Tensor],
+    scene_or_batch: SceneContext | WindowBatch,
     eps: Tensor | None,
     normalizer: Normalizer,
     *,
@@ -71,7 +70,7 @@ def sample(
     Args:
         model: the generator.
         scene_or_batch: a :class:`SceneContext` (``model.encode(batch)``) or a batch
-            of windows (``docs/WINDOWS.md``; future keys not needed).
+            of windows (``docs/WINDOWS.md``; future fields not needed).
         eps: noise ``(B, A, T, 2)``, or ``(B, N, A, T, 2)`` with ``num_samples = N``;
             None draws it from ``generator``. A fixed ``eps`` gives the same plans.
         normalizer: action normalisation (``denormalize``).

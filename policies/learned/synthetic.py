@@ -1,6 +1,7 @@
 """Random but dynamically consistent window batches, for tests and benchmarks.
 
-:func:`synthetic_batch` makes a collated batch in the layout of ``docs/WINDOWS.md``
+:func:`synthetic_batch` makes a :class:`~policies.learned.window_types.WindowBatch`
+(``docs/WINDOWS.md``, future fields included)
 without any data or map: vehicles on a straight three-lane road, driven by smooth
 random actions through ``riskflow_env.dynamics.rollout``, so ``rollout(current
 state, actions)`` reproduces ``future`` exactly (no bound is reached). Some scenes
@@ -15,6 +16,7 @@ import math
 import torch
 from torch import Tensor
 
+from policies.learned.window_types import PAD_INDEX, WindowBatch
 from riskflow_env.dynamics import rollout
 from riskflow_env.geometry import to_frame
 from riskflow_env.risk import pairwise_features
@@ -61,7 +63,7 @@ def synthetic_batch(
     map_size: int = 48,
     dtype: torch.dtype = torch.float32,
     device: torch.device | str | None = None,
-) -> dict[str, Tensor]:
+) -> WindowBatch:
     """A collated batch of ``batch_size`` scenes with ``num_agents`` slots each.
 
     Args:
@@ -76,7 +78,7 @@ def synthetic_batch(
         device: device of the result.
 
     Returns:
-        Every key of ``docs/WINDOWS.md`` but ``agent_index``, shapes ``(B, A, ...)``.
+        The batch, shapes ``(B, A, ...)``; ``agent_index`` is the slot (-1 where padded).
     """
     gen = torch.Generator().manual_seed(seed)
     shape = (batch_size, num_agents)
@@ -117,21 +119,21 @@ def synthetic_batch(
         states[:, :, history_steps - 1], length, width, agent_mask
     )
     mask = agent_mask.to(f64)
-    batch = {
-        "history": states[:, :, :history_steps] * history_valid[..., None],
-        "history_valid": history_valid,
-        "future": states[:, :, history_steps:] * future_valid[..., None],
-        "future_valid": future_valid,
-        "actions": actions[:, :, history_steps - 1 :] * future_valid[..., None],
-        "actions_valid": future_valid.clone(),
-        "agent_mask": agent_mask,
-        "length": length * mask,
-        "width": width * mask,
-        "map_crops": _map_crops(current_world, map_size) * mask[..., None, None, None],
-        "pair_features": pair_features,
-        "pair_mask": pair_mask,
-    }
-    return {
-        k: v.to(device=device, dtype=dtype if v.is_floating_point() else v.dtype)
-        for k, v in batch.items()
-    }
+    batch = WindowBatch(
+        history=states[:, :, :history_steps] * history_valid[..., None],
+        history_valid=history_valid,
+        future=states[:, :, history_steps:] * future_valid[..., None],
+        future_valid=future_valid,
+        actions=actions[:, :, history_steps - 1 :] * future_valid[..., None],
+        actions_valid=future_valid.clone(),
+        agent_mask=agent_mask,
+        agent_index=torch.where(agent_mask, torch.arange(num_agents), PAD_INDEX),
+        length=length * mask,
+        width=width * mask,
+        map_crops=_map_crops(current_world, map_size) * mask[..., None, None, None],
+        pair_features=pair_features,
+        pair_mask=pair_mask,
+    )
+    return batch.map(
+        lambda v: v.to(device=device, dtype=dtype if v.is_floating_point() else v.dtype)
+    )

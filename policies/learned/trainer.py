@@ -25,7 +25,6 @@ import math
 import sys
 import time
 import warnings
-from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -50,6 +49,7 @@ from policies.learned.ema import EMA
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.recovery import RecoveryConfig
 from policies.learned.validation import evaluate
+from policies.learned.window_types import WindowBatch
 from riskflow_env.scenarios.folders import scene_files
 
 CHECKPOINT, GENERATOR, METRICS_LOG = "checkpoint.pt", "generator.pt", "metrics.jsonl"
@@ -66,7 +66,7 @@ class Objective(Protocol):
     def loss(
         self,
         model: RiskFlowGenerator,
-        batch: Mapping[str, Tensor],
+        batch: WindowBatch,
         normalizer: ActionNormalizer,
         eps: Tensor,
         generator: torch.Generator,
@@ -279,7 +279,7 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
         normalizer = start[1]
     else:
         normalizer = action_stats(options.data, train_set)
-    agents = np.array([train_set.window(i)["agent_mask"].shape[0] for i in range(len(train_set))])
+    agents = train_set.agent_counts()
     per_epoch = len(agents) // options.batch_size
     if per_epoch == 0:
         raise SystemExit(f"riskflow-train: {len(agents)} training windows < --batch-size")
@@ -336,7 +336,7 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
                     agents, options.batch_size, options.bucket, options.seed, epoch
                 )
             batch = collated(train_set, batches[step % per_epoch], device)
-            eps = torch.randn(batch["actions"].shape, generator=noise, device=device)
+            eps = torch.randn(batch.actions.shape, generator=noise, device=device)
             loss, values = objective.loss(model, batch, normalizer, eps, noise, **weights)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()

@@ -9,29 +9,26 @@ trajectory-space reconstruction; docs/GENERATOR.md).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-
 import torch
 from torch import Tensor
 
 from policies.learned.data import Normalizer
 from policies.learned.encoder import SceneContext
 from policies.learned.plan_penalties import offroad_penalty, overlap_penalty
+from policies.learned.window_types import WindowBatch
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout, wrap_angle
 
-LOSS_KEYS = ("future", "future_valid", "actions", "actions_valid")
 
-
-def target_actions(batch: Mapping[str, Tensor], normalizer: Normalizer) -> Tensor:
-    """``a*``: normalised ``batch["actions"]``, 0 (the mean action) where not valid."""
-    valid = batch["actions_valid"].bool()[..., None]
-    return torch.where(valid, normalizer.normalize(batch["actions"]), 0.0)
+def target_actions(batch: WindowBatch, normalizer: Normalizer) -> Tensor:
+    """``a*``: normalised ``batch.actions``, 0 (the mean action) where not valid."""
+    valid = batch.actions_valid.bool()[..., None]
+    return torch.where(valid, normalizer.normalize(batch.actions), 0.0)
 
 
 def trajectory_loss(
     a_hat: Tensor,
-    batch: Mapping[str, Tensor],
+    batch: WindowBatch,
     scene: SceneContext,
     normalizer: Normalizer,
     heading_weight: float = 0.0,
@@ -44,13 +41,14 @@ def trajectory_loss(
 
     Args:
         a_hat: ``(B, A, T, 2)`` normalised reconstructed actions.
-        batch: ``future (B, A, T, 4)``, ``future_valid (B, A, T)`` (scene frame).
+        batch: windows with the future fields: ``future (B, A, T, 4)``, ``future_valid
+            (B, A, T)`` (scene frame).
         scene: the encoder output (current states and agent mask).
         normalizer: action normalisation.
         heading_weight: weight [m^2/rad^2] of ``heading_mse`` in the loss.
         dynamics: time step and bounds of the rollout.
         collision_weight: weight of ``overlap`` (squared penetration depth of decoded box
-            pairs [m^2]); needs ``length``, ``width`` in the batch.
+            pairs [m^2]; from ``length``, ``width``).
         offroad_weight: weight of ``offroad`` (squared excess of the planned centres'
             SDF [m^2], from ``map_crops``).
 
@@ -62,8 +60,8 @@ def trajectory_loss(
         ``offroad`` when their weight is not 0.
     """
     trajectory = rollout(scene.state, normalizer.denormalize(a_hat), dynamics)  # (B, A, T, 4)
-    future = batch["future"]
-    mask = batch["future_valid"].bool() & scene.agent_mask[..., None]
+    future = batch.future
+    mask = batch.future_valid.bool() & scene.agent_mask[..., None]
     weight = mask.to(a_hat.dtype)
     count = weight.sum().clamp(min=1.0)
     squared = ((trajectory[..., :2] - future[..., :2]) ** 2).sum(dim=-1)  # (B, A, T) [m^2]

@@ -1,6 +1,6 @@
 """Validation of a generator on held-out windows: ADE/FDE, minADE over K samples, smoothness.
 
-For every batch of windows (``docs/WINDOWS.md``, future keys included) :func:`evaluate`
+For every batch of windows (``docs/WINDOWS.md``, future fields included) :func:`evaluate`
 measures, over every agent with at least one valid future step:
 
 * ``ade`` / ``fde`` [m]: one-step samples (``sampler.sample`` with one ``eps`` per plan);
@@ -19,7 +19,7 @@ seeded with ``seed``, so the same model on the same windows gives the same numbe
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable
 
 import torch
 from torch import Tensor
@@ -27,6 +27,7 @@ from torch import Tensor
 from policies.learned.data import Normalizer
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.sampler import draw_noise, sample
+from policies.learned.window_types import WindowBatch
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
 from riskflow_env.metrics.displacement import masked_displacement
@@ -80,7 +81,7 @@ def _rms_change(actions: Tensor, valid: Tensor, channel: int, dt: float) -> tupl
 @torch.no_grad()
 def evaluate(
     model: RiskFlowGenerator,
-    batches: Iterable[Mapping[str, Tensor]],
+    batches: Iterable[WindowBatch],
     normalizer: Normalizer,
     *,
     num_samples: int = 6,
@@ -92,7 +93,8 @@ def evaluate(
     Args:
         model: a one-call sampler (``encode``, ``average_velocity``, ``config``): the
             generator, or what an objective's ``sampler`` makes of it (EMA weights).
-        batches: collated windows with the future keys, on the model's device.
+        batches: collated windows (``WindowBatch``) with the future fields, on the
+            model's device.
         normalizer: action normalisation of the model.
         num_samples: ``K`` of minADE / minFDE.
         seed: seed of the noise.
@@ -122,7 +124,7 @@ def evaluate(
             dynamics=dynamics,
         )
         constant = rollout(scene.state, torch.zeros_like(actions), dynamics)
-        truth = (batch["future"], batch["future_valid"], scene.agent_mask)
+        truth = (batch.future, batch.future_valid, scene.agent_mask)
         ade, fde, valid = displacement_errors(trajectories, *truth)
         min_ade, min_fde, _ = displacement_errors(many, *truth)
         cv_ade, cv_fde, _ = displacement_errors(constant, *truth)
@@ -137,12 +139,12 @@ def evaluate(
         ):
             sums[name] += float((value * weight).sum())
         counts["agents"] += float(weight.sum())
-        counts["windows"] += batch["agent_mask"].shape[0]
+        counts["windows"] += batch.batch_size
         plan_valid = scene.agent_mask[..., None].expand(actions.shape[:-1])
-        data_valid = batch["actions_valid"].bool() & plan_valid
+        data_valid = batch.actions_valid.bool() & plan_valid
         for prefix, values, mask in (
             ("", actions, plan_valid),
-            ("data_", batch["actions"], data_valid),
+            ("data_", batch.actions, data_valid),
         ):
             squares, count = _rms_change(values, mask, 0, dynamics.dt)
             sums[f"{prefix}jerk_rms"] += float(squares)

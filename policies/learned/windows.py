@@ -1,12 +1,12 @@
 """Training windows: one scene at one current step, in the ego's frame (docs/WINDOWS.md).
 
-:func:`build_window` is the one function that turns agent tracks into the window dict of
-the RiskFlow model. Two entry points share it:
+:func:`build_window` is the one function that turns agent tracks into the
+:class:`~policies.learned.window_types.Window` of the RiskFlow model. Two entry points share it:
 
 * :func:`window_from_scenario` — a recorded scene at any current step, with the
   reference future and the actions that drive it (training data);
 * :func:`window_from_view` — the env's live :class:`~riskflow_env.view.SceneView`,
-  without future keys (the closed-loop policy, every planning cycle).
+  without the future fields (the closed-loop policy, every planning cycle).
 
 Both choose agents with :func:`riskflow_env.simulator.select_agents` (the ego first, then
 the others valid at the current step, nearest first), keep those within
@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from policies.learned.window_types import Window
 from riskflow_env import dynamics
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import SPEED, YAW
@@ -38,26 +39,6 @@ from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.simulator import select_agents
 from riskflow_env.view import SceneView
 
-#: Keys whose leading axis is the agent axis A (padded by ``collate_windows``).
-AGENT_KEYS = (
-    "history",
-    "history_valid",
-    "future",
-    "future_valid",
-    "actions",
-    "actions_valid",
-    "agent_mask",
-    "agent_index",
-    "length",
-    "width",
-    "map_crops",
-)
-#: Keys whose two leading axes are agent axes (A, A).
-PAIR_KEYS = ("pair_features", "pair_mask")
-#: Keys present only in windows built from recorded futures.
-FUTURE_KEYS = ("future", "future_valid", "actions", "actions_valid")
-#: Value of ``agent_index`` in padded slots.
-PAD_INDEX = -1
 CROP_LAYERS = ("drivable", "sdf")
 
 
@@ -112,8 +93,8 @@ def build_window(
     current_index: int,
     config: WindowConfig,
     with_future: bool = True,
-) -> dict[str, np.ndarray]:
-    """The window dict of docs/WINDOWS.md for the agents ``rows`` at ``current_index``.
+) -> Window:
+    """The :class:`Window` of docs/WINDOWS.md for the agents ``rows`` at ``current_index``.
 
     Steps outside ``[0, T)`` are invalid; invalid states and actions are 0.
 
@@ -127,12 +108,12 @@ def build_window(
             valid at ``current_index``.
         current_index: index of the current step in ``tracks``' time axis.
         config: window sizes and options.
-        with_future: add ``future``, ``future_valid``, ``actions``, ``actions_valid``.
+        with_future: set ``future``, ``future_valid``, ``actions``, ``actions_valid``.
 
     Returns:
-        dict of numpy arrays keyed as in docs/WINDOWS.md, plus ``agent_index`` (A,) int64
-        (= ``rows``). Positions and headings are in the scene frame (ego pose at the
-        current step); headings are wrapped to (-pi, pi].
+        the window (numpy arrays; ``agent_index`` (A,) int64 = ``rows``). Positions and
+        headings are in the scene frame (ego pose at the current step); headings are
+        wrapped to (-pi, pi].
     """
     rows = np.asarray(rows, dtype=np.int64)
     num_steps = tracks.shape[1]
@@ -178,27 +159,30 @@ def build_window(
     pair_features, pair_mask = pairwise_features(
         current, lengths, widths, agent_mask, max_distance=config.interaction_distance
     )
-    window = {
-        "history": scene[:, :history_steps].astype(np.float32),
-        "history_valid": seq_valid[:, :history_steps],
-        "agent_mask": agent_mask,
-        "agent_index": rows,
-        "length": lengths.astype(np.float32),
-        "width": widths.astype(np.float32),
-        "map_crops": np.stack(crops, axis=1).astype(np.float32),
-        "pair_features": pair_features.astype(np.float32),
-        "pair_mask": pair_mask,
-    }
+    future = {}
     if with_future:
         chain = scene[:, history_steps - 1 :]  # (A, F + 1, 4): current, then the future
         chain_valid = seq_valid[:, history_steps - 1 :]
         actions_valid = chain_valid[:, :-1] & chain_valid[:, 1:]
         actions = dynamics.inverse(chain, config.dynamics, clip=config.clip_actions)
-        window["future"] = scene[:, history_steps:].astype(np.float32)
-        window["future_valid"] = seq_valid[:, history_steps:]
-        window["actions"] = np.where(actions_valid[..., None], actions, 0.0).astype(np.float32)
-        window["actions_valid"] = actions_valid
-    return window
+        future = {
+            "future": scene[:, history_steps:].astype(np.float32),
+            "future_valid": seq_valid[:, history_steps:],
+            "actions": np.where(actions_valid[..., None], actions, 0.0).astype(np.float32),
+            "actions_valid": actions_valid,
+        }
+    return Window(
+        history=scene[:, :history_steps].astype(np.float32),
+        history_valid=seq_valid[:, :history_steps],
+        agent_mask=agent_mask,
+        agent_index=rows,
+        length=lengths.astype(np.float32),
+        width=widths.astype(np.float32),
+        map_crops=np.stack(crops, axis=1).astype(np.float32),
+        pair_features=pair_features.astype(np.float32),
+        pair_mask=pair_mask,
+        **future,
+    )
 
 
 def select_rows(scenario: Scenario, current_index: int, config: WindowConfig) -> np.ndarray:
@@ -227,7 +211,7 @@ def _check_dt(dt: float, config: WindowConfig, what: str) -> None:
 
 def window_from_scenario(
     scenario: Scenario, current_index: int | None = None, config: WindowConfig | None = None
-) -> dict[str, np.ndarray]:
+) -> Window:
     """Window of a recorded scene at ``current_index``, with the reference future.
 
     Args:
@@ -237,7 +221,7 @@ def window_from_scenario(
         config: window options; default :class:`WindowConfig`.
 
     Returns:
-        the window dict (docs/WINDOWS.md), future keys included; ``agent_index`` holds
+        the window (docs/WINDOWS.md) with the future fields; ``agent_index`` holds
         scenario rows.
     """
     config = config or WindowConfig()
@@ -264,12 +248,12 @@ def window_from_scenario(
     )
 
 
-def window_from_view(view: SceneView, config: WindowConfig | None = None) -> dict[str, np.ndarray]:
-    """Window of the live scene, without future keys (closed-loop planning).
+def window_from_view(view: SceneView, config: WindowConfig | None = None) -> Window:
+    """Window of the live scene, without the future fields (closed-loop planning).
 
     Every vehicle present in the view takes part (done vehicles too: they stay on the map
     as obstacles); ``agent_index`` holds env slots, so ``view.agent_names[i]`` names
-    window slot ``k`` with ``i = window["agent_index"][k]``.
+    window slot ``k`` with ``i = window.agent_index[k]``.
 
     Args:
         view: the env's read-only scene view.

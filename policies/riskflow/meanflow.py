@@ -32,7 +32,7 @@ loss.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
@@ -40,7 +40,8 @@ from torch import Tensor
 from policies.learned.data import Normalizer
 from policies.learned.encoder import SceneContext
 from policies.learned.generator import RiskFlowGenerator
-from policies.learned.trajectory_loss import LOSS_KEYS, target_actions, trajectory_loss
+from policies.learned.trajectory_loss import target_actions, trajectory_loss
+from policies.learned.window_types import WindowBatch
 from policies.riskflow.time_sampler import TimeSampler
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG
@@ -53,14 +54,12 @@ def _time_as(t: Tensor) -> Tensor:
     return t.reshape(t.shape[0], -1, 1, 1)
 
 
-def _check(batch: Mapping[str, Tensor], eps: Tensor, t: Tensor, r: Tensor) -> None:
-    missing = [key for key in LOSS_KEYS if key not in batch]
-    if missing:
-        raise KeyError(f"batch lacks training key(s) {missing}; see docs/WINDOWS.md")
-    if tuple(eps.shape) != tuple(batch["actions"].shape):
+def _check(batch: WindowBatch, eps: Tensor, t: Tensor, r: Tensor) -> None:
+    batch.require_future("the MeanFlow loss")
+    if tuple(eps.shape) != tuple(batch.actions.shape):
         raise ValueError(
-            f"eps must have the shape of batch['actions'] (B, A, T, 2) = "
-            f"{tuple(batch['actions'].shape)}, got {tuple(eps.shape)}"
+            f"eps must have the shape of batch.actions (B, A, T, 2) = "
+            f"{tuple(batch.actions.shape)}, got {tuple(eps.shape)}"
         )
     batch_size = eps.shape[0]
     for name, time in (("t", t), ("r", r)):
@@ -104,7 +103,7 @@ def meanflow_target(v: Tensor, dudt: Tensor, t: Tensor, r: Tensor) -> Tensor:
 
 def meanflow_loss(
     model: RiskFlowGenerator,
-    batch: Mapping[str, Tensor],
+    batch: WindowBatch,
     normalizer: Normalizer,
     eps: Tensor,
     t: Tensor,
@@ -120,7 +119,7 @@ def meanflow_loss(
 
     Args:
         model: the generator.
-        batch: training windows (``docs/WINDOWS.md``), with the future keys.
+        batch: training windows (``docs/WINDOWS.md``), with the future fields.
         normalizer: action normalisation (``normalize`` / ``denormalize``).
         eps: ``(B, A, T, 2)`` standard normal noise.
         t: ``(B,)`` or ``(B, A)`` start times in [0, 1] (``time_sampler.TimeSampler``).
@@ -166,7 +165,7 @@ def meanflow_loss(
 
 def flow_matching_loss(
     model: RiskFlowGenerator,
-    batch: Mapping[str, Tensor],
+    batch: WindowBatch,
     normalizer: Normalizer,
     eps: Tensor,
     t: Tensor,
@@ -197,7 +196,7 @@ def flow_matching_loss(
 def _loss(
     a_hat: Tensor,
     a_star: Tensor,
-    batch: Mapping[str, Tensor],
+    batch: WindowBatch,
     scene: SceneContext,
     normalizer: Normalizer,
     heading_weight: float,
@@ -209,7 +208,7 @@ def _loss(
     loss, metrics = trajectory_loss(
         a_hat, batch, scene, normalizer, heading_weight, dynamics, **penalties
     )
-    weight = (batch["actions_valid"].bool() & scene.agent_mask[..., None]).to(a_hat.dtype)
+    weight = (batch.actions_valid.bool() & scene.agent_mask[..., None]).to(a_hat.dtype)
     squared = ((a_hat - a_star) ** 2).sum(dim=-1)
     action_mse = (squared * weight).sum() / weight.sum().clamp(min=1.0)
     if action_weight:
@@ -232,7 +231,7 @@ class OneStepFlowMatching:
         self.model = model
         self.config = model.config
 
-    def encode(self, batch: Mapping[str, Tensor]) -> SceneContext:
+    def encode(self, batch: WindowBatch) -> SceneContext:
         """The wrapped model's scene context."""
         return self.model.encode(batch)
 
@@ -263,7 +262,7 @@ class MeanFlowObjective:
     def loss(
         self,
         model: RiskFlowGenerator,
-        batch: Mapping[str, Tensor],
+        batch: WindowBatch,
         normalizer: Normalizer,
         eps: Tensor,
         generator: torch.Generator,

@@ -45,6 +45,7 @@ from policies.learned.config import ModelConfig
 from policies.learned.data import ActionNormalizer
 from policies.learned.encoder import SceneContext
 from policies.learned.generator import CheckpointError, RiskFlowGenerator
+from policies.learned.window_types import WindowBatch
 
 DEFAULT_NAME = "diffusion_default.pt"
 PREDICTIONS = ("v", "sample", "epsilon")
@@ -117,7 +118,7 @@ class DiffusionDenoiser:
         """The network's architecture (``future_steps``, ...)."""
         return self.network.config
 
-    def encode(self, batch: Mapping[str, Tensor]) -> SceneContext:
+    def encode(self, batch: WindowBatch) -> SceneContext:
         """Scene context of a batch of windows (once per chain)."""
         return self.network.encode(batch)
 

@@ -17,14 +17,13 @@ No JVP is needed: one step costs one encoder and one head pass, like flow matchi
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-
 import torch
 from torch import Tensor
 
 from policies.baselines.diffusion.model import DiffusionDenoiser
 from policies.learned.data import Normalizer
-from policies.learned.trajectory_loss import LOSS_KEYS, target_actions, trajectory_loss
+from policies.learned.trajectory_loss import target_actions, trajectory_loss
+from policies.learned.window_types import WindowBatch
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG
 
@@ -38,7 +37,7 @@ def draw_levels(
 
 def diffusion_loss(
     denoiser: DiffusionDenoiser,
-    batch: Mapping[str, Tensor],
+    batch: WindowBatch,
     normalizer: Normalizer,
     eps: Tensor,
     k: Tensor,
@@ -52,7 +51,7 @@ def diffusion_loss(
 
     Args:
         denoiser: the denoiser (its network is what is trained).
-        batch: training windows (``docs/WINDOWS.md``) with the future keys.
+        batch: training windows (``docs/WINDOWS.md``) with the future fields.
         normalizer: action normalisation.
         eps: ``(B, A, T, 2)`` standard normal noise.
         k: ``(B,)`` int levels in ``[0, K)`` (:func:`draw_levels`).
@@ -68,12 +67,10 @@ def diffusion_loss(
         ``|x0_hat - a*|^2``), ``eps_mse``, and ``trajectory_loss``'s ``position_mse``,
         ``heading_mse``, ``ade``, ``fde`` of ``x0_hat``.
     """
-    missing = [key for key in LOSS_KEYS if key not in batch]
-    if missing:
-        raise KeyError(f"batch lacks training key(s) {missing}; see docs/WINDOWS.md")
-    if tuple(eps.shape) != tuple(batch["actions"].shape):
+    batch.require_future("the diffusion loss")
+    if tuple(eps.shape) != tuple(batch.actions.shape):
         raise ValueError(
-            f"eps must have the shape of batch['actions'] {tuple(batch['actions'].shape)}, "
+            f"eps must have the shape of batch.actions {tuple(batch.actions.shape)}, "
             f"got {tuple(eps.shape)}"
         )
     num_steps = denoiser.diffusion.num_steps
@@ -83,7 +80,7 @@ def diffusion_loss(
     a_star = target_actions(batch, normalizer)
     x_k = denoiser.schedule.q_sample(a_star, k, eps)
     x0_hat, eps_hat = denoiser(x_k, k, scene)
-    weight = (batch["actions_valid"].bool() & scene.agent_mask[..., None]).to(x0_hat.dtype)
+    weight = (batch.actions_valid.bool() & scene.agent_mask[..., None]).to(x0_hat.dtype)
     count = weight.sum().clamp(min=1.0)
     action_mse = (((x0_hat - a_star) ** 2).sum(dim=-1) * weight).sum() / count
     eps_mse = (((eps_hat - eps) ** 2).sum(dim=-1) * weight).sum() / count

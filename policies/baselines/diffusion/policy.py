@@ -41,6 +41,7 @@ from policies.learned.plan_buffer import (
     default_window_config,
 )
 from policies.learned.ranking import NO_GROUP, Ranking, rank_window
+from policies.learned.window_types import Window
 from riskflow_env.view import SceneView
 
 PHASES = ("window", "encoder", "ranking", "denoising", "guidance")
@@ -48,14 +49,14 @@ PHASES = ("window", "encoder", "ranking", "denoising", "guidance")
 VARIANTS = {"ctg": ("nearest", "mean"), "ctgpp": ("nearest", "clean"), "ccdiff": ("causal", "mean")}
 
 
-def nearest_ranking(window: dict, k: int | str, candidates: np.ndarray) -> Ranking:
+def nearest_ranking(window: Window, k: int | str, candidates: np.ndarray) -> Ranking:
     """``A_c`` = the ``k`` candidates nearest the ego (slot 0) at the current step.
 
     Ties go to the lower slot. ``scores`` are minus the distances [m]; no groups.
     """
-    current = np.asarray(window["history"])[:, -1, :2]
+    current = np.asarray(window.history)[:, -1, :2]
     distance = np.linalg.norm(current - current[0], axis=-1)
-    candidates = np.asarray(candidates, dtype=bool) & np.asarray(window["agent_mask"], bool)
+    candidates = np.asarray(candidates, dtype=bool) & np.asarray(window.agent_mask, bool)
     candidates[0] = False
     slots = np.flatnonzero(candidates)
     order = slots[np.lexsort((slots, distance[slots]))]
@@ -148,8 +149,8 @@ class DiffusionAdversary(PlanBufferPolicy):
         state = scene.state[0]
         geometry = SceneGeometry(
             state=state,
-            length=observed.batch["length"][0],
-            width=observed.batch["width"][0],
+            length=observed.batch.length[0],
+            width=observed.batch.width[0],
             agent_mask=scene.agent_mask[0],
             drivable_map=view.map,
             frame=observed.frame_tensor(),

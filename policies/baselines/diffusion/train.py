@@ -19,7 +19,6 @@ The checkpoint is a generator checkpoint whose ``train_config`` carries ``genera
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from typing import Any
 
 import torch
@@ -30,6 +29,7 @@ from policies.baselines.diffusion.objective import diffusion_loss, draw_levels
 from policies.baselines.diffusion.sampling import OneCallSampler
 from policies.learned.data import Normalizer
 from policies.learned.generator import RiskFlowGenerator
+from policies.learned.window_types import WindowBatch
 
 
 class DiffusionObjective:
@@ -63,7 +63,7 @@ class DiffusionObjective:
     def loss(
         self,
         model: RiskFlowGenerator,
-        batch: Mapping[str, Tensor],
+        batch: WindowBatch,
         normalizer: Normalizer,
         eps: Tensor,
         generator: torch.Generator,

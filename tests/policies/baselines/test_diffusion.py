@@ -27,6 +27,7 @@ from policies.learned.guidance_losses import adversarial_loss
 from policies.learned.sampler import sample
 from policies.learned.synthetic import synthetic_batch
 from policies.learned.validation import evaluate
+from policies.learned.window_types import FUTURE_FIELDS
 
 TINY = ModelConfig(
     encoder_dim=16, head_dim=32, context_dim=32, edge_dim=8, num_heads=2, encoder_layers=1,
@@ -59,7 +60,7 @@ def test_denoiser_estimates_are_consistent(prediction):
     denoiser = tiny_denoiser(prediction)
     batch = synthetic_batch(2, 6, seed=1)
     scene = denoiser.encode(batch)
-    x_k = torch.randn(batch["actions"].shape, generator=torch.Generator().manual_seed(0))
+    x_k = torch.randn(batch.actions.shape, generator=torch.Generator().manual_seed(0))
     k = torch.tensor([3, 80])
     x0_hat, eps_hat = denoiser(x_k, k, scene)
     torch.testing.assert_close(denoiser.schedule.q_sample(x0_hat, k, eps_hat), x_k)
@@ -76,7 +77,7 @@ def test_training_lowers_the_loss_on_a_synthetic_batch(prediction):
     batch = synthetic_batch(4, 6, seed=2)
     gen = torch.Generator().manual_seed(5)
     probes = [
-        (torch.randn(batch["actions"].shape, generator=gen), draw_levels(4, 100, gen, "cpu"))
+        (torch.randn(batch.actions.shape, generator=gen), draw_levels(4, 100, gen, "cpu"))
         for _ in range(8)
     ]
 
@@ -87,7 +88,7 @@ def test_training_lowers_the_loss_on_a_synthetic_batch(prediction):
     before = probe_loss()
     optimizer = torch.optim.Adam(denoiser.network.parameters(), lr=3e-3)
     for _ in range(120):
-        eps = torch.randn(batch["actions"].shape, generator=gen)
+        eps = torch.randn(batch.actions.shape, generator=gen)
         loss, metrics = diffusion_loss(
             denoiser, batch, NORMALIZER, eps, draw_levels(4, 100, gen, "cpu")
         )
@@ -101,21 +102,21 @@ def test_training_lowers_the_loss_on_a_synthetic_batch(prediction):
 def test_loss_checks_its_inputs():
     denoiser = tiny_denoiser()
     batch = synthetic_batch(2, 4)
-    eps = torch.zeros(batch["actions"].shape)
+    eps = torch.zeros(batch.actions.shape)
     with pytest.raises(ValueError, match="levels"):
         diffusion_loss(denoiser, batch, NORMALIZER, eps, torch.tensor([0, 100]))
     with pytest.raises(ValueError, match="eps"):
         diffusion_loss(denoiser, batch, NORMALIZER, eps[:, :1], torch.tensor([0, 1]))
-    with pytest.raises(KeyError, match="future"):
-        diffusion_loss(denoiser, {k: v for k, v in batch.items() if k != "future"}, NORMALIZER,
-                       eps, torch.tensor([0, 1]))  # fmt: skip
+    live = dataclasses.replace(batch, **dict.fromkeys(FUTURE_FIELDS))
+    with pytest.raises(ValueError, match="future fields"):
+        diffusion_loss(denoiser, live, NORMALIZER, eps, torch.tensor([0, 1]))
 
 
 def test_one_call_sampler_serves_the_riskflow_sampler_and_validation():
     denoiser = tiny_denoiser()
     batch = synthetic_batch(2, 5, seed=3)
     one_call = OneCallSampler(denoiser, sampling_steps=4)
-    eps = torch.randn(batch["actions"].shape, generator=torch.Generator().manual_seed(1))
+    eps = torch.randn(batch.actions.shape, generator=torch.Generator().manual_seed(1))
     actions, trajectories = sample(one_call, batch, eps, NORMALIZER)
     scene = denoiser.encode(batch)
     noise = torch.zeros((5, *eps.shape))
@@ -134,7 +135,7 @@ def scene_problem(seed: int = 4, agents: int = 6):
     batch = synthetic_batch(1, agents, seed=seed)
     scene = denoiser.encode(batch)
     geometry = SceneGeometry(
-        state=scene.state[0], length=batch["length"][0], width=batch["width"][0],
+        state=scene.state[0], length=batch.length[0], width=batch.width[0],
         agent_mask=scene.agent_mask[0], drivable_map=None, frame=torch.zeros(3),
     )  # fmt: skip
     return denoiser, scene, geometry

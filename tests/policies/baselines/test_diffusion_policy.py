@@ -14,9 +14,9 @@ from policies.baselines.diffusion.policy import PHASES, DiffusionAdversary
 from policies.baselines.diffusion.sampling import plans_from_sample, reverse_chain
 from policies.learned.checkpoint import load_generator
 from policies.learned.config import ModelConfig
-from policies.learned.data import ActionNormalizer, collate_windows
-from policies.learned.encoder import ENCODER_KEYS
+from policies.learned.data import ActionNormalizer
 from policies.learned.generator import CheckpointError, RiskFlowGenerator
+from policies.learned.window_types import collate_windows
 from policies.learned.windows import window_from_view
 from policies.train import GENERATOR, METRICS_LOG
 from policies.train import main as train_main
@@ -110,14 +110,14 @@ def test_k0_is_the_unguided_chain_and_guidance_touches_only_a_c(denoiser):
     np.testing.assert_array_equal(unguided.plans, unguided.base_plans)
     # The plans are the reverse chain of the cycle's noise (kept in policy.noise).
     window = window_from_view(env.view(), unguided.window_config)
-    scene = denoiser.encode(collate_windows([{key: window[key] for key in ENCODER_KEYS}]))
+    scene = denoiser.encode(collate_windows([window]))
     x0 = reverse_chain(denoiser, scene, unguided.noise[:, None], unguided.levels)[-1]
     actions, _ = plans_from_sample(x0[0], scene.state[0], scene.agent_mask[0], NORMALIZER)
     # The policy's chain and this one are different code paths (batch layout, op order) in
     # float32: actions of a few m/s^2 carry rounding of about 8 * 2**-24 = 5e-7 per op,
     # and 100 denoising steps compound it (1.2e-6 seen on another machine), so 1e-5.
     np.testing.assert_allclose(
-        unguided.plan_actions[window["agent_index"]], actions.numpy(), rtol=0, atol=1e-5
+        unguided.plan_actions[window.agent_index], actions.numpy(), rtol=0, atol=1e-5
     )
 
     guided = adversary(denoiser, k=2, step_size=0.3)

@@ -14,12 +14,12 @@ from policies.learned.data import (
     STATS_FILENAME,
     ActionNormalizer,
     WindowDataset,
-    collate_windows,
     compute_action_stats,
     load_or_compute_stats,
     window_indices,
 )
-from policies.learned.windows import PAIR_KEYS, WindowConfig, window_from_scenario
+from policies.learned.window_types import PAIR_FIELDS, Window, collate_windows
+from policies.learned.windows import WindowConfig, window_from_scenario
 from riskflow_env.scenarios import HighwayTrafficSource
 
 STRIDE = 16
@@ -50,10 +50,10 @@ def test_windows_per_scene_and_items_match_window_from_scenario(scenarios, datas
         position, current = dataset.index[item_index]
         reference = window_from_scenario(scenarios[position], int(current), config)
         item = dataset[item_index]
-        assert set(item) == set(reference)
-        for key, value in item.items():
-            assert isinstance(value, torch.Tensor)
-            np.testing.assert_array_equal(value.numpy(), reference[key], err_msg=key)
+        assert isinstance(item, Window) and item.has_future
+        for key, value in item.arrays():
+            assert isinstance(value, np.ndarray)
+            np.testing.assert_array_equal(value, getattr(reference, key), err_msg=key)
 
 
 def test_windows_skip_steps_where_the_ego_is_invalid(scenarios):
@@ -70,27 +70,25 @@ def test_windows_skip_steps_where_the_ego_is_invalid(scenarios):
 
 def test_collate_pads_agents_and_masks(dataset):
     items = [dataset[i] for i in range(len(dataset))]
-    counts = [item["agent_mask"].shape[0] for item in items]
+    counts = [item.agent_mask.shape[0] for item in items]
     assert len(set(counts)) > 1, "the fixture should mix agent counts"
+    np.testing.assert_array_equal(dataset.agent_counts(), counts)
     batch = collate_windows(items)
     size = max(counts)
-    assert batch["history"].shape == (len(items), size, 31, 4)
-    assert batch["map_crops"].shape == (len(items), size, 2, 48, 48)
-    assert batch["pair_features"].shape == (len(items), size, size, 8)
-    assert batch["history"].dtype == torch.float32 and batch["agent_mask"].dtype == torch.bool
+    assert batch.history.shape == (len(items), size, 31, 4)
+    assert batch.map_crops.shape == (len(items), size, 2, 48, 48)
+    assert batch.pair_features.shape == (len(items), size, size, 8)
+    assert batch.history.dtype == torch.float32 and batch.agent_mask.dtype == torch.bool
     for row, (item, count) in enumerate(zip(items, counts, strict=True)):
-        for key, value in item.items():
-            index = (row,) + (slice(0, count),) * (2 if key in PAIR_KEYS else 1)
-            assert torch.equal(batch[key][index], value), key
-        assert not batch["agent_mask"][row, count:].any()
-        assert not batch["history_valid"][row, count:].any()
-        assert not batch["actions_valid"][row, count:].any()
-        assert (
-            not batch["pair_mask"][row, count:].any()
-            and not batch["pair_mask"][row, :, count:].any()
-        )
-        assert torch.all(batch["agent_index"][row, count:] == -1)
-        assert torch.all(batch["history"][row, count:] == 0)
+        for key, value in item.arrays():
+            index = (row,) + (slice(0, count),) * (2 if key in PAIR_FIELDS else 1)
+            assert torch.equal(getattr(batch, key)[index], torch.from_numpy(value)), key
+        assert not batch.agent_mask[row, count:].any()
+        assert not batch.history_valid[row, count:].any()
+        assert not batch.actions_valid[row, count:].any()
+        assert not batch.pair_mask[row, count:].any() and not batch.pair_mask[row, :, count:].any()
+        assert torch.all(batch.agent_index[row, count:] == -1)
+        assert torch.all(batch.history[row, count:] == 0)
     with pytest.raises(ValueError, match="at least one"):
         collate_windows([])
 
@@ -98,7 +96,7 @@ def test_collate_pads_agents_and_masks(dataset):
 def test_dataloader_batches(dataset):
     loader = torch.utils.data.DataLoader(dataset, batch_size=4, collate_fn=collate_windows)
     batch = next(iter(loader))
-    assert batch["actions"].shape[:1] == (4,) and batch["actions"].shape[2:] == (52, 2)
+    assert batch.actions.shape[:1] == (4,) and batch.actions.shape[2:] == (52, 2)
 
 
 def test_cache_round_trip(tmp_path, scenarios, dataset):
@@ -109,8 +107,8 @@ def test_cache_round_trip(tmp_path, scenarios, dataset):
     loaded = WindowDataset(scenarios, stride=STRIDE, cache_path=path)
     assert path.stat().st_mtime_ns == stamp  # read, not rewritten
     np.testing.assert_array_equal(loaded.index, dataset.index)
-    for key, value in loaded[len(loaded) - 1].items():
-        assert torch.equal(value, built[len(built) - 1][key]), key
+    for key, value in loaded[len(loaded) - 1].arrays():
+        np.testing.assert_array_equal(value, getattr(built[len(built) - 1], key), err_msg=key)
     other = WindowDataset(scenarios, stride=STRIDE * 2, cache_path=path)  # stale: rebuilt
     assert len(other) < len(loaded)
 
@@ -178,5 +176,5 @@ def test_dataset_from_a_directory(tmp_path, scenarios):
     assert len(WindowDataset(tmp_path, stride=STRIDE, cache_path=cache)) == len(from_disk)
     in_memory = WindowDataset(scenarios, stride=STRIDE)
     assert len(from_disk) == len(in_memory)
-    for key, value in from_disk[0].items():
-        torch.testing.assert_close(value, in_memory[0][key], msg=key)
+    for key, value in from_disk[0].arrays():
+        np.testing.assert_allclose(value, getattr(in_memory[0], key), err_msg=key)

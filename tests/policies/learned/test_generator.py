@@ -37,7 +37,7 @@ def test_per_agent_times_and_padded_agents(make_model):
     u_agents = model(batch, z, t[:, None].expand(2, 5), r[:, None].expand(2, 5))
     torch.testing.assert_close(u_agents, u_scene)
     assert u_scene.abs().sum() > 0
-    assert not u_scene[~batch["agent_mask"]].any()
+    assert not u_scene[~batch.agent_mask].any()
 
 
 def test_z_of_the_wrong_shape_is_rejected(make_model):
@@ -101,7 +101,7 @@ def test_model_trains_and_samples_on_cuda(make_model, normalizer):
     batch = synthetic_batch(2, 5, seed=0, device=device)
     gen = torch.Generator(device=device).manual_seed(0)
     t, r = TimeSampler()(2, generator=gen, device=device)
-    eps = torch.randn(batch["actions"].shape, generator=gen, device=device)
+    eps = torch.randn(batch.actions.shape, generator=gen, device=device)
     loss, _ = meanflow_loss(model, batch, normalizer, eps, t, r)
     loss.backward()
     assert torch.isfinite(loss) and all(p.grad.is_cuda for p in model.parameters())

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import torch
 
@@ -20,20 +21,20 @@ def test_overlap_penalty_is_the_squared_penetration_depth():
     # Two 4 x 2 m boxes side by side, heading +x: centres 1.5 m apart laterally -> 0.5 m deep.
     planned = _states([[[0.0, 0.0]], [[0.0, 1.5]]]).requires_grad_(True)
     reference = _states([[[0.0, 0.0]], [[0.0, 3.0]]])  # apart in the log
-    batch = {
-        "future": reference,
-        "length": torch.full((1, 2), 4.0, dtype=torch.float64),
-        "width": torch.full((1, 2), 2.0, dtype=torch.float64),
-    }
+    batch = SimpleNamespace(
+        future=reference,
+        length=torch.full((1, 2), 4.0, dtype=torch.float64),
+        width=torch.full((1, 2), 2.0, dtype=torch.float64),
+    )  # the fields of a WindowBatch the penalty reads
     valid = torch.ones(1, 2, 1, dtype=torch.bool)
     penalty = overlap_penalty(planned, batch, valid)
     assert math.isclose(float(penalty.detach()), 0.5**2 / 2)  # one pair, two agent-steps
     penalty.backward()  # it pushes the boxes apart: agent 1 to +y, agent 0 to -y
     assert planned.grad[0, 1, 0, 1] < 0 < planned.grad[0, 0, 0, 1]
     # Pairs that overlap in the reference are not penalised; nor are invalid agents.
-    batch["future"] = planned.detach()
+    batch.future = planned.detach()
     assert float(overlap_penalty(planned, batch, valid)) == 0.0
-    batch["future"] = reference
+    batch.future = reference
     assert float(overlap_penalty(planned, batch, valid & torch.tensor([True, False])[:, None])) == 0
 
 
@@ -45,7 +46,7 @@ def test_offroad_penalty_reads_the_agents_own_crop():
     start = torch.tensor([[[10.0, 5.0, 0.0, math.pi / 2]]], dtype=torch.float64)  # facing +y
     planned = _states([[[10.0, 8.0], [10.0, 20.0]]], yaw=math.pi / 2)  # 3 m ahead; off crop
     reference = _states([[[10.0, 5.0], [10.0, 5.0]]], yaw=math.pi / 2)
-    batch = {"future": reference, "width": torch.full((1, 1), 2.0), "map_crops": crops}
+    batch = SimpleNamespace(future=reference, width=torch.full((1, 1), 2.0), map_crops=crops)
     valid = torch.ones(1, 1, 2, dtype=torch.bool)
     penalty = offroad_penalty(planned, batch, start, valid)
     # sdf 2 m + half width 1 m - allowance relu(-1 + 1) = 0 -> 3^2 over 2 agent-steps.

@@ -13,6 +13,7 @@ from policies.learned.ranking import (
     rank_window,
     risk_graph,
 )
+from policies.learned.window_types import Window
 from riskflow_env.risk import risk_matrix
 
 
@@ -113,14 +114,29 @@ def test_known_conflict_from_ttc_risk():
     assert ranking.groups[2] == ranking.groups[3] == NO_GROUP
 
 
+def _window(features: np.ndarray, history: np.ndarray) -> Window:
+    """A live-scene window with these pair features and histories (the rest zero)."""
+    num = features.shape[0]
+    return Window(
+        history=history,
+        history_valid=np.ones(history.shape[:2], bool),
+        agent_mask=np.ones(num, bool),
+        agent_index=np.arange(num),
+        length=np.full(num, 4.5, np.float32),
+        width=np.full(num, 2.0, np.float32),
+        map_crops=np.zeros((num, 2, 8, 8), np.float32),
+        pair_features=features,
+        pair_mask=np.ones((num, num), bool),
+    )
+
+
 def test_rank_window_uses_the_risk_channel_and_positions():
     num = 4
     features = np.zeros((num, num, 8), np.float32)
     features[2, 3, -1] = features[3, 2, -1] = 0.8
     history = np.zeros((num, 31, 4), np.float32)
     history[:, -1, 0] = [0.0, 5.0, 50.0, 20.0]
-    window = {"pair_features": features, "history": history, "agent_mask": np.ones(num, bool)}
-    ranking = rank_window(window, 1)
+    ranking = rank_window(_window(features, history), 1)
     assert list(ranking.order) == [3, 2, 1]  # 3 is nearer the ego than 2
     assert list(np.flatnonzero(ranking.controllable)) == [3]
 
@@ -141,11 +157,7 @@ def test_rank_window_candidates_restrict_the_choice_not_the_graph():
     num = 4
     features = np.zeros((num, num, 8), np.float32)
     features[1, 2, -1] = features[3, 0, -1] = 0.9
-    window = {
-        "pair_features": features,
-        "history": np.zeros((num, 31, 4), np.float32),
-        "agent_mask": np.ones(num, bool),
-    }
+    window = _window(features, np.zeros((num, 31, 4), np.float32))
     candidates = np.array([True, False, True, True])  # 1 is done but still an obstacle
     ranking = rank_window(window, 1, candidates=candidates)
     assert list(ranking.order) == [2, 3] and list(np.flatnonzero(ranking.controllable)) == [2]

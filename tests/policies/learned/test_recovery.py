@@ -99,13 +99,13 @@ def test_dataset_adds_copies_with_their_own_cache(scenes, tmp_path):
     assert len(more) == 3 * len(plain)
     np.testing.assert_array_equal(more.index[::3], plain.index)
     original, copy = more.window(0), more.window(1)
-    np.testing.assert_array_equal(original["history"], plain.window(0)["history"])
-    assert not np.array_equal(copy["history"], original["history"])
-    np.testing.assert_array_equal(copy["agent_index"], original["agent_index"])
+    np.testing.assert_array_equal(original.history, plain.window(0).history)
+    assert not np.array_equal(copy.history, original.history)
+    np.testing.assert_array_equal(copy.agent_index, original.agent_index)
     again = WindowDataset(
         scenes[:2], stride=40, cache_path=tmp_path / "more.npz", recovery=recovery
     )
-    np.testing.assert_array_equal(again.window(1)["history"], copy["history"])
+    np.testing.assert_array_equal(again.window(1).history, copy.history)
     with pytest.raises(TypeError, match="recovery must be a RecoveryConfig"):
         WindowDataset(scenes[:1], stride=40, recovery={"copies": 1})
 
@@ -149,8 +149,8 @@ def test_recovery_copies_with_parked_cars_show_them_standing(scenes):
     recovery = RecoveryConfig(copies=1, parked=2)
     data = WindowDataset(scenes[:1], stride=40, recovery=recovery)
     plain, copy = data.window(0), data.window(1)
-    assert copy["agent_index"].size == plain["agent_index"].size + 2
-    rows = copy["agent_index"] >= scenes[0].states.shape[0]
+    assert copy.agent_index.size == plain.agent_index.size + 2
+    rows = copy.agent_index >= scenes[0].states.shape[0]
     assert rows.sum() == 2
-    np.testing.assert_array_equal(copy["actions"][rows], 0.0)
-    np.testing.assert_array_equal(copy["future"][rows, :, 2], 0.0)
+    np.testing.assert_array_equal(copy.actions[rows], 0.0)
+    np.testing.assert_array_equal(copy.future[rows, :, 2], 0.0)

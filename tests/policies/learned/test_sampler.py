@@ -39,7 +39,7 @@ def test_plans_are_one_step_and_consistent_with_the_dynamics(setup, normalizer):
     scene = model.encode(batch)
     with torch.no_grad():
         expected = normalizer.denormalize(eps + base_velocity(model, eps, scene))
-    live = batch["agent_mask"]
+    live = batch.agent_mask
     bounds = DEFAULT_CONFIG
     assert bool(
         (actions[..., 0] >= bounds.accel_min).all() and (actions[..., 0] <= bounds.accel_max).all()
@@ -50,7 +50,7 @@ def test_plans_are_one_step_and_consistent_with_the_dynamics(setup, normalizer):
     inside &= live[..., None]
     torch.testing.assert_close(actions[inside], expected[inside])
     assert not actions[~live].any(), "padded agents get zero actions"
-    torch.testing.assert_close(trajectories, rollout(batch["history"][:, :, -1], actions))
+    torch.testing.assert_close(trajectories, rollout(batch.history[:, :, -1], actions))
     # A SceneContext works in place of the batch.
     from_scene, _ = sample(model, scene, eps, normalizer)
     torch.testing.assert_close(from_scene, actions)

@@ -31,8 +31,8 @@ def test_windows_of_a_dataset_match_the_loaded_scenes(scenarionet_toy, tmp_path)
     assert len(lazy) == len(eager) > 0
     np.testing.assert_array_equal(lazy.index, eager.index)
     for item in range(len(lazy)):
-        for key, value in lazy.window(item).items():
-            np.testing.assert_array_equal(value, eager.window(item)[key], err_msg=key)
+        for key, value in lazy.window(item).arrays():
+            np.testing.assert_array_equal(value, getattr(eager.window(item), key), err_msg=key)
 
 
 def test_train_on_a_dataset_folder_then_from_the_window_cache(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -42,9 +43,12 @@ def test_evaluate_is_deterministic_and_measures_constant_velocity(
     assert first["min_ade"] < first["ade"]  # best of 3 noise plans beats a typical one
     assert first["jerk_rms"] > 10 * first["data_jerk_rms"]  # noise is far from smooth
     # constant velocity on data that keeps its speed and heading: zero error
-    still = [dict(b, actions=torch.zeros_like(b["actions"])) for b in batches]
-    for b in still:
-        b["future"] = _constant_velocity_future(b)
+    still = [
+        dataclasses.replace(
+            b, actions=torch.zeros_like(b.actions), future=_constant_velocity_future(b)
+        )
+        for b in batches
+    ]
     metrics = evaluate(model, still, normalizer, num_samples=2)
     assert metrics["cv_ade"] == pytest.approx(0.0, abs=1e-4)
     assert metrics["data_jerk_rms"] == 0.0 and math.isfinite(metrics["ade"])
@@ -53,5 +57,5 @@ def test_evaluate_is_deterministic_and_measures_constant_velocity(
 def _constant_velocity_future(batch):
     from riskflow_env.dynamics import rollout
 
-    state = batch["history"][:, :, -1]
-    return rollout(state, torch.zeros_like(batch["actions"]))
+    state = batch.history[:, :, -1]
+    return rollout(state, torch.zeros_like(batch.actions))

@@ -8,12 +8,8 @@ import numpy as np
 import pytest
 
 import riskflow_env
-from policies.learned.windows import (
-    FUTURE_KEYS,
-    WindowConfig,
-    window_from_scenario,
-    window_from_view,
-)
+from policies.learned.window_types import FUTURE_FIELDS, Window
+from policies.learned.windows import WindowConfig, window_from_scenario, window_from_view
 from riskflow_env import dynamics
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.risk import NUM_PAIR_FEATURES
@@ -64,17 +60,18 @@ EXPECTED = {
 }
 
 
-def check_contract(window: dict, with_future: bool) -> int:
-    num_agents = window["history"].shape[0]
+def check_contract(window: Window, with_future: bool) -> int:
+    num_agents = window.history.shape[0]
     expected = dict(EXPECTED)
     expected["pair_features"] = ((num_agents, NUM_PAIR_FEATURES), np.float32)
     expected["pair_mask"] = ((num_agents,), np.bool_)
     if not with_future:
-        expected = {k: v for k, v in expected.items() if k not in FUTURE_KEYS}
-    assert set(window) == set(expected)
+        expected = {k: v for k, v in expected.items() if k not in FUTURE_FIELDS}
+    assert isinstance(window, Window) and window.has_future == with_future
+    assert {name for name, _ in window.arrays()} == set(expected)
     for key, (shape, dtype) in expected.items():
-        assert window[key].shape == (num_agents, *shape), key
-        assert window[key].dtype == dtype, key
+        assert getattr(window, key).shape == (num_agents, *shape), key
+        assert getattr(window, key).dtype == dtype, key
     return num_agents
 
 
@@ -85,30 +82,30 @@ def test_window_shapes_dtypes_and_scene_frame(scenario, current_index):
     now = scenario.states[:, current_index, :2]
     near = np.linalg.norm(now - now[scenario.ego_index], axis=-1) <= 150.0
     present = np.flatnonzero(scenario.valid[:, current_index] & near)
-    assert num_agents == present.size and set(window["agent_index"]) == set(present)
-    assert window["agent_index"][0] == scenario.ego_index
-    assert window["agent_mask"].all() and window["history_valid"][:, -1].all()
+    assert num_agents == present.size and set(window.agent_index) == set(present)
+    assert window.agent_index[0] == scenario.ego_index
+    assert window.agent_mask.all() and window.history_valid[:, -1].all()
 
-    ego_now = window["history"][0, -1]
+    ego_now = window.history[0, -1]
     np.testing.assert_allclose(ego_now[[0, 1, 3]], 0.0, atol=1e-5)  # origin, heading +x
-    world = scenario.states[window["agent_index"], current_index]
+    world = scenario.states[window.agent_index, current_index]
     np.testing.assert_allclose(ego_now[2], world[0, 2], rtol=1e-6)  # speeds unchanged
     # distances and relative headings are frame independent
-    scene_xy = window["history"][:, -1, :2]
+    scene_xy = window.history[:, -1, :2]
     np.testing.assert_allclose(
         np.linalg.norm(scene_xy, axis=-1),
         np.linalg.norm(world[:, :2] - world[0, :2], axis=-1),
         atol=1e-4,
     )
     relative = dynamics.wrap_angle(world[:, 3] - world[0, 3])
-    np.testing.assert_allclose(window["history"][:, -1, 3], relative, atol=1e-5)
+    np.testing.assert_allclose(window.history[:, -1, 3], relative, atol=1e-5)
     # slots are ordered by distance to the ego
     assert np.all(np.diff(np.linalg.norm(scene_xy, axis=-1)) >= -1e-4)
     # map crops: the agent sits at the crop centre, on the road; SDF clipped to 10 m
-    centre = window["map_crops"][:, :, S // 2 - 1 : S // 2 + 1, S // 2 - 1 : S // 2 + 1]
+    centre = window.map_crops[:, :, S // 2 - 1 : S // 2 + 1, S // 2 - 1 : S // 2 + 1]
     assert np.all(centre[:, 0] > 0.5) and np.all(centre[:, 1] < 0.5)
-    assert np.abs(window["map_crops"][:, 1]).max() <= 10.0
-    np.testing.assert_array_equal(window["pair_mask"].diagonal(), False)
+    assert np.abs(window.map_crops[:, 1]).max() <= 10.0
+    np.testing.assert_array_equal(window.pair_mask.diagonal(), False)
 
 
 def test_actions_reproduce_the_future_through_the_rollout():
@@ -116,16 +113,16 @@ def test_actions_reproduce_the_future_through_the_rollout():
         scenario = rolled_scenario(seed)
         for current_index in (30, 50):
             window = window_from_scenario(scenario, current_index)
-            future, valid = window["future"], window["future_valid"]
-            actions, actions_valid = window["actions"], window["actions_valid"]
-            chain_valid = np.concatenate([window["agent_mask"][:, None], valid], axis=1)
+            future, valid = window.future, window.future_valid
+            actions, actions_valid = window.actions, window.actions_valid
+            chain_valid = np.concatenate([window.agent_mask[:, None], valid], axis=1)
             np.testing.assert_array_equal(actions_valid, chain_valid[:, 1:] & chain_valid[:, :-1])
             assert np.all(actions[~actions_valid] == 0) and np.all(future[~valid] == 0)
             assert not actions_valid[1:].all()  # the gap is inside the window
             in_bounds = np.all(dynamics.clip_actions(actions) == actions, axis=-1)
             usable = np.cumprod(actions_valid & in_bounds, axis=1).astype(bool)  # valid prefix
             rolled = dynamics.rollout(
-                window["history"][:, -1].astype(np.float64), actions.astype(np.float64)
+                window.history[:, -1].astype(np.float64), actions.astype(np.float64)
             )
             error = np.linalg.norm(rolled[..., :2] - future[..., :2], axis=-1)
             assert usable[0].all() and usable[:, :5].all()
@@ -134,22 +131,22 @@ def test_actions_reproduce_the_future_through_the_rollout():
 
 def test_history_and_future_beyond_the_track_are_invalid(scenario):
     window = window_from_scenario(scenario, 10)
-    assert not window["history_valid"][:, : H - 11].any()
-    assert np.all(window["history"][:, : H - 11] == 0)
+    assert not window.history_valid[:, : H - 11].any()
+    assert np.all(window.history[:, : H - 11] == 0)
     late = window_from_scenario(scenario, scenario.states.shape[1] - 11)
-    assert not late["future_valid"][:, 10:].any()
-    assert not late["actions_valid"][:, 10:].any()
+    assert not late.future_valid[:, 10:].any()
+    assert not late.actions_valid[:, 10:].any()
 
 
 def test_agent_selection_respects_max_agents_and_max_distance(scenario):
     near = window_from_scenario(scenario, config=WindowConfig(max_agents=3))
-    assert near["history"].shape[0] == 3
+    assert near.history.shape[0] == 3
     full = window_from_scenario(scenario)
-    np.testing.assert_array_equal(near["agent_index"], full["agent_index"][:3])
-    distance = np.linalg.norm(full["history"][:, -1, :2], axis=-1)
+    np.testing.assert_array_equal(near.agent_index, full.agent_index[:3])
+    distance = np.linalg.norm(full.history[:, -1, :2], axis=-1)
     radius = float(0.5 * (distance[3] + distance[4]))
     cut = window_from_scenario(scenario, config=WindowConfig(max_distance=radius))
-    np.testing.assert_array_equal(cut["agent_index"], full["agent_index"][:4])
+    np.testing.assert_array_equal(cut.agent_index, full.agent_index[:4])
 
 
 def test_bad_inputs_are_named(scenario):
@@ -173,11 +170,11 @@ def test_view_window_equals_scenario_window_at_the_episode_start(scenario):
     live = window_from_view(view)
     recorded = window_from_scenario(scenario)
     check_contract(live, with_future=False)
-    for key in live:
+    for key, value in live.arrays():
         if key == "agent_index":  # env slots vs scenario rows
-            np.testing.assert_array_equal(view.scenario_rows[live[key]], recorded[key])
+            np.testing.assert_array_equal(view.scenario_rows[value], recorded.agent_index)
         else:
-            np.testing.assert_array_equal(live[key], recorded[key], err_msg=key)
+            np.testing.assert_array_equal(value, getattr(recorded, key), err_msg=key)
 
 
 def test_view_window_follows_the_live_scene(scenario):
@@ -187,8 +184,8 @@ def test_view_window_follows_the_live_scene(scenario):
         env.step({agent: np.array([0.5, 0.0]) for agent in env.agents})
     view = env.view()
     window = window_from_view(view)
-    assert window["agent_index"][0] == 0
-    np.testing.assert_allclose(window["history"][0, -1, [0, 1, 3]], 0.0, atol=1e-5)
-    assert sorted(window["agent_index"]) == list(np.flatnonzero(view.present))
-    speed = view.current[window["agent_index"], 2]
-    np.testing.assert_allclose(window["history"][:, -1, 2], speed, rtol=1e-6)
+    assert window.agent_index[0] == 0
+    np.testing.assert_allclose(window.history[0, -1, [0, 1, 3]], 0.0, atol=1e-5)
+    assert sorted(window.agent_index) == list(np.flatnonzero(view.present))
+    speed = view.current[window.agent_index, 2]
+    np.testing.assert_allclose(window.history[:, -1, 2], speed, rtol=1e-6)

@@ -2,15 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 import torch
 
-from policies.learned.data import collate_windows
 from policies.learned.synthetic import synthetic_batch
 from policies.learned.trajectory_loss import target_actions, trajectory_loss
+from policies.learned.window_types import FUTURE_FIELDS, collate_windows
 from policies.learned.windows import window_from_scenario
 from policies.riskflow.meanflow import (
     DUDT_CLIP,
@@ -33,7 +34,7 @@ def test_jvp_matches_central_finite_difference_along_the_flow(make_model, normal
     batch = synthetic_batch(2, 5, seed=3, dtype=torch.float64)
     scene = model.encode(batch)
     gen = torch.Generator().manual_seed(0)
-    eps = torch.randn(batch["actions"].shape, generator=gen, dtype=torch.float64)
+    eps = torch.randn(batch.actions.shape, generator=gen, dtype=torch.float64)
     a_star = target_actions(batch, normalizer)
     t, r = _times(2, torch.float64)
     t_ = t[:, None, None, None]
@@ -79,7 +80,7 @@ def test_meanflow_identity_target_on_a_closed_form_velocity_field():
 def test_loss_gradient_flows_through_u_only(make_model, normalizer):
     model = make_model()
     batch = synthetic_batch(2, 4, seed=0)
-    eps = torch.randn(batch["actions"].shape, generator=torch.Generator().manual_seed(2))
+    eps = torch.randn(batch.actions.shape, generator=torch.Generator().manual_seed(2))
     t, r = _times(2)
     loss, metrics = meanflow_loss(model, batch, normalizer, eps, t, r, clip=DUDT_CLIP)
     grads = torch.autograd.grad(loss, list(model.parameters()))
@@ -108,13 +109,12 @@ def test_loss_gradient_flows_through_u_only(make_model, normalizer):
 def test_loss_ignores_padded_agents_and_invalid_future_steps(make_model, normalizer):
     model = make_model()
     batch = synthetic_batch(2, 8, seed=4)
-    assert not batch["agent_mask"].all() and not batch["future_valid"][batch["agent_mask"]].all()
-    eps = torch.randn(batch["actions"].shape, generator=torch.Generator().manual_seed(0))
+    assert not batch.agent_mask.all() and not batch.future_valid[batch.agent_mask].all()
+    eps = torch.randn(batch.actions.shape, generator=torch.Generator().manual_seed(0))
     t, r = _times(2)
     loss, _ = meanflow_loss(model, batch, normalizer, eps, t, r)
-    changed = dict(batch)
-    ignored = ~(batch["future_valid"] & batch["agent_mask"][..., None])
-    changed["future"] = torch.where(ignored[..., None], 1e3, batch["future"])
+    ignored = ~(batch.future_valid & batch.agent_mask[..., None])
+    changed = dataclasses.replace(batch, future=torch.where(ignored[..., None], 1e3, batch.future))
     loss_changed, _ = meanflow_loss(model, changed, normalizer, eps, t, r)
     torch.testing.assert_close(loss_changed, loss)
 
@@ -122,7 +122,7 @@ def test_loss_ignores_padded_agents_and_invalid_future_steps(make_model, normali
 def test_flow_matching_loss_is_the_meanflow_loss_at_r_equal_t(make_model, normalizer):
     model = make_model()
     batch = synthetic_batch(3, 4, seed=5)
-    eps = torch.randn(batch["actions"].shape, generator=torch.Generator().manual_seed(0))
+    eps = torch.randn(batch.actions.shape, generator=torch.Generator().manual_seed(0))
     t = torch.tensor([0.1, 0.5, 0.9])
     loss_fm, _ = flow_matching_loss(model, batch, normalizer, eps, t)
     loss_mf, metrics = meanflow_loss(model, batch, normalizer, eps, t, t.clone())
@@ -133,7 +133,7 @@ def test_flow_matching_loss_is_the_meanflow_loss_at_r_equal_t(make_model, normal
 def test_loss_rejects_bad_times_and_noise(make_model, normalizer):
     model = make_model()
     batch = synthetic_batch(2, 3)
-    eps = torch.zeros(batch["actions"].shape)
+    eps = torch.zeros(batch.actions.shape)
     with pytest.raises(ValueError, match="t <= r"):
         meanflow_loss(
             model, batch, normalizer, eps, torch.tensor([0.5, 0.5]), torch.tensor([0.4, 0.6])
@@ -142,9 +142,9 @@ def test_loss_rejects_bad_times_and_noise(make_model, normalizer):
         meanflow_loss(model, batch, normalizer, eps[:, :2], *_times(2))
     with pytest.raises(ValueError, match=r"t must be \(B,\)"):
         meanflow_loss(model, batch, normalizer, eps, torch.zeros(3), torch.ones(3))
-    batch.pop("future")
-    with pytest.raises(KeyError, match="future"):
-        meanflow_loss(model, batch, normalizer, eps, *_times(2))
+    live = dataclasses.replace(batch, **dict.fromkeys(FUTURE_FIELDS))
+    with pytest.raises(ValueError, match="future fields"):
+        meanflow_loss(model, live, normalizer, eps, *_times(2))
 
 
 @pytest.fixture
@@ -161,7 +161,7 @@ def test_overfitting_one_batch_drives_the_loss_down_by_orders_of_magnitude(make_
     torch.manual_seed(0)
     model = make_model(randomize=False)
     batch = synthetic_batch(2, 4, seed=6)
-    eps = torch.randn(batch["actions"].shape, generator=torch.Generator().manual_seed(0))
+    eps = torch.randn(batch.actions.shape, generator=torch.Generator().manual_seed(0))
     t, r = torch.tensor([0.0, 0.3]), torch.tensor([0.7, 1.0])
     optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
     losses = []
@@ -179,7 +179,7 @@ def test_loss_runs_on_collated_recorded_windows(make_model, normalizer):
     scenario = HighwayTrafficSource().sample(np.random.default_rng(0))
     batch = collate_windows([window_from_scenario(scenario, k) for k in (30, 60)])
     model = make_model()
-    eps = torch.randn(batch["actions"].shape, generator=torch.Generator().manual_seed(0))
+    eps = torch.randn(batch.actions.shape, generator=torch.Generator().manual_seed(0))
     loss, metrics = meanflow_loss(model, batch, normalizer, eps, *_times(2))
     loss.backward()
     assert math.isfinite(float(loss)) and float(metrics["ade"]) > 0

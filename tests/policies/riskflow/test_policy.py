@@ -9,9 +9,9 @@ import pytest
 import torch
 
 import riskflow_env
-from policies.learned.data import ActionNormalizer, collate_windows
-from policies.learned.encoder import ENCODER_KEYS
+from policies.learned.data import ActionNormalizer
 from policies.learned.sampler import sample
+from policies.learned.window_types import collate_windows
 from policies.learned.windows import window_from_view
 from policies.riskflow.policy import PHASES, RiskFlowAdversary
 from riskflow_env.config import EnvConfig
@@ -122,9 +122,9 @@ def test_k0_gives_exactly_the_unguided_generator(model):
     assert not policy.controllable.any()
     np.testing.assert_array_equal(policy.plans, policy.base_plans)
     window = window_from_view(env.view(), policy.window_config)
-    batch = collate_windows([{key: window[key] for key in ENCODER_KEYS}])
+    batch = collate_windows([window])
     actions, _ = sample(model, batch, policy.noise[None], NORMALIZER)
-    slots = window["agent_index"]
+    slots = window.agent_index
     # A different code path from the policy's (batch layout, op order), in float32: actions
     # of a few m/s^2 round at about 8 * 2**-24 = 5e-7 per op, so allow 1e-5.
     np.testing.assert_allclose(policy.plan_actions[slots], actions[0].numpy(), rtol=0, atol=1e-5)

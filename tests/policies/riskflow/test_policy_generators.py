@@ -9,9 +9,8 @@ import pytest
 
 from policies.baselines.diffusion.sampling import OneCallSampler
 from policies.learned.checkpoint import build_checkpoint, load_checkpoint, save_checkpoint
-from policies.learned.data import collate_windows
-from policies.learned.encoder import ENCODER_KEYS
 from policies.learned.sampler import sample
+from policies.learned.window_types import collate_windows
 from policies.learned.windows import window_from_view
 from policies.riskflow.base_generator import checkpoint_kind, load_base_generator
 from policies.riskflow.policy import RiskFlowAdversary
@@ -34,9 +33,9 @@ def test_diffusion_base_plans_are_the_ddim_chain_and_guidance_moves_only_a_c(
     unguided, view = planned(RiskFlowAdversary(k=0, **kwargs), road_view)
     assert unguided.generator_kind == "diffusion"
     window = window_from_view(view, unguided.window_config)
-    batch = collate_windows([{key: window[key] for key in ENCODER_KEYS}])
+    batch = collate_windows([window])
     actions, _ = sample(sampler, batch, unguided.noise[None], tiny_normalizer)
-    np.testing.assert_array_equal(unguided.plan_actions[window["agent_index"]], actions[0].numpy())
+    np.testing.assert_array_equal(unguided.plan_actions[window.agent_index], actions[0].numpy())
 
     guided, _ = planned(RiskFlowAdversary(k=2, guidance_steps=6, **kwargs), road_view)
     np.testing.assert_array_equal(guided.base_plans, unguided.plans)
