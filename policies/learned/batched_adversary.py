@@ -89,6 +89,17 @@ class BatchedAdversary:
         """The next action of every live non-ego vehicle of each scene (a dict per scene,
         as ``ScenePolicy.act``); the scenes due to re-plan are planned in one call
         (their indices: ``last_planned``)."""
+        views = self._plan_due(views)
+        return [scene.emit(view) for scene, view in zip(self.scenes, views, strict=True)]
+
+    def act_array(self, views: Sequence[SceneView]) -> np.ndarray:
+        """:meth:`act` as one (B, A, 2) array (accel [m/s^2], yaw rate [rad/s]), zeros
+        for the slots no plan drives (the ego, empty slots): what batched stepping takes."""
+        views = self._plan_due(views)
+        return np.stack([s.emit_array(v) for s, v in zip(self.scenes, views, strict=True)])
+
+    def _plan_due(self, views: Sequence[SceneView]) -> list[SceneView]:
+        """Plan the scenes due to re-plan, in one call; the checked views."""
         views = self._check_views(views)
         pairs = enumerate(zip(self.scenes, views, strict=True))
         due = [index for index, (scene, view) in pairs if scene.due(view)]
@@ -96,7 +107,7 @@ class BatchedAdversary:
             self.plan(views, due)
         else:
             self.last_planned = ()
-        return [scene.emit(view) for scene, view in zip(self.scenes, views, strict=True)]
+        return views
 
     def plan(self, views: Sequence[SceneView], scenes: Sequence[int] | None = None) -> None:
         """Plan the scenes ``scenes`` (indices; None: all) now, in one call; their buffers

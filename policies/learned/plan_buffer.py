@@ -160,6 +160,10 @@ class PlanBufferPolicy:
 
     def emit(self, view: SceneView) -> dict[str, np.ndarray]:
         """The actions of the stored plans at ``view.step`` (no re-planning)."""
+        return actions_dict(view, controlled_mask(view, "others"), self.emit_array(view))
+
+    def emit_array(self, view: SceneView) -> np.ndarray:
+        """(A, 2) :meth:`emit` as one array per slot; zeros for the slots it does not drive."""
         if self._plan_step is None:
             raise RuntimeError("no plans yet: call act(view) (or plan(view)) first")
         elapsed = view.step - self._plan_step
@@ -169,8 +173,9 @@ class PlanBufferPolicy:
                 f"{self._plan_step}, {self.plan_actions.shape[1]} steps)"
             )
         actions = np.zeros((view.num_agents, 2))
-        actions[self.plan_mask] = self.plan_actions[self.plan_mask, elapsed]
-        return actions_dict(view, controlled_mask(view, "others"), actions)
+        drive = self.plan_mask & controlled_mask(view, "others")
+        actions[drive] = self.plan_actions[drive, elapsed]
+        return actions
 
     def spawn(self, seed: int | None = None) -> PlanBufferPolicy:
         """A copy for another scene: the same model and options (shared, not copied), its

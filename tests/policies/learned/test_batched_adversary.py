@@ -201,3 +201,19 @@ def test_bad_input_names_the_argument(tiny_meanflow, tiny_normalizer):
         plan_scenes([batch.scenes[0], other], views)
     with pytest.raises(ValueError, match="equal length"):
         plan_scenes(batch.scenes, views[:1])
+
+
+def test_act_array_is_act_as_one_array(tiny_meanflow, tiny_normalizer):
+    """``act_array`` gives ``act``'s actions in their slots (zeros for the ego and empty
+    slots), for batched stepping; the same seeds give the same actions."""
+    envs = [make_env(index) for index in range(3)]
+    views = [env.view() for env in envs]
+    dicts, arrays = (BatchedAdversary(riskflow(tiny_meanflow, tiny_normalizer), 3) for _ in "ab")
+    dicts.reset(views)
+    arrays.reset(views)
+    expected, got = dicts.act(views), arrays.act_array(views)
+    assert got.shape == (3, CONFIG.max_agents, 2)
+    for b, (actions, view) in enumerate(zip(expected, views, strict=True)):
+        slots = [view.slot(agent) for agent in actions]
+        np.testing.assert_array_equal(got[b, slots], np.stack(list(actions.values())))
+        np.testing.assert_array_equal(np.delete(got[b], slots, axis=0), 0.0)
