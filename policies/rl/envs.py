@@ -29,7 +29,7 @@ worker: it seeds the adversary per worker and limits torch to one thread per wor
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -90,10 +90,21 @@ def compose_action(
 
 def scale_action(action: np.ndarray, dynamics: DynamicsConfig) -> np.ndarray:
     """Normalised ``(u_accel, u_yaw)`` in ``[-1, 1]`` (clipped) -> (accel [m/s^2], yaw rate
-    [rad/s]); 0 maps to 0, -1 to ``accel_min``, +1 to ``accel_max`` / ``yaw_rate_max``."""
-    u = np.clip(np.asarray(action, dtype=np.float64).reshape(2), -1.0, 1.0)
-    accel = u[0] * (dynamics.accel_max if u[0] >= 0 else -dynamics.accel_min)
-    return np.array([accel, u[1] * dynamics.yaw_rate_max])
+    [rad/s]); 0 maps to 0, -1 to ``accel_min``, +1 to ``accel_max`` / ``yaw_rate_max``.
+    One action (any shape of 2 values) gives (2,); a batch (N, 2) gives (N, 2)."""
+    u = np.asarray(action, dtype=np.float64)
+    u = np.clip(u if u.ndim == 2 else u.reshape(2), -1.0, 1.0)
+    gain = np.where(u[..., 0] >= 0, dynamics.accel_max, -dynamics.accel_min)
+    return np.stack([u[..., 0] * gain, u[..., 1] * dynamics.yaw_rate_max], axis=-1)
+
+
+def record_outcome(outcome: np.ndarray, info: Mapping[str, Any]) -> np.ndarray:
+    """The episode outcome so far, ``outcome`` (2, ...) = (ego_collision, ego_offroad), each
+    1.0 once it happened, updated with a step's ``info`` (``collided``,
+    ``offroad_fraction``: scalars for one scene, (N,) arrays for a batch)."""
+    collided = np.asarray(info["collided"], dtype=np.float64)
+    offroad = (np.asarray(info["offroad_fraction"]) > 0).astype(np.float64)
+    return np.maximum(outcome, np.stack([collided, offroad]))
 
 
 class EgoInterface:
@@ -230,11 +241,9 @@ class EgoTrainingEnv(gymnasium.Wrapper):
         return self.interface.observe(observation, view), total, terminated, truncated, info
 
     def _record_outcome(self, info: dict[str, Any]) -> None:
-        self._outcome["ego_collision"] = max(
-            self._outcome["ego_collision"], float(info["collided"])
-        )
-        offroad = float(info["offroad_fraction"] > 0)
-        self._outcome["ego_offroad"] = max(self._outcome["ego_offroad"], offroad)
+        so_far = np.array([self._outcome["ego_collision"], self._outcome["ego_offroad"]])
+        collision, offroad = record_outcome(so_far, info).tolist()
+        self._outcome = {"ego_collision": collision, "ego_offroad": offroad}
 
     def set_adversary_stage(self, stage: AdversaryStage) -> None:
         """Set k, guidance weight and target of the RiskFlow adversary (next cycle on)."""
