@@ -36,7 +36,9 @@ class SceneState:
             inactive present vehicle stands still where it stopped: it stays an obstacle.
         last_action: (..., A, 2) float64, the action applied at the last step
             (accel [m/s^2], yaw rate [rad/s]), zeros at reset.
-        step: number of env steps taken since reset (scenes of a batch step in lockstep).
+        step: number of env steps taken since reset: an int (the scenes of a batch step in
+            lockstep), or a (B, 1) int array, one count per scene (scenes that reset on
+            their own, :class:`~riskflow_env.scene_batch.SceneBatch`).
     """
 
     history: Array
@@ -46,7 +48,7 @@ class SceneState:
     present: Array
     active: Array
     last_action: Array
-    step: int = 0
+    step: int | np.ndarray = 0
 
     def __post_init__(self) -> None:
         shape = tuple(getattr(self.history, "shape", ()))
