@@ -5,6 +5,9 @@
 * :mod:`policies.rl.envs` — the ego's training env (normalised or maneuver actions, a
   base planner for residual actions, action repeat, episode outcome, settable adversary)
   and the vector-env factory;
+* :mod:`policies.rl.vector_env` — ``EgoVectorEnv``: N scenes stepped as one batch, the
+  adversary planning them in one call (a Gymnasium ``VectorEnv``);
+  :mod:`policies.rl.sb3_vec_env` — it as an SB3 ``VecEnv``;
 * :mod:`policies.rl.features` — the fixed maneuvers and their predicted clearance, as
   observation features and as discrete actions;
 * :mod:`policies.rl.curriculum` — the linear curriculum and the SB3 callbacks (needs
@@ -24,14 +27,17 @@ from __future__ import annotations
 
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig, apply_stage, make_traffic
 from policies.rl.envs import EgoEnvConfig, EgoTrainingEnv, build_env, make_env, scale_action
+from policies.rl.vector_env import EgoVectorEnv, build_vector_env
 
 __all__ = [
     "AdversaryStage",
     "EgoEnvConfig",
     "EgoTrainingEnv",
+    "EgoVectorEnv",
     "ScenePolicyConfig",
     "apply_stage",
     "build_env",
+    "build_vector_env",
     "make_env",
     "make_traffic",
     "scale_action",

@@ -250,14 +250,18 @@ class EgoTrainingEnv(gymnasium.Wrapper):
         apply_stage(self.env.unwrapped.policy, stage)
 
 
-def build_env(config: EgoEnvConfig, seed: int = 0) -> EgoTrainingEnv:
-    """One training env (not yet reset); the adversary's noise seed is ``seed``."""
+def training_scenes(config: EgoEnvConfig) -> list:
+    """The scenes of ``config``: its shipped split, the first ``config.scenes`` of them."""
     from riskflow_env.scenarios import shipped_bank
 
     bank = shipped_bank(config.split)
-    scenes = list(bank) if config.scenes is None else [bank[i] for i in range(config.scenes)]
+    return list(bank) if config.scenes is None else [bank[i] for i in range(config.scenes)]
+
+
+def build_env(config: EgoEnvConfig, seed: int = 0) -> EgoTrainingEnv:
+    """One training env (not yet reset); the adversary's noise seed is ``seed``."""
     policy = make_traffic(config.traffic, seed=seed)
-    env = EgoEnv(config=config.env, scenarios=scenes, policy=policy)
+    env = EgoEnv(config=config.env, scenarios=training_scenes(config), policy=policy)
     return EgoTrainingEnv(
         env,
         base_planner=config.base_planner,

@@ -50,8 +50,14 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from policies.rl.adversary import AdversaryStage, apply_stage
-from policies.rl.envs import EgoInterface, record_outcome, scale_action
+from policies.rl.adversary import AdversaryStage, apply_stage, make_traffic
+from policies.rl.envs import (
+    EgoEnvConfig,
+    EgoInterface,
+    record_outcome,
+    scale_action,
+    training_scenes,
+)
 from policies.rl.vector_infos import step_infos
 from policies.rl.vector_traffic import batched_traffic
 from riskflow_env.agents.idm import IDMPolicy
@@ -298,3 +304,19 @@ class EgoVectorEnv(VectorEnv):
         return np.stack(
             [self.interfaces[i].observe(env_obs[i], views[i]) for i in indices]
         ).reshape(len(indices), -1)
+
+
+def build_vector_env(config: EgoEnvConfig, num_envs: int, seed: int = 0) -> EgoVectorEnv:
+    """``num_envs`` scenes of the training env of ``config`` (not yet reset): the vector
+    counterpart of :func:`~policies.rl.envs.build_env`. Scene ``b``'s adversary draws its
+    noise from ``seed + b`` (until ``reset(seed=s)`` reseeds it with ``s + b``)."""
+    return EgoVectorEnv(
+        num_envs,
+        config=config.env,
+        scenarios=training_scenes(config),
+        policy=make_traffic(config.traffic, seed=seed),
+        base_planner=config.base_planner,
+        action_repeat=config.action_repeat,
+        maneuver_features=config.maneuver_features,
+        maneuver_actions=config.maneuver_actions,
+    )

@@ -244,3 +244,23 @@ def test_bad_arguments_name_the_argument():
     discrete.reset(seed=0)
     with pytest.raises(ValueError, match="maneuver indices"):
         discrete.step(np.array([0, 99]))
+
+
+def test_build_vector_env_follows_the_training_config():
+    """The vector counterpart of build_env: the config's scenes, interface and traffic."""
+    from policies.rl.adversary import ScenePolicyConfig
+    from policies.rl.envs import EgoEnvConfig
+    from policies.rl.vector_env import build_vector_env
+
+    config = EgoEnvConfig(
+        env=EnvConfig(max_agents=8, episode_steps=5),
+        traffic=ScenePolicyConfig(kind="idm"),
+        scenes=2,
+        action_repeat=2,
+        maneuver_actions=True,
+    )
+    env = build_vector_env(config, num_envs=2, seed=0)
+    assert env.action_repeat == 2 and env.action_space.shape == (2,)
+    env.reset(seed=0)
+    observations, rewards, *_ = env.step(np.array([1, 4]))
+    assert observations.shape == (2, env.single_observation_space.shape[0])
