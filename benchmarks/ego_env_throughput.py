@@ -1,0 +1,147 @@
+"""Ego env-steps per second against the K = 5 RiskFlow adversary: the vector env vs today's loop.
+
+Issue 18, table of deliverable 3. N scenes of the ego's training env, the other vehicles
+driven by the shipped-checkpoint RiskFlow adversary (``--k``, ``--guidance-steps``,
+re-planning every ``--planning-interval`` s), the ego holding speed and heading (action
+0), finished episodes reset (scenes drawn from the shipped ``--split`` bank), in two ways
+measured in one run:
+
+* **vector**: :class:`policies.rl.vector_env.EgoVectorEnv`, the N scenes stepped by one
+  batched transition and planned by one ``BatchedAdversary`` call per cycle;
+* **loop**: today's path, N ``EgoTrainingEnv`` (``EgoEnv``) stepped one after the other
+  in one process (as SB3's ``DummyVecEnv`` does), each adversary planning its own scene.
+
+Both see the same scenes (seeds ``b``), the same model and the same actions. Reported per
+N: ego env-steps per second (N x steps / seconds) of each and their ratio. Each round
+times ``--steps`` steps of all N scenes after one warm-up step; rounds alternate (vector,
+then loop) and the best of ``--rounds`` is kept.
+
+    python benchmarks/ego_env_throughput.py [--scenes 1 8 32] [--steps 20] [--device cpu]
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from policies.dataclass_cli import parse_dataclass
+from policies.riskflow.policy import RiskFlowAdversary
+from policies.rl.envs import EgoTrainingEnv
+from policies.rl.vector_env import EgoVectorEnv
+from riskflow_env.config import EnvConfig
+from riskflow_env.scenarios import shipped_bank
+from riskflow_env.wrappers import EgoEnv
+
+
+@dataclass(frozen=True)
+class Options:
+    """Benchmark options."""
+
+    scenes: tuple[int, ...] = (1, 8, 32)
+    """scenes stepped together (N)"""
+    steps: int = 20
+    """timed steps of all N scenes per round"""
+    rounds: int = 1
+    """timed rounds per N and way; the best is reported"""
+    k: int = 5
+    """size of the controllable set A_c in each scene"""
+    guidance_steps: int = 30
+    """K_g guidance steps per planning cycle"""
+    planning_interval: float = 0.5
+    """re-planning interval [s]"""
+    episode_steps: int = 100
+    """episode length [steps of 0.1 s]"""
+    split: str = "eval"
+    """shipped scenario bank the scenes are drawn from"""
+    threads: int = 1
+    """torch CPU threads"""
+    device: str = "cpu"
+    """torch device (cuda where a GPU is present)"""
+
+
+def _parse(argv: list[str] | None = None) -> Options:
+    return parse_dataclass(
+        Options, argv, prog="ego_env_throughput.py", description=__doc__.split("\n")[0]
+    )
+
+
+def _time(step, steps: int) -> float:
+    start = time.perf_counter()
+    for _ in range(steps):
+        step()
+    return time.perf_counter() - start
+
+
+def measure(policy: RiskFlowAdversary, count: int, config: EnvConfig, options: Options) -> dict:
+    """Best seconds for ``options.steps`` steps of ``count`` scenes, vector and loop."""
+    scenes = list(shipped_bank(options.split))
+    vector = EgoVectorEnv(count, config=config, scenarios=scenes, policy=policy)
+    vector.reset(seed=0)
+    loop = [
+        EgoTrainingEnv(EgoEnv(config=config, scenarios=scenes, policy=policy.spawn(index)))
+        for index in range(count)
+    ]
+    for index, env in enumerate(loop):
+        env.reset(seed=index)
+    actions = np.zeros((count, 2))
+
+    def step_vector() -> None:
+        vector.step(actions)
+
+    def step_loop() -> None:
+        for env in loop:
+            _, _, terminated, truncated, _ = env.step(actions[0])
+            if terminated or truncated:
+                env.reset()
+
+    step_vector()  # warm-up: the first planning cycle, the map stack
+    step_loop()
+    best = {"vector": float("inf"), "loop": float("inf")}
+    for _ in range(options.rounds):
+        best["vector"] = min(best["vector"], _time(step_vector, options.steps))
+        best["loop"] = min(best["loop"], _time(step_loop, options.steps))
+    agents = [int(view.present.sum()) for view in vector.scenes.views()]
+    return {"scenes": count, "agents": agents, **best}
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    """Print the table; returns its rows (``scenes``, ``vector`` and ``loop`` [s for
+    ``steps`` steps of all scenes], ``agents`` per scene at the end)."""
+    options = _parse(argv)
+    torch.set_num_threads(options.threads)
+    policy = RiskFlowAdversary(
+        k=options.k,
+        guidance_steps=options.guidance_steps,
+        planning_interval=options.planning_interval,
+        device=options.device,
+        threads=options.threads,
+    )
+    config = EnvConfig(episode_steps=options.episode_steps)
+    print(
+        f"ego env-steps/s, RiskFlow adversary K = {options.k}, K_g = {options.guidance_steps}, "
+        f"re-plan every {options.planning_interval} s, shipped checkpoint, device "
+        f"{options.device}, {options.threads} torch thread(s); shipped {options.split} scenes, "
+        f"{options.episode_steps}-step episodes; best of {options.rounds} round(s) of "
+        f"{options.steps} steps\n"
+    )
+    print(f"{'N':>4}{'vector steps/s':>16}{'loop steps/s':>14}{'ratio':>8}{'vehicles':>12}")
+    rows = []
+    for count in options.scenes:
+        row = measure(policy, count, config, options)
+        rows.append(row)
+        vector = count * options.steps / row["vector"]
+        loop = count * options.steps / row["loop"]
+        agents = row["agents"]
+        print(
+            f"{count:>4}{vector:>16.1f}{loop:>14.1f}{vector / loop:>7.2f}x"
+            f"{f'{min(agents)}-{max(agents)}':>12}"
+        )
+    print("\nsteps/s = ego env-steps per second (N scenes x steps / s); ratio = vector / loop")
+    return rows
+
+
+if __name__ == "__main__":
+    main()
