@@ -36,6 +36,7 @@ from riskflow_env.simulator import Transition
 from riskflow_env.state import SceneState
 from riskflow_env.view import SceneView
 
+MAX_STACK_BYTES = 256 * 2**20  # [bytes] SDF tables kept for scenes to come back to
 _ARRAYS = ("history", "history_valid", "length", "width", "present", "active", "last_action")
 
 
@@ -139,8 +140,9 @@ class SceneBatch:
         self._update_maps()
 
     def _update_maps(self) -> None:
-        """The map lookup of the current scenes: their one map, or a stack of theirs (kept
-        while it holds every current map; rebuilt from the current maps otherwise)."""
+        """The map lookup of the current scenes: their one map, or a stack of every map
+        seen so far (rebuilt, only when a new map comes, with it added; restarted from the
+        current maps when the tables would pass ``MAX_STACK_BYTES``)."""
         maps = [env.map for env in self.envs]
         if all(m is maps[0] for m in maps):
             self._lookup = maps[0]
@@ -148,7 +150,7 @@ class SceneBatch:
         if self._maps is None or any(id(m) not in self._maps.positions for m in maps):
             unique = list({id(m): m for m in maps}.values())
             kept = [] if self._maps is None else list(self._maps.maps)
-            if len(kept) + len(unique) > 4 * len(self) + 16:
+            if sum(m.sdf.nbytes for m in kept + unique) > MAX_STACK_BYTES:
                 kept = []  # bound the table: start again from the current maps
             known = {id(m) for m in kept}
             self._maps = MapStack(kept + [m for m in unique if id(m) not in known])
