@@ -118,7 +118,7 @@ INSTEAD: dict[str, str] = {
 SLOW: dict[str, str] = {
     # 9 PPO training / evaluation processes (each loads stable-baselines3 and plays its
     # evaluation episodes against the adversary): about 110 s even at 64 timesteps.
-    "docs/RL.md-0-bash": "PPO training and evaluation scripts, about 110 s",
+    "docs/RL.md-1-bash": "PPO training and evaluation scripts, about 110 s",
     # The README's 3 RL scripts: about 50 s at their smallest.
     "README.md-16-bash": "PPO training and evaluation scripts, about 50 s",
     # 5 riskflow-eval runs (20 one-scene rollouts of 9 methods, STRIVE and DDIM included):
