@@ -23,6 +23,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor
 
 from policies.rl.vector_env import EgoVectorEnv
@@ -39,6 +40,11 @@ class SB3EgoVecEnv(VecEnv):
     def __init__(self, env: EgoVectorEnv) -> None:
         if not isinstance(env, EgoVectorEnv):
             raise TypeError(f"env must be an EgoVectorEnv, got {type(env).__name__}")
+        if env.autoreset_mode != AutoresetMode.SAME_STEP:
+            raise ValueError(
+                "env must reset finished scenes in the same step (SB3's convention): build it "
+                f"with autoreset_mode='SameStep', got {env.autoreset_mode.value!r}"
+            )
         self.env = env
         self._actions: np.ndarray | None = None
         super().__init__(env.num_envs, env.single_observation_space, env.single_action_space)

@@ -23,11 +23,14 @@ Spaces              ``single_observation_space`` / ``single_action_space`` are t
 Reset               ``reset(seed=s)``: scene ``b`` is reset with seed ``s + b`` (its
                     scenario draw and its adversary's noise), as a single env
                     ``reset(seed=s + b)``; a list gives each scene its seed
-Autoreset           ``AutoresetMode.SAME_STEP``: a scene whose ego terminates or is
-                    truncated is reset in the same ``step`` (the next scenario from its
-                    generator); ``infos["final_obs"]`` / ``infos["final_info"]`` (with
-                    masks ``_final_obs`` / ``_final_info``) hold its last observation and
-                    info, the returned observation is the new episode's
+Autoreset           ``AutoresetMode.SAME_STEP`` (default): a scene whose ego terminates
+                    or is truncated is reset in the same ``step`` (the next scenario
+                    from its generator); ``infos["final_obs"]`` / ``infos["final_info"]``
+                    (masks ``_final_obs`` / ``_final_info``) hold its last observation
+                    and info, the returned observation is the new episode's.
+                    ``NEXT_STEP`` (Gymnasium's default): the step that ends an episode
+                    returns its last observation (the outcome in ``infos``); the next
+                    ``step`` resets the scene, ignoring its action (reward 0)
 Infos               per key an (N,) array and its mask ``_key``: ``reward_terms``,
                     ``collided``, ``collided_with``, ``offroad_fraction``, ``sdf_depth``;
                     the episode outcome ``ego_collision`` / ``ego_offroad`` in
@@ -80,6 +83,7 @@ class EgoVectorEnv(VectorEnv):
         policy: drives every vehicle but the ego (None: IDM traffic, as ``EgoEnv``).
         base_planner, action_repeat, maneuver_features, maneuver_actions: the ego's
             interface (:class:`~policies.rl.envs.EgoInterface`).
+        autoreset_mode: ``SAME_STEP`` or ``NEXT_STEP`` (module docstring).
     """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
@@ -95,7 +99,15 @@ class EgoVectorEnv(VectorEnv):
         action_repeat: int = 1,
         maneuver_features: bool = False,
         maneuver_actions: bool = False,
+        autoreset_mode: AutoresetMode | str = AutoresetMode.SAME_STEP,
     ) -> None:
+        modes = (AutoresetMode.SAME_STEP, AutoresetMode.NEXT_STEP)
+        if autoreset_mode not in modes and autoreset_mode not in [m.value for m in modes]:
+            raise ValueError(
+                f"autoreset_mode must be one of {[m.value for m in modes]}, got {autoreset_mode!r}"
+            )
+        self.autoreset_mode = AutoresetMode(autoreset_mode)
+        self.metadata = {**self.metadata, "autoreset_mode": self.autoreset_mode}
         self.scenes = SceneBatch(num_envs, config, scenarios)
         self.num_envs = len(self.scenes)
         self.config = self.scenes.config
@@ -122,6 +134,7 @@ class EgoVectorEnv(VectorEnv):
         self._env_obs: np.ndarray | None = None  # (N, D) the env's ego observations
         self._views: list[SceneView] | None = None
         self._outcome = np.zeros((2, self.num_envs))  # ego_collision, ego_offroad so far
+        self._autoreset = np.zeros(self.num_envs, dtype=bool)  # NEXT_STEP: reset next call
 
     # ------------------------------------------------------------------ API
     def reset(
@@ -137,6 +150,7 @@ class EgoVectorEnv(VectorEnv):
         if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
             super().reset(seed=int(seed))
         self._env_obs = None
+        self._autoreset = np.zeros(self.num_envs, dtype=bool)
         return self._reset_scenes(list(range(self.num_envs)), seeds, options, {})
 
     def step(
@@ -149,13 +163,14 @@ class EgoVectorEnv(VectorEnv):
             raise RuntimeError("step() called before reset(): call reset() first")
         actions = self._check_actions(actions)
         count = self.num_envs
-        running = np.ones(count, dtype=bool)
+        pending = self._autoreset  # NEXT_STEP: scenes that ended at the last call
+        running = ~pending
         rewards = np.zeros(count)
         terminated = np.zeros(count, dtype=bool)
         truncated = np.zeros(count, dtype=bool)
         observations = np.zeros((count, *self.single_observation_space.shape), np.float32)
         env_obs, views, infos = self._env_obs, self._views, {}
-        for substep in range(self.action_repeat):
+        for substep in range(self.action_repeat if running.any() else 0):
             moves = self.traffic.act_array(views)
             moves[:, 0] = self._ego_actions(actions, env_obs, views, substep)
             transition = self.scenes.step(moves)
@@ -174,27 +189,36 @@ class EgoVectorEnv(VectorEnv):
         observations[running] = self._observe(env_obs, views, running)
         self._env_obs, self._views = env_obs, views
         done = terminated | truncated
+        same_step = self.autoreset_mode == AutoresetMode.SAME_STEP
+        self._autoreset = np.zeros(count, dtype=bool) if same_step else done
+        extra: dict[str, Any] = {}
         if done.any():
             outcome = {
                 "ego_collision": self._outcome[0].copy(),
                 "ego_offroad": self._outcome[1].copy(),
+                "_ego_collision": done.copy(),
+                "_ego_offroad": done.copy(),
             }
-            final_info = {**copy.deepcopy(infos), **outcome}  # the reset writes into infos
-            masks = {f"_{key}": done.copy() for key in final_info if not key.startswith("_")}
-            final_obs = np.full(count, None, dtype=object)
-            for index in np.flatnonzero(done):
-                final_obs[index] = observations[index].copy()
-            extra = {
-                "final_obs": final_obs,
-                "_final_obs": done.copy(),
-                "final_info": {**final_info, **masks},
-                "_final_info": done.copy(),
-            }
-            reset = list(np.flatnonzero(done))
+            if same_step:
+                final_info = {**copy.deepcopy(infos), **outcome}  # the reset writes into infos
+                masks = {f"_{key}": done.copy() for key in infos if not key.startswith("_")}
+                final_obs = np.full(count, None, dtype=object)
+                for index in np.flatnonzero(done):
+                    final_obs[index] = observations[index].copy()
+                extra = {
+                    "final_obs": final_obs,
+                    "_final_obs": done.copy(),
+                    "final_info": {**final_info, **masks},
+                    "_final_info": done.copy(),
+                }
+            else:
+                infos.update(outcome)
+        reset = list(np.flatnonzero(done if same_step else pending))
+        if reset:
             observations, infos = self._reset_scenes(
                 reset, [None] * len(reset), {}, infos, observations
             )
-            infos.update(extra)
+        infos.update(extra)
         return observations, rewards, terminated, truncated, infos
 
     def set_adversary_stage(self, stage: AdversaryStage) -> None:

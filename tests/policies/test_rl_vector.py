@@ -150,6 +150,38 @@ def test_autoreset_draws_the_next_scene_and_reports_the_final_one():
     assert resets >= 4  # every scene went through at least two episodes
 
 
+def test_next_step_autoreset_resets_at_the_following_call():
+    """NEXT_STEP (Gymnasium's default): the step that ends the episodes returns their last
+    observations; the next call resets them (reward 0, action ignored), to what SAME_STEP
+    returned at once; then both go on alike."""
+    config = EnvConfig(max_agents=8, episode_steps=4, terminate_on_collision="none",
+                       terminate_on_offroad="none")  # fmt: skip
+    same = EgoVectorEnv(2, config=config, scenarios=SCENES)
+    lagged = EgoVectorEnv(2, config=config, scenarios=SCENES, autoreset_mode="NextStep")
+    assert lagged.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP
+    same.reset(seed=7)
+    lagged.reset(seed=7)
+    rng = np.random.default_rng(3)
+    for _ in range(4):
+        actions = random_actions(rng, 2)
+        expected = same.step(actions)
+        got = lagged.step(actions)
+    assert (expected[3] & got[3]).all()  # both truncated at step 4
+    close(got[0], np.stack(expected[4]["final_obs"]), 0.0)
+    assert got[4]["_ego_collision"].all() and "final_obs" not in got[4]
+    reset = lagged.step(random_actions(rng, 2))
+    close(reset[0], expected[0], 0.0)
+    assert not (reset[1].any() or reset[2].any() or reset[3].any())
+    actions = random_actions(rng, 2)
+    close(lagged.step(actions)[0], same.step(actions)[0], 0.0)
+    with pytest.raises(ValueError, match="autoreset_mode"):
+        EgoVectorEnv(2, config=config, scenarios=SCENES, autoreset_mode="Disabled")
+    from policies.rl.sb3_vec_env import SB3EgoVecEnv
+
+    with pytest.raises(ValueError, match="autoreset_mode"):
+        SB3EgoVecEnv(lagged)
+
+
 def test_same_seed_same_rollout_bit_for_bit(tiny_meanflow, tiny_normalizer):
     """Two vector envs with the RiskFlow adversary, the same seed and actions, through
     autoresets: identical observations, rewards and flags."""
