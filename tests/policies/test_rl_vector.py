@@ -113,15 +113,19 @@ def test_scenes_follow_the_single_env(traffic, interface, atol, tiny_meanflow, t
             assert infos["collided_with"][index] == info["collided_with"]
 
 
-def test_autoreset_draws_the_next_scene_and_reports_the_final_one():
+@pytest.mark.parametrize(("traffic", "atol"), [("idm", 1e-9), ("riskflow", 2e-4)])
+def test_autoreset_draws_the_next_scene_and_reports_the_final_one(
+    traffic, atol, tiny_meanflow, tiny_normalizer
+):
     """Short episodes: a finished scene is reset in the same step (SAME_STEP), as a single
-    env reset without a seed (its generator goes on); final_obs / final_info hold the last
-    step, the episode outcome included."""
+    env reset without a seed (its generator and its adversary's episode count go on);
+    final_obs / final_info hold the last step, the episode outcome included."""
     config = EnvConfig(max_agents=8, episode_steps=4, terminate_on_offroad="none")
     count, seed = 2, 3
-    vector = EgoVectorEnv(count, config=config, scenarios=SCENES)
+    make = (lambda: riskflow(tiny_meanflow, tiny_normalizer)) if traffic == "riskflow" else None
+    vector = EgoVectorEnv(count, config=config, scenarios=SCENES, policy=make() if make else None)
     assert vector.metadata["autoreset_mode"] == AutoresetMode.SAME_STEP
-    singles = [single_env(config) for _ in range(count)]
+    singles = [single_env(config, make() if make else None) for _ in range(count)]
     vector.reset(seed=seed)
     for index, env in enumerate(singles):
         env.reset(seed=seed + index)
@@ -133,18 +137,18 @@ def test_autoreset_draws_the_next_scene_and_reports_the_final_one():
         done = terminated | truncated
         for index, env in enumerate(singles):
             observation, reward, ended, cut, info = env.step(actions[index])
-            close(rewards[index], reward, 1e-9)
+            close(rewards[index], reward, atol)
             assert done[index] == (ended or cut)
             if ended or cut:
                 resets += 1
                 assert infos["_final_obs"][index] and infos["_final_info"][index]
-                close(infos["final_obs"][index], observation, 1e-9)
+                close(infos["final_obs"][index], observation, atol)
                 final = infos["final_info"]
                 assert final["_ego_collision"][index]
                 assert final["ego_collision"][index] == info["ego_collision"]
                 assert final["ego_offroad"][index] == info["ego_offroad"]
                 observation, _ = env.reset()
-            close(observations[index], observation, 1e-9)
+            close(observations[index], observation, atol)
         if not done.any():
             assert "final_obs" not in infos
     assert resets >= 4  # every scene went through at least two episodes
