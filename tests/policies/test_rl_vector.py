@@ -186,6 +186,26 @@ def test_next_step_autoreset_resets_at_the_following_call():
         SB3EgoVecEnv(lagged)
 
 
+@pytest.mark.parametrize("mode", ["SameStep", "NextStep"])
+def test_gymnasium_vector_wrappers(mode):
+    """Gymnasium's RecordEpisodeStatistics reads the autoreset mode from the metadata and
+    counts 5-step episodes in both modes; its observation wrappers take NextStep."""
+    from gymnasium.wrappers.vector import NormalizeObservation, RecordEpisodeStatistics
+
+    config = EnvConfig(max_agents=8, episode_steps=5, terminate_on_offroad="none")
+    env = EgoVectorEnv(2, config=config, scenarios=SCENES, autoreset_mode=mode)
+    if mode == "NextStep":
+        env = NormalizeObservation(env)
+    env = RecordEpisodeStatistics(env)
+    env.reset(seed=0)
+    lengths = []
+    for _ in range(12):
+        *_, infos = env.step(np.zeros((2, 2)))
+        if "episode" in infos:
+            lengths += infos["episode"]["l"][infos["_episode"]].tolist()
+    assert lengths == [5, 5, 5, 5]
+
+
 def test_same_seed_same_rollout_bit_for_bit(tiny_meanflow, tiny_normalizer):
     """Two vector envs with the RiskFlow adversary, the same seed and actions, through
     autoresets: identical observations, rewards and flags."""
