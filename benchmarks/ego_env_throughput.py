@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from policies.dataclass_cli import parse_dataclass
 from policies.riskflow.policy import RiskFlowAdversary
@@ -129,7 +130,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     )
     print(f"{'N':>4}{'vector steps/s':>16}{'loop steps/s':>14}{'ratio':>8}{'vehicles':>12}")
     rows = []
-    for count in options.scenes:
+    for count in tqdm(options.scenes, "scene counts", leave=False):  # stderr
         row = measure(policy, count, config, options)
         rows.append(row)
         vector = count * options.steps / row["vector"]
