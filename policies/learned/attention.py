@@ -18,6 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from policies.learned.embeddings import MLP
+from policies.learned.packing import AgentPacking
 
 
 class Attention(nn.Module):
@@ -35,19 +36,41 @@ class Attention(nn.Module):
         self.qkv = nn.Linear(dim, 3 * dim)
         self.out = nn.Linear(dim, dim)
 
-    def forward(self, x: Tensor, mask: Tensor | None = None, bias: Tensor | None = None) -> Tensor:
+    def forward(
+        self,
+        x: Tensor,
+        mask: Tensor | None = None,
+        bias: Tensor | None = None,
+        packing: AgentPacking | None = None,
+    ) -> Tensor:
         """Attend among the ``L`` tokens of each leading index.
 
         Args:
-            x: ``(..., L, D)`` tokens.
-            mask: optional bool ``(..., L, L)`` (broadcastable to it), True = may attend.
-            bias: optional additive score bias ``(..., H, L, L)`` (broadcastable).
+            x: ``(..., L, D)`` tokens; with ``packing``, ``(M, N, D)``: the ``N`` tokens
+                of each packed real agent, attending across the agents of its scene at
+                each token (social attention: ``L`` = the padded agent axis ``A``).
+            mask: optional bool ``(..., L, L)`` (broadcastable to it), True = may attend;
+                with ``packing``, ``(B, N, A, A)`` (broadcastable).
+            bias: optional additive score bias ``(..., H, L, L)`` (broadcastable); with
+                ``packing``, ``(B, N, H, A, A)`` (broadcastable).
+            packing: the real agents of a padded ``(B, A)`` batch (``packing.py``): the
+                projections run on the packed agents, only the scores on the padded
+                layout ``(B, N, A, A)``.
 
         Returns:
-            ``(..., L, D)``; zero for queries whose mask row is all False.
+            ``(..., L, D)`` (with ``packing``, ``(M, N, D)``); zero before the output
+            projection for queries whose mask row is all False.
         """
-        *lead, length, dim = x.shape
-        qkv = self.qkv(x).reshape(*lead, length, 3, self.num_heads, self.head_dim)
+        qkv = self.qkv(x)
+        if packing is None:
+            return self.out(self._attend(qkv, mask, bias))
+        scenes = packing.unpack(qkv).transpose(1, 2)  # (B, N, A, 3 D)
+        return self.out(packing.pack(self._attend(scenes, mask, bias).transpose(1, 2)))
+
+    def _attend(self, qkv: Tensor, mask: Tensor | None, bias: Tensor | None) -> Tensor:
+        """``(..., L, 3 D)`` projected tokens -> ``(..., L, D)`` mixed values."""
+        *lead, length, _ = qkv.shape
+        qkv = qkv.reshape(*lead, length, 3, self.num_heads, self.head_dim)
         q, k, v = (qkv.select(-3, i).transpose(-2, -3) for i in range(3))  # (..., H, L, dh)
         scores = (q @ k.transpose(-1, -2)) * self.head_dim**-0.5  # (..., H, L, L)
         if bias is not None:
@@ -58,8 +81,9 @@ class Attention(nn.Module):
         weights = scores.softmax(dim=-1)
         if mask is not None:
             weights = weights * mask.any(dim=-1, keepdim=True).to(weights.dtype)
-        out = (weights @ v).transpose(-2, -3).reshape(*lead, length, dim)
-        return self.out(out)
+        return (
+            (weights @ v).transpose(-2, -3).reshape(*lead, length, self.num_heads * self.head_dim)
+        )
 
 
 class TransformerBlock(nn.Module):
@@ -72,9 +96,15 @@ class TransformerBlock(nn.Module):
         self.norm2 = nn.LayerNorm(dim)
         self.mlp = MLP(dim, mlp_ratio * dim, dim)
 
-    def forward(self, x: Tensor, mask: Tensor | None = None, bias: Tensor | None = None) -> Tensor:
+    def forward(
+        self,
+        x: Tensor,
+        mask: Tensor | None = None,
+        bias: Tensor | None = None,
+        packing: AgentPacking | None = None,
+    ) -> Tensor:
         """Args and returns as :meth:`Attention.forward`."""
-        x = x + self.attn(self.norm1(x), mask, bias)
+        x = x + self.attn(self.norm1(x), mask, bias, packing)
         return x + self.mlp(self.norm2(x))
 
 
