@@ -18,7 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from policies.learned.embeddings import MLP
-from policies.learned.packing import AgentPacking
+from policies.learned.packing import AgentPacking, SceneGroup
 
 # PyTorch's CPU softmax is slow over short rows (13 history or plan tokens: about 5x the
 # time of the exp, max and sum it is made of, measured on one thread); rows shorter than
@@ -67,8 +67,8 @@ class Attention(nn.Module):
             bias: optional additive score bias ``(..., H, L, L)`` (broadcastable); with
                 ``packing``, ``(B, N, H, A, A)`` (broadcastable).
             packing: the real agents of a padded ``(B, A)`` batch (``packing.py``): the
-                projections run on the packed agents, only the scores on the padded
-                layout ``(B, N, A, A)``.
+                projections run on the packed agents, only the scores on a padded layout,
+                ``(B_g, N, A_g, A_g)`` for each group of scenes of similar width.
 
         Returns:
             ``(..., L, D)`` (with ``packing``, ``(M, N, D)``); zero before the output
@@ -77,8 +77,17 @@ class Attention(nn.Module):
         qkv = self.qkv(x)
         if packing is None:
             return self.out(self._attend(qkv, mask, bias))
-        scenes = packing.unpack(qkv).transpose(1, 2)  # (B, N, A, 3 D)
-        return self.out(packing.pack(self._attend(scenes, mask, bias).transpose(1, 2)))
+        parts = []
+        for group in packing.groups or (None,):  # scene groups of similar width
+            if group is None:
+                sub, rows, sub_mask, sub_bias = packing, qkv, mask, bias
+            else:
+                sub, rows = group.packing, qkv[group.rows]
+                sub_mask, sub_bias = _group_scenes(mask, group), _group_scenes(bias, group)
+            scenes = sub.unpack(rows).transpose(1, 2)  # (B_g, N, A_g, 3 D)
+            parts.append(sub.pack(self._attend(scenes, sub_mask, sub_bias).transpose(1, 2)))
+        out = parts[0] if packing.order is None else torch.cat(parts)[packing.order]
+        return self.out(out)
 
     def _attend(self, qkv: Tensor, mask: Tensor | None, bias: Tensor | None) -> Tensor:
         """``(..., L, 3 D)`` projected tokens -> ``(..., L, D)`` mixed values."""
@@ -97,6 +106,14 @@ class Attention(nn.Module):
         return (
             (weights @ v).transpose(-2, -3).reshape(*lead, length, self.num_heads * self.head_dim)
         )
+
+
+def _group_scenes(x: Tensor | None, group: SceneGroup) -> Tensor | None:
+    """A mask or bias ``(B, ..., A, A)`` cut to a scene group's ``(B_g, ..., A_g, A_g)``."""
+    if x is None:
+        return None
+    keep = slice(0, group.width)
+    return (x if x.shape[0] == 1 else x[group.scenes])[..., keep, keep]
 
 
 class TransformerBlock(nn.Module):
