@@ -6,7 +6,8 @@
   :mod:`~policies.learned.data_cache`, :mod:`~policies.learned.synthetic`;
 * the network: :mod:`~policies.learned.config`, :mod:`~policies.learned.encoder`
   (with :mod:`~policies.learned.map_encoder`, :mod:`~policies.learned.attention`,
-  :mod:`~policies.learned.embeddings`), :mod:`~policies.learned.generator` (the
+  :mod:`~policies.learned.embeddings`, :mod:`~policies.learned.packing`: per-agent
+  layers on the real agents only), :mod:`~policies.learned.generator` (the
   velocity head every generator kind trains), :mod:`~policies.learned.checkpoint`;
 * sampling and validation of a one-call generator: :mod:`~policies.learned.sampler`,
   :mod:`~policies.learned.validation`, :mod:`~policies.learned.ema`;

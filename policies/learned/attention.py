@@ -18,6 +18,20 @@ import torch
 from torch import Tensor, nn
 
 from policies.learned.embeddings import MLP
+from policies.learned.packing import AgentPacking, SceneGroup
+
+# PyTorch's CPU softmax is slow over short rows (13 history or plan tokens: about 5x the
+# time of the exp, max and sum it is made of, measured on one thread); rows shorter than
+# this are spelled out (the same function, to float rounding).
+SHORT_SOFTMAX = 16
+
+
+def _softmax(scores: Tensor) -> Tensor:
+    """``softmax(scores, dim=-1)``; rows shorter than ``SHORT_SOFTMAX`` spelled out."""
+    if scores.shape[-1] >= SHORT_SOFTMAX:
+        return scores.softmax(dim=-1)
+    exp = (scores - scores.amax(dim=-1, keepdim=True)).exp()
+    return exp / exp.sum(dim=-1, keepdim=True)
 
 
 class Attention(nn.Module):
@@ -35,19 +49,50 @@ class Attention(nn.Module):
         self.qkv = nn.Linear(dim, 3 * dim)
         self.out = nn.Linear(dim, dim)
 
-    def forward(self, x: Tensor, mask: Tensor | None = None, bias: Tensor | None = None) -> Tensor:
+    def forward(
+        self,
+        x: Tensor,
+        mask: Tensor | None = None,
+        bias: Tensor | None = None,
+        packing: AgentPacking | None = None,
+    ) -> Tensor:
         """Attend among the ``L`` tokens of each leading index.
 
         Args:
-            x: ``(..., L, D)`` tokens.
-            mask: optional bool ``(..., L, L)`` (broadcastable to it), True = may attend.
-            bias: optional additive score bias ``(..., H, L, L)`` (broadcastable).
+            x: ``(..., L, D)`` tokens; with ``packing``, ``(M, N, D)``: the ``N`` tokens
+                of each packed real agent, attending across the agents of its scene at
+                each token (social attention: ``L`` = the padded agent axis ``A``).
+            mask: optional bool ``(..., L, L)`` (broadcastable to it), True = may attend;
+                with ``packing``, ``(B, N, A, A)`` (broadcastable).
+            bias: optional additive score bias ``(..., H, L, L)`` (broadcastable); with
+                ``packing``, ``(B, N, H, A, A)`` (broadcastable).
+            packing: the real agents of a padded ``(B, A)`` batch (``packing.py``): the
+                projections run on the packed agents, only the scores on a padded layout,
+                ``(B_g, N, A_g, A_g)`` for each group of scenes of similar width.
 
         Returns:
-            ``(..., L, D)``; zero for queries whose mask row is all False.
+            ``(..., L, D)`` (with ``packing``, ``(M, N, D)``); zero before the output
+            projection for queries whose mask row is all False.
         """
-        *lead, length, dim = x.shape
-        qkv = self.qkv(x).reshape(*lead, length, 3, self.num_heads, self.head_dim)
+        qkv = self.qkv(x)
+        if packing is None:
+            return self.out(self._attend(qkv, mask, bias))
+        parts = []
+        for group in packing.groups or (None,):  # scene groups of similar width
+            if group is None:
+                sub, rows, sub_mask, sub_bias = packing, qkv, mask, bias
+            else:
+                sub, rows = group.packing, qkv[group.rows]
+                sub_mask, sub_bias = _group_scenes(mask, group), _group_scenes(bias, group)
+            scenes = sub.unpack(rows).transpose(1, 2)  # (B_g, N, A_g, 3 D)
+            parts.append(sub.pack(self._attend(scenes, sub_mask, sub_bias).transpose(1, 2)))
+        out = parts[0] if packing.order is None else torch.cat(parts)[packing.order]
+        return self.out(out)
+
+    def _attend(self, qkv: Tensor, mask: Tensor | None, bias: Tensor | None) -> Tensor:
+        """``(..., L, 3 D)`` projected tokens -> ``(..., L, D)`` mixed values."""
+        *lead, length, _ = qkv.shape
+        qkv = qkv.reshape(*lead, length, 3, self.num_heads, self.head_dim)
         q, k, v = (qkv.select(-3, i).transpose(-2, -3) for i in range(3))  # (..., H, L, dh)
         scores = (q @ k.transpose(-1, -2)) * self.head_dim**-0.5  # (..., H, L, L)
         if bias is not None:
@@ -55,11 +100,20 @@ class Attention(nn.Module):
         if mask is not None:
             mask = mask[..., None, :, :]  # broadcast over heads
             scores = scores.masked_fill(~mask, torch.finfo(scores.dtype).min)
-        weights = scores.softmax(dim=-1)
+        weights = _softmax(scores)
         if mask is not None:
             weights = weights * mask.any(dim=-1, keepdim=True).to(weights.dtype)
-        out = (weights @ v).transpose(-2, -3).reshape(*lead, length, dim)
-        return self.out(out)
+        return (
+            (weights @ v).transpose(-2, -3).reshape(*lead, length, self.num_heads * self.head_dim)
+        )
+
+
+def _group_scenes(x: Tensor | None, group: SceneGroup) -> Tensor | None:
+    """A mask or bias ``(B, ..., A, A)`` cut to a scene group's ``(B_g, ..., A_g, A_g)``."""
+    if x is None:
+        return None
+    keep = slice(0, group.width)
+    return (x if x.shape[0] == 1 else x[group.scenes])[..., keep, keep]
 
 
 class TransformerBlock(nn.Module):
@@ -72,9 +126,15 @@ class TransformerBlock(nn.Module):
         self.norm2 = nn.LayerNorm(dim)
         self.mlp = MLP(dim, mlp_ratio * dim, dim)
 
-    def forward(self, x: Tensor, mask: Tensor | None = None, bias: Tensor | None = None) -> Tensor:
+    def forward(
+        self,
+        x: Tensor,
+        mask: Tensor | None = None,
+        bias: Tensor | None = None,
+        packing: AgentPacking | None = None,
+    ) -> Tensor:
         """Args and returns as :meth:`Attention.forward`."""
-        x = x + self.attn(self.norm1(x), mask, bias)
+        x = x + self.attn(self.norm1(x), mask, bias, packing)
         return x + self.mlp(self.norm2(x))
 
 

@@ -31,6 +31,7 @@ from policies.learned.attention import TransformerBlock, edge_bias, social_mask
 from policies.learned.config import HISTORY_FEATURES, ModelConfig
 from policies.learned.embeddings import MLP, masked_mean
 from policies.learned.map_encoder import MapEncoder
+from policies.learned.packing import AgentPacking
 from policies.learned.window_types import WindowBatch
 from riskflow_env.geometry import to_frame
 
@@ -160,26 +161,31 @@ class SceneEncoder(nn.Module):
         self.map_encoder = MapEncoder(config, dim)
         self.fusion = MLP(2 * dim + config.edge_dim, config.context_dim, config.context_dim)
 
-    def _tokens(self, batch: WindowBatch) -> tuple[Tensor, Tensor]:
-        """History tokens ``(B, A, N, D)`` and their validity ``(B, A, N)``."""
+    def _tokens(self, batch: WindowBatch, packing: AgentPacking) -> tuple[Tensor, Tensor]:
+        """History tokens ``(M, N, D)`` of the packed real agents and the validity of
+        every slot's tokens ``(B, A, N)``."""
         patch, tokens = self.config.history_patch, self.config.history_tokens
-        features = history_features(batch) * self.history_inv_scale  # (B, A, T, F)
-        valid = batch.history_valid
-        pad = tokens * patch - features.shape[2]  # zero steps in front of the oldest one
-        features = F.pad(features, (0, 0, pad, 0))
-        valid = F.pad(valid, (pad, 0))
+        pad = tokens * patch - batch.history.shape[2]  # zero steps in front of the oldest one
+        valid = F.pad(batch.history_valid, (pad, 0))
         batch_size, agents = valid.shape[:2]
-        x = self.token_proj(features.reshape(batch_size, agents, tokens, -1)) + self.token_pos
+        features = packing.pack(history_features(batch)) * self.history_inv_scale  # (M, T, F)
+        features = F.pad(features, (0, 0, pad, 0))
+        x = self.token_proj(features.reshape(features.shape[0], tokens, -1)) + self.token_pos
         return x, valid.reshape(batch_size, agents, tokens, patch).any(dim=-1)
 
     def forward(self, batch: WindowBatch) -> SceneContext:
-        """Encode a batch of windows (``docs/WINDOWS.md``; the future fields are ignored)."""
+        """Encode a batch of windows (``docs/WINDOWS.md``; the future fields are ignored).
+
+        Every per-agent layer runs on the real agents only (``packing.py``); the social
+        attention scores of each scene use the padded agent axis.
+        """
         check_batch(batch, self.config)
         agent_mask, pair_mask = batch.agent_mask.bool(), batch.pair_mask.bool()
-        x, token_valid = self._tokens(batch)  # (B, A, N, D), (B, A, N)
+        packing = AgentPacking.from_mask(agent_mask)
+        x, token_valid = self._tokens(batch, packing)  # (M, N, D), (B, A, N)
         edges = self.edge_mlp(batch.pair_features * self.pair_inv_scale)  # (B, A, A, E)
         social = social_mask(pair_mask, agent_mask)  # (B, A, A)
-        temporal_mask = token_valid[:, :, None, :]  # (B, A, 1, N): keys with observations
+        temporal_mask = packing.pack(token_valid)[:, None, :]  # (M, 1, N): observed keys
         # Social keys: other agents observed at this token; an existing agent always sees itself.
         eye = torch.eye(social.shape[-1], dtype=torch.bool, device=social.device)
         keys = token_valid.transpose(1, 2)[:, :, None, :] | eye  # (B, N, A, A)
@@ -188,14 +194,13 @@ class SceneEncoder(nn.Module):
             self.temporal, self.social, self.social_bias, strict=True
         ):
             x = temporal(x, temporal_mask)
-            x = social_block(x.transpose(1, 2), token_social_mask, edge_bias(edges, bias_proj))
-            x = x.transpose(1, 2)
-        history = self.norm(x[:, :, -1])  # (B, A, D): the token holding the current step
-        map_embedding = self.map_encoder(batch.map_crops, agent_mask)  # (B, A, D)
-        pooled_edges = masked_mean(edges, pair_mask, dim=2)  # (B, A, E)
+            x = social_block(x, token_social_mask, edge_bias(edges, bias_proj), packing)
+        history = self.norm(x[:, -1])  # (M, D): the token holding the current step
+        map_embedding = self.map_encoder.embed(packing.pack(batch.map_crops))  # (M, D)
+        pooled_edges = packing.pack(masked_mean(edges, pair_mask, dim=2))  # (M, E)
         context = self.fusion(torch.cat([history, map_embedding, pooled_edges], dim=-1))
         return SceneContext(
-            context=context * agent_mask[..., None].to(context.dtype),
+            context=packing.unpack(context),  # 0 for padded agents
             edges=edges,
             social_mask=social,
             agent_mask=agent_mask,

@@ -30,6 +30,7 @@ from policies.learned.attention import Attention, edge_bias
 from policies.learned.config import ModelConfig
 from policies.learned.embeddings import MLP, TimeEmbedding
 from policies.learned.encoder import SceneContext, SceneEncoder
+from policies.learned.packing import AgentPacking
 from policies.learned.window_types import WindowBatch
 
 CHECKPOINT_FORMAT = "riskflow-generator/1"
@@ -40,8 +41,8 @@ class CheckpointError(ValueError):
 
 
 def _modulate(x: Tensor, shift: Tensor, scale: Tensor) -> Tensor:
-    """``x (B, A, N, D)`` with per-agent ``shift, scale (B, A, D)``."""
-    return x * (1.0 + scale[:, :, None]) + shift[:, :, None]
+    """``x (M, N, D)`` with per-agent ``shift, scale (M, D)``."""
+    return x * (1.0 + scale[:, None]) + shift[:, None]
 
 
 class HeadBlock(nn.Module):
@@ -58,16 +59,19 @@ class HeadBlock(nn.Module):
         nn.init.zeros_(self.modulation.weight)
         nn.init.zeros_(self.modulation.bias)
 
-    def forward(self, x: Tensor, cond: Tensor, scene: SceneContext) -> Tensor:
-        """Args: ``x (B, A, N, D)`` plan tokens; ``cond (B, A, D)``. Returns ``(B, A, N, D)``."""
+    def forward(
+        self, x: Tensor, cond: Tensor, scene: SceneContext, packing: AgentPacking
+    ) -> Tensor:
+        """Args: ``x (M, N, D)`` plan tokens and ``cond (M, D)`` of the packed real agents
+        of ``scene`` (``packing``). Returns ``(M, N, D)``."""
         mods = self.modulation(cond).chunk(9, dim=-1)
         h = _modulate(self.norms[0](x), mods[0], mods[1])
-        x = x + mods[2][:, :, None] * self.temporal(h)
-        h = _modulate(self.norms[1](x), mods[3], mods[4]).transpose(1, 2)  # (B, N, A, D)
-        h = self.social(h, scene.social_mask[:, None], edge_bias(scene.edges, self.social_bias))
-        x = x + mods[5][:, :, None] * h.transpose(1, 2)
+        x = x + mods[2][:, None] * self.temporal(h)
+        h = _modulate(self.norms[1](x), mods[3], mods[4])
+        bias = edge_bias(scene.edges, self.social_bias)
+        x = x + mods[5][:, None] * self.social(h, scene.social_mask[:, None], bias, packing)
         h = _modulate(self.norms[2](x), mods[6], mods[7])
-        return x + mods[8][:, :, None] * self.mlp(h)
+        return x + mods[8][:, None] * self.mlp(h)
 
 
 class MeanFlowHead(nn.Module):
@@ -106,15 +110,18 @@ class MeanFlowHead(nn.Module):
             ``(B, A, T, 2)`` ``u``, so that ``z_r ~ z_t + (r - t) u``; 0 for padded agents.
         """
         batch, agents, steps, channels = z.shape
-        tokens = self.config.plan_tokens
-        x = self.in_proj(z.reshape(batch, agents, tokens, -1)) + self.token_pos
-        t, r = (torch.broadcast_to(s.reshape(batch, -1), (batch, agents)) for s in (t, r))
-        cond = F.silu(self.cond(scene.context) + self.time(t, r))  # (B, A, D)
+        packing = AgentPacking.from_mask(scene.agent_mask)  # every per-agent layer: real ones
+        z = packing.pack(z)  # (M, T, 2)
+        x = self.in_proj(z.reshape(z.shape[0], self.config.plan_tokens, -1)) + self.token_pos
+        t, r = (
+            packing.pack(torch.broadcast_to(s.reshape(batch, -1), (batch, agents))) for s in (t, r)
+        )
+        cond = F.silu(self.cond(packing.pack(scene.context)) + self.time(t, r))  # (M, D)
         for block in self.blocks:
-            x = block(x, cond, scene)
+            x = block(x, cond, scene, packing)
         shift, scale = self.final_modulation(cond).chunk(2, dim=-1)
-        u = self.out(_modulate(self.norm(x), shift, scale)).reshape(batch, agents, steps, channels)
-        return u * scene.agent_mask[:, :, None, None].to(u.dtype)
+        u = self.out(_modulate(self.norm(x), shift, scale))  # (M, N, patch * 2)
+        return packing.unpack(u.reshape(-1, steps, channels))  # 0 for padded agents
 
 
 class RiskFlowGenerator(nn.Module):

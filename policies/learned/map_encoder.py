@@ -44,14 +44,14 @@ class MapEncoder(nn.Module):
         """
         batch, agents = crops.shape[:2]
         if agent_mask is not None and not bool(agent_mask.all()):
-            packed = self._embed(crops[agent_mask])
+            packed = self.embed(crops[agent_mask])
             out = packed.new_zeros(batch, agents, packed.shape[-1])
             return out.index_put((agent_mask,), packed)
-        return self._embed(crops.reshape(batch * agents, *crops.shape[2:])).reshape(
+        return self.embed(crops.reshape(batch * agents, *crops.shape[2:])).reshape(
             batch, agents, -1
         )
 
-    def _embed(self, crops: Tensor) -> Tensor:
-        """``(N, C, S, S)`` crops -> ``(N, out_dim)``."""
+    def embed(self, crops: Tensor) -> Tensor:
+        """``(N, C, S, S)`` crops (e.g. the packed real agents') -> ``(N, out_dim)``."""
         x = crops.reshape(crops.shape[0], self.channels, self.size, self.size) * self.inv_scale
         return self.proj(self.convs(x).mean(dim=(-2, -1)))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from policies.learned.attention import Attention, social_mask
+from policies.learned.attention import SHORT_SOFTMAX, Attention, _softmax, social_mask
 
 
 def _attention(seed=0):
@@ -63,3 +63,13 @@ def test_social_mask_adds_self_attention_and_drops_padded_agents():
     agents = torch.tensor([[True, True, False]])
     expected = torch.tensor([[[True, True, False], [True, True, False], [False, False, False]]])
     assert torch.equal(social_mask(pair, agents), expected)
+
+
+def test_spelled_out_softmax_of_short_rows_equals_torch_softmax():
+    scores = torch.randn(3, 4, 13, 13) * 10
+    scores[0, :, :, 3:] = torch.finfo(scores.dtype).min  # masked keys
+    scores[1, :, 5] = torch.finfo(scores.dtype).min  # a fully masked row: uniform, as torch
+    assert scores.shape[-1] < SHORT_SOFTMAX
+    torch.testing.assert_close(_softmax(scores), scores.softmax(dim=-1), rtol=0, atol=1e-6)
+    long = torch.randn(2, SHORT_SOFTMAX + 1)
+    assert torch.equal(_softmax(long), long.softmax(dim=-1))
