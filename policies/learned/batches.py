@@ -30,7 +30,7 @@ from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
 
 def load_splits(
-    data: Path,
+    data: Path | Sequence[Path],
     val_data: Path | None,
     val_fraction: float,
     stride: int,
@@ -44,7 +44,9 @@ def load_splits(
     Args:
         data: scene folder of the training split: ``.npz`` scenes (``riskflow-data
             generate``) or a ScenarioNet dataset (read one scene at a time while the
-            windows are cut; ``riskflow_env.scenarios.folders.scene_files``).
+            windows are cut; ``riskflow_env.scenarios.folders.scene_files``); or several
+            such folders, whose scenes are used together (one folder's after the other's;
+            their windows are cached under the first folder, and ``val_data`` is needed).
         val_data: scene folder of the validation split; None holds out
             ``round(val_fraction * scenes)`` of ``data``'s scenes (the same ones for
             any training seed).
@@ -53,20 +55,34 @@ def load_splits(
         recovery: recovery windows added to the training split only
             (:mod:`policies.learned.recovery`); their cache has its own file.
     """
+    folders = [Path(data)] if isinstance(data, (str, Path)) else [Path(f) for f in data]
+    if not folders:
+        raise ValueError("no training scene folder given")
+    if len(folders) > 1 and val_data is None:
+        raise ValueError(
+            f"{len(folders)} training scene folders need a validation folder (--val-data): "
+            "the held-out share (--val-fraction) is taken from one folder only"
+        )
+    data = folders[0]
     name = f"windows-stride{stride}"
     train_name = name
     if recovery is not None and recovery.copies:
         settings = json.dumps(dataclasses.asdict(recovery), sort_keys=True).encode()
         train_name += f"-recovery-{hashlib.sha256(settings).hexdigest()[:12]}"
+    if len(folders) > 1:  # the set of folders, in order, names the cache file
+        together = "\n".join(str(f.resolve()) for f in folders).encode()
+        train_name += f"-with-{hashlib.sha256(together).hexdigest()[:12]}"
     caches = {}
     for folder in (data, val_data):
         if folder is not None:
             caches[folder] = derived_dir(folder) / "cache"
             caches[folder].mkdir(parents=True, exist_ok=True)
     if val_data is not None:
+        sources = [_source(folder) for folder in folders]
         train = WindowDataset(
-            _source(data), None, stride, caches[data] / f"{train_name}.npz", recovery
-        )
+            sources if len(sources) > 1 else sources[0], None, stride,
+            caches[data] / f"{train_name}.npz", recovery,
+        )  # fmt: skip
         val = WindowDataset(_source(val_data), None, stride, caches[val_data] / f"{name}.npz")
         return train, val
     scenes = scene_files(data)

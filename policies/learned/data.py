@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import itertools
 import json
 import math
 import os
@@ -57,12 +58,20 @@ def window_indices(scenario: Scenario, config: WindowConfig, stride: int) -> np.
     return steps[scenario.valid[scenario.ego_index, steps]]
 
 
+Folder = str | os.PathLike | ScenarioNetDataset
+"""One folder of scenes: a directory of ``.npz`` scene files or a ScenarioNet dataset."""
+
+
 def _scenes(
-    source: Sequence[Scenario] | str | os.PathLike | ScenarioNetDataset,
+    source: Sequence[Scenario] | Folder | Sequence[Folder],
     cache_path: str | os.PathLike | None,
 ) -> tuple[list[Any], Iterator]:
-    """(fingerprint parts, iterator over scenes) of an in-memory list, a directory or a
-    ScenarioNet dataset (each scene read when the iterator reaches it)."""
+    """(fingerprint parts, iterator over scenes) of an in-memory list, a directory, a
+    ScenarioNet dataset (each scene read when the iterator reaches it) or a sequence of
+    directories and datasets (their scenes one folder after the other, in the given order)."""
+    if _is_folders(source):
+        pieces = [_scenes(folder, cache_path) for folder in source]
+        return [parts for parts, _ in pieces], itertools.chain(*(it for _, it in pieces))
     if isinstance(source, ScenarioNetDataset):
         return source.fingerprint(), (source.load(i) for i in range(len(source)))
     if isinstance(source, (str, os.PathLike)):
@@ -74,11 +83,24 @@ def _scenes(
         return parts, (load_scenario(path) for path in paths)
     scenes = list(source)
     if not all(isinstance(scene, Scenario) for scene in scenes):
-        raise TypeError("source must be a directory or a sequence of Scenario objects")
+        raise TypeError(
+            "source must be a directory, a ScenarioNet dataset, a sequence of those, or a "
+            "sequence of Scenario objects"
+        )
     parts = [
         [s.name, hashlib.sha1(s.states.tobytes() + s.valid.tobytes()).hexdigest()] for s in scenes
     ]
     return parts, iter(scenes)
+
+
+def _is_folders(source: object) -> bool:
+    """Whether ``source`` is a non-empty list or tuple of folders (not of scenes)."""
+    folder_types = (str, os.PathLike, ScenarioNetDataset)
+    return (
+        isinstance(source, (list, tuple))
+        and len(source) > 0
+        and all(isinstance(item, folder_types) for item in source)
+    )
 
 
 def _pack(windows: list[Window]) -> dict[str, np.ndarray]:
@@ -100,8 +122,10 @@ class WindowDataset(Dataset):
 
     Args:
         source: scenes in memory, a directory read with
-            ``riskflow_env.scenarios.io.list_scenarios`` / ``load_scenario``, or a
-            ``ScenarioNetDataset`` (scenes read one at a time: only the windows stay).
+            ``riskflow_env.scenarios.io.list_scenarios`` / ``load_scenario``, a
+            ``ScenarioNetDataset`` (scenes read one at a time: only the windows stay), or a
+            list of directories and datasets (one folder's scenes after the other's;
+            scene positions run on across them).
         config: window options (sizes, agent selection).
         stride: steps between the current steps of consecutive windows of a scene.
         cache_path: optional ``.npz`` file holding the packed windows; used when it
@@ -120,7 +144,7 @@ class WindowDataset(Dataset):
 
     def __init__(
         self,
-        source: Sequence[Scenario] | str | os.PathLike | ScenarioNetDataset,
+        source: Sequence[Scenario] | Folder | Sequence[Folder],
         config: WindowConfig | None = None,
         stride: int = 5,
         cache_path: str | os.PathLike | None = None,

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 import time
 import warnings
@@ -43,7 +44,7 @@ from policies.learned.checkpoint import (
 )
 from policies.learned.checkpoint import save_checkpoint as write
 from policies.learned.config import ModelConfig
-from policies.learned.data import ActionNormalizer
+from policies.learned.data import ActionNormalizer, compute_action_stats
 from policies.learned.data import load_or_compute_stats as action_stats
 from policies.learned.ema import EMA
 from policies.learned.generator import RiskFlowGenerator
@@ -85,9 +86,10 @@ class Objective(Protocol):
 class LoopOptions:
     """Options of the training loop (``riskflow-train`` adds the generator's)."""
 
-    data: Path
+    data: tuple[Path, ...]
     """training scenes: a folder written by `riskflow-data generate`, or a ScenarioNet dataset
-    folder (dataset_summary.pkl; scenes read one at a time when the windows are cut)"""
+    folder (dataset_summary.pkl; scenes read one at a time when the windows are cut); several
+    folders train on all their scenes together (then --val-data is needed)"""
     out: Path = Path("runs/riskflow")
     """output folder: checkpoint.pt (resumable), generator.pt (to ship), metrics.jsonl"""
     val_data: Path | None = None
@@ -157,6 +159,8 @@ class LoopOptions:
             "--grad-clip > 0": self.grad_clip > 0,
             "0 <= --ema-decay < 1": 0 <= self.ema_decay < 1,
             "0 < --val-fraction < 1": 0 < self.val_fraction < 1,
+            "--data: one folder, or several with --val-data": len(self.data) == 1
+            or (len(self.data) > 1 and self.val_data is not None),
             "--recovery-copies, --recovery-parked >= 0": min(
                 self.recovery_copies, self.recovery_parked
             )
@@ -175,6 +179,9 @@ class LoopOptions:
         )
 
     def __post_init__(self) -> None:
+        if isinstance(self.data, (str, os.PathLike)):  # one folder, e.g. from Python
+            object.__setattr__(self, "data", (Path(self.data),))
+        object.__setattr__(self, "data", tuple(Path(folder) for folder in self.data))
         broken = [rule for rule, holds in self.rules().items() if not holds]
         if broken:
             raise ValueError(f"riskflow-train needs {'; '.join(broken)}")
@@ -190,7 +197,12 @@ def model_config(text: str) -> ModelConfig:
 
 
 def _plain(options: LoopOptions) -> dict[str, Any]:
-    return {k: str(v) if isinstance(v, Path) else v for k, v in vars(options).items()}
+    def plain(value: Any) -> Any:
+        if isinstance(value, tuple):
+            return [plain(item) for item in value]
+        return str(value) if isinstance(value, Path) else value
+
+    return {key: plain(value) for key, value in vars(options).items()}
 
 
 def _rng_state(noise: torch.Generator) -> dict[str, Any]:
@@ -238,7 +250,8 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
     if options.resume and not (out / CHECKPOINT).is_file():
         raise SystemExit(f"riskflow-train: --resume: no checkpoint at {out / CHECKPOINT}")
     start = None if options.resume or options.init is None else _initial(options, objective)
-    for flag, folder in (("--data", options.data), ("--val-data", options.val_data)):
+    folders = [("--data", folder) for folder in options.data] + [("--val-data", options.val_data)]
+    for flag, folder in folders:
         try:
             if folder is not None:
                 scene_files(folder)
@@ -278,7 +291,11 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
     elif start is not None:
         normalizer = start[1]
     else:
-        normalizer = action_stats(options.data, train_set)
+        normalizer = (  # cached beside one folder's scenes; several: computed (fast)
+            action_stats(options.data[0], train_set)
+            if len(options.data) == 1
+            else compute_action_stats(train_set)
+        )
     agents = train_set.agent_counts()
     per_epoch = len(agents) // options.batch_size
     if per_epoch == 0:

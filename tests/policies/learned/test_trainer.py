@@ -13,10 +13,11 @@ import pytest
 import torch
 
 from policies.dataclass_cli import parse_dataclass
-from policies.learned.batches import batch_order
+from policies.learned.batches import batch_order, load_splits
 from policies.learned.checkpoint import load_checkpoint, load_generator
 from policies.learned.config import ModelConfig
 from policies.learned.generator import CheckpointError
+from policies.learned.recovery import RecoveryConfig
 from policies.train import CHECKPOINT, GENERATOR, METRICS_LOG, TrainOptions
 from policies.train import main as train_main
 from riskflow_env.scenarios import HighwayTrafficSource
@@ -144,6 +145,45 @@ def test_val_fraction_splits_scenes(banks, tmp_path, tiny_config):
     assert metrics["val_windows"] == 3  # one held-out scene, --val-windows 3
     cached = {p.name for p in (banks[0] / "cache").iterdir()}
     assert {"windows-stride16-val0.34-train.npz", "windows-stride16-val0.34-val.npz"} <= cached
+
+
+def test_several_data_folders_train_on_their_scenes_together(banks, tmp_path, tiny_config):
+    """``--data A B``: the windows of A's scenes then B's, as from one folder holding both
+    (recovery draws included: scene positions run on across the folders)."""
+    parts = (tmp_path / "a", tmp_path / "b")
+    for folder, seeds in zip(parts, ([0, 2], [3]), strict=True):
+        folder.mkdir()
+        for seed in seeds:
+            scene = HighwayTrafficSource().sample(np.random.default_rng(seed))
+            save_scenario(scene, folder / f"{seed:05d}-highway.npz", map_dir=folder / "maps")
+    recovery = RecoveryConfig(copies=1, parked=1, seed=0)
+    together, _ = load_splits(list(parts), banks[1], 0.1, 16, recovery)
+    one, _ = load_splits(banks[0], banks[1], 0.1, 16, recovery)
+    np.testing.assert_array_equal(together.index, one.index)
+    for item in range(len(one)):
+        for field in dataclasses.fields(one[item]):
+            expected = getattr(one[item], field.name)
+            got = getattr(together[item], field.name)
+            np.testing.assert_array_equal(got, expected, err_msg=field.name)
+    assert [p.name for p in (parts[0] / "cache").iterdir()] == [
+        p.name for p in (parts[0] / "cache").glob("windows-stride16-recovery-*-with-*.npz")
+    ]
+    out = tmp_path / "run"
+    args = tiny_args(banks, out, tiny_config, steps=1)
+    args[args.index("--data") + 1 : args.index("--data") + 2] = map(str, parts)
+    assert train_main(args) == 0
+    assert load_checkpoint(out / GENERATOR)["train_config"]["data"] == list(map(str, parts))
+    assert not (parts[0] / "norm_stats.json").exists()  # computed over both, not cached
+
+
+def test_several_data_folders_need_a_validation_folder(banks, tmp_path, tiny_config, capsys):
+    args = tiny_args(banks, tmp_path / "run", tiny_config, steps=1)
+    args[args.index("--data") + 1 : args.index("--val-data") + 2] = [str(banks[0])] * 2
+    with pytest.raises(SystemExit):
+        train_main(args)
+    assert "--data: one folder, or several with --val-data" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="--val-data"):
+        load_splits([banks[0], banks[0]], None, 0.1, 16)
 
 
 def test_cli_subprocess_smoke(banks, tmp_path, tiny_config):
