@@ -37,7 +37,9 @@ from policies.learned.checkpoint import load_generator
 from policies.planners import IDMPlanner
 from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import SPEED, YAW
-from riskflow_env.geometry import footprint_points, pairwise_overlap
+from riskflow_env.geometry import CENTRE, pairwise_overlap
+from riskflow_env.metrics import offroad_counts
+from riskflow_env.metrics.safety import footprint_sdf
 from riskflow_env.scenarios import load_bank, shipped_bank
 
 CURVED = ("roundabout", "racetrack", "u-turn", "intersection")
@@ -53,9 +55,11 @@ def open_loop(plans: np.ndarray, planned: np.ndarray, scene, drivable) -> tuple[
     length, width = scene.length[planned], scene.width[planned]
     xy, yaw = np.swapaxes(states[..., :2], 0, 1), np.swapaxes(states[..., YAW], 0, 1)
     overlap = pairwise_overlap(xy, yaw, length, width).any()
-    points = footprint_points(states[..., :2], states[..., YAW], length[:, None], width[:, None])
-    offroad = (drivable.sdf_at(points) > 0).any(axis=-1)
-    return bool(overlap), float(offroad.mean())
+    outside = footprint_sdf(drivable, states, length, width) > 0
+    road = offroad_counts(
+        outside[..., CENTRE], outside.any(axis=-1), np.ones(states.shape[:2], bool)
+    )
+    return bool(overlap), road.footprint_rate
 
 
 class FirstPlans:
@@ -114,6 +118,10 @@ def diagnose(scenes: int, checkpoint: str | None, seed: int, bank: str | None = 
             live = record.active[:, :-1] & record.present[:, None]
             live[0] = False  # the generator's vehicles only
             off = record.offroad_centroid[:, 1:] & live
+            road = offroad_counts(
+                record.offroad_centroid[:, 1:], record.offroad_footprint[:, 1:], live
+            )
+            rates = (road.centroid_rate, road.footprint_rate) if road.agent_steps else (0.0, 0.0)
             steps = min(off.shape[1], len(buckets) * BUCKET)
             starts = np.arange(0, steps, BUCKET)
             buckets[: starts.size, 0] += np.add.reduceat(off[:, :steps].sum(0), starts)
@@ -126,8 +134,7 @@ def diagnose(scenes: int, checkpoint: str | None, seed: int, bank: str | None = 
                     plan_offroad,
                     any(k[0] == "non-ego" for k in episode),
                     any(k[0] == "ego" for k in episode),
-                    float(off.sum() / max(live.sum(), 1)),
-                    float((record.offroad_footprint[:, 1:] & live).sum() / max(live.sum(), 1)),
+                    *rates,  # 0 for a scene without a generator vehicle
                 )
             )
     return {"families": families, "kinds": kinds, "buckets": buckets}

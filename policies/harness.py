@@ -12,7 +12,10 @@ Every run goes through an :class:`~riskflow_env.wrappers.EventLogWrapper` (JSON 
 disk with ``event_log=``, in memory otherwise) and, with ``video=``, a
 :class:`~riskflow_env.wrappers.VideoRecorder`. Each episode gives an
 :class:`EpisodeRecord`: the executed states, the events and the metrics of
-:data:`METRICS`; :meth:`EpisodeRecord.to_scenario` turns it into a scenario whose
+:data:`METRICS` (the off-road rates are :func:`riskflow_env.metrics.offroad_counts` over
+the episode's live agent-steps, with the env's own off-road flags; the evaluation's ORR
+counts a record's scored agent-steps instead, see :mod:`riskflow_env.metrics.safety`);
+:meth:`EpisodeRecord.to_scenario` turns it into a scenario whose
 reference future is what was executed, so that :class:`~policies.baselines.ReplayPolicy`
 replays it. :func:`summarize` aggregates records with 95% confidence intervals.
 
@@ -36,7 +39,7 @@ from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import YAW
 from riskflow_env.env import RiskFlowParallelEnv
 from riskflow_env.geometry import separation
-from riskflow_env.metrics import RolloutRecord
+from riskflow_env.metrics import RolloutRecord, offroad_counts
 from riskflow_env.render import RenderConfig
 from riskflow_env.scenarios import Scenario, ScenarioSource
 from riskflow_env.view import ScenePolicy
@@ -52,7 +55,8 @@ METRICS = {
     "time_to_first_ego_collision": "[s] first collision of the ego, None if none",
     "offroad_events": "off-road events (any vehicle)",
     "ego_offroad": "the ego left the road (a footprint sample off the drivable area)",
-    "orr_centroid": "share of live agent-steps with the centre off the road (paper ORR)",
+    "orr_centroid": "share of live agent-steps (every vehicle while controlled, the ego "
+    "included) with the centre off the road (paper ORR)",
     "orr_footprint": "share of live agent-steps with a footprint sample off the road",
     "min_distance_to_ego": "[m] least box separation between the ego and another vehicle "
     "(<= 0: in contact; None: no other vehicle)",
@@ -256,6 +260,7 @@ def _record(base: RiskFlowParallelEnv, frames: list, events: tuple) -> EpisodeRe
     present = scene.present.copy()
     summary = events[-1] if events and events[-1]["event"] == "episode_summary" else {}
     live = active[:, :-1] & present[:, None]  # live before each step, judged after it
+    road = offroad_counts(centroid[:, 1:], footprint[:, 1:], live)  # the env's own flags
     others = present.copy()
     others[0] = False
     gap = separation(
@@ -272,8 +277,8 @@ def _record(base: RiskFlowParallelEnv, frames: list, events: tuple) -> EpisodeRe
         "time_to_first_ego_collision": summary.get("time_to_first_ego_collision"),
         "offroad_events": summary.get("offroad_events", 0),
         "ego_offroad": bool(footprint[0].any()),
-        "orr_centroid": _share(centroid[:, 1:], live),
-        "orr_footprint": _share(footprint[:, 1:], live),
+        "orr_centroid": road.centroid_rate,
+        "orr_footprint": road.footprint_rate,
         "min_distance_to_ego": float(gap.min()) if gap.size else None,
     }
     return EpisodeRecord(
@@ -289,10 +294,6 @@ def _record(base: RiskFlowParallelEnv, frames: list, events: tuple) -> EpisodeRe
         metrics=metrics,
         dt=base.config.dynamics.dt,
     )
-
-
-def _share(flags: np.ndarray, mask: np.ndarray) -> float:
-    return float(flags[mask].mean()) if mask.any() else 0.0
 
 
 def summarize(records: list[EpisodeRecord], confidence: float = 0.95) -> dict[str, dict]:

@@ -29,9 +29,10 @@ import torch
 from torch import Tensor
 
 from policies.learned.adversary_config import AdversaryConfig
+from policies.learned.encoded_views import EncodedView, EncodedViews
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.guidance_losses import adversarial_loss, map_term, target_rows
-from policies.learned.plan_buffer import EncodedView, EncodedViews, PlanBufferPolicy
+from policies.learned.plan_buffer import PlanBufferPolicy
 from policies.learned.sampler import base_velocity
 from policies.riskflow.guidance import (
     GuidanceResult,

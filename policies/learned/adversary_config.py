@@ -8,6 +8,10 @@ seed, the device, the window options and the torch threads. Each takes them as o
 
     RiskFlowAdversary(AdversaryConfig(k=5, target="ego"), guidance_steps=20)
     RiskFlowAdversary(k=5, target="ego", guidance_steps=20)  # the same policy
+
+Beside it, the checks every adversary constructor shares: :func:`check_model_pair` (a
+model comes with its normalizer) and :func:`default_window_config` (the windows a model
+was trained on).
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from policies.learned.config import ModelConfig
 from policies.learned.guidance_losses import TARGETS
 from policies.learned.ranking import DEFAULT_THRESHOLD, check_k
 from policies.learned.windows import WindowConfig
@@ -140,4 +145,23 @@ def option_names(cls: type) -> tuple[str, ...]:
     return tuple(names)
 
 
-__all__ = ["AdversaryConfig", "option_names"]
+def default_window_config(config: ModelConfig) -> WindowConfig:
+    """The windows a model with architecture ``config`` was trained on (history, plan
+    length and map crop size; the other options at their defaults)."""
+    return WindowConfig(
+        history_steps=config.history_steps,
+        future_steps=config.future_steps,
+        crop_size=config.map_size,
+    )
+
+
+def check_model_pair(model: object, normalizer: object, name: str) -> None:
+    """A model and its normalizer go together: both given or neither (then the shipped
+    checkpoint is loaded). Raises ValueError naming ``name`` (the model argument)."""
+    if model is None and normalizer is not None:
+        raise ValueError(f"normalizer given without its {name}: pass both or neither")
+    if model is not None and normalizer is None:
+        raise ValueError(f"a {name} needs the normalizer it was trained with")
+
+
+__all__ = ["AdversaryConfig", "check_model_pair", "default_window_config", "option_names"]

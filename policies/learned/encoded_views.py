@@ -1,21 +1,26 @@
 """What one planning call observes of its scenes: windows, the collated batch, the context.
 
-:meth:`policies.learned.plan_buffer.PlanBufferPolicy._encode_views` cuts a window from
-each scene's view, collates them (agents padded to the largest scene) and runs the
-model's encoder once; :class:`EncodedViews` holds the result for B scenes and
+:func:`encode_views` (what :meth:`policies.learned.plan_buffer.PlanBufferPolicy._encode_views`
+runs) cuts a window from each scene's view, collates them (agents padded to the largest
+scene) and runs the model's encoder once; :class:`EncodedViews` holds the result for B
+scenes and
 :class:`EncodedView` for one (what the one-scene methods, STRIVE-style and the diffusion
 baselines, work on: :meth:`EncodedViews.view` cuts scene ``b`` out, without padding).
 """
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from policies.learned.encoder import SceneContext
-from policies.learned.window_types import Window, WindowBatch
+from policies.learned.window_types import Window, WindowBatch, collate_windows
+from policies.learned.windows import WindowConfig, window_from_view
+from riskflow_env.view import SceneView
 
 
 @dataclass(frozen=True)
@@ -94,4 +99,34 @@ class EncodedViews:
         return EncodedView(window, slots, batch, context, self.frames[index], self.clock)
 
 
-__all__ = ["EncodedView", "EncodedViews"]
+def encode_views(
+    views: Sequence[SceneView],
+    window_config: WindowConfig,
+    device: torch.device,
+    encode: Callable[[WindowBatch], SceneContext],
+    tick: Callable[[str, float], float],
+) -> EncodedViews:
+    """Windows, collate (agents padded), one encoder pass. The windows are cut scene by
+    scene (a loop over scenes: ``window_from_view`` is per scene, numpy).
+
+    Args:
+        views: the B scenes now.
+        window_config: the window options.
+        device: where the batch goes.
+        encode: the model's encoder, ``batch -> SceneContext`` (run without gradients).
+        tick: the phase clock, ``tick(phase, start) -> now`` (records the phases
+            ``"window"`` and ``"encoder"``).
+    """
+    start = time.perf_counter()
+    windows = [window_from_view(view, window_config) for view in views]
+    batch = collate_windows(windows).to(device)
+    clock = tick("window", start)
+    with torch.no_grad():
+        scene = encode(batch)
+    clock = tick("encoder", clock)
+    frames = np.array([[v.current[0, 0], v.current[0, 1], v.current[0, 3]] for v in views])
+    slots = [w.agent_index for w in windows]
+    return EncodedViews(windows, slots, batch, scene, frames, clock)
+
+
+__all__ = ["EncodedView", "EncodedViews", "encode_views"]

@@ -17,20 +17,18 @@ scenes in one encoder pass, one generator pass and one guidance loop) or
   from a ``torch.Generator`` seeded with ``(seed, e, c)`` (:meth:`_noise_source`), so
   the same seed gives the same closed-loop rollout, bit for bit, on one machine;
 * **observation**: :meth:`PlanBufferPolicy._encode_views` cuts each scene's window from
-  its view (``window_from_view``), collates them and runs the model's scene encoder once
-  (the ``"window"`` and ``"encoder"`` phases of every subclass;
-  :mod:`policies.learned.encoded_views`); :func:`default_window_config` is the window of
-  a model's training data;
+  its view, collates them and runs the model's scene encoder once (the ``"window"`` and
+  ``"encoder"`` phases of every subclass; :mod:`policies.learned.encoded_views`);
 * **threads**: torch CPU threads while planning (restored after);
-* **timings** per phase, world-frame plans, the controllable set and the render overlays;
-* **stitching**: a new plan does not switch the actions at once. Its first
-  ``stitch_steps`` actions (5 = 0.5 s by default) are blended with the continuation of the
-  plan being executed, the previous plan's share falling linearly (``n/(n+1), ...,
-  1/(n+1)``), and the plan is rolled out again from the current state. Positions and
-  speeds are continuous across a re-plan anyway (every plan starts at the current
-  state); this makes the acceleration and yaw rate continuous too, which removes the
-  jerk spike at every re-plan (the step that switched plans had about twice the p95
-  jerk of the steps within a plan). Set ``policy.stitch_steps = 0`` to switch at once.
+* **timings** per phase, world-frame plans and the controllable set;
+* **stitching** (:mod:`policies.learned.plan_stitching`): a new plan's first
+  ``stitch_steps`` actions are blended with the plan being executed, so the actions stay
+  continuous across a re-plan (``policy.stitch_steps = 0`` switches at once);
+* **render overlays** of the plans (:mod:`policies.learned.plan_overlay`).
+
+The constructors' shared checks (:func:`~policies.learned.adversary_config.check_model_pair`,
+:func:`~policies.learned.adversary_config.default_window_config`) live with
+:class:`~policies.learned.adversary_config.AdversaryConfig`; this module re-exports them.
 
 Vehicles that are live but got no window slot hold speed and heading (zero actions)
 until a cycle gives them a plan; done vehicles stand still (:func:`hold_still`).
@@ -46,39 +44,21 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import torch
 
-from policies.learned.adversary_config import AdversaryConfig
-from policies.learned.config import ModelConfig
-from policies.learned.encoded_views import EncodedView, EncodedViews
+from policies.learned.adversary_config import (
+    AdversaryConfig,
+    check_model_pair,
+    default_window_config,
+)
+from policies.learned.encoded_views import EncodedView, EncodedViews, encode_views
 from policies.learned.encoder import SceneContext
+from policies.learned.plan_overlay import BASE_COLOR, GUIDED_COLOR, PlanOverlay
+from policies.learned.plan_stitching import PlanStitching
 from policies.learned.ranking import Ranking
-from policies.learned.window_types import WindowBatch, collate_windows
-from policies.learned.windows import WindowConfig, window_from_view
+from policies.learned.window_types import WindowBatch
+from policies.learned.windows import WindowConfig
 from riskflow_env.agents.base import actions_dict, controlled_mask
-from riskflow_env.dynamics import inverse, rollout
 from riskflow_env.maps import DrivableMap, MapStack
 from riskflow_env.view import SceneView
-
-BASE_COLOR = (70, 200, 235)  # overlay of the unguided plans
-GUIDED_COLOR = (200, 80, 235)  # overlay of the guided (A_c) plans (purple: red marks collisions)
-
-
-def default_window_config(config: ModelConfig) -> WindowConfig:
-    """The windows a model with architecture ``config`` was trained on (history, plan
-    length and map crop size; the other options at their defaults)."""
-    return WindowConfig(
-        history_steps=config.history_steps,
-        future_steps=config.future_steps,
-        crop_size=config.map_size,
-    )
-
-
-def check_model_pair(model: object, normalizer: object, name: str) -> None:
-    """A model and its normalizer go together: both given or neither (then the shipped
-    checkpoint is loaded). Raises ValueError naming ``name`` (the model argument)."""
-    if model is None and normalizer is not None:
-        raise ValueError(f"normalizer given without its {name}: pass both or neither")
-    if model is not None and normalizer is None:
-        raise ValueError(f"a {name} needs the normalizer it was trained with")
 
 
 def hold_still(
@@ -93,7 +73,7 @@ def hold_still(
     trajectories[done] = standing[done, None].expand_as(trajectories[done])
 
 
-class PlanBufferPolicy:
+class PlanBufferPolicy(PlanStitching, PlanOverlay):
     """Base of the plan-buffer scene policies (module docstring); drives every non-ego vehicle.
 
     Args:
@@ -102,9 +82,7 @@ class PlanBufferPolicy:
         window_config: window options (its ``dynamics`` must be the env's).
     """
 
-    overlay_prefix = "riskflow"
     phases: tuple[str, ...] = ()
-    stitch_steps: int = 5  # [steps] re-plan blend (module docstring); 0: switch at once
 
     def __init__(
         self, config: AdversaryConfig, horizon: int, window_config: WindowConfig, /
@@ -233,38 +211,6 @@ class PlanBufferPolicy:
         plan_scenes([self], [view])
         return self.plans
 
-    def _stitch(self, view: SceneView, actions: np.ndarray, mask: np.ndarray, elapsed: int) -> None:
-        """Blend the first ``stitch_steps`` actions of the new plans with the rest of the
-        previous plans (module docstring, *stitching*) and roll the plans out again.
-
-        Args: the previous ``plan_actions`` (A, T, 2) and ``plan_mask`` (A,), and the
-        steps executed of them (``elapsed``).
-        """
-        steps = min(self.stitch_steps, actions.shape[1] - elapsed, self.plan_actions.shape[1])
-        same = mask.shape == self.plan_mask.shape
-        rows = np.flatnonzero(self.plan_mask & mask & view.active) if same else []
-        if steps <= 0 or len(rows) == 0:
-            return
-        keep = (1.0 - np.arange(1, steps + 1) / (steps + 1))[:, None]  # previous plan's share
-        old = actions[rows, elapsed : elapsed + steps]
-
-        def blend(plan_actions: np.ndarray, previous: np.ndarray) -> np.ndarray:
-            plan_actions[:, :steps] = keep * previous + (1.0 - keep) * plan_actions[:, :steps]
-            return plan_actions
-
-        current = view.current[rows]
-        self.plan_actions[rows] = blend(self.plan_actions[rows], old)
-        self.plans[rows] = rollout(current, self.plan_actions[rows], self.dynamics)
-        # The unguided alternative is stitched alike: the same plans where nothing was
-        # guided; for A_c its own actions (inverse dynamics of the base plan), blended.
-        guided = self.controllable[rows]
-        self.base_plans[rows[~guided]] = self.plans[rows[~guided]]
-        if guided.any():
-            start = current[guided][:, None]
-            base = inverse(np.concatenate([start, self.base_plans[rows[guided]]], axis=1))
-            base = blend(base, old[guided])
-            self.base_plans[rows[guided]] = rollout(current[guided], base, self.dynamics)
-
     def predicted_states(self, view: SceneView, steps: int) -> np.ndarray:
         """What the current plans say each vehicle will do over the next ``steps`` steps.
 
@@ -289,24 +235,9 @@ class PlanBufferPolicy:
         views: Sequence[SceneView],
         encode: Callable[[WindowBatch], SceneContext],
     ) -> EncodedViews:
-        """Windows, collate (agents padded), one encoder pass (phases ``"window"`` and
-        ``"encoder"``). The windows are cut scene by scene (a loop over scenes:
-        ``window_from_view`` is per scene, numpy).
-
-        Args:
-            views: the B scenes now.
-            encode: the model's encoder, ``batch -> SceneContext`` (run without gradients).
-        """
-        start = time.perf_counter()
-        windows = [window_from_view(view, self.window_config) for view in views]
-        batch = collate_windows(windows).to(self.device)
-        clock = self._tick("window", start)
-        with torch.no_grad():
-            scene = encode(batch)
-        clock = self._tick("encoder", clock)
-        frames = np.array([[v.current[0, 0], v.current[0, 1], v.current[0, 3]] for v in views])
-        slots = [w.agent_index for w in windows]
-        return EncodedViews(windows, slots, batch, scene, frames, clock)
+        """:func:`~policies.learned.encoded_views.encode_views` with this policy's window
+        options, device and phase clock (phases ``"window"`` and ``"encoder"``)."""
+        return encode_views(views, self.window_config, self.device, encode, self._tick)
 
     def _encode_view(
         self, view: SceneView, encode: Callable[[WindowBatch], SceneContext]
@@ -373,31 +304,6 @@ class PlanBufferPolicy:
         self.controllable[slots] = self.ranking.controllable
         self.plans, self.base_plans = (
             _to_world(t.cpu().numpy(), slots, num, frame) for t in (guided, base)
-        )
-
-    # ------------------------------------------------------------ rendering
-    @property
-    def controllable_names(self) -> tuple[str, ...]:
-        """Names of the agents in ``A_c`` this cycle (set by the last ``act``)."""
-        return tuple(self._names[i] for i in np.flatnonzero(self.controllable))
-
-    def draw(self, renderer) -> None:
-        """Push this cycle's plans to a renderer (``SceneRenderer.set_overlay``): base plans
-        of the unguided vehicles, guided plans of ``A_c`` (highlighted)."""
-        if self.plans is None:
-            return
-        others = self.plan_mask & ~self.controllable
-        prefix = self.overlay_prefix
-        renderer.set_overlay(
-            f"{prefix}_base", self.plans[..., :2], others, BASE_COLOR, label="base plans"
-        )
-        renderer.set_overlay(
-            f"{prefix}_guided",
-            self.plans[..., :2],
-            self.controllable,
-            GUIDED_COLOR,
-            highlight=tuple(int(i) for i in np.flatnonzero(self.controllable)),
-            label="guided plans (A_c, haloed)",
         )
 
 

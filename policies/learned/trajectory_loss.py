@@ -18,6 +18,7 @@ from policies.learned.plan_penalties import offroad_penalty, overlap_penalty
 from policies.learned.window_types import WindowBatch
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout, wrap_angle
+from riskflow_env.metrics.displacement import masked_displacement
 
 
 def target_actions(batch: WindowBatch, normalizer: Normalizer) -> Tensor:
@@ -56,7 +57,9 @@ def trajectory_loss(
         ``loss = position_mse + heading_weight * heading_mse + collision_weight *
         overlap + offroad_weight * offroad`` (means over valid agent steps, per step:
         ``|p_hat - p|^2`` [m^2]) and detached metrics ``position_mse``, ``heading_mse``
-        [rad^2], ``ade`` [m], ``fde`` [m] (at the last valid step), and ``overlap`` /
+        [rad^2], ``ade`` [m] (mean over valid agent-steps), ``fde`` [m] (mean over agents
+        of the error at their last valid step:
+        :func:`riskflow_env.metrics.displacement.masked_displacement`), and ``overlap`` /
         ``offroad`` when their weight is not 0.
     """
     trajectory = rollout(scene.state, normalizer.denormalize(a_hat), dynamics)  # (B, A, T, 4)
@@ -78,10 +81,8 @@ def trajectory_loss(
         loss = loss + offroad_weight * penalties["offroad"]
     with torch.no_grad():
         distance = squared.detach().sqrt()
-        steps = torch.arange(mask.shape[-1], device=mask.device)
-        last = torch.where(mask, steps, -1).max(dim=-1).values  # (B, A), -1: none valid
-        has_last = last >= 0
-        final = distance.gather(-1, last.clamp(min=0)[..., None])[..., 0]
+        # FDE per agent as the metrics define it; "ade" here pools the agent-steps.
+        _, final, has_last = masked_displacement(distance, mask)  # (B, A)
         metrics = {
             "position_mse": position_mse.detach(),
             "heading_mse": heading_mse.detach(),

@@ -48,18 +48,16 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from policies.learned.adversary_config import AdversaryConfig
-from policies.learned.data import Normalizer
-from policies.learned.generator import RiskFlowGenerator
-from policies.learned.plan_buffer import (
-    BASE_COLOR,
-    GUIDED_COLOR,
-    EncodedViews,
-    PlanBufferPolicy,
+from policies.learned.adversary_config import (
+    AdversaryConfig,
     check_model_pair,
     default_window_config,
-    hold_still,
 )
+from policies.learned.data import Normalizer
+from policies.learned.encoded_views import EncodedViews
+from policies.learned.generator import RiskFlowGenerator
+from policies.learned.plan_buffer import PlanBufferPolicy, hold_still
+from policies.learned.plan_overlay import BASE_COLOR, GUIDED_COLOR
 from policies.learned.ranking import rank_window
 from policies.learned.sampler import base_velocity
 from policies.riskflow.base_generator import generator_kind, load_base_generator

@@ -9,6 +9,7 @@ metric          per rollout                              over rollouts
 ==============  =======================================  ==============================
 SCR, ego rate   :func:`collisions`                       :func:`collision_rates`
 ORR             :func:`offroad` (centroid, footprint)    :func:`offroad_rates`
+                (:func:`offroad_counts` from flags)
 ADE, FDE        :func:`displacement_errors`              :func:`displacement_means`
 still drift     :func:`standstill_drift` (log-parked)    --
 KDD             :func:`kinematic_samples`                :func:`kdd`
@@ -45,6 +46,7 @@ from riskflow_env.metrics.safety import (
     collision_rates,
     collisions,
     offroad,
+    offroad_counts,
     offroad_rates,
 )
 from riskflow_env.metrics.scores import min_max_normalise, safety_realism_scores
@@ -80,6 +82,7 @@ __all__ = [
     "method_metrics",
     "min_max_normalise",
     "offroad",
+    "offroad_counts",
     "offroad_rates",
     "rollout_metrics",
     "standstill_drift",

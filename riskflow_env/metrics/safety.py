@@ -14,6 +14,17 @@ ORR, over the agent-steps of evaluated agents (valid, scored step):
   off-road event.
 
 Rates over many rollouts pool the agent-steps (sum of off-road steps / sum of steps).
+
+:func:`offroad_counts` is the one place that counts off-road agent-steps; its ``counted``
+mask says which agent-steps make the denominator, the only thing in which the two
+users differ:
+
+* :func:`offroad` (the evaluation's ORR): the record's scored agent-steps (evaluated
+  agent, valid, scored step), flags from the record's states and map;
+* the closed-loop harness (``policies.harness``, ``orr_centroid`` / ``orr_footprint``):
+  the live agent-steps of an env episode (every vehicle, the ego included, while it is
+  still controlled; done vehicles standing as obstacles do not count), flags from the
+  env's own per-step events (:func:`riskflow_env.events.detect`).
 """
 
 from __future__ import annotations
@@ -156,17 +167,41 @@ def footprint_sdf(
     return np.asarray(drivable_map.sdf_at(points))
 
 
+def offroad_counts(
+    centroid: np.ndarray, footprint: np.ndarray, counted: np.ndarray
+) -> OffroadResult:
+    """ORR counts from per-agent-step off-road flags (module docstring: who passes what).
+
+    Args:
+        centroid: (..., ) bool, the box centre is off the drivable area.
+        footprint: (..., ) bool, a footprint point is off the drivable area.
+        counted: (..., ) bool, the agent-steps that count (ORR's denominator); flags
+            outside it are ignored.
+
+    Returns:
+        the counts; ``centroid_rate`` / ``footprint_rate`` are the ORRs.
+    """
+    centroid, footprint, counted = (
+        np.asarray(a, dtype=bool) for a in (centroid, footprint, counted)
+    )
+    if not centroid.shape == footprint.shape == counted.shape:
+        raise ValueError(
+            "offroad_counts: centroid, footprint and counted must have one shape, got "
+            f"{centroid.shape}, {footprint.shape} and {counted.shape}"
+        )
+    return OffroadResult(
+        centroid_steps=int(np.sum(centroid & counted)),
+        footprint_steps=int(np.sum(footprint & counted)),
+        agent_steps=int(np.sum(counted)),
+    )
+
+
 def offroad(record: RolloutRecord) -> OffroadResult:
-    """ORR counts of one rollout (needs ``record.drivable_map``)."""
+    """ORR counts of one rollout over its scored agent-steps (needs ``record.drivable_map``)."""
     if record.drivable_map is None:
         raise ValueError("offroad (ORR) needs a record with a drivable_map")
     outside = footprint_sdf(record.drivable_map, record.states, record.length, record.width) > 0
-    scored = record.scored()
-    return OffroadResult(
-        centroid_steps=int(np.sum(outside[..., CENTRE] & scored)),
-        footprint_steps=int(np.sum(outside.any(axis=-1) & scored)),
-        agent_steps=int(np.sum(scored)),
-    )
+    return offroad_counts(outside[..., CENTRE], outside.any(axis=-1), record.scored())
 
 
 def offroad_rates(results: Sequence[OffroadResult]) -> tuple[float, float]:

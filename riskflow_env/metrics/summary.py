@@ -18,7 +18,7 @@ from collections.abc import Mapping, Sequence
 from riskflow_env.metrics.displacement import displacement_errors
 from riskflow_env.metrics.kinematics import KinematicSamples, kdd
 from riskflow_env.metrics.rollout import RolloutRecord
-from riskflow_env.metrics.safety import collisions, offroad
+from riskflow_env.metrics.safety import OffroadResult, collisions, offroad
 
 ROLLOUT_KEYS = (
     "collision",  # 1.0 if any agent-agent collision, else 0.0
@@ -76,6 +76,11 @@ def aggregate_rollout_metrics(rows: Sequence[Mapping[str, float]]) -> dict[str, 
         return sum(float(row[key]) for row in rows)
 
     steps, agents = total("agent_steps"), total("displacement_agents")
+    road = OffroadResult(  # pooled agent-steps (the counts are whole numbers)
+        centroid_steps=int(total("offroad_centroid_steps")),
+        footprint_steps=int(total("offroad_footprint_steps")),
+        agent_steps=int(steps),
+    )
 
     def pooled_mean(key: str) -> float:  # per-rollout agent means, weighted by agents
         weighted = sum(
@@ -88,8 +93,8 @@ def aggregate_rollout_metrics(rows: Sequence[Mapping[str, float]]) -> dict[str, 
     return {
         "scr": total("collision") / count if count else nan,
         "ego_collision_rate": total("ego_collision") / count if count else nan,
-        "orr": total("offroad_centroid_steps") / steps if steps else nan,
-        "orr_footprint": total("offroad_footprint_steps") / steps if steps else nan,
+        "orr": road.centroid_rate,
+        "orr_footprint": road.footprint_rate,
         "ade": pooled_mean("ade"),
         "fde": pooled_mean("fde"),
         "num_rollouts": float(count),

@@ -20,13 +20,9 @@ map_ref, map_hash      (), str            ... or a path to a map file, relative 
                                           file's folder, and the map's content hash
 =====================  =================  ===============================================
 
-A map (inline with the ``map_`` prefix, or alone in a ``schema="riskflow-map"`` file):
-``drivable`` (H, W) bool, ``resolution`` () [m/px], ``origin`` (2,) [m], ``name``,
-``sdf`` (H, W) float32 [m] only when saved with ``include_sdf`` (else recomputed on
-load, a few milliseconds), and the lanes: ``lane_points`` (M, 2) [m] (all centrelines
-concatenated), ``lane_offsets`` (L + 1,) (lane i is ``lane_points[off[i]:off[i+1]]``),
-``lane_widths`` (L,) [m], ``lane_ids`` (L,), ``lane_speed_limits`` (L,) [m/s] (NaN for
-none), ``lane_successors`` (S,) and ``lane_successor_offsets`` (L + 1,).
+A map is stored inline with the ``map_`` prefix, or alone in a ``schema="riskflow-map"``
+file: its arrays and map files are :mod:`~riskflow_env.scenarios.map_files`
+(``load_map``, ``map_to_arrays``, ``map_hash``... are re-exported here).
 
 Banks: a folder of scene files; ``save_scenario(..., map_dir=folder / "maps")`` writes
 each distinct map once, as ``maps/<hash>.npz`` (16 hex digits of a SHA-256 of its
@@ -38,14 +34,11 @@ so equal scenes give byte-identical files.
 from __future__ import annotations
 
 import functools
-import hashlib
 import os
-from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
 
-from riskflow_env.maps import DrivableMap, Lane
 from riskflow_env.scenarios._npz import (
     VERSION,
     ScenarioFormatError,
@@ -53,11 +46,23 @@ from riskflow_env.scenarios._npz import (
     read_npz,
     write_npz,
 )
+from riskflow_env.scenarios.map_files import (
+    MAP_KEYS,
+    MAP_SCHEMA,
+    OPTIONAL_MAP_KEYS,
+    load_map,
+    map_from_arrays,
+    map_hash,
+    map_to_arrays,
+    read_map,
+    read_map_arrays,
+    string_array,
+    write_map_arrays,
+)
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.scenarios.sources import ScenarioBank
 
 SCHEMA = "riskflow-scenario"
-MAP_SCHEMA = "riskflow-map"
 ASSETS = Path(__file__).resolve().parent.parent / "assets" / "scenarios"
 SPLITS = ("eval", "train")
 # key -> (shape with named dims, allowed dtype kinds: f float, b bool, i/u int, U str)
@@ -75,23 +80,7 @@ _SCENE_KEYS = {
     "agent_ids": (("N?",), "U"),
     "kinds": (("N?",), "U"),
 }
-_MAP_KEYS = {
-    "drivable": (("H", "W"), "b"),
-    "resolution": ((), "f"),
-    "origin": ((2,), "f"),
-    "name": ((), "U"),
-    "lane_points": (("M", 2), "f"),
-    "lane_offsets": (("L+1",), "iu"),
-    "lane_widths": (("L",), "f"),
-    "lane_ids": (("L",), "U"),
-    "lane_speed_limits": (("L",), "f"),
-    "lane_successors": (("S",), "U"),
-    "lane_successor_offsets": (("L+1",), "iu"),
-}
-_OPTIONAL_MAP_KEYS = {"sdf": (("H", "W"), "f")}
 _REF_KEYS = {"map_ref": ((), "U"), "map_hash": ((), "U")}
-_MAP_CACHE: OrderedDict[str, DrivableMap] = OrderedDict()
-_MAP_CACHE_SIZE = 64
 
 
 def save_scenario(
@@ -127,8 +116,8 @@ def save_scenario(
         valid=scenario.valid.astype(bool),
         length=scenario.length.astype(np.float64),
         width=scenario.width.astype(np.float64),
-        agent_ids=_strings(scenario.agent_ids),
-        kinds=_strings(scenario.kinds),
+        agent_ids=string_array(scenario.agent_ids),
+        kinds=string_array(scenario.kinds),
     )
     map_arrays = map_to_arrays(scenario.map, include_sdf)
     if map_dir is None:
@@ -168,11 +157,11 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
         ref = _map_ref_path(path, str(arrays["map_ref"]))
         drivable_map = load_map(ref, expected_hash=str(arrays["map_hash"]))
     else:
-        prefixed = {f"map_{key}": rule for key, rule in _MAP_KEYS.items()}
-        optional = {f"map_{key}": rule for key, rule in _OPTIONAL_MAP_KEYS.items()}
+        prefixed = {f"map_{key}": rule for key, rule in MAP_KEYS.items()}
+        optional = {f"map_{key}": rule for key, rule in OPTIONAL_MAP_KEYS.items()}
         check_arrays(path, arrays, {**_SCENE_KEYS, **prefixed}, optional)
         map_arrays = {key[4:]: value for key, value in arrays.items() if key.startswith("map_")}
-        drivable_map = _map_from_arrays(path, map_arrays)
+        drivable_map = map_from_arrays(path, map_arrays)
     states, valid = arrays["states"].astype(np.float64), arrays["valid"]
     bad = np.argwhere(valid & ~np.all(np.isfinite(states), axis=-1))
     if bad.size:
@@ -214,96 +203,6 @@ def _map_ref_path(path: Path, ref: str) -> Path:
     if not target.is_relative_to(folder):
         raise ScenarioFormatError(f"{path}: map_ref {ref!r} leaves the scene's folder")
     return path.parent / relative
-
-
-def load_map(path: str | os.PathLike, expected_hash: str | None = None) -> DrivableMap:
-    """Read a map file (``schema="riskflow-map"``); one shared copy per content hash.
-
-    Args:
-        path: the ``.npz`` map file.
-        expected_hash: the hash the referring scene recorded; a mismatch is an error.
-    """
-    path = Path(path)
-    if expected_hash is not None and expected_hash in _MAP_CACHE:
-        _MAP_CACHE.move_to_end(expected_hash)
-        return _MAP_CACHE[expected_hash]
-    arrays = read_map_arrays(path)
-    digest = map_hash(arrays)
-    if expected_hash is not None and digest != expected_hash:
-        raise ScenarioFormatError(
-            f"{path}: map content hash {digest} differs from the referenced {expected_hash}"
-        )
-    if digest not in _MAP_CACHE:
-        _MAP_CACHE[digest] = _map_from_arrays(path, arrays)
-        while len(_MAP_CACHE) > _MAP_CACHE_SIZE:
-            _MAP_CACHE.popitem(last=False)
-    return _MAP_CACHE[digest]
-
-
-def read_map_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """The checked arrays of map file ``path`` (no in-memory sharing: see :func:`load_map`).
-
-    Raises:
-        FileNotFoundError: no such file.
-        ScenarioFormatError: naming the file, when it is not a readable map file.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"map file {path} not found")
-    arrays = read_npz(path, MAP_SCHEMA)
-    arrays = {key: value for key, value in arrays.items() if key not in ("schema", "version")}
-    check_arrays(path, arrays, _MAP_KEYS, _OPTIONAL_MAP_KEYS)
-    return arrays
-
-
-def read_map(path: str | os.PathLike) -> DrivableMap:
-    """The map of map file ``path``, read afresh (see :func:`read_map_arrays`)."""
-    return _map_from_arrays(Path(path), read_map_arrays(path))
-
-
-def write_map_arrays(path: str | os.PathLike, arrays: dict[str, np.ndarray]) -> None:
-    """Write :func:`map_to_arrays`' output as a map file (``schema="riskflow-map"``),
-    atomically (a temporary file renamed over ``path``)."""
-    header = {"schema": np.array(MAP_SCHEMA), "version": np.array(VERSION)}
-    write_npz(Path(path), header | arrays)
-
-
-def map_to_arrays(drivable_map: DrivableMap, include_sdf: bool = False) -> dict[str, np.ndarray]:
-    """The arrays that store ``drivable_map`` (keys as in the module docstring)."""
-    lanes = drivable_map.lanes
-    points = [lane.centerline for lane in lanes]
-    successors = [successor for lane in lanes for successor in lane.successors]
-    arrays = {
-        "drivable": drivable_map.drivable,
-        "resolution": np.array(float(drivable_map.resolution)),
-        "origin": drivable_map.origin.astype(np.float64),
-        "name": np.array(drivable_map.name),
-        "lane_points": np.concatenate(points) if points else np.zeros((0, 2)),
-        "lane_offsets": np.cumsum([0] + [len(p) for p in points]).astype(np.int64),
-        "lane_widths": np.array([lane.width for lane in lanes], dtype=np.float64),
-        "lane_ids": _strings([lane.lane_id for lane in lanes]),
-        "lane_speed_limits": np.array(
-            [np.nan if lane.speed_limit is None else lane.speed_limit for lane in lanes],
-            dtype=np.float64,
-        ),
-        "lane_successors": _strings(successors),
-        "lane_successor_offsets": np.cumsum([0] + [len(lane.successors) for lane in lanes]).astype(
-            np.int64
-        ),
-    }
-    if include_sdf:
-        arrays["sdf"] = drivable_map.sdf
-    return arrays
-
-
-def map_hash(arrays: dict[str, np.ndarray]) -> str:
-    """16 hex digits of a SHA-256 over the map arrays (names, dtypes, shapes, bytes)."""
-    digest = hashlib.sha256()
-    for key in sorted(arrays):
-        value = np.ascontiguousarray(arrays[key])
-        digest.update(f"{key}|{value.dtype.str}|{value.shape}|".encode())
-        digest.update(value.tobytes())
-    return digest.hexdigest()[:16]
 
 
 def list_scenarios(directory: str | os.PathLike) -> list[Path]:
@@ -364,40 +263,21 @@ def _shipped(split: str) -> ScenarioBank:
     return load_bank(ASSETS / split)
 
 
-def _strings(values) -> np.ndarray:
-    values = [str(v) for v in values]
-    return np.array(values, dtype=str) if values else np.zeros(0, dtype="<U1")
-
-
-def _map_from_arrays(path: Path, arrays: dict[str, np.ndarray]) -> DrivableMap:
-    try:
-        points, offsets = arrays["lane_points"], arrays["lane_offsets"]
-        successors, succ_offsets = arrays["lane_successors"], arrays["lane_successor_offsets"]
-        for name, off, total in (
-            ("lane_offsets", offsets, len(points)),
-            ("lane_successor_offsets", succ_offsets, len(successors)),
-        ):
-            if off[0] != 0 or off[-1] != total or np.any(np.diff(off) < 0):
-                raise ValueError(f"'{name}' must rise from 0 to {total}, got {off.tolist()}")
-        lanes = tuple(
-            Lane(
-                centerline=points[offsets[i] : offsets[i + 1]],
-                width=float(arrays["lane_widths"][i]),
-                lane_id=str(arrays["lane_ids"][i]),
-                speed_limit=None
-                if np.isnan(arrays["lane_speed_limits"][i])
-                else float(arrays["lane_speed_limits"][i]),
-                successors=tuple(str(s) for s in successors[succ_offsets[i] : succ_offsets[i + 1]]),
-            )
-            for i in range(len(arrays["lane_ids"]))
-        )
-        return DrivableMap(
-            drivable=arrays["drivable"],
-            resolution=float(arrays["resolution"]),
-            origin=arrays["origin"],
-            sdf=arrays.get("sdf"),
-            lanes=lanes,
-            name=str(arrays["name"]),
-        )
-    except (ValueError, TypeError, IndexError) as error:
-        raise ScenarioFormatError(f"{path}: invalid map ({error})") from None
+__all__ = [
+    "ASSETS",
+    "MAP_SCHEMA",
+    "SCHEMA",
+    "SPLITS",
+    "list_scenarios",
+    "load_bank",
+    "load_map",
+    "load_scenario",
+    "map_hash",
+    "map_to_arrays",
+    "read_map",
+    "read_map_arrays",
+    "require_scenarios",
+    "save_scenario",
+    "shipped_bank",
+    "write_map_arrays",
+]

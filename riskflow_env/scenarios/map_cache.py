@@ -4,7 +4,7 @@ Building a :class:`~riskflow_env.maps.DrivableMap` from a scenario's ``map_featu
 (shapely unions, rasterising, the signed distance field) is most of the time it takes to
 load a ScenarioNet scene; the map is a pure function of the file's bytes and the build
 settings. :class:`MapCache` keeps each built map as a map file
-(``schema="riskflow-map"``, :mod:`~riskflow_env.scenarios.io`) named by a SHA-256 of
+(``schema="riskflow-map"``, :mod:`~riskflow_env.scenarios.map_files`) named by a SHA-256 of
 
 * the file's content hash (SHA-256 of its bytes: a renamed or copied file hits, an
   edited one misses),
@@ -34,7 +34,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from riskflow_env.maps import DrivableMap
-from riskflow_env.scenarios.io import map_to_arrays, read_map, write_map_arrays
+from riskflow_env.scenarios.map_files import map_to_arrays, read_map, write_map_arrays
 from riskflow_env.user_cache import user_cache
 
 _FORMAT = 1  # bump when the cached file's meaning changes

@@ -13,7 +13,8 @@ before it is imported or called. Persistent ids are refused too.
 
 The unpickler never hands a file a callable that can address memory: the
 ``numpy.ndarray`` constructor (shape, dtype, *buffer, offset*) is not reachable.
-``numpy.ndarray`` and ``numpy.dtype`` resolve to inert stand-ins, and arrays are
+``numpy.ndarray`` and ``numpy.dtype`` resolve to inert stand-ins
+(:mod:`~riskflow_env.scenarios.pickle_stand_ins`), and arrays are
 built only through numpy's own reconstruction path (``_reconstruct`` followed by
 ``__setstate__``) after the dtype (plain numeric, bool, bytes or str kinds; no
 object, structured or sub-array dtypes), the shape and the byte count have been
@@ -44,6 +45,19 @@ from typing import Any
 
 import numpy as np
 
+from riskflow_env.scenarios.pickle_stand_ins import (
+    FACTORY_NAMES,
+    FACTORY_TOKENS,
+    NDARRAY,
+    BuiltinType,
+    DtypeSpec,
+    NdarrayRef,
+    Refused,
+    check_dtype,
+    check_shape,
+    default_dict,
+)
+
 try:  # numpy >= 2
     from numpy._core import multiarray as _multiarray
 except ImportError:  # numpy 1.x
@@ -53,114 +67,9 @@ MAX_FILE_BYTES = 512 * 2**20  # [bytes] largest data pickle read
 MAX_ARRAY_BYTES = 256 * 2**20  # [bytes] largest single array / bytearray built
 MAX_TOTAL_BYTES = 1024 * 2**20  # [bytes] all arrays / bytearrays of one file
 MAX_DEPTH = 64  # container nesting
-MAX_DIMS = 8  # array dimensions
-_ARRAY_KINDS = frozenset("biufcSU")  # bool, ints, floats, complex, bytes, str
 
 _NUMPY_MODULES = ("numpy.core.multiarray", "numpy._core.multiarray")
 _NUMERIC_MODULES = ("numpy.core.numeric", "numpy._core.numeric")
-
-
-class _Refused(ValueError):
-    """A refusal inside the unpickler (re-raised with the file name)."""
-
-
-class _NdarrayRef:
-    """Stand-in for ``numpy.ndarray``: only usable as ``_reconstruct``'s subtype."""
-
-    def __call__(self, *args: Any, **kwargs: Any) -> Any:
-        raise _Refused("calling numpy.ndarray directly is refused (buffer/offset access)")
-
-    def __reduce__(self) -> Any:  # pragma: no cover - never pickled back
-        raise TypeError("not picklable")
-
-
-_NDARRAY = _NdarrayRef()
-
-
-class _BuiltinType:
-    """Stand-in for a builtin type (``list``, ``int``...): a ``defaultdict`` factory only.
-
-    ``collections.defaultdict(list)`` pickles as a reference to ``builtins.list``;
-    calling the plain type from a file could amplify (``list`` of a long string), so
-    the token refuses every call and :func:`_default_dict` swaps in the real type."""
-
-    def __init__(self, name: str) -> None:
-        self.name = name
-
-    def __call__(self, *args: Any, **kwargs: Any) -> Any:
-        raise _Refused(f"calling builtins.{self.name} is refused (only a defaultdict factory)")
-
-    def __reduce__(self) -> Any:  # pragma: no cover - never pickled back
-        raise TypeError("not picklable")
-
-
-# builtin types a ScenarioNet / MetaDrive file may name as a ``defaultdict`` factory
-# (metadrive's ScenarioDescription writes ``defaultdict(int)`` in
-# ``metadata["number_summary"]``); tokens, never called.
-_FACTORY_NAMES = ("list", "int", "float", "dict", "str", "tuple", "bool")
-_FACTORY_TOKENS = {name: _BuiltinType(name) for name in _FACTORY_NAMES}
-
-
-def _default_dict(factory: Any = None, *args: Any) -> collections.defaultdict:
-    """``collections.defaultdict(factory)`` for a builtin factory (or None) only; the
-    items arrive afterwards through the pickle's SETITEMS."""
-    if args:
-        raise _Refused("collections.defaultdict with initial items in its call is refused")
-    if isinstance(factory, _BuiltinType):
-        factory = getattr(builtins, factory.name)
-    elif factory not in (None, set, frozenset, complex):
-        raise _Refused(
-            f"collections.defaultdict factory {type(factory).__name__} is refused "
-            f"(allowed: None or builtins {', '.join(_FACTORY_NAMES)}, set, frozenset, complex)"
-        )
-    return collections.defaultdict(factory)
-
-
-class _DtypeSpec:
-    """Stand-in for a ``numpy.dtype`` being unpickled: ``dtype(str)`` then state."""
-
-    def __init__(self, spec: Any, align: Any = False, copy: Any = True) -> None:
-        if not isinstance(spec, str) or len(spec) > 16:
-            raise _Refused(f"dtype spec must be a short string, got {type(spec).__name__}")
-        try:
-            dtype = np.dtype(spec)
-        except Exception as err:
-            raise _Refused(f"bad dtype {spec!r}: {err}") from None
-        self.dtype = _check_dtype(dtype)
-
-    def __setstate__(self, state: Any) -> None:
-        if not isinstance(state, tuple) or len(state) < 2:
-            raise _Refused("bad dtype state")
-        if any(part is not None for part in state[2:5]):
-            raise _Refused("structured / sub-array dtypes are refused")
-        order = state[1]
-        if order not in ("<", ">", "|", "="):
-            raise _Refused(f"bad dtype byte order {order!r}")
-        if order != "|":
-            self.dtype = self.dtype.newbyteorder(order)
-
-
-def _check_dtype(dtype: Any) -> np.dtype:
-    if isinstance(dtype, _DtypeSpec):
-        dtype = dtype.dtype
-    if not isinstance(dtype, np.dtype):
-        raise _Refused(f"expected a dtype, got {type(dtype).__name__}")
-    if dtype.kind not in _ARRAY_KINDS or dtype.hasobject or dtype.fields or dtype.subdtype:
-        raise _Refused(f"dtype {dtype!r} is refused (only bool, numeric, bytes and str)")
-    if not 0 < dtype.itemsize <= 4096:
-        raise _Refused(f"dtype {dtype!r} has an unsupported item size")
-    return dtype
-
-
-def _check_shape(shape: Any) -> tuple[int, ...]:
-    if isinstance(shape, int) and not isinstance(shape, bool):
-        shape = (shape,)
-    if not isinstance(shape, tuple) or len(shape) > MAX_DIMS:
-        raise _Refused(f"bad array shape {shape!r:.80}")
-    for dim in shape:
-        if not isinstance(dim, int) or isinstance(dim, bool) or not 0 <= dim <= 2**40:
-            raise _Refused(f"bad array shape {shape!r:.80}")
-    return shape
 
 
 class _SafeArray(np.ndarray):
@@ -170,23 +79,23 @@ class _SafeArray(np.ndarray):
 
     def __setstate__(self, state: Any) -> None:
         if not isinstance(state, tuple) or len(state) not in (4, 5):
-            raise _Refused("bad array state")
+            raise Refused("bad array state")
         if len(state) == 5:
             if state[0] != 1:
-                raise _Refused(f"unknown array state version {state[0]!r}")
+                raise Refused(f"unknown array state version {state[0]!r}")
             state = state[1:]
         shape, dtype, fortran, raw = state
-        shape = _check_shape(shape)
-        dtype = _check_dtype(dtype)
+        shape = check_shape(shape)
+        dtype = check_dtype(dtype)
         if not isinstance(fortran, bool):
-            raise _Refused("bad array order flag")
+            raise Refused("bad array order flag")
         nbytes = math.prod(shape) * dtype.itemsize
         if self._budget is None:
-            raise _Refused("array built outside an unpickler")
+            raise Refused("array built outside an unpickler")
         self._budget.take(nbytes, "array")
         if not isinstance(raw, (bytes, bytearray)) or len(raw) != nbytes:
             held = len(raw) if isinstance(raw, (bytes, bytearray)) else type(raw).__name__
-            raise _Refused(f"array data holds {held} bytes, shape {shape} x {dtype} needs {nbytes}")
+            raise Refused(f"array data holds {held} bytes, shape {shape} x {dtype} needs {nbytes}")
         super().__setstate__((shape, dtype, fortran, bytes(raw)))
 
 
@@ -196,12 +105,12 @@ class _Budget:
 
     def take(self, nbytes: int, what: str) -> None:
         if nbytes > MAX_ARRAY_BYTES:
-            raise _Refused(
+            raise Refused(
                 f"a {what} of {nbytes} bytes exceeds the limit MAX_ARRAY_BYTES = {MAX_ARRAY_BYTES}"
             )
         self.total += nbytes
         if self.total > MAX_TOTAL_BYTES:
-            raise _Refused(
+            raise Refused(
                 f"arrays totalling over {MAX_TOTAL_BYTES} bytes exceed the limit MAX_TOTAL_BYTES"
             )
 
@@ -222,27 +131,27 @@ class RestrictedUnpickler(pickle.Unpickler):
         array_type = type("_SafeArray", (_SafeArray,), {"_budget": budget})
 
         def reconstruct(subtype: Any, shape: Any, dtype: Any) -> np.ndarray:
-            if subtype is not _NDARRAY:
-                raise _Refused("numpy _reconstruct of a type other than numpy.ndarray")
+            if subtype is not NDARRAY:
+                raise Refused("numpy _reconstruct of a type other than numpy.ndarray")
             return _multiarray._reconstruct(array_type, (0,), b"b")
 
         def scalar(dtype: Any, data: Any = None) -> Any:
-            dtype = _check_dtype(dtype)
+            dtype = check_dtype(dtype)
             if not isinstance(data, bytes) or len(data) != dtype.itemsize:
-                raise _Refused("bad numpy scalar data")
+                raise Refused("bad numpy scalar data")
             return np.frombuffer(data, dtype=dtype)[0]
 
         def frombuffer(buf: Any, dtype: Any, shape: Any, order: Any) -> np.ndarray:
-            dtype = _check_dtype(dtype)
-            shape = _check_shape(shape)
+            dtype = check_dtype(dtype)
+            shape = check_shape(shape)
             if isinstance(buf, pickle.PickleBuffer):
                 buf = bytes(buf.raw())
             if not isinstance(buf, (bytes, bytearray)):
-                raise _Refused("numpy _frombuffer needs bytes")
+                raise Refused("numpy _frombuffer needs bytes")
             nbytes = math.prod(shape) * dtype.itemsize
             budget.take(nbytes, "array")
             if len(buf) != nbytes or order not in ("C", "F"):
-                raise _Refused("numpy _frombuffer size / order mismatch")
+                raise Refused("numpy _frombuffer size / order mismatch")
             return np.frombuffer(buf, dtype=dtype).reshape(shape, order=order).copy(order="K")
 
         def sized(kind: type) -> Any:
@@ -252,26 +161,26 @@ class RestrictedUnpickler(pickle.Unpickler):
                 elif args and isinstance(args[0], (str, bytes, bytearray, list, tuple)):
                     budget.take(len(args[0]), kind.__name__)
                 elif args:
-                    raise _Refused(f"{kind.__name__}() of a {type(args[0]).__name__} is refused")
+                    raise Refused(f"{kind.__name__}() of a {type(args[0]).__name__} is refused")
                 return kind(*args)
 
             return build
 
         def encode(obj: Any, encoding: str = "utf-8", errors: str = "strict") -> bytes:
             if encoding not in ("latin1", "latin-1", "utf-8", "utf8", "ascii"):
-                raise _Refused(f"_codecs.encode with encoding {encoding!r} is refused")
+                raise Refused(f"_codecs.encode with encoding {encoding!r} is refused")
             return codecs.encode(obj, encoding, errors)
 
         self._globals: dict[tuple[str, str], Any] = {
             **{("builtins", name): getattr(builtins, name) for name in _PLAIN_BUILTINS},
             ("builtins", "bytearray"): sized(bytearray),
             ("builtins", "bytes"): sized(bytes),
-            **{("builtins", name): token for name, token in _FACTORY_TOKENS.items()},
+            **{("builtins", name): token for name, token in FACTORY_TOKENS.items()},
             ("collections", "OrderedDict"): collections.OrderedDict,
-            ("collections", "defaultdict"): _default_dict,
+            ("collections", "defaultdict"): default_dict,
             ("_codecs", "encode"): encode,
-            ("numpy", "ndarray"): _NDARRAY,
-            ("numpy", "dtype"): _DtypeSpec,
+            ("numpy", "ndarray"): NDARRAY,
+            ("numpy", "dtype"): DtypeSpec,
             **{(module, "_reconstruct"): reconstruct for module in _NUMPY_MODULES},
             **{(module, "scalar"): scalar for module in _NUMPY_MODULES},
             **{(module, "_frombuffer"): frombuffer for module in _NUMERIC_MODULES},
@@ -304,7 +213,7 @@ _PLAIN_BUILTINS = ("set", "frozenset", "complex")
 #: (module, name): every global a data pickle may refer to (each through a checked
 #: stand-in where the plain object could allocate without bound or address memory).
 ALLOWED_GLOBALS: frozenset[tuple[str, str]] = frozenset(
-    {("builtins", name) for name in _PLAIN_BUILTINS + ("bytearray", "bytes") + _FACTORY_NAMES}
+    {("builtins", name) for name in _PLAIN_BUILTINS + ("bytearray", "bytes") + FACTORY_NAMES}
     | {
         ("collections", "OrderedDict"),
         ("collections", "defaultdict"),
@@ -332,17 +241,17 @@ def _finish(root: Any) -> Any:
 
     def visit(obj: Any, depth: int) -> Any:
         if depth > MAX_DEPTH:
-            raise _Refused(f"containers nested deeper than MAX_DEPTH = {MAX_DEPTH}")
+            raise Refused(f"containers nested deeper than MAX_DEPTH = {MAX_DEPTH}")
         if type(obj) in _LEAVES:
             return obj
         if isinstance(obj, _SafeArray):
             return obj.view(np.ndarray)
-        if isinstance(obj, _DtypeSpec):
+        if isinstance(obj, DtypeSpec):
             return obj.dtype
-        if obj is _NDARRAY:
-            raise _Refused("a bare numpy.ndarray reference is refused")
-        if isinstance(obj, _BuiltinType):
-            raise _Refused(f"a bare builtins.{obj.name} reference is refused")
+        if obj is NDARRAY:
+            raise Refused("a bare numpy.ndarray reference is refused")
+        if isinstance(obj, BuiltinType):
+            raise Refused(f"a bare builtins.{obj.name} reference is refused")
         if not isinstance(obj, (dict, list, tuple, set, frozenset)):
             return obj
         if id(obj) in done:
@@ -350,7 +259,7 @@ def _finish(root: Any) -> Any:
         if isinstance(obj, tuple) and obj.__class__ is not tuple:
             return obj
         if obj and depth >= MAX_DEPTH:  # its items lie deeper than MAX_DEPTH
-            raise _Refused(f"containers nested deeper than MAX_DEPTH = {MAX_DEPTH}")
+            raise Refused(f"containers nested deeper than MAX_DEPTH = {MAX_DEPTH}")
         if isinstance(obj, tuple):
             done[id(obj)] = result = tuple(
                 value if type(value) in _LEAVES else visit(value, depth + 1) for value in obj
@@ -359,8 +268,8 @@ def _finish(root: Any) -> Any:
         done[id(obj)] = obj  # mutable containers are fixed in place (cycles end here)
         if isinstance(obj, dict):
             for key, value in obj.items():
-                if isinstance(key, (_BuiltinType, _NdarrayRef)):
-                    raise _Refused("a type reference as a dict key is refused")
+                if isinstance(key, (BuiltinType, NdarrayRef)):
+                    raise Refused("a type reference as a dict key is refused")
                 if type(value) not in _LEAVES:
                     obj[key] = visit(value, depth + 1)
         elif isinstance(obj, list):

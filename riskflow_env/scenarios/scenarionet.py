@@ -34,6 +34,10 @@ arrays only) and turns it into a :class:`Scenario`:
   (:mod:`~riskflow_env.scenarios.map_cache`); a whole dataset folder is read by
   :class:`~riskflow_env.scenarios.scenarionet_dataset.ScenarioNetDataset`.
 * Arrays must hold real numbers: complex values are refused, not cast.
+
+The tracks become arrays (stacking, time stamps, resampling, speeds, holding invalid
+steps) in :mod:`~riskflow_env.scenarios.scenarionet_tracks`; the map in
+:mod:`~riskflow_env.scenarios.scenarionet_map`.
 """
 
 from __future__ import annotations
@@ -45,7 +49,6 @@ from typing import Any
 
 import numpy as np
 
-from riskflow_env.dynamics import wrap_angle
 from riskflow_env.scenarios.map_cache import MapCache, file_digest
 from riskflow_env.scenarios.safe_pickle import (
     errors_name_the_file,
@@ -54,16 +57,22 @@ from riskflow_env.scenarios.safe_pickle import (
     read_data_file,
 )
 from riskflow_env.scenarios.scenario import Scenario
-from riskflow_env.scenarios.scenarionet_features import feature_bounds, real_array
+from riskflow_env.scenarios.scenarionet_features import feature_bounds
 from riskflow_env.scenarios.scenarionet_map import build_map
+from riskflow_env.scenarios.scenarionet_tracks import (
+    DT,
+    hold_nearest_valid,
+    resample,
+    speed_from_xy,
+    stack_tracks,
+    time_stamps,
+)
 from riskflow_env.scenarios.smoothing import smooth_tracks
 from riskflow_env.state import HISTORY_STEPS
 
-DT = 0.1  # [s] time step of scenarios
 MIN_FUTURE_STEPS = 100  # reference future padded to at least this many steps (10 s)
 VEHICLE = "VEHICLE"
 MAX_STEPS = 20_000  # [0.1 s] longest recording after resampling to 10 Hz (2000 s)
-DEFAULT_SIZE = (4.5, 2.0)  # [m] (length, width) of tracks that give none
 ROLLOUT_SECONDS = 10.0  # [s] closed-loop episode the cropped map must leave room for
 CROP_MARGIN_RANGE = (50.0, 200.0)  # [m] bounds on the automatic crop margin
 
@@ -194,11 +203,9 @@ def _scenario(
     ids.remove(sdc)
     ids.insert(0, sdc)
     by_id = {str(k): t for k, t in tracks.items()}
-    xy, heading, velocity, valid, size = _stack_tracks(
-        [by_id[i]["state"] for i in ids], ids, source
-    )
+    xy, heading, velocity, valid, size = stack_tracks([by_id[i]["state"] for i in ids], ids, source)
 
-    times = _times(metadata, xy.shape[1], source)
+    times = time_stamps(metadata, xy.shape[1], source)
     span = (times[-1] - times[0]) / DT
     if span + 1 > MAX_STEPS:
         raise ValueError(
@@ -207,8 +214,8 @@ def _scenario(
         )
     grid = np.arange(int(np.floor((times[-1] - times[0]) / DT + 1e-6)) + 1) * DT + times[0]
     if len(times) != len(grid) or not np.allclose(times, grid, atol=1e-6):
-        xy, heading, velocity, valid = _resample(times, grid, xy, heading, velocity, valid)
-    speed = np.linalg.norm(velocity, axis=-1) if velocity is not None else _speed_from_xy(xy, valid)
+        xy, heading, velocity, valid = resample(times, grid, xy, heading, velocity, valid)
+    speed = np.linalg.norm(velocity, axis=-1) if velocity is not None else speed_from_xy(xy, valid)
     coverage = feature_bounds(description["map_features"])
     if coverage is not None:  # beyond the map data nothing is known: not a logged off-road
         valid = valid & _inside(xy, coverage)
@@ -234,7 +241,7 @@ def _scenario(
     window_valid = window_valid[keep]
     if smooth:
         states = smooth_tracks(states, window_valid, DT)
-    states = _hold_nearest_valid(states, window_valid)
+    states = hold_nearest_valid(states, window_valid)
     states[..., 3] = np.unwrap(states[..., 3], axis=1)
     length, width = size[keep, 0], size[keep, 1]
     name = str(metadata.get("scenario_id", metadata.get("id", description.get("id", ""))))
@@ -289,117 +296,3 @@ def _inside(xy: np.ndarray, box: tuple[float, float, float, float]) -> np.ndarra
     """(...) bool: points ``xy`` (..., 2) [m] inside ``box`` (xmin, ymin, xmax, ymax)."""
     x, y = xy[..., 0], xy[..., 1]
     return (x >= box[0]) & (x <= box[2]) & (y >= box[1]) & (y <= box[3])
-
-
-def _stack_tracks(states: list, ids: list[str], source: str) -> tuple:
-    """Arrays of all vehicle tracks: xy (N, T, 2), heading (N, T), velocity (N, T, 2) or
-    None, valid (N, T) bool, size (N, 2) (length, width) [m]."""
-    fields: dict[str, list] = {"position": [], "heading": [], "velocity": [], "valid": []}
-    size = np.zeros((len(ids), 2))
-    steps = None
-    for row, (track_id, state) in enumerate(zip(ids, states, strict=True)):
-        if not isinstance(state, Mapping):
-            raise ValueError(f"{source}: track {track_id!r} has no 'state' dict")
-        for key in ("position", "heading", "valid"):
-            if key not in state:
-                raise ValueError(f"{source}: track {track_id!r} state has no {key!r}")
-        what = f"{source}: track {track_id!r}"
-        position = real_array(state["position"], f"{what} position")
-        steps = steps if steps is not None else len(position)
-        if position.ndim != 2 or position.shape[1] < 2 or len(position) != steps:
-            raise ValueError(
-                f"{source}: track {track_id!r} position must have shape ({steps}, 2 or 3), "
-                f"got {position.shape}"
-            )
-        valid = real_array(state["valid"], f"{what} valid").reshape(-1) != 0
-        heading = real_array(state["heading"], f"{what} heading").reshape(-1)
-        for key, value in (("valid", valid), ("heading", heading)):
-            if value.shape != (steps,):
-                raise ValueError(f"{source}: track {track_id!r} {key} must have shape ({steps},)")
-        valid &= np.all(np.isfinite(position[:, :2]), axis=1) & np.isfinite(heading)
-        fields["position"].append(position[:, :2])
-        fields["heading"].append(heading)
-        fields["valid"].append(valid)
-        velocity = state.get("velocity")
-        velocity = None if velocity is None else real_array(velocity, f"{what} velocity")
-        fields["velocity"].append(
-            velocity if velocity is not None and velocity.shape == (steps, 2) else None
-        )
-        for column, key in enumerate(("length", "width")):
-            values = real_array(state.get(key, ()), f"{what} {key}").reshape(-1)
-            values = values[valid] if values.shape == (steps,) else values
-            values = values[np.isfinite(values) & (values > 0)]
-            size[row, column] = np.median(values) if values.size else DEFAULT_SIZE[column]
-    size = np.where(size[:, :1] < size[:, 1:], size[:, ::-1], size)  # length is the larger
-    velocities = fields["velocity"]
-    velocity = None if any(v is None for v in velocities) else np.stack(velocities)
-    if velocity is not None:
-        velocity = np.where(np.isfinite(velocity), velocity, 0.0)
-    xy = np.stack(fields["position"])
-    return xy, np.stack(fields["heading"]), velocity, np.stack(fields["valid"]), size
-
-
-def _times(metadata: Mapping, steps: int, source: str) -> np.ndarray:
-    """(T,) [s] time stamps of the recorded steps."""
-    ts = metadata.get("ts")
-    if ts is not None and np.size(ts) == steps:
-        times = real_array(ts, f"{source}: metadata['ts']").reshape(-1)
-    else:
-        try:
-            rate = float(metadata.get("sample_rate", DT))
-        except (TypeError, ValueError):
-            raise ValueError(f"{source}: metadata['sample_rate'] must be a number") from None
-        if not (np.isfinite(rate) and rate > 0):
-            raise ValueError(f"{source}: metadata['sample_rate'] must be positive, got {rate}")
-        times = np.arange(steps) * rate
-    if steps < 1 or not np.all(np.isfinite(times)) or np.any(np.diff(times) <= 0):
-        raise ValueError(f"{source}: time stamps must be finite and increasing")
-    return times
-
-
-def _resample(
-    times: np.ndarray,
-    grid: np.ndarray,
-    xy: np.ndarray,
-    heading: np.ndarray,
-    velocity: np.ndarray | None,
-    valid: np.ndarray,
-) -> tuple:
-    """Tracks on the time ``grid`` (G,): linear, heading along the shortest arc."""
-    left = np.clip(np.searchsorted(times, grid, side="right") - 1, 0, max(len(times) - 2, 0))
-    right = np.minimum(left + 1, len(times) - 1)
-    span = np.where(right > left, times[right] - times[left], 1.0)
-    frac = np.clip((grid - times[left]) / span, 0.0, 1.0)  # (G,)
-    new_valid = (valid[:, left] & valid[:, right]) | (valid[:, left] & (frac == 0.0))
-    new_valid |= valid[:, right] & (frac == 1.0)
-
-    def lerp(values: np.ndarray) -> np.ndarray:
-        weight = frac.reshape((1, -1) + (1,) * (values.ndim - 2))
-        return values[:, left] + weight * (values[:, right] - values[:, left])
-
-    turn = wrap_angle(heading[:, right] - heading[:, left])
-    new_heading = heading[:, left] + frac * turn
-    new_velocity = None if velocity is None else lerp(velocity)
-    return lerp(xy), new_heading, new_velocity, new_valid
-
-
-def _speed_from_xy(xy: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """(N, T) [m/s] mean of the backward and forward position differences that exist."""
-    step = np.linalg.norm(np.diff(xy, axis=1), axis=-1) / DT  # (N, T-1)
-    ok = valid[:, 1:] & valid[:, :-1]
-    total = np.zeros(valid.shape)
-    count = np.zeros(valid.shape)
-    for sl in (np.s_[:, 1:], np.s_[:, :-1]):  # backward, forward
-        total[sl] += np.where(ok, step, 0.0)
-        count[sl] += ok
-    return np.where(count > 0, total / np.maximum(count, 1), 0.0)
-
-
-def _hold_nearest_valid(states: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """``states`` (N, T, 4) with invalid steps replaced by the nearest earlier valid state
-    (the first valid one before any)."""
-    steps = np.arange(valid.shape[1])
-    last = np.maximum.accumulate(np.where(valid, steps, -1), axis=1)
-    first = np.argmax(valid, axis=1)[:, None]
-    source = np.where(last >= 0, last, first)
-    return np.take_along_axis(states, source[..., None], axis=1)

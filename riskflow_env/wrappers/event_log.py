@@ -29,11 +29,10 @@ every event detected before the kill on disk.
                        ``time_to_first_ego_collision`` [s] (null when none)
 =====================  ==================================================================
 
-``duration`` counts the steps in contact (off the road) times ``dt``. Contact kind: the
-contact point is the centroid of the two boxes' overlap; in a vehicle's frame it lies
-towards its front edge ("front"), rear edge ("rear") or a long side ("side") — whichever
-the direction to the point exits the box through, i.e. ``|along| / (length / 2)`` against
-``|across| / (width / 2)``; an exact corner counts as "side".
+``duration`` counts the steps in contact (off the road) times ``dt``. The contact point
+and kinds are :mod:`~riskflow_env.wrappers.event_contact`'s; the file is read back, and
+resumed, by :mod:`~riskflow_env.wrappers.event_log_file` (``read_event_log`` is
+re-exported here).
 
 The file is flushed after every event, at episode end, at ``close()``, when an exception
 leaves a ``with`` block, and (``weakref.finalize``) at interpreter exit or when the
@@ -44,112 +43,17 @@ from __future__ import annotations
 
 import json
 import os
-import warnings
 import weakref
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import shapely
 from pettingzoo.utils import BaseParallelWrapper
 
 from riskflow_env.dynamics import SPEED, YAW
 from riskflow_env.events import contact_pairs
-from riskflow_env.geometry import box_corners
-
-
-def contact_point(
-    xy: np.ndarray, yaw: np.ndarray, length: np.ndarray, width: np.ndarray
-) -> np.ndarray:
-    """Centroid [m] of the overlap of two boxes.
-
-    Args:
-        xy: (2, 2) centres [m]; yaw: (2,) [rad]; length, width: (2,) [m].
-
-    Returns:
-        (2,) world point; the midpoint of the centres if the boxes only touch.
-    """
-    corners = box_corners(np.asarray(xy), np.asarray(yaw), np.asarray(length), np.asarray(width))
-    overlap = shapely.Polygon(corners[0]).intersection(shapely.Polygon(corners[1]))
-    if overlap.is_empty:
-        return np.mean(xy, axis=0)
-    centroid = overlap.centroid
-    return np.array([centroid.x, centroid.y])
-
-
-def contact_kind(point: np.ndarray, xy: np.ndarray, yaw: float, length: float, width: float) -> str:
-    """Where ``point`` (2,) [m] lies for the box (xy (2,) [m], yaw [rad], length, width [m]).
-
-    Returns:
-        "front" or "rear" when the direction from the centre to the point leaves the box
-        through the front or rear edge, "side" otherwise (corners included).
-    """
-    dx, dy = np.asarray(point, dtype=np.float64) - xy
-    along = dx * np.cos(yaw) + dy * np.sin(yaw)
-    across = -dx * np.sin(yaw) + dy * np.cos(yaw)
-    if abs(along) * width > abs(across) * length:
-        return "front" if along > 0 else "rear"
-    return "side"
-
-
-def read_event_log(path: str | os.PathLike) -> list[dict[str, Any]]:
-    """The events of a JSON Lines log, in order (blank lines skipped).
-
-    A torn final line (a run killed mid-write: no newline at the end and not valid JSON)
-    is skipped with a warning; a bad line anywhere else raises ValueError naming it."""
-    with open(path, encoding="utf-8") as file:
-        lines = file.read().split("\n")
-    events = []
-    for number, line in enumerate(lines, 1):
-        if not line.strip():
-            continue
-        try:
-            events.append(json.loads(line))
-        except json.JSONDecodeError as error:
-            if number == len(lines):  # the last line, without its newline: torn
-                warnings.warn(
-                    f"{path}: skipping a torn last line (line {number}: {line[:60]!r})",
-                    UserWarning,
-                    stacklevel=2,
-                )
-                break
-            raise ValueError(f"{path}: line {number} is not valid JSON ({error})") from None
-    return events
-
-
-def _drop_torn_tail(path: Path) -> None:
-    """Truncate ``path`` after its last newline (a killed run's partial line), warning."""
-    with open(path, "rb+") as file:
-        file.seek(0, os.SEEK_END)
-        size = file.tell()
-        if size == 0:
-            return
-        file.seek(max(size - 1, 0))
-        if file.read(1) == b"\n":
-            return
-        file.seek(0)
-        data = file.read()
-        keep = data.rfind(b"\n") + 1
-        warnings.warn(
-            f"{path}: dropping a torn last line ({size - keep} bytes) before appending",
-            UserWarning,
-            stacklevel=3,
-        )
-        file.truncate(keep)
-
-
-def _last_episode(path: Path) -> int:
-    """The ``episode`` of the last event in ``path`` (-1 if none), read line by line."""
-    last = b""
-    with open(path, "rb") as file:
-        for line in file:
-            if line.strip():
-                last = line
-    try:
-        episode = json.loads(last)["episode"] if last else -1
-    except (ValueError, KeyError, TypeError):
-        return -1
-    return episode if isinstance(episode, int) and not isinstance(episode, bool) else -1
+from riskflow_env.wrappers.event_contact import contact_kind, contact_point
+from riskflow_env.wrappers.event_log_file import drop_torn_tail, last_episode, read_event_log
 
 
 def _round(value: Any) -> Any:
@@ -193,8 +97,8 @@ class EventRecorder:
                     "pass append=True to continue it or overwrite=True to replace it"
                 )
             if exists and append:
-                _drop_torn_tail(self.path)
-                self._episode = _last_episode(self.path)  # a resumed log keeps counting
+                drop_torn_tail(self.path)
+                self._episode = last_episode(self.path)  # a resumed log keeps counting
             mode = "a" if append else "w"
             self._file = open(self.path, mode, buffering=1, encoding="utf-8")
         self._open = False
@@ -400,3 +304,6 @@ class EventLogWrapper(BaseParallelWrapper):
 
     def __exit__(self, exc_type: Any, exc: Any, traceback: Any) -> None:
         self.close("close" if exc_type is None else "exception")
+
+
+__all__ = ["EventLogWrapper", "EventRecorder", "contact_kind", "contact_point", "read_event_log"]

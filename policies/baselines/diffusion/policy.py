@@ -33,13 +33,13 @@ from policies.baselines.diffusion.guided import (
 )
 from policies.baselines.diffusion.model import DiffusionDenoiser, load_diffusion
 from policies.baselines.diffusion.sampling import chain_noise
-from policies.learned.adversary_config import AdversaryConfig
-from policies.learned.data import Normalizer
-from policies.learned.plan_buffer import (
-    PlanBufferPolicy,
+from policies.learned.adversary_config import (
+    AdversaryConfig,
     check_model_pair,
     default_window_config,
 )
+from policies.learned.data import Normalizer
+from policies.learned.plan_buffer import PlanBufferPolicy
 from policies.learned.ranking import NO_GROUP, Ranking, rank_window
 from policies.learned.window_types import Window
 from riskflow_env.view import SceneView

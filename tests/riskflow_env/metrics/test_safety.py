@@ -11,6 +11,7 @@ from riskflow_env.metrics import (
     collision_rates,
     collisions,
     offroad,
+    offroad_counts,
     offroad_rates,
     rollout_metrics,
 )
@@ -92,3 +93,14 @@ def test_orr_needs_a_map(straight):
     with pytest.raises(ValueError, match="drivable_map"):
         offroad(record_of([straight(0.0, 1.0, 5)]))
     assert rollout_metrics(record_of([straight(0.0, 1.0, 5)]))["agent_steps"] == 0.0
+
+
+def test_offroad_counts_counts_flags_inside_the_mask_only():
+    centroid = np.array([[True, False, True], [False, False, True]])
+    footprint = np.array([[True, True, True], [False, True, True]])
+    counted = np.array([[True, True, False], [True, True, True]])
+    result = offroad_counts(centroid, footprint, counted)
+    assert (result.centroid_steps, result.footprint_steps, result.agent_steps) == (2, 4, 5)
+    assert np.isnan(offroad_counts(centroid, footprint, np.zeros_like(counted)).centroid_rate)
+    with pytest.raises(ValueError, match="one shape"):
+        offroad_counts(centroid, footprint, counted[:, :2])
