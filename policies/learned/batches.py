@@ -10,7 +10,6 @@ validation bank, 19 against 30 agent slots).
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 from collections.abc import Sequence
@@ -67,7 +66,7 @@ def load_splits(
     name = f"windows-stride{stride}"
     train_name = name
     if recovery is not None and recovery.copies:
-        settings = json.dumps(dataclasses.asdict(recovery), sort_keys=True).encode()
+        settings = json.dumps(recovery.settings(), sort_keys=True).encode()
         train_name += f"-recovery-{hashlib.sha256(settings).hexdigest()[:12]}"
     if len(folders) > 1:  # the set of folders, in order, names the cache file
         together = "\n".join(str(f.resolve()) for f in folders).encode()

@@ -160,7 +160,7 @@ class WindowDataset(Dataset):
         parts, scenes = _scenes(source, cache_path)
         settings = [_CACHE_VERSION, dataclasses.asdict(self.config), stride, parts]
         if self.recovery is not None:  # caches without recovery keep their fingerprint
-            settings.append(dataclasses.asdict(self.recovery))
+            settings.append(self.recovery.settings())
         fingerprint = hashlib.sha256(json.dumps(settings).encode()).hexdigest()
         packed = _load_cache(cache_path, fingerprint) if cache_path is not None else None
         if packed is None:
@@ -204,6 +204,8 @@ class WindowDataset(Dataset):
         )  # fmt: skip
         moved = dataclasses.replace(scenario, states=states.astype(scenario.states.dtype))
         moved = add_parked(moved, recovery.parked, current, rng)
+        if recovery.kerbside:  # drawn after the others: without them the bits are kept
+            moved = add_parked(moved, recovery.kerbside, current, rng, on_road=True)
         return window_from_scenario(moved, current, self.config)
 
     def __len__(self) -> int:

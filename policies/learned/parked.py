@@ -16,6 +16,13 @@ along that vehicle's heading (or against it, one in three) with a jitter of up t
 0.1 rad. It is kept only if its box stays 0.5 m clear of every logged box of every
 agent (``riskflow_env.geometry.separation``) and its centre clear of the other parked
 cars by half the sum of the two diagonals plus 0.5 m.
+
+``on_road=True`` parks the car at the kerb instead, on the drivable area: the first
+offset where the signed distance is between minus half its width minus 1.5 m and minus
+half its width minus 0.2 m (the whole box on the road, its outer side 0.2-1.5 m from the
+edge), with the same clearances. The traffic of the log then passes close to a car that
+stands in an unused lane, as in a street lined with parked cars (the nuScenes samples'
+remaining collisions are moving vehicles driving into standing ones: docs/REALISM.md).
 """
 
 from __future__ import annotations
@@ -34,7 +41,11 @@ CLEARANCE = 0.5  # [m] least gap to every logged box (geometry.separation) and o
 
 
 def add_parked(
-    scenario: Scenario, count: int, current_index: int, rng: np.random.Generator
+    scenario: Scenario,
+    count: int,
+    current_index: int,
+    rng: np.random.Generator,
+    on_road: bool = False,
 ) -> Scenario:
     """``scenario`` with up to ``count`` parked cars appended as new rows.
 
@@ -44,6 +55,8 @@ def add_parked(
         current_index: the window's current step: base points are drawn from the 3 s
             before and the 5.2 s after it.
         rng: the draws.
+        on_road: park at the kerb, on the drivable area (module docstring), instead of
+            beside the road.
 
     Returns:
         The scene with the cars as rows after the existing ones: valid at every step,
@@ -66,7 +79,11 @@ def add_parked(
     normal = side[:, None] * np.stack([-np.sin(base[:, YAW]), np.cos(base[:, YAW])], axis=-1)
     points = base[:, None, :2] + OFFSETS[None, :, None] * normal[:, None, :]  # (C, K, 2)
     sdf = np.asarray(scenario.map.sdf_at(points))
-    fits = (sdf >= width[:, None] / 2 + 0.3) & (sdf <= width[:, None] / 2 + 3.0)
+    half = width[:, None] / 2
+    if on_road:  # the whole box on the road, its outer side near the edge
+        fits = (sdf >= -half - 1.5) & (sdf <= -half - 0.2)
+    else:  # just off the drivable area
+        fits = (sdf >= half + 0.3) & (sdf <= half + 3.0)
     found = fits.any(axis=1)
     spot = points[np.arange(tries), fits.argmax(axis=1)]  # (C, 2): first offset that fits
     gap = separation(  # (C, N, T): SAT gap of each candidate to every logged box [m]
@@ -96,7 +113,9 @@ def add_parked(
     parked = np.broadcast_to(pose[:, None, :], (chosen.size, states.shape[1], 4))
     extra = {}
     if scenario.agent_ids:
-        extra["agent_ids"] = (*scenario.agent_ids, *(f"parked-{k}" for k in range(chosen.size)))
+        first = sum(name.startswith("parked-") for name in scenario.agent_ids)
+        names = (f"parked-{first + k}" for k in range(chosen.size))
+        extra["agent_ids"] = (*scenario.agent_ids, *names)
     if scenario.kinds:
         extra["kinds"] = (*scenario.kinds, *("car",) * chosen.size)
     return dataclasses.replace(

@@ -30,6 +30,7 @@ perturbed states by the one window builder (:func:`policies.learned.windows.buil
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -52,6 +53,9 @@ class RecoveryConfig:
         min_speed: agents slower than this anywhere in the bump stay on the log [m/s].
         parked: cars parked beside the road added to each copy, clear of the (perturbed)
             tracks (:func:`policies.learned.parked.add_parked`; fewer where there is no room).
+        kerbside: cars parked at the kerb, on the drivable area, added after those
+            (``add_parked(on_road=True)``); 0 draws nothing, so windows without them keep
+            their bits and their cache files (:meth:`settings`).
         seed: seed of the draws (each window copy has its own stream).
     """
 
@@ -63,9 +67,10 @@ class RecoveryConfig:
     min_speed: float = 2.0
     parked: int = 0
     seed: int = 0
+    kerbside: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("copies", "parked"):
+        for name in ("copies", "parked", "kerbside"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ValueError(f"RecoveryConfig.{name} must be an int >= 0, got {value!r}")
@@ -81,6 +86,14 @@ class RecoveryConfig:
                 f"RecoveryConfig.duration must be (shortest, longest) with 0 < shortest <= "
                 f"longest [s], got {self.duration!r}"
             )
+
+    def settings(self) -> dict:
+        """The fields as a dict for cache fingerprints and file names, without
+        ``kerbside`` when it is 0 (so caches written before it existed stay valid)."""
+        settings = dataclasses.asdict(self)
+        if not self.kerbside:
+            del settings["kerbside"]
+        return settings
 
 
 def perturb_tracks(

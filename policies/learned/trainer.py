@@ -146,6 +146,8 @@ class LoopOptions:
     """largest lateral drift of a recovery window's agents [m]"""
     recovery_parked: int = 0
     """cars parked beside the road added to each recovery window (policies.learned.parked)"""
+    recovery_kerbside: int = 0
+    """cars parked at the kerb, on the road, added to each recovery window (learned.parked)"""
     time_budget_min: float = 0.0
     """stop cleanly and save after this many minutes of this run (0: no limit)"""
 
@@ -161,8 +163,8 @@ class LoopOptions:
             "0 < --val-fraction < 1": 0 < self.val_fraction < 1,
             "--data: one folder, or several with --val-data": len(self.data) == 1
             or (len(self.data) > 1 and self.val_data is not None),
-            "--recovery-copies, --recovery-parked >= 0": min(
-                self.recovery_copies, self.recovery_parked
+            "--recovery-copies, --recovery-parked, --recovery-kerbside >= 0": min(
+                self.recovery_copies, self.recovery_parked, self.recovery_kerbside
             )
             >= 0,
             "--recovery-offset >= 0": math.isfinite(self.recovery_offset)
@@ -175,6 +177,7 @@ class LoopOptions:
             copies=self.recovery_copies,
             offset=self.recovery_offset,
             parked=self.recovery_parked,
+            kerbside=self.recovery_kerbside,
             seed=self.seed,
         )
 

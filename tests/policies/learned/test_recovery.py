@@ -145,6 +145,49 @@ def test_parked_cars_stand_beside_the_road_clear_of_every_track(scenes):
     assert add_parked(scenes[0], 0, CURRENT, np.random.default_rng(0)) is scenes[0]
 
 
+def test_kerbside_cars_stand_on_the_road_clear_of_every_track(scenes):
+    kept = 0
+    for seed, scene in enumerate(scenes):
+        out = add_parked(scene, 2, CURRENT, np.random.default_rng(seed), on_road=True)
+        count = out.states.shape[0] - scene.states.shape[0]
+        kept += count
+        if not count:
+            continue
+        parked = out.states[-count:]
+        assert np.all(parked == parked[:, :1]) and np.all(parked[..., 2] == 0.0)
+        half = out.width[-count:] / 2
+        sdf = np.asarray(scene.map.sdf_at(parked[:, 0, :2]))
+        assert np.all((sdf >= -half - 1.5 - 1e-6) & (sdf <= -half - 0.2 + 1e-6)), sdf
+        gap = separation(
+            parked[:, None, 0, None, :2], parked[:, None, 0, None, 3],
+            out.length[-count:, None, None], out.width[-count:, None, None],
+            scene.states[None, :, :, :2], scene.states[None, :, :, 3],
+            scene.length[None, :, None], scene.width[None, :, None],
+        )  # fmt: skip
+        assert np.all((gap > 0.5) | ~scene.valid[None])
+    assert kept >= 2, "some road in the three scenes has room at the kerb"
+
+
+def test_kerbside_zero_keeps_the_windows_and_their_cache_name(scenes):
+    """``kerbside=0`` draws nothing and leaves the settings (cache fingerprints and file
+    names) as they were before the field existed."""
+    settings = RecoveryConfig(copies=1, parked=2).settings()
+    assert "kerbside" not in settings
+    assert settings == {
+        k: v for k, v in dataclasses.asdict(RecoveryConfig(copies=1, parked=2)).items()
+        if k != "kerbside"
+    }  # fmt: skip
+    with_cars = RecoveryConfig(copies=1, parked=2, kerbside=2)
+    assert with_cars.settings()["kerbside"] == 2
+    plain = WindowDataset(scenes[:1], stride=40, recovery=RecoveryConfig(copies=1, parked=2))
+    more = WindowDataset(scenes[:1], stride=40, recovery=with_cars)
+    np.testing.assert_array_equal(more.window(0).history, plain.window(0).history)
+    extra = more.window(1).agent_index.size - plain.window(1).agent_index.size
+    assert 0 <= extra <= 2
+    with pytest.raises(ValueError, match="kerbside must be an int >= 0"):
+        RecoveryConfig(kerbside=-1)
+
+
 def test_recovery_copies_with_parked_cars_show_them_standing(scenes):
     recovery = RecoveryConfig(copies=1, parked=2)
     data = WindowDataset(scenes[:1], stride=40, recovery=recovery)
