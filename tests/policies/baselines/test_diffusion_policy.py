@@ -23,9 +23,9 @@ from policies.train import main as train_main
 from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG
 from riskflow_env.maps import Lane, from_lanes
-from riskflow_env.scenarios import HighwayTrafficSource, Scenario
-from riskflow_env.scenarios.io import save_scenario
+from riskflow_env.scenarios import Scenario
 from riskflow_env.view import ScenePolicy
+from tests.policies.highway_banks import write_banks
 
 TINY = ModelConfig(
     encoder_dim=16, head_dim=32, context_dim=32, edge_dim=8, num_heads=2, encoder_layers=1,
@@ -169,13 +169,7 @@ def test_draw_and_bad_options(denoiser):
 @pytest.fixture(scope="module")
 def banks(tmp_path_factory):
     root = tmp_path_factory.mktemp("banks")
-    folders = (root / "train", root / "val")
-    for folder, seeds in zip(folders, ([0, 2], [4]), strict=True):
-        folder.mkdir()
-        for seed in seeds:
-            scene = HighwayTrafficSource().sample(np.random.default_rng(seed))
-            save_scenario(scene, folder / f"{seed:05d}-highway.npz", map_dir=folder / "maps")
-    return folders
+    return write_banks((root / "train", root / "val"), ([0, 2], [4]))
 
 
 def train_args(banks, out, *extra: str) -> list[str]:

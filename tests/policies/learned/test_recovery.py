@@ -125,6 +125,18 @@ def test_bad_options_name_the_field(field, value, match):
         RecoveryConfig(**{field: value})
 
 
+def assert_clear_of_every_track(scene, out, count):
+    """The last ``count`` rows of ``out`` (parked) are 0.5 m clear of every logged box."""
+    parked = out.states[-count:]
+    gap = separation(
+        parked[:, None, 0, None, :2], parked[:, None, 0, None, 3],
+        out.length[-count:, None, None], out.width[-count:, None, None],
+        scene.states[None, :, :, :2], scene.states[None, :, :, 3],
+        scene.length[None, :, None], scene.width[None, :, None],
+    )  # fmt: skip
+    assert np.all((gap > 0.5) | ~scene.valid[None])
+
+
 def test_parked_cars_stand_beside_the_road_clear_of_every_track(scenes):
     for seed, scene in enumerate(scenes):
         out = add_parked(scene, 3, CURRENT, np.random.default_rng(seed))
@@ -135,13 +147,7 @@ def test_parked_cars_stand_beside_the_road_clear_of_every_track(scenes):
         assert np.all(parked == parked[:, :1]) and np.all(parked[..., 2] == 0.0)
         assert out.valid[-count:].all()
         assert np.all(np.asarray(scene.map.sdf_at(parked[:, 0, :2])) > out.width[-count:] / 2)
-        gap = separation(
-            parked[:, None, 0, None, :2], parked[:, None, 0, None, 3],
-            out.length[-count:, None, None], out.width[-count:, None, None],
-            scene.states[None, :, :, :2], scene.states[None, :, :, 3],
-            scene.length[None, :, None], scene.width[None, :, None],
-        )  # fmt: skip
-        assert np.all((gap > 0.5) | ~scene.valid[None])
+        assert_clear_of_every_track(scene, out, count)
     assert add_parked(scenes[0], 0, CURRENT, np.random.default_rng(0)) is scenes[0]
 
 
@@ -158,13 +164,7 @@ def test_kerbside_cars_stand_on_the_road_clear_of_every_track(scenes):
         half = out.width[-count:] / 2
         sdf = np.asarray(scene.map.sdf_at(parked[:, 0, :2]))
         assert np.all((sdf >= -half - 1.5 - 1e-6) & (sdf <= -half - 0.2 + 1e-6)), sdf
-        gap = separation(
-            parked[:, None, 0, None, :2], parked[:, None, 0, None, 3],
-            out.length[-count:, None, None], out.width[-count:, None, None],
-            scene.states[None, :, :, :2], scene.states[None, :, :, 3],
-            scene.length[None, :, None], scene.width[None, :, None],
-        )  # fmt: skip
-        assert np.all((gap > 0.5) | ~scene.valid[None])
+        assert_clear_of_every_track(scene, out, count)
     assert kept >= 2, "some road in the three scenes has room at the kerb"
 
 

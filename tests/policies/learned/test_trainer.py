@@ -20,8 +20,7 @@ from policies.learned.generator import CheckpointError
 from policies.learned.recovery import RecoveryConfig
 from policies.train import CHECKPOINT, GENERATOR, METRICS_LOG, TrainOptions
 from policies.train import main as train_main
-from riskflow_env.scenarios import HighwayTrafficSource
-from riskflow_env.scenarios.io import save_scenario
+from tests.policies.highway_banks import write_banks
 
 ROOT = Path(__file__).resolve().parents[3]
 
@@ -30,13 +29,7 @@ ROOT = Path(__file__).resolve().parents[3]
 def banks(tmp_path_factory) -> tuple[Path, Path]:
     """(train, val) scene folders as written by ``riskflow-data``: 3 and 1 highway scenes."""
     root = tmp_path_factory.mktemp("banks")
-    folders = (root / "train", root / "val")
-    for folder, seeds in zip(folders, ([0, 2, 3], [4]), strict=True):
-        folder.mkdir()
-        for seed in seeds:
-            scene = HighwayTrafficSource().sample(np.random.default_rng(seed))
-            save_scenario(scene, folder / f"{seed:05d}-highway.npz", map_dir=folder / "maps")
-    return folders
+    return write_banks((root / "train", root / "val"), ([0, 2, 3], [4]))
 
 
 def tiny_args(
@@ -150,12 +143,7 @@ def test_val_fraction_splits_scenes(banks, tmp_path, tiny_config):
 def test_several_data_folders_train_on_their_scenes_together(banks, tmp_path, tiny_config):
     """``--data A B``: the windows of A's scenes then B's, as from one folder holding both
     (recovery draws included: scene positions run on across the folders)."""
-    parts = (tmp_path / "a", tmp_path / "b")
-    for folder, seeds in zip(parts, ([0, 2], [3]), strict=True):
-        folder.mkdir()
-        for seed in seeds:
-            scene = HighwayTrafficSource().sample(np.random.default_rng(seed))
-            save_scenario(scene, folder / f"{seed:05d}-highway.npz", map_dir=folder / "maps")
+    parts = write_banks((tmp_path / "a", tmp_path / "b"), ([0, 2], [3]))
     recovery = RecoveryConfig(copies=1, parked=1, seed=0)
     together, _ = load_splits(list(parts), banks[1], 0.1, 16, recovery)
     one, _ = load_splits(banks[0], banks[1], 0.1, 16, recovery)
