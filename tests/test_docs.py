@@ -86,6 +86,7 @@ SMALLEST: list[tuple[str, str]] = [
     (r"riskflow-train", "--steps 2 --eval-every 2 --val-windows 2 --batch-size 4"),
     (r"python examples/rollout\.py", "--steps 5"),
     (r"python benchmarks/traffic_realism\.py", "--scenes 1 --duration 1"),
+    (r"python benchmarks/eval_batched\.py", "--scenes 1 --duration 1 --batch 2"),
     (r"python benchmarks/realism_diagnosis\.py", "--scenes 1"),
     (r"python benchmarks/scenarionet_map_size\.py", "--area 600 --repeats 1 --vehicles 5"),
     (r"python benchmarks/scenarionet_dataset\.py", "--copies 1 --repeats 1 --index-scenes 10"),

@@ -278,8 +278,8 @@ def check_options(options: EvalOptions, dt: float = DynamicsConfig().dt) -> None
         raise ValueError(f"--scenes must be >= 1, got {options.scenes}")
     if options.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {options.workers}")
-    check_backend(options.backend, options.address)
     check_batch_scenes(options.batch_scenes, options.backend)
+    check_backend(options.backend, options.address)
     if options.ego not in PLANNERS:
         raise ValueError(f"--ego must be one of {tuple(PLANNERS)}, got {options.ego!r}")
     if options.target not in TARGETS:

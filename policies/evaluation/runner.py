@@ -7,9 +7,10 @@ in ``workers`` processes (spawned, one torch thread each), in this process, or a
 tasks (``--backend ray``, :mod:`~.ray_backend`), with a progress bar; with
 ``--batch-scenes N`` (local backend) in groups of up to N rollouts stepped as one batch
 (:mod:`~.batched`), each group's rows written when the group ends. The parent alone
-writes the results file, each row as soon as its rollout returns. Every rollout is a
-function of its job only, so the worker count and the backend change the order of the
-rows, never their numbers.
+writes the results file, each row as soon as its rollout (or its batch) returns. Every
+rollout is a function of its job only, so the worker count and the backend change the
+order of the rows, never their numbers; ``--batch-scenes`` changes them within float
+rounding (:mod:`~.batched`).
 """
 
 from __future__ import annotations
