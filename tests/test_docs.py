@@ -73,6 +73,7 @@ SIZES: dict[str, str] = {
     "--diffusion-steps": "2",  # riskflow-eval DDIM levels of the diffusion methods
     "--time-budget-min": "1",
     "--copies": "1",  # benchmarks/scenarionet_dataset.py: copies of each scene
+    "--batch": FIRST,  # benchmarks/eval_batched.py: --batch-scenes of the batched runs
 }
 
 # Program (regex on the command) -> size options added right after it. The first match
