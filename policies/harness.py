@@ -42,7 +42,7 @@ from riskflow_env.geometry import separation
 from riskflow_env.metrics import RolloutRecord, offroad_counts
 from riskflow_env.render import RenderConfig
 from riskflow_env.scenarios import Scenario, ScenarioSource
-from riskflow_env.view import ScenePolicy
+from riskflow_env.view import ScenePolicy, SceneView
 from riskflow_env.wrappers import EventLogWrapper, VideoRecorder
 
 EGO = "ego"
@@ -234,12 +234,7 @@ class ClosedLoop:
             observations, *_ = env.step(actions)
             frames.append(_frame(base))
         record = _record(base, frames, tuple(env.events[first_event:]))
-        record.metrics.update(
-            planning_cycles=len(cycle_times),
-            planning_time_ms=_mean_ms(cycle_times),
-            planning_time_max_ms=1e3 * max(cycle_times) if cycle_times else None,
-            ego_time_ms=_mean_ms(ego_times),
-        )
+        record.metrics.update(planning_metrics(cycle_times, ego_times))
         self.records.append(record)
         return record
 
@@ -255,18 +250,36 @@ def _mean_ms(seconds: list[float]) -> float | None:
 
 def _record(base: RiskFlowParallelEnv, frames: list, events: tuple) -> EpisodeRecord:
     """The record of the episode that just ended (metrics but the timings)."""
-    states, active, centroid, footprint = (np.stack(f, axis=1) for f in zip(*frames, strict=True))
-    scene, scenario = base.scene, base.scenario
-    present = scene.present.copy()
+    arrays = tuple(np.stack(f, axis=1) for f in zip(*frames, strict=True))
+    return episode_record(base.view(), arrays, events)
+
+
+def episode_record(
+    view: SceneView, frames: tuple[np.ndarray, ...], events: tuple[dict[str, Any], ...]
+) -> EpisodeRecord:
+    """An :class:`EpisodeRecord` (metrics but the timings) from what an episode recorded;
+    the one place that builds it, for :class:`ClosedLoop` and for batched rollouts
+    (``policies.evaluation.batched``).
+
+    Args:
+        view: the scene at the episode's end (its ``present``, sizes and scenario rows).
+        frames: ``(states, active, offroad_centroid, offroad_footprint)``: (A, S + 1, 4)
+            states and (A, S + 1) bool flags from the reset to the last step.
+        events: the episode's event-log rows (``episode_summary`` last).
+    """
+    states, active, centroid, footprint = frames
+    scenario = view.scenario
+    present = np.array(view.present, dtype=bool)
     summary = events[-1] if events and events[-1]["event"] == "episode_summary" else {}
     live = active[:, :-1] & present[:, None]  # live before each step, judged after it
     road = offroad_counts(centroid[:, 1:], footprint[:, 1:], live)  # the env's own flags
     others = present.copy()
     others[0] = False
+    length, width = np.asarray(view.length), np.asarray(view.width)
     gap = separation(
-        states[:1, :, :2], states[:1, :, YAW], scene.length[:1, None], scene.width[:1, None],
+        states[:1, :, :2], states[:1, :, YAW], length[:1, None], width[:1, None],
         states[others, :, :2], states[others, :, YAW],
-        scene.length[others, None], scene.width[others, None],
+        length[others, None], width[others, None],
     )  # fmt: skip
     metrics = {
         "scenario": scenario.name,
@@ -283,8 +296,8 @@ def _record(base: RiskFlowParallelEnv, frames: list, events: tuple) -> EpisodeRe
     }
     return EpisodeRecord(
         scenario=scenario,
-        scenario_rows=np.asarray(base.view().scenario_rows).copy(),
-        agent_names=tuple(base.possible_agents),
+        scenario_rows=np.asarray(view.scenario_rows).copy(),
+        agent_names=tuple(view.agent_names),
         states=states,
         present=present,
         active=active,
@@ -292,8 +305,19 @@ def _record(base: RiskFlowParallelEnv, frames: list, events: tuple) -> EpisodeRe
         offroad_footprint=footprint,
         events=events,
         metrics=metrics,
-        dt=base.config.dynamics.dt,
+        dt=view.dt,
     )
+
+
+def planning_metrics(cycle_times: list[float], ego_times: list[float]) -> dict[str, Any]:
+    """The timing entries of :data:`METRICS` from the wall times [s] of the planning
+    cycles and of the ego planner's calls."""
+    return {
+        "planning_cycles": len(cycle_times),
+        "planning_time_ms": _mean_ms(cycle_times),
+        "planning_time_max_ms": 1e3 * max(cycle_times) if cycle_times else None,
+        "ego_time_ms": _mean_ms(ego_times),
+    }
 
 
 def summarize(records: list[EpisodeRecord], confidence: float = 0.95) -> dict[str, dict]:

@@ -78,20 +78,30 @@ class SceneBatch:
         return len(self.envs)
 
     def reset(
-        self, seeds: Sequence[int | None], options: Mapping[str, Any] | None = None
+        self,
+        seeds: Sequence[int | None],
+        options: Mapping[str, Any] | Sequence[Mapping[str, Any] | None] | None = None,
     ) -> tuple[list[np.ndarray], list[dict]]:
-        """Reset every scene (scene ``b`` with ``seeds[b]``); each scene's observations
-        and infos per agent (the env's dicts)."""
+        """Reset every scene (scene ``b`` with ``seeds[b]``, ``options`` as in
+        :meth:`reset_scenes`); each scene's observations and infos per agent (the env's
+        dicts)."""
         return self.reset_scenes(range(len(self)), seeds, options)
 
     def reset_scenes(
         self,
         indices: Sequence[int],
         seeds: Sequence[int | None],
-        options: Mapping[str, Any] | None = None,
+        options: Mapping[str, Any] | Sequence[Mapping[str, Any] | None] | None = None,
     ) -> tuple[list[dict], list[dict]]:
         """Reset the scenes ``indices`` (scene ``indices[i]`` with ``seeds[i]``; None: its
         generator goes on), as ``RiskFlowParallelEnv.reset`` does.
+
+        Args:
+            indices: the scenes to reset.
+            seeds: one seed (or None) per scene of ``indices``.
+            options: the env's reset options for every scene (e.g. ``{"scenario": s}``),
+                or a list of them, one per scene of ``indices`` (each scene its own
+                scenario).
 
         Returns:
             the reset scenes' observation dicts and info dicts (agent -> value).
@@ -99,9 +109,16 @@ class SceneBatch:
         indices = [int(index) for index in indices]
         if len(seeds) != len(indices):
             raise ValueError(f"seeds must hold one seed per scene ({len(indices)}), got {seeds}")
+        if options is None or isinstance(options, Mapping):
+            options = [options] * len(indices)
+        elif len(options) != len(indices):
+            raise ValueError(
+                f"options must be one mapping or a list of one per scene ({len(indices)}), "
+                f"got {len(options)}"
+            )
         observations, infos, states = [], [], []
-        for index, seed in zip(indices, seeds, strict=True):
-            rows, agent_infos = self.envs[index].reset(seed=seed, options=options)
+        for index, seed, scene_options in zip(indices, seeds, options, strict=True):
+            rows, agent_infos = self.envs[index].reset(seed=seed, options=scene_options)
             observations.append(rows)
             infos.append(agent_infos)
             states.append(self.envs[index].scene)

@@ -73,6 +73,7 @@ SIZES: dict[str, str] = {
     "--diffusion-steps": "2",  # riskflow-eval DDIM levels of the diffusion methods
     "--time-budget-min": "1",
     "--copies": "1",  # benchmarks/scenarionet_dataset.py: copies of each scene
+    "--batch": FIRST,  # benchmarks/eval_batched.py: --batch-scenes of the batched runs
 }
 
 # Program (regex on the command) -> size options added right after it. The first match
@@ -86,6 +87,7 @@ SMALLEST: list[tuple[str, str]] = [
     (r"riskflow-train", "--steps 2 --eval-every 2 --val-windows 2 --batch-size 4"),
     (r"python examples/rollout\.py", "--steps 5"),
     (r"python benchmarks/traffic_realism\.py", "--scenes 1 --duration 1"),
+    (r"python benchmarks/eval_batched\.py", "--scenes 1 --duration 1 --batch 2"),
     (r"python benchmarks/realism_diagnosis\.py", "--scenes 1"),
     (r"python benchmarks/scenarionet_map_size\.py", "--area 600 --repeats 1 --vehicles 5"),
     (r"python benchmarks/scenarionet_dataset\.py", "--copies 1 --repeats 1 --index-scenes 10"),

@@ -6,6 +6,7 @@ module              concept
 ``options``         the typed options and the grid of rollouts (jobs, row keys)
 ``rollout``         one rollout: policy + ego, closed loop, metrics, timing
 ``results``         the results folder: config check, fsynced rows, KDD samples
+``batched``         ``--batch-scenes N``: N rollouts of one method stepped as one batch
 ``runner``          skip finished rollouts, run the rest in worker processes
 ``table``           one (K, interval) comparison: what the report prints and plots
 ``report``          tables per (K, interval): raw metrics, CS / RS, timing

@@ -77,6 +77,10 @@ class EvalOptions:
     local Ray with --workers CPUs"""
     device: str = "cpu"
     """torch device of the learned methods"""
+    batch_scenes: int = 1
+    """rollouts stepped as one batch: up to N scenes of one method, K and interval at once,
+    the learned adversaries planning them in one call (docs/EVALUATION.md); 1: one rollout
+    at a time"""
     out: str = "outputs/eval"
     """output directory (results.jsonl, samples/, report.md, plots)"""
     report: bool = True
@@ -274,6 +278,7 @@ def check_options(options: EvalOptions, dt: float = DynamicsConfig().dt) -> None
         raise ValueError(f"--scenes must be >= 1, got {options.scenes}")
     if options.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {options.workers}")
+    check_batch_scenes(options.batch_scenes, options.backend)
     check_backend(options.backend, options.address)
     if options.ego not in PLANNERS:
         raise ValueError(f"--ego must be one of {tuple(PLANNERS)}, got {options.ego!r}")
@@ -305,6 +310,17 @@ def check_backend(backend: str, address: str | None) -> None:
         raise ValueError("--address is a Ray cluster address: give it with --backend ray")
     if backend == "ray" and importlib.util.find_spec("ray") is None:
         raise ValueError("--backend ray needs Ray: pip install -e '.[ray]'")
+
+
+def check_batch_scenes(batch_scenes: int, backend: str) -> None:
+    """ValueError naming ``--batch-scenes`` unless it is an int >= 1, and 1 with Ray."""
+    if isinstance(batch_scenes, bool) or not isinstance(batch_scenes, int) or batch_scenes < 1:
+        raise ValueError(f"--batch-scenes must be an int >= 1, got {batch_scenes!r}")
+    if batch_scenes > 1 and backend == "ray":
+        raise ValueError(
+            f"--batch-scenes {batch_scenes} runs batches in local processes; --backend ray "
+            "runs every rollout as its own task: give --batch-scenes 1 with --backend ray"
+        )
 
 
 def plan_jobs(options: EvalOptions, scenes: Sequence[str]) -> list[Job]:

@@ -28,6 +28,7 @@ from riskflow_env.config import EnvConfig
 from riskflow_env.metrics import RolloutRecord, kinematic_samples, rollout_metrics, wosac_scene
 from riskflow_env.scenarios import Scenario, ScenarioBank
 from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
+from riskflow_env.view import ScenePolicy
 
 HISTORY = 2  # logged steps prepended as context (WOSAC's central differences)
 _WARM: set[tuple] = set()  # (label, k, interval) this process has warmed up
@@ -56,7 +57,16 @@ def json_number(value: Any) -> Any:
     return value if math.isfinite(value) else None
 
 
-def _warm_up(job: Job, scenario: Scenario, config: EnvConfig) -> float:
+def job_policy(job: Job) -> ScenePolicy:
+    """A fresh scene policy of the job's method, options, K and interval, its noise seeded
+    with the job's ``policy_seed``."""
+    return build_policy(
+        job.method, job.options, k=job.k, planning_interval=job.interval,
+        target=job.run.target, seed=job.policy_seed, device=job.run.device,
+    )  # fmt: skip
+
+
+def warm_up(job: Job, scenario: Scenario, config: EnvConfig) -> float:
     """First rollout of a method (and K, interval) in this process: one untimed env step
     with a throwaway policy, so that one-off costs (first model call, allocator) stay out
     of the timings. The rollout's own policy is untouched: its numbers do not depend on it."""
@@ -64,10 +74,7 @@ def _warm_up(job: Job, scenario: Scenario, config: EnvConfig) -> float:
     if label in _WARM:
         return 0.0
     start = time.perf_counter()
-    policy = build_policy(
-        job.method, job.options, k=job.k, planning_interval=job.interval,
-        target=job.run.target, seed=job.policy_seed, device=job.run.device,
-    )  # fmt: skip
+    policy = job_policy(job)
     one_step = replace(config, episode_steps=1)
     planner = make_planner(job.run.ego)
     with ClosedLoop(planner, policy, config=one_step, scenarios=scenario) as loop:
@@ -90,26 +97,18 @@ def rollout_episode(job: Job) -> tuple[EpisodeRecord, RolloutRecord, dict[str, f
     torch.set_num_threads(1)
     try:
         start = time.perf_counter()
-        policy = build_policy(
-            job.method, job.options, k=job.k, planning_interval=job.interval,
-            target=run.target, seed=job.policy_seed, device=run.device,
-        )  # fmt: skip
+        policy = job_policy(job)
         planner = make_planner(run.ego)
         setup = time.perf_counter() - start
         config = run.env_config(scenario.dt)
-        warmup = _warm_up(job, scenario, config)
+        warmup = warm_up(job, scenario, config)
         with ClosedLoop(planner, policy, config=config, scenarios=scenario) as loop:
             start = time.perf_counter()
             episode = loop.run(scenario, seed=job.seed)
             wall = time.perf_counter() - start
     finally:
         torch.set_num_threads(threads)
-    others = episode.present.copy()
-    others[0] = False  # slot 0 is the ego
-    record = RolloutRecord.from_scenario(
-        scenario, episode.states, episode.present, episode.scenario_rows,
-        history=HISTORY, evaluated=others,
-    )  # fmt: skip
+    record = rollout_record(scenario, episode)
     return episode, record, {"rollout_s": wall, "setup_s": setup, "warmup_s": warmup}
 
 
@@ -120,8 +119,33 @@ def run_job(job: Job) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         ``(row, samples)``: the results row (module ``results`` documents it) and the
         rollout's KDD samples (``KinematicSamples.as_arrays()``).
     """
+    return score(job, *rollout_episode(job))
+
+
+def rollout_record(scenario: Scenario, episode: EpisodeRecord) -> RolloutRecord:
+    """The :class:`RolloutRecord` of an episode: ``HISTORY`` logged steps of context,
+    every present vehicle but the ego (slot 0) evaluated."""
+    others = episode.present.copy()
+    others[0] = False  # slot 0 is the ego
+    return RolloutRecord.from_scenario(
+        scenario, episode.states, episode.present, episode.scenario_rows,
+        history=HISTORY, evaluated=others,
+    )  # fmt: skip
+
+
+def score(
+    job: Job, episode: EpisodeRecord, record: RolloutRecord, timing: dict[str, float]
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The results row and KDD samples of one finished rollout (:func:`run_job`'s
+    result; the batched path, :mod:`~.batched`, scores its episodes here too).
+
+    Args:
+        job: the rollout's job.
+        episode: its episode (``metrics`` with the harness's timing entries).
+        record: :func:`rollout_record` of the episode.
+        timing: ``{"rollout_s", "setup_s", "warmup_s"}`` [s].
+    """
     run = job.run
-    episode, record, timing = rollout_episode(job)
     others = record.evaluated
     start = time.perf_counter()
     metrics = {key: json_number(v) for key, v in rollout_metrics(record).items()}

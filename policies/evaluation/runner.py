@@ -4,10 +4,13 @@
 once in this process (its options build a policy, its plan horizon covers the planning
 intervals), drops the jobs whose rows are already in the results file, and runs the rest
 in ``workers`` processes (spawned, one torch thread each), in this process, or as Ray
-tasks (``--backend ray``, :mod:`~.ray_backend`), with a progress bar. The parent alone
-writes the results file, each row as soon as its rollout returns. Every rollout is a
-function of its job only, so the worker count and the backend change the order of the
-rows, never their numbers.
+tasks (``--backend ray``, :mod:`~.ray_backend`), with a progress bar; with
+``--batch-scenes N`` (local backend) in groups of up to N rollouts stepped as one batch
+(:mod:`~.batched`), each group's rows written when the group ends. The parent alone
+writes the results file, each row as soon as its rollout (or its batch) returns. Every
+rollout is a function of its job only, so the worker count and the backend change the
+order of the rows, never their numbers; ``--batch-scenes`` changes them within float
+rounding (:mod:`~.batched`).
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from policies.evaluation.batched import group_jobs, run_batch
 from policies.evaluation.options import EvalOptions, Job, RunConfig, plan_jobs, scene_names
 from policies.evaluation.results import ResultsStore
 from policies.evaluation.rollout import run_job
@@ -68,6 +72,9 @@ def _results(jobs: list[Job], options: EvalOptions) -> Iterator[tuple[dict, dict
 
         yield from ray_results(jobs, workers, options.address)
         return
+    if options.batch_scenes > 1:
+        yield from _batched_results(jobs, options)
+        return
     if workers <= 1:
         for job in jobs:
             yield run_job(job)
@@ -75,6 +82,22 @@ def _results(jobs: list[Job], options: EvalOptions) -> Iterator[tuple[dict, dict
     context = multiprocessing.get_context("spawn")
     with context.Pool(workers, initializer=_init_worker) as pool:
         yield from pool.imap_unordered(run_job, jobs, chunksize=1)
+
+
+def _batched_results(
+    jobs: list[Job], options: EvalOptions
+) -> Iterator[tuple[dict, dict[str, np.ndarray]]]:
+    """``--batch-scenes N``: the jobs in groups of N (:func:`~.batched.group_jobs`), each
+    group's rows yielded when the group ends."""
+    groups = group_jobs(jobs, options.batch_scenes)
+    if options.workers <= 1:
+        for group in groups:
+            yield from run_batch(group)
+        return
+    context = multiprocessing.get_context("spawn")
+    with context.Pool(options.workers, initializer=_init_worker) as pool:
+        for rows in pool.imap_unordered(run_batch, groups, chunksize=1):
+            yield from rows
 
 
 def prepare(options: EvalOptions) -> tuple[ResultsStore, list[Job]]:

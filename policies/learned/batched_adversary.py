@@ -92,17 +92,41 @@ class BatchedAdversary:
         views = self._plan_due(views)
         return [scene.emit(view) for scene, view in zip(self.scenes, views, strict=True)]
 
-    def act_array(self, views: Sequence[SceneView]) -> np.ndarray:
+    def act_array(
+        self, views: Sequence[SceneView], running: np.ndarray | None = None
+    ) -> np.ndarray:
         """:meth:`act` as one (B, A, 2) array (accel [m/s^2], yaw rate [rad/s]), zeros
-        for the slots no plan drives (the ego, empty slots): what batched stepping takes."""
-        views = self._plan_due(views)
-        return np.stack([s.emit_array(v) for s, v in zip(self.scenes, views, strict=True)])
+        for the slots no plan drives (the ego, empty slots): what batched stepping takes.
 
-    def _plan_due(self, views: Sequence[SceneView]) -> list[SceneView]:
-        """Plan the scenes due to re-plan, in one call; the checked views."""
+        Args:
+            views: one view per scene.
+            running: (B,) bool, the scenes still running (None: all); the others (their
+                episode over, e.g. an evaluation's scenes that ended early) are neither
+                planned nor asked, and get zeros.
+        """
+        views = self._plan_due(views, running)
+        actions = np.zeros((len(self), views[0].num_agents, 2))
+        for index in self._running(running):
+            actions[index] = self.scenes[index].emit_array(views[index])
+        return actions
+
+    def _running(self, running: np.ndarray | None) -> np.ndarray:
+        """The indices of the running scenes (all when ``running`` is None)."""
+        if running is None:
+            return np.arange(len(self))
+        running = np.asarray(running)
+        if running.shape != (len(self),) or running.dtype != bool:
+            raise ValueError(
+                f"running must be a ({len(self)},) bool array, got {running.dtype} {running.shape}"
+            )
+        return np.flatnonzero(running)
+
+    def _plan_due(
+        self, views: Sequence[SceneView], running: np.ndarray | None = None
+    ) -> list[SceneView]:
+        """Plan the running scenes due to re-plan, in one call; the checked views."""
         views = self._check_views(views)
-        pairs = enumerate(zip(self.scenes, views, strict=True))
-        due = [index for index, (scene, view) in pairs if scene.due(view)]
+        due = [i for i in self._running(running) if self.scenes[i].due(views[i])]
         if due:
             self.plan(views, due)
         else:

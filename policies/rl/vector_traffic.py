@@ -5,8 +5,9 @@
 
 * ``reset_scene(index, view, seed)``: a new episode in scene ``index`` (reseeded with
   ``seed`` when it is not None, as ``EgoEnv.reset(seed=...)`` reseeds its policy);
-* ``act_array(views)``: (N, A, 2) actions (accel [m/s^2], yaw rate [rad/s]) of every
-  live non-ego vehicle, zeros elsewhere, what batched stepping takes;
+* ``act_array(views, running=None)``: (N, A, 2) actions (accel [m/s^2], yaw rate
+  [rad/s]) of every live non-ego vehicle of the running scenes (all by default), zeros
+  elsewhere, what batched stepping takes;
 * ``scenes``: the per-scene policies (for curriculum stages).
 
 A learned adversary (a :class:`~policies.learned.plan_buffer.PlanBufferPolicy`) becomes a
@@ -53,10 +54,15 @@ class SceneLoop:
         """A new episode in scene ``index``."""
         restart_policy(self.scenes[index], view, seed)
 
-    def act_array(self, views: Sequence[SceneView]) -> np.ndarray:
-        """(N, A, 2) the scenes' actions (module docstring)."""
+    def act_array(
+        self, views: Sequence[SceneView], running: np.ndarray | None = None
+    ) -> np.ndarray:
+        """(N, A, 2) the scenes' actions (module docstring); ``running``: (N,) bool, the
+        scenes to ask (None: all), the others get zeros."""
         arrays = np.zeros((len(self.scenes), self._slots, 2))
         for index, (policy, view) in enumerate(zip(self.scenes, views, strict=True)):
+            if running is not None and not running[index]:
+                continue
             others = [agent for agent in view.live_agents if agent != EGO]
             if others:
                 proposed = policy_actions(policy, view, others, "other than the ego")

@@ -73,3 +73,13 @@ def test_bad_arguments(scenarios):
         batch.step(np.zeros((3, SLOTS, 2)))
     with pytest.raises(ValueError, match="seeds"):
         batch.reset_scenes([0], [1, 2])
+    with pytest.raises(ValueError, match="options must be one mapping or a list"):
+        batch.reset([0, 1], [{"scenario": scenarios[0]}])
+
+
+def test_each_scene_its_own_reset_options(scenarios):
+    """A list of options: scene b starts from its own scenario (riskflow-eval's batches)."""
+    batch = SceneBatch(3, CONFIG, scenarios)
+    order = [scenarios[2], scenarios[0], scenarios[1]]
+    batch.reset([0, 0, 0], [{"scenario": scenario} for scenario in order])
+    assert [view.scenario for view in batch.views()] == order

@@ -188,3 +188,21 @@ def test_act_array_is_act_as_one_array(tiny_meanflow, tiny_normalizer):
         slots = [view.slot(agent) for agent in actions]
         np.testing.assert_array_equal(got[b, slots], np.stack(list(actions.values())))
         np.testing.assert_array_equal(np.delete(got[b], slots, axis=0), 0.0)
+
+
+def test_act_array_leaves_ended_scenes_alone(tiny_meanflow, tiny_normalizer):
+    """``running``: a scene whose episode is over is neither planned nor asked (zeros); the
+    running ones get what they get without the mask (to float rounding: the batch is
+    smaller); a bad mask names the argument."""
+    envs = [make_env(index) for index in range(3)]
+    views = [env.view() for env in envs]
+    full, masked = (BatchedAdversary(riskflow(tiny_meanflow, tiny_normalizer), 3) for _ in "ab")
+    full.reset(views)
+    masked.reset(views)
+    expected = full.act_array(views)
+    got = masked.act_array(views, np.array([True, False, True]))
+    assert masked.last_planned == (0, 2) and masked.scenes[1].cycles == 0
+    np.testing.assert_array_equal(got[1], 0.0)
+    close(got[[0, 2]], expected[[0, 2]])  # a batch of 2 scenes instead of 3: rounding
+    with pytest.raises(ValueError, match="running"):
+        masked.act_array(views, np.array([True, False]))

@@ -1,0 +1,172 @@
+"""``riskflow-eval`` per-scene vs batched: the wall time of one evaluation both ways, in one run.
+
+Issue 18, deliverable 5. Runs the same evaluation (default: the 100-scene K = 5 RiskFlow
+evaluation, 10 s episodes, IDM ego, shipped checkpoint) with ``riskflow-eval``, each in a
+fresh process of its own, one after the other:
+
+* **per-scene**: ``--batch-scenes 1``, today's path, one ``ClosedLoop`` rollout at a time;
+* **batched**: ``--batch-scenes N`` for each N of ``--batch``: N scenes stepped by one
+  ``SceneBatch`` transition, the adversary planning every scene due in one call.
+
+Reported per way: the rollouts' wall time (what ``riskflow-eval`` prints: warm-up and
+metrics included, start-up and imports not), the command's wall time, and the ratio of
+the per-scene time to each; then how far the batched rows are from the per-scene rows of
+the same jobs (they match to float rounding, which a long closed-loop rollout can
+amplify: the largest difference of a row's numbers, and the rows whose outcome differs)
+and the evaluation's metrics from each run (``riskflow-eval report``'s table).
+
+    python benchmarks/eval_batched.py [--scenes 100] [--batch 100] [--duration 10]
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from policies.dataclass_cli import parse_dataclass
+from policies.evaluation import ResultsStore, build_tables
+
+ROOT = Path(__file__).resolve().parents[1]
+SUMMARY = re.compile(r"(\d+) rollouts run in ([\d.]+) s")
+OUTCOME = ("steps", "collision", "ego_collision", "first_collision_step")  # discrete results
+METRICS = {
+    "scr": "SCR", "ego_collision_rate": "ego SCR", "orr": "ORR", "orr_footprint": "ORR fp",
+    "ade": "ADE", "fde": "FDE", "kdd": "KDD", "wosac": "WOSAC",
+}  # fmt: skip
+CLOSE = 1e-3  # a row whose numbers all lie within this of the per-scene row's is "close"
+
+
+@dataclass(frozen=True)
+class Options:
+    """Benchmark options."""
+
+    scenes: int = 100
+    """shipped evaluation scenes (the first ones)"""
+    batch: tuple[int, ...] = (100,)
+    """--batch-scenes values of the batched runs"""
+    methods: tuple[str, ...] = ("riskflow",)
+    """methods evaluated"""
+    k: str = "5"
+    """controllable-set size K"""
+    duration: float = 10.0
+    """[s] episode length"""
+    workers: int = 1
+    """--workers of every run"""
+    out: str | None = None
+    """folder for the runs' results (default: a temporary folder, removed at the end)"""
+
+
+def _parse(argv: list[str] | None = None) -> Options:
+    return parse_dataclass(
+        Options, argv, prog="eval_batched.py", description=__doc__.split("\n")[0]
+    )
+
+
+def run_eval(options: Options, batch: int, out: Path) -> dict:
+    """One ``riskflow-eval`` run in a fresh process; its rollout and command wall times."""
+    argv = [
+        sys.executable, "-m", "policies.evaluation.cli", "--methods", *options.methods,
+        "--k", options.k, "--scenes", str(options.scenes), "--duration", str(options.duration),
+        "--workers", str(options.workers), "--batch-scenes", str(batch), "--no-report",
+        "--out", str(out),
+    ]  # fmt: skip
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    }
+    start = time.perf_counter()
+    result = subprocess.run(argv, capture_output=True, text=True, env=env, cwd=ROOT)
+    command = time.perf_counter() - start
+    match = SUMMARY.search(result.stdout)
+    if result.returncode != 0 or match is None:
+        raise RuntimeError(f"riskflow-eval failed ({result.returncode}):\n{result.stderr[-2000:]}")
+    return {"batch": batch, "rollouts": int(match[1]), "rollout_s": float(match[2]),
+            "command_s": command, "out": out}  # fmt: skip
+
+
+def _numbers(row: dict, prefix: str = "") -> dict[str, float]:
+    """A row's numbers (timings and file names left out), flattened."""
+    found = {}
+    for key, value in row.items():
+        if key in ("timing", "samples"):
+            continue
+        if isinstance(value, dict):
+            found |= _numbers(value, f"{prefix}{key}.")
+        elif isinstance(value, (int, float)) and not isinstance(value, bool):
+            found[prefix + key] = float(value)
+    return found
+
+
+def compare(reference: Path, other: Path) -> dict:
+    """The largest difference of the rows' numbers and the rows whose outcome differs."""
+    first = {row["key"]: row for row in ResultsStore(reference).rows()}
+    second = {row["key"]: row for row in ResultsStore(other).rows()}
+    largest, apart, outcome = 0.0, 0, 0
+    for key, row in first.items():
+        mine, theirs = _numbers(row), _numbers(second[key])
+        gaps = [abs(mine[name] - theirs[name]) for name in mine if math.isfinite(mine[name])]
+        largest = max([largest, *gaps])
+        apart += max(gaps, default=0.0) > CLOSE
+        outcome += any(row.get(name) != second[key].get(name) for name in OUTCOME)
+    return {"max_diff": largest, "apart": apart, "outcome_differs": outcome, "rows": len(first)}
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    """Print the table; returns its rows (``batch``, ``rollouts``, ``rollout_s``,
+    ``command_s``, and for the batched runs ``max_diff`` / ``outcome_differs``)."""
+    options = _parse(argv)
+    print(
+        f"riskflow-eval --methods {' '.join(options.methods)} --k {options.k} --scenes "
+        f"{options.scenes} --duration {options.duration} --workers {options.workers}: "
+        f"per-scene (--batch-scenes 1) vs batched, each in a fresh process, one after the "
+        f"other\n"
+    )
+    with tempfile.TemporaryDirectory() as temporary:
+        folder = Path(options.out or temporary)
+        rows = [run_eval(options, 1, folder / "batch1")]
+        for batch in options.batch:
+            row = run_eval(options, batch, folder / f"batch{batch}")
+            rows.append(row | compare(rows[0]["out"], row["out"]))
+        for row in rows:
+            table = build_tables(ResultsStore(row.pop("out")))[0]
+            row["label"], row["metrics"] = next(iter(table.metrics.items()))
+    print(
+        f"{'batch-scenes':>12}{'rollouts':>10}{'rollouts [s]':>14}{'command [s]':>13}"
+        f"{'ratio':>8}{'max |diff|':>12}{'rows > 1e-3':>13}{'outcome differs':>17}"
+    )
+    base = rows[0]["rollout_s"]
+    for row in rows:
+        diff = f"{row['max_diff']:.1e}" if "max_diff" in row else "-"
+        differs = f"{row['outcome_differs']} of {row['rows']}" if "rows" in row else "-"
+        apart = f"{row['apart']} of {row['rows']}" if "rows" in row else "-"
+        print(
+            f"{row['batch']:>12}{row['rollouts']:>10}{row['rollout_s']:>14.1f}"
+            f"{row['command_s']:>13.1f}{base / row['rollout_s']:>7.2f}x"
+            f"{diff:>12}{apart:>13}{differs:>17}"
+        )
+    print(
+        "\nrollouts [s]: riskflow-eval's rollout wall time; command: the process's (start-up "
+        "included); ratio = per-scene rollouts / these; max |diff|: largest difference of a "
+        "row's numbers from the per-scene row of the same job; rows > 1e-3: rows with a number "
+        "further than that; outcome differs: rows whose steps or collision flags differ"
+    )
+    print(
+        f"\n{'batch-scenes':>12}{'method':>12}" + "".join(f"{name:>9}" for name in METRICS.values())
+    )
+    for row in rows:
+        print(f"{row['batch']:>12}{row['label']:>12}" + "".join(
+            f"{row['metrics'][name]:>9.4f}" for name in METRICS
+        ))  # fmt: skip
+    print("\nthe metrics of each run, as its report gives them (riskflow-eval report)")
+    return rows
+
+
+if __name__ == "__main__":
+    main()
