@@ -10,9 +10,10 @@ import pytest
 import riskflow_env
 from policies.baselines.diffusion.model import DiffusionDenoiser, load_diffusion
 from policies.baselines.diffusion.policy import PHASES, DiffusionAdversary
-from policies.baselines.diffusion.sampling import plans_from_sample, reverse_chain
+from policies.baselines.diffusion.sampling import reverse_chain
 from policies.learned.checkpoint import load_generator
 from policies.learned.generator import CheckpointError
+from policies.learned.sampler import decode_plans
 from policies.learned.window_types import collate_windows
 from policies.learned.windows import window_from_view
 from policies.train import GENERATOR, METRICS_LOG
@@ -82,7 +83,7 @@ def test_k0_is_the_unguided_chain_and_guidance_touches_only_a_c(denoiser):
     window = window_from_view(env.view(), unguided.window_config)
     scene = denoiser.encode(collate_windows([window]))
     x0 = reverse_chain(denoiser, scene, unguided.noise[:, None], unguided.levels)[-1]
-    actions, _ = plans_from_sample(x0[0], scene.state[0], scene.agent_mask[0], NORMALIZER)
+    actions, _ = decode_plans(x0[0], scene.state[0], scene.agent_mask[0], NORMALIZER)
     # The policy's chain and this one are different code paths (batch layout, op order) in
     # float32: actions of a few m/s^2 carry rounding of about 8 * 2**-24 = 5e-7 per op,
     # and 100 denoising steps compound it (1.2e-6 seen on another machine), so 1e-5.
