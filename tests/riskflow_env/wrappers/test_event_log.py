@@ -16,7 +16,7 @@ from pettingzoo.test import parallel_api_test
 
 from riskflow_env.wrappers import EventLogWrapper, read_event_log
 from riskflow_env.wrappers.event_log import contact_kind, contact_point
-from tests.riskflow_env.wrappers.event_log_scenes import make_env
+from tests.riskflow_env.hand_made_scenes import make_env
 
 
 def run(env, path=None) -> EventLogWrapper:
@@ -167,7 +167,7 @@ CHILD = """
 import sys
 import numpy as np
 sys.path.insert(0, sys.argv[2])
-from event_log_scenes import make_env
+from hand_made_scenes import make_env
 from riskflow_env.wrappers import EventLogWrapper
 
 # three pairs on separate lanes collide at different steps; a step waits for "go"
@@ -186,7 +186,7 @@ while env.agents:
 def test_killed_run_leaves_every_detected_event_on_disk(tmp_path):
     path = tmp_path / "killed.jsonl"
     child = subprocess.Popen(
-        [sys.executable, "-c", CHILD, str(path), os.path.dirname(__file__)],
+        [sys.executable, "-c", CHILD, str(path), os.path.dirname(os.path.dirname(__file__))],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,

@@ -6,7 +6,7 @@ import pytest
 
 from riskflow_env.wrappers import EventLogWrapper, read_event_log
 from riskflow_env.wrappers.event_log import EventRecorder
-from tests.riskflow_env.wrappers.event_log_scenes import make_env
+from tests.riskflow_env.hand_made_scenes import make_env
 
 pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from riskflow_env.wrappers import EventLogWrapper, read_event_log
-from tests.riskflow_env.wrappers.event_log_scenes import make_env
+from tests.riskflow_env.hand_made_scenes import make_env
 
 pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
 
@@ -49,7 +49,7 @@ KILLED = """
 import os, signal, sys
 import numpy as np
 sys.path.insert(0, sys.argv[2])
-from event_log_scenes import make_env
+from hand_made_scenes import make_env
 from riskflow_env.wrappers import EventLogWrapper
 
 vehicles = [tuple(map(float, v.split(","))) for v in sys.argv[3].split(";")]
@@ -89,7 +89,7 @@ def test_kill_9_mid_episode_then_resume_loses_nothing(tmp_path):
     path = tmp_path / "killed.jsonl"
     vehicles = ";".join(",".join(map(str, v)) for v in KILL_VEHICLES)
     child = subprocess.run(
-        [sys.executable, "-c", KILLED, str(path), str(Path(__file__).parent), vehicles],
+        [sys.executable, "-c", KILLED, str(path), str(Path(__file__).parents[1]), vehicles],
         capture_output=True,
         text=True,
         timeout=600,  # a hang guard only: the machine may be loaded

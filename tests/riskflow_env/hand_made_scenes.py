@@ -1,5 +1,5 @@
-"""Hand-made constant-velocity scenes and their env for the event-log tests (also
-imported by the subprocesses they start, from this folder on ``sys.path``)."""
+"""Hand-made constant-velocity scenes on a box road and their env, for the event-log and
+render tests (the event-log tests' subprocesses import it too)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from riskflow_env.scenarios import Scenario
 ROAD = shapely.box(-50.0, -12.0, 250.0, 12.0)
 
 
-def make_scenario(vehicles, road=ROAD, steps: int = 60) -> Scenario:
+def make_scenario(vehicles, road=ROAD, steps: int = 60, name: str = "hand-made") -> Scenario:
     """Constant-velocity tracks for ``vehicles`` rows (x, y, v, yaw), the ego first."""
     rows = np.asarray(vehicles, dtype=np.float64)
     t = np.arange(-30, steps + 1) * 0.1
@@ -30,11 +30,20 @@ def make_scenario(vehicles, road=ROAD, steps: int = 60) -> Scenario:
         valid=np.ones(x.shape, dtype=bool),
         length=np.full(len(rows), 4.5),
         width=np.full(len(rows), 2.0),
-        name="hand-made",
+        name=name,
     )
 
 
-def make_env(vehicles, steps: int = 30, road=ROAD):
+def make_env(
+    vehicles,
+    steps: int = 30,
+    road=ROAD,
+    render_mode: str | None = None,
+    scenario_steps: int = 60,
+    name: str = "hand-made",
+):
+    """The env of :func:`make_scenario` (``scenario_steps`` future steps): ``steps`` steps
+    an episode, no termination, every vehicle kept to the end."""
     config = EnvConfig(
         max_agents=len(vehicles),
         episode_steps=steps,
@@ -42,4 +51,5 @@ def make_env(vehicles, steps: int = 30, road=ROAD):
         terminate_on_offroad="none",
         end_with_ego=False,
     )
-    return riskflow_env.parallel_env(config=config, scenarios=make_scenario(vehicles, road))
+    scenario = make_scenario(vehicles, road, scenario_steps, name)
+    return riskflow_env.parallel_env(config=config, scenarios=scenario, render_mode=render_mode)
