@@ -13,17 +13,15 @@ from __future__ import annotations
 import pytest
 import torch
 
-import riskflow_env
 from policies.learned.config import ModelConfig
 from policies.learned.data import ActionNormalizer
 from policies.learned.generator import RiskFlowGenerator
 from riskflow_env.user_cache import CACHE_ENV
 from tests.policies.straight_road import (
-    ROAD_ENV,
     TINY_MODEL,
     TINY_NORMALIZER,
-    make_road_scenario,
     perturbed_generator,
+    road_env,
     run_closed_loop,
 )
 from tests.riskflow_env.scenarios.scenarionet_datasets import toy_descriptions, write_dataset
@@ -53,9 +51,7 @@ def road_view():
     """``road_view()`` -> ``(env, view)`` at the first step of the road scenario."""
 
     def make():
-        scenario = make_road_scenario()
-        env = riskflow_env.parallel_env(config=ROAD_ENV, scenarios=scenario)
-        env.reset(seed=0, options={"scenario": scenario})
+        env = road_env(seed=0)
         return env, env.view()
 
     return make

@@ -1,10 +1,11 @@
 """The policy tests' straight road and tiny generators, importable by any test module.
 
 ``make_road_scenario()``: six cars at 12 m/s along +x on a 12 m wide road (more cars
-with ``extra``); ``run_closed_loop(policy, steps)`` drives it with the ego holding its
-speed; ``perturbed_generator(seed)`` is a tiny random generator whose plans depend on
-the noise and on the scene (the adaLN-Zero head starts as ``u = 0``). The fixtures of
-``tests/policies/conftest.py`` are built from these.
+with ``extra``); ``road_env()`` is its env after a reset; ``run_closed_loop(policy,
+steps)`` drives it with the ego holding its speed; ``perturbed_generator(seed)`` is a
+tiny random generator whose plans depend on the noise and on the scene (the adaLN-Zero
+head starts as ``u = 0``). The fixtures of ``tests/policies/conftest.py`` are built
+from these.
 """
 
 from __future__ import annotations
@@ -59,6 +60,16 @@ def make_road_scenario(extra: Sequence[tuple[float, float]] = ()) -> Scenario:
     return Scenario(road, states, valid, np.full(num, 4.5), np.full(num, 2.0), name="road")
 
 
+def road_env(
+    config: EnvConfig = ROAD_ENV, scenario: Scenario | None = None, seed: int | None = None
+):
+    """A ``riskflow_v0`` env reset on ``scenario`` (default the road) with ``seed``."""
+    scenario = make_road_scenario() if scenario is None else scenario
+    env = riskflow_env.parallel_env(config=config, scenarios=scenario)
+    env.reset(seed=seed, options={"scenario": scenario})
+    return env
+
+
 def run_closed_loop(
     policy,
     steps: int,
@@ -69,9 +80,7 @@ def run_closed_loop(
     """``policy`` drives ``scenario`` (default the road) for ``steps`` steps with the ego
     holding its speed; ``hook(view, policy, actions)`` sees every step. Returns the env
     and the emitted actions per step."""
-    scenario = make_road_scenario() if scenario is None else scenario
-    env = riskflow_env.parallel_env(config=config, scenarios=scenario)
-    env.reset(seed=0, options={"scenario": scenario})
+    env = road_env(config, scenario, seed=0)
     policy.reset(env.view())
     emitted = []
     for _ in range(steps):

@@ -7,7 +7,6 @@ import json
 import numpy as np
 import pytest
 
-import riskflow_env
 from policies.baselines.diffusion.model import DiffusionDenoiser, load_diffusion
 from policies.baselines.diffusion.policy import PHASES, DiffusionAdversary
 from policies.baselines.diffusion.sampling import reverse_chain
@@ -22,11 +21,10 @@ from riskflow_env.dynamics import DEFAULT_CONFIG
 from riskflow_env.view import ScenePolicy
 from tests.policies.highway_banks import write_banks
 from tests.policies.straight_road import (
-    ROAD_ENV,
     TINY_MODEL,
     TINY_NORMALIZER,
-    make_road_scenario,
     perturbed_generator,
+    road_env,
     run_closed_loop,
 )
 
@@ -72,8 +70,7 @@ def test_closed_loop_runs_replans_and_repeats_with_the_seed(denoiser, variant):
 
 
 def test_k0_is_the_unguided_chain_and_guidance_touches_only_a_c(denoiser):
-    env = riskflow_env.parallel_env(config=ROAD_ENV, scenarios=make_road_scenario())
-    env.reset(options={"scenario": make_road_scenario()})
+    env = road_env()
     unguided = adversary(denoiser, k=0)
     unguided.reset(env.view())
     unguided.plan(env.view())

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import torch
 
-import riskflow_env
 from policies.learned.sampler import sample
 from policies.learned.window_types import collate_windows
 from policies.learned.windows import window_from_view
@@ -21,6 +20,7 @@ from tests.policies.straight_road import (
     ROAD_ENV,
     TINY_NORMALIZER,
     make_road_scenario,
+    road_env,
     run_closed_loop,
 )
 
@@ -93,8 +93,7 @@ def test_each_step_emits_the_next_action_of_the_plan(model):
 
 def test_k0_gives_exactly_the_unguided_generator(model):
     policy = adversary(model, k=0, guidance_steps=30)
-    env = riskflow_env.parallel_env(config=CONFIG, scenarios=make_scenario())
-    env.reset(options={"scenario": make_scenario()})
+    env = road_env(CONFIG)
     policy.reset(env.view())
     policy.plan(env.view())
     assert not policy.controllable.any()
@@ -110,8 +109,7 @@ def test_k0_gives_exactly_the_unguided_generator(model):
 
 def test_guidance_changes_only_the_controllable_vehicles(model):
     policy = adversary(model, k=2, guidance_steps=10)
-    env = riskflow_env.parallel_env(config=CONFIG, scenarios=make_scenario())
-    env.reset(options={"scenario": make_scenario()})
+    env = road_env(CONFIG)
     policy.reset(env.view())
     plans = policy.plan(env.view())
     assert policy.controllable.sum() == 2 and not policy.controllable[0]
@@ -175,8 +173,7 @@ def test_draw_pushes_overlays(model):
     from riskflow_env.render import SceneRenderer
 
     policy = adversary(model)
-    env = riskflow_env.parallel_env(config=CONFIG, scenarios=make_scenario())
-    env.reset(options={"scenario": make_scenario()})
+    env = road_env(CONFIG)
     renderer = SceneRenderer("rgb_array")
     policy.draw(renderer)  # nothing planned yet: no overlay
     assert not renderer.overlays
@@ -192,8 +189,7 @@ def test_draw_pushes_overlays(model):
 def test_threads_are_restored(model):
     before = torch.get_num_threads()
     policy = adversary(model, threads=1)
-    env = riskflow_env.parallel_env(config=CONFIG, scenarios=make_scenario())
-    env.reset(options={"scenario": make_scenario()})
+    env = road_env(CONFIG)
     policy.reset(env.view())
     policy.plan(env.view())
     assert torch.get_num_threads() == before
@@ -208,8 +204,7 @@ def test_bad_options(model):
         adversary(model, planning_interval=0.0)
     with pytest.raises(ValueError, match="target must be one of"):
         adversary(model, target="everyone")
-    env = riskflow_env.parallel_env(config=CONFIG, scenarios=make_scenario())
-    env.reset(options={"scenario": make_scenario()})
+    env = road_env(CONFIG)
     with pytest.raises(RuntimeError, match="reset"):
         adversary(model).act(env.view())
     for interval in (0.25, 6.0):
