@@ -16,12 +16,11 @@ Batches are synthetic (``policies.learned.synthetic``): speed does not depend on
 from __future__ import annotations
 
 import statistics
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
-from tqdm import tqdm
+from timing import interleaved_ms
 
 from policies.dataclass_cli import parse_dataclass
 from policies.learned.config import ModelConfig
@@ -68,18 +67,9 @@ def median_ms(options: Options, *fns: Callable[[], object]) -> list[float]:
     run sees the same machine load.
     """
     sync = torch.cuda.synchronize if options.device.startswith("cuda") else (lambda: None)
-    for _ in range(options.warmup):
-        for fn in fns:
-            fn()
-    sync()
-    times: list[list[float]] = [[] for _ in fns]
-    for _ in tqdm(range(options.repeats), "timed repetitions", leave=False):  # stderr
-        for fn, samples in zip(fns, times, strict=True):
-            start = time.perf_counter()
-            fn()
-            sync()
-            samples.append(time.perf_counter() - start)
-    return [1e3 * statistics.median(samples) for samples in times]
+    named = {str(i): fn for i, fn in enumerate(fns)}
+    times = interleaved_ms(named, options.repeats, options.warmup, sync)
+    return [statistics.median(samples) for samples in times.values()]
 
 
 def forward_latency(model: RiskFlowGenerator, agents: int, options: Options) -> float:

@@ -21,13 +21,11 @@ shipped checkpoint the default-size model is randomly initialised.
 from __future__ import annotations
 
 import statistics
-import time
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import torch
-from tqdm import tqdm
+from timing import interleaved_ms
 
 import riskflow_env
 from policies.dataclass_cli import parse_dataclass
@@ -116,20 +114,6 @@ def resampling_cycle(policy: RiskFlowAdversary, view, samples: int) -> None:
         int(torch.stack(scores).argmin())
 
 
-def median_ms(options: Options, fns: dict[str, Callable[[], object]]) -> dict[str, list[float]]:
-    """Wall times [ms] of each function, interleaved repetition by repetition."""
-    for _ in range(options.warmup):
-        for fn in fns.values():
-            fn()
-    times: dict[str, list[float]] = {name: [] for name in fns}
-    for _ in tqdm(range(options.repeats), "timed repetitions", leave=False):  # stderr
-        for name, fn in fns.items():
-            start = time.perf_counter()
-            fn()
-            times[name].append(1e3 * (time.perf_counter() - start))
-    return times
-
-
 def main() -> None:
     options = _parse()
     threads = options.threads or None
@@ -156,10 +140,9 @@ def main() -> None:
         finally:
             torch.set_num_threads(previous)
 
-    walls = median_ms(
-        options,
-        {"riskflow": guided_cycle, "unguided": lambda: unguided.plan(view), "resample": resample},
-    )
+    cycles = {"riskflow": guided_cycle, "unguided": lambda: unguided.plan(view)}
+    cycles["resample"] = resample
+    walls = interleaved_ms(cycles, options.repeats, options.warmup)
     med = {name: statistics.median(values) for name, values in walls.items()}
     print(
         f"RiskFlow planning cycle: {scene_name}, {int(guided.plan_mask.sum())} agents, "

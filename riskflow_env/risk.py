@@ -122,7 +122,7 @@ def time_to_collision(state: Array, length: Array, width: Array, tau_max: float 
     Returns:
       (..., A, A) TTC [s] in [0, tau_max]; ``[..., i, j]`` is j as seen from i. No
       masking: the diagonal is 0 (a box overlaps itself); use ``pairwise_features``
-      or ``risk_matrix`` for masked values.
+      or ``pair_risk`` for masked values.
     """
     _check_inputs(state, length, width)
     return _pair_geometry(state, length, width, tau_max)["ttc"]
@@ -220,21 +220,3 @@ def pair_risk(
     geo, mask = _masked_geometry(state, length, width, valid, tau_max, max_distance)
     xp = namespace(state, length, width)
     return xp.where(mask, risk_weight(geo["ttc"], tau_max), 0.0), mask
-
-
-def risk_matrix(
-    state: Array,
-    length: Array,
-    width: Array,
-    valid: Array | None = None,
-    tau_max: float = TAU_MAX,
-    max_distance: float = MAX_INTERACTION_DISTANCE,
-) -> Array:
-    """Masked TTC risk of every ordered pair: the ``risk`` channel of ``pairwise_features``.
-
-    Args: as ``pairwise_features``.
-
-    Returns:
-      (..., A, A) risk in [0, 1], 0 wherever the pair mask is False.
-    """
-    return pair_risk(state, length, width, valid, tau_max, max_distance)[0]

@@ -17,9 +17,10 @@ from policies.train import TrainOptions
 from riskflow_env.scenarios.cli import build_parser as data_parser
 
 ROOT = Path(__file__).resolve().parents[1]
+HELPERS = ("benchmarks/timing.py",)  # imported by the scripts; no command line
 SCRIPTS = sorted(
     str(path.relative_to(ROOT)) for folder in ("examples", "benchmarks")
-    for path in (ROOT / folder).glob("*.py")
+    for path in (ROOT / folder).glob("*.py") if str(path.relative_to(ROOT)) not in HELPERS
 )  # fmt: skip
 NEEDS_RL = ("examples/train_ego_ppo.py", "examples/train_adversaries_marl.py")
 
@@ -31,6 +32,7 @@ def _script_parser(relative: str, monkeypatch) -> argparse.ArgumentParser:
     spec = importlib.util.spec_from_file_location(f"cli_help_{path.stem}", path)
     module = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, spec.name, module)  # dataclasses look their module up
+    monkeypatch.syspath_prepend(str(path.parent))  # as when run: its folder's helpers
     spec.loader.exec_module(module)
     return dataclass_parser(module.Options, path.name)
 

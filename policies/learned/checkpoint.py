@@ -220,23 +220,41 @@ def load_generator(
         FileNotFoundError: no such file (for the default: the checkpoint was not shipped).
         CheckpointError: the file does not fit the model (names the mismatch).
     """
+    checkpoint = read_checkpoint(
+        path, DEFAULT_NAME, "generator", "`riskflow-train` (README: Generator training)"
+    )
+    kind = checkpoint_kind(checkpoint)
+    if kind != "meanflow":
+        raise CheckpointError(
+            f"{path or DEFAULT_NAME} is a {kind!r} checkpoint, not a MeanFlow generator; load "
+            "it with policies.baselines.diffusion.model.load_diffusion (or load_base_generator)"
+        )
+    return frozen_generator(checkpoint, config, device)
+
+
+def read_checkpoint(
+    path: str | os.PathLike | None, default_name: str, what: str, how_to_train: str
+) -> dict[str, Any]:
+    """:func:`load_checkpoint` of ``path``, or of the shipped
+    ``policies/checkpoints/<default_name>`` when ``path`` is None (a FileNotFoundError
+    names the ``what`` checkpoint and ``how_to_train`` one when it is not shipped)."""
     with ExitStack() as stack:
         if path is None:
-            resource = resources.files("policies").joinpath("checkpoints", DEFAULT_NAME)
+            resource = resources.files("policies").joinpath("checkpoints", default_name)
             if not resource.is_file():
                 raise FileNotFoundError(
-                    f"the shipped generator checkpoint policies/checkpoints/{DEFAULT_NAME} is "
-                    "missing; train one with `riskflow-train` (README: Generator training) "
-                    "and pass its path"
+                    f"the shipped {what} checkpoint policies/checkpoints/{default_name} is "
+                    f"missing; train one with {how_to_train} and pass its path"
                 )
             path = stack.enter_context(resources.as_file(resource))
-        checkpoint = load_checkpoint(path)
-        kind = checkpoint_kind(checkpoint)
-        if kind != "meanflow":
-            raise CheckpointError(
-                f"{path} is a {kind!r} checkpoint, not a MeanFlow generator; load it with "
-                "policies.baselines.diffusion.model.load_diffusion (or load_base_generator)"
-            )
+        return load_checkpoint(path)
+
+
+def frozen_generator(
+    checkpoint: Mapping[str, Any], config: ModelConfig | None, device: torch.device | str
+) -> tuple[RiskFlowGenerator, ActionNormalizer, dict[str, Any]]:
+    """The checkpoint's network on ``device`` in ``eval()`` mode without gradients, its
+    action normalizer and its ``METADATA_KEYS`` entries (None if absent)."""
     model = RiskFlowGenerator.from_checkpoint(checkpoint, config)
     model = model.to(device).eval().requires_grad_(False)
     metadata = {key: checkpoint.get(key) for key in METADATA_KEYS}
@@ -248,9 +266,11 @@ __all__ = [
     "build_checkpoint",
     "checkpoint_kind",
     "code_version",
+    "frozen_generator",
     "load_checkpoint",
     "load_generator",
     "normalizer_of",
+    "read_checkpoint",
     "save_checkpoint",
     "verify_weights",
     "weights_digest",

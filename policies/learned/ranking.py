@@ -114,7 +114,7 @@ def causal_ranking(
     """The top-K controllable set ``A_c`` of one scene (module docstring).
 
     Args:
-        risk: (A, A) TTC risk in [0, 1] (``riskflow_env.risk.risk_matrix`` or the ``risk``
+        risk: (A, A) TTC risk in [0, 1] (``riskflow_env.risk.pair_risk`` or the ``risk``
             channel of a window's ``pair_features``).
         valid: (A,) bool agents present at the current step; others are never chosen.
         k: size of ``A_c`` (int >= 0; fewer if fewer candidates) or ``"all"``.

@@ -54,6 +54,25 @@ def draw_noise(
     )
 
 
+def decode_plans(
+    a: Tensor,
+    state: Tensor,
+    agent_mask: Tensor,
+    normalizer: Normalizer,
+    dynamics: DynamicsConfig = DEFAULT_CONFIG,
+) -> tuple[Tensor, Tensor]:
+    """Actions ``clip(denorm(a))`` (0 for absent agents) and their rollout: what every
+    generator's normalised sample ``a`` becomes (:func:`sample`, guidance, the diffusion
+    chains).
+
+    Shapes: ``a (..., A, T, 2)``, ``state (..., A, 4)``, ``agent_mask (..., A)``; returns
+    ``(..., A, T, 2)`` [m/s^2, rad/s] and ``(..., A, T, 4)`` states.
+    """
+    actions = clip_actions(normalizer.denormalize(a), dynamics)
+    actions = actions * agent_mask[..., None, None].to(actions.dtype)
+    return actions, rollout(state, actions, dynamics)
+
+
 @torch.no_grad()
 def sample(
     model: RiskFlowGenerator,
@@ -102,9 +121,7 @@ def sample(
         scene = scene.repeat_scenes(num_samples)
         eps = eps.reshape(batch * num_samples, agents, steps, 2)
     a = eps + base_velocity(model, eps, scene)
-    actions = clip_actions(normalizer.denormalize(a), dynamics)
-    actions = actions * scene.agent_mask[:, :, None, None].to(actions.dtype)
-    trajectories = rollout(scene.state, actions, dynamics)
+    actions, trajectories = decode_plans(a, scene.state, scene.agent_mask, normalizer, dynamics)
     if num_samples is not None:
         actions = actions.reshape(*lead, steps, 2)
         trajectories = trajectories.reshape(*lead, steps, 4)

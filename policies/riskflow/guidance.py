@@ -43,6 +43,7 @@ from policies.learned.guidance_losses import (
     map_term,
     target_rows,
 )
+from policies.learned.sampler import decode_plans
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout, rollout_with_vjp
 from riskflow_env.maps import DrivableMap, MapStack
@@ -141,9 +142,7 @@ def plans_from_velocity(
     the unguided plans exactly. Shapes: ``(..., A, T, 2)``, ``state (..., A, 4)``,
     ``agent_mask (..., A)``; returns ``(..., A, T, 2)`` and ``(..., A, T, 4)``.
     """
-    actions = clip_actions(normalizer.denormalize(eps + u), dynamics)
-    actions = actions * agent_mask[..., None, None].to(actions.dtype)
-    return actions, rollout(state, actions, dynamics)
+    return decode_plans(eps + u, state, agent_mask, normalizer, dynamics)
 
 
 class _Objective:

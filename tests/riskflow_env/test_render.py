@@ -8,10 +8,8 @@ import shapely
 
 import riskflow_env
 from riskflow_env import render
-from riskflow_env.config import EnvConfig
-from riskflow_env.maps import from_polygons
 from riskflow_env.render import RenderConfig, SceneRenderer
-from riskflow_env.scenarios import Scenario
+from tests.riskflow_env.hand_made_scenes import make_env as hand_made_env
 
 SCALE = 8.0  # [px/m] of the default view: 640 px for 80 m
 ROAD = shapely.box(-60.0, -12.0, 120.0, 12.0)
@@ -19,27 +17,7 @@ ROAD = shapely.box(-60.0, -12.0, 120.0, 12.0)
 
 def make_env(vehicles, render_mode=None, steps: int = 10):
     """Straight road y in [-12, 12] m; ``vehicles`` rows (x, y, v, yaw), the ego first."""
-    rows = np.asarray(vehicles, dtype=np.float64)
-    t = np.arange(-30, steps + 1) * 0.1
-    x = rows[:, None, 0] + rows[:, None, 2] * np.cos(rows[:, None, 3]) * t
-    y = rows[:, None, 1] + rows[:, None, 2] * np.sin(rows[:, None, 3]) * t
-    speed, yaw = (np.broadcast_to(rows[:, None, k], x.shape) for k in (2, 3))
-    states = np.stack([x, y, speed, yaw], axis=-1)
-    scenario = Scenario(
-        map=from_polygons(ROAD, resolution=0.5),
-        states=states,
-        valid=np.ones(x.shape, dtype=bool),
-        length=np.full(len(rows), 4.5),
-        width=np.full(len(rows), 2.0),
-    )
-    config = EnvConfig(
-        max_agents=len(rows),
-        episode_steps=steps,
-        terminate_on_collision="none",
-        terminate_on_offroad="none",
-        end_with_ego=False,
-    )
-    env = riskflow_env.parallel_env(config=config, scenarios=scenario, render_mode=render_mode)
+    env = hand_made_env(vehicles, steps, ROAD, render_mode, scenario_steps=steps, name="")
     env.reset(seed=0)
     return env
 

@@ -13,8 +13,8 @@ from riskflow_env.risk import (
     MAX_INTERACTION_DISTANCE,
     NUM_PAIR_FEATURES,
     TAU_MAX,
+    pair_risk,
     pairwise_features,
-    risk_matrix,
     risk_weight,
     time_to_collision,
 )
@@ -60,7 +60,7 @@ def test_following_slower_behind_is_safe():
     ttc = time_to_collision(state, length, width)
     np.testing.assert_allclose(ttc[0, 1], TAU_MAX)
     np.testing.assert_allclose(ttc[1, 0], TAU_MAX)
-    np.testing.assert_allclose(risk_matrix(state, length, width), 0.0)
+    np.testing.assert_allclose(pair_risk(state, length, width)[0], 0.0)
 
 
 def test_crossing_takes_max_of_axes():
@@ -81,7 +81,7 @@ def test_crossing_takes_max_of_axes():
 def test_diverging():
     state, length, width = scene((0.0, 0.0, 10.0, 0.0), (-20.0, 0.0, 10.0, math.pi))
     np.testing.assert_allclose(time_to_collision(state, length, width)[0, 1], TAU_MAX)
-    np.testing.assert_allclose(risk_matrix(state, length, width), 0.0)
+    np.testing.assert_allclose(pair_risk(state, length, width)[0], 0.0)
 
 
 def test_overlapping_boxes():
@@ -90,7 +90,7 @@ def test_overlapping_boxes():
     features, mask = pairwise_features(state, length, width)
     assert mask[0, 1] and mask[1, 0]
     np.testing.assert_allclose(features[0, 1, F["risk"]], 1.0)
-    np.testing.assert_allclose(risk_matrix(state, length, width), [[0.0, 1.0], [1.0, 0.0]])
+    np.testing.assert_allclose(pair_risk(state, length, width)[0], [[0.0, 1.0], [1.0, 0.0]])
 
 
 def test_lateral_neighbour_drifting_in():
@@ -142,7 +142,7 @@ def test_invalid_agents_masked():
     expected = np.array([[0, 0, 1], [0, 0, 0], [1, 0, 0]], dtype=bool)
     np.testing.assert_array_equal(mask, expected)
     np.testing.assert_array_equal(features[~mask], 0.0)
-    risk = risk_matrix(state, length, width, valid=valid)
+    risk = pair_risk(state, length, width, valid=valid)[0]
     assert risk[0, 2] > 0.0 and risk[0, 1] == 0.0
 
 
@@ -244,7 +244,7 @@ def test_batch_dims_match_per_step():
         state[None].repeat(2, 0), length[None].repeat(2, 0), width[None].repeat(2, 0)
     )
     np.testing.assert_array_equal(f2[1], pairwise_features(state, length, width)[0])
-    assert risk_matrix(state, length, width, valid).shape == (4, 5, 5)
+    assert pair_risk(state, length, width, valid)[0].shape == (4, 5, 5)
 
 
 def test_torch_gradients_finite_and_exact():

@@ -49,7 +49,6 @@ from policies.baselines.diffusion.model import DiffusionDenoiser
 from policies.baselines.diffusion.sampling import (
     Levels,
     denoise_step,
-    plans_from_sample,
     reverse_chain,
 )
 from policies.learned.data import Normalizer
@@ -61,6 +60,7 @@ from policies.learned.guidance_losses import (
     target_rows,
 )
 from policies.learned.plan_buffer import hold_still
+from policies.learned.sampler import decode_plans
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
 from riskflow_env.maps import DrivableMap
@@ -198,7 +198,7 @@ def guided_sample(
     targets = target_rows(present, mask, geometry.ego, config.target)
 
     def plans(x0: Tensor) -> tuple[Tensor, Tensor]:
-        actions, trajectories = plans_from_sample(
+        actions, trajectories = decode_plans(
             x0, geometry.state, geometry.agent_mask, normalizer, dynamics
         )
         hold_still(actions, trajectories, geometry.state, standing.bool())

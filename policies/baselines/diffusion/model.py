@@ -31,16 +31,14 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
-from contextlib import ExitStack
 from dataclasses import dataclass
-from importlib import resources
 from typing import Any
 
 import torch
 from torch import Tensor
 
 from policies.baselines.diffusion.schedule import SCHEDULES, DiffusionSchedule, ScheduleConfig
-from policies.learned.checkpoint import METADATA_KEYS, load_checkpoint, normalizer_of
+from policies.learned.checkpoint import frozen_generator, read_checkpoint
 from policies.learned.config import ModelConfig
 from policies.learned.data import ActionNormalizer
 from policies.learned.encoder import SceneContext
@@ -183,22 +181,15 @@ def load_diffusion(
         FileNotFoundError: no such file.
         CheckpointError: the file is not a diffusion checkpoint or does not fit.
     """
-    with ExitStack() as stack:
-        if path is None:
-            resource = resources.files("policies").joinpath("checkpoints", DEFAULT_NAME)
-            if not resource.is_file():
-                raise FileNotFoundError(
-                    f"the shipped diffusion checkpoint policies/checkpoints/{DEFAULT_NAME} is "
-                    "missing; train one with `riskflow-train --generator diffusion` "
-                    "(docs/BASELINES.md) and pass its path"
-                )
-            path = stack.enter_context(resources.as_file(resource))
-        checkpoint = load_checkpoint(path)
+    checkpoint = read_checkpoint(
+        path,
+        DEFAULT_NAME,
+        "diffusion",
+        "`riskflow-train --generator diffusion` (docs/BASELINES.md)",
+    )
     diffusion = DiffusionConfig.from_train_config(checkpoint.get("train_config"))
-    network = RiskFlowGenerator.from_checkpoint(checkpoint, config)
-    network = network.to(device).eval().requires_grad_(False)
-    metadata = {key: checkpoint.get(key) for key in METADATA_KEYS}
-    return DiffusionDenoiser(network, diffusion), normalizer_of(checkpoint), metadata
+    network, normalizer, metadata = frozen_generator(checkpoint, config, device)
+    return DiffusionDenoiser(network, diffusion), normalizer, metadata
 
 
 __all__ = [

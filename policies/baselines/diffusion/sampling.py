@@ -18,10 +18,7 @@ import torch
 from torch import Tensor
 
 from policies.baselines.diffusion.model import DiffusionDenoiser
-from policies.learned.data import Normalizer
 from policies.learned.encoder import SceneContext
-from riskflow_env.config import DynamicsConfig
-from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout
 
 Levels = list[tuple[int, int]]
 
@@ -74,24 +71,6 @@ def reverse_chain(
     return path
 
 
-def plans_from_sample(
-    x0: Tensor,
-    state: Tensor,
-    agent_mask: Tensor,
-    normalizer: Normalizer,
-    dynamics: DynamicsConfig = DEFAULT_CONFIG,
-) -> tuple[Tensor, Tensor]:
-    """Actions ``clip(denorm(x0))`` (0 for absent agents) and their rollout.
-
-    Shapes: ``x0 (..., A, T, 2)``, ``state (..., A, 4)``, ``agent_mask (..., A)``; returns
-    ``(..., A, T, 2)`` [m/s^2, rad/s] and ``(..., A, T, 4)`` states, the same operations
-    as ``policies.learned.sampler.sample``.
-    """
-    actions = clip_actions(normalizer.denormalize(x0), dynamics)
-    actions = actions * agent_mask[..., None, None].to(actions.dtype)
-    return actions, rollout(state, actions, dynamics)
-
-
 class OneCallSampler:
     """A denoiser as a one-step generator: deterministic DDIM (``eta = 0``) from ``eps``.
 
@@ -130,6 +109,5 @@ __all__ = [
     "OneCallSampler",
     "chain_noise",
     "denoise_step",
-    "plans_from_sample",
     "reverse_chain",
 ]

@@ -17,14 +17,13 @@ from policies.baselines.diffusion.objective import diffusion_loss, draw_levels
 from policies.baselines.diffusion.sampling import (
     OneCallSampler,
     chain_noise,
-    plans_from_sample,
     reverse_chain,
 )
 from policies.learned.config import ModelConfig
 from policies.learned.data import ActionNormalizer
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.guidance_losses import adversarial_loss
-from policies.learned.sampler import sample
+from policies.learned.sampler import decode_plans, sample
 from policies.learned.synthetic import synthetic_batch
 from policies.learned.validation import evaluate
 from policies.learned.window_types import FUTURE_FIELDS
@@ -122,7 +121,7 @@ def test_one_call_sampler_serves_the_riskflow_sampler_and_validation():
     noise = torch.zeros((5, *eps.shape))
     noise[0] = eps
     x0 = reverse_chain(denoiser, scene, noise, denoiser.schedule.levels(4), eta=0.0)[-1]
-    expected, _ = plans_from_sample(x0, scene.state, scene.agent_mask, NORMALIZER)
+    expected, _ = decode_plans(x0, scene.state, scene.agent_mask, NORMALIZER)
     torch.testing.assert_close(actions, expected)
     metrics = evaluate(one_call, [batch], NORMALIZER, num_samples=2)
     assert all(torch.isfinite(torch.tensor(v)) for v in metrics.values())
@@ -154,7 +153,7 @@ def test_guidance_moves_only_the_controllable_agents_and_lowers_l_adv(gradient, 
     result = guided_sample(
         denoiser, scene, noise, levels, geometry, controllable, NORMALIZER, config
     )
-    base, base_trajectories = plans_from_sample(
+    base, base_trajectories = decode_plans(
         reverse_chain(denoiser, scene, noise, levels)[-1][0], geometry.state,
         geometry.agent_mask, NORMALIZER,
     )  # fmt: skip
@@ -184,7 +183,7 @@ def test_no_controllable_agent_is_the_unguided_chain_and_seeds_repeat():
         config = DiffusionGuidanceConfig(anchor=anchor)
         nobody = torch.zeros(6, dtype=torch.bool)
         none = guided_sample(denoiser, scene, noise, levels, geometry, nobody, NORMALIZER, config)
-        unguided, _ = plans_from_sample(
+        unguided, _ = decode_plans(
             reverse_chain(denoiser, scene, noise, levels)[-1][0], geometry.state,
             geometry.agent_mask, NORMALIZER,
         )  # fmt: skip

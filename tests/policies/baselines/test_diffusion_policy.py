@@ -6,59 +6,35 @@ import json
 
 import numpy as np
 import pytest
-import torch
 
-import riskflow_env
 from policies.baselines.diffusion.model import DiffusionDenoiser, load_diffusion
 from policies.baselines.diffusion.policy import PHASES, DiffusionAdversary
-from policies.baselines.diffusion.sampling import plans_from_sample, reverse_chain
+from policies.baselines.diffusion.sampling import reverse_chain
 from policies.learned.checkpoint import load_generator
-from policies.learned.config import ModelConfig
-from policies.learned.data import ActionNormalizer
-from policies.learned.generator import CheckpointError, RiskFlowGenerator
+from policies.learned.generator import CheckpointError
+from policies.learned.sampler import decode_plans
 from policies.learned.window_types import collate_windows
 from policies.learned.windows import window_from_view
 from policies.train import GENERATOR, METRICS_LOG
 from policies.train import main as train_main
-from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG
-from riskflow_env.maps import Lane, from_lanes
-from riskflow_env.scenarios import Scenario
 from riskflow_env.view import ScenePolicy
 from tests.policies.highway_banks import write_banks
-
-TINY = ModelConfig(
-    encoder_dim=16, head_dim=32, context_dim=32, edge_dim=8, num_heads=2, encoder_layers=1,
-    head_layers=1, map_widths=(4, 8), time_frequencies=8,
-)  # fmt: skip
-NORMALIZER = ActionNormalizer(mean=(0.0, 0.0), std=(0.5, 0.02))
-CONFIG = EnvConfig(
-    max_agents=8, episode_steps=20, terminate_on_collision="all", terminate_on_offroad="none"
+from tests.policies.straight_road import (
+    TINY_MODEL,
+    TINY_NORMALIZER,
+    perturbed_generator,
+    road_env,
+    run_closed_loop,
 )
-START = [(0.0, 0.0), (18.0, 3.5), (-12.0, -3.5), (30.0, -3.5), (-25.0, 3.5), (45.0, 0.0)]
 
-
-def make_scenario() -> Scenario:
-    """Six cars at 12 m/s on a straight three-lane road."""
-    road = from_lanes([Lane(np.array([[-150.0, 0.0], [500.0, 0.0]]), 12.0, "road")])
-    steps, num = 31 + 60, len(START)
-    time = 0.1 * (np.arange(steps) - 30)
-    states = np.zeros((num, steps, 4))
-    for row, (x, y) in enumerate(START):
-        states[row, :, 0], states[row, :, 1], states[row, :, 2] = x + 12.0 * time, y, 12.0
-    valid = np.ones(states.shape[:2], dtype=bool)
-    return Scenario(road, states, valid, np.full(num, 4.5), np.full(num, 2.0), name="road")
+TINY = TINY_MODEL
+NORMALIZER = TINY_NORMALIZER
 
 
 @pytest.fixture(scope="module")
 def denoiser() -> DiffusionDenoiser:
-    torch.manual_seed(0)
-    network = RiskFlowGenerator(TINY)
-    gen = torch.Generator().manual_seed(0)
-    with torch.no_grad():
-        for param in network.parameters():
-            param.add_(0.2 * torch.randn(param.shape, generator=gen))
-    return DiffusionDenoiser(network.eval())
+    return DiffusionDenoiser(perturbed_generator(0))
 
 
 def adversary(denoiser, **kwargs) -> DiffusionAdversary:
@@ -67,22 +43,15 @@ def adversary(denoiser, **kwargs) -> DiffusionAdversary:
 
 
 def run(policy, steps: int):
-    env = riskflow_env.parallel_env(config=CONFIG, scenarios=make_scenario())
-    env.reset(seed=0, options={"scenario": make_scenario()})
-    policy.reset(env.view())
-    emitted = []
-    for _ in range(steps):
-        if not env.agents:
-            break
-        view = env.view()
-        actions = policy.act(view)
+    """Closed loop on the road with the ego holding speed, every action within bounds."""
+
+    def check(view, policy, actions):
         assert set(actions) == set(view.live_agents) - {"ego"}
         for action in actions.values():
             assert DEFAULT_CONFIG.accel_min <= action[0] <= DEFAULT_CONFIG.accel_max
             assert abs(action[1]) <= DEFAULT_CONFIG.yaw_rate_max
-        emitted.append(actions)
-        env.step({**actions, "ego": np.zeros(2)} if "ego" in env.agents else actions)
-    return env, emitted
+
+    return run_closed_loop(policy, steps, hook=check)
 
 
 @pytest.mark.parametrize("variant", ["ctg", "ctgpp", "ccdiff"])
@@ -101,8 +70,7 @@ def test_closed_loop_runs_replans_and_repeats_with_the_seed(denoiser, variant):
 
 
 def test_k0_is_the_unguided_chain_and_guidance_touches_only_a_c(denoiser):
-    env = riskflow_env.parallel_env(config=CONFIG, scenarios=make_scenario())
-    env.reset(options={"scenario": make_scenario()})
+    env = road_env()
     unguided = adversary(denoiser, k=0)
     unguided.reset(env.view())
     unguided.plan(env.view())
@@ -112,7 +80,7 @@ def test_k0_is_the_unguided_chain_and_guidance_touches_only_a_c(denoiser):
     window = window_from_view(env.view(), unguided.window_config)
     scene = denoiser.encode(collate_windows([window]))
     x0 = reverse_chain(denoiser, scene, unguided.noise[:, None], unguided.levels)[-1]
-    actions, _ = plans_from_sample(x0[0], scene.state[0], scene.agent_mask[0], NORMALIZER)
+    actions, _ = decode_plans(x0[0], scene.state[0], scene.agent_mask[0], NORMALIZER)
     # The policy's chain and this one are different code paths (batch layout, op order) in
     # float32: actions of a few m/s^2 carry rounding of about 8 * 2**-24 = 5e-7 per op,
     # and 100 denoising steps compound it (1.2e-6 seen on another machine), so 1e-5.

@@ -14,7 +14,7 @@ from policies.learned.ranking import (
     risk_graph,
 )
 from policies.learned.window_types import Window
-from riskflow_env.risk import risk_matrix
+from riskflow_env.risk import pair_risk
 
 
 def _risk(num_agents: int, pairs: dict[tuple[int, int], float]) -> np.ndarray:
@@ -106,7 +106,7 @@ def test_known_conflict_from_ttc_risk():
         ]
     )
     length, width = np.full(6, 4.5), np.full(6, 2.0)
-    risk = risk_matrix(state, length, width)
+    risk = pair_risk(state, length, width)[0]
     distance = np.linalg.norm(state[:, :2] - state[0, :2], axis=-1)
     ranking = causal_ranking(risk, np.ones(6, bool), 3, distance_to_ego=distance)
     assert ranking.order[0] == 1

@@ -10,7 +10,7 @@ from gymnasium.utils.env_checker import check_env
 from policies.riskflow import RiskFlowAdversary
 from riskflow_env.config import EnvConfig
 from riskflow_env.wrappers import EgoEnv
-from tests.policies.conftest import make_road_scenario
+from tests.policies.straight_road import make_road_scenario
 
 
 @pytest.fixture

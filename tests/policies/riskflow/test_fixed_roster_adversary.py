@@ -11,7 +11,7 @@ from pettingzoo.test import parallel_api_test, parallel_seed_test
 from policies.riskflow import RiskFlowAdversary
 from riskflow_env.config import EnvConfig
 from riskflow_env.wrappers import FixedRosterEnv
-from tests.policies.conftest import make_road_scenario
+from tests.policies.straight_road import make_road_scenario
 
 
 @pytest.fixture

@@ -2,47 +2,33 @@
 
 from __future__ import annotations
 
+import dataclasses
 from importlib import resources
 
 import numpy as np
 import pytest
 import torch
 
-import riskflow_env
-from policies.learned.data import ActionNormalizer
 from policies.learned.sampler import sample
 from policies.learned.window_types import collate_windows
 from policies.learned.windows import window_from_view
 from policies.riskflow.policy import PHASES, RiskFlowAdversary
-from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG
-from riskflow_env.maps import Lane, from_lanes
 from riskflow_env.scenarios import Scenario
 from riskflow_env.view import ScenePolicy
-
-NORMALIZER = ActionNormalizer(mean=(0.0, 0.0), std=(0.5, 0.02))
-CONFIG = EnvConfig(
-    max_agents=9, episode_steps=25, terminate_on_collision="all", terminate_on_offroad="none"
+from tests.policies.straight_road import (
+    ROAD_ENV,
+    TINY_NORMALIZER,
+    make_road_scenario,
+    road_env,
+    run_closed_loop,
 )
-# (x [m], lane y [m]) at the current step, all at 12 m/s along +x; slot order = row order.
-START = [(0.0, 0.0), (18.0, 3.5), (-12.0, -3.5), (30.0, -3.5), (-25.0, 3.5), (45.0, 0.0)]
+
+NORMALIZER = TINY_NORMALIZER
+CONFIG = dataclasses.replace(ROAD_ENV, max_agents=9, episode_steps=25)
 FAR = (230.0, 0.0)  # beyond WindowConfig.max_distance (150 m): no window slot
 CRASH = [(60.0, -3.5), (61.0, -3.5)]  # two overlapping cars: done at the first step
-
-
-def make_scenario(extra: list[tuple[float, float]] = ()) -> Scenario:
-    road = from_lanes([Lane(np.array([[-150.0, 0.0], [500.0, 0.0]]), 12.0, "road")])
-    starts = START + list(extra)
-    steps = 31 + 60
-    time = 0.1 * (np.arange(steps) - 30)
-    states = np.zeros((len(starts), steps, 4))
-    for row, (x, y) in enumerate(starts):
-        states[row, :, 0] = x + 12.0 * time
-        states[row, :, 1] = y
-        states[row, :, 2] = 12.0
-    valid = np.ones(states.shape[:2], dtype=bool)
-    num = len(starts)
-    return Scenario(road, states, valid, np.full(num, 4.5), np.full(num, 2.0), name="road")
+make_scenario = make_road_scenario
 
 
 @pytest.fixture
@@ -57,21 +43,13 @@ def adversary(model, **kwargs) -> RiskFlowAdversary:
 
 def run(policy: RiskFlowAdversary, scenario: Scenario, steps: int, hook=None):
     """Closed loop with the ego holding speed; returns the env and the emitted actions."""
-    env = riskflow_env.parallel_env(config=CONFIG, scenarios=scenario)
-    env.reset(seed=0, options={"scenario": scenario})
-    policy.reset(env.view())
-    emitted = []
-    for _ in range(steps):
-        if not env.agents:
-            break
-        view = env.view()
-        actions = policy.act(view)
+
+    def check(view, policy, actions):
         assert set(actions) == set(view.live_agents) - {"ego"}
         if hook is not None:
             hook(view, policy, actions)
-        emitted.append(actions)
-        env.step({**actions, "ego": np.zeros(2)} if "ego" in env.agents else actions)
-    return env, emitted
+
+    return run_closed_loop(policy, steps, scenario, CONFIG, check)
 
 
 def test_is_a_scene_policy(model):
@@ -115,8 +93,7 @@ def test_each_step_emits_the_next_action_of_the_plan(model):
 
 def test_k0_gives_exactly_the_unguided_generator(model):
     policy = adversary(model, k=0, guidance_steps=30)
-    env = riskflow_env.parallel_env(config=CONFIG, scenarios=make_scenario())
-    env.reset(options={"scenario": make_scenario()})
+    env = road_env(CONFIG)
     policy.reset(env.view())
     policy.plan(env.view())
     assert not policy.controllable.any()
@@ -132,8 +109,7 @@ def test_k0_gives_exactly_the_unguided_generator(model):
 
 def test_guidance_changes_only_the_controllable_vehicles(model):
     policy = adversary(model, k=2, guidance_steps=10)
-    env = riskflow_env.parallel_env(config=CONFIG, scenarios=make_scenario())
-    env.reset(options={"scenario": make_scenario()})
+    env = road_env(CONFIG)
     policy.reset(env.view())
     plans = policy.plan(env.view())
     assert policy.controllable.sum() == 2 and not policy.controllable[0]
@@ -197,8 +173,7 @@ def test_draw_pushes_overlays(model):
     from riskflow_env.render import SceneRenderer
 
     policy = adversary(model)
-    env = riskflow_env.parallel_env(config=CONFIG, scenarios=make_scenario())
-    env.reset(options={"scenario": make_scenario()})
+    env = road_env(CONFIG)
     renderer = SceneRenderer("rgb_array")
     policy.draw(renderer)  # nothing planned yet: no overlay
     assert not renderer.overlays
@@ -214,8 +189,7 @@ def test_draw_pushes_overlays(model):
 def test_threads_are_restored(model):
     before = torch.get_num_threads()
     policy = adversary(model, threads=1)
-    env = riskflow_env.parallel_env(config=CONFIG, scenarios=make_scenario())
-    env.reset(options={"scenario": make_scenario()})
+    env = road_env(CONFIG)
     policy.reset(env.view())
     policy.plan(env.view())
     assert torch.get_num_threads() == before
@@ -230,8 +204,7 @@ def test_bad_options(model):
         adversary(model, planning_interval=0.0)
     with pytest.raises(ValueError, match="target must be one of"):
         adversary(model, target="everyone")
-    env = riskflow_env.parallel_env(config=CONFIG, scenarios=make_scenario())
-    env.reset(options={"scenario": make_scenario()})
+    env = road_env(CONFIG)
     with pytest.raises(RuntimeError, match="reset"):
         adversary(model).act(env.view())
     for interval in (0.25, 6.0):

@@ -11,21 +11,7 @@ from riskflow_env.metrics import (
     displacement_means,
     standstill_drift,
 )
-
-
-def record_of(states, reference, reference_valid=None, **kwargs):
-    num_agents, num_steps = states.shape[:2]
-    if reference_valid is None:
-        reference_valid = np.ones((num_agents, num_steps), bool)
-    return RolloutRecord(
-        states=states,
-        valid=np.ones((num_agents, num_steps), bool),
-        length=np.full(num_agents, 4.0),
-        width=np.full(num_agents, 2.0),
-        reference=reference,
-        reference_valid=reference_valid,
-        **kwargs,
-    )
+from tests.riskflow_env.metrics.records import record_of
 
 
 def test_constant_offset_gives_ade_and_fde_of_its_norm(straight):

@@ -8,26 +8,13 @@ import pytest
 from riskflow_env.metrics import (
     KINEMATIC_FEATURES,
     KinematicSamples,
-    RolloutRecord,
     kdd,
     kdd_over_records,
     kinematic_samples,
 )
+from tests.riskflow_env.metrics.records import record_of
 
 STEPS = 40
-
-
-def record_of(states, reference, **kwargs):
-    num_agents, num_steps = states.shape[:2]
-    return RolloutRecord(
-        states=states,
-        valid=np.ones((num_agents, num_steps), bool),
-        length=np.full(num_agents, 4.0),
-        width=np.full(num_agents, 2.0),
-        reference=reference,
-        reference_valid=np.ones((num_agents, num_steps), bool),
-        **kwargs,
-    )
 
 
 def actions(accel, yaw_rate=0.0, steps=STEPS - 1):

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from riskflow_env.metrics import NO_EGO, RolloutRecord, collision_involvement, jerk_steps
+from riskflow_env.metrics import NO_EGO, collision_involvement, jerk_steps
+from tests.riskflow_env.metrics.records import record_of
 
 
 def test_collision_involvement_drops_pairs_with_the_ego():
@@ -22,15 +23,7 @@ def test_jerk_spikes_only_at_the_replan_phase(rolled):
     sim_step = np.arange(steps - 1) - (context - 1)  # action r is simulated step r - context + 1
     accel = np.where(sim_step >= 0, (sim_step // period) % 2, 0).astype(float)  # 0/1 per plan
     track = rolled(np.array([0.0, 0.0, 10.0, 0.0]), np.stack([accel, 0 * accel], axis=1))
-    record = RolloutRecord(
-        states=track[None],
-        valid=np.ones((1, steps), bool),
-        length=np.array([4.0]),
-        width=np.array([2.0]),
-        reference=track[None],
-        reference_valid=np.ones((1, steps), bool),
-        num_context=context,
-    )
+    record = record_of(track[None], track[None], num_context=context)
     jerk, step = jerk_steps(record)
     assert step.tolist() == list(range(30))  # simulated steps 0..29: one jerk each
     phase = step % period

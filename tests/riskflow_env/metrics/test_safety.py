@@ -7,7 +7,6 @@ import pytest
 
 from riskflow_env.metrics import (
     NO_EGO,
-    RolloutRecord,
     collision_rates,
     collisions,
     offroad,
@@ -15,23 +14,14 @@ from riskflow_env.metrics import (
     offroad_rates,
     rollout_metrics,
 )
+from tests.riskflow_env.metrics.records import record_of as record_against
 
 
-def record_of(tracks, road=None, ego_index=0, num_context=0, length=4.0, width=2.0, **kwargs):
+def record_of(tracks, road=None, ego_index=0, num_context=0, **kwargs):
+    """Every track against itself, ``tracks[ego_index]`` the ego's."""
     states = np.stack(tracks)
-    num_agents, num_steps = states.shape[:2]
-    kwargs.setdefault("valid", np.ones((num_agents, num_steps), bool))
-    return RolloutRecord(
-        states=states,
-        length=np.full(num_agents, length),
-        width=np.full(num_agents, width),
-        reference=states,
-        reference_valid=np.ones((num_agents, num_steps), bool),
-        ego_index=ego_index,
-        drivable_map=road,
-        num_context=num_context,
-        **kwargs,
-    )
+    kwargs.update(ego_index=ego_index, drivable_map=road, num_context=num_context)
+    return record_against(states, states, **kwargs)
 
 
 def rear_end(straight, steps=30):

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from riskflow_env.metrics import WOSAC_2024, FeatureConfig, RolloutRecord, wosac_scene
+from riskflow_env.metrics import WOSAC_2024, FeatureConfig, wosac_scene
 from riskflow_env.metrics.wosac import (
     bernoulli_log_likelihood,
     histogram_log_likelihood,
@@ -19,6 +19,7 @@ from riskflow_env.metrics.wosac_features import (
     interaction_features,
     kinematic_features,
 )
+from tests.riskflow_env.metrics.records import record_of
 
 STEPS = 30
 
@@ -79,21 +80,7 @@ def test_histogram_and_bernoulli_estimators():
 
 def scene(road, sims, log):
     """Records of one scene: each sim (A, T, 4) against the same log (A, T, 4)."""
-    num_agents = log.shape[0]
-    return [
-        RolloutRecord(
-            states=sim,
-            valid=np.ones((num_agents, STEPS), bool),
-            length=np.full(num_agents, 4.0),
-            width=np.full(num_agents, 2.0),
-            reference=log,
-            reference_valid=np.ones((num_agents, STEPS), bool),
-            drivable_map=road,
-            num_context=3,
-            scene_id="box",
-        )
-        for sim in sims
-    ]
+    return [record_of(sim, log, drivable_map=road, num_context=3, scene_id="box") for sim in sims]
 
 
 def test_rollouts_identical_to_the_log_score_near_one(road, straight):

@@ -14,45 +14,9 @@ import pytest
 import shapely
 from pettingzoo.test import parallel_api_test
 
-import riskflow_env
-from riskflow_env.config import EnvConfig
-from riskflow_env.maps import from_polygons
-from riskflow_env.scenarios import Scenario
 from riskflow_env.wrappers import EventLogWrapper, read_event_log
 from riskflow_env.wrappers.event_log import contact_kind, contact_point
-
-ROAD = shapely.box(-50.0, -12.0, 250.0, 12.0)
-
-
-def make_scenario(vehicles, road=ROAD, steps: int = 60) -> Scenario:
-    """Constant-velocity tracks for ``vehicles`` rows (x, y, v, yaw), the ego first."""
-    rows = np.asarray(vehicles, dtype=np.float64)
-    t = np.arange(-30, steps + 1) * 0.1
-    x = rows[:, None, 0] + rows[:, None, 2] * np.cos(rows[:, None, 3]) * t
-    y = rows[:, None, 1] + rows[:, None, 2] * np.sin(rows[:, None, 3]) * t
-    speed, yaw = (
-        np.broadcast_to(rows[:, None, 2], x.shape),
-        np.broadcast_to(rows[:, None, 3], x.shape),
-    )
-    return Scenario(
-        map=from_polygons(road, resolution=0.5),
-        states=np.stack([x, y, speed, yaw], axis=-1),
-        valid=np.ones(x.shape, dtype=bool),
-        length=np.full(len(rows), 4.5),
-        width=np.full(len(rows), 2.0),
-        name="hand-made",
-    )
-
-
-def make_env(vehicles, steps: int = 30, road=ROAD):
-    config = EnvConfig(
-        max_agents=len(vehicles),
-        episode_steps=steps,
-        terminate_on_collision="none",
-        terminate_on_offroad="none",
-        end_with_ego=False,
-    )
-    return riskflow_env.parallel_env(config=config, scenarios=make_scenario(vehicles, road))
+from tests.riskflow_env.hand_made_scenes import make_env
 
 
 def run(env, path=None) -> EventLogWrapper:
@@ -203,7 +167,7 @@ CHILD = """
 import sys
 import numpy as np
 sys.path.insert(0, sys.argv[2])
-from test_event_log import make_env
+from hand_made_scenes import make_env
 from riskflow_env.wrappers import EventLogWrapper
 
 # three pairs on separate lanes collide at different steps; a step waits for "go"
@@ -222,7 +186,7 @@ while env.agents:
 def test_killed_run_leaves_every_detected_event_on_disk(tmp_path):
     path = tmp_path / "killed.jsonl"
     child = subprocess.Popen(
-        [sys.executable, "-c", CHILD, str(path), os.path.dirname(__file__)],
+        [sys.executable, "-c", CHILD, str(path), os.path.dirname(os.path.dirname(__file__))],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,

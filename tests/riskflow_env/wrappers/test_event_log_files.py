@@ -2,27 +2,19 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 
 from riskflow_env.wrappers import EventLogWrapper, read_event_log
 from riskflow_env.wrappers.event_log import EventRecorder
+from tests.riskflow_env.hand_made_scenes import make_env
 
 pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
-
-_spec = importlib.util.spec_from_file_location(
-    "_event_log_tests", Path(__file__).with_name("test_event_log.py")
-)
-_tests = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_tests)
 
 VEHICLES = [(0.0, 0.0, 0.0, 0.0), (3.0, 0.0, 0.0, 0.0)]
 
 
 def _episode(path, **kwargs):
-    with EventLogWrapper(_tests.make_env(VEHICLES, steps=5), path, **kwargs) as env:
+    with EventLogWrapper(make_env(VEHICLES, steps=5), path, **kwargs) as env:
         env.reset(seed=0)
         while env.agents:
             env.step({agent: (0.0, 0.0) for agent in env.agents})
@@ -34,7 +26,7 @@ def test_restart_does_not_destroy_an_existing_log(tmp_path):
     before = path.read_text()
     assert before
     with pytest.raises(FileExistsError, match="append=True"):
-        EventLogWrapper(_tests.make_env(VEHICLES), path)
+        EventLogWrapper(make_env(VEHICLES), path)
     assert path.read_text() == before
     _episode(path, append=True)
     assert len(read_event_log(path)) == 2 * len(before.splitlines())

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import signal
 import subprocess
 import sys
@@ -11,20 +10,15 @@ from pathlib import Path
 import pytest
 
 from riskflow_env.wrappers import EventLogWrapper, read_event_log
+from tests.riskflow_env.hand_made_scenes import make_env
 
 pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
-
-_spec = importlib.util.spec_from_file_location(
-    "_event_log_tests", Path(__file__).with_name("test_event_log.py")
-)
-_tests = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_tests)
 
 VEHICLES = [(0.0, 0.0, 0.0, 0.0), (3.0, 0.0, 0.0, 0.0)]
 
 
 def _run(path, episodes, **kwargs):
-    with EventLogWrapper(_tests.make_env(VEHICLES, steps=3), path, **kwargs) as env:
+    with EventLogWrapper(make_env(VEHICLES, steps=3), path, **kwargs) as env:
         for _ in range(episodes):
             env.reset(seed=0)
             while env.agents:
@@ -55,7 +49,7 @@ KILLED = """
 import os, signal, sys
 import numpy as np
 sys.path.insert(0, sys.argv[2])
-from test_event_log import make_env
+from hand_made_scenes import make_env
 from riskflow_env.wrappers import EventLogWrapper
 
 vehicles = [tuple(map(float, v.split(","))) for v in sys.argv[3].split(";")]
@@ -87,7 +81,7 @@ def test_kill_9_mid_episode_then_resume_loses_nothing(tmp_path):
     every event detected before the kill is on disk, the resumed episodes continue the
     numbering and log what an uninterrupted run logs."""
     reference = tmp_path / "reference.jsonl"
-    with EventLogWrapper(_tests.make_env(KILL_VEHICLES, steps=20), reference) as env:
+    with EventLogWrapper(make_env(KILL_VEHICLES, steps=20), reference) as env:
         for _ in range(3):
             env.reset(seed=0)
             while env.agents:
@@ -95,7 +89,7 @@ def test_kill_9_mid_episode_then_resume_loses_nothing(tmp_path):
     path = tmp_path / "killed.jsonl"
     vehicles = ";".join(",".join(map(str, v)) for v in KILL_VEHICLES)
     child = subprocess.run(
-        [sys.executable, "-c", KILLED, str(path), str(Path(__file__).parent), vehicles],
+        [sys.executable, "-c", KILLED, str(path), str(Path(__file__).parents[1]), vehicles],
         capture_output=True,
         text=True,
         timeout=600,  # a hang guard only: the machine may be loaded
@@ -106,7 +100,7 @@ def test_kill_9_mid_episode_then_resume_loses_nothing(tmp_path):
     assert killed[0] == expected[0]  # the finished episode, summary included
     before_kill = [e for e in expected[1] if e["step"] <= 10 and e["event"] != "episode_summary"]
     assert killed[1] == before_kill and before_kill  # every event detected before the kill
-    with EventLogWrapper(_tests.make_env(KILL_VEHICLES, steps=20), path, append=True) as env:
+    with EventLogWrapper(make_env(KILL_VEHICLES, steps=20), path, append=True) as env:
         for _ in range(2):  # the killed episode again, then the last one
             env.reset(seed=0)
             while env.agents:

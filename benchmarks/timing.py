@@ -1,0 +1,41 @@
+"""Interleaved wall-clock timing of the benchmark scripts (a helper, not a benchmark).
+
+The functions of one measurement run in turn within each repetition, so a peer measured
+in the same run sees the same machine load. A script of this folder imports it as
+``from timing import interleaved_ms``: the folder of ``python benchmarks/<name>.py`` is
+on ``sys.path``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from tqdm import tqdm
+
+
+def _no_sync() -> None:
+    """CPU work is done when the call returns."""
+
+
+def interleaved_ms(
+    fns: dict[str, Callable[[], object]],
+    repeats: int,
+    warmup: int,
+    sync: Callable[[], object] = _no_sync,
+) -> dict[str, list[float]]:
+    """Wall times [ms] of ``repeats`` calls of each function, after ``warmup`` untimed
+    rounds; ``sync`` runs after every call and is timed with it (e.g.
+    ``torch.cuda.synchronize``). Shows a progress bar on stderr."""
+    for _ in range(warmup):
+        for fn in fns.values():
+            fn()
+    sync()
+    times: dict[str, list[float]] = {name: [] for name in fns}
+    for _ in tqdm(range(repeats), "timed repetitions", leave=False):  # stderr
+        for name, fn in fns.items():
+            start = time.perf_counter()
+            fn()
+            sync()
+            times[name].append(1e3 * (time.perf_counter() - start))
+    return times
