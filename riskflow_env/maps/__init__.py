@@ -14,13 +14,20 @@ from __future__ import annotations
 
 from riskflow_env.maps.builders import from_lanes, from_polygons
 from riskflow_env.maps.drivable_map import DrivableMap
-from riskflow_env.maps.highway import FAMILIES, from_highway_env, highway_env_lanes
+from riskflow_env.maps.highway import (
+    FAMILIES,
+    RoadFamily,
+    from_highway_env,
+    highway_env_lanes,
+    road_family,
+)
 from riskflow_env.maps.lanes import Lane
 from riskflow_env.maps.stack import MapStack
 from riskflow_env.maps.surface import lane_polygon, road_polygons
 
 __all__ = [
     "FAMILIES",
+    "RoadFamily",
     "DrivableMap",
     "Lane",
     "MapStack",
@@ -29,5 +36,6 @@ __all__ = [
     "from_polygons",
     "highway_env_lanes",
     "lane_polygon",
+    "road_family",
     "road_polygons",
 ]

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import functools
 import math
+from enum import Enum
 
 import numpy as np
 
@@ -32,7 +33,34 @@ from riskflow_env.maps.builders import from_lanes
 from riskflow_env.maps.drivable_map import DrivableMap
 from riskflow_env.maps.lanes import Lane
 
-FAMILIES = ("highway", "merge", "roundabout", "intersection", "racetrack", "exit", "u-turn")
+
+class RoadFamily(str, Enum):
+    """The highway-env road networks that maps and recorded scenes are built from."""
+
+    HIGHWAY = "highway"
+    MERGE = "merge"
+    ROUNDABOUT = "roundabout"
+    INTERSECTION = "intersection"
+    RACETRACK = "racetrack"
+    EXIT = "exit"
+    U_TURN = "u-turn"
+
+
+FAMILIES = tuple(family.value for family in RoadFamily)
+"""The road family names, in :class:`RoadFamily`'s order (the round-robin of ``riskflow-data``)."""
+
+
+def road_family(family: str | RoadFamily) -> str:
+    """The name of ``family`` (a :class:`RoadFamily` or its value); ValueError naming the
+    valid ones otherwise."""
+    try:
+        return RoadFamily(family).value
+    except ValueError:
+        raise ValueError(
+            f"unknown family {family!r}; valid families: {', '.join(FAMILIES)}"
+        ) from None
+
+
 ENV_IDS = {
     "highway": "highway-v0",
     "merge": "merge-v1",
@@ -63,7 +91,7 @@ def from_highway_env(
     returned for the same arguments.
 
     Args:
-        family: one of :data:`FAMILIES`.
+        family: a :class:`RoadFamily` or its name (:data:`FAMILIES`).
         resolution: pixel size [m/px], > 0.
         max_length: lanes are cut to their first ``max_length`` metres of arclength
             [m], > 0 (highway-env's highway lanes are 10 km long); a cut lane has
@@ -78,8 +106,7 @@ def from_highway_env(
     Returns:
         A :class:`DrivableMap` named ``family`` with the network's lanes.
     """
-    if family not in FAMILIES:
-        raise ValueError(f"unknown family {family!r}; valid families: {', '.join(FAMILIES)}")
+    family = road_family(family)
     resolution = finite_number("resolution", resolution, "m/px")
     max_length = finite_number("max_length", max_length, "m")
     entry_apron = finite_number("entry_apron", entry_apron, "m", allow_zero=True)
@@ -106,8 +133,7 @@ def highway_env_lanes(family: str, max_length: float = 600.0, seed: int = 0) -> 
     lane changes (roundabout exits, the exit ramp) and U-turns at the edge of the
     intersection map.
     """
-    if family not in FAMILIES:
-        raise ValueError(f"unknown family {family!r}; valid families: {', '.join(FAMILIES)}")
+    family = road_family(family)
     import gymnasium
     import highway_env  # noqa: F401  (registers the envs)
 

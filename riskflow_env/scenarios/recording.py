@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from riskflow_env.geometry import pairwise_overlap
-from riskflow_env.maps import DrivableMap, from_highway_env
+from riskflow_env.maps import DrivableMap, RoadFamily, from_highway_env, road_family
 from riskflow_env.maps.highway import ENV_IDS
 from riskflow_env.scenarios.road_stepper import DT, RoadStepper, traffic_vehicle_class
 
@@ -136,15 +136,16 @@ class Recording:
     dt: float = DT
 
 
-def family_map(family: str, resolution: float = 0.5) -> DrivableMap:
+def family_map(family: str | RoadFamily, resolution: float = 0.5) -> DrivableMap:
     """The map recordings of ``family`` use (cached by :func:`from_highway_env`)."""
+    family = road_family(family)
     return from_highway_env(
         family, resolution=resolution, max_length=MAP_LENGTH.get(family, DEFAULT_MAP_LENGTH)
     )
 
 
 def record_traffic(
-    family: str,
+    family: str | RoadFamily,
     rng: np.random.Generator,
     steps: int,
     warmup_steps: int = 50,
@@ -156,7 +157,7 @@ def record_traffic(
     Deterministic given ``rng``'s state (highway-env's own generator is seeded from it).
 
     Args:
-        family: one of :data:`riskflow_env.maps.FAMILIES`.
+        family: a :class:`riskflow_env.maps.RoadFamily` or its name.
         rng: source of every random draw.
         steps: recorded steps T (>= 1), 0.1 s apart.
         warmup_steps: simulated steps before the first recorded one (initial placement
@@ -170,6 +171,7 @@ def record_traffic(
     if steps < 1 or warmup_steps < 0:
         raise ValueError(f"steps must be >= 1 and warmup_steps >= 0, got {steps}, {warmup_steps}")
     cfg = config or DriverConfig()
+    family = road_family(family)
     drivable_map = family_map(family, resolution)
     env = gymnasium.make(
         ENV_IDS[family],

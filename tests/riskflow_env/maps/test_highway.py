@@ -6,7 +6,7 @@ import gymnasium
 import numpy as np
 import pytest
 
-from riskflow_env.maps import FAMILIES, DrivableMap, from_highway_env
+from riskflow_env.maps import FAMILIES, DrivableMap, RoadFamily, from_highway_env, road_family
 from riskflow_env.maps.highway import ENV_IDS
 
 SEEDS = (0, 1, 2, 3)
@@ -125,3 +125,11 @@ def test_long_lanes_are_cut() -> None:
 def test_bad_arguments(kwargs: dict, match: str) -> None:
     with pytest.raises(ValueError, match=match):
         from_highway_env(**kwargs)
+
+
+def test_road_family_enum_names_every_family() -> None:
+    assert FAMILIES == tuple(family.value for family in RoadFamily)
+    assert road_family(RoadFamily.U_TURN) == "u-turn" == road_family("u-turn")
+    assert from_highway_env(RoadFamily.MERGE) is from_highway_env("merge")  # one cached map
+    with pytest.raises(ValueError, match="unknown family 'parking'; valid families: highway"):
+        road_family("parking")
