@@ -50,16 +50,18 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.utils import set_random_seed
-from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv, VecNormalize
 
 from policies.dataclass_cli import parse_dataclass
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.curriculum import CurriculumCallback, LinearCurriculum, OutcomeCallback
 from policies.rl.envs import EgoEnvConfig, make_env
 from policies.rl.progress import StepProgressBar
+from policies.rl.sb3_vec_env import sb3_ego_vec_env
+from policies.rl.vector_env import build_vector_env
 from riskflow_env.config import EnvConfig, RewardConfig
 
-VEC_ENVS = ("subproc", "dummy")
+VEC_ENVS = ("subproc", "dummy", "batched")
 
 
 @dataclass(frozen=True)
@@ -73,9 +75,11 @@ class Options:
     out: Path = Path("runs/ego_ppo/seed0")
     """output folder"""
     num_envs: int = 2
-    """parallel envs (one adversary each)"""
+    """parallel envs (one adversary each; with --vec-env batched: scenes of one vector env)"""
     vec_env: str = "subproc"
-    """'subproc' (one process per env) or 'dummy' (all in this process; tests)"""
+    """'subproc' (one process per env), 'dummy' (all in this process; tests) or 'batched'
+    (policies.rl.EgoVectorEnv: the scenes stepped together, one adversary planning them all
+    in one call)"""
     split: str = "train"
     """shipped scenario bank the episodes come from"""
     scenes: int | None = None
@@ -207,9 +211,12 @@ def train(options: Options) -> Path:
     set_random_seed(options.seed)
 
     config = env_config(options)
-    factories = [make_env(config, rank, options.seed) for rank in range(options.num_envs)]
-    vec_cls = SubprocVecEnv if options.vec_env == "subproc" else DummyVecEnv
-    env = vec_cls(factories)
+    env: VecEnv
+    if options.vec_env == "batched":  # scene b is make_env's rank b, stepped together
+        env = sb3_ego_vec_env(build_vector_env(config, options.num_envs, options.seed))
+    else:
+        factories = [make_env(config, rank, options.seed) for rank in range(options.num_envs)]
+        env = (SubprocVecEnv if options.vec_env == "subproc" else DummyVecEnv)(factories)
     if options.normalize:
         env = VecNormalize(env, norm_obs=True, norm_reward=True, clip_obs=10.0)
 

@@ -216,6 +216,23 @@ def test_apply_stage_rejects_traffic_without_adversary():
         apply_stage(IDMPolicy(), AdversaryStage())
 
 
+def test_train_on_the_batched_vector_env(tmp_path):
+    """``--vec-env batched``: the scenes in one EgoVectorEnv, the adversary planning all of
+    them in one call; the curriculum and the outcome logging work through it."""
+    run_dir = tmp_path / "batched"
+    out = run(
+        "train_ego_ppo.py", "--total-timesteps", "128", "--n-steps", "32", "--batch-size", "64",
+        "--n-epochs", "1", "--num-envs", "2", "--vec-env", "batched", "--scenes", "3",
+        "--episode-steps", "20", "--guidance-steps", "2", "--checkpoint-every", "0",
+        "--seed", "3", "--out", run_dir,
+    )  # fmt: skip
+    assert "final model" in out
+    assert (run_dir / "final_model.zip").is_file()
+    assert (run_dir / "final_model_vecnormalize.pkl").is_file()
+    header = (run_dir / "progress.csv").read_text().splitlines()[0].split(",")
+    assert "curriculum/k" in header and "rollout/ego_collision_rate" in header
+
+
 def test_train_then_evaluate_tiny_budget(tmp_path):
     run_dir = tmp_path / "run"
     out = run(
