@@ -78,6 +78,7 @@ def load_splits(
             caches[folder].mkdir(parents=True, exist_ok=True)
     if val_data is not None:
         sources = [_source(folder) for folder in folders]
+        # one folder is passed alone: its cache fingerprint stays that of earlier versions
         train = WindowDataset(
             sources if len(sources) > 1 else sources[0], None, stride,
             caches[data] / f"{train_name}.npz", recovery,
