@@ -15,6 +15,7 @@ scenes/s to the loop's. Rounds are interleaved (batched, then loop, per B) and t
 round of each is reported (the least disturbed one on a shared machine).
 
     python benchmarks/adversarial_throughput.py [--scenes 1 8 32] [--rounds 3] [--device cpu]
+    python benchmarks/adversarial_throughput.py --device cuda --loop-device cpu  # GPU vs today
 """
 
 from __future__ import annotations
@@ -54,6 +55,9 @@ class Options:
     are big tensor ops, which more threads can share"""
     device: str = "cpu"
     """torch device (cuda where a GPU is present)"""
+    loop_device: str | None = None
+    """torch device of the one-scene-at-a-time loop (None: --device); today's loop runs on
+    cpu, so ``--device cuda --loop-device cpu`` compares batched GPU planning with it"""
 
 
 def _parse(argv: list[str] | None = None) -> Options:
@@ -117,27 +121,29 @@ def main(argv: list[str] | None = None) -> list[dict]:
     planning of all B scenes], ``phases`` of the last batched call and ``loop_phases``
     summed over the last loop's calls [s])."""
     options = _parse(argv)
+    loop_device = options.loop_device or options.device
     policy = RiskFlowAdversary(
         k=options.k,
         guidance_steps=options.guidance_steps,
-        device=options.device,
+        device=loop_device,
         threads=options.threads,
     )
     batched_threads = options.batched_threads or options.threads
-    batched = RiskFlowAdversary(  # the same model, planning B scenes per call
+    same_device = loop_device == options.device
+    batched = RiskFlowAdversary(  # the same model (the same checkpoint), B scenes per call
         k=options.k,
         guidance_steps=options.guidance_steps,
         device=options.device,
         threads=batched_threads,
-        generator=policy.model,
-        normalizer=policy.normalizer,
+        generator=policy.model if same_device else None,
+        normalizer=policy.normalizer if same_device else None,
     )
     views = evaluation_views(max(options.scenes))
     agents = [int(v.present.sum()) for v in views]
     print(
         f"RiskFlow adversary, K = {options.k}, K_g = {options.guidance_steps}, shipped "
-        f"checkpoint, device {options.device}, CPU threads: {options.threads} one at a time, "
-        f"{batched_threads} batched; shipped "
+        f"checkpoint, device {options.device} (loop: {loop_device}), CPU threads: "
+        f"{options.threads} one at a time, {batched_threads} batched; shipped "
         f"evaluation scenes 0..{len(views) - 1} ({min(agents)}-{max(agents)} vehicles, mean "
         f"{np.mean(agents):.1f}); best of {options.rounds} rounds of {options.calls} calls\n"
     )

@@ -17,6 +17,7 @@ times ``--steps`` steps of all N scenes after one warm-up step; rounds alternate
 then loop) and the best of ``--rounds`` is kept.
 
     python benchmarks/ego_env_throughput.py [--scenes 1 8 32] [--steps 20] [--device cpu]
+    python benchmarks/ego_env_throughput.py --device cuda --loop-device cpu  # GPU vs today
 """
 
 from __future__ import annotations
@@ -61,6 +62,9 @@ class Options:
     """torch CPU threads"""
     device: str = "cpu"
     """torch device (cuda where a GPU is present)"""
+    loop_device: str | None = None
+    """torch device of the loop's adversaries (None: --device); today's loop runs on cpu, so
+    ``--device cuda --loop-device cpu`` compares the vector env on the GPU with it"""
 
 
 def _parse(argv: list[str] | None = None) -> Options:
@@ -76,13 +80,20 @@ def _time(step, steps: int) -> float:
     return time.perf_counter() - start
 
 
-def measure(policy: RiskFlowAdversary, count: int, config: EnvConfig, options: Options) -> dict:
-    """Best seconds for ``options.steps`` steps of ``count`` scenes, vector and loop."""
+def measure(
+    policy: RiskFlowAdversary,
+    loop_policy: RiskFlowAdversary,
+    count: int,
+    config: EnvConfig,
+    options: Options,
+) -> dict:
+    """Best seconds for ``options.steps`` steps of ``count`` scenes, vector (``policy``) and
+    loop (copies of ``loop_policy``)."""
     scenes = list(shipped_bank(options.split))
     vector = EgoVectorEnv(count, config=config, scenarios=scenes, policy=policy)
     vector.reset(seed=0)
     loop = [
-        EgoTrainingEnv(EgoEnv(config=config, scenarios=scenes, policy=policy.spawn(index)))
+        EgoTrainingEnv(EgoEnv(config=config, scenarios=scenes, policy=loop_policy.spawn(index)))
         for index in range(count)
     ]
     for index, env in enumerate(loop):
@@ -113,25 +124,32 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ``steps`` steps of all scenes], ``agents`` per scene at the end)."""
     options = _parse(argv)
     torch.set_num_threads(options.threads)
-    policy = RiskFlowAdversary(
-        k=options.k,
-        guidance_steps=options.guidance_steps,
-        planning_interval=options.planning_interval,
-        device=options.device,
-        threads=options.threads,
-    )
+
+    def adversary(device: str) -> RiskFlowAdversary:
+        return RiskFlowAdversary(
+            k=options.k,
+            guidance_steps=options.guidance_steps,
+            planning_interval=options.planning_interval,
+            device=device,
+            threads=options.threads,
+        )
+
+    policy = adversary(options.device)
+    loop_device = options.loop_device or options.device
+    loop_policy = policy if loop_device == options.device else adversary(loop_device)
     config = EnvConfig(episode_steps=options.episode_steps)
     print(
         f"ego env-steps/s, RiskFlow adversary K = {options.k}, K_g = {options.guidance_steps}, "
         f"re-plan every {options.planning_interval} s, shipped checkpoint, device "
-        f"{options.device}, {options.threads} torch thread(s); shipped {options.split} scenes, "
+        f"{options.device} (loop: {loop_device}), {options.threads} torch thread(s); shipped "
+        f"{options.split} scenes, "
         f"{options.episode_steps}-step episodes; best of {options.rounds} round(s) of "
         f"{options.steps} steps\n"
     )
     print(f"{'N':>4}{'vector steps/s':>16}{'loop steps/s':>14}{'ratio':>8}{'vehicles':>12}")
     rows = []
     for count in tqdm(options.scenes, "scene counts", leave=False):  # stderr
-        row = measure(policy, count, config, options)
+        row = measure(policy, loop_policy, count, config, options)
         rows.append(row)
         vector = count * options.steps / row["vector"]
         loop = count * options.steps / row["loop"]

@@ -17,6 +17,8 @@ Rates are the best of ``--rounds`` interleaved rounds of ``--seconds`` each (the
 may be shared; the best round is the least disturbed one).
 
     python benchmarks/step_throughput.py [--seconds 2] [--rounds 3] [--vehicles 8 16 32 64]
+    python benchmarks/step_throughput.py --no-api --batch-scenes 128 1024 --dtype float32
+    python benchmarks/step_throughput.py --no-api --backend torch --device cuda
 """
 
 from __future__ import annotations
@@ -50,16 +52,50 @@ class Options:
     """interleaved rounds; the best rate of each simulator is reported"""
     vehicles: tuple[int, ...] = (8, 16, 32, 64)
     """vehicles per scene, ego included"""
+    api: bool = True
+    """run table 1 (PettingZoo API vs highway-env); --no-api: the batched rows only"""
     batch_agents: tuple[int, ...] = (8, 32)
     """agent slots per scene of the batched rows"""
     batch_scenes: tuple[int, ...] = (1, 16, 128)
     """scenes per batch"""
+    backend: str = "numpy"
+    """arrays of the batched rows: 'numpy' or 'torch' (SceneState.convert)"""
+    device: str = "cpu"
+    """torch device of the batched rows with --backend torch ('cpu', 'cuda')"""
+    dtype: str = "float64"
+    """float dtype of the batched rows: 'float64' (the env's) or 'float32' (about 1.5-2x
+    the agent-steps/s on a CPU; states differ from float64 by ~1e-4 m after 50 steps)"""
 
 
 def _parse(argv: list[str] | None = None) -> Options:
-    return parse_dataclass(
+    options = parse_dataclass(
         Options, argv, prog="step_throughput.py", description=__doc__.split("\n")[0]
     )
+    if options.backend not in ("numpy", "torch"):
+        raise SystemExit(f"--backend must be 'numpy' or 'torch', got {options.backend!r}")
+    if options.dtype not in ("float64", "float32"):
+        raise SystemExit(f"--dtype must be 'float64' or 'float32', got {options.dtype!r}")
+    if options.backend == "numpy" and options.device != "cpu":
+        raise SystemExit(f"--device {options.device} needs --backend torch")
+    return options
+
+
+def converter(options: Options) -> Callable:
+    """The array conversion of the batched rows (``SceneState.convert``): float arrays to
+    ``--dtype``, and to torch tensors on ``--device`` with ``--backend torch``."""
+    float_type = np.dtype(options.dtype)
+
+    def convert(array):
+        array = np.asarray(array)
+        if array.dtype.kind == "f":
+            array = array.astype(float_type)
+        if options.backend == "torch":
+            import torch
+
+            return torch.as_tensor(array, device=options.device)
+        return array
+
+    return convert
 
 
 def traffic(vehicles: int) -> TrafficConfig:
@@ -131,20 +167,23 @@ def riskflow_run(vehicles: int) -> Callable[[float], tuple[int, float]]:
     return run
 
 
-def batched_run(agents: int, scenes: int, observations: bool) -> Callable:
-    """Batched stepping of ``scenes`` highway scenes: (agent-steps, elapsed)."""
+def batched_run(
+    agents: int, scenes: int, observations: bool, convert: Callable = np.asarray
+) -> Callable:
+    """Batched stepping of ``scenes`` highway scenes, arrays through ``convert``:
+    (agent-steps, elapsed)."""
     rng = np.random.default_rng(0)
     drivable_map = HighwayTrafficSource(traffic(agents)).sample(rng, agents).map
     pool = [place_traffic(drivable_map, agents, rng, traffic(agents)) for _ in range(8)]
     scenarios = [pool[k % len(pool)] for k in range(scenes)]
     config = EnvConfig(
         max_agents=agents,
-        episode_steps=10**9,
+        episode_steps=10_000_000,  # the largest EnvConfig takes: no episode ends
         terminate_on_collision="none",
         terminate_on_offroad="none",
     )
-    state = batched.reset_batch(scenarios, agents)
-    actions = np.zeros((scenes, agents, 2))
+    state = batched.reset_batch(scenarios, agents).convert(convert)
+    actions = convert(np.zeros((scenes, agents, 2)))
 
     def run(seconds: float) -> tuple[int, float]:
         nonlocal state
@@ -157,18 +196,23 @@ def batched_run(agents: int, scenes: int, observations: bool) -> Callable:
     return run
 
 
-def main() -> None:
-    options = _parse()
-    rows = len(options.vehicles) + 2 * len(options.batch_agents) * len(options.batch_scenes)
+def main(argv: list[str] | None = None) -> dict[str, list[dict]]:
+    """Print the tables; returns their rows: ``api`` (vehicles, highway, riskflow
+    [vehicle-steps/s]) and ``batched`` (agents, scenes, observations, rate [agent-steps/s])."""
+    options = _parse(argv)
+    api_rows = len(options.vehicles) if options.api else 0
+    rows = api_rows + 2 * len(options.batch_agents) * len(options.batch_scenes)
     bar = tqdm(total=rows, desc="benchmark rows", unit="row", leave=False)  # on stderr
     write = bar.write  # a table line on stdout, above the bar
-    write("PettingZoo API (full observations for every agent) vs highway-env, dt = 0.1 s")
-    write(
-        "| vehicles | highway-env vehicle-steps/s | riskflow env steps/s "
-        "| riskflow agent-steps/s | ratio |"
-    )
-    write("| ---: | ---: | ---: | ---: | ---: |")
-    for vehicles in options.vehicles:
+    results: dict[str, list[dict]] = {"api": [], "batched": []}
+    if options.api:
+        write("PettingZoo API (full observations for every agent) vs highway-env, dt = 0.1 s")
+        write(
+            "| vehicles | highway-env vehicle-steps/s | riskflow env steps/s "
+            "| riskflow agent-steps/s | ratio |"
+        )
+        write("| ---: | ---: | ---: | ---: | ---: |")
+    for vehicles in options.vehicles if options.api else ():
         runs = {"highway": highway_env_run(vehicles), "riskflow": riskflow_run(vehicles)}
         best = dict.fromkeys(runs, 0.0)
         for _ in range(options.rounds):
@@ -179,19 +223,25 @@ def main() -> None:
             f"| {vehicles} | {best['highway']:,.0f} | {env_steps:,.0f} "
             f"| {best['riskflow']:,.0f} | {best['riskflow'] / best['highway']:.1f}x |"
         )
+        results["api"].append({"vehicles": vehicles, **best})
         bar.update()
 
-    write("\nBatched stepping (riskflow_env.batched, numpy float64, one map per batch)")
+    where = options.backend + (f" on {options.device}" if options.backend == "torch" else "")
+    write(f"\nBatched stepping (riskflow_env.batched, {where} {options.dtype}, one map per batch)")
     write("| agents A | scenes B | observations | agent-steps/s |")
     write("| ---: | ---: | :---: | ---: |")
     for agents in options.batch_agents:
         for scenes in options.batch_scenes:
             for observations in (True, False):
-                run = batched_run(agents, scenes, observations)
+                run = batched_run(agents, scenes, observations, converter(options))
                 best = max(rate(run, options.seconds) for _ in range(options.rounds))
                 write(f"| {agents} | {scenes} | {'yes' if observations else 'no'} | {best:,.0f} |")
+                results["batched"].append(
+                    {"agents": agents, "scenes": scenes, "observations": observations, "rate": best}
+                )
                 bar.update()
     bar.close()
+    return results
 
 
 if __name__ == "__main__":

@@ -83,6 +83,29 @@ def test_torch_matches_numpy_and_observations_optional():
     np.testing.assert_array_equal(bare.reward_terms["risk"], full.reward_terms["risk"])
 
 
+def test_float32_batch_stays_float32_near_float64():
+    scenarios = scenes("highway", count=2)
+    drivable_map = scenarios[0].map
+    state = batched.reset_batch(scenarios, SLOTS)
+
+    def single(array):
+        return array.astype(np.float32) if array.dtype == np.float64 else array
+
+    narrow = state.convert(single)
+    rng = np.random.default_rng(3)
+    for _ in range(10):
+        actions = rng.uniform([-3.0, -0.3], [2.0, 0.3], (2, SLOTS, 2))
+        state, report = batched.step_batch(state, actions, drivable_map, CONFIG)
+        narrow, narrow_report = batched.step_batch(
+            narrow, actions.astype(np.float32), drivable_map, CONFIG
+        )
+    assert narrow.current.dtype == np.float32
+    assert narrow_report.observations.dtype == np.float32
+    # float32 rounding (~1e-7 relative) on positions of a few hundred m, over 10 steps
+    np.testing.assert_allclose(narrow.current, state.current, rtol=0, atol=1e-2)
+    np.testing.assert_array_equal(narrow.active, state.active)
+
+
 def test_errors():
     scenarios = scenes("highway", count=1) + scenes("merge", count=1)
     with pytest.raises(ValueError, match="share one DrivableMap"):
