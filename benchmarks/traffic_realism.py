@@ -94,6 +94,9 @@ class Options:
 
     checkpoint: tuple[str, ...] = (str(SHIPPED_CHECKPOINT),)
     """generator checkpoints, one row each (named by the file)"""
+    base_samples: tuple[int, ...] = (1,)
+    """joint plans drawn per cycle, the best kept (NominalGenerator base_samples); a row
+    per checkpoint and value"""
     baselines: tuple[str, ...] = BASELINES
     """reference methods of riskflow-eval measured in the same run"""
     bank: str | None = None
@@ -126,6 +129,8 @@ class Options:
             raise ValueError(
                 f"--duration and --interval must be > 0, got {self.duration} and {self.interval}"
             )
+        if not self.base_samples or any(m < 1 for m in self.base_samples):
+            raise ValueError(f"--base-samples must be ints >= 1, got {self.base_samples}")
         for path in self.checkpoint:
             if not Path(path).is_file():
                 raise ValueError(f"--checkpoint: no file {path}")
@@ -224,14 +229,27 @@ def summarise(label: str, results: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+def sampled(samples: int) -> dict[str, int]:
+    """The generator's options for ``--base-samples`` M (none for the default 1)."""
+    return {} if samples == 1 else {"base_samples": samples}
+
+
+def labelled(label: str, samples: int) -> str:
+    """A generator row's label: the checkpoint's, with ``best of M`` for M > 1."""
+    return label if samples == 1 else f"{label} best of {samples}"
+
+
 def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[RealismJob]:
     options = EvalOptions(data=args.bank, ego=args.ego, duration=args.duration, device=args.device)
     run = RunConfig.from_options(options)
     period = round(args.interval / DynamicsConfig().dt)  # steps per planning cycle
     names = [Path(p).name for p in args.checkpoint]
     unique = len(set(names)) == len(names)
-    methods = [("bits", {"checkpoint": str(Path(p).resolve())}, n if unique else p)
-               for p, n in zip(args.checkpoint, names, strict=True)]  # fmt: skip
+    methods = [
+        ("bits", {"checkpoint": str(Path(p).resolve()), **sampled(m)}, labelled(name, m))
+        for p, name in zip(args.checkpoint, names if unique else args.checkpoint, strict=True)
+        for m in args.base_samples
+    ]  # fmt: skip
     methods += [(name, {}, name) for name in args.baselines]
     jobs = []
     for method, options, label in methods:
@@ -303,6 +321,7 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
         "dt": dt,
         "ego": args.ego,
         "checkpoints": list(args.checkpoint),
+        "base_samples": list(args.base_samples),
     }
     print(f"{len(picked)} scenes ({len({scenes[i].family for i in picked})} families) x "
           f"{len(args.seeds)} seeds x {len(jobs) // max(len(picked) * len(args.seeds), 1)} "

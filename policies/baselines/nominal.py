@@ -20,9 +20,9 @@ bi-level policy: a high-level goal          one scene-level generator, no explic
 (spatial intent) predictor, then a          the MeanFlow head maps noise to every
 goal-conditioned low-level trajectory       agent's 5.2 s action plan in one pass
 policy
-prediction-and-planning module: samples     one sample per agent per cycle, no selection
-several goals, predicts the others, picks   or collision check
-the plan with the best rule-based score
+prediction-and-planning module: samples     one joint sample per cycle by default; with
+several goals, predicts the others, picks   ``base_samples = M`` the best of M joint
+the plan with the best rule-based score     samples by an overlap + off-road score
 per-agent rasterised (BEV) context          vector histories + map crops, social
                                             attention between agents
 trained on nuScenes / Lyft Level 5          trained on the shipped highway-env bank
@@ -58,6 +58,8 @@ class NominalGenerator(RiskFlowAdversary):
         sampling_steps: DDIM levels of a diffusion generator (None: 10).
         window_config: window options (default: the model's training windows).
         threads: torch CPU threads while planning; None keeps torch's setting.
+        base_samples: M joint plans drawn per cycle, the best kept (``RiskFlowAdversary``:
+            BITS's selection step, :mod:`policies.learned.plan_selection`); 1: one draw.
     """
 
     overlay_prefix = "nominal"
@@ -73,6 +75,7 @@ class NominalGenerator(RiskFlowAdversary):
         sampling_steps: int | None = None,
         window_config: WindowConfig | None = None,
         threads: int | None = 1,
+        base_samples: int = 1,
     ) -> None:
         config = AdversaryConfig(
             k=0, planning_interval=planning_interval, seed=seed, device=device,
@@ -85,6 +88,7 @@ class NominalGenerator(RiskFlowAdversary):
             normalizer=normalizer,
             checkpoint=checkpoint,
             sampling_steps=sampling_steps,
+            base_samples=base_samples,
         )
 
 

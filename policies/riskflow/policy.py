@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
+from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -56,8 +57,10 @@ from policies.learned.adversary_config import (
 from policies.learned.data import Normalizer
 from policies.learned.encoded_views import EncodedViews
 from policies.learned.generator import RiskFlowGenerator
+from policies.learned.guidance_losses import map_term
 from policies.learned.plan_buffer import PlanBufferPolicy, hold_still
 from policies.learned.plan_overlay import BASE_COLOR, GUIDED_COLOR
+from policies.learned.plan_selection import SELECTION_HORIZON, select_joint_plans
 from policies.learned.ranking import rank_window
 from policies.learned.sampler import base_velocity
 from policies.riskflow.base_generator import generator_kind, load_base_generator
@@ -97,6 +100,10 @@ class RiskFlowAdversary(PlanBufferPolicy):
         checkpoint: a ``riskflow-train`` checkpoint file to load (its kind is read from
             it); not with a model object.
         sampling_steps: DDIM levels of a diffusion generator (None: 10); MeanFlow: None.
+        base_samples: M joint base plans drawn per scene and cycle; M > 1 keeps the one
+            that overlaps least and stays on the road best
+            (:mod:`policies.learned.plan_selection`, BITS-style selection), 1 (default)
+            the single draw.
         **options: :class:`AdversaryConfig` fields, when ``config`` is not given.
     """
 
@@ -113,9 +120,13 @@ class RiskFlowAdversary(PlanBufferPolicy):
         normalizer: Normalizer | None = None,
         checkpoint: str | os.PathLike | None = None,
         sampling_steps: int | None = None,
+        base_samples: int = 1,
         **options: Any,
     ) -> None:
         config = AdversaryConfig.resolve(config, options, type(self).__name__)
+        if isinstance(base_samples, bool) or not isinstance(base_samples, int) or base_samples < 1:
+            raise ValueError(f"base_samples must be an int >= 1, got {base_samples!r}")
+        self.base_samples = base_samples
         self.guidance = GuidanceConfig(
             steps=guidance_steps, step_size=step_size, optimizer=optimizer, **config.objective()
         )
@@ -133,6 +144,10 @@ class RiskFlowAdversary(PlanBufferPolicy):
                     "not with a model object"
                 )
             self.generator_kind = generator_kind(generator)
+        if base_samples > 1 and self.generator_kind != "meanflow":
+            raise ValueError(
+                f"base_samples > 1 needs the MeanFlow generator, got {self.generator_kind!r}"
+            )
         self.model = generator.to(device).eval()
         self.normalizer = normalizer
         model_config = self.model.config
@@ -148,17 +163,24 @@ class RiskFlowAdversary(PlanBufferPolicy):
         scene, counts = observed.scene, observed.counts
         num_scenes, num_agents = scene.agent_mask.shape
         steps = self.model.config.future_steps
+        samples = self.base_samples
         with torch.no_grad():
-            eps = scene.context.new_zeros(num_scenes, num_agents, steps, 2)
+            eps = scene.context.new_zeros(num_scenes, samples, num_agents, steps, 2)
             for index, (policy, count) in enumerate(zip(scenes, counts, strict=True)):
-                eps[index, :count] = torch.randn(  # the scene's own stream, its own shape
-                    (1, count, steps, 2), generator=policy._noise_source(),
+                eps[index, :, :count] = torch.randn(  # the scene's own stream, its own shape
+                    (samples, count, steps, 2), generator=policy._noise_source(),
                     device=self.device, dtype=scene.context.dtype,
-                )[0]  # fmt: skip
-            u0 = base_velocity(self.model, eps, scene)
+                )  # fmt: skip
+            eps = eps.flatten(0, 1)  # (B * M, A, T, 2), a scene's samples in a row
+            many = scene.repeat_scenes(samples) if samples > 1 else scene
+            u0 = base_velocity(self.model, eps, many)
             actions, trajectories = plans_from_velocity(
-                eps, u0, scene.state, scene.agent_mask, self.normalizer, self.dynamics
+                eps, u0, many.state, many.agent_mask, self.normalizer, self.dynamics
             )
+            if samples > 1:
+                eps, u0, actions, trajectories = self._select(
+                    observed, views, (eps, u0, actions, trajectories)
+                )
             done = np.zeros((num_scenes, num_agents), dtype=bool)
             for index, (view, slots) in enumerate(zip(views, observed.slots, strict=True)):
                 done[index, : len(slots)] = ~view.active[slots]
@@ -197,6 +219,32 @@ class RiskFlowAdversary(PlanBufferPolicy):
                 trajectories[index, rows], observed.frames[index],
             )  # fmt: skip
             policy.guidance_losses = losses[:, index]
+
+    def _select(
+        self,
+        observed: EncodedViews,
+        views: Sequence[SceneView],
+        plans: tuple[torch.Tensor, ...],
+    ) -> tuple[torch.Tensor, ...]:
+        """Keep the best of the ``base_samples`` joint plans of each scene
+        (:func:`~policies.learned.plan_selection.select_joint_plans`); ``plans`` are
+        ``(B * M, A, ...)`` tensors, a scene's M samples in a row, returned as ``(B, A, ...)``."""
+        scene, batch = observed.scene, observed.batch
+        num_scenes, num_agents = scene.agent_mask.shape
+        samples = self.base_samples
+        trajectories = plans[3].reshape(num_scenes, samples, *plans[3].shape[1:])
+        rows = torch.arange(num_scenes * num_agents, device=self.device)
+        flat = SimpleNamespace(
+            length=batch.length.flatten(), width=batch.width.flatten(),
+            drivable_map=self._map_of(views), frame=observed.frame_tensor(),
+        )  # fmt: skip
+        term = map_term(flat, rows, SELECTION_HORIZON, self.guidance, rows // num_agents)
+        best, _ = select_joint_plans(
+            trajectories, batch.length, batch.width, scene.agent_mask, scene.state,
+            None if term is None else term.rows,
+        )  # fmt: skip
+        pick = torch.arange(num_scenes, device=self.device) * samples + best
+        return tuple(tensor[pick] for tensor in plans)
 
     def _guide(
         self, scene: GuidanceScene, controllable: torch.Tensor, observed: EncodedViews

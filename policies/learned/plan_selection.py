@@ -1,0 +1,106 @@
+"""Best of M joint plans: a rule-based score that keeps the plan set that collides least.
+
+The one-step generator draws a *joint* plan of every agent of a scene from one noise
+sample. Drawing M samples and keeping, per scene, the one with the lowest score is the
+selection step of BITS's prediction-and-planning module (Xu et al. 2023, "BITS:
+Bi-level Imitation for Traffic Simulation", ICRA: sample several candidates, score them
+with rules such as collision and off-road, keep the best), here applied to whole joint
+plans, so the kept plans stay samples of the generator (no output is edited) and the
+agents' plans stay mutually consistent.
+
+The score of a joint plan, over its first ``horizon`` steps (the plans are re-drawn every
+0.5 s, so the near future matters most):
+
+* **overlap**: ``sum relu(-separation)^2`` [m^2] over every pair of present agents and
+  step (``riskflow_env.geometry.separation``: the SAT penetration depth, the simulator's
+  own collision test), over pairs that do not already overlap now;
+* **off-road**: the guidance's map term ``L_map`` of every present agent
+  (:class:`~policies.learned.guidance_losses.MapTerm`: decayed squared off-road depth of
+  the footprint samples [m^2]).
+
+Both are in m^2 and are added.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from riskflow_env.dynamics import YAW, X, Y
+from riskflow_env.geometry import separation
+
+SELECTION_HORIZON = 30
+"""steps of each plan the score looks at (3 s of the 5.2 s plan)"""
+
+
+def overlap_scores(
+    trajectories: Tensor, length: Tensor, width: Tensor, agent_mask: Tensor, now: Tensor
+) -> Tensor:
+    """Summed squared penetration depth [m^2] of each joint plan.
+
+    Args:
+        trajectories: ``(B, M, A, T, 4)`` M joint plans of B scenes (scene frame).
+        length, width: ``(B, A)`` [m].
+        agent_mask: ``(B, A)`` bool, present agents.
+        now: ``(B, A, 4)`` current states (pairs overlapping now are not counted).
+
+    Returns:
+        ``(B, M)``.
+    """
+
+    def pairwise(states: Tensor, size: tuple[Tensor, Tensor]) -> Tensor:  # (..., A, A, [T])
+        xy, yaw = states[..., [X, Y]], states[..., YAW]
+        return separation(
+            xy[..., :, None, :, :], yaw[..., :, None, :], size[0][..., :, None, :],
+            size[1][..., :, None, :], xy[..., None, :, :, :], yaw[..., None, :, :],
+            size[0][..., None, :, :], size[1][..., None, :, :],
+        )  # fmt: skip
+
+    num_agents = agent_mask.shape[-1]
+    upper = torch.ones(num_agents, num_agents, dtype=torch.bool, device=agent_mask.device).triu(1)
+    pairs = agent_mask[:, :, None] & agent_mask[:, None, :] & upper  # (B, A, A)
+    sizes_now = (length[..., None], width[..., None])  # (B, A, 1): one step
+    apart_now = pairwise(now[:, :, None], sizes_now)[..., 0] > 0.0  # (B, A, A)
+    pairs = (pairs & apart_now)[:, None, :, :, None]  # (B, 1, A, A, 1)
+    sizes = (length[:, None, :, None], width[:, None, :, None])  # (B, 1, A, 1)
+    depth = torch.relu(-pairwise(trajectories, sizes)) * pairs  # (B, M, A, A, T)
+    return (depth**2).sum(dim=(-3, -2, -1))
+
+
+def select_joint_plans(
+    trajectories: Tensor,
+    length: Tensor,
+    width: Tensor,
+    agent_mask: Tensor,
+    now: Tensor,
+    map_rows: Callable[[Tensor], Tensor] | None,
+    horizon: int = SELECTION_HORIZON,
+) -> tuple[Tensor, Tensor]:
+    """The index of the best of M joint plans of each scene (module docstring).
+
+    Args:
+        trajectories: ``(B, M, A, T, 4)``.
+        length, width, agent_mask, now: as :func:`overlap_scores`.
+        map_rows: ``(B * A, T_s, 4) -> (B * A,)`` the map term of each agent's plan
+            (rows of absent agents are ignored), or None (no map term).
+        horizon: steps scored.
+
+    Returns:
+        ``(B,)`` int64 indices into M, and the ``(B, M)`` scores.
+    """
+    scored = trajectories[..., :horizon, :]
+    scores = overlap_scores(scored, length, width, agent_mask, now)
+    if map_rows is not None:
+        num_scenes, num_samples, num_agents = scored.shape[:3]
+        flat = scored.transpose(0, 1).reshape(
+            num_samples, num_scenes * num_agents, *scored.shape[3:]
+        )
+        per_row = torch.stack([map_rows(sample) for sample in flat])  # (M, B * A)
+        per_row = per_row.reshape(num_samples, num_scenes, num_agents) * agent_mask
+        scores = scores + per_row.sum(dim=-1).transpose(0, 1)
+    return scores.argmin(dim=1), scores
+
+
+__all__ = ["SELECTION_HORIZON", "overlap_scores", "select_joint_plans"]

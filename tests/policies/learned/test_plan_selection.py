@@ -1,0 +1,106 @@
+"""Best of M joint plans: the score, the choice, and the policies that use it."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from policies.baselines.nominal import NominalGenerator
+from policies.learned.plan_selection import overlap_scores, select_joint_plans
+from policies.learned.sampler import sample
+from policies.learned.window_types import collate_windows
+from policies.learned.windows import window_from_view
+from policies.riskflow.policy import RiskFlowAdversary
+from tests.policies.straight_road import ROAD_ENV, TINY_NORMALIZER, road_env
+
+CONFIG = dataclasses.replace(ROAD_ENV, max_agents=9, episode_steps=25)
+LENGTH, WIDTH = 4.0, 2.0
+
+
+def still(xy: list[tuple[float, float]], steps: int = 3) -> torch.Tensor:
+    """(A, T, 4) agents standing at ``xy``, heading 0."""
+    states = torch.tensor([[x, y, 0.0, 0.0] for x, y in xy], dtype=torch.float64)
+    return states[:, None].expand(-1, steps, -1).clone()
+
+
+def sizes(count: int) -> tuple[torch.Tensor, torch.Tensor]:
+    full = torch.ones(1, count, dtype=torch.float64)
+    return LENGTH * full, WIDTH * full
+
+
+def test_overlap_score_is_the_squared_penetration_of_pairs_apart_now():
+    now = torch.tensor([[[0.0, 0.0, 0.0, 0.0], [10.0, 0.0, 0.0, 0.0], [20.0, 0.0, 0.0, 0.0]]])
+    apart = still([(0.0, 0.0), (10.0, 0.0), (20.0, 0.0)])
+    touching = still([(0.0, 0.0), (3.0, 0.0), (20.0, 0.0)])  # 1 m into each other, 3 steps
+    plans = torch.stack([apart, touching])[None]  # (1, 2, A, T, 4)
+    length, width = sizes(3)
+    mask = torch.ones(1, 3, dtype=torch.bool)
+    scores = overlap_scores(plans, length, width, mask, now.double())
+    np.testing.assert_allclose(scores.numpy(), [[0.0, 3 * 1.0**2]])
+    # an absent agent counts for nothing, nor does a pair that overlaps already now
+    absent = torch.tensor([[True, False, True]])
+    assert overlap_scores(plans, length, width, absent, now.double())[0, 1] == 0
+    now_touching = touching[None, :, 0]
+    assert overlap_scores(plans, length, width, mask, now_touching)[0, 1] == 0
+
+
+def test_the_lowest_score_wins_with_the_map_term_added():
+    now = still([(0.0, 0.0), (10.0, 0.0)])[None, :, 0]
+    apart, touching = still([(0.0, 0.0), (10.0, 0.0)]), still([(0.0, 0.0), (3.0, 0.0)])
+    plans = torch.stack([touching, apart, apart])[None]  # (1, 3, A, T, 4)
+    length, width = sizes(2)
+    mask = torch.ones(1, 2, dtype=torch.bool)
+    best, scores = select_joint_plans(plans, length, width, mask, now, None)
+    assert best.tolist() == [1] and scores.shape == (1, 3)
+
+    def off_road_beyond_5m(rows: torch.Tensor) -> torch.Tensor:  # (C, T, 4) -> (C,)
+        return 100.0 * (rows[:, :, 0] > 5.0).double().sum(dim=1)
+
+    # "road" up to x = 5 m: samples 1 and 2 leave it (300 m^2 each), sample 0 overlaps (3)
+    best, scores = select_joint_plans(plans, length, width, mask, now, off_road_beyond_5m)
+    assert best.tolist() == [0]
+    np.testing.assert_allclose(scores.numpy(), [[3.0, 300.0, 300.0]])
+    plans[0, 2, 1, :, 0] = 4.5  # sample 2: on the road and 0.5 m clear of the first car
+    best, _ = select_joint_plans(plans, length, width, mask, now, off_road_beyond_5m)
+    assert best.tolist() == [2]
+
+
+@pytest.fixture
+def model(make_model, tiny_config):
+    return make_model(tiny_config, seed=1).eval()
+
+
+def nominal(model, **kwargs) -> NominalGenerator:
+    return NominalGenerator(generator=model, normalizer=TINY_NORMALIZER, seed=5, **kwargs)
+
+
+def test_best_of_m_keeps_one_of_the_generator_samples_deterministically(model):
+    env = road_env(CONFIG)
+    plans = []
+    for _ in range(2):
+        policy = nominal(model, base_samples=4)
+        policy.reset(env.view())
+        plans.append(policy.plan(env.view()).copy())
+    np.testing.assert_array_equal(plans[0], plans[1])  # same seed, same choice, bit for bit
+    # the kept plan is the generator's own sample of the kept noise (no output edited)
+    window = window_from_view(env.view(), policy.window_config)
+    actions, _ = sample(model, collate_windows([window]), policy.noise[None], TINY_NORMALIZER)
+    slots = window.agent_index
+    np.testing.assert_allclose(policy.plan_actions[slots], actions[0].numpy(), rtol=0, atol=1e-5)
+
+
+def test_one_sample_is_the_single_draw_bit_for_bit(model):
+    env = road_env(CONFIG)
+    default, one = nominal(model), nominal(model, base_samples=1)
+    for policy in (default, one):
+        policy.reset(env.view())
+    np.testing.assert_array_equal(default.plan(env.view()), one.plan(env.view()))
+
+
+def test_bad_base_samples_name_the_argument(model):
+    for bad in (0, -2, 1.5, True):
+        with pytest.raises(ValueError, match="base_samples must be an int >= 1"):
+            RiskFlowAdversary(generator=model, normalizer=TINY_NORMALIZER, base_samples=bad)
