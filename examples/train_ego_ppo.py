@@ -53,6 +53,7 @@ from stable_baselines3.common.utils import set_random_seed
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv, VecNormalize
 
 from policies.dataclass_cli import parse_dataclass
+from policies.evaluation.options import check_device
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.curriculum import CurriculumCallback, LinearCurriculum, OutcomeCallback
 from policies.rl.envs import EgoEnvConfig, make_env
@@ -149,6 +150,9 @@ class Options:
     """save a checkpoint every N env steps (0: none)"""
     tensorboard: bool = False
     """also write TensorBoard event files to <out>/tb"""
+    device: str = "cpu"
+    """torch device of the adversary ('cuda' where a GPU is present: with --vec-env batched
+    and many --num-envs, its planning calls are large); PPO's small MLP stays on the CPU"""
 
     def __post_init__(self) -> None:
         if self.maneuver_actions and self.use_sde:
@@ -165,6 +169,7 @@ class Options:
         ):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
+        check_device(self.device)
 
 
 def env_config(options: Options) -> EgoEnvConfig:
@@ -185,6 +190,7 @@ def env_config(options: Options) -> EgoEnvConfig:
             stage=start,
             guidance_steps=options.guidance_steps,
             planning_interval=options.planning_interval,
+            device=options.device,
         ),
         split=options.split,
         scenes=options.scenes,

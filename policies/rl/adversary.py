@@ -54,12 +54,15 @@ class ScenePolicyConfig:
         stage: k, guidance weight and target of the RiskFlow adversary.
         guidance_steps: ``K_g`` guidance steps per planning cycle (default 30).
         planning_interval: time between re-plans [s] (default 0.5).
+        device: torch device of the RiskFlow adversary ("cpu", or "cuda" where a GPU is
+            present: worth it with many scenes per planning call, ``EgoVectorEnv``).
     """
 
     kind: str = "riskflow"
     stage: AdversaryStage = dataclasses.field(default_factory=AdversaryStage)
     guidance_steps: int = 30
     planning_interval: float = 0.5
+    device: str = "cpu"
 
     def __post_init__(self) -> None:
         if self.kind not in TRAFFIC_KINDS:
@@ -106,6 +109,7 @@ def make_traffic(config: ScenePolicyConfig, seed: int = 0, generator=None, norma
         planning_interval=config.planning_interval,
         target=stage.target,
         seed=seed,
+        device=config.device,
     )
 
 

@@ -8,6 +8,7 @@ re-plan every 1 s) and short episodes.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -16,12 +17,18 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import torch
 
 pytest.importorskip(
     "stable_baselines3", reason="stable-baselines3 is not installed (pip install -e '.[rl]')"
 )
 
-from policies.rl.adversary import AdversaryStage, ScenePolicyConfig, apply_stage  # noqa: E402
+from policies.rl.adversary import (  # noqa: E402
+    AdversaryStage,
+    ScenePolicyConfig,
+    apply_stage,
+    make_traffic,
+)
 from policies.rl.curriculum import LinearCurriculum  # noqa: E402
 from policies.rl.envs import EgoEnvConfig, build_env, compose_action, scale_action  # noqa: E402
 from policies.rl.marl import AdversaryRewardConfig, adversary_reward  # noqa: E402
@@ -224,13 +231,24 @@ def test_train_on_the_batched_vector_env(tmp_path):
         "train_ego_ppo.py", "--total-timesteps", "128", "--n-steps", "32", "--batch-size", "64",
         "--n-epochs", "1", "--num-envs", "2", "--vec-env", "batched", "--scenes", "3",
         "--episode-steps", "20", "--guidance-steps", "2", "--checkpoint-every", "0",
-        "--seed", "3", "--out", run_dir,
+        "--seed", "3", "--device", "cpu", "--out", run_dir,
     )  # fmt: skip
     assert "final model" in out
+    assert json.loads((run_dir / "options.json").read_text())["device"] == "cpu"
     assert (run_dir / "final_model.zip").is_file()
     assert (run_dir / "final_model_vecnormalize.pkl").is_file()
     header = (run_dir / "progress.csv").read_text().splitlines()[0].split(",")
     assert "curriculum/k" in header and "rollout/ego_collision_rate" in header
+
+
+def test_adversary_device_is_checked_and_reaches_the_traffic():
+    config = dataclasses.replace(ScenePolicyConfig(guidance_steps=1), device="cpu")
+    assert str(make_traffic(config).device) == "cpu"
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA: --device cuda is valid here")
+    command = [sys.executable, str(ROOT / "examples" / "train_ego_ppo.py"), "--device", "cuda"]
+    done = subprocess.run(command, capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert done.returncode != 0 and "--device cuda: CUDA is not available" in done.stderr
 
 
 def test_train_then_evaluate_tiny_budget(tmp_path):
