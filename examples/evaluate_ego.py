@@ -115,6 +115,7 @@ def run_options(run: Path) -> tuple[int, dict]:
         "action_repeat": options.get("action_repeat", 1),
         "maneuver_features": options.get("maneuver_features", False),
         "maneuver_actions": options.get("maneuver_actions", False),
+        "maneuver_set": options.get("maneuver_set", "compact"),
     }
     return int(options["seed"]), policy
 

@@ -57,6 +57,7 @@ from policies.evaluation.options import check_device
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.curriculum import CurriculumCallback, LinearCurriculum, OutcomeCallback
 from policies.rl.envs import EgoEnvConfig, make_env
+from policies.rl.features import MANEUVER_SETS
 from policies.rl.progress import StepProgressBar
 from policies.rl.sb3_vec_env import sb3_ego_vec_env
 from policies.rl.vector_env import build_vector_env
@@ -96,6 +97,9 @@ class Options:
     maneuver_features: bool = True
     """append what 15 fixed maneuvers would lead to (predicted clearance and road margin,
     constant-velocity predictions; policies.rl.features) to the observation"""
+    maneuver_set: str = "compact"
+    """the maneuvers of --maneuver-features and --maneuver-actions: 'compact' (15) or 'mpc'
+    (the sampling MPC's 200 candidates, finer accelerations, turns and lane changes)"""
     maneuver_actions: bool = True
     """discrete actions: choose one of the 15 maneuvers of policies.rl.features.maneuvers
     (brake / hold / accelerate x straight / lane change / turn) every --action-repeat steps
@@ -170,6 +174,10 @@ class Options:
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
         check_device(self.device)
+        if self.maneuver_set not in MANEUVER_SETS:
+            raise ValueError(
+                f"--maneuver-set must be one of {MANEUVER_SETS}, got {self.maneuver_set!r}"
+            )
 
 
 def env_config(options: Options) -> EgoEnvConfig:
@@ -198,6 +206,7 @@ def env_config(options: Options) -> EgoEnvConfig:
         action_repeat=options.action_repeat,
         maneuver_features=options.maneuver_features,
         maneuver_actions=options.maneuver_actions,
+        maneuver_set=options.maneuver_set,
     )
 
 

@@ -119,6 +119,8 @@ class EgoInterface:
             planner plans every step).
         maneuver_features: append the maneuver-clearance features to the observation.
         maneuver_actions: the policy's actions are maneuver indices.
+        maneuver_set: ``"compact"`` (15 maneuvers) or ``"mpc"`` (the sampling MPC's 200),
+            for both (:func:`policies.rl.features.maneuvers`).
     """
 
     def __init__(
@@ -128,6 +130,7 @@ class EgoInterface:
         action_repeat: int = 1,
         maneuver_features: bool = False,
         maneuver_actions: bool = False,
+        maneuver_set: str = "compact",
     ) -> None:
         if not (isinstance(action_repeat, int) and action_repeat >= 1):
             raise ValueError(f"action_repeat must be an int >= 1, got {action_repeat!r}")
@@ -135,11 +138,16 @@ class EgoInterface:
 
         self.dynamics, self.action_repeat = dynamics, action_repeat
         self.base = make_base_planner(base_planner, dynamics)
-        self.features = ManeuverFeatures(dynamics=dynamics) if maneuver_features else None
-        self.maneuvers = maneuvers() if maneuver_actions else None
+        chosen = maneuvers(maneuver_set=maneuver_set)  # checks the name
+        self.features = (
+            ManeuverFeatures(dynamics=dynamics, maneuver_set=maneuver_set)
+            if maneuver_features
+            else None
+        )
+        self.maneuvers = chosen if maneuver_actions else None
 
     def action_space(self) -> gymnasium.Space:
-        """``Discrete(15)`` for maneuver actions, else ``Box([-1, 1]^2)``."""
+        """``Discrete(M)`` for maneuver actions, else ``Box([-1, 1]^2)``."""
         if self.maneuvers is not None:
             return gymnasium.spaces.Discrete(len(self.maneuvers))
         return gymnasium.spaces.Box(-1.0, 1.0, (2,), np.float32)
@@ -186,6 +194,7 @@ class EgoEnvConfig:
         action_repeat: env steps per policy action.
         maneuver_features: append the maneuver-clearance features to the observation.
         maneuver_actions: the policy chooses among fixed maneuvers (discrete actions).
+        maneuver_set: which maneuvers, ``"compact"`` or ``"mpc"`` (:class:`EgoInterface`).
     """
 
     env: EnvConfig = field(default_factory=EnvConfig)
@@ -196,6 +205,7 @@ class EgoEnvConfig:
     action_repeat: int = 1
     maneuver_features: bool = False
     maneuver_actions: bool = False
+    maneuver_set: str = "compact"
 
 
 class EgoTrainingEnv(gymnasium.Wrapper):
@@ -205,7 +215,7 @@ class EgoTrainingEnv(gymnasium.Wrapper):
     Args:
         env: the ego's Gymnasium view.
         **interface: ``base_planner``, ``action_repeat``, ``maneuver_features``,
-            ``maneuver_actions`` of :class:`EgoInterface`.
+            ``maneuver_actions``, ``maneuver_set`` of :class:`EgoInterface`.
     """
 
     def __init__(self, env: EgoEnv, **interface: Any) -> None:
@@ -268,6 +278,7 @@ def build_env(config: EgoEnvConfig, seed: int = 0) -> EgoTrainingEnv:
         action_repeat=config.action_repeat,
         maneuver_features=config.maneuver_features,
         maneuver_actions=config.maneuver_actions,
+        maneuver_set=config.maneuver_set,
     )
 
 

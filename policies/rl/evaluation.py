@@ -43,6 +43,7 @@ class PPOPlanner:
         action_repeat: env steps per policy decision (as trained).
         maneuver_features: append the maneuver-clearance features (as trained).
         maneuver_actions: the policy's actions are maneuver indices (as trained).
+        maneuver_set: the maneuvers of features and actions (as trained).
     """
 
     def __init__(
@@ -55,6 +56,7 @@ class PPOPlanner:
         action_repeat: int = 1,
         maneuver_features: bool = False,
         maneuver_actions: bool = False,
+        maneuver_set: str = "compact",
     ) -> None:
         self.model, self.normalize = model, normalize
         self.deterministic = deterministic
@@ -64,6 +66,7 @@ class PPOPlanner:
             action_repeat,
             maneuver_features,
             maneuver_actions,
+            maneuver_set,
         )
         self._held: Any = None
         self._calls = 0
@@ -120,6 +123,7 @@ def load_ppo_planner(
     action_repeat: int = 1,
     maneuver_features: bool = False,
     maneuver_actions: bool = False,
+    maneuver_set: str = "compact",
     *,
     trusted: bool = False,
 ) -> PPOPlanner:
@@ -133,8 +137,8 @@ def load_ppo_planner(
 
     the ``VecNormalize`` statistics are read from the same name with ``_vecnormalize.pkl``
     in place of ``.zip`` (checkpoints: ``ppo_N_steps.zip`` -> ``ppo_vecnormalize_N_steps.pkl``)
-    when that file exists. ``base_planner``, ``action_repeat``, ``maneuver_features`` and
-    ``maneuver_actions`` must be those the model was trained with."""
+    when that file exists. ``base_planner``, ``action_repeat``, ``maneuver_features``,
+    ``maneuver_actions`` and ``maneuver_set`` must be those the model was trained with."""
     from pathlib import Path
 
     from stable_baselines3 import PPO
@@ -165,6 +169,7 @@ def load_ppo_planner(
         action_repeat,
         maneuver_features,
         maneuver_actions,
+        maneuver_set,
     )
 
 

@@ -27,14 +27,23 @@ ACCELS = (-5.0, 0.0, 3.0)  # [m/s^2] brake, hold, accelerate
 TURNS = (-0.15, 0.0, 0.15)  # [rad/s] right, straight, left
 LANE_CHANGE_STEPS = 15  # [steps] each way of the lane-change shape
 CAP = 10.0  # [m] features are clipped to [-CAP, CAP]
+MANEUVER_SETS = ("compact", "mpc")
 
 
-def maneuvers(horizon: int = 30) -> np.ndarray:
-    """(15, horizon, 2) the fixed maneuvers (accel [m/s^2], yaw rate [rad/s] per step):
-    brake / hold / accelerate, each straight, as a lane change to either side or as a
-    constant turn to either side. They are what :class:`ManeuverFeatures` describes and
-    what a policy with ``maneuver_actions`` chooses among."""
-    return candidate_actions(horizon, ACCELS, TURNS, (LANE_CHANGE_STEPS,))
+def maneuvers(horizon: int = 30, maneuver_set: str = "compact") -> np.ndarray:
+    """(M, horizon, 2) the fixed maneuvers (accel [m/s^2], yaw rate [rad/s] per step).
+
+    ``"compact"`` (M = 15): brake / hold / accelerate, each straight, as a lane change to
+    either side or as a constant turn to either side. ``"mpc"`` (M = 200): the sampling
+    MPC's own candidate set (:func:`~policies.planners.sampling_mpc.candidate_actions`,
+    finer accelerations, yaw rates and lane-change durations). They are what
+    :class:`ManeuverFeatures` describes and what a policy with ``maneuver_actions``
+    chooses among."""
+    if maneuver_set == "compact":
+        return candidate_actions(horizon, ACCELS, TURNS, (LANE_CHANGE_STEPS,))
+    if maneuver_set == "mpc":
+        return candidate_actions(horizon)
+    raise ValueError(f"maneuver_set must be one of {MANEUVER_SETS}, got {maneuver_set!r}")
 
 
 class ManeuverFeatures:
@@ -43,10 +52,16 @@ class ManeuverFeatures:
     Args:
         horizon: look-ahead [steps].
         dynamics: the env's dynamics.
+        maneuver_set: which maneuvers (:func:`maneuvers`).
     """
 
-    def __init__(self, horizon: int = 30, dynamics: DynamicsConfig | None = None) -> None:
-        candidates = candidate_actions(horizon, ACCELS, TURNS, (LANE_CHANGE_STEPS,))
+    def __init__(
+        self,
+        horizon: int = 30,
+        dynamics: DynamicsConfig | None = None,
+        maneuver_set: str = "compact",
+    ) -> None:
+        candidates = maneuvers(horizon, maneuver_set)
         self.planner = SamplingMPCPlanner(horizon=horizon, dynamics=dynamics, candidates=candidates)
         self.size = 2 * len(candidates)
 

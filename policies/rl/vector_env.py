@@ -81,7 +81,7 @@ class EgoVectorEnv(VectorEnv):
         scenarios: the scenario source the scenes draw from (None: the shipped
             evaluation bank).
         policy: drives every vehicle but the ego (None: IDM traffic, as ``EgoEnv``).
-        base_planner, action_repeat, maneuver_features, maneuver_actions: the ego's
+        base_planner, action_repeat, maneuver_features, maneuver_actions, maneuver_set: the ego's
             interface (:class:`~policies.rl.envs.EgoInterface`).
         autoreset_mode: ``SAME_STEP`` or ``NEXT_STEP`` (module docstring).
     """
@@ -99,6 +99,7 @@ class EgoVectorEnv(VectorEnv):
         action_repeat: int = 1,
         maneuver_features: bool = False,
         maneuver_actions: bool = False,
+        maneuver_set: str = "compact",
         autoreset_mode: AutoresetMode | str = AutoresetMode.SAME_STEP,
     ) -> None:
         modes = (AutoresetMode.SAME_STEP, AutoresetMode.NEXT_STEP)
@@ -117,6 +118,7 @@ class EgoVectorEnv(VectorEnv):
             "action_repeat": action_repeat,
             "maneuver_features": maneuver_features,
             "maneuver_actions": maneuver_actions,
+            "maneuver_set": maneuver_set,
         }
         self.interfaces = tuple(EgoInterface(dynamics, **options) for _ in range(self.num_envs))
         if policy is None:
@@ -343,4 +345,5 @@ def build_vector_env(config: EgoEnvConfig, num_envs: int, seed: int = 0) -> EgoV
         action_repeat=config.action_repeat,
         maneuver_features=config.maneuver_features,
         maneuver_actions=config.maneuver_actions,
+        maneuver_set=config.maneuver_set,
     )

@@ -142,6 +142,29 @@ def test_maneuver_features_in_training_and_evaluation_agree():
     np.testing.assert_array_equal(model.seen, observation)
 
 
+def test_the_mpc_maneuver_set_for_features_and_actions():
+    from policies.planners.sampling_mpc import candidate_actions
+    from policies.rl.envs import EgoInterface
+    from policies.rl.features import ManeuverFeatures, maneuvers
+
+    np.testing.assert_array_equal(maneuvers(maneuver_set="mpc"), candidate_actions(30))
+    compact = build_env(EgoEnvConfig(traffic=TINY_TRAFFIC, scenes=1, maneuver_features=True))
+    config = EgoEnvConfig(
+        traffic=TINY_TRAFFIC, scenes=1, maneuver_features=True, maneuver_actions=True,
+        maneuver_set="mpc",
+    )  # fmt: skip
+    env = build_env(config, seed=0)
+    extra = ManeuverFeatures(maneuver_set="mpc").size - ManeuverFeatures().size
+    assert extra == 2 * (200 - 15)
+    assert env.observation_space.shape[0] == compact.observation_space.shape[0] + extra
+    assert env.action_space.n == 200
+    observation, _ = env.reset(seed=0)
+    assert env.observation_space.contains(observation)
+    env.step(199)
+    with pytest.raises(ValueError, match="maneuver_set must be one of"):
+        EgoInterface(DynamicsConfig(), maneuver_actions=True, maneuver_set="fine")
+
+
 def test_maneuver_actions_follow_the_chosen_maneuver():
     from policies.rl.evaluation import PPOPlanner
     from policies.rl.features import maneuvers
