@@ -33,6 +33,27 @@ from riskflow_env.geometry import separation, to_frame
 SDF_CHANNEL = 1  # policies.learned.windows.CROP_LAYERS = ("drivable", "sdf")
 
 
+def pair_separation(states: Tensor, length: Tensor, width: Tensor) -> Tensor:
+    """Signed SAT separation [m] of every ordered pair of boxes at every step.
+
+    Args:
+        states: ``(..., A, T, 4)`` states (x, y, v, psi).
+        length, width: ``(..., A)`` [m], broadcastable against ``states[..., 0, 0]``'s
+            leading axes.
+
+    Returns:
+        ``(..., A, A, T)``: ``[..., i, j, t]`` of boxes i and j at step t (negative:
+        penetration depth).
+    """
+    xy, yaw = states[..., [X, Y]], states[..., YAW]
+    length, width = length[..., None], width[..., None]  # (..., A, 1): every step
+    return separation(
+        xy[..., :, None, :, :], yaw[..., :, None, :], length[..., :, None, :],
+        width[..., :, None, :], xy[..., None, :, :, :], yaw[..., None, :, :],
+        length[..., None, :, :], width[..., None, :, :],
+    )  # fmt: skip
+
+
 def overlap_penalty(trajectory: Tensor, batch: WindowBatch, valid: Tensor) -> Tensor:
     """Mean squared penetration depth of decoded box pairs [m^2].
 
@@ -46,20 +67,13 @@ def overlap_penalty(trajectory: Tensor, batch: WindowBatch, valid: Tensor) -> Te
         divided by the number of valid agent-steps.
     """
     length, width = batch.length, batch.width
-
-    def pairwise(states: Tensor) -> Tensor:  # (B, A, A, T) signed separation [m]
-        xy, yaw = states[..., [X, Y]], states[..., YAW]
-        return separation(
-            xy[:, :, None], yaw[:, :, None], length[:, :, None, None], width[:, :, None, None],
-            xy[:, None], yaw[:, None], length[:, None, :, None], width[:, None, :, None],
-        )  # fmt: skip
-
     num_agents = valid.shape[1]
     upper = torch.ones(num_agents, num_agents, dtype=torch.bool, device=valid.device).triu(1)
     pairs = valid[:, :, None] & valid[:, None] & upper[None, :, :, None]
     with torch.no_grad():
-        pairs = pairs & (pairwise(batch.future) > 0.0)  # the reference does not overlap
-    depth = torch.relu(-pairwise(trajectory)) * pairs
+        apart = pair_separation(batch.future, length, width) > 0.0
+        pairs = pairs & apart  # the reference does not overlap
+    depth = torch.relu(-pair_separation(trajectory, length, width)) * pairs
     return (depth**2).sum() / valid.sum().clamp(min=1)
 
 

@@ -28,8 +28,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from riskflow_env.dynamics import YAW, X, Y
-from riskflow_env.geometry import separation
+from policies.learned.plan_penalties import pair_separation
 
 SELECTION_HORIZON = 30
 """steps of each plan the score looks at (3 s of the 5.2 s plan)"""
@@ -49,23 +48,13 @@ def overlap_scores(
     Returns:
         ``(B, M)``.
     """
-
-    def pairwise(states: Tensor, size: tuple[Tensor, Tensor]) -> Tensor:  # (..., A, A, [T])
-        xy, yaw = states[..., [X, Y]], states[..., YAW]
-        return separation(
-            xy[..., :, None, :, :], yaw[..., :, None, :], size[0][..., :, None, :],
-            size[1][..., :, None, :], xy[..., None, :, :, :], yaw[..., None, :, :],
-            size[0][..., None, :, :], size[1][..., None, :, :],
-        )  # fmt: skip
-
     num_agents = agent_mask.shape[-1]
     upper = torch.ones(num_agents, num_agents, dtype=torch.bool, device=agent_mask.device).triu(1)
     pairs = agent_mask[:, :, None] & agent_mask[:, None, :] & upper  # (B, A, A)
-    sizes_now = (length[..., None], width[..., None])  # (B, A, 1): one step
-    apart_now = pairwise(now[:, :, None], sizes_now)[..., 0] > 0.0  # (B, A, A)
+    apart_now = pair_separation(now[:, :, None], length, width)[..., 0] > 0.0  # (B, A, A)
     pairs = (pairs & apart_now)[:, None, :, :, None]  # (B, 1, A, A, 1)
-    sizes = (length[:, None, :, None], width[:, None, :, None])  # (B, 1, A, 1)
-    depth = torch.relu(-pairwise(trajectories, sizes)) * pairs  # (B, M, A, A, T)
+    sizes = (length[:, None], width[:, None])  # (B, 1, A): every sample
+    depth = torch.relu(-pair_separation(trajectories, *sizes)) * pairs  # (B, M, A, A, T)
     return (depth**2).sum(dim=(-3, -2, -1))
 
 
