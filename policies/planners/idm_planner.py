@@ -63,6 +63,8 @@ class LaneKeepingPlanner(IDMPlanner):
     """
 
     def __call__(self, observation: np.ndarray | None, view: SceneView) -> np.ndarray:
-        """(2,) (0 [m/s^2], the IDM planner's yaw rate [rad/s])."""
-        action = super().__call__(observation, view)
-        return np.array([0.0, action[1]])
+        """(2,) (0 [m/s^2], the IDM planner's yaw rate [rad/s]); zeros when the agent is not
+        live. Only the steering is computed
+        (:meth:`~riskflow_env.agents.idm.IDMPolicy.steer`), not the car following.
+        """
+        return np.array([0.0, self.policy.steer(view).get(self.agent, 0.0)])

@@ -191,13 +191,41 @@ class IDMPolicy:
 
     def act(self, view: SceneView) -> dict[str, np.ndarray]:
         """``{agent: (accel [m/s^2], yaw_rate [rad/s])}`` for the controlled live agents."""
-        if view.map is not self._map or self._desired.shape != (view.num_agents,):
-            self.reset(view)
-        mask = controlled_mask(view, self.controlled)
+        mask = self._prepare(view)
         actions = np.zeros((view.num_agents, 2))
         if mask.any():
             actions[mask] = self._actions(view, np.flatnonzero(mask))
         return actions_dict(view, mask, actions)
+
+    def steer(self, view: SceneView) -> dict[str, float]:
+        """``{agent: yaw_rate [rad/s]}`` for the controlled live agents: the lane keeping
+        of :meth:`act` alone (step 1 of the module docstring), the same yaw rates as
+        ``act(view)[agent][1]`` without the leaders, yielding and speed, so several times
+        cheaper. What :class:`~policies.planners.LaneKeepingPlanner` drives with."""
+        mask = self._prepare(view)
+        rows, yaw_rate = np.flatnonzero(mask), np.zeros(view.num_agents)
+        if rows.size and self._graph is not None:
+            current, route = view.current, _rows(self._route, rows)
+            lane, s, *_ = self._graph.match(current[rows, :2], current[rows, YAW], route=route)
+            yaw_rate[rows] = self._pursuit(view, rows, lane, s)[0]
+        return {view.agent_names[i]: float(yaw_rate[i]) for i in rows}
+
+    def _prepare(self, view: SceneView) -> np.ndarray:
+        """The controlled live slots (A,) bool, after a reset if ``view`` is a new scene."""
+        if view.map is not self._map or self._desired.shape != (view.num_agents,):
+            self.reset(view)
+        return controlled_mask(view, self.controlled)
+
+    def _pursuit(
+        self, view: SceneView, rows: np.ndarray, lane: np.ndarray, s: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Pure-pursuit yaw rates [rad/s] and arc curvatures [1/m] (n,) of the slots
+        ``rows`` matched to ``lane`` at arclength ``s`` (n,)."""
+        speed = view.current[rows, SPEED]
+        lookahead = np.maximum(self.params.min_lookahead, self.params.lookahead_time * speed)
+        target, _ = self._graph.position(lane, s + lookahead, _rows(self._route, rows))
+        current = view.current[rows]
+        return pure_pursuit(current, target, self.dynamics), arc_curvature(current, target)
 
     def _actions(self, view: SceneView, rows: np.ndarray) -> np.ndarray:
         """(n, 2) actions of the controlled slots ``rows``."""
@@ -220,10 +248,7 @@ class IDMPolicy:
             on_lane[present] = (np.abs(lateral) < graph.width[lane[present]]) & (
                 np.abs(error) < 0.6
             )
-            lookahead = np.maximum(params.min_lookahead, params.lookahead_time * speed[rows])
-            target, _ = graph.position(lane[rows], s[rows] + lookahead, _rows(route, rows))
-            yaw_rate[rows] = pure_pursuit(current[rows], target, dyn)
-            curvature[rows] = arc_curvature(current[rows], target)
+            yaw_rate[rows], curvature[rows] = self._pursuit(view, rows, lane[rows], s[rows])
             lane_width[rows] = graph.width[lane[rows]]
             preview = np.maximum(10.0, params.curve_preview_time * speed[rows])
             bend = graph.curvature_ahead(lane[rows], s[rows], preview, _rows(route, rows))

@@ -49,6 +49,22 @@ def test_closed_loop_runs_on_every_family():
         assert env.scene.step == 100
 
 
+
+@pytest.mark.parametrize("controlled", ["all", ("ego",)])
+def test_steer_is_the_yaw_rate_of_act(controlled):
+    """steer() computes only the lane keeping; its yaw rates are act()'s, bit for bit."""
+    for family in ("highway", "roundabout", "intersection"):
+        env = _env(family)
+        env.reset(seed=2)
+        policy, traffic = IDMPolicy(controlled=controlled), IDMPolicy(controlled="all")
+        for _ in range(30):
+            view = env.view()
+            actions, yaw_rates = policy.act(view), policy.steer(view)
+            assert set(yaw_rates) == set(actions) and yaw_rates
+            for agent, action in actions.items():
+                assert yaw_rates[agent] == action[1]
+            env.step(traffic.act(view))
+
 def _queue_scene() -> Scenario:
     """A stopped ego 60 m ahead of a car at 15 m/s on a straight 400 m lane."""
     drivable_map = from_lanes([Lane(np.array([[0.0, 0.0], [400.0, 0.0]]), 4.0, "lane")])
