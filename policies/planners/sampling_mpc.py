@@ -141,7 +141,8 @@ class SamplingMPCPlanner:
 
     def costs(self, view: SceneView) -> np.ndarray:
         """(M,) cost of every candidate from the current scene (module docstring)."""
-        paths, gap, edge = self.outcomes(view)
+        exact_below = max(self.clearance_cap, self.margin)  # the cost reads no larger gap
+        paths, gap, edge = self.outcomes(view, exact_below=exact_below)
         w_collision, w_offroad, w_speed = self.weights
         discount = self.discount
         return (
@@ -151,8 +152,19 @@ class SamplingMPCPlanner:
             - w_speed * paths[..., 2].mean(-1)
         )
 
-    def outcomes(self, view: SceneView) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def outcomes(
+        self, view: SceneView, exact_below: float = np.inf
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """What every candidate leads to under the prediction.
+
+        Args:
+            view: the current scene.
+            exact_below: gaps up to this [m] are exact; a vehicle that is certainly
+                farther than this from every candidate at a step (a bound from the
+                candidates' spread and the boxes' extents) is skipped at that step, so
+                larger gaps may read larger than they are (inf). Callers that clip the
+                gap (the cost, the RL features) pass their clip and save most of the
+                pairs; the default computes every pair.
 
         Returns:
             ``paths`` (M, H, 4) the ego's states, ``gap`` (M, H) its separation [m] from
@@ -166,16 +178,47 @@ class SamplingMPCPlanner:
         others = view.present & view.active & ~np.isnan(predicted[:, 0, 0])
         others[0] = False
         gap = np.full(paths.shape[:2], np.inf)
-        if others.any():
-            boxes = predicted[others][None]  # (1, B, H, 4)
-            gap = separation(
-                paths[:, None, :, :2], paths[:, None, :, 3], length[0], width[0],
-                boxes[..., :2], boxes[..., 3],
-                length[others][None, :, None], width[others][None, :, None],
-            ).min(axis=1)  # fmt: skip  # (M, H)
+        boxes, lengths, widths = predicted[others], length[others], width[others]  # (B, H, 4)
+        step, other = _pairs_within(paths, boxes, length[0], width[0], lengths, widths, exact_below)
+        if step.size:  # pairs ordered by step: the min over each step's run of pairs
+            pair_gap = separation(
+                paths[:, step, :2], paths[:, step, 3], length[0], width[0],
+                boxes[other, step, :2], boxes[other, step, 3], lengths[other], widths[other],
+            )  # fmt: skip  # (M, P)
+            starts = np.flatnonzero(np.diff(step, prepend=-1))
+            gap[:, step[starts]] = np.minimum.reduceat(pair_gap, starts, axis=1)
         footprint = footprint_points(paths[..., :2], paths[..., 3], length[0], width[0])
         edge = view.map.sdf_at(footprint).max(axis=-1)  # (M, H)
         return paths, gap, edge
+
+
+def _pairs_within(
+    paths: np.ndarray,
+    boxes: np.ndarray,
+    length: float,
+    width: float,
+    lengths: np.ndarray,
+    widths: np.ndarray,
+    limit: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(step, other) index pairs, step-major, of the predicted boxes (B, H, 4) that may come
+    within ``limit`` [m] of separation from some candidate path (M, H, 4) at that step.
+
+    A lower bound on the SAT separation (:func:`~riskflow_env.geometry.separation`) of the
+    ego box a and a box b: on the better of a's two axes the centre offset is at least
+    ``|c_b - c_a| / sqrt(2)``, a's half extent there at most ``max(length, width) / 2``
+    and b's at most its half diagonal. ``|c_b - c_a|`` is at least b's distance from the
+    candidates' mean position at that step minus their largest distance from it.
+    """
+    if not np.isfinite(limit):
+        step, other = np.nonzero(np.ones(boxes.shape[1::-1], dtype=bool))
+        return step, other
+    centre = paths[..., :2].mean(axis=0)  # (H, 2)
+    spread = np.linalg.norm(paths[..., :2] - centre, axis=-1).max(axis=0)  # (H,)
+    distance = np.linalg.norm(boxes[..., :2] - centre, axis=-1).T - spread[:, None]  # (H, B)
+    reach = 0.5 * max(length, width) + 0.5 * np.hypot(lengths, widths)  # (B,)
+    near = distance / np.sqrt(2.0) - reach < limit + 1.0  # 1 m of slack for rounding
+    return np.nonzero(near)
 
 
 class OraclePlanner(SamplingMPCPlanner):
@@ -207,8 +250,10 @@ class OraclePlanner(SamplingMPCPlanner):
         self.prediction = policy
         return policy
 
-    def outcomes(self, view: SceneView) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def outcomes(
+        self, view: SceneView, exact_below: float = np.inf
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`SamplingMPCPlanner.outcomes` under the adversary's plans."""
         if self.prediction is None:
             raise RuntimeError("OraclePlanner has no scene policy to read: call watch(policy)")
-        return super().outcomes(view)
+        return super().outcomes(view, exact_below)

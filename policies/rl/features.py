@@ -69,7 +69,7 @@ class ManeuverFeatures:
         """(size,) float32: per maneuver, the smallest separation [m] from any predicted
         vehicle, then the largest footprint SDF [m] (positive: off the road), each
         clipped to [-10, 10] m."""
-        _, gap, edge = self.planner.outcomes(view)
+        _, gap, edge = self.planner.outcomes(view, exact_below=CAP)
         features = np.concatenate([gap.min(axis=-1), edge.max(axis=-1)])
         return np.clip(features, -CAP, CAP).astype(np.float32)
 

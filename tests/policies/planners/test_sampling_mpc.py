@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import riskflow_env
 from policies.harness import ClosedLoop
 from policies.planners import (
     IDMPlanner,
@@ -15,7 +16,9 @@ from policies.planners import (
 )
 from policies.planners.sampling_mpc import ConstantVelocityPrediction, candidate_actions
 from policies.riskflow import RiskFlowAdversary
+from policies.rl.features import ManeuverFeatures
 from riskflow_env.agents import ConstantVelocityPolicy
+from riskflow_env.scenarios.io import shipped_bank
 from tests.policies.planners.test_planners import start, stopped_car_scene
 
 
@@ -113,3 +116,30 @@ def test_maneuver_features_see_the_stopped_car_ahead():
     assert by_accel[3.0] <= 0.0 < by_accel[-5.0]  # accelerating hits it, braking stops short
     assert np.all(edge[straight] < 0) and np.all(edge[~straight] > 0)  # one lane: turns leave it
     assert np.all(np.abs(values) <= CAP)
+
+
+def test_outcomes_skip_only_pairs_beyond_exact_below():
+    """Pairs certainly farther than ``exact_below`` are skipped: every gap up to it is the
+    exact one, larger ones stay larger; costs and the RL features do not change."""
+    env = riskflow_env.parallel_env(scenarios=shipped_bank("eval"))
+    planner, traffic = SamplingMPCPlanner(), ConstantVelocityPolicy(controlled="all")
+    skipped = 0
+    for seed in range(3):
+        env.reset(seed=seed)
+        for _ in range(10):
+            env.step(traffic.act(env.view()))
+        view = env.view()
+        _, exact, edge = planner.outcomes(view)
+        _, gap, culled_edge = planner.outcomes(view, exact_below=5.0)
+        assert np.isfinite(exact).all() and np.array_equal(edge, culled_edge)
+        close = exact <= 5.0
+        assert close.any() and np.allclose(gap[close], exact[close], rtol=0, atol=1e-9)
+        assert np.all(gap[~close] > 5.0)
+        skipped += np.sum(gap > exact)  # a nearer vehicle than the one kept was skipped
+        # the cost reads min(gap, clearance_cap = 5 m) and the RL features clip at 10 m
+        assert np.allclose(np.minimum(gap, 5.0), np.minimum(exact, 5.0), rtol=0, atol=1e-9)
+        features = ManeuverFeatures()
+        assert np.allclose(features(view), np.clip(np.concatenate(
+            [features.planner.outcomes(view)[1].min(-1), features.planner.outcomes(view)[2].max(-1)]
+        ), -10, 10), rtol=0, atol=1e-6)  # fmt: skip
+    assert skipped  # the bound does skip far vehicles on these scenes
