@@ -135,7 +135,7 @@ def test_outcomes_skip_only_pairs_beyond_exact_below():
         close = exact <= 5.0
         assert close.any() and np.allclose(gap[close], exact[close], rtol=0, atol=1e-9)
         assert np.all(gap[~close] > 5.0)
-        skipped += np.sum(gap > exact)  # a nearer vehicle than the one kept was skipped
+        skipped += np.sum(gap > exact)  # the nearest vehicle, beyond 5 m, was skipped
         # the cost reads min(gap, clearance_cap = 5 m) and the RL features clip at 10 m
         assert np.allclose(np.minimum(gap, 5.0), np.minimum(exact, 5.0), rtol=0, atol=1e-9)
         features = ManeuverFeatures()
