@@ -50,7 +50,13 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.utils import set_random_seed
-from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv, VecNormalize
+from stable_baselines3.common.vec_env import (
+    DummyVecEnv,
+    SubprocVecEnv,
+    VecEnv,
+    VecMonitor,
+    VecNormalize,
+)
 
 from policies.dataclass_cli import parse_dataclass
 from policies.evaluation.options import check_device
@@ -59,6 +65,7 @@ from policies.rl.curriculum import CurriculumCallback, LinearCurriculum, Outcome
 from policies.rl.envs import EgoEnvConfig, make_env
 from policies.rl.features import MANEUVER_SETS
 from policies.rl.progress import StepProgressBar
+from policies.rl.sb3_shards import ShardedEgoVecEnv
 from policies.rl.sb3_vec_env import sb3_ego_vec_env
 from policies.rl.vector_env import build_vector_env
 from riskflow_env.config import EnvConfig, RewardConfig
@@ -82,6 +89,9 @@ class Options:
     """'subproc' (one process per env), 'dummy' (all in this process; tests) or 'batched'
     (policies.rl.EgoVectorEnv: the scenes stepped together, one adversary planning them all
     in one call)"""
+    shards: int = 1
+    """with --vec-env batched: split the scenes over this many worker processes, each one
+    vector env (policies.rl.sb3_shards; one per core: 2 on a 2-core machine)"""
     split: str = "train"
     """shipped scenario bank the episodes come from"""
     scenes: int | None = None
@@ -170,9 +180,14 @@ class Options:
             "batch_size",
             "n_epochs",
             "action_repeat",
+            "shards",
         ):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
+        if self.shards > 1 and self.vec_env != "batched":
+            raise ValueError(f"--shards {self.shards} needs --vec-env batched")
+        if self.shards > self.num_envs:
+            raise ValueError(f"--shards must be <= --num-envs ({self.num_envs}), got {self.shards}")
         check_device(self.device)
         if self.maneuver_set not in MANEUVER_SETS:
             raise ValueError(
@@ -227,7 +242,11 @@ def train(options: Options) -> Path:
 
     config = env_config(options)
     env: VecEnv
-    if options.vec_env == "batched":  # scene b is make_env's rank b, stepped together
+    if options.vec_env == "batched" and options.shards > 1:  # the same scenes, per core
+        env = VecMonitor(
+            ShardedEgoVecEnv(config, options.num_envs, options.shards, seed=options.seed)
+        )
+    elif options.vec_env == "batched":  # scene b is make_env's rank b, stepped together
         env = sb3_ego_vec_env(build_vector_env(config, options.num_envs, options.seed))
     else:
         factories = [make_env(config, rank, options.seed) for rank in range(options.num_envs)]

@@ -7,7 +7,8 @@
   and the vector-env factory;
 * :mod:`policies.rl.vector_env` — ``EgoVectorEnv``: N scenes stepped as one batch, the
   adversary planning them in one call (a Gymnasium ``VectorEnv``);
-  :mod:`policies.rl.sb3_vec_env` — it as an SB3 ``VecEnv``;
+  :mod:`policies.rl.sb3_vec_env` — it as an SB3 ``VecEnv``; :mod:`policies.rl.sb3_shards` —
+  its scenes split over worker processes, one per core;
 * :mod:`policies.rl.features` — the fixed maneuvers and their predicted clearance, as
   observation features and as discrete actions;
 * :mod:`policies.rl.curriculum` — the linear curriculum and the SB3 callbacks (needs

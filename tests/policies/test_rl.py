@@ -246,15 +246,17 @@ def test_apply_stage_rejects_traffic_without_adversary():
         apply_stage(IDMPolicy(), AdversaryStage())
 
 
-def test_train_on_the_batched_vector_env(tmp_path):
-    """``--vec-env batched``: the scenes in one EgoVectorEnv, the adversary planning all of
-    them in one call; the curriculum and the outcome logging work through it."""
+@pytest.mark.parametrize("shards", ["1", "2"])
+def test_train_on_the_batched_vector_env(tmp_path, shards):
+    """``--vec-env batched``: the scenes in one EgoVectorEnv (or, with ``--shards 2``, one
+    per worker process), the adversary planning them in one call; the curriculum and the
+    outcome logging work through it."""
     run_dir = tmp_path / "batched"
     out = run(
         "train_ego_ppo.py", "--total-timesteps", "128", "--n-steps", "32", "--batch-size", "64",
         "--n-epochs", "1", "--num-envs", "2", "--vec-env", "batched", "--scenes", "3",
         "--episode-steps", "20", "--guidance-steps", "2", "--checkpoint-every", "0",
-        "--seed", "3", "--device", "cpu", "--out", run_dir,
+        "--seed", "3", "--device", "cpu", "--shards", shards, "--out", run_dir,
     )  # fmt: skip
     assert "final model" in out
     assert json.loads((run_dir / "options.json").read_text())["device"] == "cpu"
