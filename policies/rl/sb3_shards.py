@@ -84,6 +84,11 @@ def _serve(remote: Connection, factory: CloudpickleWrapper) -> None:
             else:
                 raise ValueError(f"unknown command {command!r}")
             remote.send(("ok", result))
+        except AttributeError as error:
+            if command != "get_attr":
+                remote.send(("error", traceback.format_exc()))
+            else:  # no such attribute: the caller's AttributeError, the worker lives on
+                remote.send(("missing", str(error)))
         except Exception:  # noqa: BLE001  (sent to the main process, which raises it)
             remote.send(("error", traceback.format_exc()))
     remote.close()
@@ -251,8 +256,9 @@ class ShardedEgoVecEnv(VecEnv):
                 self._fail([(shard, f"the worker process died ({error!r})")])
 
     def _receive(self) -> list[Any]:
-        """The answers of the shards last sent to, in order; RuntimeError if any failed."""
-        answers, errors = [], []
+        """The answers of the shards last sent to, in order; RuntimeError if any failed,
+        AttributeError if ``get_attr`` asked for an attribute that is not there."""
+        answers, errors, missing = [], [], []
         for shard in self._pending:
             try:
                 status, value = self.remotes[shard].recv()
@@ -260,9 +266,13 @@ class ShardedEgoVecEnv(VecEnv):
                 status, value = "error", f"the worker process died without an answer ({error!r})"
             if status == "error":
                 errors.append((shard, value))
+            elif status == "missing":
+                missing.append(value)
             answers.append(value)
         if errors:
             self._fail(errors)
+        if missing:
+            raise AttributeError(missing[0])
         return answers
 
     def _fail(self, errors: list[tuple[int, str]]) -> None:

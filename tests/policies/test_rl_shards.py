@@ -70,6 +70,9 @@ def test_vec_env_api_across_shards():
         assert sharded.get_attr("num_envs", [2, 0]) == [1, 2]  # each scene's shard
         assert sharded.env_method("set_adversary_stage", AdversaryStage(k=1)) == [None] * 3
         assert sharded.env_is_wrapped(object) == [False] * 3
+        with pytest.raises(AttributeError, match="no_such_thing"):
+            sharded.get_attr("no_such_thing")
+        assert sharded.get_attr("action_repeat", 1) == [2]  # the workers live on
         sharded.set_attr("action_repeat", 2)
         with pytest.raises(ValueError, match="set it for all"):
             sharded.set_attr("action_repeat", 2, indices=[0])
