@@ -17,7 +17,11 @@ Markdown tables:
 * **collisions by kind:** non-ego pairs vs ego-involved; rear-end (front meets rear),
   head-on (front meets front) or side (the event log's contact kinds); with a standing
   vehicle (either below 0.5 m/s at contact) or between moving ones;
-* **off-road by time bucket** (2 s buckets): drift appears as a share rising with time.
+* **off-road by time bucket** (2 s buckets): drift appears as a share rising with time;
+* **off-road past a road's end:** of the off-road agent-steps (by centroid), those of
+  vehicles that drove on past the end of a lane without successor, along it: roads that
+  the map cuts (the exits of the U-turn, merge and intersection maps), where the recorded
+  vehicles leave the scene and a closed-loop vehicle runs onto the map's border.
 
 Curved roads are the roundabout, racetrack, U-turn and intersection families.
 """
@@ -35,6 +39,7 @@ from policies.dataclass_cli import parse_dataclass
 from policies.harness import ClosedLoop
 from policies.learned.checkpoint import load_generator
 from policies.planners import IDMPlanner
+from riskflow_env.agents.lane_graph import LaneGraph
 from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import SPEED, YAW
 from riskflow_env.geometry import CENTRE, pairwise_overlap
@@ -82,6 +87,22 @@ class FirstPlans:
         return actions
 
 
+def past_road_end(record, off: np.ndarray) -> int:
+    """How many of the off-road agent-steps ``off`` (A, S) (step ``s``: state ``s + 1``)
+    lie past the end of a lane without successor, heading along it (within 0.6 rad): a
+    vehicle that drove on where the map cuts its road. 0 on maps without lanes."""
+    drivable = record.scenario.map
+    if not off.any() or not drivable.lanes:
+        return 0
+    agents, steps = np.nonzero(off)
+    states = record.states[agents, steps + 1]
+    graph = LaneGraph(drivable)
+    lane, s, _, heading_error = graph.match(states[:, :2], states[:, YAW])
+    dead_end = graph.successors[lane, 0] < 0
+    past = s >= graph.length[lane] - 1e-6  # the match clamps s to the lane
+    return int(np.sum(dead_end & past & (np.abs(heading_error) < 0.6)))
+
+
 def collision_kinds(record) -> Counter:
     """Counts of the episode's collision starts by (ego involved, kind, standing)."""
     counts = Counter()
@@ -122,6 +143,7 @@ def diagnose(scenes: int, checkpoint: str | None, seed: int, bank: str | None = 
                 record.offroad_centroid[:, 1:], record.offroad_footprint[:, 1:], live
             )
             rates = (road.centroid_rate, road.footprint_rate) if road.agent_steps else (0.0, 0.0)
+            rates += (past_road_end(record, off) / max(road.agent_steps, 1),)
             steps = min(off.shape[1], len(buckets) * BUCKET)
             starts = np.arange(0, steps, BUCKET)
             buckets[: starts.size, 0] += np.add.reduceat(off[:, :steps].sum(0), starts)
@@ -144,8 +166,9 @@ def report(result: dict) -> str:
     """Markdown tables of :func:`diagnose`'s result."""
     lines = [
         "| family | scenes | one-shot plans overlap | one-shot plan footprint off-road | "
-        "closed loop: non-ego collision | ego collision | off-road centroid | footprint |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "closed loop: non-ego collision | ego collision | off-road centroid | footprint | "
+        "centroid past a road's end |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     rows = result["families"]
     groups = {name: rows[name] for name in rows}
@@ -158,7 +181,7 @@ def report(result: dict) -> str:
         values = np.array(entries, dtype=float).mean(axis=0)
         lines.append(
             f"| {name} | {len(entries)} | {values[0]:.2f} | {values[1]:.3f} | {values[2]:.2f} "
-            f"| {values[3]:.2f} | {values[4]:.3f} | {values[5]:.3f} |"
+            f"| {values[3]:.2f} | {values[4]:.3f} | {values[5]:.3f} | {values[6]:.3f} |"
         )
     lines += ["", "| collision starts | kind | vehicles | count |", "| --- | --- | --- | ---: |"]
     for (who, kind, standing), count in sorted(result["kinds"].items()):

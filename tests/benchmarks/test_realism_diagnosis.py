@@ -14,7 +14,8 @@ def diagnosis():
 
 def test_one_scene_gives_every_table(diagnosis, capsys):
     text = diagnosis.main(["--scenes", "1"])
-    for heading in ("one-shot plans overlap", "collision starts", "off-road centroid share"):
+    headings = ("one-shot plans overlap", "collision starts", "off-road centroid share")
+    for heading in (*headings, "centroid past a road's end"):
         assert heading in text
     assert "| highway | 1 |" in text and "| 0-2 |" in text
     assert "1 scenes in" in capsys.readouterr().out
