@@ -93,6 +93,11 @@ SMALLEST: list[tuple[str, str]] = [
     (r"python benchmarks/scenarionet_dataset\.py", "--copies 1 --repeats 1 --index-scenes 10"),
     (r"python examples/stress_test_planner\.py", "--scenes 1 --steps 5"),
     (
+        r"python benchmarks/ppo_throughput\.py",
+        '--decisions 64 --rows recipe vector-shards2 --extra "--scenes 1 --episode-steps 5 '
+        '--n-steps 4 --batch-size 8 --n-epochs 1"',
+    ),
+    (
         r"python examples/train_ego_ppo\.py",
         "--total-timesteps 64 --n-steps 32 --batch-size 32 --scenes 1 --episode-steps 5",
     ),
