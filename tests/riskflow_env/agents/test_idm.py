@@ -49,7 +49,6 @@ def test_closed_loop_runs_on_every_family():
         assert env.scene.step == 100
 
 
-
 @pytest.mark.parametrize("controlled", ["all", ("ego",)])
 def test_steer_is_the_yaw_rate_of_act(controlled):
     """steer() computes only the lane keeping; its yaw rates are act()'s, bit for bit."""
@@ -64,6 +63,7 @@ def test_steer_is_the_yaw_rate_of_act(controlled):
             for agent, action in actions.items():
                 assert yaw_rates[agent] == action[1]
             env.step(traffic.act(view))
+
 
 def _queue_scene() -> Scenario:
     """A stopped ego 60 m ahead of a car at 15 m/s on a straight 400 m lane."""
