@@ -113,6 +113,9 @@ class Options:
     """[s] planning interval of the generator"""
     ego: str = "idm"
     """ego planner (riskflow-eval --ego)"""
+    leave_when_log_ends: bool = False
+    """vehicles leave the scene when their logged track ends (riskflow-eval
+    --leave-when-log-ends), for every row alike"""
     device: str = "cpu"
     """torch device of the generator"""
     workers: int = 1
@@ -240,7 +243,13 @@ def labelled(label: str, samples: int) -> str:
 
 
 def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[RealismJob]:
-    options = EvalOptions(data=args.bank, ego=args.ego, duration=args.duration, device=args.device)
+    options = EvalOptions(
+        data=args.bank,
+        ego=args.ego,
+        duration=args.duration,
+        device=args.device,
+        leave_when_log_ends=args.leave_when_log_ends,
+    )
     run = RunConfig.from_options(options)
     period = round(args.interval / DynamicsConfig().dt)  # steps per planning cycle
     names = [Path(p).name for p in args.checkpoint]

@@ -60,6 +60,10 @@ class EvalOptions:
     """[s] episode length"""
     stop_at_ego_collision: bool = False
     """end an episode when the ego collides (default: full episodes, equal exposure)"""
+    leave_when_log_ends: bool = False
+    """a vehicle leaves the scene when its logged track ends, as the recorded ones do at
+    the map's exits (EnvConfig.leave_when_log_ends; Waymax's validity rule); default: every
+    vehicle stays for the whole episode"""
     diffusion_steps: int | None = None
     """denoising steps of ctg / ctgpp / ccdiff: default all 100 (DDPM); fewer: DDIM"""
     overrides: tuple[str, ...] = field(default=(), metadata={"flag": "--set"})
@@ -167,6 +171,7 @@ class RunConfig:
         target: the guidance target (``"others"`` or ``"ego"``).
         duration: rollout length [s].
         stop_at_ego_collision: end the episode at the ego's first collision.
+        leave_when_log_ends: vehicles leave the scene when their logged track ends.
         wosac: compute the WOSAC-style score of each rollout.
         device: torch device of the learned policies.
     """
@@ -178,6 +183,7 @@ class RunConfig:
     stop_at_ego_collision: bool
     wosac: bool = True
     device: str = "cpu"
+    leave_when_log_ends: bool = False
 
     @classmethod
     def from_options(cls, options: EvalOptions) -> RunConfig:
@@ -190,6 +196,7 @@ class RunConfig:
             stop_at_ego_collision=options.stop_at_ego_collision,
             wosac=options.wosac,
             device=options.device,
+            leave_when_log_ends=options.leave_when_log_ends,
         )
 
     def as_json(self) -> dict[str, Any]:
@@ -201,6 +208,8 @@ class RunConfig:
             "target": self.target,
             "duration": self.duration,
             "stop_at_ego_collision": self.stop_at_ego_collision,
+            # only when set, so that runs made before the option still resume
+            **({"leave_when_log_ends": True} if self.leave_when_log_ends else {}),
         }
 
     def env_config(self, dt: float) -> EnvConfig:
@@ -210,6 +219,7 @@ class RunConfig:
             episode_steps=round(self.duration / dt),
             terminate_on_collision="ego" if self.stop_at_ego_collision else "none",
             terminate_on_offroad="none",
+            leave_when_log_ends=self.leave_when_log_ends,
         )
 
 

@@ -266,3 +266,23 @@ def test_data_that_is_not_a_scene_folder_names_the_argument(tmp_path, capsys):
         main(["--data", str(pickled), "--methods", "idm", "--out", str(tmp_path / "out")])
     error = capsys.readouterr().err
     assert "--data:" in error and "is a file" in error and "load_scenarionet" in error
+
+
+def test_leave_when_log_ends_reaches_the_env_and_the_config(tmp_path):
+    """--leave-when-log-ends: the env lets vehicles leave when their log ends; the run's
+    config.json records it (only when set: runs made before the option still resume),
+    and a run with it does not resume one without."""
+    from policies.evaluation.options import RunConfig
+
+    leave = RunConfig.from_options(replace(TINY, leave_when_log_ends=True))
+    stay = RunConfig.from_options(TINY)
+    assert (
+        leave.env_config(0.1).leave_when_log_ends and not stay.env_config(0.1).leave_when_log_ends
+    )
+    assert leave.as_json()["leave_when_log_ends"] is True
+    assert "leave_when_log_ends" not in stay.as_json()
+    out = tmp_path / "run"
+    options = replace(TINY, methods=("replay",), scenes=1, out=str(out))
+    run_evaluation(replace(options, leave_when_log_ends=True), progress=False)
+    with pytest.raises(ConfigMismatch):
+        run_evaluation(options, progress=False)
