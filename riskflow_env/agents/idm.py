@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from riskflow_env.agents.base import actions_dict, controlled_mask
+from riskflow_env.agents.conflicts import box_extents, in_frame, yield_gaps
 from riskflow_env.agents.controllers import (
     arc_curvature,
     arc_frame,
@@ -49,7 +50,6 @@ from riskflow_env.agents.controllers import (
 from riskflow_env.agents.lane_graph import LaneGraph
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import SPEED, YAW
-from riskflow_env.geometry import to_frame
 from riskflow_env.maps import DrivableMap
 from riskflow_env.view import SceneView
 
@@ -268,7 +268,9 @@ class IDMPolicy:
             self._desired > 0, np.maximum(speed, params.min_predicted_speed), speed
         )
         path, heading = self._predict(view, lane, s, on_lane, predicted)
-        conflict_gap = _yield_gaps(view, rows, path, heading, predicted, params)
+        conflict_gap = yield_gaps(
+            view, rows, path, heading, predicted, params.conflict_margin, PREDICTION_STEP
+        )
         for other_gap, other_closing in (
             (dead_end[rows], speed[rows]),
             (conflict_gap, speed[rows]),
@@ -327,10 +329,10 @@ class IDMPolicy:
         """
         current = view.current
         me = current[rows]
-        dx, dy = _in_frame(current[None, :, :2] - me[:, None, :2], me[:, YAW, None])
+        dx, dy = in_frame(current[None, :, :2] - me[:, None, :2], me[:, YAW, None])
         along, lateral, turned = arc_frame(dx, dy, curvature[:, None])
         relative = current[None, :, YAW] - (me[:, YAW, None] + turned)  # (n, A) [rad]
-        extent_along, extent_across = _extents(relative, view.length, view.width)
+        extent_along, extent_across = box_extents(relative, view.length, view.width)
         candidate = view.present[None, :] & (along > 0)
         candidate &= np.abs(lateral) < 0.5 * lane_width[:, None] + extent_across
         candidate &= along < self.params.leader_range
@@ -347,59 +349,3 @@ class IDMPolicy:
 def _rows(route: np.ndarray | None, rows: np.ndarray) -> np.ndarray | None:
     """``route[rows]``, or None without route."""
     return None if route is None else route[rows]
-
-
-def _extents(relative: np.ndarray, length: np.ndarray, width: np.ndarray) -> tuple:
-    """Half extents [m] along and across a frame of boxes (length, width) [m] turned by
-    ``relative`` [rad] from it (broadcast): their axis-aligned bounding box there."""
-    cos, sin = np.abs(np.cos(relative)), np.abs(np.sin(relative))
-    return 0.5 * (cos * length + sin * width), 0.5 * (sin * length + cos * width)
-
-
-def _in_frame(rel: np.ndarray, yaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(..., 2) world offsets -> (dx ahead, dy left) [m] in frames of heading ``yaw`` (...)."""
-    return to_frame(rel[..., 0], rel[..., 1], np.cos(yaw), np.sin(yaw))
-
-
-def _yield_gaps(
-    view: SceneView,
-    rows: np.ndarray,
-    path: np.ndarray,
-    heading: np.ndarray,
-    speed: np.ndarray,
-    params: IDMParams,
-) -> np.ndarray:
-    """(n,) [m] distance each controlled vehicle may still travel before a predicted
-    conflict it must yield in (inf when none).
-
-    A conflict between i and j: at some prediction time their boxes, grown by the
-    margins, overlap (j's box bounded by its axis-aligned extent in i's frame). Vehicle
-    i yields to j unless j is behind it now; when both would yield to each other and
-    both are controlled here, the one farther from the conflict point goes second.
-    Vehicles this policy does not control (the ego) are always yielded to.
-    """
-    count, length, width = view.num_agents, view.length, view.width
-    dx, dy = _in_frame(path[None] - path[:, None], heading[:, None])  # (A, A, K), i's frame
-    extent_x, extent_y = _extents(heading[None] - heading[:, None], length[:, None], width[:, None])
-    overlap = (np.abs(dx) < 0.5 * length[:, None, None] + extent_x + params.conflict_margin) & (
-        np.abs(dy) < 0.5 * width[:, None, None] + extent_y + 0.3 * params.conflict_margin
-    )
-    pair = view.present[:, None] & view.present[None, :] & ~np.eye(count, dtype=bool)
-    conflict = overlap.any(axis=-1) & pair
-    first = np.argmax(overlap, axis=-1)  # (A, A) first conflicting time index
-    behind = dx[..., 0] < -0.5 * length[:, None]
-    must_yield = conflict & ~behind
-    controlled = np.zeros(count, dtype=bool)
-    controlled[rows] = True
-    point = 0.5 * (
-        np.take_along_axis(path[:, None], first[..., None, None], 2)[:, :, 0]
-        + np.take_along_axis(path[None], first[..., None, None], 2)[:, :, 0]
-    )
-    distance = np.linalg.norm(point - path[:, None, 0], axis=-1)  # (A, A) i to conflict
-    farther = (distance > distance.T) | (
-        (distance == distance.T) & (np.arange(count)[:, None] > np.arange(count))
-    )
-    mutual = must_yield & must_yield.T & controlled[:, None] & controlled[None, :]
-    must_yield &= ~mutual | farther
-    travel = speed[:, None] * PREDICTION_STEP * np.maximum(first - 1, 0)  # last clear distance
-    return np.where(must_yield, travel, np.inf)[rows].min(axis=-1)

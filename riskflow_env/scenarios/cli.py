@@ -232,26 +232,25 @@ def int_at_least(minimum: int) -> Callable[[str], int]:
     return parse
 
 
-def share(text: str) -> float:
-    """An argparse ``type``: a number in [0, 1], else a usage error naming the option."""
+def _number(text: str, valid, expected: str) -> float:
+    """``text`` as a float accepted by ``valid``, else a usage error saying ``expected``."""
     try:
         value = float(text)
     except ValueError:
         value = float("nan")
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}")
+    if not valid(value):
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
     return value
+
+
+def share(text: str) -> float:
+    """An argparse ``type``: a number in [0, 1], else a usage error naming the option."""
+    return _number(text, lambda value: 0.0 <= value <= 1.0, "a number in [0, 1]")
 
 
 def non_negative(text: str) -> float:
     """An argparse ``type``: a finite number >= 0, else a usage error naming the option."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not (np.isfinite(value) and value >= 0.0):
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
-    return value
+    return _number(text, lambda value: np.isfinite(value) and value >= 0.0, "a number >= 0")
 
 
 def build_parser() -> argparse.ArgumentParser:

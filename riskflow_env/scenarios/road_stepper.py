@@ -271,7 +271,7 @@ def curve_speed(vehicle, lateral_accel: float, decel: float) -> float:
     forks, as the vehicle's choice is not made yet): ``min_d sqrt(v_c(d)^2 + 2 decel d)``.
     ``inf`` on straight roads."""
     network = vehicle.road.network
-    start, end, index = vehicle.lane_index
+    end = vehicle.lane_index[1]
     s0 = float(vehicle.lane.local_coordinates(vehicle.position)[0])
     reach = min(CURVE_PREVIEW, vehicle.speed**2 / (2.0 * decel) + 10.0)
     profile = lane_curvature(vehicle.road, vehicle.lane_index)
