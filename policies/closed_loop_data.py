@@ -63,6 +63,8 @@ class ClosedLoopOptions:
     """weight of the offset along the logged heading (across it weighs 1)"""
     speed_weight: float = 0.5
     """weight [s^2] of the squared speed error to the log's"""
+    supervised_steps: int = 0
+    """steps of each return plan kept as the target (the rest is masked; 0: all)"""
     iterations: int = 200
     """Adam steps of the return objective"""
     scenes: int = 0

@@ -78,6 +78,9 @@ class ClosedLoopConfig:
         iterations: Adam steps of the return objective.
         learning_rate: Adam step size, in units of ``s``.
         seed: seed of the plans' noise (scene ``i`` draws from ``(seed, i)``).
+        supervised_steps: the window's vehicles keep only this many steps of their
+            return plan (the rest of the future is marked invalid, so training supervises
+            the first steps alone, as CAT-K supervises the next token); 0: the whole plan.
     """
 
     candidates: int = 4
@@ -91,6 +94,7 @@ class ClosedLoopConfig:
     smooth_weight: float = 1.0
     iterations: int = 200
     learning_rate: float = 0.05
+    supervised_steps: int = 0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -105,6 +109,11 @@ class ClosedLoopConfig:
         rate = self.learning_rate
         if not isinstance(rate, (int, float)) or not math.isfinite(rate) or rate <= 0:
             raise ValueError(f"ClosedLoopConfig.learning_rate must be a number > 0, got {rate!r}")
+        steps = self.supervised_steps
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
+            raise ValueError(
+                f"ClosedLoopConfig.supervised_steps must be an int >= 0, got {steps!r}"
+            )
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
             raise ValueError(f"ClosedLoopConfig.seed must be an int, got {self.seed!r}")
 
@@ -261,12 +270,14 @@ def closed_loop_scenes(
         world = _to_world(plan, past[rows[0], -1])  # (A, F, 4)
         future_part = states[rows, history:]
         states[rows, history:] = np.where(held[..., None], world, future_part)
-        valid = scenario.valid[:, span]
+        valid = scenario.valid[:, span].copy()
+        if config.supervised_steps:
+            valid[rows, history + config.supervised_steps :] = False
         scenes.append(
             dataclasses.replace(
                 scenario,
                 states=np.where(valid[..., None], states, 0.0),
-                valid=valid.copy(),
+                valid=valid,
                 history_steps=history,
                 name=f"{scenario.name}-closed-loop-{now}",
                 source=f"{scenario.source}+closed-loop" if scenario.source else "closed-loop",

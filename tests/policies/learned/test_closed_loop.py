@@ -141,10 +141,26 @@ def test_same_seed_same_scenes_other_seed_others(generator, scene, made):
     assert not np.array_equal(other[0].states, made[0].states)
 
 
+def test_supervised_steps_keep_only_the_first_steps_of_the_return(generator, scene, made):
+    model, normalizer, windows = generator
+    config = dataclasses.replace(SMALL, supervised_steps=10)
+    short = closed_loop_scenes(scene, model, normalizer, windows, config, position=3)
+    kept = windows.history_steps + 10
+    for full, cut in zip(made, short, strict=True):
+        window = window_from_scenario(cut, None, windows)
+        rows = window.agent_index
+        assert not window.future_valid[:, 10:].any()
+        first = np.arange(windows.future_steps) < 10
+        logged = full.valid[rows, windows.history_steps :]
+        np.testing.assert_array_equal(window.future_valid, logged & first)
+        valid = cut.valid[:, :kept]
+        np.testing.assert_array_equal(cut.states[:, :kept][valid], full.states[:, :kept][valid])
+
+
 @pytest.mark.parametrize(
     ("field", "value"),
     [("candidates", 0), ("cycles", 1.5), ("along_weight", -1.0), ("learning_rate", 0.0),
-     ("seed", "a")],
+     ("seed", "a"), ("supervised_steps", -1)],
 )  # fmt: skip
 def test_bad_config_names_the_field(field, value):
     with pytest.raises(ValueError, match=f"ClosedLoopConfig.{field}"):
