@@ -39,9 +39,9 @@ from riskflow_env.scenarios.io import list_scenarios, load_scenario, save_scenar
 MANIFEST = "riskflow-closed-loop.json"
 
 
-@dataclass(frozen=True)
-class ClosedLoopOptions:
-    """Options of ``riskflow-closed-loop``."""
+@dataclass(frozen=True, kw_only=True)
+class ClosedLoopOptions(ClosedLoopConfig):
+    """Options of ``riskflow-closed-loop``: the scenes, then the drive and its targets."""
 
     data: tuple[Path, ...]
     """recorded scene folders (written by `riskflow-data generate`) whose scenes are driven"""
@@ -49,28 +49,8 @@ class ClosedLoopOptions:
     """new (or empty) folder for the closed-loop training scenes"""
     checkpoint: Path | None = None
     """generator that drives (default: the shipped policies/checkpoints/riskflow_default.pt)"""
-    candidates: int = 4
-    """plans drawn per cycle; each agent executes the one closest to its log"""
-    interval: int = 5
-    """steps executed per cycle (the evaluation re-plans every 5 steps)"""
-    cycles: int = 9
-    """cycles driven per scene at most"""
-    every: int = 2
-    """a training scene is cut every this many cycles"""
-    return_steps: int = 20
-    """steps over which the return target reaches full weight"""
-    along_weight: float = 0.1
-    """weight of the offset along the logged heading (across it weighs 1)"""
-    speed_weight: float = 0.5
-    """weight [s^2] of the squared speed error to the log's"""
-    supervised_steps: int = 0
-    """steps of each return plan kept as the target (the rest is masked; 0: all)"""
-    iterations: int = 200
-    """Adam steps of the return objective"""
     scenes: int = 0
     """scenes of each --data folder used, the first ones (0: all)"""
-    seed: int = 0
-    """seed of the plans' noise"""
     device: str = "cpu"
     """'cpu' or 'cuda' (or 'cuda:N'): where the generator runs"""
     threads: int = 1
@@ -84,17 +64,16 @@ class ClosedLoopOptions:
             raise ValueError(
                 f"--scenes and --threads must be >= 0, got {self.scenes}, {self.threads}"
             )
-        self.config()  # its checks name the option
+        try:
+            super().__post_init__()
+        except ValueError as error:  # name the flag, not the config field
+            field = str(error).split(" ")[0].removeprefix("ClosedLoopConfig.")
+            raise ValueError(f"--{field.replace('_', '-')}: {error}") from None
 
     def config(self) -> ClosedLoopConfig:
         """The drive and return objective of these options."""
         names = [field.name for field in dataclasses.fields(ClosedLoopConfig)]
-        values = {name: getattr(self, name) for name in names if hasattr(self, name)}
-        try:
-            return ClosedLoopConfig(**values)
-        except ValueError as error:  # name the flag, not the config field
-            field = str(error).split(" ")[0].removeprefix("ClosedLoopConfig.")
-            raise ValueError(f"--{field.replace('_', '-')}: {error}") from None
+        return ClosedLoopConfig(**{name: getattr(self, name) for name in names})
 
 
 def _check(options: ClosedLoopOptions) -> list[list[Path]]:

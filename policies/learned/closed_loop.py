@@ -62,40 +62,37 @@ ACTION_SCALE = (1.0, 0.1)
 
 @dataclass(frozen=True)
 class ClosedLoopConfig:
-    """How closed-loop training scenes are driven and cut (module docstring).
-
-    Attributes:
-        candidates: joint plans drawn per cycle; each agent executes the closest to its log.
-        interval: steps executed per cycle (the evaluation re-plans every 5 steps, 0.5 s).
-        cycles: cycles driven at most (fewer where the scene's log ends).
-        every: a training scene is cut every this many cycles.
-        return_steps: ``R``, steps over which the return target reaches full weight.
-        along_weight: weight of the offset along the logged heading (the one across it
-            weighs 1): an agent that fell behind its log need not race to catch up.
-        speed_weight: weight [s^2] of the squared speed error to the log's.
-        deviation_weight: ``lambda``, weight of the correction's size.
-        smooth_weight: ``mu``, weight of the correction's step-to-step change.
-        iterations: Adam steps of the return objective.
-        learning_rate: Adam step size, in units of ``s``.
-        seed: seed of the plans' noise (scene ``i`` draws from ``(seed, i)``).
-        supervised_steps: the window's vehicles keep only this many steps of their
-            return plan (the rest of the future is marked invalid, so training supervises
-            the first steps alone, as CAT-K supervises the next token); 0: the whole plan.
-    """
+    """How closed-loop training scenes are driven and cut (module docstring)."""
 
     candidates: int = 4
+    """joint plans drawn per cycle; each vehicle executes the one closest to its log"""
     interval: int = 5
+    """steps executed per cycle (the evaluation re-plans every 5 steps, 0.5 s)"""
     cycles: int = 9
+    """cycles driven per scene at most (fewer where the scene's log ends)"""
     every: int = 2
+    """a training scene is cut every this many cycles"""
     return_steps: int = 20
+    """R: steps over which the return target reaches full weight"""
     along_weight: float = 0.1
+    """weight of the offset along the logged heading (across it weighs 1): a vehicle that
+    fell behind its log need not race to catch up"""
     speed_weight: float = 0.5
+    """weight [s^2] of the squared speed error to the log's"""
     deviation_weight: float = 0.01
+    """lambda: weight of the correction's size"""
     smooth_weight: float = 1.0
+    """mu: weight of the correction's step-to-step change"""
     iterations: int = 200
+    """Adam steps of the return objective"""
     learning_rate: float = 0.05
+    """Adam step size, in units of s = (1 m/s^2, 0.1 rad/s)"""
     supervised_steps: int = 0
+    """steps of each return plan kept as the target (the rest of the future is marked
+    invalid, so training supervises the first steps alone, as CAT-K supervises the next
+    token); 0: the whole plan"""
     seed: int = 0
+    """seed of the plans' noise (scene i of a run draws from (seed, i))"""
 
     def __post_init__(self) -> None:
         for name in ("candidates", "interval", "cycles", "every", "return_steps", "iterations"):
