@@ -28,8 +28,13 @@ Here, for one recorded scene:
    0.1 rad/s)`` and ``w_j = min(1, (j + 1) / R)^2``. The agent returns to its logged path
    over about ``R`` steps (``return_steps``), smoothly, without racing to catch up with
    where the log is (``alpha`` small), and keeps the log's own accelerations and turns
-   where it is on the log already. Solved
-   with projected Adam, all agents and windows at once.
+   where it is on the log already. Solved with projected Adam, all agents and windows at
+   once. ``supervised_steps`` keeps only the first steps of each return plan as the
+   target (the rest of the future is marked invalid), CAT-K's short horizon.
+
+docs/REALISM.md (round 7) has what fine-tuning on these scenes did: 5 s returns whose
+speed comes from the log made the traffic collide more; the first second alone did not
+harm the open-loop accuracy but did not reduce collisions either.
 
 The training scenes are ordinary scenes (``riskflow_env.scenarios.io``): ``riskflow-train
 --data`` reads their folder beside the recorded ones, and each yields exactly one window
