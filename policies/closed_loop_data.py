@@ -31,6 +31,7 @@ import torch
 from tqdm import tqdm
 
 from policies.dataclass_cli import parse_dataclass
+from policies.evaluation.options import check_device
 from policies.learned.adversary_config import default_window_config
 from policies.learned.checkpoint import load_generator
 from policies.learned.closed_loop import ClosedLoopConfig, closed_loop_scenes
@@ -88,9 +89,7 @@ def _check(options: ClosedLoopOptions) -> list[list[Path]]:
         if not found:
             raise ValueError(f"--data {folder} holds no scene files (riskflow-data generate)")
         paths.append(found[: options.scenes] if options.scenes else found)
-    device = torch.device(options.device)  # a malformed name raises here
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"--device {options.device}: CUDA is not available on this machine")
+    check_device(options.device)
     return paths
 
 

@@ -55,10 +55,9 @@ from policies.learned.data import Normalizer
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.sampler import sample
 from policies.learned.window_types import Window, collate_windows
-from policies.learned.windows import WindowConfig, build_window, select_rows
+from policies.learned.windows import WindowConfig, build_window, scene_to_world, select_rows
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import SPEED, YAW, clip_actions, rollout, wrap_angle
-from riskflow_env.geometry import from_frame
 from riskflow_env.scenarios.scenario import Scenario
 
 ACTION_SCALE = (1.0, 0.1)
@@ -121,11 +120,11 @@ class ClosedLoopConfig:
 
 
 def _to_world(scene: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    """``(..., 4)`` scene-frame states of the frame ``pose`` (x, y, v, psi) in the world."""
-    cos, sin = math.cos(pose[YAW]), math.sin(pose[YAW])
-    dx, dy = from_frame(scene[..., 0], scene[..., 1], cos, sin)
-    heading = wrap_angle(scene[..., YAW] + pose[YAW])
-    return np.stack([dx + pose[0], dy + pose[1], scene[..., 2], heading], axis=-1)
+    """``(..., 4)`` scene-frame states of the frame ``pose`` (x, y, v, psi) in the world,
+    headings wrapped (scene files hold wrapped headings)."""
+    world = scene_to_world(scene, pose[[0, 1, YAW]])
+    world[..., YAW] = wrap_angle(world[..., YAW])
+    return world
 
 
 def _window(tracks: np.ndarray, scenario: Scenario, current: int, config: WindowConfig) -> Window:

@@ -55,7 +55,7 @@ from policies.learned.plan_overlay import BASE_COLOR, GUIDED_COLOR, PlanOverlay
 from policies.learned.plan_stitching import PlanStitching
 from policies.learned.ranking import Ranking
 from policies.learned.window_types import WindowBatch
-from policies.learned.windows import WindowConfig
+from policies.learned.windows import WindowConfig, scene_to_world
 from riskflow_env.agents.base import actions_dict, controlled_mask
 from riskflow_env.maps import DrivableMap, MapStack
 from riskflow_env.view import SceneView
@@ -369,13 +369,8 @@ def plan_scenes(scenes: Sequence[PlanBufferPolicy], views: Sequence[SceneView]) 
 
 def _to_world(plans: np.ndarray, slots: np.ndarray, num: int, frame: np.ndarray) -> np.ndarray:
     """(num, T, 4) world-frame states from scene-frame ``plans`` (A, T, 4) of ``slots``."""
-    cos, sin = math.cos(frame[2]), math.sin(frame[2])
     out = np.full((num, plans.shape[1], 4), np.nan)
-    x, y = plans[..., 0].astype(np.float64), plans[..., 1].astype(np.float64)
-    out[slots, :, 0] = frame[0] + cos * x - sin * y
-    out[slots, :, 1] = frame[1] + sin * x + cos * y
-    out[slots, :, 2] = plans[..., 2]
-    out[slots, :, 3] = plans[..., 3] + frame[2]
+    out[slots] = scene_to_world(plans, frame)
     return out
 
 

@@ -185,6 +185,24 @@ def build_window(
     )
 
 
+def scene_to_world(states: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """World states of scene-frame ``states`` (..., 4); ``frame`` = (x, y, yaw), the world
+    pose of the scene frame (the ego's at the window's current step). Float64; headings
+    are shifted by the frame's yaw, not wrapped. The inverse of :func:`build_window`'s
+    frame change."""
+    cos, sin = math.cos(frame[2]), math.sin(frame[2])
+    x, y = states[..., 0].astype(np.float64), states[..., 1].astype(np.float64)
+    return np.stack(
+        [
+            frame[0] + cos * x - sin * y,
+            frame[1] + sin * x + cos * y,
+            states[..., SPEED].astype(np.float64),
+            states[..., YAW] + frame[2],
+        ],
+        axis=-1,
+    )
+
+
 def select_rows(scenario: Scenario, current_index: int, config: WindowConfig) -> np.ndarray:
     """Rows of ``scenario`` that get window slots at ``current_index``.
 
