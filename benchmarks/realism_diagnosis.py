@@ -136,7 +136,7 @@ def diagnose(scenes: int, checkpoint: str | None, seed: int, bank: str | None = 
         for scenario in source.scenarios[:scenes]:
             record = loop.run(scenario)
             plan_overlap, plan_offroad = open_loop(*recorder.first, loop.base.scene, scenario.map)
-            live = record.active[:, :-1] & record.present[:, None]
+            live = record.active[:, :-1] & record.in_scene[:, 1:]
             live[0] = False  # the generator's vehicles only
             off = record.offroad_centroid[:, 1:] & live
             road = offroad_counts(

@@ -77,7 +77,11 @@ class EpisodeRecord:
         agent_names: (A,) slot names, ``"ego"`` first.
         states: (A, S + 1, 4) executed states (x [m], y [m], v [m/s], psi [rad]) from the
             reset (index 0) to the last of the S steps.
-        present: (A,) bool, slots holding a vehicle.
+        present: (A,) bool, slots holding a vehicle at the reset.
+        in_scene: (A, S + 1) bool, the vehicle was in the scene at that step: False for
+            empty slots and from the step a vehicle left on (``EnvConfig.
+            leave_when_log_ends``); a vehicle that is done but stays (a collision, the
+            end of the episode) is still in the scene.
         active: (A, S + 1) bool, the vehicle was live (still controlled).
         offroad_centroid: (A, S + 1) bool, centre off the drivable area.
         offroad_footprint: (A, S + 1) bool, a footprint sample off the drivable area.
@@ -91,6 +95,7 @@ class EpisodeRecord:
     agent_names: tuple[str, ...]
     states: np.ndarray
     present: np.ndarray
+    in_scene: np.ndarray
     active: np.ndarray
     offroad_centroid: np.ndarray
     offroad_footprint: np.ndarray
@@ -102,13 +107,14 @@ class EpisodeRecord:
         """The episode as a :class:`riskflow_env.metrics.RolloutRecord` (SCR, ORR, ADE,
         KDD, WOSAC...), with ``history`` logged steps prepended as context."""
         return RolloutRecord.from_scenario(
-            self.scenario, self.states, self.present, self.scenario_rows, history=history
+            self.scenario, self.states, self.in_scene, self.scenario_rows, history=history
         )
 
     def to_scenario(self, name: str | None = None) -> Scenario:
         """The episode as a scenario: the starting history of the vehicles that had a slot
         (slot order, the ego first) followed by the executed states as the reference
-        future (padded with invalid steps to the original future length)."""
+        future (padded with invalid steps to the original future length; invalid from
+        the step a vehicle left the scene on)."""
         source, slots = self.scenario, np.flatnonzero(self.present)
         rows, history = self.scenario_rows[slots], source.current_index + 1
         executed = self.states[slots, 1:]
@@ -118,7 +124,7 @@ class EpisodeRecord:
         states[:, :history] = source.states[rows, :history]
         valid[:, :history] = source.valid[rows, :history]
         states[:, history : history + executed.shape[1]] = executed
-        valid[:, history : history + executed.shape[1]] = True
+        valid[:, history : history + executed.shape[1]] = self.in_scene[slots, 1:]
 
         def pick(labels: tuple[str, ...]) -> tuple[str, ...]:
             return tuple(labels[row] for row in rows) if labels else ()
@@ -241,7 +247,13 @@ class ClosedLoop:
 
 def _frame(base: RiskFlowParallelEnv) -> tuple[np.ndarray, ...]:
     scene, events = base.scene, base.last_events
-    return scene.current.copy(), scene.active.copy(), events.centroid_offroad, events.offroad
+    return (
+        scene.current.copy(),
+        scene.present.copy(),
+        scene.active.copy(),
+        events.centroid_offroad,
+        events.offroad,
+    )
 
 
 def _mean_ms(seconds: list[float]) -> float | None:
@@ -262,16 +274,17 @@ def episode_record(
     (``policies.evaluation.batched``).
 
     Args:
-        view: the scene at the episode's end (its ``present``, sizes and scenario rows).
-        frames: ``(states, active, offroad_centroid, offroad_footprint)``: (A, S + 1, 4)
-            states and (A, S + 1) bool flags from the reset to the last step.
+        view: the scene at the episode's end (its sizes and scenario rows).
+        frames: ``(states, in_scene, active, offroad_centroid, offroad_footprint)``:
+            (A, S + 1, 4) states and (A, S + 1) bool flags (``in_scene`` is the state's
+            ``present``) from the reset to the last step.
         events: the episode's event-log rows (``episode_summary`` last).
     """
-    states, active, centroid, footprint = frames
+    states, in_scene, active, centroid, footprint = frames
     scenario = view.scenario
-    present = np.array(view.present, dtype=bool)
+    present = in_scene[:, 0].copy()  # vehicles may leave the scene, none enters it
     summary = events[-1] if events and events[-1]["event"] == "episode_summary" else {}
-    live = active[:, :-1] & present[:, None]  # live before each step, judged after it
+    live = active[:, :-1] & in_scene[:, 1:]  # live before each step and still there after
     road = offroad_counts(centroid[:, 1:], footprint[:, 1:], live)  # the env's own flags
     others = present.copy()
     others[0] = False
@@ -281,6 +294,7 @@ def episode_record(
         states[others, :, :2], states[others, :, YAW],
         length[others, None], width[others, None],
     )  # fmt: skip
+    gap = gap[in_scene[others]]  # not after a vehicle left
     metrics = {
         "scenario": scenario.name,
         "steps": states.shape[1] - 1,
@@ -300,6 +314,7 @@ def episode_record(
         agent_names=tuple(view.agent_names),
         states=states,
         present=present,
+        in_scene=in_scene,
         active=active,
         offroad_centroid=centroid,
         offroad_footprint=footprint,

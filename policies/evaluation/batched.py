@@ -185,12 +185,14 @@ def _run(
             recorders[index].finish("done")
             final_views[index] = views[index]
         running &= ~ended
-    states, active, centroid, footprint = (np.stack(f, axis=2) for f in zip(*frames, strict=True))
+    stacked = (np.stack(f, axis=2) for f in zip(*frames, strict=True))
+    states, in_scene, active, centroid, footprint = stacked
     episodes = []
     for index in range(count):
         last = steps[index] + 1
         scene_frames = (
             states[index, :, :last],
+            in_scene[index, :, :last],
             active[index, :, :last],
             centroid[index, :, :last],
             footprint[index, :, :last],
@@ -204,10 +206,10 @@ def _run(
 def _frame(
     batch: SceneBatch, centroid: np.ndarray, footprint: np.ndarray
 ) -> tuple[np.ndarray, ...]:
-    """(N, A, 4) states, (N, A) active flags of every scene now, and the (N, A) off-road
-    flags (centroid, footprint) given."""
+    """(N, A, 4) states, (N, A) in-scene and active flags of every scene now, and the
+    (N, A) off-road flags (centroid, footprint) given."""
     state = batch.state
-    return state.current.copy(), state.active.copy(), centroid, footprint
+    return state.current.copy(), state.present.copy(), state.active.copy(), centroid, footprint
 
 
 def _scene_events(events: FrameEvents, index: int) -> FrameEvents:

@@ -128,7 +128,7 @@ def rollout_record(scenario: Scenario, episode: EpisodeRecord) -> RolloutRecord:
     others = episode.present.copy()
     others[0] = False  # slot 0 is the ego
     return RolloutRecord.from_scenario(
-        scenario, episode.states, episode.present, episode.scenario_rows,
+        scenario, episode.states, episode.in_scene, episode.scenario_rows,
         history=HISTORY, evaluated=others,
     )  # fmt: skip
 
