@@ -29,6 +29,7 @@ every scene)::
 
     python benchmarks/traffic_realism.py [--checkpoint A.pt B.pt] [--scenes 14 | --full]
         [--seeds 0 1 2] [--bank DIR] [--workers 1] [--out realism.json]
+        [--base-samples 1 8] [--hold-distance 0 1] [--leave-when-log-ends]
 """
 
 from __future__ import annotations
@@ -97,6 +98,10 @@ class Options:
     base_samples: tuple[int, ...] = (1,)
     """joint plans drawn per cycle, the best kept (NominalGenerator base_samples); a row
     per checkpoint and value"""
+    hold_distance: tuple[float, ...] = (0.0,)
+    """[m] vehicles at rest whose plan moves them less than this keep their brake on
+    (NominalGenerator hold_distance; 0: off); a row per checkpoint, --base-samples value
+    and value"""
     baselines: tuple[str, ...] = BASELINES
     """reference methods of riskflow-eval measured in the same run"""
     bank: str | None = None
@@ -134,6 +139,10 @@ class Options:
             )
         if not self.base_samples or any(m < 1 for m in self.base_samples):
             raise ValueError(f"--base-samples must be ints >= 1, got {self.base_samples}")
+        if not self.hold_distance or not all(0 <= d < float("inf") for d in self.hold_distance):
+            raise ValueError(
+                f"--hold-distance must be finite numbers >= 0 [m], got {self.hold_distance}"
+            )
         for path in self.checkpoint:
             if not Path(path).is_file():
                 raise ValueError(f"--checkpoint: no file {path}")
@@ -232,14 +241,19 @@ def summarise(label: str, results: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def sampled(samples: int) -> dict[str, int]:
-    """The generator's options for ``--base-samples`` M (none for the default 1)."""
-    return {} if samples == 1 else {"base_samples": samples}
+def sampled(samples: int, hold: float = 0.0) -> dict[str, int | float]:
+    """The generator's options for ``--base-samples`` M and ``--hold-distance`` D (none
+    for the defaults 1 and 0)."""
+    return ({} if samples == 1 else {"base_samples": samples}) | (
+        {"hold_distance": hold} if hold else {}
+    )
 
 
-def labelled(label: str, samples: int) -> str:
-    """A generator row's label: the checkpoint's, with ``best of M`` for M > 1."""
-    return label if samples == 1 else f"{label} best of {samples}"
+def labelled(label: str, samples: int, hold: float = 0.0) -> str:
+    """A generator row's label: the checkpoint's, with ``best of M`` for M > 1 and
+    ``hold D m`` for D > 0."""
+    label = label if samples == 1 else f"{label} best of {samples}"
+    return label if not hold else f"{label} hold {hold:g} m"
 
 
 def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[RealismJob]:
@@ -255,9 +269,10 @@ def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[
     names = [Path(p).name for p in args.checkpoint]
     unique = len(set(names)) == len(names)
     methods = [
-        ("bits", {"checkpoint": str(Path(p).resolve()), **sampled(m)}, labelled(name, m))
+        ("bits", {"checkpoint": str(Path(p).resolve()), **sampled(m, d)}, labelled(name, m, d))
         for p, name in zip(args.checkpoint, names if unique else args.checkpoint, strict=True)
         for m in args.base_samples
+        for d in args.hold_distance
     ]  # fmt: skip
     methods += [(name, {}, name) for name in args.baselines]
     jobs = []

@@ -60,6 +60,8 @@ class NominalGenerator(RiskFlowAdversary):
         threads: torch CPU threads while planning; None keeps torch's setting.
         base_samples: M joint plans drawn per cycle, the best kept (``RiskFlowAdversary``:
             BITS's selection step, :mod:`policies.learned.plan_selection`); 1: one draw.
+        hold_distance: [m] vehicles at rest whose plan moves them less than this keep
+            their brake on (``AdversaryConfig.hold_distance``); 0: off.
     """
 
     overlay_prefix = "nominal"
@@ -76,10 +78,11 @@ class NominalGenerator(RiskFlowAdversary):
         window_config: WindowConfig | None = None,
         threads: int | None = 1,
         base_samples: int = 1,
+        hold_distance: float = 0.0,
     ) -> None:
         config = AdversaryConfig(
             k=0, planning_interval=planning_interval, seed=seed, device=device,
-            window_config=window_config, threads=threads,
+            window_config=window_config, threads=threads, hold_distance=hold_distance,
         )  # fmt: skip
         super().__init__(
             config,

@@ -55,6 +55,9 @@ class AdversaryConfig:
         threads: torch CPU threads while planning (restored after); None keeps torch's
             setting. One is the default: a cycle is hundreds of tiny ops, which extra
             threads only slow down (on CPU).
+        hold_distance: [m] a vehicle at rest whose new plan moves it less than this over
+            the horizon keeps its brake on (:mod:`policies.learned.plan_stitching`);
+            0 (default): off.
     """
 
     k: int | str = 5
@@ -68,6 +71,7 @@ class AdversaryConfig:
     device: torch.device | str = "cpu"
     window_config: WindowConfig | None = None
     threads: int | None = 1
+    hold_distance: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "k", check_k(self.k))
@@ -82,6 +86,10 @@ class AdversaryConfig:
         threshold = self.rank_threshold
         if not (isinstance(threshold, (int, float)) and math.isfinite(threshold)):
             raise ValueError(f"rank_threshold must be a finite number, got {threshold!r}")
+        hold = self.hold_distance
+        if isinstance(hold, bool) or not isinstance(hold, (int, float)) or not 0 <= hold < math.inf:
+            raise ValueError(f"hold_distance must be a finite number >= 0 [m], got {hold!r}")
+        object.__setattr__(self, "hold_distance", float(hold))
         seed = self.seed
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed must be an int >= 0, got {seed!r}")

@@ -9,8 +9,20 @@ acceleration and yaw rate continuous too, which removes the jerk spike at every 
 (the step that switched plans had about twice the p95 jerk of the steps within a plan).
 Set ``policy.stitch_steps = 0`` to switch at once.
 
+**Holding at rest** (``AdversaryConfig.hold_distance``, off by default). A vehicle at rest
+(speed <= ``REST_SPEED``) whose new plan moves it less than ``hold_distance`` [m] over the
+whole horizon keeps its brake on: the plan's positive accelerations are dropped and its
+yaw rate set to 0, so it stays where it is. The reason is the speed bound at 0: the
+generator's plans for a standing vehicle carry zero-mean acceleration noise (about 0.2-0.3
+m/s^2 per step on the real scenes), which the bound rectifies into forward motion, and the
+yaw rate turns a unicycle in place; re-planned every 0.5 s, parked cars creep 1-3 m and
+touch their neighbours in rows of parked cars. A plan that moves the vehicle by more than
+``hold_distance`` (a start from a queue) runs as it is. docs/REALISM.md, round 8, has
+the measurements.
+
 :class:`PlanStitching` is a mixin of :class:`~policies.learned.plan_buffer.PlanBufferPolicy`
-(``plan_scenes`` calls :meth:`PlanStitching._stitch` on every scene that had a plan).
+(``plan_scenes`` calls :meth:`PlanStitching._hold_at_rest`, then
+:meth:`PlanStitching._stitch`, on every scene that planned).
 """
 
 from __future__ import annotations
@@ -21,22 +33,48 @@ from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import inverse, rollout
 from riskflow_env.view import SceneView
 
+REST_SPEED = 0.2  # [m/s] a vehicle at or below this speed is at rest (holding at rest)
+
 
 class PlanStitching:
-    """Blends new plans into the executed ones (module docstring).
+    """Blends new plans into the executed ones and holds vehicles at rest (module
+    docstring).
 
     Works on the policy's stored plans: ``plan_actions`` (A, T, 2), ``plans`` and
     ``base_plans`` (A, T, 4), ``plan_mask`` and ``controllable`` (A,), with its
-    ``dynamics``.
+    ``dynamics`` and ``hold_distance``.
     """
 
     stitch_steps: int = 5  # [steps] re-plan blend (module docstring); 0: switch at once
+    hold_distance: float = 0.0  # [m] holding at rest (module docstring); 0: off
     dynamics: DynamicsConfig
     plan_actions: np.ndarray
     plans: np.ndarray | None
     base_plans: np.ndarray | None
     plan_mask: np.ndarray
     controllable: np.ndarray
+
+    def _hold_at_rest(self, view: SceneView) -> None:
+        """Keep the brake on for vehicles at rest whose new plan hardly moves them
+        (module docstring); their plans are rolled out again. Guided vehicles are held
+        alike; their unguided alternative (``base_plans``) is left as it is."""
+        if self.hold_distance <= 0.0:
+            return
+        current = view.current
+        rows = np.flatnonzero(self.plan_mask & view.active & (current[:, 2] <= REST_SPEED))
+        if rows.size == 0:
+            return
+        reach = np.linalg.norm(self.plans[rows, :, :2] - current[rows, None, :2], axis=-1)
+        rows = rows[reach.max(axis=1) < self.hold_distance]
+        if rows.size == 0:
+            return
+        held = self.plan_actions[rows]
+        held[..., 0] = np.minimum(held[..., 0], 0.0)
+        held[..., 1] = 0.0
+        self.plan_actions[rows] = held
+        self.plans[rows] = rollout(current[rows], held, self.dynamics)
+        unguided = rows[~self.controllable[rows]]
+        self.base_plans[unguided] = self.plans[unguided]
 
     def _stitch(self, view: SceneView, actions: np.ndarray, mask: np.ndarray, elapsed: int) -> None:
         """Blend the first ``stitch_steps`` actions of the new plans with the rest of the
@@ -71,4 +109,4 @@ class PlanStitching:
             self.base_plans[rows[guided]] = rollout(current[guided], base, self.dynamics)
 
 
-__all__ = ["PlanStitching"]
+__all__ = ["REST_SPEED", "PlanStitching"]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from tests.benchmarks.scripts import load_benchmark
 
@@ -38,3 +39,15 @@ def test_scene_choice_covers_every_family():
     scenes = [Scene(f) for f in "aaabbbc"]
     assert bench.pick_scenes(scenes, 3) == [0, 3, 6]
     assert bench.pick_scenes(scenes, 5) == [0, 1, 3, 4, 6]
+
+
+def test_generator_rows_per_option_value():
+    bench = _module()
+    assert bench.sampled(1) == {} and bench.sampled(8, 1.5) == {
+        "base_samples": 8,
+        "hold_distance": 1.5,
+    }
+    assert bench.labelled("g.pt", 1, 0.0) == "g.pt"
+    assert bench.labelled("g.pt", 8, 2.0) == "g.pt best of 8 hold 2 m"
+    with pytest.raises(SystemExit):
+        bench.parse_args(["--hold-distance", "-1"])
