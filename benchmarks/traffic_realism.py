@@ -29,12 +29,14 @@ every scene)::
 
     python benchmarks/traffic_realism.py [--checkpoint A.pt B.pt] [--scenes 14 | --full]
         [--seeds 0 1 2] [--bank DIR] [--workers 1] [--out realism.json]
-        [--base-samples 1 8] [--hold-distance 0 1] [--leave-when-log-ends]
+        [--base-samples 1 8] [--hold-distance 0 1] [--avoid-steps 0 10]
+        [--leave-when-log-ends]
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import multiprocessing
 import os
@@ -102,6 +104,9 @@ class Options:
     """[m] vehicles at rest whose plan moves them less than this keep their brake on
     (NominalGenerator hold_distance; 0: off); a row per checkpoint, --base-samples value
     and value"""
+    avoid_steps: tuple[int, ...] = (0,)
+    """avoidance steps on each cycle's base plans (NominalGenerator avoid_steps; 0: off);
+    a row per checkpoint, --base-samples, --hold-distance and value"""
     baselines: tuple[str, ...] = BASELINES
     """reference methods of riskflow-eval measured in the same run"""
     bank: str | None = None
@@ -139,6 +144,8 @@ class Options:
             )
         if not self.base_samples or any(m < 1 for m in self.base_samples):
             raise ValueError(f"--base-samples must be ints >= 1, got {self.base_samples}")
+        if not self.avoid_steps or any(n < 0 for n in self.avoid_steps):
+            raise ValueError(f"--avoid-steps must be ints >= 0, got {self.avoid_steps}")
         if not self.hold_distance or not all(0 <= d < float("inf") for d in self.hold_distance):
             raise ValueError(
                 f"--hold-distance must be finite numbers >= 0 [m], got {self.hold_distance}"
@@ -241,19 +248,20 @@ def summarise(label: str, results: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def sampled(samples: int, hold: float = 0.0) -> dict[str, int | float]:
-    """The generator's options for ``--base-samples`` M and ``--hold-distance`` D (none
-    for the defaults 1 and 0)."""
-    return ({} if samples == 1 else {"base_samples": samples}) | (
-        {"hold_distance": hold} if hold else {}
-    )
+def sampled(samples: int, hold: float = 0.0, avoid: int = 0) -> dict[str, int | float]:
+    """The generator's options for ``--base-samples`` M, ``--hold-distance`` D and
+    ``--avoid-steps`` N (none for the defaults 1, 0 and 0)."""
+    options: dict[str, int | float] = {"base_samples": samples} if samples != 1 else {}
+    options |= {"hold_distance": hold} if hold else {}
+    return options | ({"avoid_steps": avoid} if avoid else {})
 
 
-def labelled(label: str, samples: int, hold: float = 0.0) -> str:
-    """A generator row's label: the checkpoint's, with ``best of M`` for M > 1 and
-    ``hold D m`` for D > 0."""
+def labelled(label: str, samples: int, hold: float = 0.0, avoid: int = 0) -> str:
+    """A generator row's label: the checkpoint's, with ``best of M`` for M > 1, ``hold D
+    m`` for D > 0 and ``avoid N`` for N > 0."""
     label = label if samples == 1 else f"{label} best of {samples}"
-    return label if not hold else f"{label} hold {hold:g} m"
+    label = label if not hold else f"{label} hold {hold:g} m"
+    return label if not avoid else f"{label} avoid {avoid}"
 
 
 def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[RealismJob]:
@@ -268,12 +276,13 @@ def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[
     period = round(args.interval / DynamicsConfig().dt)  # steps per planning cycle
     names = [Path(p).name for p in args.checkpoint]
     unique = len(set(names)) == len(names)
+    labels = names if unique else list(args.checkpoint)
+    variants = list(itertools.product(args.base_samples, args.hold_distance, args.avoid_steps))
     methods = [
-        ("bits", {"checkpoint": str(Path(p).resolve()), **sampled(m, d)}, labelled(name, m, d))
-        for p, name in zip(args.checkpoint, names if unique else args.checkpoint, strict=True)
-        for m in args.base_samples
-        for d in args.hold_distance
-    ]  # fmt: skip
+        ("bits", {"checkpoint": str(Path(path).resolve()), **sampled(*v)}, labelled(label, *v))
+        for path, label in zip(args.checkpoint, labels, strict=True)
+        for v in variants
+    ]
     methods += [(name, {}, name) for name in args.baselines]
     jobs = []
     for method, options, label in methods:

@@ -62,6 +62,9 @@ class NominalGenerator(RiskFlowAdversary):
             BITS's selection step, :mod:`policies.learned.plan_selection`); 1: one draw.
         hold_distance: [m] vehicles at rest whose plan moves them less than this keep
             their brake on (``AdversaryConfig.hold_distance``); 0: off.
+        avoid_steps, avoid_step_size: Adam steps (0: off) and their size that pull the
+            base plans' boxes apart and onto the road (``RiskFlowAdversary``,
+            :mod:`policies.learned.plan_avoidance`).
     """
 
     overlay_prefix = "nominal"
@@ -79,6 +82,8 @@ class NominalGenerator(RiskFlowAdversary):
         threads: int | None = 1,
         base_samples: int = 1,
         hold_distance: float = 0.0,
+        avoid_steps: int = 0,
+        avoid_step_size: float = 0.1,
     ) -> None:
         config = AdversaryConfig(
             k=0, planning_interval=planning_interval, seed=seed, device=device,
@@ -92,6 +97,8 @@ class NominalGenerator(RiskFlowAdversary):
             checkpoint=checkpoint,
             sampling_steps=sampling_steps,
             base_samples=base_samples,
+            avoid_steps=avoid_steps,
+            avoid_step_size=avoid_step_size,
         )
 
 

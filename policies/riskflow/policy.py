@@ -58,6 +58,7 @@ from policies.learned.data import Normalizer
 from policies.learned.encoded_views import EncodedViews
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.guidance_losses import map_term
+from policies.learned.plan_avoidance import avoid_overlaps
 from policies.learned.plan_buffer import PlanBufferPolicy, hold_still
 from policies.learned.plan_overlay import BASE_COLOR, GUIDED_COLOR
 from policies.learned.plan_selection import SELECTION_HORIZON, select_joint_plans
@@ -121,12 +122,23 @@ class RiskFlowAdversary(PlanBufferPolicy):
         checkpoint: str | os.PathLike | None = None,
         sampling_steps: int | None = None,
         base_samples: int = 1,
+        avoid_steps: int = 0,
+        avoid_step_size: float = 0.1,
         **options: Any,
     ) -> None:
         config = AdversaryConfig.resolve(config, options, type(self).__name__)
         if isinstance(base_samples, bool) or not isinstance(base_samples, int) or base_samples < 1:
             raise ValueError(f"base_samples must be an int >= 1, got {base_samples!r}")
+        if isinstance(avoid_steps, bool) or not isinstance(avoid_steps, int) or avoid_steps < 0:
+            raise ValueError(f"avoid_steps must be an int >= 0, got {avoid_steps!r}")
+        if isinstance(avoid_step_size, bool) or not (
+            isinstance(avoid_step_size, (int, float)) and 0 < avoid_step_size < float("inf")
+        ):
+            raise ValueError(
+                f"avoid_step_size must be a finite number > 0, got {avoid_step_size!r}"
+            )
         self.base_samples = base_samples
+        self.avoid_steps, self.avoid_step_size = avoid_steps, float(avoid_step_size)
         self.guidance = GuidanceConfig(
             steps=guidance_steps, step_size=step_size, optimizer=optimizer, **config.objective()
         )
@@ -147,6 +159,10 @@ class RiskFlowAdversary(PlanBufferPolicy):
         if base_samples > 1 and self.generator_kind != "meanflow":
             raise ValueError(
                 f"base_samples > 1 needs the MeanFlow generator, got {self.generator_kind!r}"
+            )
+        if avoid_steps > 0 and self.generator_kind != "meanflow":
+            raise ValueError(
+                f"avoid_steps > 0 needs the MeanFlow generator, got {self.generator_kind!r}"
             )
         self.model = generator.to(device).eval()
         self.normalizer = normalizer
@@ -181,6 +197,8 @@ class RiskFlowAdversary(PlanBufferPolicy):
                 eps, u0, actions, trajectories = self._select(
                     observed, views, (eps, u0, actions, trajectories)
                 )
+            if self.avoid_steps > 0:
+                u0, actions, trajectories = self._avoid(observed, views, eps, u0)
             done = np.zeros((num_scenes, num_agents), dtype=bool)
             for index, (view, slots) in enumerate(zip(views, observed.slots, strict=True)):
                 done[index, : len(slots)] = ~view.active[slots]
@@ -233,18 +251,43 @@ class RiskFlowAdversary(PlanBufferPolicy):
         num_scenes, num_agents = scene.agent_mask.shape
         samples = self.base_samples
         trajectories = plans[3].reshape(num_scenes, samples, *plans[3].shape[1:])
-        rows = torch.arange(num_scenes * num_agents, device=self.device)
-        flat = SimpleNamespace(
-            length=batch.length.flatten(), width=batch.width.flatten(),
-            drivable_map=self._map_of(views), frame=observed.frame_tensor(),
-        )  # fmt: skip
-        term = map_term(flat, rows, SELECTION_HORIZON, self.guidance, rows // num_agents)
+        term = self._map_term_of_every_row(observed, views)
         best, _ = select_joint_plans(
             trajectories, batch.length, batch.width, scene.agent_mask, scene.state,
             None if term is None else term.rows,
         )  # fmt: skip
         pick = torch.arange(num_scenes, device=self.device) * samples + best
         return tuple(tensor[pick] for tensor in plans)
+
+    def _map_term_of_every_row(self, observed: EncodedViews, views: Sequence[SceneView]):
+        """The guidance's map term over the first ``SELECTION_HORIZON`` steps of every
+        agent row of the B scenes (``B * A`` rows, scene after scene), or None without
+        ``L_map``; the score of best-of-M selection and of the avoidance steps."""
+        batch, num_agents = observed.batch, observed.scene.agent_mask.shape[1]
+        rows = torch.arange(observed.scene.agent_mask.numel(), device=self.device)
+        flat = SimpleNamespace(
+            length=batch.length.flatten(), width=batch.width.flatten(),
+            drivable_map=self._map_of(views), frame=observed.frame_tensor(),
+        )  # fmt: skip
+        return map_term(flat, rows, SELECTION_HORIZON, self.guidance, rows // num_agents)
+
+    def _avoid(
+        self,
+        observed: EncodedViews,
+        views: Sequence[SceneView],
+        eps: torch.Tensor,
+        u0: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Avoidance steps on the base plans of every scene
+        (:func:`~policies.learned.plan_avoidance.avoid_overlaps`): ``(u0, actions,
+        trajectories)`` after them."""
+        scene, batch = observed.scene, observed.batch
+        term = self._map_term_of_every_row(observed, views)
+        return avoid_overlaps(
+            eps, u0, scene.state, batch.length, batch.width, scene.agent_mask, term,
+            self.normalizer, self.dynamics, steps=self.avoid_steps,
+            step_size=self.avoid_step_size,
+        )  # fmt: skip
 
     def _guide(
         self, scene: GuidanceScene, controllable: torch.Tensor, observed: EncodedViews

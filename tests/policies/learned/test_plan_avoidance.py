@@ -1,0 +1,110 @@
+"""Avoidance steps (``avoid_steps``): the base plans' boxes are pulled apart, the ego's
+and absent rows are not variables, and zero steps change nothing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from policies.baselines.diffusion.sampling import OneCallSampler
+from policies.baselines.nominal import NominalGenerator
+from policies.learned.data import ActionNormalizer
+from policies.learned.plan_avoidance import avoid_overlaps
+from policies.learned.plan_selection import overlap_scores
+from policies.riskflow.guidance import plans_from_velocity
+from policies.riskflow.policy import RiskFlowAdversary
+from riskflow_env.config import DynamicsConfig
+
+NORMALIZER = ActionNormalizer(mean=(0.0, 0.0), std=(1.0, 0.1))
+DYNAMICS = DynamicsConfig()
+STEPS = 40  # plan steps
+
+
+def _scene():
+    """The ego far away, two cars 20 m apart driving at each other at 10 m/s (their boxes
+    meet after about 0.8 s), an absent slot."""
+    state = torch.tensor(
+        [
+            [
+                [0.0, 50.0, 10.0, 0.0],
+                [0.0, 0.0, 10.0, 0.0],
+                [20.0, 0.0, 10.0, torch.pi],
+                [0, 0, 0, 0],
+            ]
+        ],
+        dtype=torch.float64,
+    )
+    length = torch.full((1, 4), 4.5, dtype=torch.float64)
+    width = torch.full((1, 4), 1.8, dtype=torch.float64)
+    mask = torch.tensor([[True, True, True, False]])
+    eps = torch.zeros(1, 4, STEPS, 2, dtype=torch.float64)
+    return eps, torch.zeros_like(eps), state, length, width, mask
+
+
+def _overlap(trajectories, length, width, mask, state):
+    return float(overlap_scores(trajectories[:, None, :, :30], length, width, mask, state).sum())
+
+
+def test_steps_pull_the_boxes_apart():
+    eps, u0, state, length, width, mask = _scene()
+    _, trajectories = plans_from_velocity(eps, u0, state, mask, NORMALIZER, DYNAMICS)
+    before = _overlap(trajectories, length, width, mask, state)
+    u, actions, after_plans = avoid_overlaps(
+        eps, u0, state, length, width, mask, None, NORMALIZER, DYNAMICS, steps=30, step_size=0.2
+    )
+    after = _overlap(after_plans, length, width, mask, state)
+    assert before > 1.0 and after < 0.1 * before
+    assert torch.equal(u[:, 0], u0[:, 0]) and torch.equal(u[:, 3], u0[:, 3])  # ego, absent
+    assert not torch.equal(u[:, 1], u0[:, 1]) and not torch.equal(u[:, 2], u0[:, 2])
+    # the returned plans are the decoded u, as everywhere else
+    expected = plans_from_velocity(eps, u, state, mask, NORMALIZER, DYNAMICS)
+    assert torch.equal(actions, expected[0]) and torch.equal(after_plans, expected[1])
+
+
+def test_zero_steps_change_nothing():
+    eps, u0, state, length, width, mask = _scene()
+    u, actions, trajectories = avoid_overlaps(
+        eps, u0, state, length, width, mask, None, NORMALIZER, DYNAMICS, steps=0, step_size=0.2
+    )
+    expected = plans_from_velocity(eps, u0, state, mask, NORMALIZER, DYNAMICS)
+    assert torch.equal(u, u0) and torch.equal(actions, expected[0])
+    assert torch.equal(trajectories, expected[1])
+
+
+@pytest.mark.parametrize(
+    ("options", "match"),
+    [
+        ({"avoid_steps": -1}, "avoid_steps"),
+        ({"avoid_steps": 1.5}, "avoid_steps"),
+        ({"avoid_steps": True}, "avoid_steps"),
+        ({"avoid_step_size": 0.0}, "avoid_step_size"),
+        ({"avoid_step_size": float("nan")}, "avoid_step_size"),
+    ],
+)
+def test_options_are_checked(tiny_meanflow, tiny_normalizer, options, match):
+    models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
+    with pytest.raises(ValueError, match=match):
+        RiskFlowAdversary(k=0, **models, **options)
+
+
+def test_the_diffusion_generator_refuses_it(tiny_denoiser, tiny_normalizer):
+    with pytest.raises(ValueError, match="avoid_steps > 0 needs the MeanFlow generator"):
+        NominalGenerator(
+            generator=OneCallSampler(tiny_denoiser, 3), normalizer=tiny_normalizer, avoid_steps=3
+        )
+
+
+def test_closed_loop_with_avoidance_is_reproducible(tiny_meanflow, tiny_normalizer, closed_loop):
+    """Same seed, same actions; on the conftest road, where no plans overlap and all stay
+    on the road, the steps have nothing to do: the plans are those without them."""
+    models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
+    runs = []
+    for steps in (2, 2, 0):
+        policy = NominalGenerator(planning_interval=0.3, seed=4, avoid_steps=steps, **models)
+        _, emitted = closed_loop(policy, 7)  # three cycles
+        runs.append(emitted)
+    for first, other in ((runs[0], runs[1]), (runs[0], runs[2])):
+        for ours, theirs in zip(first, other, strict=True):
+            assert ours.keys() == theirs.keys()
+            assert all(np.array_equal(ours[name], theirs[name]) for name in ours)
