@@ -15,9 +15,13 @@ best-of-M selection (:mod:`policies.learned.plan_selection`) over its first
 
 the overlap summed over every pair of present agents that is apart now (the SAT
 penetration depth, the simulator's own collision test) and ``L_map`` the guidance's map
-term of every agent. The ego's row is not a variable (the ego is not driven by the scene
-policy; the others avoid its predicted plan), nor are absent rows. Autograd through the
-differentiable rollout; ``steps = 0`` leaves the plans as they are.
+term of every agent. The variables are the rows of the moving vehicles: the ego's row is
+not one (the ego is not driven by the scene policy; the others avoid its predicted
+plan), nor are absent rows, nor vehicles at rest (speed <= ``REST_SPEED``): they are
+obstacles here, and whether they start is the generator's decision (and the holding
+rule's, :mod:`policies.learned.plan_stitching`); as variables, the map term drove parked
+cars that the map's raster shows off the road onto it (the real scenes). Autograd through
+the differentiable rollout; ``steps = 0`` leaves the plans as they are.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from torch import Tensor
 
 from policies.learned.data import Normalizer
 from policies.learned.plan_selection import SELECTION_HORIZON, overlap_scores
+from policies.learned.plan_stitching import REST_SPEED
 from policies.learned.sampler import decode_plans
 from riskflow_env.config import DynamicsConfig
 
@@ -60,13 +65,13 @@ def avoid_overlaps(
         normalizer, dynamics: the plans' decoding (:func:`~policies.learned.sampler.decode_plans`).
         steps: Adam steps (0: ``u0`` unchanged); ``step_size`` its learning rate
             [normalised action units].
-        ego: the ego's slot (not a variable).
+        ego: the ego's slot (not a variable; nor are vehicles at rest).
         horizon: plan steps in the objective.
 
     Returns:
         ``(u, actions, trajectories)``: ``(B, A, T, 2)``, ``(B, A, T, 2)``, ``(B, A, T, 4)``.
     """
-    variable = agent_mask.clone()
+    variable = agent_mask & (state[..., 2] > REST_SPEED)
     variable[:, ego] = False
     mask = variable[..., None, None].to(u0.dtype)
     u = u0.detach().clone()
