@@ -21,7 +21,14 @@ Markdown tables:
 * **off-road past a road's end:** of the off-road agent-steps (by centroid), those of
   vehicles that drove on past the end of a lane without successor, along it: roads that
   the map cuts (the exits of the U-turn, merge and intersection maps), where the recorded
-  vehicles leave the scene and a closed-loop vehicle runs onto the map's border.
+  vehicles leave the scene and a closed-loop vehicle runs onto the map's border;
+* **vehicles at rest at the start** (speed <= ``REST_SPEED``): how far the first cycle's
+  plan moves each (its largest distance from the start over the plan), for those that
+  stand in the log over the same steps (within 0.5 m) and those that start (beyond 2 m),
+  and the share that the holding rule (``hold_distance``,
+  :mod:`policies.learned.plan_stitching`) would hold at 0.5, 1 and 2 m.
+
+``--hold-distance`` and ``--avoid-steps`` run the generator with those options.
 
 Curved roads are the roundabout, racetrack, U-turn and intersection families.
 """
@@ -38,6 +45,7 @@ from policies.baselines import NominalGenerator
 from policies.dataclass_cli import parse_dataclass
 from policies.harness import ClosedLoop
 from policies.learned.checkpoint import load_generator
+from policies.learned.plan_stitching import REST_SPEED
 from policies.planners import IDMPlanner
 from riskflow_env.agents.lane_graph import LaneGraph
 from riskflow_env.config import EnvConfig
@@ -49,6 +57,8 @@ from riskflow_env.scenarios import load_bank, shipped_bank
 
 CURVED = ("roundabout", "racetrack", "u-turn", "intersection")
 STANDING = 0.5  # [m/s]
+STANDS, STARTS = 0.5, 2.0  # [m] a vehicle at rest that the log moves less / more than this
+HOLDS = (0.5, 1.0, 2.0)  # [m] holding distances the at-rest table tries
 BUCKET = 20  # [steps] 2 s
 FULL_EPISODES = EnvConfig(terminate_on_collision="none", terminate_on_offroad="none")
 
@@ -69,7 +79,8 @@ def open_loop(plans: np.ndarray, planned: np.ndarray, scene, drivable) -> tuple[
 
 class FirstPlans:
     """A scene policy that drives as ``policy`` and keeps each episode's first plans:
-    ``first = (plans (A, T, 4), planned (A,) non-ego rows with a plan)``."""
+    ``first = (plans (A, T, 4), planned (A,) non-ego rows with a plan)`` and the states
+    they start from, ``start`` (A, 4)."""
 
     def __init__(self, policy: NominalGenerator) -> None:
         self.policy, self.first = policy, None
@@ -84,7 +95,25 @@ class FirstPlans:
             planned = self.policy.plan_mask & view.active
             planned[0] = False
             self.first = (self.policy.plans.copy(), planned)
+            self.start = view.current.copy()
         return actions
+
+
+def at_rest_reach(plans, planned, start, scenario, rows) -> list[tuple[float, float]]:
+    """``(plan reach, log reach)`` [m] of each planned vehicle at rest at the start whose
+    log covers the plan's steps: the largest distance from its start position over the
+    first plan, and over its logged positions at the same steps."""
+    steps = plans.shape[1]
+    now = scenario.current_index
+    pairs = []
+    for slot in np.flatnonzero(planned & (start[:, SPEED] <= REST_SPEED)):
+        row = rows[slot]
+        logged = scenario.states[row, now : now + steps + 1, :2]
+        if scenario.valid[row, now : now + steps + 1].sum() < steps + 1:
+            continue
+        reach = np.linalg.norm(plans[slot, :, :2] - start[slot, :2], axis=-1).max()
+        pairs.append((float(reach), float(np.linalg.norm(logged - logged[0], axis=-1).max())))
+    return pairs
 
 
 def past_road_end(record, off: np.ndarray) -> int:
@@ -120,14 +149,26 @@ def collision_kinds(record) -> Counter:
     return counts
 
 
-def diagnose(scenes: int, checkpoint: str | None, seed: int, bank: str | None = None) -> dict:
-    """Run the episodes; returns per-family rows, collision kinds and time buckets."""
+def diagnose(
+    scenes: int,
+    checkpoint: str | None,
+    seed: int,
+    bank: str | None = None,
+    hold_distance: float = 0.0,
+    avoid_steps: int = 0,
+) -> dict:
+    """Run the episodes; returns per-family rows, collision kinds, time buckets and the
+    at-rest vehicles' first-plan reach."""
     source = shipped_bank("eval") if bank is None else load_bank(bank)
     models = {}
     if checkpoint:
         generator, normalizer, _ = load_generator(checkpoint)
         models = {"generator": generator, "normalizer": normalizer}
-    policy = NominalGenerator(planning_interval=0.5, seed=seed, **models)
+    policy = NominalGenerator(
+        planning_interval=0.5, seed=seed, hold_distance=hold_distance, avoid_steps=avoid_steps,
+        **models,
+    )  # fmt: skip
+    at_rest: list[tuple[float, float]] = []
     families: dict[str, list] = {}
     kinds: Counter = Counter()
     buckets = np.zeros((5, 2))  # off-road centroid steps, live steps per 2 s bucket
@@ -136,6 +177,9 @@ def diagnose(scenes: int, checkpoint: str | None, seed: int, bank: str | None = 
         for scenario in source.scenarios[:scenes]:
             record = loop.run(scenario)
             plan_overlap, plan_offroad = open_loop(*recorder.first, loop.base.scene, scenario.map)
+            at_rest += at_rest_reach(
+                *recorder.first, recorder.start, scenario, record.scenario_rows
+            )
             live = record.active[:, :-1] & record.in_scene[:, 1:]
             live[0] = False  # the generator's vehicles only
             off = record.offroad_centroid[:, 1:] & live
@@ -159,7 +203,7 @@ def diagnose(scenes: int, checkpoint: str | None, seed: int, bank: str | None = 
                     *rates,  # 0 for a scene without a generator vehicle
                 )
             )
-    return {"families": families, "kinds": kinds, "buckets": buckets}
+    return {"families": families, "kinds": kinds, "buckets": buckets, "at_rest": at_rest}
 
 
 def report(result: dict) -> str:
@@ -190,6 +234,22 @@ def report(result: dict) -> str:
     for index, (off, live) in enumerate(result["buckets"]):
         if live:
             lines.append(f"| {2 * index}-{2 * index + 2} | {off / live:.3f} |")
+    holds = " | ".join(f"held at {d:g} m" for d in HOLDS)
+    lines += [
+        "",
+        "| at rest at the start, in the log | vehicles | plan reach p50 / p90 / p95 [m] | "
+        f"{holds} |",
+        "| --- | ---: | ---: | " + " | ".join("---:" for _ in HOLDS) + " |",
+    ]
+    reach = np.array(result["at_rest"], dtype=float).reshape(-1, 2)
+    for name, rows in (
+        (f"stands (< {STANDS:g} m)", reach[reach[:, 1] < STANDS, 0]),
+        (f"starts (> {STARTS:g} m)", reach[reach[:, 1] > STARTS, 0]),
+    ):
+        if rows.size:
+            p50, p90, p95 = np.percentile(rows, [50, 90, 95])
+            held = " | ".join(f"{np.mean(rows < d):.3f}" for d in HOLDS)
+            lines.append(f"| {name} | {rows.size} | {p50:.2f} / {p90:.2f} / {p95:.2f} | {held} |")
     return "\n".join(lines)
 
 
@@ -205,10 +265,19 @@ class Options:
     """noise seed of the generator"""
     bank: str | None = None
     """scene folder (riskflow_env.scenarios.load_bank); default: the shipped evaluation bank"""
+    hold_distance: float = 0.0
+    """[m] the generator's holding at rest (NominalGenerator hold_distance; 0: off)"""
+    avoid_steps: int = 0
+    """the generator's avoidance steps (NominalGenerator avoid_steps; 0: off)"""
 
     def __post_init__(self) -> None:
         if self.scenes < 1:
             raise ValueError(f"--scenes must be >= 1, got {self.scenes}")
+        if not 0 <= self.hold_distance < float("inf") or self.avoid_steps < 0:
+            raise ValueError(
+                f"--hold-distance must be finite and >= 0 and --avoid-steps >= 0, got "
+                f"{self.hold_distance} and {self.avoid_steps}"
+            )
 
 
 def main(argv: list[str] | None = None) -> str:
@@ -217,7 +286,9 @@ def main(argv: list[str] | None = None) -> str:
         Options, argv, prog="realism_diagnosis.py", description=__doc__.split("\n")[0]
     )
     start = time.perf_counter()
-    result = diagnose(args.scenes, args.checkpoint, args.seed, args.bank)
+    result = diagnose(
+        args.scenes, args.checkpoint, args.seed, args.bank, args.hold_distance, args.avoid_steps
+    )
     text = report(result)
     count = sum(len(rows) for rows in result["families"].values())
     print(text)

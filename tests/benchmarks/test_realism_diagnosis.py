@@ -15,15 +15,36 @@ def diagnosis():
 def test_one_scene_gives_every_table(diagnosis, capsys):
     text = diagnosis.main(["--scenes", "1"])
     headings = ("one-shot plans overlap", "collision starts", "off-road centroid share")
-    for heading in (*headings, "centroid past a road's end"):
+    for heading in (*headings, "centroid past a road's end", "at rest at the start"):
         assert heading in text
     assert "| highway | 1 |" in text and "| 0-2 |" in text
     assert "1 scenes in" in capsys.readouterr().out
 
 
-def test_bad_scene_count(diagnosis):
+@pytest.mark.parametrize(
+    "argv", [["--scenes", "0"], ["--hold-distance", "-1"], ["--avoid-steps", "-2"]]
+)
+def test_bad_options(diagnosis, argv):
     with pytest.raises(SystemExit):
-        diagnosis.main(["--scenes", "0"])
+        diagnosis.main(argv)
+
+
+def test_at_rest_reach_of_a_plan_that_stays_and_one_that_creeps(diagnosis):
+    """The plan's and the log's reach of vehicles at rest, nothing for moving ones."""
+    import numpy as np
+
+    from riskflow_env.scenarios import shipped_bank
+
+    scene = shipped_bank("eval")[17]  # an intersection with vehicles at rest
+    now, rows = scene.current_index, np.arange(scene.num_agents)
+    start = scene.states[:, now].copy()
+    plans = np.repeat(start[:, None], 10, axis=1)  # 10 steps standing where they are
+    plans[:, :, 0] += np.linspace(0.0, 1.5, 10)  # ... every one creeping 1.5 m
+    planned = np.ones(scene.num_agents, dtype=bool)
+    pairs = diagnosis.at_rest_reach(plans, planned, start, scene, rows)
+    at_rest = (start[:, 2] <= 0.2) & scene.valid[:, now : now + 11].all(axis=1)
+    assert len(pairs) == at_rest.sum() > 0
+    assert all(abs(reach - 1.5) < 1e-9 and log >= 0.0 for reach, log in pairs)
 
 
 def test_a_bank_of_your_own(diagnosis, tmp_path):
