@@ -164,6 +164,13 @@ METHODS: dict[str, MethodSpec] = {
             takes=("planning_interval", "seed", "device"),
         ),
         MethodSpec(
+            "bits-avoid",
+            "the unguided learned generator with avoidance steps and holding at rest",
+            _nominal,
+            {"avoid_steps": 10, "hold_distance": 2.0},
+            takes=("planning_interval", "seed", "device"),
+        ),
+        MethodSpec(
             "bits-diffusion",
             "the unguided diffusion generator (DDIM)",
             _nominal,
