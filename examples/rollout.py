@@ -8,7 +8,10 @@
 The ego follows its lane with IDM (``policies.planners.IDMPlanner``); every other vehicle
 is driven by ``RiskFlowAdversary`` (the shipped checkpoint unless ``--checkpoint``): one
 generator pass plans 5 s for every vehicle, the top-K critical ones (``A_c``) are guided
-toward risky interactions, and it re-plans every ``--planning-interval`` seconds. With
+toward risky interactions, and it re-plans every ``--planning-interval`` seconds. The
+demo runs the realistic base of docs/REALISM.md, round 8 (``--avoid-steps 10
+--hold-distance 2``: the base plans are pulled apart and onto the road, parked cars keep
+standing; ``--avoid-steps 0 --hold-distance 0`` is the adversary's default). With
 ``--traffic replay`` the others replay the scenario's reference future instead (open loop:
 a scenario saved by ``stress_test_planner.py`` replays what happened).
 
@@ -65,6 +68,10 @@ class Options:
     """episode length [steps of 0.1 s]"""
     traffic: str = "riskflow"
     """who drives the other vehicles: 'riskflow' or 'replay' (the scenario's future)"""
+    avoid_steps: int = 10
+    """avoidance steps on the base plans (RiskFlowAdversary avoid_steps; 0: off)"""
+    hold_distance: float = 2.0
+    """[m] vehicles at rest whose plan moves them less keep standing (0: off)"""
 
     def __post_init__(self) -> None:
         if self.video not in VIDEO_FORMATS:
@@ -77,6 +84,11 @@ class Options:
             raise ValueError(f"--k must be an int >= 0 or 'all', got {self.k!r}")
         if self.steps < 1:
             raise ValueError(f"--steps must be >= 1, got {self.steps}")
+        if self.avoid_steps < 0 or not 0 <= self.hold_distance < float("inf"):
+            raise ValueError(
+                f"--avoid-steps must be >= 0 and --hold-distance finite and >= 0, got "
+                f"{self.avoid_steps} and {self.hold_distance}"
+            )
 
     @property
     def controllable(self) -> int | str:
@@ -118,6 +130,8 @@ def make_traffic(options: Options) -> RiskFlowAdversary | ReplayPolicy:
         seed=options.seed,
         device=options.device,
         checkpoint=options.checkpoint,
+        avoid_steps=options.avoid_steps,
+        hold_distance=options.hold_distance,
     )
 
 
