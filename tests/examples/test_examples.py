@@ -70,10 +70,18 @@ def test_rollout(checkpoint, tmp_path):
     assert frames.shape == (metrics["steps"] + 1, 360, 640, 3)
 
 
-def test_rollout_rejects_bad_options(tmp_path):
-    command = [sys.executable, str(EXAMPLES / "rollout.py"), "--video", "avi"]
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--video", "avi"], "--video must be one of"),
+        (["--avoid-steps", "-1"], "--avoid-steps must be >= 0"),
+        (["--hold-distance", "-2"], "--hold-distance finite and >= 0"),
+    ],
+)
+def test_rollout_rejects_bad_options(argv, message):
+    command = [sys.executable, str(EXAMPLES / "rollout.py"), *argv]
     done = subprocess.run(command, capture_output=True, text=True, cwd=ROOT, timeout=120)
-    assert done.returncode == 2 and "--video must be one of" in done.stderr
+    assert done.returncode == 2 and message in done.stderr
 
 
 @pytest.mark.skipif(not SHIPPED.is_file(), reason="the shipped checkpoint is not trained yet")
