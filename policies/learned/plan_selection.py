@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from policies.learned.plan_penalties import pair_separation
+from riskflow_env.geometry import separation
 
 SELECTION_HORIZON = 30
 """steps of each plan the score looks at (3 s of the 5.2 s plan)"""
@@ -39,6 +40,11 @@ def overlap_scores(
 ) -> Tensor:
     """Summed squared penetration depth [m^2] of each joint plan.
 
+    Only pairs that can touch are tested: two boxes that overlap have centres closer than
+    the sum of their half-diagonals, so pairs whose centres are farther apart at every
+    step are skipped (no autograd graph is built for them); the value and its gradient
+    are those of testing every pair, to float rounding.
+
     Args:
         trajectories: ``(B, M, A, T, 4)`` M joint plans of B scenes (scene frame).
         length, width: ``(B, A)`` [m].
@@ -48,14 +54,25 @@ def overlap_scores(
     Returns:
         ``(B, M)``.
     """
-    num_agents = agent_mask.shape[-1]
+    num_scenes, num_samples, num_agents = trajectories.shape[:3]
     upper = torch.ones(num_agents, num_agents, dtype=torch.bool, device=agent_mask.device).triu(1)
     pairs = agent_mask[:, :, None] & agent_mask[:, None, :] & upper  # (B, A, A)
     apart_now = pair_separation(now[:, :, None], length, width)[..., 0] > 0.0  # (B, A, A)
-    pairs = (pairs & apart_now)[:, None, :, :, None]  # (B, 1, A, A, 1)
-    sizes = (length[:, None], width[:, None])  # (B, 1, A): every sample
-    depth = torch.relu(-pair_separation(trajectories, *sizes)) * pairs  # (B, M, A, A, T)
-    return (depth**2).sum(dim=(-3, -2, -1))
+    xy, yaw = trajectories[..., :2], trajectories[..., 3]
+    with torch.no_grad():
+        reach = 0.5 * torch.hypot(length, width)  # (B, A) half-diagonals
+        touch = (reach[:, :, None] + reach[:, None, :])[:, None, :, :, None]  # (B, 1, A, A, 1)
+        centres = torch.linalg.vector_norm(xy[:, :, :, None] - xy[:, :, None], dim=-1)
+        near = (centres <= touch).any(dim=-1) & (pairs & apart_now)[:, None]  # (B, M, A, A)
+    b, m, i, j = torch.nonzero(near, as_tuple=True)
+
+    def box(k: Tensor) -> tuple[Tensor, ...]:  # (P, T, 2), (P, T), (P, 1), (P, 1)
+        return xy[b, m, k], yaw[b, m, k], length[b, k, None], width[b, k, None]
+
+    depth = torch.relu(-separation(*box(i), *box(j)))  # (P, T)
+    per_pair = (depth**2).sum(dim=-1)
+    scores = trajectories.new_zeros(num_scenes * num_samples)
+    return scores.index_add(0, b * num_samples + m, per_pair).reshape(num_scenes, num_samples)
 
 
 def select_joint_plans(

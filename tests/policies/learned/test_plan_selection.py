@@ -31,6 +31,38 @@ def sizes(count: int) -> tuple[torch.Tensor, torch.Tensor]:
     return LENGTH * full, WIDTH * full
 
 
+def test_overlap_score_tests_only_pairs_that_can_touch_and_equals_every_pair():
+    """Skipping pairs whose centres stay farther apart than their half-diagonals changes
+    neither the score nor its gradient: the dense sum over every pair, to float rounding."""
+    from policies.learned.plan_penalties import pair_separation
+
+    g = torch.Generator().manual_seed(3)
+    num_scenes, samples, agents, steps = 2, 3, 14, 20
+    start = torch.rand(num_scenes, 1, agents, 1, 2, generator=g, dtype=torch.float64)
+    velocity = torch.randn(num_scenes, samples, agents, 1, 2, generator=g, dtype=torch.float64)
+    plans = torch.zeros(num_scenes, samples, agents, steps, 4, dtype=torch.float64)
+    time = 0.1 * torch.arange(steps, dtype=torch.float64)[:, None]
+    plans[..., :2] = start * torch.tensor([50.0, 10.0], dtype=torch.float64) + 3 * velocity * time
+    plans[..., 3] = 0.3 * torch.randn(num_scenes, samples, agents, 1, generator=g)
+    length = 3.5 + 2 * torch.rand(num_scenes, agents, generator=g, dtype=torch.float64)
+    width = 1.6 + 0.4 * torch.rand(num_scenes, agents, generator=g, dtype=torch.float64)
+    mask = torch.rand(num_scenes, agents, generator=g) > 0.1
+    now = plans[:, 0, :, 0]
+
+    sparse = plans.clone().requires_grad_(True)
+    dense = plans.clone().requires_grad_(True)
+    scores = overlap_scores(sparse, length, width, mask, now)
+    pairs = mask[:, :, None] & mask[:, None] & torch.ones(agents, agents, dtype=torch.bool).triu(1)
+    pairs &= pair_separation(now[:, :, None], length, width)[..., 0] > 0.0
+    depth = torch.relu(-pair_separation(dense, length[:, None], width[:, None]))
+    expected = (depth**2 * pairs[:, None, :, :, None]).sum(dim=(-3, -2, -1))
+    assert int((expected > 0).sum()) >= 3  # joint plans with overlaps to score
+    torch.testing.assert_close(scores, expected, rtol=1e-12, atol=1e-12)
+    scores.sum().backward()
+    expected.sum().backward()
+    torch.testing.assert_close(sparse.grad, dense.grad, rtol=1e-12, atol=1e-12)
+
+
 def test_overlap_score_is_the_squared_penetration_of_pairs_apart_now():
     now = torch.tensor([[[0.0, 0.0, 0.0, 0.0], [10.0, 0.0, 0.0, 0.0], [20.0, 0.0, 0.0, 0.0]]])
     apart = still([(0.0, 0.0), (10.0, 0.0), (20.0, 0.0)])
