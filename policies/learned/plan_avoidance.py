@@ -36,6 +36,7 @@ from policies.learned.plan_selection import SELECTION_HORIZON, overlap_scores
 from policies.learned.plan_stitching import REST_SPEED
 from policies.learned.sampler import decode_plans
 from riskflow_env.config import DynamicsConfig
+from riskflow_env.dynamics import SPEED
 
 
 def avoid_overlaps(
@@ -71,7 +72,7 @@ def avoid_overlaps(
     Returns:
         ``(u, actions, trajectories)``: ``(B, A, T, 2)``, ``(B, A, T, 2)``, ``(B, A, T, 4)``.
     """
-    variable = agent_mask & (state[..., 2] > REST_SPEED)
+    variable = agent_mask & (state[..., SPEED] > REST_SPEED)
     variable[:, ego] = False
     mask = variable[..., None, None].to(u0.dtype)
     u = u0.detach().clone()

@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from riskflow_env.config import DynamicsConfig
-from riskflow_env.dynamics import inverse, rollout
+from riskflow_env.dynamics import SPEED, inverse, rollout
 from riskflow_env.view import SceneView
 
 REST_SPEED = 0.2  # [m/s] a vehicle at or below this speed is at rest (holding at rest)
@@ -61,7 +61,7 @@ class PlanStitching:
         if self.hold_distance <= 0.0:
             return
         current = view.current
-        rows = np.flatnonzero(self.plan_mask & view.active & (current[:, 2] <= REST_SPEED))
+        rows = np.flatnonzero(self.plan_mask & view.active & (current[:, SPEED] <= REST_SPEED))
         if rows.size == 0:
             return
         reach = np.linalg.norm(self.plans[rows, :, :2] - current[rows, None, :2], axis=-1)
