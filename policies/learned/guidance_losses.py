@@ -310,8 +310,20 @@ class MapTerm:
         """(C,) ``L_map`` [m^2] of each row (no gradient)."""
         return self._evaluate(trajectories.detach(), with_gradient=False)[0]
 
-    def _evaluate(self, trajectories: Tensor, with_gradient: bool) -> tuple[Tensor, Tensor | None]:
-        """The one implementation of the per-row values and their (chain-rule) gradient."""
+    def forgive(self, current: Tensor) -> None:
+        """Forgive each row what its footprint is off the road now: the penalty starts
+        beyond the current depth ``max(0, sdf + margin)`` of its footprint samples at
+        ``current`` (C, 4) scene-frame states, as the training penalty forgives what the
+        log does (:func:`policies.learned.plan_penalties.offroad_penalty`). A vehicle on
+        the road now keeps the plain term; one that the map shows off the road (a car park
+        the raster misses) is not pulled onto it."""
+        points = self._footprint(current[:, None])[0]  # (C, 1, 9, 2)
+        depth = torch.relu(self.map.sdf_at(points) + self.margin).amax(dim=(-2, -1))  # (C,)
+        self.margin = self.margin - depth[:, None, None]
+
+    def _footprint(self, trajectories: Tensor) -> tuple[Tensor, ...]:
+        """World footprint samples (C, T, 9, 2) of scene-frame states and the pieces of
+        their rotation (``along_x, across_x, along_y, across_y``, each (C, T, 9))."""
         cos_f, sin_f = self.cos, self.sin  # the scene frame's rotation to the world
         x_s, y_s = trajectories[..., 0], trajectories[..., 1]  # (C, T)
         world_x = self.origin_x + cos_f * x_s - sin_f * y_s
@@ -323,6 +335,12 @@ class MapTerm:
         x = world_x[..., None] + along_x - across_x  # (C, T, 9)
         y = world_y[..., None] + along_y + across_y
         points = torch.stack([x, y], dim=-1)  # == footprint_points(world, yaw, ...)
+        return points, along_x, across_x, along_y, across_y
+
+    def _evaluate(self, trajectories: Tensor, with_gradient: bool) -> tuple[Tensor, Tensor | None]:
+        """The one implementation of the per-row values and their (chain-rule) gradient."""
+        cos_f, sin_f = self.cos, self.sin
+        points, along_x, across_x, along_y, across_y = self._footprint(trajectories)
         if not with_gradient:
             depth = torch.relu(self.map.sdf_at(points) + self.margin)  # (C, T, 9)
             return ((depth * depth).sum(dim=-1) * self.weights).sum(dim=-1), None

@@ -283,6 +283,8 @@ class RiskFlowAdversary(PlanBufferPolicy):
         trajectories)`` after them."""
         scene, batch = observed.scene, observed.batch
         term = self._map_term_of_every_row(observed, views)
+        if term is not None:
+            term.forgive(scene.state.flatten(0, 1))
         return avoid_overlaps(
             eps, u0, scene.state, batch.length, batch.width, scene.agent_mask, term,
             self.normalizer, self.dynamics, steps=self.avoid_steps,
