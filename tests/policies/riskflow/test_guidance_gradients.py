@@ -110,6 +110,28 @@ def test_map_gradient_matches_finite_differences():
     assert torch.equal(through_term, gradient)
 
 
+def test_map_term_forgives_what_a_vehicle_is_off_the_road_now():
+    """``MapTerm.forgive``: a vehicle 2 m beside the road (|y| < 6 m) is not penalised
+    where it stands, only beyond; a vehicle on the road keeps the plain term."""
+    frame = torch.zeros(3, dtype=torch.float64)
+    length, width = torch.tensor([4.5, 4.5]).double(), torch.tensor([2.0, 2.0]).double()
+    now = torch.tensor([[0.0, 8.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    plain = MapTerm(ROAD, frame, length, width, 3, margin=0.2, decay=1.0)
+    term = MapTerm(ROAD, frame, length, width, 3, margin=0.2, decay=1.0)
+    term.forgive(now)
+    stay = now[:, None].expand(2, 3, 4).clone()
+    assert float(plain.rows(stay)[0]) > 1.0 and float(term.rows(stay)[0]) == 0.0
+    farther = stay.clone()
+    farther[0, :, 1] += 0.5  # half a metre farther off the road
+    assert 0.0 < float(term.rows(farther)[0]) < float(plain.rows(farther)[0])
+    closer = stay.clone()
+    closer[0, :, 1] -= 3.0  # back onto the road
+    assert float(term.rows(closer)[0]) == 0.0
+    onto = stay.clone()
+    onto[1, :, 1] = torch.tensor([4.0, 5.5, 7.0], dtype=torch.float64)  # the on-road one leaves
+    assert torch.equal(term.rows(onto)[1], plain.rows(onto)[1])
+
+
 def _autograd_adversarial(xy, target_xy, horizon, target_valid):
     """Each row's ``L_adv`` by plain autograd ops (the reference of the closed form)."""
     targets = target_xy if target_xy.ndim == 4 else target_xy[None].expand(len(xy), -1, -1, -1)
