@@ -29,7 +29,7 @@ every scene)::
 
     python benchmarks/traffic_realism.py [--checkpoint A.pt B.pt] [--scenes 14 | --full]
         [--seeds 0 1 2] [--bank DIR] [--workers 1] [--out realism.json]
-        [--base-samples 1 8] [--hold-distance 0 1] [--avoid-steps 0 10]
+        [--base-samples 1 8] [--hold-distance 0 1] [--avoid-steps 0 10] [--smooth-steps 1 3]
         [--leave-when-log-ends]
 """
 
@@ -104,6 +104,9 @@ class Options:
     """[m] vehicles at rest whose plan moves them less than this keep their brake on
     (NominalGenerator hold_distance; 0: off); a row per checkpoint, --base-samples value
     and value"""
+    smooth_steps: tuple[int, ...] = (1,)
+    """[steps] moving average over each plan's accelerations (NominalGenerator
+    smooth_steps; 1: off); a row per value of this and the options above"""
     avoid_steps: tuple[int, ...] = (0,)
     """avoidance steps on each cycle's base plans (NominalGenerator avoid_steps; 0: off);
     a row per checkpoint, --base-samples, --hold-distance and value"""
@@ -144,6 +147,8 @@ class Options:
             )
         if not self.base_samples or any(m < 1 for m in self.base_samples):
             raise ValueError(f"--base-samples must be ints >= 1, got {self.base_samples}")
+        if not self.smooth_steps or any(n < 1 for n in self.smooth_steps):
+            raise ValueError(f"--smooth-steps must be ints >= 1, got {self.smooth_steps}")
         if not self.avoid_steps or any(n < 0 for n in self.avoid_steps):
             raise ValueError(f"--avoid-steps must be ints >= 0, got {self.avoid_steps}")
         if not self.hold_distance or not all(0 <= d < float("inf") for d in self.hold_distance):
@@ -248,20 +253,24 @@ def summarise(label: str, results: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def sampled(samples: int, hold: float = 0.0, avoid: int = 0) -> dict[str, int | float]:
-    """The generator's options for ``--base-samples`` M, ``--hold-distance`` D and
-    ``--avoid-steps`` N (none for the defaults 1, 0 and 0)."""
+def sampled(
+    samples: int, hold: float = 0.0, avoid: int = 0, smooth: int = 1
+) -> dict[str, int | float]:
+    """The generator's options for ``--base-samples`` M, ``--hold-distance`` D,
+    ``--avoid-steps`` N and ``--smooth-steps`` S (none for the defaults 1, 0, 0, 1)."""
     options: dict[str, int | float] = {"base_samples": samples} if samples != 1 else {}
     options |= {"hold_distance": hold} if hold else {}
-    return options | ({"avoid_steps": avoid} if avoid else {})
+    options |= {"avoid_steps": avoid} if avoid else {}
+    return options | ({"smooth_steps": smooth} if smooth != 1 else {})
 
 
-def labelled(label: str, samples: int, hold: float = 0.0, avoid: int = 0) -> str:
+def labelled(label: str, samples: int, hold: float = 0.0, avoid: int = 0, smooth: int = 1) -> str:
     """A generator row's label: the checkpoint's, with ``best of M`` for M > 1, ``hold D
-    m`` for D > 0 and ``avoid N`` for N > 0."""
+    m`` for D > 0, ``avoid N`` for N > 0 and ``smooth S`` for S > 1."""
     label = label if samples == 1 else f"{label} best of {samples}"
     label = label if not hold else f"{label} hold {hold:g} m"
-    return label if not avoid else f"{label} avoid {avoid}"
+    label = label if not avoid else f"{label} avoid {avoid}"
+    return label if smooth == 1 else f"{label} smooth {smooth}"
 
 
 def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[RealismJob]:
@@ -277,7 +286,11 @@ def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[
     names = [Path(p).name for p in args.checkpoint]
     unique = len(set(names)) == len(names)
     labels = names if unique else list(args.checkpoint)
-    variants = list(itertools.product(args.base_samples, args.hold_distance, args.avoid_steps))
+    variants = list(
+        itertools.product(
+            args.base_samples, args.hold_distance, args.avoid_steps, args.smooth_steps
+        )
+    )
     methods = [
         ("bits", {"checkpoint": str(Path(path).resolve()), **sampled(*v)}, labelled(label, *v))
         for path, label in zip(args.checkpoint, labels, strict=True)

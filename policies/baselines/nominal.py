@@ -62,6 +62,8 @@ class NominalGenerator(RiskFlowAdversary):
             BITS's selection step, :mod:`policies.learned.plan_selection`); 1: one draw.
         hold_distance: [m] vehicles at rest whose plan moves them less than this keep
             their brake on (``AdversaryConfig.hold_distance``); 0: off.
+        smooth_steps: [steps] moving average over each plan's accelerations
+            (``AdversaryConfig.smooth_steps``); 1: off.
         avoid_steps, avoid_step_size: Adam steps (0: off) and their size that pull the
             base plans' boxes apart and onto the road (``RiskFlowAdversary``,
             :mod:`policies.learned.plan_avoidance`).
@@ -82,12 +84,14 @@ class NominalGenerator(RiskFlowAdversary):
         threads: int | None = 1,
         base_samples: int = 1,
         hold_distance: float = 0.0,
+        smooth_steps: int = 1,
         avoid_steps: int = 0,
         avoid_step_size: float = 0.1,
     ) -> None:
         config = AdversaryConfig(
             k=0, planning_interval=planning_interval, seed=seed, device=device,
             window_config=window_config, threads=threads, hold_distance=hold_distance,
+            smooth_steps=smooth_steps,
         )  # fmt: skip
         super().__init__(
             config,

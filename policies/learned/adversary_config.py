@@ -58,6 +58,8 @@ class AdversaryConfig:
         hold_distance: [m] a vehicle at rest whose new plan moves it less than this over
             the horizon keeps its brake on (:mod:`policies.learned.plan_stitching`);
             0 (default): off.
+        smooth_steps: [steps] centred moving average over each new plan's accelerations
+            (:mod:`policies.learned.plan_stitching`); 1 (default): off.
     """
 
     k: int | str = 5
@@ -72,6 +74,7 @@ class AdversaryConfig:
     window_config: WindowConfig | None = None
     threads: int | None = 1
     hold_distance: float = 0.0
+    smooth_steps: int = 1
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "k", check_k(self.k))
@@ -90,6 +93,10 @@ class AdversaryConfig:
         if isinstance(hold, bool) or not isinstance(hold, (int, float)) or not 0 <= hold < math.inf:
             raise ValueError(f"hold_distance must be a finite number >= 0 [m], got {hold!r}")
         object.__setattr__(self, "hold_distance", float(hold))
+        smooth = self.smooth_steps
+        if isinstance(smooth, bool) or not isinstance(smooth, (int, np.integer)) or smooth < 1:
+            raise ValueError(f"smooth_steps must be an int >= 1 [steps], got {smooth!r}")
+        object.__setattr__(self, "smooth_steps", int(smooth))
         seed = self.seed
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed must be an int >= 0, got {seed!r}")

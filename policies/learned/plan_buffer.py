@@ -24,8 +24,9 @@ scenes in one encoder pass, one generator pass and one guidance loop) or
 * **stitching** (:mod:`policies.learned.plan_stitching`): a new plan's first
   ``stitch_steps`` actions are blended with the plan being executed, so the actions stay
   continuous across a re-plan (``policy.stitch_steps = 0`` switches at once); before
-  that, with ``hold_distance`` > 0, vehicles at rest whose plan hardly moves them keep
-  their brake on (same module);
+  that, with ``smooth_steps`` > 1, the new plans' accelerations are smoothed, and with
+  ``hold_distance`` > 0, vehicles at rest whose plan hardly moves them keep their brake
+  on (same module);
 * **render overlays** of the plans (:mod:`policies.learned.plan_overlay`).
 
 The constructors' shared checks (:func:`~policies.learned.adversary_config.check_model_pair`,
@@ -98,6 +99,7 @@ class PlanBufferPolicy(PlanStitching, PlanOverlay):
         self.dynamics = window_config.dynamics
         self.seed = config.seed
         self.hold_distance = float(config.hold_distance)
+        self.smooth_steps = int(config.smooth_steps)
         self.device = torch.device(config.device)
         self.threads = config.threads
         self._episode = -1
@@ -320,8 +322,9 @@ def plan_scenes(scenes: Sequence[PlanBufferPolicy], views: Sequence[SceneView]) 
     :meth:`~PlanBufferPolicy._plan_cycles` (``RiskFlowAdversary``) runs one encoder
     pass, one generator pass and one guidance loop for all of them; the others plan
     scene by scene. Then each scene's new plans are stitched onto its executed ones and
-    its buffer restarts at its ``view.step`` (vehicles at rest held first, with
-    ``hold_distance`` > 0). ``PlanBufferPolicy.plan`` is the case B = 1.
+    its buffer restarts at its ``view.step`` (the new plans smoothed and vehicles at rest
+    held first, with ``smooth_steps`` > 1 and ``hold_distance`` > 0).
+    ``PlanBufferPolicy.plan`` is the case B = 1.
 
     Every scene's ``timings`` are the call's: its phases (they ran once for all scenes;
     for a subclass that plans scene by scene, those of ``scenes[0]``) and its ``"total"``.
@@ -358,7 +361,7 @@ def plan_scenes(scenes: Sequence[PlanBufferPolicy], views: Sequence[SceneView]) 
         ]
         planner._plan_cycles(scenes, views)
         for scene, view, previous in zip(scenes, views, before, strict=True):
-            scene._hold_at_rest(view)
+            scene._shape(view)
             if previous is not None and scene.stitch_steps > 0:
                 scene._stitch(view, *previous)
         total = time.perf_counter() - start
