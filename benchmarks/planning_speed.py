@@ -9,13 +9,17 @@ Peers, measured interleaved with it (same machine load):
 * **unguided** — the same policy with ``k = 0`` (window + encoder + generator + ranking);
 * **re-sampling** — the gradient-free alternative to guidance: one batched pass drawing
   ``--guidance-steps`` plans per agent (``sample(num_samples=N)``), then keeping the
-  sample whose ``A_c`` rows score the lowest ``L_adv``.
+  sample whose ``A_c`` rows score the lowest ``L_adv``;
+* **on the realistic base** — RiskFlow and the unguided generator with ``--avoid-steps``
+  (10) avoidance steps and holding at rest at 2 m (``riskflow-eval``'s ``bits-avoid``;
+  docs/REALISM.md, round 8); ``--avoid-steps 0`` leaves these rows out.
 
 Prints the median [ms] of each phase and the ratios to the peers. Target: a full cycle
 within 50 ms on a laptop-class CPU. Speed does not depend on the weights: without the
 shipped checkpoint the default-size model is randomly initialised.
 
     python benchmarks/planning_speed.py [--agents 20] [--threads 1] [--repeats 30]
+        [--avoid-steps 10]
 """
 
 from __future__ import annotations
@@ -62,6 +66,12 @@ class Options:
     """timed cycles per method (the median is reported)"""
     warmup: int = 3
     """untimed cycles per method first"""
+    avoid_steps: int = 10
+    """avoidance steps of the realistic-base peers (0: no such peers)"""
+
+    def __post_init__(self) -> None:
+        if self.avoid_steps < 0:
+            raise ValueError(f"--avoid-steps must be >= 0, got {self.avoid_steps}")
 
 
 def _parse(argv: list[str] | None = None) -> Options:
@@ -122,7 +132,12 @@ def main() -> None:
     kwargs = dict(generator=model, normalizer=normalizer, device=options.device, threads=threads)
     guided = RiskFlowAdversary(k=options.k, guidance_steps=options.guidance_steps, **kwargs)
     unguided = RiskFlowAdversary(k=0, **kwargs)
-    for policy in (guided, unguided):
+    kwargs_based = dict(kwargs, avoid_steps=options.avoid_steps, hold_distance=2.0)
+    based = [
+        RiskFlowAdversary(k=options.k, guidance_steps=options.guidance_steps, **kwargs_based),
+        RiskFlowAdversary(k=0, **kwargs_based),
+    ]
+    for policy in (guided, unguided, *based):
         policy.reset(view)
 
     phases: dict[str, list[float]] = {phase: [] for phase in (*PHASES, "total")}
@@ -142,6 +157,9 @@ def main() -> None:
 
     cycles = {"riskflow": guided_cycle, "unguided": lambda: unguided.plan(view)}
     cycles["resample"] = resample
+    if options.avoid_steps:
+        cycles["riskflow-avoid"] = lambda: based[0].plan(view)
+        cycles["unguided-avoid"] = lambda: based[1].plan(view)
     walls = interleaved_ms(cycles, options.repeats, options.warmup)
     med = {name: statistics.median(values) for name, values in walls.items()}
     print(
@@ -165,6 +183,11 @@ def main() -> None:
         ("unguided generator (K=0)", med["unguided"]),
         (f"re-sampling, best of {options.guidance_steps} samples", med["resample"]),
     ]
+    if options.avoid_steps:
+        rows += [
+            (f"RiskFlow, {options.avoid_steps} avoidance steps", med["riskflow-avoid"]),
+            (f"unguided, {options.avoid_steps} avoidance steps", med["unguided-avoid"]),
+        ]
     for name, value in rows:
         print(f"{name:<34}{value:9.2f}{med['riskflow'] / value:14.2f}x")
     verdict = "meets" if med["riskflow"] <= 50.0 else "misses"
