@@ -77,7 +77,6 @@ class EpisodeRecord:
         agent_names: (A,) slot names, ``"ego"`` first.
         states: (A, S + 1, 4) executed states (x [m], y [m], v [m/s], psi [rad]) from the
             reset (index 0) to the last of the S steps.
-        present: (A,) bool, slots holding a vehicle at the reset.
         in_scene: (A, S + 1) bool, the vehicle was in the scene at that step: False for
             empty slots and from the step a vehicle left on (``EnvConfig.
             leave_when_log_ends``); a vehicle that is done but stays (a collision, the
@@ -94,7 +93,6 @@ class EpisodeRecord:
     scenario_rows: np.ndarray
     agent_names: tuple[str, ...]
     states: np.ndarray
-    present: np.ndarray
     in_scene: np.ndarray
     active: np.ndarray
     offroad_centroid: np.ndarray
@@ -102,6 +100,12 @@ class EpisodeRecord:
     events: tuple[dict[str, Any], ...]
     metrics: dict[str, Any] = field(default_factory=dict)
     dt: float = 0.1
+
+    @property
+    def present(self) -> np.ndarray:
+        """(A,) bool, slots holding a vehicle at the reset (vehicles may leave the scene,
+        none enters it)."""
+        return self.in_scene[:, 0]
 
     def rollout_record(self, history: int = 2) -> RolloutRecord:
         """The episode as a :class:`riskflow_env.metrics.RolloutRecord` (SCR, ORR, ADE,
@@ -282,7 +286,7 @@ def episode_record(
     """
     states, in_scene, active, centroid, footprint = frames
     scenario = view.scenario
-    present = in_scene[:, 0].copy()  # vehicles may leave the scene, none enters it
+    present = in_scene[:, 0]
     summary = events[-1] if events and events[-1]["event"] == "episode_summary" else {}
     live = active[:, :-1] & in_scene[:, 1:]  # live before each step and still there after
     road = offroad_counts(centroid[:, 1:], footprint[:, 1:], live)  # the env's own flags
@@ -313,7 +317,6 @@ def episode_record(
         scenario_rows=np.asarray(view.scenario_rows).copy(),
         agent_names=tuple(view.agent_names),
         states=states,
-        present=present,
         in_scene=in_scene,
         active=active,
         offroad_centroid=centroid,

@@ -78,10 +78,7 @@ class PlanStitching:
             return
         smooth = self.plan_actions[rows]
         smooth[..., 0] = uniform_filter1d(smooth[..., 0], self.smooth_steps, axis=1, mode="nearest")
-        self.plan_actions[rows] = smooth
-        self.plans[rows] = rollout(view.current[rows], smooth, self.dynamics)
-        unguided = rows[~self.controllable[rows]]
-        self.base_plans[unguided] = self.plans[unguided]
+        self._replace_plans(view, rows, smooth)
 
     def _hold_at_rest(self, view: SceneView) -> None:
         """Keep the brake on for vehicles at rest whose new plan hardly moves them
@@ -100,8 +97,14 @@ class PlanStitching:
         held = self.plan_actions[rows]
         held[..., 0] = np.minimum(held[..., 0], 0.0)
         held[..., 1] = 0.0
-        self.plan_actions[rows] = held
-        self.plans[rows] = rollout(current[rows], held, self.dynamics)
+        self._replace_plans(view, rows, held)
+
+    def _replace_plans(self, view: SceneView, rows: np.ndarray, actions: np.ndarray) -> None:
+        """New actions (R, T, 2) for the plans of ``rows``, rolled out from the current
+        states; the unguided rows' alternative (``base_plans``) is the same plan, the
+        guided rows' is left as it is."""
+        self.plan_actions[rows] = actions
+        self.plans[rows] = rollout(view.current[rows], actions, self.dynamics)
         unguided = rows[~self.controllable[rows]]
         self.base_plans[unguided] = self.plans[unguided]
 

@@ -248,7 +248,7 @@ class RiskFlowAdversary(PlanBufferPolicy):
         (:func:`~policies.learned.plan_selection.select_joint_plans`); ``plans`` are
         ``(B * M, A, ...)`` tensors, a scene's M samples in a row, returned as ``(B, A, ...)``."""
         scene, batch = observed.scene, observed.batch
-        num_scenes, num_agents = scene.agent_mask.shape
+        num_scenes = scene.agent_mask.shape[0]
         samples = self.base_samples
         trajectories = plans[3].reshape(num_scenes, samples, *plans[3].shape[1:])
         term = self._map_term_of_every_row(observed, views)
