@@ -20,8 +20,16 @@ not one (the ego is not driven by the scene policy; the others avoid its predict
 plan), nor are absent rows, nor vehicles at rest (speed <= ``REST_SPEED``): they are
 obstacles here, and whether they start is the generator's decision (and the holding
 rule's, :mod:`policies.learned.plan_stitching`); as variables, the map term drove parked
-cars that the map's raster shows off the road onto it (the real scenes). Autograd through
-the differentiable rollout; ``steps = 0`` leaves the plans as they are.
+cars that the map's raster shows off the road onto it (the real scenes); for the same
+reason the map term forgives each variable what its footprint is off the road now
+(:meth:`~policies.learned.guidance_losses.MapTerm.forgive`).
+
+Each step costs what a guidance step does on the same rows (:mod:`policies.riskflow.guidance`):
+the variables' rows are rolled out over the scored steps only, the map term gives its
+gradient in closed form, the rollout its vector-Jacobian product
+(``riskflow_env.dynamics.rollout_with_vjp``), and autograd runs only through the
+separation of the pairs whose boxes can touch (a pair of variables, or a variable and an
+obstacle). ``steps = 0`` leaves the plans as they are.
 """
 
 from __future__ import annotations
@@ -31,12 +39,14 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from policies.learned.adam import Adam
 from policies.learned.data import Normalizer
-from policies.learned.plan_selection import SELECTION_HORIZON, overlap_scores
+from policies.learned.guidance_losses import MapTerm
+from policies.learned.plan_selection import SELECTION_HORIZON, overlap_scores, scored_pairs
 from policies.learned.plan_stitching import REST_SPEED
 from policies.learned.sampler import decode_plans
 from riskflow_env.config import DynamicsConfig
-from riskflow_env.dynamics import SPEED
+from riskflow_env.dynamics import SPEED, rollout_with_vjp
 
 
 def avoid_overlaps(
@@ -46,7 +56,7 @@ def avoid_overlaps(
     length: Tensor,
     width: Tensor,
     agent_mask: Tensor,
-    map_loss: Callable[[Tensor], Tensor] | None,
+    map_term_of: Callable[[Tensor], MapTerm | None] | None,
     normalizer: Normalizer,
     dynamics: DynamicsConfig,
     *,
@@ -61,9 +71,10 @@ def avoid_overlaps(
         eps: ``(B, A, T, 2)`` noise; ``u0`` the same shape, the base residual.
         state: ``(B, A, 4)`` current states (scene frame).
         length, width: ``(B, A)`` [m]; ``agent_mask`` ``(B, A)`` bool, present agents.
-        map_loss: ``(B * A, T_s, 4) -> scalar`` the map term of every row (differentiable),
-            or None (no map term).
-        normalizer, dynamics: the plans' decoding (:func:`~policies.learned.sampler.decode_plans`).
+        map_term_of: ``rows -> MapTerm`` the map term of the given rows of the flattened
+            ``B * A`` agents over ``horizon`` steps, or None (no map term).
+        normalizer, dynamics: the plans' decoding (:func:`~policies.learned.sampler.decode_plans`;
+            ``normalizer.denormalize`` affine, as for guidance).
         steps: Adam steps (0: ``u0`` unchanged); ``step_size`` its learning rate
             [normalised action units].
         ego: the ego's slot (not a variable; nor are vehicles at rest).
@@ -74,26 +85,69 @@ def avoid_overlaps(
     """
     variable = agent_mask & (state[..., SPEED] > REST_SPEED)
     variable[:, ego] = False
-    mask = variable[..., None, None].to(u0.dtype)
+    rows = torch.nonzero(variable.flatten()).flatten()  # flat (scene, agent) indices
     u = u0.detach().clone()
-    if steps > 0 and bool(variable.any()):
-        delta = torch.zeros_like(u, requires_grad=True)
-        optimizer = torch.optim.Adam([delta], lr=step_size)
-        with torch.enable_grad():
-            for _ in range(steps):
-                _, trajectories = decode_plans(
-                    eps + u + delta * mask, state, agent_mask, normalizer, dynamics
-                )
-                scored = trajectories[..., :horizon, :]
-                loss = overlap_scores(scored[:, None], length, width, agent_mask, state).sum()
-                if map_loss is not None:
-                    loss = loss + map_loss(scored.flatten(0, 1))
-                optimizer.zero_grad(set_to_none=False)
-                loss.backward()
-                optimizer.step()
-        u = u + delta.detach() * mask
+    if steps > 0 and rows.numel() > 0:
+        u.flatten(0, 1)[rows] = _steps(
+            eps, u0, state, length, width, agent_mask, variable, rows, map_term_of,
+            normalizer, dynamics, steps, step_size, horizon,
+        )  # fmt: skip
     actions, trajectories = decode_plans(eps + u, state, agent_mask, normalizer, dynamics)
     return u, actions, trajectories
+
+
+def _steps(
+    eps: Tensor,
+    u0: Tensor,
+    state: Tensor,
+    length: Tensor,
+    width: Tensor,
+    agent_mask: Tensor,
+    variable: Tensor,
+    rows: Tensor,
+    map_term_of: Callable[[Tensor], MapTerm | None] | None,
+    normalizer: Normalizer,
+    dynamics: DynamicsConfig,
+    steps: int,
+    step_size: float,
+    horizon: int,
+) -> Tensor:
+    """The ``(V, T, 2)`` residuals of the variables' ``rows`` after the steps."""
+    lead = variable.shape
+    with torch.no_grad():
+        _, obstacles = decode_plans(
+            eps[..., :horizon, :] + u0[..., :horizon, :], state, agent_mask, normalizer, dynamics
+        )  # (B, A, H, 4): every row; the variables' are replaced at each step
+        obstacles = obstacles.flatten(0, 1)
+        # pairs that can change: at least one of the two is a variable
+        pairs = scored_pairs(length, width, agent_mask, state)
+        pairs = pairs & (variable[:, :, None] | variable[:, None, :])
+        zero = torch.zeros_like(eps[0, 0, :1])  # (1, 2)
+        scale = normalizer.denormalize(zero + 1.0) - normalizer.denormalize(zero)  # d a / d u
+        moving = (eps + u0)[..., :horizon, :].flatten(0, 1)[rows]  # (V, H, 2)
+        now = state.flatten(0, 1)[rows]
+        term = None if map_term_of is None else map_term_of(rows)
+        if term is not None:
+            term.forgive(now)
+        delta = torch.zeros_like(moving)
+        adam = Adam(delta, step_size)
+        for _ in range(steps):
+            planned, vjp = rollout_with_vjp(now, normalizer.denormalize(moving + delta), dynamics)
+            joint = obstacles.clone()
+            joint[rows] = planned
+            joint = joint.reshape(*lead, *joint.shape[1:]).requires_grad_(True)
+            with torch.enable_grad():
+                overlap = overlap_scores(joint[:, None], length, width, agent_mask, state, pairs)
+                (d_joint,) = torch.autograd.grad(overlap.sum(), joint, allow_unused=True)
+            d_planned = (
+                torch.zeros_like(planned) if d_joint is None else d_joint.flatten(0, 1)[rows]
+            )
+            if term is not None:
+                d_planned = d_planned + term.rows_and_gradient(planned)[1]
+            delta = delta - adam.step(vjp(d_planned) * scale)
+    residual = u0.flatten(0, 1)[rows]  # a copy (advanced indexing)
+    residual[:, :horizon] += delta
+    return residual
 
 
 __all__ = ["avoid_overlaps"]

@@ -35,8 +35,22 @@ SELECTION_HORIZON = 30
 """steps of each plan the score looks at (3 s of the 5.2 s plan)"""
 
 
+def scored_pairs(length: Tensor, width: Tensor, agent_mask: Tensor, now: Tensor) -> Tensor:
+    """``(B, A, A)`` bool: the pairs ``i < j`` of present agents that are apart now, those
+    that :func:`overlap_scores` counts."""
+    num_agents = agent_mask.shape[-1]
+    upper = torch.ones(num_agents, num_agents, dtype=torch.bool, device=agent_mask.device).triu(1)
+    pairs = agent_mask[:, :, None] & agent_mask[:, None, :] & upper  # (B, A, A)
+    return pairs & (pair_separation(now[:, :, None], length, width)[..., 0] > 0.0)
+
+
 def overlap_scores(
-    trajectories: Tensor, length: Tensor, width: Tensor, agent_mask: Tensor, now: Tensor
+    trajectories: Tensor,
+    length: Tensor,
+    width: Tensor,
+    agent_mask: Tensor,
+    now: Tensor,
+    pairs: Tensor | None = None,
 ) -> Tensor:
     """Summed squared penetration depth [m^2] of each joint plan.
 
@@ -50,21 +64,24 @@ def overlap_scores(
         length, width: ``(B, A)`` [m].
         agent_mask: ``(B, A)`` bool, present agents.
         now: ``(B, A, 4)`` current states (pairs overlapping now are not counted).
+        pairs: ``(B, A, A)`` bool, :func:`scored_pairs` of ``agent_mask`` and ``now``,
+            or a subset of them (computed when None; callers that score many plans of
+            the same scenes compute it once).
 
     Returns:
         ``(B, M)``.
     """
-    num_scenes, num_samples, num_agents = trajectories.shape[:3]
-    upper = torch.ones(num_agents, num_agents, dtype=torch.bool, device=agent_mask.device).triu(1)
-    pairs = agent_mask[:, :, None] & agent_mask[:, None, :] & upper  # (B, A, A)
-    apart_now = pair_separation(now[:, :, None], length, width)[..., 0] > 0.0  # (B, A, A)
+    num_scenes, num_samples = trajectories.shape[:2]
+    if pairs is None:
+        pairs = scored_pairs(length, width, agent_mask, now)
     xy, yaw = trajectories[..., :2], trajectories[..., 3]
+    b, i, j = torch.nonzero(pairs, as_tuple=True)  # (P,) the pairs scored
     with torch.no_grad():
         reach = 0.5 * torch.hypot(length, width)  # (B, A) half-diagonals
-        touch = (reach[:, :, None] + reach[:, None, :])[:, None, :, :, None]  # (B, 1, A, A, 1)
-        centres = torch.linalg.vector_norm(xy[:, :, :, None] - xy[:, :, None], dim=-1)
-        near = (centres <= touch).any(dim=-1) & (pairs & apart_now)[:, None]  # (B, M, A, A)
-    b, m, i, j = torch.nonzero(near, as_tuple=True)
+        touch = (reach[b, i] + reach[b, j])[:, None, None]  # (P, 1, 1)
+        centres = torch.linalg.vector_norm(xy[b, :, i] - xy[b, :, j], dim=-1)  # (P, M, T)
+        pair, m = torch.nonzero((centres <= touch).any(dim=-1), as_tuple=True)
+    b, i, j = b[pair], i[pair], j[pair]
 
     def box(k: Tensor) -> tuple[Tensor, ...]:  # (P, T, 2), (P, T), (P, 1), (P, 1)
         return xy[b, m, k], yaw[b, m, k], length[b, k, None], width[b, k, None]
@@ -109,4 +126,4 @@ def select_joint_plans(
     return scores.argmin(dim=1), scores
 
 
-__all__ = ["SELECTION_HORIZON", "overlap_scores", "select_joint_plans"]
+__all__ = ["SELECTION_HORIZON", "overlap_scores", "scored_pairs", "select_joint_plans"]

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from policies.learned.adam import Adam
 from policies.learned.data import Normalizer
 from policies.learned.guidance_losses import (
     TARGETS,
@@ -49,7 +50,6 @@ from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout, rollout
 from riskflow_env.maps import DrivableMap, MapStack
 
 OPTIMIZERS = ("gradient", "adam")
-_ADAM_BETAS = (0.9, 0.999)
 
 
 @dataclass(frozen=True)
@@ -320,20 +320,16 @@ def _guide_scenes(
     with torch.no_grad():
         lower, upper = objective.bounds()
         u_c = torch.minimum(torch.maximum(flat.u0[rows], lower), upper)
-    first, second = torch.zeros_like(u_c), torch.zeros_like(u_c)
+    adam = Adam(u_c, config.step_size)
     history = []
     # Closed-form gradients: nothing to record, and inference mode skips autograd's
     # per-op bookkeeping (version counters) too; u_c leaves it only through copies.
     with torch.inference_mode():
-        for step in range(config.steps):
+        for _ in range(config.steps):
             grad, adv, off_road = objective.gradient(u_c, config.lambda_adv, config.lambda_map)
             history.append(per_scene(adv, off_road))
             if config.optimizer == "adam":
-                beta1, beta2 = _ADAM_BETAS
-                first.mul_(beta1).add_(grad, alpha=1 - beta1)
-                second.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
-                scale = config.step_size / (1 - beta1 ** (step + 1))
-                grad = scale * first / ((second / (1 - beta2 ** (step + 1))).sqrt() + 1e-8)
+                grad = adam.step(grad)
             else:
                 grad = config.step_size * grad
             u_c = torch.minimum(torch.maximum(u_c - grad, lower), upper)

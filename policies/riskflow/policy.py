@@ -251,7 +251,7 @@ class RiskFlowAdversary(PlanBufferPolicy):
         num_scenes = scene.agent_mask.shape[0]
         samples = self.base_samples
         trajectories = plans[3].reshape(num_scenes, samples, *plans[3].shape[1:])
-        term = self._map_term_of_every_row(observed, views)
+        term = self._map_term_of_rows(observed, views)
         best, _ = select_joint_plans(
             trajectories, batch.length, batch.width, scene.agent_mask, scene.state,
             None if term is None else term.rows,
@@ -259,12 +259,15 @@ class RiskFlowAdversary(PlanBufferPolicy):
         pick = torch.arange(num_scenes, device=self.device) * samples + best
         return tuple(tensor[pick] for tensor in plans)
 
-    def _map_term_of_every_row(self, observed: EncodedViews, views: Sequence[SceneView]):
-        """The guidance's map term over the first ``SELECTION_HORIZON`` steps of every
-        agent row of the B scenes (``B * A`` rows, scene after scene), or None without
-        ``L_map``; the score of best-of-M selection and of the avoidance steps."""
+    def _map_term_of_rows(
+        self, observed: EncodedViews, views: Sequence[SceneView], rows: torch.Tensor | None = None
+    ):
+        """The guidance's map term over the first ``SELECTION_HORIZON`` steps of the
+        ``rows`` of the ``B * A`` agent rows (scene after scene; None: every row), or None
+        without ``L_map``; the score of best-of-M selection and of the avoidance steps."""
         batch, num_agents = observed.batch, observed.scene.agent_mask.shape[1]
-        rows = torch.arange(observed.scene.agent_mask.numel(), device=self.device)
+        if rows is None:
+            rows = torch.arange(observed.scene.agent_mask.numel(), device=self.device)
         flat = SimpleNamespace(
             length=batch.length.flatten(), width=batch.width.flatten(),
             drivable_map=self._map_of(views), frame=observed.frame_tensor(),
@@ -282,11 +285,9 @@ class RiskFlowAdversary(PlanBufferPolicy):
         (:func:`~policies.learned.plan_avoidance.avoid_overlaps`): ``(u0, actions,
         trajectories)`` after them."""
         scene, batch = observed.scene, observed.batch
-        term = self._map_term_of_every_row(observed, views)
-        if term is not None:
-            term.forgive(scene.state.flatten(0, 1))
         return avoid_overlaps(
-            eps, u0, scene.state, batch.length, batch.width, scene.agent_mask, term,
+            eps, u0, scene.state, batch.length, batch.width, scene.agent_mask,
+            lambda rows: self._map_term_of_rows(observed, views, rows),
             self.normalizer, self.dynamics, steps=self.avoid_steps,
             step_size=self.avoid_step_size,
         )  # fmt: skip

@@ -62,6 +62,42 @@ def test_steps_pull_the_boxes_apart():
     assert torch.equal(actions, expected[0]) and torch.equal(after_plans, expected[1])
 
 
+def _autograd_steps(eps, u0, state, length, width, mask, steps, step_size):
+    """The steps as plain autograd through the whole decoding, torch.optim.Adam on every
+    moving non-ego row: the reference of the closed-form steps."""
+    variable = mask & (state[..., 2] > 0.2)
+    variable[:, 0] = False
+    delta = torch.zeros_like(u0, requires_grad=True)
+    optimizer = torch.optim.Adam([delta], lr=step_size)
+    for _ in range(steps):
+        _, trajectories = plans_from_velocity(
+            eps, u0 + delta * variable[..., None, None], state, mask, NORMALIZER, DYNAMICS
+        )
+        scored = trajectories[:, None, :, :30]
+        loss = overlap_scores(scored, length, width, mask, state).sum()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    return u0 + delta.detach() * variable[..., None, None]
+
+
+def test_closed_form_steps_agree_with_autograd():
+    """The variables' rollout VJP in closed form and autograd only through the pairs'
+    separation: the residuals of autograd through everything, to float rounding; a
+    vehicle at rest is an obstacle, not a variable."""
+    eps, u0, state, length, width, mask = _scene()
+    state[0, 3] = torch.tensor([10.0, 1.5, 0.0, 0.0], dtype=torch.float64)  # at rest
+    mask[0, 3] = True
+    eps = 0.3 * torch.randn(eps.shape, generator=torch.Generator().manual_seed(0)).double()
+    u, _, _ = avoid_overlaps(
+        eps, u0, state, length, width, mask, None, NORMALIZER, DYNAMICS, steps=12, step_size=0.1
+    )
+    expected = _autograd_steps(eps, u0, state, length, width, mask, 12, 0.1)
+    assert not torch.equal(u, u0)
+    torch.testing.assert_close(u, expected, rtol=1e-9, atol=1e-9)
+    assert torch.equal(u[:, 3], u0[:, 3])
+
+
 def test_zero_steps_change_nothing():
     eps, u0, state, length, width, mask = _scene()
     u, actions, trajectories = avoid_overlaps(
