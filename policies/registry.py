@@ -79,6 +79,9 @@ class MethodSpec:
             method without ``k`` (or ``planning_interval``) is run once for all K (or
             intervals) and appears in every table.
         diffusion: takes ``--diffusion-steps`` (as ``sampling_steps``).
+        reference: a reference traffic model (IDM traffic, log replay, constant
+            velocity), not a scenario generator: the report shows its metrics but leaves it
+            out of the CS / RS normalisation, which compares the generators.
     """
 
     name: str
@@ -87,6 +90,7 @@ class MethodSpec:
     fixed: Mapping[str, Any] = field(default_factory=dict)
     takes: tuple[str, ...] = SHARED
     diffusion: bool = False
+    reference: bool = False
 
     @property
     def uses_k(self) -> bool:
@@ -116,6 +120,12 @@ METHODS: dict[str, MethodSpec] = {
     spec.name: spec
     for spec in (
         MethodSpec("riskflow", f"RiskFlow: MeanFlow generator, {_ADVERSARY}", _riskflow),
+        MethodSpec(
+            "riskflow-avoid",
+            "RiskFlow on the realistic base: avoidance steps and holding at rest (bits-avoid)",
+            _riskflow,
+            {"avoid_steps": 10, "hold_distance": 2.0},
+        ),
         MethodSpec(
             "riskflow-noadv",
             "RiskFlow without L_adv (lambda_adv = 0; ablation)",
@@ -178,9 +188,13 @@ METHODS: dict[str, MethodSpec] = {
             takes=("planning_interval", "seed", "device"),
             diffusion=True,
         ),
-        MethodSpec("idm", "IDM traffic (reactive, rule based)", _idm, takes=()),
-        MethodSpec("replay", "log replay (tracking the reference)", _replay, takes=()),
-        MethodSpec("cv", "constant velocity (zero actions)", _constant_velocity, takes=()),
+        MethodSpec("idm", "IDM traffic (reactive, rule based)", _idm, takes=(), reference=True),
+        MethodSpec(
+            "replay", "log replay (tracking the reference)", _replay, takes=(), reference=True
+        ),
+        MethodSpec(
+            "cv", "constant velocity (zero actions)", _constant_velocity, takes=(), reference=True
+        ),
     )
 }
 

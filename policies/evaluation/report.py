@@ -6,8 +6,12 @@ methods are compared on the scenes (and seeds) that all of them have finished, s
 interrupted run never compares methods over different scenes; the table says how many.
 Aggregation is :func:`riskflow_env.metrics.method_metrics` (SCR and ego rate over
 rollouts, ORR over pooled agent-steps, ADE/FDE over pooled agents, KDD over pooled
-samples), the mean of the per-rollout WOSAC scores, and CS / RS
-(:func:`riskflow_env.metrics.safety_realism_scores`) across the table's methods.
+samples), the mean of the per-rollout WOSAC scores, the mean time of the first collision
+(any, and the ego's) over the rollouts that have one, and CS / RS
+(:func:`riskflow_env.metrics.safety_realism_scores`) across the table's scenario
+generators: reference traffic (IDM, replay, constant velocity: ``MethodSpec.reference``)
+is shown but left out of the normalisation. CS normalises SCR, or the ego-collision rate
+when the run's guidance target is the ego (the attack's own success).
 """
 
 from __future__ import annotations
@@ -19,13 +23,18 @@ from typing import Any
 import numpy as np
 
 from policies.evaluation.results import ResultsStore
+from policies.evaluation.rollout import HISTORY
 from policies.evaluation.table import Table
+from policies.registry import METHODS
+from riskflow_env.config import DynamicsConfig
 from riskflow_env.metrics import method_metrics, safety_realism_scores
 
 REFERENCE_METHOD = "riskflow"  # timing ratios are to this label when present
 METRIC_COLUMNS = (
     ("scr", "SCR"),
     ("ego_collision_rate", "ego SCR"),
+    ("first_collision_s", "TTFC [s]"),
+    ("first_ego_collision_s", "ego TTFC [s]"),
     ("orr", "ORR"),
     ("orr_footprint", "ORR fp"),
     ("ade", "ADE [m]"),
@@ -35,6 +44,12 @@ METRIC_COLUMNS = (
     ("cs", "CS"),
     ("rs", "RS"),
 )
+
+
+_SAFETY_NAMES = {
+    "scr": "SCR",
+    "ego_collision_rate": "the ego-collision rate (the guidance target is the ego)",
+}
 
 
 def _nan(value: Any) -> float:
@@ -53,9 +68,16 @@ def table_keys(rows: list[dict]) -> list[tuple[int | str | None, float | None]]:
     return sorted(keys or {(None, None)}, key=lambda key: (_k_order(key[0]), key[1] or 0.0))
 
 
+def safety_metric(target: str | None) -> str:
+    """The metric CS normalises: the ego-collision rate when the guidance target is the
+    ego, else SCR (the paper's)."""
+    return "ego_collision_rate" if target == "ego" else "scr"
+
+
 def build_tables(store: ResultsStore) -> list[Table]:
     """Every table of the results folder."""
     rows = store.rows()
+    safety = safety_metric(store.config().get("target"))
     tables = []
     for k, interval in table_keys(rows):
         members = [
@@ -74,10 +96,17 @@ def build_tables(store: ResultsStore) -> list[Table]:
                            key=lambda r: (r["scene_index"], r["seed"]))  # fmt: skip
             metrics[label] = _method_metrics(store, group)
             timing[label] = _timing(group)
-        for label, scores in safety_realism_scores(metrics).items():
+        references = frozenset(
+            label for label, group in by_label.items()
+            if group[0]["method"] in METHODS and METHODS[group[0]["method"]].reference
+        )  # fmt: skip
+        for label in metrics:
+            metrics[label].update(cs=math.nan, rs=math.nan)
+        generators = {label: m for label, m in metrics.items() if label not in references}
+        for label, scores in safety_realism_scores(generators, safety).items():
             metrics[label].update(scores)
         _add_ratios(timing, _reference_label(by_label))
-        tables.append(Table(k, interval, len(common), metrics, timing))
+        tables.append(Table(k, interval, len(common), metrics, timing, references, safety))
     return tables
 
 
@@ -86,7 +115,20 @@ def _method_metrics(store: ResultsStore, rows: list[dict]) -> dict[str, float]:
     out = method_metrics(numeric, [store.samples(row) for row in rows])
     scores = [row["wosac"]["metametric"] for row in rows if row.get("wosac")]
     out["wosac"] = float(np.mean([_nan(s) for s in scores])) if scores else float("nan")
+    for key, name in (("first_collision_s", "first_collision_step"),
+                      ("first_ego_collision_s", "first_ego_collision_step")):  # fmt: skip
+        out[key] = _mean_first_time([_nan(row.get(name)) for row in rows])
     return out
+
+
+def _mean_first_time(steps: list[float]) -> float:
+    """Mean time [s] after the start of the first collision over the rollouts with one,
+    from the record's step indices (``HISTORY`` logged steps and the start state are
+    context, -1: none; NaN where a row predates the key)."""
+    if not steps or any(math.isnan(step) for step in steps):
+        return math.nan
+    times = [(step - HISTORY) * DynamicsConfig().dt for step in steps if step >= 0]
+    return float(np.mean(times)) if times else math.nan
 
 
 _ROLLOUT_KEYS = (
@@ -136,7 +178,11 @@ def metrics_markdown(table: Table) -> str:
         "|---|---:|" + "---:|" * len(METRIC_COLUMNS),
     ]
     for label, values in table.metrics.items():
-        cells = [_cell(values.get(key, math.nan)) for key, _ in METRIC_COLUMNS]
+        cells = [
+            "ref." if label in table.references and key in ("cs", "rs")
+            else _cell(values.get(key, math.nan), 2 if key.endswith("_s") else 3)
+            for key, _ in METRIC_COLUMNS
+        ]  # fmt: skip
         count = int(values["num_rollouts"])
         lines.append(f"| {label} | {count} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
@@ -178,8 +224,11 @@ def write_report(out: str | Path, plots: bool = True) -> Path:
         "share of agent-steps off the road (centre; fp: footprint). ADE/FDE [m] and KDD "
         "(mean W1 of longitudinal / lateral acceleration and jerk) against the log, for "
         "the non-ego vehicles. WOSAC: mean per-rollout metametric (one rollout per scene "
-        "and seed). CS, RS: min-max normalised across the methods of each table "
-        "(docs/METRICS.md); compare them only within a table.",
+        "and seed). TTFC: mean time [s] of the first collision (any / the ego's) over "
+        "the rollouts that have one. CS, RS: min-max normalised across the scenario "
+        "generators of each table (docs/METRICS.md; 'ref.': reference traffic, outside "
+        f"the normalisation); CS normalises {_SAFETY_NAMES[tables[0].safety_metric]}. "
+        "Compare them only within a table.",
     ]  # fmt: skip
     for table in tables:
         timing = f"Timing (rollouts of {duration} s; a cycle is one call that planned):"

@@ -15,6 +15,8 @@ class Table:
         scenes: (scene, seed) pairs every method of the table finished.
         metrics: ``{label: {metric: value}}``, CS and RS included.
         timing: ``{label: {name: value}}`` (seconds, milliseconds as named).
+        references: labels of reference methods (outside the CS / RS normalisation).
+        safety_metric: the metric CS normalises (``"scr"`` or ``"ego_collision_rate"``).
     """
 
     k: int | str | None
@@ -22,6 +24,8 @@ class Table:
     scenes: int
     metrics: dict[str, dict[str, float]]
     timing: dict[str, dict[str, float]]
+    references: frozenset[str] = frozenset()
+    safety_metric: str = "scr"
 
     @property
     def title(self) -> str:

@@ -48,6 +48,7 @@ class CollisionResult:
         collided: at least one agent-agent overlap at a scored step.
         ego_collided: at least one of them involves the ego.
         first_step: first scored step with an overlap, -1 if none.
+        first_ego_step: first scored step with an overlap of the ego, -1 if none.
         pairs: (A, A) bool, symmetric: the pair overlapped at some scored step.
     """
 
@@ -55,6 +56,7 @@ class CollisionResult:
     ego_collided: bool
     first_step: int
     pairs: np.ndarray
+    first_ego_step: int = -1
 
 
 @dataclass(frozen=True)
@@ -106,12 +108,13 @@ def collisions(record: RolloutRecord, tolerance: float = 0.0) -> CollisionResult
     overlap = overlaps(record, tolerance)
     per_step = overlap.any(axis=(1, 2))
     ego = record.ego_index
-    ego_collided = ego != NO_EGO and bool(overlap[:, ego].any())
+    ego_steps = overlap[:, ego].any(axis=1) if ego != NO_EGO else np.zeros_like(per_step)
     return CollisionResult(
         collided=bool(per_step.any()),
-        ego_collided=ego_collided,
+        ego_collided=bool(ego_steps.any()),
         first_step=int(np.argmax(per_step)) if per_step.any() else -1,
         pairs=overlap.any(axis=0),
+        first_ego_step=int(np.argmax(ego_steps)) if ego_steps.any() else -1,
     )
 
 

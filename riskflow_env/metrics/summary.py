@@ -24,6 +24,7 @@ ROLLOUT_KEYS = (
     "collision",  # 1.0 if any agent-agent collision, else 0.0
     "ego_collision",  # 1.0 if a collision involves the ego
     "first_collision_step",  # first scored step with a collision, -1 if none
+    "first_ego_collision_step",  # first scored step with a collision of the ego, -1 if none
     "offroad_centroid_steps",  # agent-steps with the centre off the road
     "offroad_footprint_steps",  # agent-steps with a footprint point off the road
     "agent_steps",  # scored agent-steps (ORR's denominator)
@@ -52,6 +53,7 @@ def rollout_metrics(record: RolloutRecord, tolerance: float = 0.0) -> dict[str, 
         "collision": float(hit.collided),
         "ego_collision": float(hit.ego_collided),
         "first_collision_step": float(hit.first_step),
+        "first_ego_collision_step": float(hit.first_ego_step),
         "offroad_centroid_steps": float(centroid),
         "offroad_footprint_steps": float(footprint),
         "agent_steps": float(steps),

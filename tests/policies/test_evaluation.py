@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 from dataclasses import replace
 
 import pytest
@@ -20,6 +21,8 @@ from policies.evaluation import (
 )
 from policies.evaluation.cli import main
 from policies.evaluation.options import check_device
+from policies.evaluation.report import _mean_first_time, build_tables, safety_metric
+from policies.evaluation.rollout import HISTORY
 from riskflow_env.view import ScenePolicy
 
 # tiny: 2 scenes, 1 s episodes, RiskFlow with a 2-step guidance budget
@@ -136,6 +139,29 @@ def test_report(tiny_run):
     for name in ("cs_rs_T0.5.png", "realism_vs_horizon_K2.png", "speed.png"):
         assert (out / name).stat().st_size > 0
         assert f"({name})" in text
+
+
+def test_report_leaves_reference_traffic_out_of_the_scores(tiny_run):
+    """IDM traffic and replay are shown with their raw metrics but outside the CS / RS
+    normalisation ('ref.'); CS normalises SCR unless the target is the ego."""
+    out, _ = tiny_run
+    (table,) = build_tables(ResultsStore(out))
+    assert table.references == {"idm", "replay"} and table.safety_metric == "scr"
+    assert math.isnan(table.metrics["idm"]["cs"]) and math.isnan(table.metrics["replay"]["rs"])
+    guided = table.metrics["riskflow[guidance_steps=2]"]
+    assert guided["cs"] == 0.0 and guided["rs"] == 1.0  # the only generator: degenerate
+    text = write_report(out, plots=False).read_text()
+    assert "| TTFC [s] | ego TTFC [s] |" in text
+    idm_row = next(line for line in text.splitlines() if line.startswith("| idm |"))
+    assert idm_row.endswith("| ref. | ref. |")
+    assert safety_metric("ego") == "ego_collision_rate" and safety_metric("others") == "scr"
+
+
+def test_first_collision_times_are_after_the_start():
+    """Record steps count ``HISTORY`` logged steps and the start state as context: the
+    first simulated step is 0.1 s; rollouts without a collision are left out."""
+    assert _mean_first_time([HISTORY + 1.0, HISTORY + 3.0, -1.0]) == pytest.approx(0.2)
+    assert math.isnan(_mean_first_time([-1.0])) and math.isnan(_mean_first_time([math.nan]))
 
 
 def test_report_command(tiny_run, capsys):

@@ -98,9 +98,8 @@ def test_collision_metrics():
     assert metrics["orr_centroid"] == metrics["orr_footprint"] == 0.0
     assert not metrics["ego_offroad"]
     row = rollout_metrics(record.rollout_record())  # the metrics module agrees
-    assert (
-        row["ego_collision"] == 1.0 and row["first_collision_step"] == 2 + 17
-    )  # 2 logged steps first
+    assert row["ego_collision"] == 1.0 and row["first_collision_step"] == 2 + 17  # 2 logged
+    assert row["first_ego_collision_step"] == 2 + 17  # steps first
 
 
 def test_intervals():
