@@ -9,8 +9,10 @@ bootstrap for means) plus the ratios of each K to K=0::
 
 The episode ends early when the ego collides (the default ``EnvConfig``), as in a
 stress test; ``--full-episodes`` runs every episode for 10 s instead, so that off-road
-rates are compared over the same exposure. ``--out`` receives ``quality.json`` with the
-summaries and every scene's metrics.
+rates are compared over the same exposure. ``--avoid-steps 10 --hold-distance 2`` runs
+every configuration on the realistic base (avoidance steps and holding at rest, the
+``riskflow-avoid`` and ``bits-avoid`` methods of ``riskflow-eval``; docs/REALISM.md, round
+8). ``--out`` receives ``quality.json`` with the summaries and every scene's metrics.
 """
 
 from __future__ import annotations
@@ -57,6 +59,10 @@ class Options:
     """run every episode for the full 10 s (no termination on collision or off-road)"""
     checkpoint: str | None = None
     """generator checkpoint; default: the shipped one"""
+    avoid_steps: int = 0
+    """avoidance steps on the base plans (0: off; 10: the realistic base)"""
+    hold_distance: float = 0.0
+    """[m] a vehicle at rest whose plan moves it less keeps its brake on (0: off)"""
     out: str = "outputs/adversary_quality"
     """output directory"""
 
@@ -75,6 +81,8 @@ def run(options: Options) -> dict[str, dict]:
             seed=options.seed,
             generator=generator,
             normalizer=normalizer,
+            avoid_steps=options.avoid_steps,
+            hold_distance=options.hold_distance,
         )
         config = (
             EnvConfig(terminate_on_collision="none", terminate_on_offroad="none")
@@ -121,7 +129,8 @@ def main(argv: list[str] | None = None) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / "quality.json").write_text(json.dumps({"options": vars(options), **results}, indent=1))
     ending = "full 10 s" if options.full_episodes else "ends at an ego collision"
-    print(f"{options.scenes} scenes, IDM ego, target={options.target}, episodes: {ending}")
+    base = f"avoid_steps={options.avoid_steps}, hold_distance={options.hold_distance:g}"
+    print(f"{options.scenes} scenes, IDM ego, target={options.target}, episodes: {ending}, {base}")
     print(table(results))
 
 
