@@ -18,24 +18,29 @@ every configuration on the realistic base (avoidance steps and holding at rest, 
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from policies.dataclass_cli import parse_dataclass
-from policies.harness import ClosedLoop, summarize
+from policies.harness import ClosedLoop, EpisodeRecord, summarize
 from policies.learned.checkpoint import load_generator
 from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
+from policies.statistics import mean_interval
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
+from riskflow_env.view import SceneView
 
 ROWS = {
     "collision_rate": "episodes with any collision",
     "ego_collision_rate": "episodes with an ego collision",
     "orr_centroid": "agent-steps, centre off road",
     "orr_footprint": "agent-steps, footprint off road",
+    "orr_footprint_guided": "agent-steps of guided vehicles, footprint off road",
     "min_distance_to_ego": "least ego separation [m]",
     "planning_time_ms": "planning cycle [ms]",
 }
@@ -67,6 +72,50 @@ class Options:
     """output directory"""
 
 
+class GuidedSteps:
+    """The adversary, recording after each ``act`` the names it guides (its current
+    cycle's ``A_c``); everything else is the adversary's."""
+
+    def __init__(self, adversary: RiskFlowAdversary) -> None:
+        self.adversary = adversary
+        self.guided: list[tuple[str, ...]] = []
+
+    def __getattr__(self, name: str):
+        return getattr(self.adversary, name)
+
+    def reset(self, view: SceneView) -> None:
+        self.guided = []
+        self.adversary.reset(view)
+
+    def act(self, view: SceneView) -> dict[str, np.ndarray]:
+        actions = self.adversary.act(view)
+        self.guided.append(self.adversary.controllable_names)
+        return actions
+
+
+def guided_footprint_rate(record: EpisodeRecord, guided: list[tuple[str, ...]]) -> float:
+    """Share of the guided vehicles' agent-steps with a footprint point off the road: the
+    state after each step counts for the vehicles guided when its action was planned
+    (NaN when nobody was guided)."""
+    mask = np.zeros_like(record.in_scene)
+    for step, names in enumerate(guided):
+        mask[:, step + 1] = np.isin(record.agent_names, names)
+    mask &= record.in_scene
+    return float(record.offroad_footprint[mask].mean()) if mask.any() else float("nan")
+
+
+def _json(value: float) -> float | None:
+    return None if math.isnan(value) else value
+
+
+def _mean_entry(values: list[float]) -> dict:
+    """Mean of the finite ``values`` with its bootstrap interval, as ``summarize``'s."""
+    finite = [value for value in values if np.isfinite(value)]
+    low, high = mean_interval(finite)
+    value = float(np.mean(finite)) if finite else math.nan
+    return {"value": _json(value), "low": _json(low), "high": _json(high), "n": len(finite)}
+
+
 def run(options: Options) -> dict[str, dict]:
     """Summaries per K (``{k: {metric: {value, low, high, n}}}``)."""
     generator, normalizer, _ = load_generator(options.checkpoint)
@@ -89,11 +138,16 @@ def run(options: Options) -> dict[str, dict]:
             if options.full_episodes
             else None
         )
-        with ClosedLoop(IDMPlanner(), adversary, config=config) as loop:
+        recorder, guided = GuidedSteps(adversary), []
+        with ClosedLoop(IDMPlanner(), recorder, config=config) as loop:
             for scenario in tqdm(scenes, desc=f"K={k}"):
-                loop.run(scenario)
+                record = loop.run(scenario)
+                guided.append(guided_footprint_rate(record, recorder.guided))
+                record.metrics["orr_footprint_guided"] = _json(guided[-1])
+            summary = summarize(loop.records)
+            summary["orr_footprint_guided"] = _mean_entry(guided)
             results[k] = {
-                "summary": summarize(loop.records),
+                "summary": summary,
                 "scenes": [record.metrics for record in loop.records],
             }
     return results
