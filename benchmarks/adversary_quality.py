@@ -68,6 +68,8 @@ class Options:
     """avoidance steps on the base plans (0: off; 10: the realistic base)"""
     hold_distance: float = 0.0
     """[m] a vehicle at rest whose plan moves it less keeps its brake on (0: off)"""
+    lambda_map: float = 1.0
+    """weight of the guidance's map term (the library's default 1)"""
     out: str = "outputs/adversary_quality"
     """output directory"""
 
@@ -132,6 +134,7 @@ def run(options: Options) -> dict[str, dict]:
             normalizer=normalizer,
             avoid_steps=options.avoid_steps,
             hold_distance=options.hold_distance,
+            lambda_map=options.lambda_map,
         )
         config = (
             EnvConfig(terminate_on_collision="none", terminate_on_offroad="none")
@@ -183,7 +186,10 @@ def main(argv: list[str] | None = None) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / "quality.json").write_text(json.dumps({"options": vars(options), **results}, indent=1))
     ending = "full 10 s" if options.full_episodes else "ends at an ego collision"
-    base = f"avoid_steps={options.avoid_steps}, hold_distance={options.hold_distance:g}"
+    base = (
+        f"avoid_steps={options.avoid_steps}, hold_distance={options.hold_distance:g}, "
+        f"lambda_map={options.lambda_map:g}"
+    )
     print(f"{options.scenes} scenes, IDM ego, target={options.target}, episodes: {ending}, {base}")
     print(table(results))
 

@@ -32,7 +32,7 @@ def tables_from_report(path: Path) -> list[Table]:
             if not row.startswith("|"):
                 break
             cells = [cell.strip() for cell in row.strip("|").split("|")]
-            values = [float("nan") if c == "n/a" else float(c) for c in cells[2:]]
+            values = [float("nan") if c in ("n/a", "ref.") else float(c) for c in cells[2:]]
             metrics[cells[0]] = dict(zip((key for key, _ in METRIC_COLUMNS), values, strict=True))
         k_value = None if k == "-" else k if k == "all" else int(k)
         tables.append(Table(k_value, None if interval == "-" else float(interval), int(scenes),
