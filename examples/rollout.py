@@ -11,7 +11,9 @@ generator pass plans 5 s for every vehicle, the top-K critical ones (``A_c``) ar
 toward risky interactions, and it re-plans every ``--planning-interval`` seconds. The
 demo runs the realistic base of docs/REALISM.md, round 8 (``--avoid-steps 10
 --hold-distance 2``: the base plans are pulled apart and onto the road, parked cars keep
-standing; ``--avoid-steps 0 --hold-distance 0`` is the adversary's default). With
+standing) with the map term weighted 20 times the default (``--lambda-map 20``: the
+guided vehicles keep to the road while they attack, REALISM.md round 9;
+``--avoid-steps 0 --hold-distance 0 --lambda-map 1`` is the adversary's default). With
 ``--traffic replay`` the others replay the scenario's reference future instead (open loop:
 a scenario saved by ``stress_test_planner.py`` replays what happened).
 
@@ -72,6 +74,8 @@ class Options:
     """avoidance steps on the base plans (RiskFlowAdversary avoid_steps; 0: off)"""
     hold_distance: float = 2.0
     """[m] vehicles at rest whose plan moves them less keep standing (0: off)"""
+    lambda_map: float = 20.0
+    """weight of the guidance's map term (the adversary's default: 1)"""
 
     def __post_init__(self) -> None:
         if self.video not in VIDEO_FORMATS:
@@ -84,6 +88,8 @@ class Options:
             raise ValueError(f"--k must be an int >= 0 or 'all', got {self.k!r}")
         if self.steps < 1:
             raise ValueError(f"--steps must be >= 1, got {self.steps}")
+        if not 0 <= self.lambda_map < float("inf"):
+            raise ValueError(f"--lambda-map must be finite and >= 0, got {self.lambda_map}")
         if self.avoid_steps < 0 or not 0 <= self.hold_distance < float("inf"):
             raise ValueError(
                 f"--avoid-steps must be >= 0 and --hold-distance finite and >= 0, got "
@@ -132,6 +138,7 @@ def make_traffic(options: Options) -> RiskFlowAdversary | ReplayPolicy:
         checkpoint=options.checkpoint,
         avoid_steps=options.avoid_steps,
         hold_distance=options.hold_distance,
+        lambda_map=options.lambda_map,
     )
 
 

@@ -49,7 +49,8 @@ def write_plots(tables: list[Table], out: Path) -> list[Path]:
         files.append(_cs_rs(group, colors, out / f"cs_rs_T{_name(interval)}.png"))
     for k in dict.fromkeys(table.k for table in tables):
         group = [t for t in tables if t.k == k]
-        files.append(_realism(group, colors, out / f"realism_vs_horizon_K{_name(k)}.png"))
+        if len(group) > 1:  # a line over the planning intervals needs several of them
+            files.append(_realism(group, colors, out / f"realism_vs_horizon_K{_name(k)}.png"))
     files.append(_speed(tables, colors, out / "speed.png"))
     return files
 

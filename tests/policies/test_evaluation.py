@@ -136,9 +136,10 @@ def test_report(tiny_run):
     text = path.read_text()
     assert "## K=2, T=0.5 s (2 scenes x seeds)" in text
     assert "| riskflow[guidance_steps=2] | 2 |" in text and "| idm | 2 |" in text
-    for name in ("cs_rs_T0.5.png", "realism_vs_horizon_K2.png", "speed.png"):
+    for name in ("cs_rs_T0.5.png", "speed.png"):
         assert (out / name).stat().st_size > 0
         assert f"({name})" in text
+    assert "realism_vs_horizon" not in text  # one planning interval: no line to draw
 
 
 def test_report_leaves_reference_traffic_out_of_the_scores(tiny_run):
@@ -155,6 +156,21 @@ def test_report_leaves_reference_traffic_out_of_the_scores(tiny_run):
     idm_row = next(line for line in text.splitlines() if line.startswith("| idm |"))
     assert idm_row.endswith("| ref. | ref. |")
     assert safety_metric("ego") == "ego_collision_rate" and safety_metric("others") == "scr"
+
+
+def test_the_horizon_plot_needs_several_intervals(tmp_path):
+    """A realism-against-interval line per K only where a K has several intervals."""
+    from policies.evaluation.plots import write_plots
+    from policies.evaluation.report import METRIC_COLUMNS
+    from policies.evaluation.table import Table
+
+    metrics = {"riskflow": {key: 0.5 for key, _ in METRIC_COLUMNS}}
+    timing = {"riskflow": {"total_s": 1.0, "per_scene_s": 1.0, "cycle_ms": 50.0}}
+    tables = [Table(5, interval, 2, metrics, timing) for interval in (0.5, 1.0)]
+    tables.append(Table(2, 0.5, 2, metrics, timing))
+    names = {path.name for path in write_plots(tables, tmp_path)}
+    assert "realism_vs_horizon_K5.png" in names and "realism_vs_horizon_K2.png" not in names
+    assert all((tmp_path / name).stat().st_size > 0 for name in names)
 
 
 def test_first_collision_times_are_after_the_start():
