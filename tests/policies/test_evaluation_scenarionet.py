@@ -4,6 +4,7 @@ samples the realism metrics rank log replay over the generator over the adversar
 
 from __future__ import annotations
 
+import math
 import pickle
 
 import pytest
@@ -66,8 +67,9 @@ def test_realism_ranks_replay_over_the_generator_over_the_adversary(tmp_path, mo
     """On the real nuScenes samples (10 s, IDM ego, one seed): log replay is more realistic
     than the unguided generator, which is more realistic than the RiskFlow adversary
     attacking the ego, by WOSAC-style score and ADE (measured: WOSAC 0.84 / 0.59 / 0.37,
-    ADE 0.06 / 2.9 / 5.9 m); by KDD and the realism score RS replay beats both (KDD 2.1 /
-    2.8 / 2.9, RS 0.81 / 0.28 / 0.25: the last two too close to order on 4 rollouts)."""
+    ADE 0.06 / 2.9 / 5.9 m); by KDD replay beats both (KDD 2.1 / 2.8 / 2.9: the last two
+    too close to order on 4 rollouts). Replay is a reference: outside the RS
+    normalisation, which compares the two generators."""
     require_samples()
     monkeypatch.setenv(CACHE_ENV, str(tmp_path / "user-cache"))
     options = EvalOptions(
@@ -79,7 +81,7 @@ def test_realism_ranks_replay_over_the_generator_over_the_adversary(tmp_path, mo
     metrics = table.metrics
     replay, generator, adversary = (metrics[m] for m in ("replay", "bits", "riskflow"))
     assert replay["wosac"] > generator["wosac"] > adversary["wosac"]
-    assert replay["rs"] > max(generator["rs"], adversary["rs"])
+    assert math.isnan(replay["rs"]) and math.isnan(replay["cs"])  # a reference
     assert replay["kdd"] < min(generator["kdd"], adversary["kdd"])
     assert replay["ade"] < generator["ade"] < adversary["ade"]
     assert adversary["ego_collision_rate"] > generator["ego_collision_rate"]
