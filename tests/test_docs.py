@@ -128,9 +128,9 @@ SLOW: dict[str, str] = {
     "docs/RL.md-1-bash": "PPO training and evaluation scripts, about 110 s",
     # The README's 3 RL scripts: about 50 s at their smallest.
     "README.md-16-bash": "PPO training and evaluation scripts, about 50 s",
-    # 7 riskflow-eval runs (one-scene rollouts of 12 methods, STRIVE and DDIM included):
+    # 9 riskflow-eval runs (one-scene rollouts of 12 methods, STRIVE and DDIM included):
     # about 60 s, mostly process start-up and model loading.
-    "docs/RESULTS.md-0-bash": "seven riskflow-eval runs, about 90 s",
+    "docs/RESULTS.md-0-bash": "nine riskflow-eval runs, about 110 s",
 }
 
 
