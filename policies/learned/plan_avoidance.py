@@ -88,66 +88,46 @@ def avoid_overlaps(
     rows = torch.nonzero(variable.flatten()).flatten()  # flat (scene, agent) indices
     u = u0.detach().clone()
     if steps > 0 and rows.numel() > 0:
-        u.flatten(0, 1)[rows] = _steps(
-            eps, u0, state, length, width, agent_mask, variable, rows, map_term_of,
-            normalizer, dynamics, steps, step_size, horizon,
-        )  # fmt: skip
+        with torch.no_grad():
+            # every row's plan over the scored steps; the variables' are replaced each step
+            _, joint = decode_plans(
+                eps[..., :horizon, :] + u0[..., :horizon, :], state, agent_mask, normalizer,
+                dynamics,
+            )  # fmt: skip
+            obstacles = joint.flatten(0, 1)
+            # the pairs that can change: scored, with at least one variable
+            pairs = scored_pairs(length, width, agent_mask, state)
+            pairs = pairs & (variable[:, :, None] | variable[:, None, :])
+            zero = torch.zeros_like(eps[0, 0, :1])  # (1, 2)
+            scale = normalizer.denormalize(zero + 1.0) - normalizer.denormalize(zero)  # da/du
+            moving = (eps + u0)[..., :horizon, :].flatten(0, 1)[rows]  # (V, H, 2)
+            now = state.flatten(0, 1)[rows]
+            term = None if map_term_of is None else map_term_of(rows)
+            if term is not None:
+                term.forgive(now)
+            delta = torch.zeros_like(moving)
+            adam = Adam(delta, step_size)
+            for _ in range(steps):
+                planned, vjp = rollout_with_vjp(
+                    now, normalizer.denormalize(moving + delta), dynamics
+                )
+                joint = obstacles.clone()
+                joint[rows] = planned
+                joint = joint.reshape(*variable.shape, *joint.shape[1:]).requires_grad_(True)
+                with torch.enable_grad():
+                    overlap = overlap_scores(
+                        joint[:, None], length, width, agent_mask, state, pairs
+                    ).sum()
+                    (d_joint,) = torch.autograd.grad(overlap, joint, allow_unused=True)
+                d_planned = (
+                    torch.zeros_like(planned) if d_joint is None else d_joint.flatten(0, 1)[rows]
+                )
+                if term is not None:
+                    d_planned = d_planned + term.rows_and_gradient(planned)[1]
+                delta = delta - adam.step(vjp(d_planned) * scale)
+            u.flatten(0, 1)[rows, :horizon] += delta
     actions, trajectories = decode_plans(eps + u, state, agent_mask, normalizer, dynamics)
     return u, actions, trajectories
-
-
-def _steps(
-    eps: Tensor,
-    u0: Tensor,
-    state: Tensor,
-    length: Tensor,
-    width: Tensor,
-    agent_mask: Tensor,
-    variable: Tensor,
-    rows: Tensor,
-    map_term_of: Callable[[Tensor], MapTerm | None] | None,
-    normalizer: Normalizer,
-    dynamics: DynamicsConfig,
-    steps: int,
-    step_size: float,
-    horizon: int,
-) -> Tensor:
-    """The ``(V, T, 2)`` residuals of the variables' ``rows`` after the steps."""
-    lead = variable.shape
-    with torch.no_grad():
-        _, obstacles = decode_plans(
-            eps[..., :horizon, :] + u0[..., :horizon, :], state, agent_mask, normalizer, dynamics
-        )  # (B, A, H, 4): every row; the variables' are replaced at each step
-        obstacles = obstacles.flatten(0, 1)
-        # pairs that can change: at least one of the two is a variable
-        pairs = scored_pairs(length, width, agent_mask, state)
-        pairs = pairs & (variable[:, :, None] | variable[:, None, :])
-        zero = torch.zeros_like(eps[0, 0, :1])  # (1, 2)
-        scale = normalizer.denormalize(zero + 1.0) - normalizer.denormalize(zero)  # d a / d u
-        moving = (eps + u0)[..., :horizon, :].flatten(0, 1)[rows]  # (V, H, 2)
-        now = state.flatten(0, 1)[rows]
-        term = None if map_term_of is None else map_term_of(rows)
-        if term is not None:
-            term.forgive(now)
-        delta = torch.zeros_like(moving)
-        adam = Adam(delta, step_size)
-        for _ in range(steps):
-            planned, vjp = rollout_with_vjp(now, normalizer.denormalize(moving + delta), dynamics)
-            joint = obstacles.clone()
-            joint[rows] = planned
-            joint = joint.reshape(*lead, *joint.shape[1:]).requires_grad_(True)
-            with torch.enable_grad():
-                overlap = overlap_scores(joint[:, None], length, width, agent_mask, state, pairs)
-                (d_joint,) = torch.autograd.grad(overlap.sum(), joint, allow_unused=True)
-            d_planned = (
-                torch.zeros_like(planned) if d_joint is None else d_joint.flatten(0, 1)[rows]
-            )
-            if term is not None:
-                d_planned = d_planned + term.rows_and_gradient(planned)[1]
-            delta = delta - adam.step(vjp(d_planned) * scale)
-    residual = u0.flatten(0, 1)[rows]  # a copy (advanced indexing)
-    residual[:, :horizon] += delta
-    return residual
 
 
 __all__ = ["avoid_overlaps"]
