@@ -26,11 +26,10 @@ import numpy as np
 from tqdm import tqdm
 
 from policies.dataclass_cli import parse_dataclass
-from policies.harness import ClosedLoop, EpisodeRecord, summarize
+from policies.harness import ClosedLoop, EpisodeRecord, mean_summary, summarize
 from policies.learned.checkpoint import load_generator
 from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
-from policies.statistics import mean_interval
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
 from riskflow_env.view import SceneView
@@ -110,14 +109,6 @@ def _json(value: float) -> float | None:
     return None if math.isnan(value) else value
 
 
-def _mean_entry(values: list[float]) -> dict:
-    """Mean of the finite ``values`` with its bootstrap interval, as ``summarize``'s."""
-    finite = [value for value in values if np.isfinite(value)]
-    low, high = mean_interval(finite)
-    value = float(np.mean(finite)) if finite else math.nan
-    return {"value": _json(value), "low": _json(low), "high": _json(high), "n": len(finite)}
-
-
 def run(options: Options) -> dict[str, dict]:
     """Summaries per K (``{k: {metric: {value, low, high, n}}}``)."""
     generator, normalizer, _ = load_generator(options.checkpoint)
@@ -148,7 +139,7 @@ def run(options: Options) -> dict[str, dict]:
                 guided.append(guided_footprint_rate(record, recorder.guided))
                 record.metrics["orr_footprint_guided"] = _json(guided[-1])
             summary = summarize(loop.records)
-            summary["orr_footprint_guided"] = _mean_entry(guided)
+            summary["orr_footprint_guided"] = mean_summary(guided)
             results[k] = {
                 "summary": summary,
                 "scenes": [record.metrics for record in loop.records],

@@ -367,11 +367,17 @@ def summarize(records: list[EpisodeRecord], confidence: float = 0.95) -> dict[st
         "orr_footprint",
         "planning_time_ms",
     ):
-        values = [m[name] for m in metrics if m[name] is not None and np.isfinite(m[name])]
-        low, high = mean_interval(values, confidence)
-        value = float(np.mean(values)) if values else math.nan
-        summary[name] = _entry(value, low, high, len(values))
+        summary[name] = mean_summary([m[name] for m in metrics], confidence)
     return summary
+
+
+def mean_summary(values: list[float | None], confidence: float = 0.95) -> dict[str, Any]:
+    """The mean of the finite ``values`` (None and NaN left out) with its bootstrap
+    interval, as an entry of :func:`summarize` (None where undefined)."""
+    finite = [value for value in values if value is not None and np.isfinite(value)]
+    low, high = mean_interval(finite, confidence)
+    mean = float(np.mean(finite)) if finite else math.nan
+    return _entry(mean, low, high, len(finite))
 
 
 def _entry(value: float, low: float, high: float, count: int) -> dict[str, Any]:

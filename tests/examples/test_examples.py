@@ -76,6 +76,7 @@ def test_rollout(checkpoint, tmp_path):
         (["--video", "avi"], "--video must be one of"),
         (["--avoid-steps", "-1"], "--avoid-steps must be >= 0"),
         (["--hold-distance", "-2"], "--hold-distance finite and >= 0"),
+        (["--lambda-map", "-1"], "--lambda-map must be finite and >= 0"),
     ],
 )
 def test_rollout_rejects_bad_options(argv, message):
