@@ -9,10 +9,11 @@ bootstrap for means) plus the ratios of each K to K=0::
 
 The episode ends early when the ego collides (the default ``EnvConfig``), as in a
 stress test; ``--full-episodes`` runs every episode for 10 s instead, so that off-road
-rates are compared over the same exposure. ``--avoid-steps 10 --hold-distance 2`` runs
-every configuration on the realistic base (avoidance steps and holding at rest, the
-``riskflow-avoid`` and ``bits-avoid`` methods of ``riskflow-eval``; docs/REALISM.md, round
-8). ``--out`` receives ``quality.json`` with the summaries and every scene's metrics.
+rates are compared over the same exposure. The adversary runs with the library's
+defaults: the realistic base (10 avoidance steps, holding at rest at 4 m) and the map
+term weighted 20 (docs/REALISM.md, rounds 8-10); ``--avoid-steps 0 --hold-distance 0
+--lambda-map 1`` is the raw base of ``riskflow-eval``'s ``riskflow-plain``. ``--out``
+receives ``quality.json`` with the summaries and every scene's metrics.
 """
 
 from __future__ import annotations
@@ -27,7 +28,9 @@ from tqdm import tqdm
 
 from policies.dataclass_cli import parse_dataclass
 from policies.harness import ClosedLoop, EpisodeRecord, mean_summary, summarize
+from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.checkpoint import load_generator
+from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
 from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
 from riskflow_env.config import EnvConfig
@@ -63,12 +66,12 @@ class Options:
     """run every episode for the full 10 s (no termination on collision or off-road)"""
     checkpoint: str | None = None
     """generator checkpoint; default: the shipped one"""
-    avoid_steps: int = 0
-    """avoidance steps on the base plans (0: off; 10: the realistic base)"""
-    hold_distance: float = 0.0
+    avoid_steps: int = DEFAULT_AVOID_STEPS
+    """avoidance steps on the base plans (0: off)"""
+    hold_distance: float = AdversaryConfig.hold_distance
     """[m] a vehicle at rest whose plan moves it less keeps its brake on (0: off)"""
-    lambda_map: float = 1.0
-    """weight of the guidance's map term (the library's default 1)"""
+    lambda_map: float = AdversaryConfig.lambda_map
+    """weight of the guidance's map term"""
     out: str = "outputs/adversary_quality"
     """output directory"""
 

@@ -257,10 +257,9 @@ def sampled(
     samples: int, hold: float = 0.0, avoid: int = 0, smooth: int = 1
 ) -> dict[str, int | float]:
     """The generator's options for ``--base-samples`` M, ``--hold-distance`` D,
-    ``--avoid-steps`` N and ``--smooth-steps`` S (none for the defaults 1, 0, 0, 1)."""
+    ``--avoid-steps`` N and ``--smooth-steps`` S (M and S only where not 1)."""
     options: dict[str, int | float] = {"base_samples": samples} if samples != 1 else {}
-    options |= {"hold_distance": hold} if hold else {}
-    options |= {"avoid_steps": avoid} if avoid else {}
+    options |= {"hold_distance": hold, "avoid_steps": avoid}  # explicit: not the policy's defaults
     return options | ({"smooth_steps": smooth} if smooth != 1 else {})
 
 

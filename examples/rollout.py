@@ -9,11 +9,10 @@ The ego follows its lane with IDM (``policies.planners.IDMPlanner``); every othe
 is driven by ``RiskFlowAdversary`` (the shipped checkpoint unless ``--checkpoint``): one
 generator pass plans 5 s for every vehicle, the top-K critical ones (``A_c``) are guided
 toward risky interactions, and it re-plans every ``--planning-interval`` seconds. The
-demo runs the realistic base of docs/REALISM.md, round 8 (``--avoid-steps 10
---hold-distance 2``: the base plans are pulled apart and onto the road, parked cars keep
-standing) with the map term weighted 20 times the default (``--lambda-map 20``: the
-guided vehicles keep to the road while they attack, REALISM.md round 9;
-``--avoid-steps 0 --hold-distance 0 --lambda-map 1`` is the adversary's default). With
+adversary runs with its defaults, the realistic base of docs/REALISM.md (10 avoidance
+steps pull the base plans apart and onto the road, parked cars within 4 m of rest keep
+standing) with the map term weighted 20 (the guided vehicles keep to the road while they
+attack); ``--avoid-steps 0 --hold-distance 0 --lambda-map 1`` is the raw base. With
 ``--traffic replay`` the others replay the scenario's reference future instead (open loop:
 a scenario saved by ``stress_test_planner.py`` replays what happened).
 
@@ -33,6 +32,8 @@ from typing import Any
 
 from policies.dataclass_cli import parse_dataclass
 from policies.harness import METRICS, ClosedLoop
+from policies.learned.adversary_config import AdversaryConfig
+from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
 from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
 from riskflow_env.agents import ReplayPolicy
@@ -70,12 +71,12 @@ class Options:
     """episode length [steps of 0.1 s]"""
     traffic: str = "riskflow"
     """who drives the other vehicles: 'riskflow' or 'replay' (the scenario's future)"""
-    avoid_steps: int = 10
+    avoid_steps: int = DEFAULT_AVOID_STEPS
     """avoidance steps on the base plans (RiskFlowAdversary avoid_steps; 0: off)"""
-    hold_distance: float = 2.0
+    hold_distance: float = AdversaryConfig.hold_distance
     """[m] vehicles at rest whose plan moves them less keep standing (0: off)"""
-    lambda_map: float = 20.0
-    """weight of the guidance's map term (the adversary's default: 1)"""
+    lambda_map: float = AdversaryConfig.lambda_map
+    """weight of the guidance's map term"""
 
     def __post_init__(self) -> None:
         if self.video not in VIDEO_FORMATS:

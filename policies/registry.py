@@ -116,15 +116,22 @@ class MethodSpec:
 
 
 _ADVERSARY = "adversarial guidance on the top-K agents"
+# the raw generator's plans: no avoidance steps, no holding at rest (docs/REALISM.md)
+PLAIN: Mapping[str, Any] = {"avoid_steps": 0, "hold_distance": 0.0}
 METHODS: dict[str, MethodSpec] = {
     spec.name: spec
     for spec in (
-        MethodSpec("riskflow", f"RiskFlow: MeanFlow generator, {_ADVERSARY}", _riskflow),
         MethodSpec(
-            "riskflow-avoid",
-            "RiskFlow on the realistic base: avoidance steps and holding at rest (bits-avoid)",
+            "riskflow",
+            f"RiskFlow: MeanFlow generator on the realistic base (bits), {_ADVERSARY}",
             _riskflow,
-            {"avoid_steps": 10, "hold_distance": 2.0},
+        ),
+        MethodSpec(
+            "riskflow-plain",
+            "RiskFlow on the raw base (bits-plain), lambda_map = 1 (the defaults before "
+            "REALISM.md round 10)",
+            _riskflow,
+            PLAIN | {"lambda_map": 1.0},
         ),
         MethodSpec(
             "riskflow-noadv",
@@ -169,15 +176,16 @@ METHODS: dict[str, MethodSpec] = {
         MethodSpec("strive", f"STRIVE-style latent optimisation, {_ADVERSARY}", _strive),
         MethodSpec(
             "bits",
-            "BITS-like nominal: the unguided learned generator",
+            "BITS-like nominal: the unguided generator on the realistic base (avoidance "
+            "steps, holding at rest)",
             _nominal,
             takes=("planning_interval", "seed", "device"),
         ),
         MethodSpec(
-            "bits-avoid",
-            "the unguided learned generator with avoidance steps and holding at rest",
+            "bits-plain",
+            "the raw unguided generator: no avoidance steps, no holding at rest",
             _nominal,
-            {"avoid_steps": 10, "hold_distance": 2.0},
+            PLAIN,
             takes=("planning_interval", "seed", "device"),
         ),
         MethodSpec(

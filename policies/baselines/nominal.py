@@ -61,12 +61,17 @@ class NominalGenerator(RiskFlowAdversary):
         base_samples: M joint plans drawn per cycle, the best kept (``RiskFlowAdversary``:
             BITS's selection step, :mod:`policies.learned.plan_selection`); 1: one draw.
         hold_distance: [m] vehicles at rest whose plan moves them less than this keep
-            their brake on (``AdversaryConfig.hold_distance``); 0: off.
+            their brake on (``AdversaryConfig.hold_distance``, default 4); 0: off.
         smooth_steps: [steps] moving average over each plan's accelerations
             (``AdversaryConfig.smooth_steps``); 1: off.
-        avoid_steps, avoid_step_size: Adam steps (0: off) and their size that pull the
-            base plans' boxes apart and onto the road (``RiskFlowAdversary``,
+        avoid_steps, avoid_step_size: Adam steps (None: 10 with the MeanFlow generator,
+            0 with a diffusion one; 0: off) and their size that pull the base plans' boxes
+            apart and onto the road (``RiskFlowAdversary``,
             :mod:`policies.learned.plan_avoidance`).
+
+    The defaults are the realistic base (docs/REALISM.md, rounds 8 and 9);
+    ``avoid_steps=0, hold_distance=0`` is the raw generator (``riskflow-eval --methods
+    bits-plain``).
     """
 
     overlay_prefix = "nominal"
@@ -83,9 +88,9 @@ class NominalGenerator(RiskFlowAdversary):
         window_config: WindowConfig | None = None,
         threads: int | None = 1,
         base_samples: int = 1,
-        hold_distance: float = 0.0,
+        hold_distance: float = AdversaryConfig.hold_distance,
         smooth_steps: int = 1,
-        avoid_steps: int = 0,
+        avoid_steps: int | None = None,
         avoid_step_size: float = 0.1,
     ) -> None:
         config = AdversaryConfig(

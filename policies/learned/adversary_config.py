@@ -27,7 +27,8 @@ import numpy as np
 import torch
 
 from policies.learned.config import ModelConfig
-from policies.learned.guidance_losses import TARGETS
+from policies.learned.guidance_losses import TARGETS, ObjectiveConfig
+from policies.learned.plan_stitching import DEFAULT_HOLD_DISTANCE
 from policies.learned.ranking import DEFAULT_THRESHOLD, check_k
 from policies.learned.windows import WindowConfig
 
@@ -44,7 +45,7 @@ class AdversaryConfig:
         target: ``"others"`` (the paper's: toward any agent outside ``A_c``) or ``"ego"``
             (:class:`~policies.learned.guidance_losses.Target`).
         lambda_adv: weight of ``L_adv`` [1/m]; > 0 is more adversarial.
-        lambda_map: weight of ``L_map`` [1/m^2], >= 0.
+        lambda_map: weight of ``L_map`` [1/m^2], >= 0 (default: ``ObjectiveConfig``'s, 20).
         guidance_horizon: ``T_g`` [steps] of ``L_adv``; None: the whole plan.
         rank_threshold: risk above which a pair is an edge of the risk graph (ranking).
         seed: noise seed (the noise of cycle ``c`` of episode ``e`` comes from
@@ -57,7 +58,7 @@ class AdversaryConfig:
             threads only slow down (on CPU).
         hold_distance: [m] a vehicle at rest whose new plan moves it less than this over
             the horizon keeps its brake on (:mod:`policies.learned.plan_stitching`);
-            0 (default): off.
+            default 4 (parked cars stay parked: docs/REALISM.md, round 9); 0: off.
         smooth_steps: [steps] centred moving average over each new plan's accelerations
             (:mod:`policies.learned.plan_stitching`); 1 (default): off.
     """
@@ -66,14 +67,14 @@ class AdversaryConfig:
     planning_interval: float = 0.5
     target: str = "others"
     lambda_adv: float = 50.0
-    lambda_map: float = 1.0
+    lambda_map: float = ObjectiveConfig.lambda_map
     guidance_horizon: int | None = None
     rank_threshold: float = DEFAULT_THRESHOLD
     seed: int = 0
     device: torch.device | str = "cpu"
     window_config: WindowConfig | None = None
     threads: int | None = 1
-    hold_distance: float = 0.0
+    hold_distance: float = DEFAULT_HOLD_DISTANCE
     smooth_steps: int = 1
 
     def __post_init__(self) -> None:

@@ -55,7 +55,9 @@ class ObjectiveConfig:
 
     Attributes:
         lambda_adv: weight of ``L_adv`` [1/m]; > 0 is adversarial (RiskFlow's convention).
-        lambda_map: weight of ``L_map`` [1/m^2], >= 0.
+        lambda_map: weight of ``L_map`` [1/m^2], >= 0. The default 20 keeps the guided
+            vehicles' footprints on the road (<= 2% of their steps off it, attacking the
+            ego; docs/REALISM.md, round 9), where 1 left 6%.
         horizon: ``T_g`` plan steps of ``L_adv``; None: the whole plan.
         target: a :class:`Target` value, ``"others"`` (paper) or ``"ego"`` (stress testing).
         map_margin: footprint samples closer than this to the road edge are penalised [m].
@@ -63,7 +65,7 @@ class ObjectiveConfig:
     """
 
     lambda_adv: float = 50.0
-    lambda_map: float = 1.0
+    lambda_map: float = 20.0
     horizon: int | None = None
     target: str = "others"
     map_margin: float = 0.2

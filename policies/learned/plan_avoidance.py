@@ -29,7 +29,8 @@ the variables' rows are rolled out over the scored steps only, the map term give
 gradient in closed form, the rollout its vector-Jacobian product
 (``riskflow_env.dynamics.rollout_with_vjp``), and autograd runs only through the
 separation of the pairs whose boxes can touch (a pair of variables, or a variable and an
-obstacle). ``steps = 0`` leaves the plans as they are.
+obstacle). ``steps = 0`` leaves the plans as they are; the MeanFlow adversaries take
+``DEFAULT_AVOID_STEPS`` (10) by default (docs/REALISM.md, rounds 8 and 9).
 """
 
 from __future__ import annotations
@@ -47,6 +48,8 @@ from policies.learned.plan_stitching import REST_SPEED
 from policies.learned.sampler import decode_plans
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import SPEED, rollout_with_vjp
+
+DEFAULT_AVOID_STEPS = 10  # avoidance steps of the MeanFlow adversaries by default
 
 
 def avoid_overlaps(

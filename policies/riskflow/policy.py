@@ -30,6 +30,13 @@ diffusion baselines' denoiser run as a deterministic DDIM chain from ``eps`` ins
 with the same ranking and output-space guidance (the generator ablation of issue 7).
 ``lambda_adv = 0`` / ``lambda_map = 0`` drop a guidance term (the loss ablation).
 
+The realistic base (the defaults; docs/REALISM.md, rounds 8 and 9): before ranking, 10
+avoidance steps pull the MeanFlow base plans' boxes apart and onto the road
+(:mod:`policies.learned.plan_avoidance`), and vehicles at rest whose new plan moves them
+less than 4 m keep their brake on (:mod:`policies.learned.plan_stitching`); the map term
+weighs 20. ``avoid_steps=0, hold_distance=0, lambda_map=1`` is RiskFlow on the raw base, the
+defaults before round 10 (``riskflow-eval --methods riskflow-plain``).
+
 Many scenes: ``_plan_cycles`` plans B scenes in one call (``plan_scenes``,
 ``BatchedAdversary``; ``plan`` is B = 1): the windows are cut and ranked scene by scene
 (numpy, a loop over scenes), everything else runs once for all of them, agents padded to
@@ -58,7 +65,7 @@ from policies.learned.data import Normalizer
 from policies.learned.encoded_views import EncodedViews
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.guidance_losses import map_term
-from policies.learned.plan_avoidance import avoid_overlaps
+from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS, avoid_overlaps
 from policies.learned.plan_buffer import PlanBufferPolicy, hold_still
 from policies.learned.plan_overlay import BASE_COLOR, GUIDED_COLOR
 from policies.learned.plan_selection import SELECTION_HORIZON, select_joint_plans
@@ -105,6 +112,11 @@ class RiskFlowAdversary(PlanBufferPolicy):
             that overlaps least and stays on the road best
             (:mod:`policies.learned.plan_selection`, BITS-style selection), 1 (default)
             the single draw.
+        avoid_steps: Adam steps that pull the base plans apart and onto the road before
+            ranking (:mod:`policies.learned.plan_avoidance`); None (default):
+            ``DEFAULT_AVOID_STEPS`` (10) with the MeanFlow generator, 0 with a diffusion
+            one (which has none); 0: off.
+        avoid_step_size: their Adam learning rate (normalised action units).
         **options: :class:`AdversaryConfig` fields, when ``config`` is not given.
     """
 
@@ -122,15 +134,17 @@ class RiskFlowAdversary(PlanBufferPolicy):
         checkpoint: str | os.PathLike | None = None,
         sampling_steps: int | None = None,
         base_samples: int = 1,
-        avoid_steps: int = 0,
+        avoid_steps: int | None = None,
         avoid_step_size: float = 0.1,
         **options: Any,
     ) -> None:
         config = AdversaryConfig.resolve(config, options, type(self).__name__)
         if isinstance(base_samples, bool) or not isinstance(base_samples, int) or base_samples < 1:
             raise ValueError(f"base_samples must be an int >= 1, got {base_samples!r}")
-        if isinstance(avoid_steps, bool) or not isinstance(avoid_steps, int) or avoid_steps < 0:
-            raise ValueError(f"avoid_steps must be an int >= 0, got {avoid_steps!r}")
+        if avoid_steps is not None and (
+            isinstance(avoid_steps, bool) or not isinstance(avoid_steps, int) or avoid_steps < 0
+        ):
+            raise ValueError(f"avoid_steps must be None or an int >= 0, got {avoid_steps!r}")
         if isinstance(avoid_step_size, bool) or not (
             isinstance(avoid_step_size, (int, float)) and 0 < avoid_step_size < float("inf")
         ):
@@ -138,7 +152,7 @@ class RiskFlowAdversary(PlanBufferPolicy):
                 f"avoid_step_size must be a finite number > 0, got {avoid_step_size!r}"
             )
         self.base_samples = base_samples
-        self.avoid_steps, self.avoid_step_size = avoid_steps, float(avoid_step_size)
+        self.avoid_step_size = float(avoid_step_size)
         self.guidance = GuidanceConfig(
             steps=guidance_steps, step_size=step_size, optimizer=optimizer, **config.objective()
         )
@@ -160,10 +174,13 @@ class RiskFlowAdversary(PlanBufferPolicy):
             raise ValueError(
                 f"base_samples > 1 needs the MeanFlow generator, got {self.generator_kind!r}"
             )
+        if avoid_steps is None:
+            avoid_steps = DEFAULT_AVOID_STEPS if self.generator_kind == "meanflow" else 0
         if avoid_steps > 0 and self.generator_kind != "meanflow":
             raise ValueError(
                 f"avoid_steps > 0 needs the MeanFlow generator, got {self.generator_kind!r}"
             )
+        self.avoid_steps = avoid_steps
         self.model = generator.to(device).eval()
         self.normalizer = normalizer
         model_config = self.model.config

@@ -43,10 +43,9 @@ def test_scene_choice_covers_every_family():
 
 def test_generator_rows_per_option_value():
     bench = _module()
-    assert bench.sampled(1) == {} and bench.sampled(8, 1.5) == {
-        "base_samples": 8,
-        "hold_distance": 1.5,
-    }
+    # hold and avoidance always explicit: the rows do not take the policy's defaults
+    assert bench.sampled(1) == {"hold_distance": 0.0, "avoid_steps": 0}
+    assert bench.sampled(8, 1.5, 10) == {"base_samples": 8, "hold_distance": 1.5, "avoid_steps": 10}
     assert bench.labelled("g.pt", 1, 0.0) == "g.pt"
     assert bench.labelled("g.pt", 8, 2.0) == "g.pt best of 8 hold 2 m"
     with pytest.raises(SystemExit):

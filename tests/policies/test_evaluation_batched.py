@@ -16,10 +16,13 @@ from policies.evaluation.batched import group_jobs
 from policies.evaluation.cli import main
 
 # 4 shipped scenes, 3 s episodes ending at the ego's first collision: with K=5 guidance
-# toward the ego, scene 0's episode ends at step 25 while scenes 1 and 2 run to 30, and
-# groups of 3 leave scene 3 alone in a group of one.
+# toward the ego, scene 0's episode ends early while the others run to 30 steps, and
+# groups of 3 leave scene 3 alone in a group of one. RiskFlow on the raw base: the
+# avoidance steps of the default base are one more optimiser in the loop, which grows the
+# batched path's rounding past these tolerances within 3 s (their plans are checked cycle
+# by cycle in tests/policies/learned/test_batched_adversary.py).
 RUN = EvalOptions(
-    methods=("riskflow", "idm", "replay"),
+    methods=("riskflow-plain", "idm", "replay"),
     k=("5",),
     interval=(0.5,),
     scenes=4,

@@ -98,7 +98,8 @@ def test_smoothing_averages_the_accelerations_of_new_plans(tiny_meanflow, tiny_n
     ends held), the yaw rates untouched, the plans rolled out again; 1 changes nothing."""
     from scipy.ndimage import uniform_filter1d
 
-    models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
+    # holding at rest off: it would act on the smoothed plans only
+    models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer, "hold_distance": 0}
     free = RiskFlowAdversary(k=0, planning_interval=0.5, seed=3, **models)
     free.reset(view)
     free.plan(view)
