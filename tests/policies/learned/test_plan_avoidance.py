@@ -131,6 +131,25 @@ def test_the_diffusion_generator_refuses_it(tiny_denoiser, tiny_normalizer):
         )
 
 
+def test_the_defaults_are_the_realistic_base(tiny_meanflow, tiny_denoiser, tiny_normalizer):
+    """10 avoidance steps with MeanFlow (none with a diffusion generator, which has no
+    one-step output to step on), holding at rest at 4 m and the map term weighted 20;
+    ``riskflow-plain`` / ``bits-plain`` are the raw base."""
+    from policies.registry import build_policy
+
+    meanflow = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
+    for policy in (RiskFlowAdversary(k=5, **meanflow), NominalGenerator(**meanflow)):
+        assert (policy.avoid_steps, policy.hold_distance) == (10, 4.0)
+    assert RiskFlowAdversary(k=5, **meanflow).guidance.lambda_map == 20.0
+    diffusion = {"generator": OneCallSampler(tiny_denoiser, 3), "normalizer": tiny_normalizer}
+    assert NominalGenerator(**diffusion).avoid_steps == 0
+    shared = {"k": 5, "planning_interval": 0.5, "target": "others", "seed": 0}
+    plain = build_policy("riskflow-plain", meanflow, **shared)
+    assert (plain.avoid_steps, plain.hold_distance, plain.guidance.lambda_map) == (0, 0.0, 1.0)
+    raw = build_policy("bits-plain", meanflow, **shared)
+    assert (raw.avoid_steps, raw.hold_distance) == (0, 0.0)
+
+
 def test_closed_loop_with_avoidance_is_reproducible(tiny_meanflow, tiny_normalizer, closed_loop):
     """Same seed, same actions; on the conftest road, where no plans overlap and all stay
     on the road, the steps have nothing to do: the plans are those without them."""
