@@ -132,13 +132,11 @@ def main() -> None:
     threads = options.threads or None
     model, normalizer, origin = load_model(options.device)
     view, scene_name = scene_view(options.agents)
-    kwargs_based = dict(
-        generator=model, normalizer=normalizer, device=options.device, threads=threads
-    )
-    kwargs = dict(kwargs_based, avoid_steps=0, hold_distance=0.0)  # the raw base
+    common = dict(generator=model, normalizer=normalizer, device=options.device, threads=threads)
+    kwargs = dict(common, avoid_steps=0, hold_distance=0.0)  # the raw base
     guided = RiskFlowAdversary(k=options.k, guidance_steps=options.guidance_steps, **kwargs)
     unguided = RiskFlowAdversary(k=0, **kwargs)
-    kwargs_based["avoid_steps"] = options.avoid_steps
+    kwargs_based = dict(common, avoid_steps=options.avoid_steps)  # the defaults otherwise
     based = [
         RiskFlowAdversary(k=options.k, guidance_steps=options.guidance_steps, **kwargs_based),
         RiskFlowAdversary(k=0, **kwargs_based),
