@@ -30,7 +30,7 @@ every scene)::
     python benchmarks/traffic_realism.py [--checkpoint A.pt B.pt] [--scenes 14 | --full]
         [--seeds 0 1 2] [--bank DIR] [--workers 1] [--out realism.json]
         [--base-samples 1 8] [--hold-distance 0 1] [--avoid-steps 0 10] [--smooth-steps 1 3]
-        [--leave-when-log-ends]
+        [--stitch-steps 5 10] [--leave-when-log-ends]
 """
 
 from __future__ import annotations
@@ -52,6 +52,7 @@ import numpy as np
 from policies.dataclass_cli import parse_dataclass
 from policies.evaluation.options import SHIPPED, EvalOptions, Job, RunConfig
 from policies.evaluation.rollout import rollout_episode
+from policies.learned.plan_stitching import DEFAULT_STITCH_STEPS
 from policies.registry import method_spec
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.metrics import (
@@ -110,6 +111,9 @@ class Options:
     avoid_steps: tuple[int, ...] = (0,)
     """avoidance steps on each cycle's base plans (NominalGenerator avoid_steps; 0: off);
     a row per checkpoint, --base-samples, --hold-distance and value"""
+    stitch_steps: tuple[int, ...] = (DEFAULT_STITCH_STEPS,)
+    """[steps] a new plan's first actions blended with the executed plan (NominalGenerator
+    stitch_steps; 0: switch at once); a row per value of this and the options above"""
     baselines: tuple[str, ...] = BASELINES
     """reference methods of riskflow-eval measured in the same run"""
     bank: str | None = None
@@ -151,6 +155,8 @@ class Options:
             raise ValueError(f"--smooth-steps must be ints >= 1, got {self.smooth_steps}")
         if not self.avoid_steps or any(n < 0 for n in self.avoid_steps):
             raise ValueError(f"--avoid-steps must be ints >= 0, got {self.avoid_steps}")
+        if not self.stitch_steps or any(n < 0 for n in self.stitch_steps):
+            raise ValueError(f"--stitch-steps must be ints >= 0, got {self.stitch_steps}")
         if not self.hold_distance or not all(0 <= d < float("inf") for d in self.hold_distance):
             raise ValueError(
                 f"--hold-distance must be finite numbers >= 0 [m], got {self.hold_distance}"
@@ -254,22 +260,37 @@ def summarise(label: str, results: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def sampled(
-    samples: int, hold: float = 0.0, avoid: int = 0, smooth: int = 1
+    samples: int,
+    hold: float = 0.0,
+    avoid: int = 0,
+    smooth: int = 1,
+    stitch: int = DEFAULT_STITCH_STEPS,
 ) -> dict[str, int | float]:
     """The generator's options for ``--base-samples`` M, ``--hold-distance`` D,
-    ``--avoid-steps`` N and ``--smooth-steps`` S (M and S only where not 1)."""
+    ``--avoid-steps`` N, ``--smooth-steps`` S and ``--stitch-steps`` B (M, S and B only
+    where not the default)."""
     options: dict[str, int | float] = {"base_samples": samples} if samples != 1 else {}
     options |= {"hold_distance": hold, "avoid_steps": avoid}  # explicit: not the policy's defaults
-    return options | ({"smooth_steps": smooth} if smooth != 1 else {})
+    options |= {"smooth_steps": smooth} if smooth != 1 else {}
+    return options | ({"stitch_steps": stitch} if stitch != DEFAULT_STITCH_STEPS else {})
 
 
-def labelled(label: str, samples: int, hold: float = 0.0, avoid: int = 0, smooth: int = 1) -> str:
+def labelled(
+    label: str,
+    samples: int,
+    hold: float = 0.0,
+    avoid: int = 0,
+    smooth: int = 1,
+    stitch: int = DEFAULT_STITCH_STEPS,
+) -> str:
     """A generator row's label: the checkpoint's, with ``best of M`` for M > 1, ``hold D
-    m`` for D > 0, ``avoid N`` for N > 0 and ``smooth S`` for S > 1."""
+    m`` for D > 0, ``avoid N`` for N > 0, ``smooth S`` for S > 1 and ``stitch B`` for B
+    other than the default."""
     label = label if samples == 1 else f"{label} best of {samples}"
     label = label if not hold else f"{label} hold {hold:g} m"
     label = label if not avoid else f"{label} avoid {avoid}"
-    return label if smooth == 1 else f"{label} smooth {smooth}"
+    label = label if smooth == 1 else f"{label} smooth {smooth}"
+    return label if stitch == DEFAULT_STITCH_STEPS else f"{label} stitch {stitch}"
 
 
 def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[RealismJob]:
@@ -287,7 +308,11 @@ def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[
     labels = names if unique else list(args.checkpoint)
     variants = list(
         itertools.product(
-            args.base_samples, args.hold_distance, args.avoid_steps, args.smooth_steps
+            args.base_samples,
+            args.hold_distance,
+            args.avoid_steps,
+            args.smooth_steps,
+            args.stitch_steps,
         )
     )
     methods = [

@@ -64,6 +64,8 @@ class NominalGenerator(RiskFlowAdversary):
             their brake on (``AdversaryConfig.hold_distance``, default 4); 0: off.
         smooth_steps: [steps] moving average over each plan's accelerations
             (``AdversaryConfig.smooth_steps``); 1: off.
+        stitch_steps: [steps] a new plan's first actions blended with the executed plan
+            (``AdversaryConfig.stitch_steps``, default 5); 0: switch at once.
         avoid_steps, avoid_step_size: Adam steps (None: 10 with the MeanFlow generator,
             0 with a diffusion one; 0: off) and their size that pull the base plans' boxes
             apart and onto the road (``RiskFlowAdversary``,
@@ -90,13 +92,14 @@ class NominalGenerator(RiskFlowAdversary):
         base_samples: int = 1,
         hold_distance: float = AdversaryConfig.hold_distance,
         smooth_steps: int = 1,
+        stitch_steps: int = AdversaryConfig.stitch_steps,
         avoid_steps: int | None = None,
         avoid_step_size: float = 0.1,
     ) -> None:
         config = AdversaryConfig(
             k=0, planning_interval=planning_interval, seed=seed, device=device,
             window_config=window_config, threads=threads, hold_distance=hold_distance,
-            smooth_steps=smooth_steps,
+            smooth_steps=smooth_steps, stitch_steps=stitch_steps,
         )  # fmt: skip
         super().__init__(
             config,

@@ -7,7 +7,10 @@ plan is rolled out again from the current state. Positions and speeds are contin
 across a re-plan anyway (every plan starts at the current state); this makes the
 acceleration and yaw rate continuous too, which removes the jerk spike at every re-plan
 (the step that switched plans had about twice the p95 jerk of the steps within a plan).
-Set ``policy.stitch_steps = 0`` to switch at once.
+``AdversaryConfig.stitch_steps`` sets the length (``DEFAULT_STITCH_STEPS`` by default; 0
+switches at once). A blend longer than the planning interval reaches into the next
+re-plan's blend, so each executed action is a weighted mean of the last few plans; it
+damps the generator's plan-to-plan noise (docs/REALISM.md, round 11).
 
 **Smoothing** (``AdversaryConfig.smooth_steps``, off by default). The one-step
 generator's plans carry step-to-step noise in the acceleration that the data does not
@@ -44,6 +47,7 @@ from riskflow_env.view import SceneView
 
 REST_SPEED = 0.2  # [m/s] a vehicle at or below this speed is at rest (holding at rest)
 DEFAULT_HOLD_DISTANCE = 4.0  # [m] the adversaries' default holding distance (module docstring)
+DEFAULT_STITCH_STEPS = 5  # [steps] the adversaries' default re-plan blend (module docstring)
 
 
 class PlanStitching:
@@ -55,7 +59,7 @@ class PlanStitching:
     ``dynamics`` and ``hold_distance``.
     """
 
-    stitch_steps: int = 5  # [steps] re-plan blend (module docstring); 0: switch at once
+    stitch_steps: int = DEFAULT_STITCH_STEPS  # [steps] re-plan blend; 0: switch at once
     hold_distance: float = 0.0  # [m] holding at rest (module docstring); 0: off
     smooth_steps: int = 1  # [steps] moving average of the accelerations; 1: off
     dynamics: DynamicsConfig

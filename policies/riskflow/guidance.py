@@ -19,8 +19,11 @@ the actions stay inside the dynamics bounds; Adam by default, or the paper's pla
 ``L_adv`` is the mean distance over the guidance horizon to the nearest target (every
 present agent outside ``A_c``, or the ego only), ``L_map`` the decayed squared depth of
 the footprint samples off the drivable area; ``lambda_adv > 0`` is more adversarial (the
-paper's "-50" is ``+50`` here). docs/GENERATOR.md ("Output-space guidance") has the terms,
-the sign convention and why the steps are Adam steps.
+paper's "-50" is ``+50`` here). An optional third term, ``lambda_base * L_base`` (off by
+default), tethers each guided row to the generator's own plan: ``L_base`` is half the mean
+over the plan's steps of ``||u - u0||^2``, the output-space counterpart of STRIVE's latent
+prior (docs/REALISM.md, round 11, has what it buys). docs/GENERATOR.md ("Output-space
+guidance") has the terms, the sign convention and why the steps are Adam steps.
 """
 
 from __future__ import annotations
@@ -65,11 +68,16 @@ class GuidanceConfig(ObjectiveConfig):
             ``gamma`` [normalised action units per unit of gradient] for ``"gradient"``
             (e.g. 3e-3 with the default weights).
         optimizer: ``"adam"`` or ``"gradient"`` (plain steps, the paper's).
+        lambda_base: weight of ``L_base``, half the mean over the plan's steps of the
+            squared distance of a guided row's residual to its base residual
+            [normalised action units^2], >= 0: it keeps the guided plans near the
+            generator's own (0: off, the paper's objective).
     """
 
     steps: int = 30
     step_size: float = 0.1
     optimizer: str = "adam"
+    lambda_base: float = 0.0
 
     def checks(self) -> list[tuple[bool, str]]:
         """The objective's rules and the optimiser's."""
@@ -78,6 +86,10 @@ class GuidanceConfig(ObjectiveConfig):
             (steps_ok and self.steps >= 0, "steps must be an int >= 0"),
             (math.isfinite(self.step_size) and self.step_size > 0, "step_size must be > 0"),
             (self.optimizer in OPTIMIZERS, f"optimizer must be one of {OPTIMIZERS}"),
+            (
+                math.isfinite(self.lambda_base) and self.lambda_base >= 0,
+                "lambda_base must be a finite number >= 0",
+            ),
         ]
 
 
@@ -168,6 +180,8 @@ class _Objective:
         zero = torch.zeros_like(scene.eps[:1, :1])
         self.std = normalizer.denormalize(zero + 1.0) - normalizer.denormalize(zero)
         self.offset = normalizer.denormalize(scene.eps[rows])  # a = offset + std * u_c
+        self.u0 = scene.u0[rows]
+        self.lambda_base = config.lambda_base
         self.state = scene.state[rows]
         self.target_xy, self.target_valid = target_xy, target_valid
         self.horizon, self.dynamics = config.horizon, dynamics
@@ -221,7 +235,10 @@ class _Objective:
         else:
             off_road, d_map = self.map_term.rows_and_gradient(trajectories)
             d_trajectories.add_(d_map, alpha=lambda_map)
-        return vjp(d_trajectories) * self.std, adv, off_road
+        grad = vjp(d_trajectories) * self.std
+        if self.lambda_base:  # L_base = mean_t ||u_c - u0||^2 / 2
+            grad.add_(u_c - self.u0, alpha=self.lambda_base / u_c.shape[-2])
+        return grad, adv, off_road
 
 
 def guide(

@@ -99,6 +99,8 @@ class RiskFlowAdversary(PlanBufferPolicy):
         guidance_steps: ``K_g``.
         step_size: Adam learning rate, or ``gamma`` of plain steps (:class:`GuidanceConfig`).
         optimizer: ``"adam"`` (default) or ``"gradient"`` (the paper's plain steps).
+        lambda_base: weight of the tether of the guided plans to the generator's own
+            (:class:`GuidanceConfig`); 0 (default): off.
         generator: the base-plan generator: a model object (a ``RiskFlowGenerator``, or
             a diffusion ``OneCallSampler``; moved to ``device``, eval mode) with its
             ``normalizer``; or ``"meanflow"`` / ``"diffusion"`` to load that kind from
@@ -129,6 +131,7 @@ class RiskFlowAdversary(PlanBufferPolicy):
         guidance_steps: int = 30,
         step_size: float = GuidanceConfig.step_size,
         optimizer: str = GuidanceConfig.optimizer,
+        lambda_base: float = GuidanceConfig.lambda_base,
         generator: RiskFlowGenerator | OneCallSampler | str | None = None,
         normalizer: Normalizer | None = None,
         checkpoint: str | os.PathLike | None = None,
@@ -154,7 +157,11 @@ class RiskFlowAdversary(PlanBufferPolicy):
         self.base_samples = base_samples
         self.avoid_step_size = float(avoid_step_size)
         self.guidance = GuidanceConfig(
-            steps=guidance_steps, step_size=step_size, optimizer=optimizer, **config.objective()
+            steps=guidance_steps,
+            step_size=step_size,
+            optimizer=optimizer,
+            lambda_base=lambda_base,
+            **config.objective(),
         )
         device = torch.device(config.device)
         if generator is None or isinstance(generator, str):

@@ -64,6 +64,19 @@ def test_lowers_adversarial_loss_and_keeps_map_loss_bounded(target, optimizer):
     assert torch.allclose(adversarial_loss(xy, target_xy), adv_after)
 
 
+def test_base_term_keeps_the_guided_plans_near_the_generators():
+    scene = make_scene(HIGHWAY)
+    rows = [1, 2, 3]
+    distances, adversarial = [], []
+    for weight in (0.0, 30.0, 3000.0):
+        result = guide(scene, mask_of(6, rows), NORMALIZER, GuidanceConfig(lambda_base=weight))
+        distances.append(float((result.u[rows] - scene.u0[rows]).square().mean()))
+        adversarial.append(float(result.losses[-1, 0]))
+    assert distances[0] > distances[1] > distances[2] > 0
+    # A heavier tether gives up attack (Adam's steps need not order the lighter ones).
+    assert max(adversarial[:2]) < adversarial[2] < float(result.losses[0, 0])
+
+
 def test_sign_convention_negative_weight_pushes_apart():
     scene = make_scene(HIGHWAY)
     push = guide(scene, mask_of(6, [1]), NORMALIZER, GuidanceConfig(lambda_adv=-50.0))
@@ -124,6 +137,8 @@ def test_config_validation():
         {"target": "all"},
         {"optimizer": "sgd"},
         {"map_decay": 1.5},
+        {"lambda_base": -1.0},
+        {"lambda_base": float("inf")},
     ):
         with pytest.raises(ValueError, match="GuidanceConfig: "):
             GuidanceConfig(**bad)

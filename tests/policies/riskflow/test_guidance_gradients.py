@@ -142,8 +142,9 @@ def _autograd_adversarial(xy, target_xy, horizon, target_valid):
 
 
 def _autograd_gradient(objective, u_c, lambda_adv, lambda_map):
-    """The autograd path the closed form replaces: through the rollout and both losses.
-    Returns the gradient and each row's ``L_adv`` and ``L_map`` (as ``gradient`` does)."""
+    """The autograd path the closed form replaces: through the rollout and the losses
+    (``L_base`` too). Returns the gradient and each row's ``L_adv`` and ``L_map`` (as
+    ``gradient`` does)."""
     with torch.inference_mode(False), torch.enable_grad():  # guide's loop runs in inference
         u_c = u_c.clone().requires_grad_(True)
         trajectories = rollout(objective.state, objective.actions(u_c), objective.dynamics)
@@ -151,7 +152,9 @@ def _autograd_gradient(objective, u_c, lambda_adv, lambda_map):
             trajectories[..., :2], objective.target_xy, objective.horizon, objective.target_valid
         )
         off_road = objective.map_term(trajectories)
-        (grad,) = torch.autograd.grad(lambda_adv * adv.sum() + lambda_map * off_road, u_c)
+        base = 0.5 * (u_c - objective.u0).square().sum(dim=(-2, -1)) / u_c.shape[-2]
+        loss = lambda_adv * adv.sum() + lambda_map * off_road + objective.lambda_base * base.sum()
+        (grad,) = torch.autograd.grad(loss, u_c)
     return grad, adv.detach(), objective.map_term.rows(trajectories.detach())
 
 
@@ -171,10 +174,11 @@ def _stopping_scene() -> GuidanceScene:
     return dataclasses.replace(scene, u0=u0, base_actions=actions, base_trajectories=trajectories)
 
 
-def test_closed_form_gradient_and_plans_equal_the_autograd_path(monkeypatch):
+@pytest.mark.parametrize("lambda_base", [0.0, 30.0])
+def test_closed_form_gradient_and_plans_equal_the_autograd_path(monkeypatch, lambda_base):
     scene = _stopping_scene()
     controllable = mask_of(6, [1, 3, 5])
-    config = GuidanceConfig()
+    config = GuidanceConfig(lambda_base=lambda_base)
     rows = torch.tensor([1, 3, 5])
     targets = scene.base_trajectories[[0, 2, 4], :, :2]
     objective = guidance._Objective(scene, rows, targets, NORMALIZER, config, DEFAULT_CONFIG)
