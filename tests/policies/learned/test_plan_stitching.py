@@ -5,20 +5,31 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from policies.learned.adversary_config import AdversaryConfig
+from policies.learned.plan_stitching import DEFAULT_STITCH_STEPS, PlanStitching
 from policies.riskflow.policy import RiskFlowAdversary
 from riskflow_env.dynamics import rollout
 
 
 def _adversary(models, stitch_steps: int, k: int = 0) -> RiskFlowAdversary:
-    policy = RiskFlowAdversary(k=k, planning_interval=0.3, seed=2, **models)
-    policy.stitch_steps = stitch_steps
-    return policy
+    return RiskFlowAdversary(
+        k=k, planning_interval=0.3, seed=2, stitch_steps=stitch_steps, **models
+    )
+
+
+def test_stitch_steps_is_a_checked_shared_option():
+    assert AdversaryConfig().stitch_steps == DEFAULT_STITCH_STEPS == PlanStitching.stitch_steps
+    assert AdversaryConfig(stitch_steps=np.int64(10)).stitch_steps == 10
+    for bad in (-1, 2.5, True, "5"):
+        with pytest.raises(ValueError, match="stitch_steps must be an int >= 0"):
+            AdversaryConfig(stitch_steps=bad)
 
 
 @pytest.mark.parametrize("k", [0, 2])
-def test_replan_blends_into_the_executed_plan(tiny_meanflow, tiny_normalizer, closed_loop, k):
+@pytest.mark.parametrize("n", [5, 10])  # 10: longer than the 3-step planning interval
+def test_replan_blends_into_the_executed_plan(tiny_meanflow, tiny_normalizer, closed_loop, k, n):
     models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
-    policy = _adversary(models, stitch_steps=5, k=k)
+    policy = _adversary(models, stitch_steps=n, k=k)
     env, emitted = closed_loop(policy, 3)  # cycle 0 planned at step 0, 3 steps executed
     previous = policy.plan_actions.copy()
     view = env.view()
@@ -30,19 +41,19 @@ def test_replan_blends_into_the_executed_plan(tiny_meanflow, tiny_normalizer, cl
     fresh.reset(view)
     fresh.cycles, fresh._episode = 1, policy._episode
     fresh.plan(view)
-    keep = np.array([5, 4, 3, 2, 1])[:, None] / 6.0
+    keep = np.arange(n, 0, -1)[:, None] / (n + 1.0)  # n/(n+1), ..., 1/(n+1)
     expected = fresh.plan_actions[rows].copy()
-    expected[:, :5] = keep * previous[rows, 3:8] + (1 - keep) * expected[:, :5]
+    expected[:, :n] = keep * previous[rows, 3 : 3 + n] + (1 - keep) * expected[:, :n]
     np.testing.assert_allclose(policy.plan_actions[rows], expected, rtol=0, atol=1e-12)
-    np.testing.assert_array_equal(policy.plan_actions[rows, 5:], fresh.plan_actions[rows, 5:])
+    np.testing.assert_array_equal(policy.plan_actions[rows, n:], fresh.plan_actions[rows, n:])
     # The stored plans are what the actions do from the current state (same path).
     np.testing.assert_array_equal(
         policy.plans[rows], rollout(view.current[rows], policy.plan_actions[rows], policy.dynamics)
     )
-    # The step into the new plan moves the action a sixth of the unblended switch.
+    # The step into the new plan moves the action 1/(n+1) of the unblended switch.
     switch = np.abs(fresh.plan_actions[rows, 0] - previous[rows, 3])
     np.testing.assert_allclose(
-        np.abs(policy.plan_actions[rows, 0] - previous[rows, 3]), switch / 6, atol=1e-12
+        np.abs(policy.plan_actions[rows, 0] - previous[rows, 3]), switch / (n + 1), atol=1e-12
     )
     unguided = rows[~policy.controllable[rows]]
     np.testing.assert_array_equal(policy.base_plans[unguided], policy.plans[unguided])
