@@ -23,7 +23,7 @@ scenes in one encoder pass, one generator pass and one guidance loop) or
 * **timings** per phase, world-frame plans and the controllable set;
 * **stitching** (:mod:`policies.learned.plan_stitching`): a new plan's first
   ``stitch_steps`` actions are blended with the plan being executed, so the actions stay
-  continuous across a re-plan (``AdversaryConfig.stitch_steps = 0`` switches at once); before
+  continuous across a re-plan (``stitch_steps=0`` switches at once); before
   that, with ``smooth_steps`` > 1, the new plans' accelerations are smoothed, and with
   ``hold_distance`` > 0, vehicles at rest whose plan hardly moves them keep their brake
   on (same module);
