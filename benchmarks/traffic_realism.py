@@ -30,7 +30,7 @@ every scene)::
     python benchmarks/traffic_realism.py [--checkpoint A.pt B.pt] [--scenes 14 | --full]
         [--seeds 0 1 2] [--bank DIR] [--workers 1] [--out realism.json]
         [--base-samples 1 8] [--hold-distance 0 1] [--avoid-steps 0 10] [--smooth-steps 1 3]
-        [--stitch-steps 5 10] [--leave-when-log-ends]
+        [--stitch-steps 5 10] [--stitch-first] [--leave-when-log-ends]
 """
 
 from __future__ import annotations
@@ -114,6 +114,9 @@ class Options:
     stitch_steps: tuple[int, ...] = (DEFAULT_STITCH_STEPS,)
     """[steps] a new plan's first actions blended with the executed plan (NominalGenerator
     stitch_steps; 0: switch at once); a row per value of this and the options above"""
+    stitch_first: bool = False
+    """blend each new base plan into the executed one before the avoidance steps
+    (NominalGenerator stitch_first), for every generator row"""
     baselines: tuple[str, ...] = BASELINES
     """reference methods of riskflow-eval measured in the same run"""
     bank: str | None = None
@@ -315,8 +318,14 @@ def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[
             args.stitch_steps,
         )
     )
+    first = {"stitch_first": True} if args.stitch_first else {}
+    suffix = " first" if args.stitch_first else ""
     methods = [
-        ("bits", {"checkpoint": str(Path(path).resolve()), **sampled(*v)}, labelled(label, *v))
+        (
+            "bits",
+            {"checkpoint": str(Path(path).resolve()), **sampled(*v), **first},
+            labelled(label, *v) + suffix,
+        )
         for path, label in zip(args.checkpoint, labels, strict=True)
         for v in variants
     ]

@@ -66,6 +66,8 @@ class NominalGenerator(RiskFlowAdversary):
             (``AdversaryConfig.smooth_steps``); 1: off.
         stitch_steps: [steps] a new plan's first actions blended with the executed plan
             (``AdversaryConfig.stitch_steps``, default 5); 0: switch at once.
+        stitch_first: blend the base plans before the avoidance steps
+            (``RiskFlowAdversary``, :mod:`policies.learned.plan_stitching`); default off.
         avoid_steps, avoid_step_size: Adam steps (None: 10 with the MeanFlow generator,
             0 with a diffusion one; 0: off) and their size that pull the base plans' boxes
             apart and onto the road (``RiskFlowAdversary``,
@@ -95,6 +97,7 @@ class NominalGenerator(RiskFlowAdversary):
         stitch_steps: int = AdversaryConfig.stitch_steps,
         avoid_steps: int | None = None,
         avoid_step_size: float = 0.1,
+        stitch_first: bool = False,
     ) -> None:
         config = AdversaryConfig(
             k=0, planning_interval=planning_interval, seed=seed, device=device,
@@ -111,6 +114,7 @@ class NominalGenerator(RiskFlowAdversary):
             base_samples=base_samples,
             avoid_steps=avoid_steps,
             avoid_step_size=avoid_step_size,
+            stitch_first=stitch_first,
         )
 
 

@@ -364,7 +364,7 @@ def plan_scenes(scenes: Sequence[PlanBufferPolicy], views: Sequence[SceneView]) 
         for scene, view, previous in zip(scenes, views, before, strict=True):
             scene._shape(view)
             if previous is not None and scene.stitch_steps > 0:
-                scene._stitch(view, *previous)
+                scene._stitch(view, *previous, guided_only=scene.stitch_first)
         total = time.perf_counter() - start
     finally:
         if planner.threads is not None:

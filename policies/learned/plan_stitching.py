@@ -12,6 +12,14 @@ switches at once). A blend longer than the planning interval reaches into the ne
 re-plan's blend, so each executed action is a weighted mean of the last few plans; it
 damps the generator's plan-to-plan noise (docs/REALISM.md, round 11).
 
+**Blending first** (``RiskFlowAdversary(stitch_first=True)``, off by default). Blended
+after planning, a long blend delays every correction that planning made, the avoidance
+steps' too, and costs off-road steps and collisions. With ``stitch_first`` the MeanFlow
+adversaries blend each new *base* plan into the executed one before the avoidance steps
+(:meth:`PlanStitching._continuation` gives the executed plans' continuation and weights),
+so the avoidance steps correct the plan that will run; after planning only the guided
+rows are blended (guidance changed them after the blend).
+
 **Smoothing** (``AdversaryConfig.smooth_steps``, off by default). The one-step
 generator's plans carry step-to-step noise in the acceleration that the data does not
 have: it is most of the generated traffic's KDD (the Wasserstein distance of its jerk to
@@ -60,6 +68,7 @@ class PlanStitching:
     """
 
     stitch_steps: int = DEFAULT_STITCH_STEPS  # [steps] re-plan blend; 0: switch at once
+    stitch_first: bool = False  # blend the base plans before the avoidance steps
     hold_distance: float = 0.0  # [m] holding at rest (module docstring); 0: off
     smooth_steps: int = 1  # [steps] moving average of the accelerations; 1: off
     dynamics: DynamicsConfig
@@ -114,19 +123,47 @@ class PlanStitching:
         unguided = rows[~self.controllable[rows]]
         self.base_plans[unguided] = self.plans[unguided]
 
-    def _stitch(self, view: SceneView, actions: np.ndarray, mask: np.ndarray, elapsed: int) -> None:
+    def _continuation(
+        self, view: SceneView, slots: np.ndarray, steps: int
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """What the blend of a new plan of ``steps`` steps needs, before planning
+        (blending first, module docstring): the executed plans' actions from now on
+        ``(S, n, 2)`` for the env ``slots`` and the previous plan's share ``(S, n)``
+        (0 for slots without a plan to continue); None when nothing is blended."""
+        if self._plan_step is None or self.stitch_steps <= 0:
+            return None
+        elapsed = view.step - self._plan_step
+        n = min(self.stitch_steps, self.plan_actions.shape[1] - elapsed, steps)
+        if n <= 0:
+            return None
+        old = self.plan_actions[slots, elapsed : elapsed + n]
+        share = np.where(
+            (self.plan_mask[slots] & view.active[slots])[:, None], blend_share(n)[None], 0.0
+        )
+        return old, share
+
+    def _stitch(
+        self,
+        view: SceneView,
+        actions: np.ndarray,
+        mask: np.ndarray,
+        elapsed: int,
+        guided_only: bool = False,
+    ) -> None:
         """Blend the first ``stitch_steps`` actions of the new plans with the rest of the
         previous plans (module docstring) and roll the plans out again.
 
-        Args: the previous ``plan_actions`` (A, T, 2) and ``plan_mask`` (A,), and the
-        steps executed of them (``elapsed``).
+        Args: the previous ``plan_actions`` (A, T, 2) and ``plan_mask`` (A,), the steps
+        executed of them (``elapsed``), and whether to blend the guided rows only (the
+        others were blended first).
         """
         steps = min(self.stitch_steps, actions.shape[1] - elapsed, self.plan_actions.shape[1])
         same = mask.shape == self.plan_mask.shape
-        rows = np.flatnonzero(self.plan_mask & mask & view.active) if same else []
+        chosen = self.plan_mask & (self.controllable if guided_only else True)
+        rows = np.flatnonzero(chosen & mask & view.active) if same else []
         if steps <= 0 or len(rows) == 0:
             return
-        keep = (1.0 - np.arange(1, steps + 1) / (steps + 1))[:, None]  # previous plan's share
+        keep = blend_share(steps)[:, None]  # previous plan's share
         old = actions[rows, elapsed : elapsed + steps]
 
         def blend(plan_actions: np.ndarray, previous: np.ndarray) -> np.ndarray:
@@ -147,4 +184,10 @@ class PlanStitching:
             self.base_plans[rows[guided]] = rollout(current[guided], base, self.dynamics)
 
 
-__all__ = ["REST_SPEED", "PlanStitching"]
+def blend_share(steps: int) -> np.ndarray:
+    """(steps,) the executed plan's share in a blend of ``steps`` steps:
+    ``steps/(steps+1), ..., 1/(steps+1)`` (module docstring)."""
+    return 1.0 - np.arange(1, steps + 1) / (steps + 1)
+
+
+__all__ = ["DEFAULT_STITCH_STEPS", "REST_SPEED", "PlanStitching", "blend_share"]

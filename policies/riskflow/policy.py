@@ -119,6 +119,9 @@ class RiskFlowAdversary(PlanBufferPolicy):
             ``DEFAULT_AVOID_STEPS`` (10) with the MeanFlow generator, 0 with a diffusion
             one (which has none); 0: off.
         avoid_step_size: their Adam learning rate (normalised action units).
+        stitch_first: blend each new base plan into the executed one before the avoidance
+            steps, and only the guided rows after planning
+            (:mod:`policies.learned.plan_stitching`); False (default): every plan after.
         **options: :class:`AdversaryConfig` fields, when ``config`` is not given.
     """
 
@@ -139,6 +142,7 @@ class RiskFlowAdversary(PlanBufferPolicy):
         base_samples: int = 1,
         avoid_steps: int | None = None,
         avoid_step_size: float = 0.1,
+        stitch_first: bool = False,
         **options: Any,
     ) -> None:
         config = AdversaryConfig.resolve(config, options, type(self).__name__)
@@ -154,7 +158,10 @@ class RiskFlowAdversary(PlanBufferPolicy):
             raise ValueError(
                 f"avoid_step_size must be a finite number > 0, got {avoid_step_size!r}"
             )
+        if not isinstance(stitch_first, (bool, np.bool_)):
+            raise ValueError(f"stitch_first must be a bool, got {stitch_first!r}")
         self.base_samples = base_samples
+        self.stitch_first = bool(stitch_first)
         self.avoid_step_size = float(avoid_step_size)
         self.guidance = GuidanceConfig(
             steps=guidance_steps,
@@ -221,6 +228,11 @@ class RiskFlowAdversary(PlanBufferPolicy):
                 eps, u0, actions, trajectories = self._select(
                     observed, views, (eps, u0, actions, trajectories)
                 )
+            if self.stitch_first:
+                u0 = self._blend_first(scenes, views, observed.slots, eps, u0)
+                actions, trajectories = plans_from_velocity(
+                    eps, u0, scene.state, scene.agent_mask, self.normalizer, self.dynamics
+                )
             if self.avoid_steps > 0:
                 u0, actions, trajectories = self._avoid(observed, views, eps, u0)
             done = np.zeros((num_scenes, num_agents), dtype=bool)
@@ -261,6 +273,28 @@ class RiskFlowAdversary(PlanBufferPolicy):
                 trajectories[index, rows], observed.frames[index],
             )  # fmt: skip
             policy.guidance_losses = losses[:, index]
+
+    def _blend_first(
+        self,
+        scenes: Sequence[PlanBufferPolicy],
+        views: Sequence[SceneView],
+        slots: Sequence[np.ndarray],
+        eps: torch.Tensor,
+        u0: torch.Tensor,
+    ) -> torch.Tensor:
+        """The base residual ``u0`` (B, A, T, 2) of plans whose first actions are blended
+        into each scene's executed plans (blending first,
+        :mod:`policies.learned.plan_stitching`)."""
+        old, share = torch.zeros_like(u0), torch.zeros_like(u0[..., :1])
+        for index, (policy, view) in enumerate(zip(scenes, views, strict=True)):
+            blend = policy._continuation(view, slots[index], u0.shape[2])
+            if blend is not None:
+                previous, weight = (torch.as_tensor(x, dtype=u0.dtype) for x in blend)
+                rows, steps = slice(0, len(slots[index])), weight.shape[1]
+                old[index, rows, :steps] = previous.to(u0.device)
+                share[index, rows, :steps, 0] = weight.to(u0.device)
+        actions = self.normalizer.denormalize(eps + u0)
+        return self.normalizer.normalize(share * old + (1 - share) * actions) - eps
 
     def _select(
         self,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from policies.learned.adversary_config import AdversaryConfig
-from policies.learned.plan_stitching import DEFAULT_STITCH_STEPS, PlanStitching
+from policies.learned.plan_stitching import DEFAULT_STITCH_STEPS, PlanStitching, blend_share
 from policies.riskflow.policy import RiskFlowAdversary
 from riskflow_env.dynamics import rollout
 
@@ -57,3 +57,52 @@ def test_replan_blends_into_the_executed_plan(tiny_meanflow, tiny_normalizer, cl
     )
     unguided = rows[~policy.controllable[rows]]
     np.testing.assert_array_equal(policy.base_plans[unguided], policy.plans[unguided])
+
+
+def test_blending_first_blends_the_base_plans_into_the_executed_ones(
+    tiny_meanflow, tiny_normalizer, closed_loop
+):
+    """Unguided, no avoidance steps, no holding: a new plan's first actions are the blend
+    of the executed plan's continuation and the unblended plan (where that lies inside
+    the action bounds, so the clip of the decoded plan does not act; to float rounding:
+    the blend goes through the action normalisation); the later actions are the
+    unblended plan's."""
+    n = 10
+    options = dict(
+        k=0, planning_interval=0.3, seed=2, avoid_steps=0, hold_distance=0.0,
+        generator=tiny_meanflow, normalizer=tiny_normalizer,
+    )  # fmt: skip
+    policy = RiskFlowAdversary(stitch_steps=n, stitch_first=True, **options)
+    env, _ = closed_loop(policy, 3)  # cycle 0 planned at step 0, 3 steps executed
+    view = env.view()
+    rows = np.flatnonzero(policy.plan_mask & view.active)
+    old, share = policy._continuation(view, rows, 52)
+    np.testing.assert_allclose(share, np.broadcast_to(blend_share(n), share.shape))
+    np.testing.assert_array_equal(old, policy.plan_actions[rows, 3 : 3 + n])
+    policy.act(view)  # step 3: cycle 1
+    fresh = RiskFlowAdversary(stitch_steps=0, **options)  # the same cycle-1 plans, unblended
+    fresh.reset(view)
+    fresh.cycles, fresh._episode = 1, policy._episode
+    fresh.plan(view)
+    unblended = fresh.plan_actions[rows]
+    dynamics = policy.dynamics
+    low = np.array([dynamics.accel_min, -dynamics.yaw_rate_max])
+    high = np.array([dynamics.accel_max, dynamics.yaw_rate_max])
+    inside = (unblended[:, :n] > low) & (unblended[:, :n] < high)
+    assert inside.mean() > 0.5
+    expected = share[..., None] * old + (1 - share[..., None]) * unblended[:, :n]
+    blended = policy.plan_actions[rows, :n]
+    np.testing.assert_allclose(blended[inside], expected[inside], rtol=0, atol=1e-5)
+    np.testing.assert_allclose(policy.plan_actions[rows, n:], unblended[:, n:], atol=1e-5)
+
+
+def test_continuation_is_none_before_the_first_plan_and_stitch_first_is_checked(
+    tiny_meanflow, tiny_normalizer, closed_loop
+):
+    models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
+    policy = RiskFlowAdversary(k=0, stitch_first=True, **models)
+    env, _ = closed_loop(policy, 0)
+    assert policy._continuation(env.view(), np.arange(2), 52) is None
+    for bad in (1, "yes", None):
+        with pytest.raises(ValueError, match="stitch_first must be a bool"):
+            RiskFlowAdversary(k=0, stitch_first=bad, **models)
