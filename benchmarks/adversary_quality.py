@@ -12,7 +12,8 @@ stress test; ``--full-episodes`` runs every episode for 10 s instead, so that of
 rates are compared over the same exposure. The adversary runs with the library's
 defaults: the realistic base (10 avoidance steps, holding at rest at 4 m) and the map
 term weighted 20 (docs/REALISM.md, rounds 8-10); ``--avoid-steps 0 --hold-distance 0
---lambda-map 1`` is the raw base of ``riskflow-eval``'s ``riskflow-plain``. ``--out``
+--lambda-map 1`` is the raw base of ``riskflow-eval``'s ``riskflow-plain``;
+``--stitch-steps N --stitch-first`` blends first (docs/REALISM.md, round 11). ``--out``
 receives ``quality.json`` with the summaries and every scene's metrics.
 """
 
@@ -72,6 +73,10 @@ class Options:
     """[m] a vehicle at rest whose plan moves it less keeps its brake on (0: off)"""
     lambda_map: float = AdversaryConfig.lambda_map
     """weight of the guidance's map term"""
+    stitch_steps: int = AdversaryConfig.stitch_steps
+    """[steps] blend of a new plan into the executed one (0: switch at once)"""
+    stitch_first: bool = False
+    """blend the base plans before the avoidance steps (RiskFlowAdversary stitch_first)"""
     out: str = "outputs/adversary_quality"
     """output directory"""
 
@@ -129,6 +134,8 @@ def run(options: Options) -> dict[str, dict]:
             avoid_steps=options.avoid_steps,
             hold_distance=options.hold_distance,
             lambda_map=options.lambda_map,
+            stitch_steps=options.stitch_steps,
+            stitch_first=options.stitch_first,
         )
         config = (
             EnvConfig(terminate_on_collision="none", terminate_on_offroad="none")
@@ -182,7 +189,8 @@ def main(argv: list[str] | None = None) -> None:
     ending = "full 10 s" if options.full_episodes else "ends at an ego collision"
     base = (
         f"avoid_steps={options.avoid_steps}, hold_distance={options.hold_distance:g}, "
-        f"lambda_map={options.lambda_map:g}"
+        f"lambda_map={options.lambda_map:g}, stitch_steps={options.stitch_steps}, "
+        f"stitch_first={options.stitch_first}"
     )
     print(f"{options.scenes} scenes, IDM ego, target={options.target}, episodes: {ending}, {base}")
     print(table(results))
