@@ -132,6 +132,8 @@ class PlanStitching:
         (0 for slots without a plan to continue); None when nothing is blended."""
         if self._plan_step is None or self.stitch_steps <= 0:
             return None
+        if slots.size and slots.max() >= self.plan_mask.shape[0]:  # not the planned slots
+            return None
         elapsed = view.step - self._plan_step
         n = min(self.stitch_steps, self.plan_actions.shape[1] - elapsed, steps)
         if n <= 0:
