@@ -152,14 +152,12 @@ class Options:
             raise ValueError(
                 f"--duration and --interval must be > 0, got {self.duration} and {self.interval}"
             )
-        if not self.base_samples or any(m < 1 for m in self.base_samples):
-            raise ValueError(f"--base-samples must be ints >= 1, got {self.base_samples}")
-        if not self.smooth_steps or any(n < 1 for n in self.smooth_steps):
-            raise ValueError(f"--smooth-steps must be ints >= 1, got {self.smooth_steps}")
-        if not self.avoid_steps or any(n < 0 for n in self.avoid_steps):
-            raise ValueError(f"--avoid-steps must be ints >= 0, got {self.avoid_steps}")
-        if not self.stitch_steps or any(n < 0 for n in self.stitch_steps):
-            raise ValueError(f"--stitch-steps must be ints >= 0, got {self.stitch_steps}")
+        for name, least in (("base_samples", 1), ("smooth_steps", 1), ("avoid_steps", 0),
+                            ("stitch_steps", 0)):  # fmt: skip
+            values = getattr(self, name)
+            if not values or any(n < least for n in values):
+                flag = "--" + name.replace("_", "-")
+                raise ValueError(f"{flag} must be ints >= {least}, got {values}")
         if not self.hold_distance or not all(0 <= d < float("inf") for d in self.hold_distance):
             raise ValueError(
                 f"--hold-distance must be finite numbers >= 0 [m], got {self.hold_distance}"
@@ -262,38 +260,39 @@ def summarise(label: str, results: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def sampled(
-    samples: int,
-    hold: float = 0.0,
-    avoid: int = 0,
-    smooth: int = 1,
-    stitch: int = DEFAULT_STITCH_STEPS,
-) -> dict[str, int | float]:
-    """The generator's options for ``--base-samples`` M, ``--hold-distance`` D,
-    ``--avoid-steps`` N, ``--smooth-steps`` S and ``--stitch-steps`` B (M, S and B only
-    where not the default)."""
-    options: dict[str, int | float] = {"base_samples": samples} if samples != 1 else {}
-    options |= {"hold_distance": hold, "avoid_steps": avoid}  # explicit: not the policy's defaults
-    options |= {"smooth_steps": smooth} if smooth != 1 else {}
-    return options | ({"stitch_steps": stitch} if stitch != DEFAULT_STITCH_STEPS else {})
+# The generator-row options, in label order: (NominalGenerator option and Options field,
+# default, always passed (not the policy's defaults), label of a value other than the default)
+AXES = (
+    ("base_samples", 1, False, "best of {}"),
+    ("hold_distance", 0.0, True, "hold {:g} m"),
+    ("avoid_steps", 0, True, "avoid {}"),
+    ("smooth_steps", 1, False, "smooth {}"),
+    ("stitch_steps", DEFAULT_STITCH_STEPS, False, "stitch {}"),
+    ("stitch_first", False, False, "first"),
+)
 
 
-def labelled(
-    label: str,
-    samples: int,
-    hold: float = 0.0,
-    avoid: int = 0,
-    smooth: int = 1,
-    stitch: int = DEFAULT_STITCH_STEPS,
-) -> str:
-    """A generator row's label: the checkpoint's, with ``best of M`` for M > 1, ``hold D
-    m`` for D > 0, ``avoid N`` for N > 0, ``smooth S`` for S > 1 and ``stitch B`` for B
-    other than the default."""
-    label = label if samples == 1 else f"{label} best of {samples}"
-    label = label if not hold else f"{label} hold {hold:g} m"
-    label = label if not avoid else f"{label} avoid {avoid}"
-    label = label if smooth == 1 else f"{label} smooth {smooth}"
-    return label if stitch == DEFAULT_STITCH_STEPS else f"{label} stitch {stitch}"
+def _with_defaults(values: tuple) -> tuple:
+    return values + tuple(axis[1] for axis in AXES[len(values) :])
+
+
+def sampled(*values: Any) -> dict[str, Any]:
+    """The generator's options for the values of ``AXES`` in order (``--base-samples``,
+    ``--hold-distance``, ``--avoid-steps``, ``--smooth-steps``, ``--stitch-steps``,
+    ``--stitch-first``; missing ones the defaults): hold and avoid always, the others
+    where not the default."""
+    pairs = zip(AXES, _with_defaults(values), strict=True)
+    return {name: v for (name, default, always, _), v in pairs if always or v != default}
+
+
+def labelled(label: str, *values: Any) -> str:
+    """A generator row's label: the checkpoint's, then each value of ``AXES`` other than
+    the default (``best of M``, ``hold D m``, ``avoid N``, ``smooth S``, ``stitch B``,
+    ``first``)."""
+    pairs = zip(AXES, _with_defaults(values), strict=True)
+    return " ".join(
+        [label] + [text.format(v) for (_, default, _, text), v in pairs if v != default]
+    )
 
 
 def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[RealismJob]:
@@ -309,23 +308,10 @@ def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[
     names = [Path(p).name for p in args.checkpoint]
     unique = len(set(names)) == len(names)
     labels = names if unique else list(args.checkpoint)
-    variants = list(
-        itertools.product(
-            args.base_samples,
-            args.hold_distance,
-            args.avoid_steps,
-            args.smooth_steps,
-            args.stitch_steps,
-        )
-    )
-    first = {"stitch_first": True} if args.stitch_first else {}
-    suffix = " first" if args.stitch_first else ""
+    axes = [getattr(args, name) for name, *_ in AXES]
+    variants = list(itertools.product(*(v if isinstance(v, tuple) else (v,) for v in axes)))
     methods = [
-        (
-            "bits",
-            {"checkpoint": str(Path(path).resolve()), **sampled(*v), **first},
-            labelled(label, *v) + suffix,
-        )
+        ("bits", {"checkpoint": str(Path(path).resolve()), **sampled(*v)}, labelled(label, *v))
         for path, label in zip(args.checkpoint, labels, strict=True)
         for v in variants
     ]
