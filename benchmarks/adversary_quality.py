@@ -10,10 +10,10 @@ bootstrap for means) plus the ratios of each K to K=0::
 The episode ends early when the ego collides (the default ``EnvConfig``), as in a
 stress test; ``--full-episodes`` runs every episode for 10 s instead, so that off-road
 rates are compared over the same exposure. The adversary runs with the library's
-defaults: the realistic base (10 avoidance steps, holding at rest at 4 m) and the map
-term weighted 20 (docs/REALISM.md, rounds 8-10); ``--avoid-steps 0 --hold-distance 0
---lambda-map 1`` is the raw base of ``riskflow-eval``'s ``riskflow-plain``;
-``--stitch-steps N --stitch-first`` blends first (docs/REALISM.md, round 11). ``--out``
+defaults: the realistic base (10 avoidance steps, holding at rest at 4 m, blending first
+over 15 steps) and the map term weighted 20 (docs/REALISM.md, rounds 8-12);
+``--avoid-steps 0 --hold-distance 0 --lambda-map 1 --no-stitch-first`` is the raw base of
+``riskflow-eval``'s ``riskflow-plain``; ``--stitch-steps N`` sets the blend. ``--out``
 receives ``quality.json`` with the summaries and every scene's metrics.
 """
 
@@ -73,9 +73,10 @@ class Options:
     """[m] a vehicle at rest whose plan moves it less keeps its brake on (0: off)"""
     lambda_map: float = AdversaryConfig.lambda_map
     """weight of the guidance's map term"""
-    stitch_steps: int = AdversaryConfig.stitch_steps
-    """[steps] blend of a new plan into the executed one (0: switch at once)"""
-    stitch_first: bool = False
+    stitch_steps: int | None = AdversaryConfig.stitch_steps
+    """[steps] blend of a new plan into the executed one (default: 15 blending first, 5
+    after; 0: switch at once)"""
+    stitch_first: bool = True
     """blend the base plans before the avoidance steps (RiskFlowAdversary stitch_first)"""
     out: str = "outputs/adversary_quality"
     """output directory"""

@@ -52,7 +52,6 @@ import numpy as np
 from policies.dataclass_cli import parse_dataclass
 from policies.evaluation.options import SHIPPED, EvalOptions, Job, RunConfig
 from policies.evaluation.rollout import rollout_episode
-from policies.learned.plan_stitching import DEFAULT_STITCH_STEPS
 from policies.registry import method_spec
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.metrics import (
@@ -111,12 +110,14 @@ class Options:
     avoid_steps: tuple[int, ...] = (0,)
     """avoidance steps on each cycle's base plans (NominalGenerator avoid_steps; 0: off);
     a row per checkpoint, --base-samples, --hold-distance and value"""
-    stitch_steps: tuple[int, ...] = (DEFAULT_STITCH_STEPS,)
+    stitch_steps: tuple[int, ...] = ()
     """[steps] a new plan's first actions blended with the executed plan (NominalGenerator
-    stitch_steps; 0: switch at once); a row per value of this and the options above"""
+    stitch_steps; 0: switch at once); a row per value of this and the options above;
+    default: the generator's (5 steps after planning, 15 blending first)"""
     stitch_first: bool = False
     """blend each new base plan into the executed one before the avoidance steps
-    (NominalGenerator stitch_first), for every generator row"""
+    (NominalGenerator stitch_first, its default), for every generator row; off: the raw
+    generator's blend after planning"""
     baselines: tuple[str, ...] = BASELINES
     """reference methods of riskflow-eval measured in the same run"""
     bank: str | None = None
@@ -155,7 +156,7 @@ class Options:
         for name, least in (("base_samples", 1), ("smooth_steps", 1), ("avoid_steps", 0),
                             ("stitch_steps", 0)):  # fmt: skip
             values = getattr(self, name)
-            if not values or any(n < least for n in values):
+            if (not values and name != "stitch_steps") or any(n < least for n in values):
                 flag = "--" + name.replace("_", "-")
                 raise ValueError(f"{flag} must be ints >= {least}, got {values}")
         if not self.hold_distance or not all(0 <= d < float("inf") for d in self.hold_distance):
@@ -267,8 +268,8 @@ AXES = (
     ("hold_distance", 0.0, True, "hold {:g} m"),
     ("avoid_steps", 0, True, "avoid {}"),
     ("smooth_steps", 1, False, "smooth {}"),
-    ("stitch_steps", DEFAULT_STITCH_STEPS, False, "stitch {}"),
-    ("stitch_first", False, False, "first"),
+    ("stitch_steps", None, False, "stitch {}"),  # None: the generator's own
+    ("stitch_first", False, True, "first"),
 )
 
 
@@ -279,8 +280,8 @@ def _with_defaults(values: tuple) -> tuple:
 def sampled(*values: Any) -> dict[str, Any]:
     """The generator's options for the values of ``AXES`` in order (``--base-samples``,
     ``--hold-distance``, ``--avoid-steps``, ``--smooth-steps``, ``--stitch-steps``,
-    ``--stitch-first``; missing ones the defaults): hold and avoid always, the others
-    where not the default."""
+    ``--stitch-first``; missing ones the defaults): hold, avoid and stitch_first always,
+    the others where not the default."""
     pairs = zip(AXES, _with_defaults(values), strict=True)
     return {name: v for (name, default, always, _), v in pairs if always or v != default}
 
@@ -308,8 +309,9 @@ def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[
     names = [Path(p).name for p in args.checkpoint]
     unique = len(set(names)) == len(names)
     labels = names if unique else list(args.checkpoint)
-    axes = [getattr(args, name) for name, *_ in AXES]
-    variants = list(itertools.product(*(v if isinstance(v, tuple) else (v,) for v in axes)))
+    axes = [(getattr(args, name), default) for name, default, *_ in AXES]
+    axes = [(v or (default,)) if isinstance(v, tuple) else (v,) for v, default in axes]
+    variants = list(itertools.product(*axes))
     methods = [
         ("bits", {"checkpoint": str(Path(path).resolve()), **sampled(*v)}, labelled(label, *v))
         for path, label in zip(args.checkpoint, labels, strict=True)

@@ -116,8 +116,9 @@ class MethodSpec:
 
 
 _ADVERSARY = "adversarial guidance on the top-K agents"
-# the raw generator's plans: no avoidance steps, no holding at rest (docs/REALISM.md)
-PLAIN: Mapping[str, Any] = {"avoid_steps": 0, "hold_distance": 0.0}
+# the raw generator's plans: no avoidance steps, no holding at rest, the 5-step re-plan
+# blend after planning (docs/REALISM.md)
+PLAIN: Mapping[str, Any] = {"avoid_steps": 0, "hold_distance": 0.0, "stitch_first": False}
 METHODS: dict[str, MethodSpec] = {
     spec.name: spec
     for spec in (
@@ -177,13 +178,14 @@ METHODS: dict[str, MethodSpec] = {
         MethodSpec(
             "bits",
             "BITS-like nominal: the unguided generator on the realistic base (avoidance "
-            "steps, holding at rest)",
+            "steps, holding at rest, blending first)",
             _nominal,
             takes=("planning_interval", "seed", "device"),
         ),
         MethodSpec(
             "bits-plain",
-            "the raw unguided generator: no avoidance steps, no holding at rest",
+            "the raw unguided generator: no avoidance steps, no holding at rest, the "
+            "re-plan blend after planning",
             _nominal,
             PLAIN,
             takes=("planning_interval", "seed", "device"),

@@ -65,17 +65,18 @@ class NominalGenerator(RiskFlowAdversary):
         smooth_steps: [steps] moving average over each plan's accelerations
             (``AdversaryConfig.smooth_steps``); 1: off.
         stitch_steps: [steps] a new plan's first actions blended with the executed plan
-            (``AdversaryConfig.stitch_steps``, default 5); 0: switch at once.
+            (``AdversaryConfig.stitch_steps``; None: 15 blending first, 5 after); 0:
+            switch at once.
         stitch_first: blend the base plans before the avoidance steps
-            (``RiskFlowAdversary``, :mod:`policies.learned.plan_stitching`); default off.
+            (``RiskFlowAdversary``, :mod:`policies.learned.plan_stitching`); default on.
         avoid_steps, avoid_step_size: Adam steps (None: 10 with the MeanFlow generator,
             0 with a diffusion one; 0: off) and their size that pull the base plans' boxes
             apart and onto the road (``RiskFlowAdversary``,
             :mod:`policies.learned.plan_avoidance`).
 
-    The defaults are the realistic base (docs/REALISM.md, rounds 8 and 9);
-    ``avoid_steps=0, hold_distance=0`` is the raw generator (``riskflow-eval --methods
-    bits-plain``).
+    The defaults are the realistic base (docs/REALISM.md, rounds 8, 9 and 12);
+    ``avoid_steps=0, hold_distance=0, stitch_first=False`` is the raw generator
+    (``riskflow-eval --methods bits-plain``).
     """
 
     overlay_prefix = "nominal"
@@ -94,10 +95,10 @@ class NominalGenerator(RiskFlowAdversary):
         base_samples: int = 1,
         hold_distance: float = AdversaryConfig.hold_distance,
         smooth_steps: int = 1,
-        stitch_steps: int = AdversaryConfig.stitch_steps,
+        stitch_steps: int | None = AdversaryConfig.stitch_steps,
         avoid_steps: int | None = None,
         avoid_step_size: float = 0.1,
-        stitch_first: bool = False,
+        stitch_first: bool = True,
     ) -> None:
         config = AdversaryConfig(
             k=0, planning_interval=planning_interval, seed=seed, device=device,

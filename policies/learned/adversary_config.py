@@ -28,7 +28,7 @@ import torch
 
 from policies.learned.config import ModelConfig
 from policies.learned.guidance_losses import TARGETS, ObjectiveConfig
-from policies.learned.plan_stitching import DEFAULT_HOLD_DISTANCE, DEFAULT_STITCH_STEPS
+from policies.learned.plan_stitching import DEFAULT_HOLD_DISTANCE
 from policies.learned.ranking import DEFAULT_THRESHOLD, check_k
 from policies.learned.windows import WindowConfig
 
@@ -62,7 +62,8 @@ class AdversaryConfig:
         smooth_steps: [steps] centred moving average over each new plan's accelerations
             (:mod:`policies.learned.plan_stitching`); 1 (default): off.
         stitch_steps: [steps] a new plan's first actions blended with the plan being
-            executed (:mod:`policies.learned.plan_stitching`); default 5; 0: switch at once.
+            executed (:mod:`policies.learned.plan_stitching`); None (default): 15 for the
+            MeanFlow adversaries, which blend first, 5 for the others; 0: switch at once.
     """
 
     k: int | str = 5
@@ -78,7 +79,7 @@ class AdversaryConfig:
     threads: int | None = 1
     hold_distance: float = DEFAULT_HOLD_DISTANCE
     smooth_steps: int = 1
-    stitch_steps: int = DEFAULT_STITCH_STEPS
+    stitch_steps: int | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "k", check_k(self.k))
@@ -102,9 +103,12 @@ class AdversaryConfig:
             raise ValueError(f"smooth_steps must be an int >= 1 [steps], got {smooth!r}")
         object.__setattr__(self, "smooth_steps", int(smooth))
         stitch = self.stitch_steps
-        if isinstance(stitch, bool) or not isinstance(stitch, (int, np.integer)) or stitch < 0:
-            raise ValueError(f"stitch_steps must be an int >= 0 [steps], got {stitch!r}")
-        object.__setattr__(self, "stitch_steps", int(stitch))
+        if stitch is not None:
+            if isinstance(stitch, bool) or not isinstance(stitch, (int, np.integer)) or stitch < 0:
+                raise ValueError(
+                    f"stitch_steps must be None or an int >= 0 [steps], got {stitch!r}"
+                )
+            object.__setattr__(self, "stitch_steps", int(stitch))
         seed = self.seed
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed must be an int >= 0, got {seed!r}")

@@ -67,6 +67,7 @@ def avoid_overlaps(
     step_size: float,
     ego: int = 0,
     horizon: int = SELECTION_HORIZON,
+    gain: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Avoidance steps on the base plans of B scenes (module docstring).
 
@@ -82,6 +83,10 @@ def avoid_overlaps(
             [normalised action units].
         ego: the ego's slot (not a variable; nor are vehicles at rest).
         horizon: plan steps in the objective.
+        gain: ``(B, A, T, 1)`` the share of each step's correction that reaches the plan
+            (blending first, :mod:`policies.learned.plan_stitching`: the correction of a
+            blended step is blended like the rest of the new plan), or None (all of it).
+            The objective is scored on the plan with the gained correction.
 
     Returns:
         ``(u, actions, trajectories)``: ``(B, A, T, 2)``, ``(B, A, T, 2)``, ``(B, A, T, 4)``.
@@ -108,11 +113,12 @@ def avoid_overlaps(
             term = None if map_term_of is None else map_term_of(rows)
             if term is not None:
                 term.forgive(now)
+            share = 1.0 if gain is None else gain[..., :horizon, :].flatten(0, 1)[rows]
             delta = torch.zeros_like(moving)
             adam = Adam(delta, step_size)
             for _ in range(steps):
                 planned, vjp = rollout_with_vjp(
-                    now, normalizer.denormalize(moving + delta), dynamics
+                    now, normalizer.denormalize(moving + share * delta), dynamics
                 )
                 joint = obstacles.clone()
                 joint[rows] = planned
@@ -127,8 +133,8 @@ def avoid_overlaps(
                 )
                 if term is not None:
                     d_planned = d_planned + term.rows_and_gradient(planned)[1]
-                delta = delta - adam.step(vjp(d_planned) * scale)
-            u.flatten(0, 1)[rows, :horizon] += delta
+                delta = delta - adam.step(vjp(d_planned) * scale * share)
+            u.flatten(0, 1)[rows, :horizon] += share * delta
     actions, trajectories = decode_plans(eps + u, state, agent_mask, normalizer, dynamics)
     return u, actions, trajectories
 

@@ -1,24 +1,32 @@
 """Plan stitching: a new plan of a plan-buffer policy continues the one being executed.
 
 A re-plan does not switch the actions at once. The first ``stitch_steps`` actions of the
-new plan (5 = 0.5 s by default) are blended with the continuation of the plan being
-executed, the previous plan's share falling linearly (``n/(n+1), ..., 1/(n+1)``), and the
-plan is rolled out again from the current state. Positions and speeds are continuous
-across a re-plan anyway (every plan starts at the current state); this makes the
-acceleration and yaw rate continuous too, which removes the jerk spike at every re-plan
-(the step that switched plans had about twice the p95 jerk of the steps within a plan).
-``AdversaryConfig.stitch_steps`` sets the length (``DEFAULT_STITCH_STEPS`` by default; 0
-switches at once). A blend longer than the planning interval reaches into the next
-re-plan's blend, so each executed action is a weighted mean of the last few plans; it
-damps the generator's plan-to-plan noise (docs/REALISM.md, round 11).
+new plan are blended with the continuation of the plan being executed, the previous
+plan's share falling linearly (``n/(n+1), ..., 1/(n+1)``), and the plan is rolled out
+again from the current state. Positions and speeds are continuous across a re-plan anyway
+(every plan starts at the current state); this makes the acceleration and yaw rate
+continuous too, which removes the jerk spike at every re-plan (the step that switched
+plans had about twice the p95 jerk of the steps within a plan).
+``AdversaryConfig.stitch_steps`` sets the length (None, the default: 15 steps = 1.5 s
+blending first, 5 blending after planning; 0 switches at once). A blend longer than the
+planning interval reaches into the next re-plan's blend, so each executed action is a
+weighted mean of the last few plans; it damps the generator's plan-to-plan noise
+(docs/REALISM.md, round 11).
 
-**Blending first** (``RiskFlowAdversary(stitch_first=True)``, off by default). Blended
-after planning, a long blend delays every correction that planning made, the avoidance
-steps' too, and costs off-road steps and collisions. With ``stitch_first`` the MeanFlow
-adversaries blend each new *base* plan into the executed one before the avoidance steps
+**Blending first** (``RiskFlowAdversary(stitch_first=True)``, the MeanFlow adversaries'
+default, over ``DEFAULT_FIRST_STITCH_STEPS`` = 15 steps). Blended after planning, a long
+blend delays every correction that planning made, the avoidance steps' too, and costs
+off-road steps and collisions. Blending first, the MeanFlow adversaries blend each new
+*base* plan into the executed one before the avoidance steps
 (:meth:`PlanStitching._continuation` gives the executed plans' continuation and weights),
-so the avoidance steps correct the plan that will run; after planning only the guided
-rows are blended (guidance changed them after the blend).
+so the avoidance steps correct the plan that will run; their corrections are blended
+too, over ``CORRECTION_STITCH_STEPS`` (1: half of the first action's correction), which
+removes the jerk spike that unblended corrections leave at the re-plan step (longer
+correction blends delay the avoidance and cost off-road steps); after planning only the
+guided rows are blended (guidance changed them after the blend).
+``AdversaryConfig.stitch_steps=None`` (the default) resolves to 15 steps blending first
+and to ``DEFAULT_STITCH_STEPS`` (5) blending after planning (the diffusion baselines, the
+raw base); docs/REALISM.md, rounds 11 and 12.
 
 **Smoothing** (``AdversaryConfig.smooth_steps``, off by default). The one-step
 generator's plans carry step-to-step noise in the acceleration that the data does not
@@ -55,7 +63,15 @@ from riskflow_env.view import SceneView
 
 REST_SPEED = 0.2  # [m/s] a vehicle at or below this speed is at rest (holding at rest)
 DEFAULT_HOLD_DISTANCE = 4.0  # [m] the adversaries' default holding distance (module docstring)
-DEFAULT_STITCH_STEPS = 5  # [steps] the adversaries' default re-plan blend (module docstring)
+DEFAULT_STITCH_STEPS = 5  # [steps] the default re-plan blend after planning (module docstring)
+DEFAULT_FIRST_STITCH_STEPS = 15  # [steps] the default blend when blending first
+CORRECTION_STITCH_STEPS = 1  # [steps] blend of the avoidance corrections, blending first
+
+
+def default_stitch_steps(stitch_first: bool) -> int:
+    """The re-plan blend of ``AdversaryConfig.stitch_steps=None``: 15 steps for a policy
+    that blends first, 5 for one that blends after planning (module docstring)."""
+    return DEFAULT_FIRST_STITCH_STEPS if stitch_first else DEFAULT_STITCH_STEPS
 
 
 class PlanStitching:
@@ -192,4 +208,12 @@ def blend_share(steps: int) -> np.ndarray:
     return 1.0 - np.arange(1, steps + 1) / (steps + 1)
 
 
-__all__ = ["DEFAULT_STITCH_STEPS", "REST_SPEED", "PlanStitching", "blend_share"]
+__all__ = [
+    "CORRECTION_STITCH_STEPS",
+    "DEFAULT_FIRST_STITCH_STEPS",
+    "DEFAULT_STITCH_STEPS",
+    "REST_SPEED",
+    "PlanStitching",
+    "blend_share",
+    "default_stitch_steps",
+]

@@ -69,6 +69,7 @@ from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS, avoid_overlaps
 from policies.learned.plan_buffer import PlanBufferPolicy, hold_still
 from policies.learned.plan_overlay import BASE_COLOR, GUIDED_COLOR
 from policies.learned.plan_selection import SELECTION_HORIZON, select_joint_plans
+from policies.learned.plan_stitching import CORRECTION_STITCH_STEPS, blend_share
 from policies.learned.ranking import rank_window
 from policies.learned.sampler import base_velocity
 from policies.riskflow.base_generator import generator_kind, load_base_generator
@@ -121,7 +122,8 @@ class RiskFlowAdversary(PlanBufferPolicy):
         avoid_step_size: their Adam learning rate (normalised action units).
         stitch_first: blend each new base plan into the executed one before the avoidance
             steps, and only the guided rows after planning
-            (:mod:`policies.learned.plan_stitching`); False (default): every plan after.
+            (:mod:`policies.learned.plan_stitching`; default True, over 15 steps unless
+            ``stitch_steps`` says otherwise); False: every plan after (5 steps).
         **options: :class:`AdversaryConfig` fields, when ``config`` is not given.
     """
 
@@ -142,7 +144,7 @@ class RiskFlowAdversary(PlanBufferPolicy):
         base_samples: int = 1,
         avoid_steps: int | None = None,
         avoid_step_size: float = 0.1,
-        stitch_first: bool = False,
+        stitch_first: bool = True,
         **options: Any,
     ) -> None:
         config = AdversaryConfig.resolve(config, options, type(self).__name__)
@@ -228,13 +230,14 @@ class RiskFlowAdversary(PlanBufferPolicy):
                 eps, u0, actions, trajectories = self._select(
                     observed, views, (eps, u0, actions, trajectories)
                 )
+            gain = None
             if self.stitch_first:
-                u0 = self._blend_first(scenes, views, observed.slots, eps, u0)
+                u0, gain = self._blend_first(scenes, views, observed.slots, eps, u0)
                 actions, trajectories = plans_from_velocity(
                     eps, u0, scene.state, scene.agent_mask, self.normalizer, self.dynamics
                 )
             if self.avoid_steps > 0:
-                u0, actions, trajectories = self._avoid(observed, views, eps, u0)
+                u0, actions, trajectories = self._avoid(observed, views, eps, u0, gain)
             done = np.zeros((num_scenes, num_agents), dtype=bool)
             for index, (view, slots) in enumerate(zip(views, observed.slots, strict=True)):
                 done[index, : len(slots)] = ~view.active[slots]
@@ -281,10 +284,11 @@ class RiskFlowAdversary(PlanBufferPolicy):
         slots: Sequence[np.ndarray],
         eps: torch.Tensor,
         u0: torch.Tensor,
-    ) -> torch.Tensor:
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """The base residual ``u0`` (B, A, T, 2) of plans whose first actions are blended
         into each scene's executed plans (blending first,
-        :mod:`policies.learned.plan_stitching`)."""
+        :mod:`policies.learned.plan_stitching`), and the gain (B, A, T, 1) of the
+        avoidance steps' corrections: blended over ``CORRECTION_STITCH_STEPS``."""
         old, share = torch.zeros_like(u0), torch.zeros_like(u0[..., :1])
         for index, (policy, view) in enumerate(zip(scenes, views, strict=True)):
             blend = policy._continuation(view, slots[index], u0.shape[2])
@@ -294,7 +298,13 @@ class RiskFlowAdversary(PlanBufferPolicy):
                 old[index, rows, :steps] = previous.to(u0.device)
                 share[index, rows, :steps, 0] = weight.to(u0.device)
         actions = self.normalizer.denormalize(eps + u0)
-        return self.normalizer.normalize(share * old + (1 - share) * actions) - eps
+        blended = self.normalizer.normalize(share * old + (1 - share) * actions) - eps
+        steps = min(CORRECTION_STITCH_STEPS, share.shape[2])
+        gain = torch.ones_like(share)
+        gain[:, :, :steps] -= torch.where(
+            share[:, :, :steps] > 0, share.new_tensor(blend_share(steps))[:, None], 0.0
+        )
+        return blended, gain
 
     def _select(
         self,
@@ -338,16 +348,18 @@ class RiskFlowAdversary(PlanBufferPolicy):
         views: Sequence[SceneView],
         eps: torch.Tensor,
         u0: torch.Tensor,
+        gain: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Avoidance steps on the base plans of every scene
-        (:func:`~policies.learned.plan_avoidance.avoid_overlaps`): ``(u0, actions,
+        (:func:`~policies.learned.plan_avoidance.avoid_overlaps`; ``gain`` the share of
+        each step's correction that is kept, blending first): ``(u0, actions,
         trajectories)`` after them."""
         scene, batch = observed.scene, observed.batch
         return avoid_overlaps(
             eps, u0, scene.state, batch.length, batch.width, scene.agent_mask,
             lambda rows: self._map_term_of_rows(observed, views, rows),
             self.normalizer, self.dynamics, steps=self.avoid_steps,
-            step_size=self.avoid_step_size,
+            step_size=self.avoid_step_size, gain=gain,
         )  # fmt: skip
 
     def _guide(

@@ -43,10 +43,15 @@ def test_scene_choice_covers_every_family():
 
 def test_generator_rows_per_option_value():
     bench = _module()
-    # hold and avoidance always explicit: the rows do not take the policy's defaults
-    assert bench.sampled(1) == {"hold_distance": 0.0, "avoid_steps": 0}
-    assert bench.sampled(8, 1.5, 10) == {"base_samples": 8, "hold_distance": 1.5, "avoid_steps": 10}
+    # hold, avoidance and blending first always explicit: the rows do not take the
+    # policy's defaults (the raw generator unless asked); the blend length is the policy's
+    raw = {"hold_distance": 0.0, "avoid_steps": 0, "stitch_first": False}
+    assert bench.sampled(1) == raw
+    moved = {"base_samples": 8, "hold_distance": 1.5, "avoid_steps": 10}
+    assert bench.sampled(8, 1.5, 10) == raw | moved
+    assert bench.sampled(1, 0.0, 0, 1, 20, True) == raw | {"stitch_steps": 20, "stitch_first": True}
     assert bench.labelled("g.pt", 1, 0.0) == "g.pt"
     assert bench.labelled("g.pt", 8, 2.0) == "g.pt best of 8 hold 2 m"
+    assert bench.labelled("g.pt", 1, 4.0, 10, 1, None, True) == "g.pt hold 4 m avoid 10 first"
     with pytest.raises(SystemExit):
         bench.parse_args(["--hold-distance", "-1"])

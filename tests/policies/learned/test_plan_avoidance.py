@@ -62,23 +62,24 @@ def test_steps_pull_the_boxes_apart():
     assert torch.equal(actions, expected[0]) and torch.equal(after_plans, expected[1])
 
 
-def _autograd_steps(eps, u0, state, length, width, mask, steps, step_size):
+def _autograd_steps(eps, u0, state, length, width, mask, steps, step_size, gain=1.0):
     """The steps as plain autograd through the whole decoding, torch.optim.Adam on every
-    moving non-ego row: the reference of the closed-form steps."""
+    moving non-ego row (the correction times ``gain``): the reference of the closed-form
+    steps."""
     variable = mask & (state[..., 2] > 0.2)
     variable[:, 0] = False
     delta = torch.zeros_like(u0, requires_grad=True)
     optimizer = torch.optim.Adam([delta], lr=step_size)
     for _ in range(steps):
         _, trajectories = plans_from_velocity(
-            eps, u0 + delta * variable[..., None, None], state, mask, NORMALIZER, DYNAMICS
+            eps, u0 + gain * delta * variable[..., None, None], state, mask, NORMALIZER, DYNAMICS
         )
         scored = trajectories[:, None, :, :30]
         loss = overlap_scores(scored, length, width, mask, state).sum()
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
-    return u0 + delta.detach() * variable[..., None, None]
+    return u0 + gain * delta.detach() * variable[..., None, None]
 
 
 def test_closed_form_steps_agree_with_autograd():
@@ -96,6 +97,29 @@ def test_closed_form_steps_agree_with_autograd():
     assert not torch.equal(u, u0)
     torch.testing.assert_close(u, expected, rtol=1e-9, atol=1e-9)
     assert torch.equal(u[:, 3], u0[:, 3])
+
+
+def test_a_gain_blends_the_correction():
+    """Blending first: the correction of each step times its gain (the new plan's share),
+    scored on the plan that runs: autograd's steps through the gained correction; a gain
+    of 0 keeps a step as it is."""
+    eps, u0, state, length, width, mask = _scene()
+    eps = 0.3 * torch.randn(eps.shape, generator=torch.Generator().manual_seed(1)).double()
+    gain = torch.ones(1, 4, STEPS, 1, dtype=torch.float64)
+    gain[..., :6, 0] = torch.linspace(0.0, 1.0, 8, dtype=torch.float64)[1:7]
+    gain[:, 2, :3] = 0.0
+    u, _, _ = avoid_overlaps(
+        eps, u0, state, length, width, mask, None, NORMALIZER, DYNAMICS, steps=12,
+        step_size=0.1, gain=gain,
+    )  # fmt: skip
+    expected = _autograd_steps(eps, u0, state, length, width, mask, 12, 0.1, gain)
+    torch.testing.assert_close(u, expected, rtol=1e-9, atol=1e-9)
+    assert torch.equal(u[:, 2, :3], u0[:, 2, :3]) and not torch.equal(u[:, 2], u0[:, 2])
+    ungained, _, _ = avoid_overlaps(
+        eps, u0, state, length, width, mask, None, NORMALIZER, DYNAMICS, steps=12, step_size=0.1
+    )
+    # the first steps move less than without the gain
+    assert (u - u0)[:, 1, 0].abs().sum() < (ungained - u0)[:, 1, 0].abs().sum()
 
 
 def test_zero_steps_change_nothing():

@@ -4,25 +4,44 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
+from policies.baselines.diffusion.policy import DiffusionAdversary
 from policies.learned.adversary_config import AdversaryConfig
-from policies.learned.plan_stitching import DEFAULT_STITCH_STEPS, PlanStitching, blend_share
+from policies.learned.plan_stitching import (
+    CORRECTION_STITCH_STEPS,
+    DEFAULT_FIRST_STITCH_STEPS,
+    DEFAULT_STITCH_STEPS,
+    PlanStitching,
+    blend_share,
+)
 from policies.riskflow.policy import RiskFlowAdversary
 from riskflow_env.dynamics import rollout
 
 
 def _adversary(models, stitch_steps: int, k: int = 0) -> RiskFlowAdversary:
+    """Blending after planning (``stitch_first=False``)."""
     return RiskFlowAdversary(
-        k=k, planning_interval=0.3, seed=2, stitch_steps=stitch_steps, **models
-    )
+        k=k, planning_interval=0.3, seed=2, stitch_steps=stitch_steps, stitch_first=False,
+        **models,
+    )  # fmt: skip
 
 
-def test_stitch_steps_is_a_checked_shared_option():
-    assert AdversaryConfig().stitch_steps == DEFAULT_STITCH_STEPS == PlanStitching.stitch_steps
+def test_stitch_steps_is_a_checked_shared_option(tiny_meanflow, tiny_normalizer, tiny_denoiser):
+    assert AdversaryConfig().stitch_steps is None  # the blend that goes with stitch_first
     assert AdversaryConfig(stitch_steps=np.int64(10)).stitch_steps == 10
     for bad in (-1, 2.5, True, "5"):
-        with pytest.raises(ValueError, match="stitch_steps must be an int >= 0"):
+        with pytest.raises(ValueError, match="stitch_steps must be None or an int >= 0"):
             AdversaryConfig(stitch_steps=bad)
+    models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
+    # the MeanFlow adversaries blend first over 15 steps, the others after over 5
+    assert RiskFlowAdversary(k=0, **models).stitch_steps == DEFAULT_FIRST_STITCH_STEPS == 15
+    assert RiskFlowAdversary(k=0, **models).stitch_first
+    plain = RiskFlowAdversary(k=0, stitch_first=False, **models)
+    assert plain.stitch_steps == DEFAULT_STITCH_STEPS == PlanStitching.stitch_steps == 5
+    assert RiskFlowAdversary(k=0, stitch_steps=7, **models).stitch_steps == 7
+    diffusion = DiffusionAdversary(k=0, denoiser=tiny_denoiser, normalizer=tiny_normalizer)
+    assert not diffusion.stitch_first and diffusion.stitch_steps == DEFAULT_STITCH_STEPS
 
 
 @pytest.mark.parametrize("k", [0, 2])
@@ -94,6 +113,27 @@ def test_blending_first_blends_the_base_plans_into_the_executed_ones(
     blended = policy.plan_actions[rows, :n]
     np.testing.assert_allclose(blended[inside], expected[inside], rtol=0, atol=1e-5)
     np.testing.assert_allclose(policy.plan_actions[rows, n:], unblended[:, n:], atol=1e-5)
+
+
+def test_blending_first_blends_the_avoidance_corrections_of_the_first_action(
+    tiny_meanflow, tiny_normalizer, closed_loop
+):
+    """The avoidance steps' gain: half of the first action's correction reaches the plan
+    of a vehicle with a plan to continue (``CORRECTION_STITCH_STEPS`` = 1), all of every
+    other step's and of vehicles without one."""
+    models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
+    policy = RiskFlowAdversary(k=0, planning_interval=0.3, seed=2, **models)
+    env, _ = closed_loop(policy, 3)
+    view = env.view()
+    slots = np.arange(policy.plan_mask.shape[0])
+    continued = policy.plan_mask & view.active
+    assert continued.any()
+    u0 = torch.zeros(1, slots.size + 1, 52, 2, dtype=torch.float64)  # a padded row
+    _, gain = policy._blend_first([policy], [view], [slots], torch.zeros_like(u0), u0)
+    expected = np.ones(gain.shape)
+    expected[0, : slots.size][continued, 0] = 1.0 - blend_share(CORRECTION_STITCH_STEPS)[0]
+    np.testing.assert_array_equal(gain.numpy(), expected)
+    assert CORRECTION_STITCH_STEPS == 1 and expected.min() == 0.5
 
 
 def test_continuation_is_none_before_the_first_plan_and_stitch_first_is_checked(
