@@ -156,6 +156,7 @@ def diagnose(
     bank: str | None = None,
     hold_distance: float = 0.0,
     avoid_steps: int = 0,
+    stitch_first: bool = False,
 ) -> dict:
     """Run the episodes; returns per-family rows, collision kinds, time buckets and the
     at-rest vehicles' first-plan reach."""
@@ -166,7 +167,7 @@ def diagnose(
         models = {"generator": generator, "normalizer": normalizer}
     policy = NominalGenerator(
         planning_interval=0.5, seed=seed, hold_distance=hold_distance, avoid_steps=avoid_steps,
-        **models,
+        stitch_first=stitch_first, **models,
     )  # fmt: skip
     at_rest: list[tuple[float, float]] = []
     families: dict[str, list] = {}
@@ -269,6 +270,9 @@ class Options:
     """[m] the generator's holding at rest (NominalGenerator hold_distance; 0: off)"""
     avoid_steps: int = 0
     """the generator's avoidance steps (NominalGenerator avoid_steps; 0: off)"""
+    stitch_first: bool = False
+    """blend each new base plan into the executed one before the avoidance steps
+    (NominalGenerator stitch_first; off: the raw generator's blend after planning)"""
 
     def __post_init__(self) -> None:
         if self.scenes < 1:
@@ -287,7 +291,13 @@ def main(argv: list[str] | None = None) -> str:
     )
     start = time.perf_counter()
     result = diagnose(
-        args.scenes, args.checkpoint, args.seed, args.bank, args.hold_distance, args.avoid_steps
+        args.scenes,
+        args.checkpoint,
+        args.seed,
+        args.bank,
+        args.hold_distance,
+        args.avoid_steps,
+        args.stitch_first,
     )
     text = report(result)
     count = sum(len(rows) for rows in result["families"].values())

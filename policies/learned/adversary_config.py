@@ -62,8 +62,10 @@ class AdversaryConfig:
         smooth_steps: [steps] centred moving average over each new plan's accelerations
             (:mod:`policies.learned.plan_stitching`); 1 (default): off.
         stitch_steps: [steps] a new plan's first actions blended with the plan being
-            executed (:mod:`policies.learned.plan_stitching`); None (default): 15 for the
-            MeanFlow adversaries, which blend first, 5 for the others; 0: switch at once.
+            executed (:mod:`policies.learned.plan_stitching`); None (default): 15 for a
+            policy that blends first (``RiskFlowAdversary``, ``NominalGenerator``,
+            STRIVE-style), 5 for one that blends after planning (the diffusion baselines,
+            ``stitch_first=False``); 0: switch at once.
     """
 
     k: int | str = 5

@@ -83,10 +83,11 @@ def avoid_overlaps(
             [normalised action units].
         ego: the ego's slot (not a variable; nor are vehicles at rest).
         horizon: plan steps in the objective.
-        gain: ``(B, A, T, 1)`` the share of each step's correction that reaches the plan
-            (blending first, :mod:`policies.learned.plan_stitching`: the correction of a
-            blended step is blended like the rest of the new plan), or None (all of it).
-            The objective is scored on the plan with the gained correction.
+        gain: ``(B, A, T, 1)`` the share of each step's correction that reaches the plan,
+            or None (all of it). Blending first (:mod:`policies.learned.plan_stitching`)
+            it is ``1 - blend_share(CORRECTION_STITCH_STEPS)`` on the first step of a
+            vehicle with a plan to continue (one half), 1 elsewhere. The objective is
+            scored on the plan with the gained correction.
 
     Returns:
         ``(u, actions, trajectories)``: ``(B, A, T, 2)``, ``(B, A, T, 2)``, ``(B, A, T, 4)``.

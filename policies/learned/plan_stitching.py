@@ -13,8 +13,9 @@ planning interval reaches into the next re-plan's blend, so each executed action
 weighted mean of the last few plans; it damps the generator's plan-to-plan noise
 (docs/REALISM.md, round 11).
 
-**Blending first** (``RiskFlowAdversary(stitch_first=True)``, the MeanFlow adversaries'
-default, over ``DEFAULT_FIRST_STITCH_STEPS`` = 15 steps). Blended after planning, a long
+**Blending first** (``RiskFlowAdversary(stitch_first=True)``: the default of
+``RiskFlowAdversary``, ``NominalGenerator`` and STRIVE-style, whatever their generator,
+over ``DEFAULT_FIRST_STITCH_STEPS`` = 15 steps). Blended after planning, a long
 blend delays every correction that planning made, the avoidance steps' too, and costs
 off-road steps and collisions. Blending first, the MeanFlow adversaries blend each new
 *base* plan into the executed one before the avoidance steps

@@ -30,12 +30,15 @@ diffusion baselines' denoiser run as a deterministic DDIM chain from ``eps`` ins
 with the same ranking and output-space guidance (the generator ablation of issue 7).
 ``lambda_adv = 0`` / ``lambda_map = 0`` drop a guidance term (the loss ablation).
 
-The realistic base (the defaults; docs/REALISM.md, rounds 8 and 9): before ranking, 10
-avoidance steps pull the MeanFlow base plans' boxes apart and onto the road
-(:mod:`policies.learned.plan_avoidance`), and vehicles at rest whose new plan moves them
-less than 4 m keep their brake on (:mod:`policies.learned.plan_stitching`); the map term
-weighs 20. ``avoid_steps=0, hold_distance=0, lambda_map=1`` is RiskFlow on the raw base, the
-defaults before round 10 (``riskflow-eval --methods riskflow-plain``).
+The realistic base (the defaults; docs/REALISM.md, rounds 8-12): each new base plan is
+blended into the executed one over 15 steps (blending first,
+:mod:`policies.learned.plan_stitching`), then, before ranking, 10 avoidance steps pull the
+MeanFlow base plans' boxes apart and onto the road (:mod:`policies.learned.plan_avoidance`),
+and vehicles at rest whose new plan moves them less than 4 m keep their brake on; the map
+term weighs 20. ``avoid_steps=0, hold_distance=0, lambda_map=1, stitch_first=False`` is
+RiskFlow on the raw base, the defaults before round 10 (``riskflow-eval --methods
+riskflow-plain``). Blending first is the default whatever the generator (the diffusion
+generator's plans too: ``riskflow-diffusion``, ``bits-diffusion``).
 
 Many scenes: ``_plan_cycles`` plans B scenes in one call (``plan_scenes``,
 ``BatchedAdversary``; ``plan`` is B = 1): the windows are cut and ranked scene by scene

@@ -48,6 +48,7 @@ def close(a: np.ndarray, b: np.ndarray) -> None:
         {"base_samples": 3},
         {"avoid_steps": 3, "hold_distance": 1.0},
         {"avoid_steps": 3, "stitch_steps": 8, "stitch_first": True},
+        {"avoid_steps": 3, "stitch_first": False},  # the 5-step blend after planning
     ],
 )
 def test_batched_plans_equal_planning_each_scene_alone(tiny_meanflow, tiny_normalizer, options):
@@ -55,7 +56,7 @@ def test_batched_plans_equal_planning_each_scene_alone(tiny_meanflow, tiny_norma
     (then re-planning on its own schedule): the batch plans what three one-scene policies
     with the same seeds plan, on the same views; the noise is the same bit for bit (with
     ``base_samples`` 3, the same sample of three is kept; avoidance steps, holding at
-    rest and blending first act on each scene as alone)."""
+    rest and blending first or after planning act on each scene as alone)."""
     seeds = [4, 11, 7]
     batch = BatchedAdversary(riskflow(tiny_meanflow, tiny_normalizer, **options), 3, seeds=seeds)
     alone = [riskflow(tiny_meanflow, tiny_normalizer, seed=seed, **options) for seed in seeds]

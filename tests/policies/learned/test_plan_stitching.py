@@ -136,6 +136,32 @@ def test_blending_first_blends_the_avoidance_corrections_of_the_first_action(
     assert CORRECTION_STITCH_STEPS == 1 and expected.min() == 0.5
 
 
+def test_planning_passes_the_correction_gain_to_the_avoidance_steps(
+    tiny_meanflow, tiny_normalizer, closed_loop, monkeypatch
+):
+    """A re-plan blending first hands ``_blend_first``'s gain to the avoidance steps; one
+    blending after planning hands None (every correction whole)."""
+    models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
+    for first in (True, False):
+        policy = RiskFlowAdversary(
+            k=0, planning_interval=0.3, seed=2, avoid_steps=2, stitch_first=first, **models
+        )
+        gains = []
+        avoid = policy._avoid
+
+        def spy(observed, views, eps, u0, gain=None, avoid=avoid, gains=gains):
+            gains.append(gain)
+            return avoid(observed, views, eps, u0, gain)
+
+        monkeypatch.setattr(policy, "_avoid", spy)
+        closed_loop(policy, 4)  # cycles at steps 0 and 3
+        assert len(gains) == 2
+        if first:
+            assert gains[1] is not None and float(gains[1].min()) == 0.5
+        else:
+            assert gains == [None, None]
+
+
 def test_continuation_is_none_before_the_first_plan_and_stitch_first_is_checked(
     tiny_meanflow, tiny_normalizer, closed_loop
 ):
