@@ -32,7 +32,7 @@ from policies.harness import ClosedLoop, EpisodeRecord, mean_summary, summarize
 from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.checkpoint import load_generator
 from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
-from policies.learned.plan_stitching import default_stitch_steps
+from policies.learned.plan_stitching import resolve_stitch_steps
 from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
 from riskflow_env.config import EnvConfig
@@ -189,8 +189,7 @@ def main(argv: list[str] | None = None) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / "quality.json").write_text(json.dumps({"options": vars(options), **results}, indent=1))
     ending = "full 10 s" if options.full_episodes else "ends at an ego collision"
-    stitch = options.stitch_steps
-    stitch = default_stitch_steps(options.stitch_first) if stitch is None else stitch
+    stitch = resolve_stitch_steps(options.stitch_steps, options.stitch_first)
     base = (
         f"avoid_steps={options.avoid_steps}, hold_distance={options.hold_distance:g}, "
         f"lambda_map={options.lambda_map:g}, stitch_steps={stitch}, "

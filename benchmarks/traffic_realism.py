@@ -91,6 +91,11 @@ COLUMNS = (  # (key, header, format)
 )
 
 
+# The integer row options: (name, least value, may be empty: then the generator's own).
+STEP_OPTIONS = (("base_samples", 1, False), ("smooth_steps", 1, False),
+                ("avoid_steps", 0, False), ("stitch_steps", 0, True))  # fmt: skip
+
+
 @dataclass(frozen=True)
 class Options:
     """Benchmark options."""
@@ -153,10 +158,9 @@ class Options:
             raise ValueError(
                 f"--duration and --interval must be > 0, got {self.duration} and {self.interval}"
             )
-        for name, least in (("base_samples", 1), ("smooth_steps", 1), ("avoid_steps", 0),
-                            ("stitch_steps", 0)):  # fmt: skip
+        for name, least, optional in STEP_OPTIONS:
             values = getattr(self, name)
-            if (not values and name != "stitch_steps") or any(n < least for n in values):
+            if (not values and not optional) or any(n < least for n in values):
                 flag = "--" + name.replace("_", "-")
                 raise ValueError(f"{flag} must be ints >= {least}, got {values}")
         if not self.hold_distance or not all(0 <= d < float("inf") for d in self.hold_distance):

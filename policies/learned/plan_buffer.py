@@ -55,7 +55,7 @@ from policies.learned.adversary_config import (
 from policies.learned.encoded_views import EncodedView, EncodedViews, encode_views
 from policies.learned.encoder import SceneContext
 from policies.learned.plan_overlay import BASE_COLOR, GUIDED_COLOR, PlanOverlay
-from policies.learned.plan_stitching import PlanStitching, default_stitch_steps
+from policies.learned.plan_stitching import PlanStitching, resolve_stitch_steps
 from policies.learned.ranking import Ranking
 from policies.learned.window_types import WindowBatch
 from policies.learned.windows import WindowConfig, scene_to_world
@@ -100,8 +100,7 @@ class PlanBufferPolicy(PlanStitching, PlanOverlay):
         self.seed = config.seed
         self.hold_distance = float(config.hold_distance)
         self.smooth_steps = int(config.smooth_steps)
-        stitch = config.stitch_steps  # None: the blend that goes with ``stitch_first``
-        self.stitch_steps = default_stitch_steps(self.stitch_first) if stitch is None else stitch
+        self.stitch_steps = resolve_stitch_steps(config.stitch_steps, self.stitch_first)
         self.device = torch.device(config.device)
         self.threads = config.threads
         self._episode = -1

@@ -69,9 +69,12 @@ DEFAULT_FIRST_STITCH_STEPS = 15  # [steps] the default blend when blending first
 CORRECTION_STITCH_STEPS = 1  # [steps] blend of the avoidance corrections, blending first
 
 
-def default_stitch_steps(stitch_first: bool) -> int:
-    """The re-plan blend of ``AdversaryConfig.stitch_steps=None``: 15 steps for a policy
-    that blends first, 5 for one that blends after planning (module docstring)."""
+def resolve_stitch_steps(stitch_steps: int | None, stitch_first: bool) -> int:
+    """The re-plan blend [steps] of ``AdversaryConfig.stitch_steps``: the given length, or
+    for None 15 steps for a policy that blends first and 5 for one that blends after
+    planning (module docstring)."""
+    if stitch_steps is not None:
+        return int(stitch_steps)
     return DEFAULT_FIRST_STITCH_STEPS if stitch_first else DEFAULT_STITCH_STEPS
 
 
@@ -216,5 +219,5 @@ __all__ = [
     "REST_SPEED",
     "PlanStitching",
     "blend_share",
-    "default_stitch_steps",
+    "resolve_stitch_steps",
 ]
