@@ -28,6 +28,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from policies.learned.adam import Adam
 from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.encoded_views import EncodedView, EncodedViews
 from policies.learned.generator import RiskFlowGenerator
@@ -37,6 +38,7 @@ from policies.learned.sampler import base_velocity
 from policies.riskflow.guidance import (
     GuidanceResult,
     GuidanceScene,
+    PLAN_BLOCK,
     one_scene,
     plans_from_velocity,
 )
@@ -59,8 +61,11 @@ class StriveAdversary(RiskFlowAdversary):
             refused (no one-step latent to differentiate through).
         **options: ``RiskFlowAdversary``'s: ``guidance_steps`` (``K_g`` latent optimisation
             steps per cycle), ``step_size`` (Adam learning rate [normalised noise units
-            per step], or ``gamma`` of plain steps), ``optimizer``, ``normalizer``,
-            ``checkpoint``, and the shared options as keywords.
+            per step], or ``gamma`` of plain steps), ``normalizer``, ``checkpoint``, and
+            the shared options as keywords.
+        optimizer: ``"adam"`` (default: ``torch.optim.Adam`` on the latent, STRIVE's),
+            ``"adam-plan"`` (one second moment per latent row, as RiskFlow's default;
+            docs/REALISM.md, round 13) or ``"gradient"`` (plain steps).
 
     After each cycle: ``guidance_losses`` ((K_g + 1, 2): ``L_adv``, ``L_map`` before each
     step and after the last), ``prior_losses`` ((K_g + 1,): ``||eps_c||^2 / 2``) and
@@ -75,6 +80,7 @@ class StriveAdversary(RiskFlowAdversary):
         *,
         lambda_prior: float = DEFAULT_LAMBDA_PRIOR,
         generator: RiskFlowGenerator | str | None = None,
+        optimizer: str = "adam",
         **options: Any,
     ) -> None:
         if not (isinstance(lambda_prior, (int, float)) and 0 <= lambda_prior < float("inf")):
@@ -82,7 +88,7 @@ class StriveAdversary(RiskFlowAdversary):
         if generator == "diffusion" or "sampling_steps" in options:
             raise ValueError(_NOT_DIFFUSION)
         self.lambda_prior = float(lambda_prior)
-        super().__init__(config, generator=generator, **options)
+        super().__init__(config, generator=generator, optimizer=optimizer, **options)
         if self.generator_kind != "meanflow":
             raise ValueError(_NOT_DIFFUSION)
 
@@ -129,6 +135,8 @@ class StriveAdversary(RiskFlowAdversary):
         eps_c = scene.eps[rows].clone().requires_grad_(True)
         if config.optimizer == "adam":
             optimizer = torch.optim.Adam([eps_c], lr=config.step_size)
+        elif config.optimizer == "adam-plan":  # one second moment per latent row
+            optimizer = _BlockAdam(eps_c, config.step_size, PLAN_BLOCK)
         else:
             optimizer = torch.optim.SGD([eps_c], lr=config.step_size)
         history = []
@@ -158,6 +166,18 @@ class StriveAdversary(RiskFlowAdversary):
         self.latent = latent
         self.prior_losses = history[:, 2].cpu().numpy()
         return GuidanceResult(u, actions, trajectories, history[:, :2])
+
+
+class _BlockAdam:
+    """``optimizer.step()`` of :class:`~policies.learned.adam.Adam` with ``shared``
+    dimensions on one leaf tensor (``optimizer="adam-plan"``)."""
+
+    def __init__(self, variable: Tensor, learning_rate: float, shared: tuple[int, ...]) -> None:
+        self.variable, self.adam = variable, Adam(variable, learning_rate, shared)
+
+    def step(self) -> None:
+        with torch.no_grad():
+            self.variable -= self.adam.step(self.variable.grad)
 
 
 _NOT_DIFFUSION = (

@@ -14,7 +14,8 @@ respect to the trajectories, :mod:`policies.learned.guidance_losses`; the rollou
 vector-Jacobian product, ``riskflow_env.dynamics.rollout_with_vjp``; ``denorm`` is a
 diagonal scale); the gradients agree with autograd to float rounding. Only ``A_c`` rows
 are variables: every other row is the base plan, bit for bit. Steps are projected so that
-the actions stay inside the dynamics bounds; Adam by default, or the paper's plain steps.
+the actions stay inside the dynamics bounds; Adam steps with one second moment per guided
+plan by default (``optimizer="adam-plan"``), or per coordinate, or the paper's plain steps.
 
 ``L_adv`` is the mean distance over the guidance horizon to the nearest target (every
 present agent outside ``A_c``, or the ego only), ``L_map`` the decayed squared depth of
@@ -52,7 +53,8 @@ from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout, rollout_with_vjp
 from riskflow_env.maps import DrivableMap, MapStack
 
-OPTIMIZERS = ("gradient", "adam")
+OPTIMIZERS = ("gradient", "adam", "adam-plan")
+PLAN_BLOCK = (1, 2)  # the (T, 2) axes of a guided row: one Adam block per plan ("adam-plan")
 
 
 @dataclass(frozen=True)
@@ -67,7 +69,10 @@ class GuidanceConfig(ObjectiveConfig):
         step_size: the Adam learning rate [normalised action units per step], or
             ``gamma`` [normalised action units per unit of gradient] for ``"gradient"``
             (e.g. 3e-3 with the default weights).
-        optimizer: ``"adam"`` or ``"gradient"`` (plain steps, the paper's).
+        optimizer: ``"adam-plan"`` (the default: Adam with one second moment per guided
+            plan, :mod:`policies.learned.adam`, so that a step keeps the shape of the
+            plan's gradient), ``"adam"`` (one per coordinate, the default before
+            docs/REALISM.md round 13) or ``"gradient"`` (plain steps, the paper's).
         lambda_base: weight of ``L_base``, half the mean over the plan's steps of the
             squared distance of a guided row's residual to its base residual
             [normalised action units^2], >= 0: it keeps the guided plans near the
@@ -76,7 +81,7 @@ class GuidanceConfig(ObjectiveConfig):
 
     steps: int = 30
     step_size: float = 0.1
-    optimizer: str = "adam"
+    optimizer: str = "adam-plan"
     lambda_base: float = 0.0
 
     def checks(self) -> list[tuple[bool, str]]:
@@ -337,7 +342,7 @@ def _guide_scenes(
     with torch.no_grad():
         lower, upper = objective.bounds()
         u_c = torch.minimum(torch.maximum(flat.u0[rows], lower), upper)
-    adam = Adam(u_c, config.step_size)
+    adam = Adam(u_c, config.step_size, PLAN_BLOCK if config.optimizer == "adam-plan" else ())
     history = []
     # Closed-form gradients: nothing to record, and inference mode skips autograd's
     # per-op bookkeeping (version counters) too; u_c leaves it only through copies.
@@ -345,10 +350,10 @@ def _guide_scenes(
         for _ in range(config.steps):
             grad, adv, off_road = objective.gradient(u_c, config.lambda_adv, config.lambda_map)
             history.append(per_scene(adv, off_road))
-            if config.optimizer == "adam":
-                grad = adam.step(grad)
-            else:
+            if config.optimizer == "gradient":
                 grad = config.step_size * grad
+            else:
+                grad = adam.step(grad)
             u_c = torch.minimum(torch.maximum(u_c - grad, lower), upper)
     with torch.no_grad():
         trajectories_c, adv, off_road = objective(u_c)

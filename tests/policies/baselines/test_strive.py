@@ -84,6 +84,13 @@ def test_same_seed_same_closed_loop_rollout(strive, closed_loop):
     assert not np.array_equal(histories[0], histories[2])
 
 
+def test_plan_block_adam_steps(strive, road_view):
+    """``optimizer="adam-plan"``: one second moment per latent row; it lowers L_adv."""
+    policy = planned(strive(optimizer="adam-plan", guidance_steps=8), road_view)
+    assert policy.guidance_losses[-1, 0] < policy.guidance_losses[0, 0]
+    assert not torch.equal(policy.latent, policy.noise)
+
+
 def test_gradient_steps_and_draw(strive, road_view):
     policy = planned(strive(optimizer="gradient", step_size=1e-3), road_view)
     assert policy.guidance_losses[-1, 0] <= policy.guidance_losses[0, 0]

@@ -49,6 +49,7 @@ def close(a: np.ndarray, b: np.ndarray) -> None:
         {"avoid_steps": 3, "hold_distance": 1.0},
         {"avoid_steps": 3, "stitch_steps": 8, "stitch_first": True},
         {"avoid_steps": 3, "stitch_first": False},  # the 5-step blend after planning
+        {"optimizer": "adam-plan"},  # one Adam block per guided plan
     ],
 )
 def test_batched_plans_equal_planning_each_scene_alone(tiny_meanflow, tiny_normalizer, options):
