@@ -35,6 +35,7 @@ from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
 from policies.learned.plan_stitching import resolve_stitch_steps
 from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
+from policies.riskflow.guidance import GuidanceConfig
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
 from riskflow_env.view import SceneView
@@ -74,6 +75,9 @@ class Options:
     """[m] a vehicle at rest whose plan moves it less keeps its brake on (0: off)"""
     lambda_map: float = AdversaryConfig.lambda_map
     """weight of the guidance's map term"""
+    optimizer: str = GuidanceConfig.optimizer
+    """guidance steps: 'adam' (per coordinate), 'adam-plan' (one second moment per guided
+    plan) or 'gradient' (plain steps)"""
     stitch_steps: int | None = AdversaryConfig.stitch_steps
     """[steps] blend of a new plan into the executed one (default: 15 blending first, 5
     after; 0: switch at once)"""
@@ -136,6 +140,7 @@ def run(options: Options) -> dict[str, dict]:
             avoid_steps=options.avoid_steps,
             hold_distance=options.hold_distance,
             lambda_map=options.lambda_map,
+            optimizer=options.optimizer,
             stitch_steps=options.stitch_steps,
             stitch_first=options.stitch_first,
         )
@@ -192,8 +197,8 @@ def main(argv: list[str] | None = None) -> None:
     stitch = resolve_stitch_steps(options.stitch_steps, options.stitch_first)
     base = (
         f"avoid_steps={options.avoid_steps}, hold_distance={options.hold_distance:g}, "
-        f"lambda_map={options.lambda_map:g}, stitch_steps={stitch}, "
-        f"stitch_first={options.stitch_first}"
+        f"lambda_map={options.lambda_map:g}, optimizer={options.optimizer}, "
+        f"stitch_steps={stitch}, stitch_first={options.stitch_first}"
     )
     print(f"{options.scenes} scenes, IDM ego, target={options.target}, episodes: {ending}, {base}")
     print(table(results))

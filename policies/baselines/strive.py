@@ -61,11 +61,10 @@ class StriveAdversary(RiskFlowAdversary):
             refused (no one-step latent to differentiate through).
         **options: ``RiskFlowAdversary``'s: ``guidance_steps`` (``K_g`` latent optimisation
             steps per cycle), ``step_size`` (Adam learning rate [normalised noise units
-            per step], or ``gamma`` of plain steps), ``normalizer``, ``checkpoint``, and
-            the shared options as keywords.
-        optimizer: ``"adam"`` (default: ``torch.optim.Adam`` on the latent, STRIVE's),
-            ``"adam-plan"`` (one second moment per latent row, as RiskFlow's default;
-            docs/REALISM.md, round 13) or ``"gradient"`` (plain steps).
+            per step], or ``gamma`` of plain steps), ``optimizer`` (``"adam"``:
+            ``torch.optim.Adam`` on the latent, STRIVE's; ``"adam-plan"``: one second
+            moment per latent row; ``"gradient"``: plain steps), ``normalizer``,
+            ``checkpoint``, and the shared options as keywords.
 
     After each cycle: ``guidance_losses`` ((K_g + 1, 2): ``L_adv``, ``L_map`` before each
     step and after the last), ``prior_losses`` ((K_g + 1,): ``||eps_c||^2 / 2``) and
@@ -80,7 +79,6 @@ class StriveAdversary(RiskFlowAdversary):
         *,
         lambda_prior: float = DEFAULT_LAMBDA_PRIOR,
         generator: RiskFlowGenerator | str | None = None,
-        optimizer: str = "adam",
         **options: Any,
     ) -> None:
         if not (isinstance(lambda_prior, (int, float)) and 0 <= lambda_prior < float("inf")):
@@ -88,7 +86,7 @@ class StriveAdversary(RiskFlowAdversary):
         if generator == "diffusion" or "sampling_steps" in options:
             raise ValueError(_NOT_DIFFUSION)
         self.lambda_prior = float(lambda_prior)
-        super().__init__(config, generator=generator, optimizer=optimizer, **options)
+        super().__init__(config, generator=generator, **options)
         if self.generator_kind != "meanflow":
             raise ValueError(_NOT_DIFFUSION)
 

@@ -14,8 +14,8 @@ respect to the trajectories, :mod:`policies.learned.guidance_losses`; the rollou
 vector-Jacobian product, ``riskflow_env.dynamics.rollout_with_vjp``; ``denorm`` is a
 diagonal scale); the gradients agree with autograd to float rounding. Only ``A_c`` rows
 are variables: every other row is the base plan, bit for bit. Steps are projected so that
-the actions stay inside the dynamics bounds; Adam steps with one second moment per guided
-plan by default (``optimizer="adam-plan"``), or per coordinate, or the paper's plain steps.
+the actions stay inside the dynamics bounds; Adam by default (per coordinate, or with one
+second moment per guided plan: ``optimizer="adam-plan"``), or the paper's plain steps.
 
 ``L_adv`` is the mean distance over the guidance horizon to the nearest target (every
 present agent outside ``A_c``, or the ego only), ``L_map`` the decayed squared depth of
@@ -69,10 +69,10 @@ class GuidanceConfig(ObjectiveConfig):
         step_size: the Adam learning rate [normalised action units per step], or
             ``gamma`` [normalised action units per unit of gradient] for ``"gradient"``
             (e.g. 3e-3 with the default weights).
-        optimizer: ``"adam-plan"`` (the default: Adam with one second moment per guided
-            plan, :mod:`policies.learned.adam`, so that a step keeps the shape of the
-            plan's gradient), ``"adam"`` (one per coordinate, the default before
-            docs/REALISM.md round 13) or ``"gradient"`` (plain steps, the paper's).
+        optimizer: ``"adam"`` (the default: one second moment per coordinate),
+            ``"adam-plan"`` (one per guided plan, :mod:`policies.learned.adam`: a step
+            keeps the shape of the plan's gradient; docs/REALISM.md, round 13) or
+            ``"gradient"`` (plain steps, the paper's).
         lambda_base: weight of ``L_base``, half the mean over the plan's steps of the
             squared distance of a guided row's residual to its base residual
             [normalised action units^2], >= 0: it keeps the guided plans near the
@@ -81,7 +81,7 @@ class GuidanceConfig(ObjectiveConfig):
 
     steps: int = 30
     step_size: float = 0.1
-    optimizer: str = "adam-plan"
+    optimizer: str = "adam"
     lambda_base: float = 0.0
 
     def checks(self) -> list[tuple[bool, str]]:

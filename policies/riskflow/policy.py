@@ -102,8 +102,8 @@ class RiskFlowAdversary(PlanBufferPolicy):
             ``window_config``, ``threads``); or give them as keywords (``**options``).
         guidance_steps: ``K_g``.
         step_size: Adam learning rate, or ``gamma`` of plain steps (:class:`GuidanceConfig`).
-        optimizer: ``"adam-plan"`` (default: one Adam second moment per guided plan),
-            ``"adam"`` (per coordinate) or ``"gradient"`` (the paper's plain steps)
+        optimizer: ``"adam"`` (default), ``"adam-plan"`` (one Adam second moment per
+            guided plan) or ``"gradient"`` (the paper's plain steps)
             (:class:`~policies.riskflow.guidance.GuidanceConfig`).
         lambda_base: weight of the tether of the guided plans to the generator's own
             (:class:`GuidanceConfig`); 0 (default): off.
