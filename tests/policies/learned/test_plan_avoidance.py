@@ -15,6 +15,7 @@ from policies.learned.plan_selection import overlap_scores
 from policies.riskflow.guidance import plans_from_velocity
 from policies.riskflow.policy import RiskFlowAdversary
 from riskflow_env.config import DynamicsConfig
+from riskflow_env.dynamics import rollout_with_vjp
 
 NORMALIZER = ActionNormalizer(mean=(0.0, 0.0), std=(1.0, 0.1))
 DYNAMICS = DynamicsConfig()
@@ -130,6 +131,29 @@ def test_zero_steps_change_nothing():
     expected = plans_from_velocity(eps, u0, state, mask, NORMALIZER, DYNAMICS)
     assert torch.equal(u, u0) and torch.equal(actions, expected[0])
     assert torch.equal(trajectories, expected[1])
+
+
+def test_nothing_to_correct_stops_after_the_first_gradient(monkeypatch):
+    """Two cars side by side in their lanes, same speed: no overlap within the horizon, so
+    the first gradient is zero and the loop stops there; the plans are those of zero
+    steps, bit for bit (Adam's moments would stay zero)."""
+    import policies.learned.plan_avoidance as avoidance
+
+    eps, u0, state, length, width, mask = _scene()
+    state[0, 2] = torch.tensor([0.0, 4.0, 10.0, 0.0], dtype=torch.float64)
+    calls = []
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return rollout_with_vjp(*args, **kwargs)
+
+    monkeypatch.setattr(avoidance, "rollout_with_vjp", counted)
+    args = (eps, u0, state, length, width, mask, None, NORMALIZER, DYNAMICS)
+    u, actions, trajectories = avoid_overlaps(*args, steps=10, step_size=0.2)
+    assert len(calls) == 1
+    expected = avoid_overlaps(*args, steps=0, step_size=0.2)
+    assert torch.equal(u, expected[0]) and torch.equal(actions, expected[1])
+    assert torch.equal(trajectories, expected[2])
 
 
 @pytest.mark.parametrize(
