@@ -1,4 +1,4 @@
-"""Planning throughput of the K = 5 RiskFlow adversary: B scenes per call vs B one-scene calls.
+"""Planning throughput of the K = 5 adversary: B scenes per call vs B one-scene calls.
 
 Issue 18, table 1. The shipped checkpoint plans the first B shipped evaluation scenes
 (``shipped_bank("eval")``, each reset in its own env) in two ways, measured in one run:
@@ -14,8 +14,12 @@ planning calls per second, scenes planned per second and the ratio of the batche
 scenes/s to the loop's. Rounds are interleaved (batched, then loop, per B) and the best
 round of each is reported (the least disturbed one on a shared machine).
 
+``--method strive`` measures STRIVE-style the same way (its latent optimisation batched
+over the scenes' rows: one generator forward and backward pass per step for all B).
+
     python benchmarks/adversarial_throughput.py [--scenes 1 8 32] [--rounds 3] [--device cpu]
     python benchmarks/adversarial_throughput.py --device cuda --loop-device cpu  # GPU vs today
+    python benchmarks/adversarial_throughput.py --method strive --scenes 1 8
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ import numpy as np
 from tqdm import tqdm
 
 import riskflow_env
+from policies.baselines.strive import StriveAdversary
 from policies.dataclass_cli import parse_dataclass
 from policies.learned.batched_adversary import BatchedAdversary
 from policies.riskflow.policy import RiskFlowAdversary
@@ -40,6 +45,8 @@ class Options:
 
     scenes: tuple[int, ...] = (1, 8, 32)
     """scenes per planning call (B)"""
+    method: str = "riskflow"
+    """'riskflow' (output-space guidance) or 'strive' (STRIVE-style latent optimisation)"""
     k: int = 5
     """size of the controllable set A_c in each scene"""
     guidance_steps: int = 30
@@ -58,6 +65,9 @@ class Options:
     loop_device: str | None = None
     """torch device of the one-scene-at-a-time loop (None: --device); today's loop runs on
     cpu, so ``--device cuda --loop-device cpu`` compares batched GPU planning with it"""
+
+
+METHODS = {"riskflow": RiskFlowAdversary, "strive": StriveAdversary}
 
 
 def _parse(argv: list[str] | None = None) -> Options:
@@ -121,8 +131,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
     planning of all B scenes], ``phases`` of the last batched call and ``loop_phases``
     summed over the last loop's calls [s])."""
     options = _parse(argv)
+    if options.method not in METHODS:
+        raise SystemExit(f"--method must be one of {sorted(METHODS)}, got {options.method!r}")
+    kind = METHODS[options.method]
     loop_device = options.loop_device or options.device
-    policy = RiskFlowAdversary(
+    policy = kind(
         k=options.k,
         guidance_steps=options.guidance_steps,
         device=loop_device,
@@ -130,7 +143,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     )
     batched_threads = options.batched_threads or options.threads
     same_device = loop_device == options.device
-    batched = RiskFlowAdversary(  # the same model (the same checkpoint), B scenes per call
+    batched = kind(  # the same model (the same checkpoint), B scenes per call
         k=options.k,
         guidance_steps=options.guidance_steps,
         device=options.device,
@@ -141,7 +154,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     views = evaluation_views(max(options.scenes))
     agents = [int(v.present.sum()) for v in views]
     print(
-        f"RiskFlow adversary, K = {options.k}, K_g = {options.guidance_steps}, shipped "
+        f"{kind.__name__}, K = {options.k}, K_g = {options.guidance_steps}, shipped "
         f"checkpoint, device {options.device} (loop: {loop_device}), CPU threads: "
         f"{options.threads} one at a time, {batched_threads} batched; shipped "
         f"evaluation scenes 0..{len(views) - 1} ({min(agents)}-{max(agents)} vehicles, mean "

@@ -30,19 +30,20 @@ from torch import Tensor
 
 from policies.learned.adam import Adam
 from policies.learned.adversary_config import AdversaryConfig
-from policies.learned.encoded_views import EncodedView, EncodedViews
+from policies.learned.encoded_views import EncodedViews
 from policies.learned.generator import RiskFlowGenerator
-from policies.learned.guidance_losses import adversarial_loss, map_term, target_rows
+from policies.learned.guidance_losses import adversarial_rows, map_term, target_rows
 from policies.learned.plan_buffer import PlanBufferPolicy
 from policies.learned.sampler import base_velocity
 from policies.riskflow.guidance import (
+    PLAN_BLOCK,
     GuidanceResult,
     GuidanceScene,
-    PLAN_BLOCK,
-    one_scene,
+    flatten_scenes,
     plans_from_velocity,
 )
 from policies.riskflow.policy import RiskFlowAdversary
+from riskflow_env._array import attach_gradient
 from riskflow_env.view import SceneView
 
 DEFAULT_LAMBDA_PRIOR = 1.0  # weight of ||eps_c||^2 / 2 [per unit of normalised noise^2]
@@ -96,74 +97,84 @@ class StriveAdversary(RiskFlowAdversary):
         self.latent: Tensor | None = None
 
     def _plan_cycles(self, scenes: Sequence[PlanBufferPolicy], views: Sequence[SceneView]) -> None:
-        """Scene by scene: the latent optimisation keeps one scene's generator in the loop
-        (batching it across scenes is left to do); each scene is the case B = 1 of
-        ``RiskFlowAdversary``'s batched cycle."""
-        if len(scenes) == 1:
-            super()._plan_cycles(scenes, views)
-            return
-        for scene, view in zip(scenes, views, strict=True):
-            scene._plan_cycles([scene], [view])
+        """B scenes in one cycle: ``RiskFlowAdversary``'s (one encoder pass, one generator
+        pass, the ranking), then one latent optimisation over every scene's ``A_c`` rows
+        (:meth:`_guide`); each scene keeps its own ``latent`` and ``prior_losses``."""
+        super()._plan_cycles(scenes, views)
+        for policy, latent, prior in zip(scenes, self._latents, self._priors, strict=True):
+            policy.latent, policy.prior_losses = latent, prior
 
     def _guide(
         self, scene: GuidanceScene, controllable: Tensor, observed: EncodedViews
     ) -> GuidanceResult:
-        """Batch of one (``_plan_cycles``): :meth:`_guide_scene` of it."""
-        one = one_scene(scene, 0)
-        result = self._guide_scene(one, controllable[0], observed.view(0))
-        return GuidanceResult(
-            result.u[None], result.actions[None], result.trajectories[None], result.losses[:, None]
-        )
-
-    def _guide_scene(
-        self, scene: GuidanceScene, controllable: Tensor, observed: EncodedView
-    ) -> GuidanceResult:
-        """``K_g`` steps on the ``A_c`` rows of ``eps`` (module docstring)."""
+        """``K_g`` steps on the ``A_c`` rows of ``eps`` of B scenes at once (module
+        docstring). The loss is the sum of the scenes' losses and rows of different scenes
+        do not interact (the generator attends within a scene, each row has its own
+        scene's targets and map, Adam is per coordinate or per row), so each scene's
+        latent is the one it would get alone, to float rounding."""
         config = self.guidance
-        present = scene.agent_mask.bool()
-        mask = controllable.bool() & present
-        mask[scene.ego] = False
-        rows = torch.nonzero(mask).flatten()
-        self.latent = scene.eps
+        num_scenes, num_agents = scene.agent_mask.shape
+        mask = controllable.bool() & scene.agent_mask.bool()
+        mask[:, scene.ego] = False
+        rows = torch.nonzero(mask.reshape(-1)).flatten()  # flat (scene, agent) indices
+        scene_of_row = torch.div(rows, num_agents, rounding_mode="floor")
+        self._keep(scene.eps, None, observed.counts)
         if rows.numel() == 0:  # nothing to optimise: the unguided generator, bit for bit
-            self.prior_losses = np.zeros(config.steps + 1)
-            losses = scene.eps.new_zeros(config.steps + 1, 2)
+            losses = scene.eps.new_zeros(config.steps + 1, num_scenes, 2)
             return GuidanceResult(scene.u0, scene.base_actions, scene.base_trajectories, losses)
-        objective = _LatentObjective(self, scene, observed, rows)
-        eps_c = scene.eps[rows].clone().requires_grad_(True)
+        objective = _LatentObjective(self, scene, observed.scene, rows, scene_of_row)
+        eps_c = scene.eps.flatten(0, 1)[rows].clone().requires_grad_(True)
         if config.optimizer == "adam":
             optimizer = torch.optim.Adam([eps_c], lr=config.step_size)
         elif config.optimizer == "adam-plan":  # one second moment per latent row
             optimizer = _BlockAdam(eps_c, config.step_size, PLAN_BLOCK)
         else:
             optimizer = torch.optim.SGD([eps_c], lr=config.step_size)
+
+        def per_scene(terms: Tensor) -> Tensor:  # (C, 3) -> (B, 3)
+            return terms.new_zeros(num_scenes, 3).index_add_(0, scene_of_row, terms)
+
         history = []
         for _ in range(config.steps):
             with torch.enable_grad():
                 _, terms = objective(eps_c)
-                loss = (
-                    config.lambda_adv * terms[0]
-                    + config.lambda_map * terms[1]
-                    + self.lambda_prior * terms[2]
-                )
+                adv, off_road, prior = terms.sum(dim=0)
+                loss = config.lambda_adv * adv + config.lambda_map * off_road
+                loss = loss + self.lambda_prior * prior
                 (eps_c.grad,) = torch.autograd.grad(loss, eps_c)
-            history.append(terms.detach())
+            history.append(per_scene(terms.detach()))
             optimizer.step()
         with torch.no_grad():
             (u_c, actions_c, trajectories_c), terms = objective(eps_c)
-            history.append(terms)
-            latent = scene.eps.clone()
-            latent[rows] = eps_c
-            u = scene.u0.clone()
-            u[rows] = u_c
-            actions = scene.base_actions.clone()
-            actions[rows] = actions_c
-            trajectories = scene.base_trajectories.clone()
-            trajectories[rows] = trajectories_c
-        history = torch.stack(history)
-        self.latent = latent
-        self.prior_losses = history[:, 2].cpu().numpy()
-        return GuidanceResult(u, actions, trajectories, history[:, :2])
+            history.append(per_scene(terms))
+            lead = (num_scenes, num_agents)
+            latent, u = scene.eps.flatten(0, 1).clone(), scene.u0.flatten(0, 1).clone()
+            actions = scene.base_actions.flatten(0, 1).clone()
+            trajectories = scene.base_trajectories.flatten(0, 1).clone()
+            latent[rows], u[rows], actions[rows], trajectories[rows] = (
+                eps_c,
+                u_c,
+                actions_c,
+                trajectories_c,
+            )
+        history = torch.stack(history)  # (K_g + 1, B, 3)
+        self._keep(latent.reshape(scene.eps.shape), history[..., 2], observed.counts)
+        return GuidanceResult(
+            u.reshape(*lead, *u.shape[1:]),
+            actions.reshape(*lead, *actions.shape[1:]),
+            trajectories.reshape(*lead, *trajectories.shape[1:]),
+            history[..., :2],
+        )
+
+    def _keep(self, latent: Tensor, prior: Tensor | None, counts: Sequence[int]) -> None:
+        """Each scene's optimised latent (its ``count`` rows) and prior losses ((K_g + 1,);
+        zeros for None), for :meth:`_plan_cycles` to hand to the scene's policy."""
+        steps = self.guidance.steps + 1
+        self._latents = [latent[index, :count] for index, count in enumerate(counts)]
+        self._priors = [
+            np.zeros(steps) if prior is None else prior[:, index].cpu().numpy()
+            for index in range(len(counts))
+        ]
 
 
 class _BlockAdam:
@@ -186,32 +197,50 @@ _NOT_DIFFUSION = (
 
 
 class _LatentObjective:
-    """``(L_adv, L_map, ||eps_c||^2 / 2)`` of the ``A_c`` rows as a function of ``eps_c``."""
+    """``(L_adv, L_map, ||eps_c||^2 / 2)`` of each ``A_c`` row as a function of ``eps_c``,
+    for the rows of B scenes (``rows`` index the flattened ``B * A`` agents; each row is
+    pulled toward its own scene's targets, on its own scene's map)."""
 
     def __init__(
-        self, policy: StriveAdversary, scene: GuidanceScene, observed: EncodedView, rows: Tensor
+        self,
+        policy: StriveAdversary,
+        scene: GuidanceScene,
+        context: Any,
+        rows: Tensor,
+        scene_of_row: Tensor,
     ) -> None:
         config = policy.guidance
-        self.policy, self.scene, self.context, self.rows = policy, scene, observed.scene, rows
+        self.policy, self.context, self.rows = policy, context, rows
+        self.shape = scene.eps.shape
         controllable = torch.zeros_like(scene.agent_mask, dtype=torch.bool)
-        controllable[rows] = True
+        controllable.view(-1)[rows] = True
         targets = target_rows(scene.agent_mask, controllable, scene.ego, config.target)
-        self.target_xy = scene.base_trajectories[targets, :, :2].detach()
-        self.map_term = map_term(scene, rows, scene.eps.shape[1], config)
+        self.target_xy = scene.base_trajectories[..., :2].detach()[scene_of_row]
+        self.target_valid = targets[scene_of_row]  # (C, A): each row's own scene's targets
+        flat = flatten_scenes(scene)
+        self.eps, self.state, self.agent_mask = flat.eps, flat.state[rows], flat.agent_mask[rows]
+        self.map_term = map_term(flat, rows, scene.eps.shape[2], config, scene_of_row)
 
     def __call__(self, eps_c: Tensor) -> tuple[tuple[Tensor, Tensor, Tensor], Tensor]:
-        """``((u_c, actions_c, trajectories_c), (L_adv [m], L_map [m^2], prior))``."""
-        policy, scene, rows = self.policy, self.scene, self.rows
-        eps = scene.eps.index_put((rows,), eps_c)  # the other rows keep their noise
-        u_c = base_velocity(policy.model, eps[None], self.context)[0, rows]
+        """``((u_c, actions_c, trajectories_c), terms)``, ``terms`` (C, 3): each row's
+        ``L_adv`` [m], ``L_map`` [m^2] and ``||eps_c||^2 / 2``, differentiable with
+        respect to ``eps_c`` (the losses' gradients in closed form, attached)."""
+        policy, rows = self.policy, self.rows
+        eps = self.eps.index_put((rows,), eps_c).reshape(self.shape)  # the others keep theirs
+        u_c = base_velocity(policy.model, eps, self.context).flatten(0, 1)[rows]
         actions, trajectories = plans_from_velocity(
-            eps_c, u_c, scene.state[rows], scene.agent_mask[rows], policy.normalizer,
-            policy.dynamics,
-        )  # fmt: skip
-        adv = adversarial_loss(trajectories[..., :2], self.target_xy, policy.guidance.horizon)
-        off_road = adv * 0.0 if self.map_term is None else self.map_term(trajectories)
-        prior = 0.5 * (eps_c * eps_c).sum()
-        return (u_c, actions, trajectories), torch.stack([adv, off_road, prior])
+            eps_c, u_c, self.state, self.agent_mask, policy.normalizer, policy.dynamics
+        )
+        xy = trajectories[..., :2]
+        adv, d_xy = adversarial_rows(xy, self.target_xy, policy.guidance.horizon, self.target_valid)
+        adv = attach_gradient(adv, xy, d_xy, axis=(-2, -1))
+        if self.map_term is None:
+            off_road = adv * 0.0
+        else:
+            off_road, d_map = self.map_term.rows_and_gradient(trajectories.detach())
+            off_road = attach_gradient(off_road, trajectories, d_map, axis=(-2, -1))
+        prior = 0.5 * (eps_c * eps_c).sum(dim=(-2, -1))
+        return (u_c, actions, trajectories), torch.stack([adv, off_road, prior], dim=-1)
 
 
 __all__ = ["DEFAULT_LAMBDA_PRIOR", "StriveAdversary"]

@@ -298,6 +298,14 @@ _PER_AGENT = (
 )  # fmt: skip
 
 
+def flatten_scenes(scene: GuidanceScene) -> GuidanceScene:
+    """B scenes' per-agent tensors flattened to ``B * A`` rows (scene after scene); the
+    map and the frames (B, 3) stay per scene (rows find theirs by ``scene_of_row``)."""
+    return dataclasses.replace(
+        scene, **{name: getattr(scene, name).flatten(0, 1) for name in _PER_AGENT}
+    )
+
+
 def one_scene(scene: GuidanceScene, index: int) -> GuidanceScene:
     """Scene ``index`` of a batched :class:`GuidanceScene` (its padded agent axis kept)."""
     drivable_map = scene.drivable_map
@@ -327,9 +335,7 @@ def _guide_scenes(
     if rows.numel() == 0:  # nothing to guide: the base plans
         losses = scene.eps.new_zeros(config.steps + 1, num_scenes, 2)
         return GuidanceResult(scene.u0, scene.base_actions, scene.base_trajectories, losses)
-    flat = dataclasses.replace(
-        scene, **{name: getattr(scene, name).flatten(0, 1) for name in _PER_AGENT}
-    )
+    flat = flatten_scenes(scene)
     target_xy = scene.base_trajectories[..., :2].detach()[scene_of_row]  # (C, A, T, 2)
     objective = _Objective(
         flat, rows, target_xy, normalizer, config, dynamics, targets[scene_of_row], scene_of_row
@@ -381,6 +387,7 @@ __all__ = [
     "GuidanceScene",
     "adversarial_loss",
     "adversarial_value_and_gradient",
+    "flatten_scenes",
     "guide",
     "one_scene",
     "map_loss",

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from tests.benchmarks.scripts import load_benchmark
 
 
@@ -18,3 +20,13 @@ def test_prints_a_row_per_scene_count(capsys):
     assert {"window", "encoder", "generator", "ranking", "guidance"} <= set(rows[1]["phases"])
     out = capsys.readouterr().out
     assert "batched scenes/s" in out and "ratio" in out
+
+
+def test_strive_and_a_bad_method(capsys):
+    bench = _module()
+    argv = ["--scenes", "2", "--rounds", "1", "--calls", "1", "--guidance-steps", "2"]
+    rows = bench.main([*argv, "--method", "strive"])
+    assert rows[0]["batched"] > 0 and rows[0]["loop"] > 0
+    assert "StriveAdversary, K = 5" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="--method"):
+        bench.main([*argv, "--method", "ctg"])

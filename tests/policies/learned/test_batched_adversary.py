@@ -27,9 +27,10 @@ def make_env(index: int):
     return env
 
 
-def riskflow(model, normalizer, **kwargs) -> RiskFlowAdversary:
+def riskflow(model, normalizer, strive=False, **kwargs) -> RiskFlowAdversary:
     options = {"k": 2, "guidance_steps": 6, "planning_interval": 0.3, "seed": 4, **kwargs}
-    return RiskFlowAdversary(generator=model, normalizer=normalizer, **options)
+    kind = StriveAdversary if strive else RiskFlowAdversary
+    return kind(generator=model, normalizer=normalizer, **options)
 
 
 def step(env, actions) -> None:
@@ -50,6 +51,8 @@ def close(a: np.ndarray, b: np.ndarray) -> None:
         {"avoid_steps": 3, "stitch_steps": 8, "stitch_first": True},
         {"avoid_steps": 3, "stitch_first": False},  # the 5-step blend after planning
         {"optimizer": "adam-plan"},  # one Adam block per guided plan
+        {"strive": True},  # STRIVE-style: one latent optimisation over the scenes' rows
+        {"strive": True, "optimizer": "adam-plan", "avoid_steps": 3},
     ],
 )
 def test_batched_plans_equal_planning_each_scene_alone(tiny_meanflow, tiny_normalizer, options):
@@ -87,6 +90,9 @@ def test_batched_plans_equal_planning_each_scene_alone(tiny_meanflow, tiny_norma
             close(mine.plans, theirs.plans)
             close(mine.base_plans, theirs.base_plans)
             close(mine.guidance_losses, theirs.guidance_losses)
+            if options.get("strive"):
+                close(mine.latent.numpy(), theirs.latent.numpy())
+                close(mine.prior_losses, theirs.prior_losses)
             guided += int(mine.controllable.sum())
         for env, actions in zip(envs, expected, strict=True):
             step(env, actions)
@@ -128,11 +134,11 @@ def test_a_scene_noise_does_not_depend_on_the_batch(tiny_meanflow, tiny_normaliz
 
 
 @pytest.mark.parametrize("kind", ["strive", "diffusion"])
-def test_other_adversaries_plan_scene_by_scene_in_one_call(
+def test_other_adversaries_take_the_batched_call(
     kind, tiny_meanflow, tiny_denoiser, tiny_normalizer
 ):
-    """STRIVE-style and the diffusion baselines take the batched call (one scene at a
-    time inside it) and plan what they plan alone."""
+    """STRIVE-style (batched) and the diffusion baselines (one scene at a time inside the
+    call) take the batched call and plan what they plan alone."""
     options = {"k": 1, "planning_interval": 0.3, "seed": 2}
     if kind == "strive":
         make = lambda seed: StriveAdversary(  # noqa: E731
