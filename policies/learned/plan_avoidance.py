@@ -34,8 +34,8 @@ horizon, no footprint off the road beyond what it forgives), every step would be
 (Adam's moments stay zero), so the loop stops there: the plans are the same bit for bit.
 About 60% of the unguided generator's calls on the shipped scenes stop so, which saves
 little (with no pair to differentiate those steps were cheap); the cost is in the others
-(docs/REALISM.md, round 13). ``steps = 0`` leaves the plans as they are; the MeanFlow adversaries take
-``DEFAULT_AVOID_STEPS`` (10) by default (docs/REALISM.md, rounds 8 and 9).
+(docs/REALISM.md, round 13). ``steps = 0`` leaves the plans as they are; the MeanFlow
+adversaries take ``DEFAULT_AVOID_STEPS`` (10) by default (docs/REALISM.md, rounds 8 and 9).
 """
 
 from __future__ import annotations

@@ -26,13 +26,16 @@ def test_per_coordinate_steps_are_torch_adams():
 def test_a_shared_block_steps_along_its_gradient():
     """One second moment per (7, 2) block: the first step is lr * g / rms(g) per block, so
     its shape is the gradient's, whatever each block's scale."""
-    gradient = _gradients(1, (3, 7, 2))[0] * torch.tensor([1e-3, 1.0, 1e3], dtype=torch.float64)[
-        :, None, None
-    ]
+    gradient = (
+        _gradients(1, (3, 7, 2))[0]
+        * torch.tensor([1e-3, 1.0, 1e3], dtype=torch.float64)[:, None, None]
+    )
     step = Adam(gradient, 0.1, shared=(1, 2)).step(gradient)
     rms = gradient.pow(2).mean(dim=(1, 2), keepdim=True).sqrt()
     torch.testing.assert_close(step, 0.1 * gradient / (rms + EPSILON), rtol=1e-9, atol=0.0)
-    torch.testing.assert_close(step.pow(2).mean(dim=(1, 2)).sqrt(), torch.full((3,), 0.1).double(), rtol=1e-4, atol=0.0)
+    torch.testing.assert_close(
+        step.pow(2).mean(dim=(1, 2)).sqrt(), torch.full((3,), 0.1).double(), rtol=1e-4, atol=0.0
+    )
     assert Adam(gradient, 0.1, shared=(-1, -2)).second.shape == (3, 1, 1)
 
 
