@@ -51,7 +51,7 @@ from policies.learned.guidance_losses import (
 from policies.learned.sampler import decode_plans
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout, rollout_with_vjp
-from riskflow_env.maps import DrivableMap, MapStack
+from riskflow_env.maps import DrivableMap
 
 OPTIMIZERS = ("gradient", "adam", "adam-plan")
 PLAN_BLOCK = (1, 2)  # the (T, 2) axes of a guided row: one Adam block per plan ("adam-plan")
@@ -306,17 +306,6 @@ def flatten_scenes(scene: GuidanceScene) -> GuidanceScene:
     )
 
 
-def one_scene(scene: GuidanceScene, index: int) -> GuidanceScene:
-    """Scene ``index`` of a batched :class:`GuidanceScene` (its padded agent axis kept)."""
-    drivable_map = scene.drivable_map
-    if isinstance(drivable_map, MapStack):
-        drivable_map = drivable_map.maps[index]
-    tensors = {name: getattr(scene, name)[index] for name in _PER_AGENT}
-    return dataclasses.replace(
-        scene, frame=scene.frame[index], drivable_map=drivable_map, **tensors
-    )
-
-
 def _guide_scenes(
     scene: GuidanceScene,
     controllable: Tensor,
@@ -389,7 +378,6 @@ __all__ = [
     "adversarial_value_and_gradient",
     "flatten_scenes",
     "guide",
-    "one_scene",
     "map_loss",
     "plans_from_velocity",
 ]
