@@ -168,7 +168,9 @@ def detach(x: Array) -> Array:
     return x if type(x) is np.ndarray else x.detach()
 
 
-def attach_gradient(value: Array, x: Array, gradient: Array, axis: int | None = -1) -> Array:
+def attach_gradient(
+    value: Array, x: Array, gradient: Array, axis: int | tuple[int, ...] | None = -1
+) -> Array:
     """``value`` with the gradient ``d value / d x = gradient`` attached, for autograd.
 
     Computes ``value + sum((x - detach(x)) * gradient, axis)``: the added term is
@@ -181,7 +183,9 @@ def attach_gradient(value: Array, x: Array, gradient: Array, axis: int | None = 
         value: (...) values computed from ``detach(x)`` (no graph), or a scalar.
         x: (..., D) the inputs, in the graph.
         gradient: (..., D) ``d value / d x`` (no graph), x's shape.
-        axis: -1 for one value per (..., D) row of ``x``; None for a scalar ``value``.
+        axis: -1 for one value per (..., D) row of ``x``; a tuple of the trailing axes for
+            one value per row of several axes (e.g. ``(-2, -1)``: one per (T, D) plan);
+            None for a scalar ``value``.
     """
     xp = namespace(value, x, gradient)
     return value + xp.sum((x - detach(x)) * gradient, axis=axis)

@@ -102,7 +102,8 @@ class StriveAdversary(RiskFlowAdversary):
         (:meth:`_guide`); each scene keeps its own ``latent`` and ``prior_losses``."""
         super()._plan_cycles(scenes, views)
         for policy, latent, prior in zip(scenes, self._latents, self._priors, strict=True):
-            policy.latent, policy.prior_losses = latent, prior
+            policy.latent, policy.prior_losses = latent.clone(), prior
+        del self._latents, self._priors  # handed over: the planner keeps no other scene's
 
     def _guide(
         self, scene: GuidanceScene, controllable: Tensor, observed: EncodedViews

@@ -15,8 +15,9 @@ coordinate: ``g^2`` is averaged over those dimensions (Adam-mini: Zhang et al. 2
 "Adam-mini: Use Fewer Learning Rates To Gain More", one second moment per parameter
 block). A block's step then keeps the shape of its gradient (the first step is
 ``lr * g / rms(g)``) where per-coordinate Adam moves every coordinate by about ``lr``.
-Output-space guidance uses it with one block per guided plan (``optimizer="adam-plan"``,
-:mod:`policies.riskflow.guidance`).
+Output-space guidance (:mod:`policies.riskflow.guidance`) and STRIVE-style's latent
+optimisation (:mod:`policies.baselines.strive`) use it with one block per guided plan or
+latent row (``optimizer="adam-plan"``, an option).
 """
 
 from __future__ import annotations

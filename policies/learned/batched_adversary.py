@@ -21,8 +21,10 @@ same batched rollout, bit for bit, on one machine. Scene ``b``'s seed is ``seeds
     batch.reset([env.view() for env in envs])
     actions = batch.act([env.view() for env in envs])  # a dict per scene
 
-The STRIVE-style baseline and the diffusion baselines go through the same call but plan
-their scenes one after the other inside it (their batched cycles are not written yet).
+The STRIVE-style baseline batches its latent optimisation the same way (one generator
+forward and backward pass per step over every scene's ``A_c`` rows); the diffusion
+baselines go through the same call but plan their scenes one after the other inside it
+(their batched cycle is not written yet).
 """
 
 from __future__ import annotations

@@ -31,8 +31,9 @@ gradient in closed form, the rollout its vector-Jacobian product
 separation of the pairs whose boxes can touch (a pair of variables, or a variable and an
 obstacle). When the first step's gradient is exactly zero (no pair overlaps within the
 horizon, no footprint off the road beyond what it forgives), every step would be zero
-(Adam's moments stay zero), so the loop stops there: the plans are the same bit for bit.
-About 60% of the unguided generator's calls on the shipped scenes stop so, which saves
+(Adam's moments stay zero), so the loop stops there: the plans are the same bit for bit
+(in a batched call, when that holds for every scene of the batch). About 60% of the
+unguided generator's one-scene calls on the shipped scenes stop so, which saves
 little (with no pair to differentiate those steps were cheap); the cost is in the others
 (docs/REALISM.md, round 13). ``steps = 0`` leaves the plans as they are; the MeanFlow
 adversaries take ``DEFAULT_AVOID_STEPS`` (10) by default (docs/REALISM.md, rounds 8 and 9).

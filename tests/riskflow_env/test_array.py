@@ -157,5 +157,8 @@ def test_attach_gradient_keeps_the_value_and_sets_the_gradient():
     scalar = attach_gradient(value.sum(), x, gradient, axis=None)
     assert torch.equal(scalar.detach(), value.sum())
     assert torch.equal(torch.autograd.grad(2.0 * scalar, x)[0], 2.0 * gradient)
+    rows = attach_gradient(value.sum(dim=1), x, gradient, axis=(-2, -1))  # one per (5, 2) row
+    assert torch.equal(rows.detach(), value.sum(dim=1))
+    assert torch.equal(torch.autograd.grad(rows.sum(), x)[0], gradient)
     array = np.ones(3)
     assert detach(array) is array

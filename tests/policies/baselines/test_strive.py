@@ -89,6 +89,18 @@ def test_plan_block_adam_steps(strive, road_view):
     policy = planned(strive(optimizer="adam-plan", guidance_steps=8), road_view)
     assert policy.guidance_losses[-1, 0] < policy.guidance_losses[0, 0]
     assert not torch.equal(policy.latent, policy.noise)
+    # One step: lr * g / rms(g) per row, so RMS step_size over the row but not every
+    # coordinate moved by step_size (per-coordinate Adam's first step is lr * sign(g)).
+    for optimizer in ("adam-plan", "adam"):
+        policy = planned(strive(optimizer=optimizer, guidance_steps=1), road_view)
+        rows = (policy.latent != policy.noise).any(dim=(1, 2))
+        step = (policy.latent - policy.noise)[rows].abs()
+        assert rows.sum() == 2
+        torch.testing.assert_close(
+            step.square().mean(dim=(1, 2)).sqrt(), torch.full((2,), 0.1), rtol=1e-3, atol=0.0
+        )
+        uniform = torch.allclose(step, torch.full_like(step, 0.1), rtol=1e-3)
+        assert uniform == (optimizer == "adam")
 
 
 def test_gradient_steps_and_draw(strive, road_view):

@@ -149,11 +149,15 @@ def test_nothing_to_correct_stops_after_the_first_gradient(monkeypatch):
 
     monkeypatch.setattr(avoidance, "rollout_with_vjp", counted)
     args = (eps, u0, state, length, width, mask, None, NORMALIZER, DYNAMICS)
-    u, actions, trajectories = avoid_overlaps(*args, steps=10, step_size=0.2)
-    assert len(calls) == 1
+    gain = torch.ones_like(eps[..., :1])
+    gain[:, :, 0] = 0.5  # blending first: half the first action's correction
     expected = avoid_overlaps(*args, steps=0, step_size=0.2)
-    assert torch.equal(u, expected[0]) and torch.equal(actions, expected[1])
-    assert torch.equal(trajectories, expected[2])
+    for options in ({}, {"gain": gain}):
+        calls.clear()
+        u, actions, trajectories = avoid_overlaps(*args, steps=10, step_size=0.2, **options)
+        assert len(calls) == 1
+        assert torch.equal(u, expected[0]) and torch.equal(actions, expected[1])
+        assert torch.equal(trajectories, expected[2])
 
 
 @pytest.mark.parametrize(
