@@ -32,14 +32,16 @@ from policies.learned.adam import Adam
 from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.encoded_views import EncodedViews
 from policies.learned.generator import RiskFlowGenerator
-from policies.learned.guidance_losses import adversarial_rows, map_term, target_rows
+from policies.learned.guidance_losses import adversarial_rows, map_term
 from policies.learned.plan_buffer import PlanBufferPolicy
 from policies.learned.sampler import base_velocity
 from policies.riskflow.guidance import (
     PLAN_BLOCK,
     GuidanceResult,
     GuidanceScene,
+    GuidedRows,
     flatten_scenes,
+    guided_rows,
     plans_from_velocity,
 )
 from policies.riskflow.policy import RiskFlowAdversary
@@ -115,15 +117,13 @@ class StriveAdversary(RiskFlowAdversary):
         latent is the one it would get alone, to float rounding."""
         config = self.guidance
         num_scenes, num_agents = scene.agent_mask.shape
-        mask = controllable.bool() & scene.agent_mask.bool()
-        mask[:, scene.ego] = False
-        rows = torch.nonzero(mask.reshape(-1)).flatten()  # flat (scene, agent) indices
-        scene_of_row = torch.div(rows, num_agents, rounding_mode="floor")
+        guided = guided_rows(scene, controllable, config.target)
+        rows = guided.rows
         self._keep(scene.eps, None, observed.counts)
         if rows.numel() == 0:  # nothing to optimise: the unguided generator, bit for bit
             losses = scene.eps.new_zeros(config.steps + 1, num_scenes, 2)
             return GuidanceResult(scene.u0, scene.base_actions, scene.base_trajectories, losses)
-        objective = _LatentObjective(self, scene, observed.scene, rows, scene_of_row)
+        objective = _LatentObjective(self, scene, observed.scene, guided)
         eps_c = scene.eps.flatten(0, 1)[rows].clone().requires_grad_(True)
         if config.optimizer == "adam":
             optimizer = torch.optim.Adam([eps_c], lr=config.step_size)
@@ -131,9 +131,6 @@ class StriveAdversary(RiskFlowAdversary):
             optimizer = _BlockAdam(eps_c, config.step_size, PLAN_BLOCK)
         else:
             optimizer = torch.optim.SGD([eps_c], lr=config.step_size)
-
-        def per_scene(terms: Tensor) -> Tensor:  # (C, 3) -> (B, 3)
-            return terms.new_zeros(num_scenes, 3).index_add_(0, scene_of_row, terms)
 
         history = []
         for _ in range(config.steps):
@@ -143,11 +140,11 @@ class StriveAdversary(RiskFlowAdversary):
                 loss = config.lambda_adv * adv + config.lambda_map * off_road
                 loss = loss + self.lambda_prior * prior
                 (eps_c.grad,) = torch.autograd.grad(loss, eps_c)
-            history.append(per_scene(terms.detach()))
+            history.append(guided.per_scene(terms.detach(), num_scenes))
             optimizer.step()
         with torch.no_grad():
             (u_c, actions_c, trajectories_c), terms = objective(eps_c)
-            history.append(per_scene(terms))
+            history.append(guided.per_scene(terms, num_scenes))
             lead = (num_scenes, num_agents)
             latent, u = scene.eps.flatten(0, 1).clone(), scene.u0.flatten(0, 1).clone()
             actions = scene.base_actions.flatten(0, 1).clone()
@@ -207,20 +204,15 @@ class _LatentObjective:
         policy: StriveAdversary,
         scene: GuidanceScene,
         context: Any,
-        rows: Tensor,
-        scene_of_row: Tensor,
+        guided: GuidedRows,
     ) -> None:
-        config = policy.guidance
+        config, rows = policy.guidance, guided.rows
         self.policy, self.context, self.rows = policy, context, rows
         self.shape = scene.eps.shape
-        controllable = torch.zeros_like(scene.agent_mask, dtype=torch.bool)
-        controllable.view(-1)[rows] = True
-        targets = target_rows(scene.agent_mask, controllable, scene.ego, config.target)
-        self.target_xy = scene.base_trajectories[..., :2].detach()[scene_of_row]
-        self.target_valid = targets[scene_of_row]  # (C, A): each row's own scene's targets
+        self.target_xy, self.target_valid = guided.target_xy, guided.target_valid
         flat = flatten_scenes(scene)
         self.eps, self.state, self.agent_mask = flat.eps, flat.state[rows], flat.agent_mask[rows]
-        self.map_term = map_term(flat, rows, scene.eps.shape[2], config, scene_of_row)
+        self.map_term = map_term(flat, rows, scene.eps.shape[2], config, guided.scene_of_row)
 
     def __call__(self, eps_c: Tensor) -> tuple[tuple[Tensor, Tensor, Tensor], Tensor]:
         """``((u_c, actions_c, trajectories_c), terms)``, ``terms`` (C, 3): each row's

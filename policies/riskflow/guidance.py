@@ -298,6 +298,37 @@ _PER_AGENT = (
 )  # fmt: skip
 
 
+@dataclass(frozen=True)
+class GuidedRows:
+    """The ``A_c`` rows of B scenes, as the batched guidance loops (RiskFlow's,
+    STRIVE-style's) take them: ``rows`` (C,) index the flattened ``B * A`` agents,
+    ``scene_of_row`` (C,) their scenes, ``target_xy`` (C, A, T, 2) the base plans of each
+    row's scene (detached) and ``target_valid`` (C, A) which of them are the row's targets."""
+
+    rows: Tensor
+    scene_of_row: Tensor
+    target_xy: Tensor
+    target_valid: Tensor
+
+    def per_scene(self, values: Tensor, num_scenes: int) -> Tensor:
+        """(C, K) values of the rows summed per scene: (B, K)."""
+        total = values.new_zeros(num_scenes, values.shape[-1])
+        return total.index_add_(0, self.scene_of_row, values)
+
+
+def guided_rows(scene: GuidanceScene, controllable: Tensor, target: str) -> GuidedRows:
+    """The :class:`GuidedRows` of B scenes: ``controllable`` (B, A) among the present
+    agents, the ego never; targets by :func:`target_rows` (``"others"`` or ``"ego"``)."""
+    present = scene.agent_mask.bool()
+    mask = controllable.bool() & present
+    mask[:, scene.ego] = False
+    targets = target_rows(present, mask, scene.ego, target)  # (B, A)
+    rows = torch.nonzero(mask.reshape(-1)).flatten()  # flat (scene, agent) indices
+    scene_of_row = torch.div(rows, mask.shape[1], rounding_mode="floor")
+    target_xy = scene.base_trajectories[..., :2].detach()[scene_of_row]
+    return GuidedRows(rows, scene_of_row, target_xy, targets[scene_of_row])
+
+
 def flatten_scenes(scene: GuidanceScene) -> GuidanceScene:
     """B scenes' per-agent tensors flattened to ``B * A`` rows (scene after scene); the
     map and the frames (B, 3) stay per scene (rows find theirs by ``scene_of_row``)."""
@@ -315,24 +346,19 @@ def _guide_scenes(
 ) -> GuidanceResult:
     """:func:`guide` of B scenes (leading axis on every tensor of ``scene``)."""
     num_scenes, num_agents = scene.agent_mask.shape
-    present = scene.agent_mask.bool()
-    mask = controllable.bool() & present
-    mask[:, scene.ego] = False
-    targets = target_rows(present, mask, scene.ego, config.target)  # (B, A)
-    rows = torch.nonzero(mask.reshape(-1)).flatten()  # flat (scene, agent) indices
-    scene_of_row = torch.div(rows, num_agents, rounding_mode="floor")
+    guided = guided_rows(scene, controllable, config.target)
+    rows, scene_of_row = guided.rows, guided.scene_of_row
     if rows.numel() == 0:  # nothing to guide: the base plans
         losses = scene.eps.new_zeros(config.steps + 1, num_scenes, 2)
         return GuidanceResult(scene.u0, scene.base_actions, scene.base_trajectories, losses)
     flat = flatten_scenes(scene)
-    target_xy = scene.base_trajectories[..., :2].detach()[scene_of_row]  # (C, A, T, 2)
     objective = _Objective(
-        flat, rows, target_xy, normalizer, config, dynamics, targets[scene_of_row], scene_of_row
-    )
+        flat, rows, guided.target_xy, normalizer, config, dynamics, guided.target_valid,
+        scene_of_row,
+    )  # fmt: skip
 
     def per_scene(adv: Tensor, off_road: Tensor) -> Tensor:  # (C,) x 2 -> (B, 2)
-        total = adv.new_zeros(num_scenes, 2)
-        return total.index_add_(0, scene_of_row, torch.stack([adv, off_road], dim=-1))
+        return guided.per_scene(torch.stack([adv, off_road], dim=-1), num_scenes)
 
     with torch.no_grad():
         lower, upper = objective.bounds()
@@ -376,8 +402,10 @@ __all__ = [
     "GuidanceScene",
     "adversarial_loss",
     "adversarial_value_and_gradient",
+    "GuidedRows",
     "flatten_scenes",
     "guide",
+    "guided_rows",
     "map_loss",
     "plans_from_velocity",
 ]
