@@ -10,7 +10,7 @@ bootstrap for means) plus the ratios of each K to K=0::
 The episode ends early when the ego collides (the default ``EnvConfig``), as in a
 stress test; ``--full-episodes`` runs every episode for 10 s instead, so that off-road
 rates are compared over the same exposure. The adversary runs with the library's
-defaults: the realistic base (10 avoidance steps, holding at rest at 4 m, blending first
+defaults: the realistic base (20 avoidance steps, holding at rest at 4 m, blending first
 over 15 steps) and the map term weighted 20 (docs/REALISM.md, rounds 8-12);
 ``--avoid-steps 0 --hold-distance 0 --lambda-map 1 --no-stitch-first`` is the raw base of
 ``riskflow-eval``'s ``riskflow-plain``; ``--stitch-steps N`` sets the blend. ``--out``

@@ -69,7 +69,7 @@ class NominalGenerator(RiskFlowAdversary):
             switch at once.
         stitch_first: blend the base plans before the avoidance steps
             (``RiskFlowAdversary``, :mod:`policies.learned.plan_stitching`); default on.
-        avoid_steps, avoid_step_size: Adam steps (None: 10 with the MeanFlow generator,
+        avoid_steps, avoid_step_size: Adam steps (None: 20 with the MeanFlow generator,
             0 with a diffusion one; 0: off) and their size that pull the base plans' boxes
             apart and onto the road (``RiskFlowAdversary``,
             :mod:`policies.learned.plan_avoidance`).

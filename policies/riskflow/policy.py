@@ -30,9 +30,9 @@ diffusion baselines' denoiser run as a deterministic DDIM chain from ``eps`` ins
 with the same ranking and output-space guidance (the generator ablation of issue 7).
 ``lambda_adv = 0`` / ``lambda_map = 0`` drop a guidance term (the loss ablation).
 
-The realistic base (the defaults; docs/REALISM.md, rounds 8-12): each new base plan is
+The realistic base (the defaults; docs/REALISM.md, rounds 8-12 and 14): each new base plan is
 blended into the executed one over 15 steps (blending first,
-:mod:`policies.learned.plan_stitching`), then, before ranking, 10 avoidance steps pull the
+:mod:`policies.learned.plan_stitching`), then, before ranking, 20 avoidance steps pull the
 MeanFlow base plans' boxes apart and onto the road (:mod:`policies.learned.plan_avoidance`),
 and vehicles at rest whose new plan moves them less than 4 m keep their brake on; the map
 term weighs 20. ``avoid_steps=0, hold_distance=0, lambda_map=1, stitch_first=False`` is
@@ -122,7 +122,7 @@ class RiskFlowAdversary(PlanBufferPolicy):
             the single draw.
         avoid_steps: Adam steps that pull the base plans apart and onto the road before
             ranking (:mod:`policies.learned.plan_avoidance`); None (default):
-            ``DEFAULT_AVOID_STEPS`` (10) with the MeanFlow generator, 0 with a diffusion
+            ``DEFAULT_AVOID_STEPS`` (20) with the MeanFlow generator, 0 with a diffusion
             one (which has none); 0: off.
         avoid_step_size: their Adam learning rate (normalised action units).
         stitch_first: blend each new base plan into the executed one before the avoidance

@@ -184,14 +184,14 @@ def test_the_diffusion_generator_refuses_it(tiny_denoiser, tiny_normalizer):
 
 
 def test_the_defaults_are_the_realistic_base(tiny_meanflow, tiny_denoiser, tiny_normalizer):
-    """10 avoidance steps with MeanFlow (none with a diffusion generator, which has no
+    """20 avoidance steps with MeanFlow (none with a diffusion generator, which has no
     one-step output to step on), holding at rest at 4 m and the map term weighted 20;
     ``riskflow-plain`` / ``bits-plain`` are the raw base."""
     from policies.registry import build_policy
 
     meanflow = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
     for policy in (RiskFlowAdversary(k=5, **meanflow), NominalGenerator(**meanflow)):
-        assert (policy.avoid_steps, policy.hold_distance) == (10, 4.0)
+        assert (policy.avoid_steps, policy.hold_distance) == (20, 4.0)
     assert RiskFlowAdversary(k=5, **meanflow).guidance.lambda_map == 20.0
     diffusion = {"generator": OneCallSampler(tiny_denoiser, 3), "normalizer": tiny_normalizer}
     assert NominalGenerator(**diffusion).avoid_steps == 0
