@@ -103,38 +103,47 @@ def interpolate_flat(
     last_col, last_row = _last(xp, width, col), _last(xp, height, row)
     col_c = xp.clip(col, 0.0, last_col)
     row_c = xp.clip(row, 0.0, last_row)
-    # Integer bounds with maximum/minimum: the same values at a fraction of clip's cost.
-    col0 = xp.maximum(xp.minimum(xp.astype(xp.floor(col_c), xp.int64), width - 2), 0)
-    row0 = xp.maximum(xp.minimum(xp.astype(xp.floor(row_c), xp.int64), height - 2), 0)
+    # Integer bounds with maximum/minimum: the same values at a fraction of clip's cost;
+    # the clamped indices are >= 0, so the cast's truncation is the floor.
+    col0 = xp.maximum(xp.minimum(xp.astype(col_c, xp.int64), width - 2), 0)
+    row0 = xp.maximum(xp.minimum(xp.astype(row_c, xp.int64), height - 2), 0)
     fc = col_c - xp.astype(col0, col_c.dtype)
     fr = row_c - xp.astype(row0, row_c.dtype)
     base = row0 * width + col0 + offset
-    corners = (flat[base], flat[base + 1], flat[base + width], flat[base + width + 1])
+    if isinstance(width, (int, np.integer)):  # one gather of the four corners
+        steps = asarray_like(np.array([0, 1, width, width + 1]), base)
+        gathered = flat[base[..., None] + steps]  # (..., 4)
+        corners = tuple(gathered[..., k] for k in range(4))
+    else:  # a raster per point (MapStack)
+        corners = (flat[base], flat[base + 1], flat[base + width], flat[base + width + 1])
     if flat.dtype != fc.dtype:
         # A float32 raster queried in float64: cast the four corners once (exactly as the
         # promotion would) rather than inside every mixed-type op.
         corners = tuple(xp.astype(value, xp.result_type(value, fc)) for value in corners)
     v00, v01, v10, v11 = corners
-    top = v00 * (1 - fc) + v01 * fc
-    bottom = v10 * (1 - fc) + v11 * fc
-    value = top * (1 - fr) + bottom * fr
+    gc, gr = 1 - fc, 1 - fr
+    top = v00 * gc + v01 * fc
+    bottom = v10 * gc + v11 * fc
+    value = top * gr + bottom * fr
     if extend:
         off_c, off_r = col - col_c, row - row_c  # [px] from the clamped point to the query
-        distance = safe_norm(xp, off_c, off_r)
+        # safe_norm's guard is for autograd only; a query without it takes the plain root
+        squared = off_c * off_c + off_r * off_r
+        distance = safe_norm(xp, off_c, off_r) if requires_grad(xy) else xp.sqrt(squared)
         value = value + distance * resolution
     if not with_gradient:
         return value, None
     # d value / d (col, row) inside the clamp (torch's clamp passes the gradient on the
-    # bounds too), then / resolution: per metre.
-    inside_c = xp.astype((col >= 0.0) & (col <= last_col), value.dtype)
-    inside_r = xp.astype((row >= 0.0) & (row <= last_row), value.dtype)
-    d_col = ((v01 - v00) * (1 - fr) + (v11 - v10) * fr) * (inside_c / resolution)
+    # bounds too: inside means the clamp left the index as it was), then / resolution.
+    inside_c = xp.astype(col == col_c, value.dtype)
+    inside_r = xp.astype(row == row_c, value.dtype)
+    d_col = ((v01 - v00) * gr + (v11 - v10) * fr) * (inside_c / resolution)
     d_row = (bottom - top) * (inside_r / resolution)
     if extend:  # d(|q - clamp(q)| * resolution) / dxy: the unit vector off the raster
-        positive = distance > 0
-        distance = xp.where(positive, distance, xp.ones_like(distance))
-        d_col = d_col + xp.where(positive, off_c / distance, xp.zeros_like(distance))
-        d_row = d_row + xp.where(positive, off_r / distance, xp.zeros_like(distance))
+        # on the raster both offsets are 0 and so is the distance: 0 / 1 adds nothing
+        distance = xp.where(distance > 0, distance, xp.ones_like(distance))
+        d_col = d_col + off_c / distance
+        d_row = d_row + off_r / distance
     return value, xp.stack([d_col, d_row], axis=-1)
 
 
