@@ -108,12 +108,20 @@ def compare(reference: Path, other: Path) -> dict:
     """The largest difference of the rows' numbers and the rows whose outcome differs."""
     first = {row["key"]: row for row in ResultsStore(reference).rows()}
     second = {row["key"]: row for row in ResultsStore(other).rows()}
+    return compare_rows(first, second)
+
+
+def compare_rows(first: dict[str, dict], second: dict[str, dict]) -> dict:
+    """:func:`compare` of two runs' rows by key. A number that one row has and the other
+    has not (a time to the ego's first collision where only one run's ego collided) makes
+    the rows apart; the largest difference is over the numbers both have."""
     largest, apart, outcome = 0.0, 0, 0
     for key, row in first.items():
         mine, theirs = _numbers(row), _numbers(second[key])
-        gaps = [abs(mine[name] - theirs[name]) for name in mine if math.isfinite(mine[name])]
+        shared = [name for name in mine if name in theirs and math.isfinite(mine[name])]
+        gaps = [abs(mine[name] - theirs[name]) for name in shared]
         largest = max([largest, *gaps])
-        apart += max(gaps, default=0.0) > CLOSE
+        apart += max(gaps, default=0.0) > CLOSE or mine.keys() != theirs.keys()
         outcome += any(row.get(name) != second[key].get(name) for name in OUTCOME)
     return {"max_diff": largest, "apart": apart, "outcome_differs": outcome, "rows": len(first)}
 

@@ -13,9 +13,9 @@ Peers, measured interleaved with it (same machine load):
   ``--guidance-steps`` plans per agent (``sample(num_samples=N)``), then keeping the
   sample whose ``A_c`` rows score the lowest ``L_adv``;
 * **on the realistic base** — RiskFlow and the unguided generator with ``--avoid-steps``
-  (10) avoidance steps, the default holding at rest (4 m) and blending first: the
-  library's defaults (``riskflow-eval``'s ``riskflow`` and ``bits``; docs/REALISM.md,
-  rounds 8-12);
+  avoidance steps (the default's, ``DEFAULT_AVOID_STEPS``: 20), the default holding at
+  rest (4 m) and blending first: the library's defaults (``riskflow-eval``'s ``riskflow``
+  and ``bits``; docs/REALISM.md, rounds 8-14);
   ``--avoid-steps 0`` leaves these rows out.
 
 Prints the median [ms] of each phase and the ratios to the peers. Target: a full cycle
@@ -23,7 +23,7 @@ within 50 ms on a laptop-class CPU. Speed does not depend on the weights: withou
 shipped checkpoint the default-size model is randomly initialised.
 
     python benchmarks/planning_speed.py [--agents 20] [--threads 1] [--repeats 30]
-        [--avoid-steps 10]
+        [--avoid-steps 20]
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ from policies.learned.config import ModelConfig
 from policies.learned.data import ActionNormalizer
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.guidance_losses import adversarial_loss
+from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
 from policies.learned.ranking import rank_window
 from policies.learned.sampler import sample
 from policies.learned.window_types import collate_windows
@@ -70,7 +71,7 @@ class Options:
     """timed cycles per method (the median is reported)"""
     warmup: int = 3
     """untimed cycles per method first"""
-    avoid_steps: int = 10
+    avoid_steps: int = DEFAULT_AVOID_STEPS
     """avoidance steps of the realistic-base peers (0: no such peers)"""
 
     def __post_init__(self) -> None:

@@ -14,3 +14,16 @@ def test_prints_the_per_scene_and_batched_rows(capsys):
     assert rows[1]["max_diff"] < 1e-4
     out = capsys.readouterr().out
     assert "batch-scenes" in out and "ratio" in out
+
+
+def test_rows_with_a_number_only_one_run_has_are_apart():
+    """A rollout whose ego collides in one run and not in the other has a time to the
+    ego's first collision in one row only: counted apart and as an outcome change, the
+    largest difference taken over the numbers both rows have (no KeyError)."""
+    bench = load_benchmark("eval_batched")
+    collided = {"steps": 100, "ego_collision": 1.0, "ade": 2.0,
+                "harness": {"time_to_first_ego_collision": 4.5}}  # fmt: skip
+    missed = {"steps": 100, "ego_collision": 0.0, "ade": 2.5, "harness": {}}
+    same = {"steps": 100, "ego_collision": 0.0, "ade": 1.0, "harness": {}}
+    result = bench.compare_rows({"a": collided, "b": same}, {"a": missed, "b": dict(same)})
+    assert result == {"max_diff": 1.0, "apart": 1, "outcome_differs": 1, "rows": 2}
