@@ -129,8 +129,8 @@ def resampling_cycle(policy: RiskFlowAdversary, view, samples: int) -> None:
         int(torch.stack(scores).argmin())
 
 
-def main() -> None:
-    options = _parse()
+def main(argv: list[str] | None = None) -> None:
+    options = _parse(argv)
     threads = options.threads or None
     model, normalizer, origin = load_model(options.device)
     view, scene_name = scene_view(options.agents)
