@@ -126,24 +126,94 @@ def separation(
         (...) signed separation [m], same dtype as the inputs. Symmetric in a, b
         bit for bit. Differentiable almost everywhere under torch.
     """
-    xp = namespace(xy_a, yaw_a, xy_b, yaw_b)
-    cos_a, sin_a = xp.cos(yaw_a), xp.sin(yaw_a)
-    cos_b, sin_b = xp.cos(yaw_b), xp.sin(yaw_b)
-    dx = xy_b[..., 0] - xy_a[..., 0]
-    dy = xy_b[..., 1] - xy_a[..., 1]
+    terms = _Gaps(xy_a, yaw_a, length_a, width_a, xy_b, yaw_b, length_b, width_b)
+    xp, gaps = terms.xp, terms.gaps
+    return xp.maximum(xp.maximum(gaps[0], gaps[1]), xp.maximum(gaps[2], gaps[3]))
+
+
+def separation_gradient(
+    xy_a: Array,
+    yaw_a: Array,
+    length_a: Array,
+    width_a: Array,
+    xy_b: Array,
+    yaw_b: Array,
+    length_b: Array,
+    width_b: Array,
+) -> tuple[Array, Array, Array, Array]:
+    """``separation`` and its derivatives in closed form (arguments as ``separation``).
+
+    The derivative of the largest gap (the first of the four in ``separation``'s order
+    where several are equal; ``|x|`` has derivative 0 at 0, as under autograd): a gap
+    depends on the centres through ``c_b - c_a`` only, so the derivative with respect to
+    ``xy_a`` is minus that with respect to ``xy_b``. Autograd through ``separation``
+    builds a graph of ~150 operations per call; the avoidance steps of the learned
+    scene policies take this gradient many times per planning cycle.
+
+    Returns:
+        ``(separation, d_xy_b, d_yaw_a, d_yaw_b)``: ``(...)``, ``(..., 2)``, ``(...)``,
+        ``(...)``; ``d_xy_a = -d_xy_b``. The separation is ``separation``'s, bit for bit.
+    """
+    terms = _Gaps(xy_a, yaw_a, length_a, width_a, xy_b, yaw_b, length_b, width_b)
+    xp, gaps = terms.xp, terms.gaps
+    best = xp.maximum(xp.maximum(gaps[0], gaps[1]), xp.maximum(gaps[2], gaps[3]))
+    cos_a, sin_a, cos_b, sin_b = terms.cos_a, terms.sin_a, terms.cos_b, terms.sin_b
+    p0, p1, p2, p3 = terms.projections
+    s0, s1, s2, s3 = (xp.sign(p) for p in terms.projections)
+    # d|cos_ab| / d yaw_a = -d/d yaw_b and d|sin_ab| / d yaw_b = -d/d yaw_a
+    c_turn = xp.sign(terms.cos_ab) * terms.sin_ab
+    s_turn = xp.sign(terms.sin_ab) * terms.cos_ab
     half_len_a, half_wid_a = 0.5 * length_a, 0.5 * width_a
     half_len_b, half_wid_b = 0.5 * length_b, 0.5 * width_b
-    # |heading_a . heading_b| = |normal_a . normal_b| and |heading_a . normal_b| =
-    # |normal_a . heading_b|: two numbers describe the relative orientation.
-    cos_ab = xp.abs(cos_a * cos_b + sin_a * sin_b)
-    sin_ab = xp.abs(cos_a * sin_b - sin_a * cos_b)
-    gaps = (
-        xp.abs(dx * cos_a + dy * sin_a) - half_len_a - (half_len_b * cos_ab + half_wid_b * sin_ab),
-        xp.abs(dy * cos_a - dx * sin_a) - half_wid_a - (half_len_b * sin_ab + half_wid_b * cos_ab),
-        xp.abs(dx * cos_b + dy * sin_b) - half_len_b - (half_len_a * cos_ab + half_wid_a * sin_ab),
-        xp.abs(dy * cos_b - dx * sin_b) - half_wid_b - (half_len_a * sin_ab + half_wid_a * cos_ab),
+    turn_b = half_len_b * c_turn - half_wid_b * s_turn  # the size terms' d/d yaw_b
+    cross_b = half_len_b * s_turn - half_wid_b * c_turn
+    turn_a = half_len_a * c_turn - half_wid_a * s_turn
+    cross_a = half_len_a * s_turn - half_wid_a * c_turn
+    per_gap = (  # (d/d dx, d/d dy, d/d yaw_a, d/d yaw_b) of each gap
+        (s0 * cos_a, s0 * sin_a, s0 * p1 - turn_b, turn_b),
+        (-s1 * sin_a, s1 * cos_a, -s1 * p0 + cross_b, -cross_b),
+        (s2 * cos_b, s2 * sin_b, -turn_a, s2 * p3 + turn_a),
+        (-s3 * sin_b, s3 * cos_b, cross_a, -s3 * p2 - cross_a),
     )
-    return xp.maximum(xp.maximum(gaps[0], gaps[1]), xp.maximum(gaps[2], gaps[3]))
+    chosen = per_gap[3]
+    for gap, derivatives in zip(gaps[2::-1], per_gap[2::-1], strict=True):  # first largest wins
+        pick = gap == best
+        chosen = tuple(xp.where(pick, d, c) for d, c in zip(derivatives, chosen, strict=True))
+    d_x, d_y, d_yaw_a, d_yaw_b = chosen
+    return best, xp.stack((d_x, d_y), axis=-1), d_yaw_a, d_yaw_b
+
+
+class _Gaps:
+    """The four SAT gaps of a pair of boxes and the terms their derivatives use (one
+    implementation for ``separation`` and ``separation_gradient``)."""
+
+    def __init__(self, xy_a, yaw_a, length_a, width_a, xy_b, yaw_b, length_b, width_b):
+        xp = self.xp = namespace(xy_a, yaw_a, xy_b, yaw_b)
+        cos_a, sin_a = self.cos_a, self.sin_a = xp.cos(yaw_a), xp.sin(yaw_a)
+        cos_b, sin_b = self.cos_b, self.sin_b = xp.cos(yaw_b), xp.sin(yaw_b)
+        dx = xy_b[..., 0] - xy_a[..., 0]
+        dy = xy_b[..., 1] - xy_a[..., 1]
+        half_len_a, half_wid_a = 0.5 * length_a, 0.5 * width_a
+        half_len_b, half_wid_b = 0.5 * length_b, 0.5 * width_b
+        # |heading_a . heading_b| = |normal_a . normal_b| and |heading_a . normal_b| =
+        # |normal_a . heading_b|: two numbers describe the relative orientation.
+        self.cos_ab = cos_a * cos_b + sin_a * sin_b  # cos(yaw_b - yaw_a)
+        self.sin_ab = cos_a * sin_b - sin_a * cos_b  # sin(yaw_b - yaw_a)
+        cos_ab, sin_ab = xp.abs(self.cos_ab), xp.abs(self.sin_ab)
+        # the centre offset along heading_a, normal_a, heading_b, normal_b
+        self.projections = (
+            dx * cos_a + dy * sin_a,
+            dy * cos_a - dx * sin_a,
+            dx * cos_b + dy * sin_b,
+            dy * cos_b - dx * sin_b,
+        )
+        p0, p1, p2, p3 = (xp.abs(p) for p in self.projections)
+        self.gaps = (
+            p0 - half_len_a - (half_len_b * cos_ab + half_wid_b * sin_ab),
+            p1 - half_wid_a - (half_len_b * sin_ab + half_wid_b * cos_ab),
+            p2 - half_len_b - (half_len_a * cos_ab + half_wid_a * sin_ab),
+            p3 - half_wid_b - (half_len_a * sin_ab + half_wid_a * cos_ab),
+        )
 
 
 def pair_overlap(

@@ -5,9 +5,10 @@ It drives every non-ego vehicle. Every planning cycle (``planning_interval``, 0.
 (receding horizon, as in RiskFlow, Lan et al. 2026):
 
 1. ``window_from_view`` -> one window (ego frame; docs/WINDOWS.md);
-2. one encoder pass and one MeanFlow pass for all agents: ``u0 = u_theta(eps, 0, 1; C)``,
+2. TTC causal ranking -> the controllable set ``A_c`` (:mod:`policies.learned.ranking`;
+   from the window's current states, so it comes first: the avoidance steps need it);
+3. one encoder pass and one MeanFlow pass for all agents: ``u0 = u_theta(eps, 0, 1; C)``,
    base plans ``a = clip(denorm(eps + u0))`` (:mod:`policies.learned.sampler`);
-3. TTC causal ranking -> the controllable set ``A_c`` (:mod:`policies.learned.ranking`);
 4. output-space guidance of the ``A_c`` rows (:mod:`policies.riskflow.guidance`).
 
 The vehicles outside ``A_c`` follow their base plans, those in ``A_c`` the guided ones;
@@ -30,12 +31,13 @@ diffusion baselines' denoiser run as a deterministic DDIM chain from ``eps`` ins
 with the same ranking and output-space guidance (the generator ablation of issue 7).
 ``lambda_adv = 0`` / ``lambda_map = 0`` drop a guidance term (the loss ablation).
 
-The realistic base (the defaults; docs/REALISM.md, rounds 8-12 and 14): each new base plan is
-blended into the executed one over 15 steps (blending first,
-:mod:`policies.learned.plan_stitching`), then, before ranking, 20 avoidance steps pull the
-MeanFlow base plans' boxes apart and onto the road (:mod:`policies.learned.plan_avoidance`),
-and vehicles at rest whose new plan moves them less than 4 m keep their brake on; the map
-term weighs 20. ``avoid_steps=0, hold_distance=0, lambda_map=1, stitch_first=False`` is
+The realistic base (the defaults; docs/REALISM.md, rounds 8-12, 14 and 15): each new base
+plan is blended into the executed one over 15 steps (blending first,
+:mod:`policies.learned.plan_stitching`), then up to 20 avoidance steps pull the MeanFlow
+base plans' boxes apart and onto the road (:mod:`policies.learned.plan_avoidance`; the
+pairs of a vehicle of ``A_c`` and one of its targets are left to guidance), and vehicles
+at rest whose new plan moves them less than 4 m keep their brake on; the map term weighs
+20. ``avoid_steps=0, hold_distance=0, lambda_map=1, stitch_first=False`` is
 RiskFlow on the raw base, the defaults before round 10 (``riskflow-eval --methods
 riskflow-plain``). Blending first is the default whatever the generator (the diffusion
 generator's plans too: ``riskflow-diffusion``, ``bits-diffusion``).
@@ -67,8 +69,8 @@ from policies.learned.adversary_config import (
 from policies.learned.data import Normalizer
 from policies.learned.encoded_views import EncodedViews
 from policies.learned.generator import RiskFlowGenerator
-from policies.learned.guidance_losses import map_term
-from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS, avoid_overlaps
+from policies.learned.guidance_losses import map_term, target_rows
+from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS, avoid_overlaps, guided_pairs
 from policies.learned.plan_buffer import PlanBufferPolicy, hold_still
 from policies.learned.plan_overlay import BASE_COLOR, GUIDED_COLOR
 from policies.learned.plan_selection import SELECTION_HORIZON, select_joint_plans
@@ -210,12 +212,19 @@ class RiskFlowAdversary(PlanBufferPolicy):
 
     def _plan_cycles(self, scenes: Sequence[PlanBufferPolicy], views: Sequence[SceneView]) -> None:
         """One cycle of B scenes (``scenes[b]`` plans ``views[b]``; B = 1 for ``plan``):
-        windows, one encoder pass, one MeanFlow pass, ranking, one guidance loop (module
+        windows and one encoder pass, ranking, one MeanFlow pass, one guidance loop (module
         docstring). Each scene draws its noise from its own stream, with the shape it has
         alone, and the padded rows of smaller scenes are masked everywhere."""
         observed = self._encode_views(views, self.model.encode)
         scene, counts = observed.scene, observed.counts
         num_scenes, num_agents = scene.agent_mask.shape
+        controllable = np.zeros((num_scenes, num_agents), dtype=bool)
+        for index, (policy, view) in enumerate(zip(scenes, views, strict=True)):
+            window, slots = observed.windows[index], observed.slots[index]
+            policy.ranking = rank_window(window, self.k, self.rank_threshold, view.active[slots])
+            controllable[index, : len(slots)] = policy.ranking.controllable
+        controllable = torch.from_numpy(controllable).to(self.device)
+        clock = self._tick("ranking", observed.clock)
         steps = self.model.config.future_steps
         samples = self.base_samples
         with torch.no_grad():
@@ -242,19 +251,15 @@ class RiskFlowAdversary(PlanBufferPolicy):
                     eps, u0, scene.state, scene.agent_mask, self.normalizer, self.dynamics
                 )
             if self.avoid_steps > 0:
-                u0, actions, trajectories = self._avoid(observed, views, eps, u0, gain)
+                u0, actions, trajectories = self._avoid(
+                    observed, views, eps, u0, gain, controllable
+                )
             done = np.zeros((num_scenes, num_agents), dtype=bool)
             for index, (view, slots) in enumerate(zip(views, observed.slots, strict=True)):
                 done[index, : len(slots)] = ~view.active[slots]
             done = torch.from_numpy(done).to(self.device)
             hold_still(actions, trajectories, scene.state, done)  # the env keeps them at speed 0
-        clock = self._tick("generator", observed.clock)
-        controllable = np.zeros((num_scenes, num_agents), dtype=bool)
-        for index, (policy, view) in enumerate(zip(scenes, views, strict=True)):
-            window, slots = observed.windows[index], observed.slots[index]
-            policy.ranking = rank_window(window, self.k, self.rank_threshold, view.active[slots])
-            controllable[index, : len(slots)] = policy.ranking.controllable
-        clock = self._tick("ranking", clock)
+        clock = self._tick("generator", clock)
         guidance_scene = GuidanceScene(
             eps=eps,
             u0=u0,
@@ -267,9 +272,7 @@ class RiskFlowAdversary(PlanBufferPolicy):
             drivable_map=self._map_of(views),
             frame=observed.frame_tensor(),
         )
-        result = self._guide(
-            guidance_scene, torch.from_numpy(controllable).to(self.device), observed
-        )
+        result = self._guide(guidance_scene, controllable, observed)
         self._tick("guidance", clock)
         losses = result.losses.cpu().numpy()
         for index, (policy, view) in enumerate(zip(scenes, views, strict=True)):
@@ -354,17 +357,23 @@ class RiskFlowAdversary(PlanBufferPolicy):
         eps: torch.Tensor,
         u0: torch.Tensor,
         gain: torch.Tensor | None = None,
+        controllable: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Avoidance steps on the base plans of every scene
         (:func:`~policies.learned.plan_avoidance.avoid_overlaps`; ``gain`` the share of
         each step's correction that is kept, blending first): ``(u0, actions,
-        trajectories)`` after them."""
+        trajectories)`` after them. The pairs of a vehicle of ``A_c`` (``controllable``,
+        (B, A) bool) and one of its targets are left to guidance."""
         scene, batch = observed.scene, observed.batch
+        exempt = None
+        if controllable is not None and bool(controllable.any()):
+            targets = target_rows(scene.agent_mask, controllable, 0, self.guidance.target)
+            exempt = guided_pairs(controllable, targets)
         return avoid_overlaps(
             eps, u0, scene.state, batch.length, batch.width, scene.agent_mask,
             lambda rows: self._map_term_of_rows(observed, views, rows),
             self.normalizer, self.dynamics, steps=self.avoid_steps,
-            step_size=self.avoid_step_size, gain=gain,
+            step_size=self.avoid_step_size, gain=gain, exempt=exempt,
         )  # fmt: skip
 
     def _guide(

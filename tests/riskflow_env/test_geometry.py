@@ -31,6 +31,7 @@ from riskflow_env.geometry import (
     pair_overlap,
     pairwise_overlap,
     separation,
+    separation_gradient,
 )
 
 EPS = 1e-9  # [m] borderline margin for random pairs
@@ -313,3 +314,28 @@ def test_torch_separation_differentiable():
     sep.backward()
     assert sep.item() == pytest.approx(0.5)
     np.testing.assert_allclose(xy.grad.numpy(), [[-1.0, 0.0], [1.0, 0.0]])
+
+
+@pytest.mark.parametrize("degenerate_fraction", [0.0, 0.3])
+def test_separation_gradient_is_autograds_and_numpy_is_torch(degenerate_fraction):
+    """The closed-form derivatives of ``separation`` against autograd (float64, random
+    pairs, degenerate boxes included); the separation itself is ``separation``'s bit for
+    bit, and numpy gives what torch does (to rounding: their sines differ in the last bit)."""
+    rng = np.random.default_rng(11)
+    boxes_a = _random_boxes(rng, 3000, degenerate_fraction)
+    boxes_b = _random_boxes(rng, 3000, degenerate_fraction)
+    gap, d_xy, d_yaw_a, d_yaw_b = separation_gradient(*boxes_a, *boxes_b)
+    tensors = [torch.from_numpy(x) for x in (*boxes_a, *boxes_b)]
+    for index in (0, 1, 4, 5):
+        tensors[index].requires_grad_(True)
+    reference = separation(*tensors)
+    reference.sum().backward()
+    np.testing.assert_array_equal(gap, separation(*boxes_a, *boxes_b))
+    np.testing.assert_allclose(gap, reference.detach().numpy(), atol=1e-12)  # numpy, torch
+    np.testing.assert_allclose(d_xy, tensors[4].grad.numpy(), atol=1e-12)
+    np.testing.assert_allclose(-d_xy, tensors[0].grad.numpy(), atol=1e-12)
+    np.testing.assert_allclose(d_yaw_a, tensors[1].grad.numpy(), atol=1e-12)
+    np.testing.assert_allclose(d_yaw_b, tensors[5].grad.numpy(), atol=1e-12)
+    torch_result = separation_gradient(*[t.detach() for t in tensors])
+    for ours, theirs in zip(torch_result, (gap, d_xy, d_yaw_a, d_yaw_b), strict=True):
+        np.testing.assert_allclose(ours.numpy(), theirs, rtol=1e-12, atol=1e-12)

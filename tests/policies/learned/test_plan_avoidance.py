@@ -10,7 +10,8 @@ import torch
 from policies.baselines.diffusion.sampling import OneCallSampler
 from policies.baselines.nominal import NominalGenerator
 from policies.learned.data import ActionNormalizer
-from policies.learned.plan_avoidance import avoid_overlaps
+from policies.learned.plan_avoidance import avoid_overlaps, guided_pairs
+from policies.learned.plan_penalties import pair_separation
 from policies.learned.plan_selection import overlap_scores
 from policies.riskflow.guidance import plans_from_velocity
 from policies.riskflow.policy import RiskFlowAdversary
@@ -133,6 +134,44 @@ def test_zero_steps_change_nothing():
     assert torch.equal(trajectories, expected[1])
 
 
+def test_exempt_pairs_are_left_as_they_are():
+    """The two cars drive at each other: exempting their pair (a controllable vehicle and
+    its target) leaves both plans as they are; exempting another pair changes nothing."""
+    eps, u0, state, length, width, mask = _scene()
+    args = (eps, u0, state, length, width, mask, None, NORMALIZER, DYNAMICS)
+    controllable = torch.tensor([[False, True, False, False]])
+    targets = torch.tensor([[False, False, True, False]])
+    exempt = guided_pairs(controllable, targets)
+    assert exempt[0, 1, 2] and exempt[0, 2, 1] and int(exempt.sum()) == 2
+    u, _, _ = avoid_overlaps(*args, steps=10, step_size=0.2, exempt=exempt)
+    assert torch.equal(u, u0)
+    other = guided_pairs(controllable, torch.tensor([[True, False, False, False]]))
+    moved = avoid_overlaps(*args, steps=10, step_size=0.2, exempt=other)
+    unexempt = avoid_overlaps(*args, steps=10, step_size=0.2)
+    assert all(torch.equal(a, b) for a, b in zip(moved, unexempt, strict=True))
+
+
+def test_the_loop_stops_once_the_boxes_are_a_margin_apart(monkeypatch):
+    """The two cars driving at each other: with many steps allowed, the loop stops at the
+    first step without a gradient whose closest pair is ``STOP_MARGIN`` apart, and the
+    plans it returns are those of that step."""
+    import policies.learned.plan_avoidance as avoidance
+
+    eps, u0, state, length, width, mask = _scene()
+    calls = []
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return rollout_with_vjp(*args, **kwargs)
+
+    monkeypatch.setattr(avoidance, "rollout_with_vjp", counted)
+    args = (eps, u0, state, length, width, mask, None, NORMALIZER, DYNAMICS)
+    _, _, plans = avoid_overlaps(*args, steps=500, step_size=0.2)
+    assert 1 < len(calls) < 500
+    gaps = pair_separation(plans[..., :30, :], length, width)[0, 1, 2]
+    assert float(gaps.min()) >= avoidance.STOP_MARGIN
+
+
 def test_nothing_to_correct_stops_after_the_first_gradient(monkeypatch):
     """Two cars side by side in their lanes, same speed: no overlap within the horizon, so
     the first gradient is zero and the loop stops there; the plans are those of zero
@@ -215,3 +254,38 @@ def test_closed_loop_with_avoidance_is_reproducible(tiny_meanflow, tiny_normaliz
         for ours, theirs in zip(first, other, strict=True):
             assert ours.keys() == theirs.keys()
             assert all(np.array_equal(ours[name], theirs[name]) for name in ours)
+
+
+@pytest.mark.parametrize("target", ["ego", "others"])
+def test_riskflow_leaves_the_guided_pairs_to_guidance(
+    tiny_meanflow, tiny_normalizer, closed_loop, monkeypatch, target
+):
+    """The pairs of a vehicle of ``A_c`` and one of its targets are exempt from the
+    avoidance steps (guidance decides them); with ``k = 0`` nothing is."""
+    import policies.riskflow.policy as riskflow
+
+    seen = []
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs["exempt"])
+        return avoid_overlaps(*args, **kwargs)
+
+    monkeypatch.setattr(riskflow, "avoid_overlaps", spy)
+    models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
+    for k in (2, 0):
+        seen.clear()
+        policy = RiskFlowAdversary(k=k, target=target, planning_interval=0.3, seed=1, **models)
+        closed_loop(policy, 1)  # one cycle
+        (exempt,) = seen
+        if k == 0:
+            assert exempt is None
+            continue
+        controllable = torch.from_numpy(policy.ranking.controllable)[None]
+        present = torch.ones_like(controllable)
+        if target == "ego":
+            targets = torch.zeros_like(controllable)
+            targets[:, 0] = True
+        else:
+            targets = present & ~controllable
+        assert controllable.sum() == 2
+        assert torch.equal(exempt, guided_pairs(controllable, targets))

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from policies.baselines.nominal import NominalGenerator
-from policies.learned.plan_selection import overlap_scores, select_joint_plans
+from policies.learned.plan_selection import overlap_gradient, overlap_scores, select_joint_plans
 from policies.learned.sampler import sample
 from policies.learned.window_types import collate_windows
 from policies.learned.windows import window_from_view
@@ -61,6 +61,43 @@ def test_overlap_score_tests_only_pairs_that_can_touch_and_equals_every_pair():
     scores.sum().backward()
     expected.sum().backward()
     torch.testing.assert_close(sparse.grad, dense.grad, rtol=1e-12, atol=1e-12)
+
+
+def test_the_closed_form_overlap_gradient_is_autograds():
+    """``overlap_gradient`` (no autograd graph) against autograd through
+    ``overlap_scores``, on joint plans with many overlaps; ``closest`` is the smallest
+    separation among the pairs tested, and a slack tests more pairs."""
+    from policies.learned.plan_penalties import pair_separation
+
+    g = torch.Generator().manual_seed(5)
+    num_scenes, samples, agents, steps = 2, 2, 9, 12
+    plans = torch.zeros(num_scenes, samples, agents, steps, 4, dtype=torch.float64)
+    plans[..., :2] = 6 * torch.rand(num_scenes, samples, agents, 1, 2, generator=g)
+    plans[..., :2] += torch.cumsum(0.3 * torch.randn(*plans.shape[:-1], 2, generator=g), dim=3)
+    plans[..., 3] = 3 * torch.randn(*plans.shape[:-1], generator=g)
+    length = 3.5 + 2 * torch.rand(num_scenes, agents, generator=g, dtype=torch.float64)
+    width = 1.6 + 0.4 * torch.rand(num_scenes, agents, generator=g, dtype=torch.float64)
+    mask = torch.rand(num_scenes, agents, generator=g) > 0.1
+    pairs = mask[:, :, None] & mask[:, None] & torch.ones(agents, agents, dtype=torch.bool).triu(1)
+    now = plans[:, 0, :, 0]
+
+    variable = plans.clone().requires_grad_(True)
+    overlap_scores(variable, length, width, mask, now, pairs).sum().backward()
+    gradient, closest = overlap_gradient(plans, length, width, pairs)
+    assert int((variable.grad != 0).sum()) > 100
+    torch.testing.assert_close(gradient, variable.grad, rtol=1e-10, atol=1e-10)
+    assert not gradient[..., 2].any()  # speed
+    gaps = pair_separation(plans, length[:, None], width[:, None])  # (B, M, A, A, T)
+    gaps = gaps.masked_fill(~pairs[:, None, :, :, None], float("inf")).flatten(2).amin(dim=2)
+    assert bool((gaps < 0).all())  # every joint plan overlaps: its closest pair is tested
+    torch.testing.assert_close(closest, gaps, rtol=0, atol=0)
+    far = torch.zeros(1, 1, 2, 3, 4, dtype=torch.float64)
+    far[0, 0, 1, :, 0] = 10.0  # 10 m apart, 4 m boxes: 6 m between them
+    two = torch.ones(1, 2, dtype=torch.float64)
+    pair = torch.tensor([[[False, True], [False, False]]])
+    for slack, expected in ((0.0, float("inf")), (7.0, 6.0)):
+        gradient, closest = overlap_gradient(far, 4 * two, 2 * two, pair, slack)
+        assert not gradient.any() and float(closest[0, 0]) == pytest.approx(expected)
 
 
 def test_overlap_score_is_the_squared_penetration_of_pairs_apart_now():
