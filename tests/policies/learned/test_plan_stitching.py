@@ -149,9 +149,9 @@ def test_planning_passes_the_correction_gain_to_the_avoidance_steps(
         gains = []
         avoid = policy._avoid
 
-        def spy(observed, views, eps, u0, gain=None, avoid=avoid, gains=gains):
+        def spy(observed, views, eps, u0, gain=None, controllable=None, avoid=avoid, gains=gains):
             gains.append(gain)
-            return avoid(observed, views, eps, u0, gain)
+            return avoid(observed, views, eps, u0, gain, controllable)
 
         monkeypatch.setattr(policy, "_avoid", spy)
         closed_loop(policy, 4)  # cycles at steps 0 and 3
