@@ -50,7 +50,8 @@ The guided adversaries leave out the pairs that guidance decides (``exempt``): a
 of the controllable set ``A_c`` and one of its targets. Correcting them only pulled the
 base plan that guidance starts from away from the target, a tug of war that cost steps
 every cycle (docs/REALISM.md, round 15); the unguided generator (``k = 0``) has no such
-pairs. ``steps = 0`` leaves the plans as they are; the MeanFlow adversaries take
+pairs, and without ``L_adv`` (``lambda_adv = 0``) guidance pulls no pair together, so
+every pair is corrected. ``steps = 0`` leaves the plans as they are; the MeanFlow adversaries take
 ``DEFAULT_AVOID_STEPS`` (20) by default (docs/REALISM.md, rounds 8, 9 and 14: 20 steps
 leave half the overlaps and centre off-road steps of 10).
 """

@@ -363,10 +363,11 @@ class RiskFlowAdversary(PlanBufferPolicy):
         (:func:`~policies.learned.plan_avoidance.avoid_overlaps`; ``gain`` the share of
         each step's correction that is kept, blending first): ``(u0, actions,
         trajectories)`` after them. The pairs of a vehicle of ``A_c`` (``controllable``,
-        (B, A) bool) and one of its targets are left to guidance."""
+        (B, A) bool) and one of its targets are left to guidance, when it pulls them
+        together (``lambda_adv > 0``)."""
         scene, batch = observed.scene, observed.batch
         exempt = None
-        if controllable is not None and bool(controllable.any()):
+        if controllable is not None and self.guidance.lambda_adv > 0 and bool(controllable.any()):
             targets = target_rows(scene.agent_mask, controllable, 0, self.guidance.target)
             exempt = guided_pairs(controllable, targets)
         return avoid_overlaps(

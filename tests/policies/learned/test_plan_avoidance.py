@@ -261,7 +261,8 @@ def test_riskflow_leaves_the_guided_pairs_to_guidance(
     tiny_meanflow, tiny_normalizer, closed_loop, monkeypatch, target
 ):
     """The pairs of a vehicle of ``A_c`` and one of its targets are exempt from the
-    avoidance steps (guidance decides them); with ``k = 0`` nothing is."""
+    avoidance steps (guidance decides them); with ``k = 0`` or without ``L_adv``
+    nothing is."""
     import policies.riskflow.policy as riskflow
 
     seen = []
@@ -272,12 +273,14 @@ def test_riskflow_leaves_the_guided_pairs_to_guidance(
 
     monkeypatch.setattr(riskflow, "avoid_overlaps", spy)
     models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
-    for k in (2, 0):
+    for k, lambda_adv in ((2, 1.0), (0, 1.0), (2, 0.0)):
         seen.clear()
-        policy = RiskFlowAdversary(k=k, target=target, planning_interval=0.3, seed=1, **models)
+        policy = RiskFlowAdversary(
+            k=k, target=target, planning_interval=0.3, seed=1, lambda_adv=lambda_adv, **models
+        )
         closed_loop(policy, 1)  # one cycle
         (exempt,) = seen
-        if k == 0:
+        if k == 0 or lambda_adv == 0:
             assert exempt is None
             continue
         controllable = torch.from_numpy(policy.ranking.controllable)[None]
