@@ -126,9 +126,7 @@ def separation(
         (...) signed separation [m], same dtype as the inputs. Symmetric in a, b
         bit for bit. Differentiable almost everywhere under torch.
     """
-    terms = _Gaps(xy_a, yaw_a, length_a, width_a, xy_b, yaw_b, length_b, width_b)
-    xp, gaps = terms.xp, terms.gaps
-    return xp.maximum(xp.maximum(gaps[0], gaps[1]), xp.maximum(gaps[2], gaps[3]))
+    return _Gaps(xy_a, yaw_a, length_a, width_a, xy_b, yaw_b, length_b, width_b).largest()
 
 
 def separation_gradient(
@@ -156,7 +154,7 @@ def separation_gradient(
     """
     terms = _Gaps(xy_a, yaw_a, length_a, width_a, xy_b, yaw_b, length_b, width_b)
     xp, gaps = terms.xp, terms.gaps
-    best = xp.maximum(xp.maximum(gaps[0], gaps[1]), xp.maximum(gaps[2], gaps[3]))
+    best = terms.largest()
     cos_a, sin_a, cos_b, sin_b = terms.cos_a, terms.sin_a, terms.cos_b, terms.sin_b
     p0, p1, p2, p3 = terms.projections
     s0, s1, s2, s3 = (xp.sign(p) for p in terms.projections)
@@ -214,6 +212,11 @@ class _Gaps:
             p2 - half_len_b - (half_len_a * cos_ab + half_wid_a * sin_ab),
             p3 - half_wid_b - (half_len_a * sin_ab + half_wid_a * cos_ab),
         )
+
+    def largest(self) -> Array:
+        """The largest of the four gaps: the separation."""
+        xp, gaps = self.xp, self.gaps
+        return xp.maximum(xp.maximum(gaps[0], gaps[1]), xp.maximum(gaps[2], gaps[3]))
 
 
 def pair_overlap(

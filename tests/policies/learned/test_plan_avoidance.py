@@ -151,13 +151,10 @@ def test_exempt_pairs_are_left_as_they_are():
     assert all(torch.equal(a, b) for a, b in zip(moved, unexempt, strict=True))
 
 
-def test_the_loop_stops_once_the_boxes_are_a_margin_apart(monkeypatch):
-    """The two cars driving at each other: with many steps allowed, the loop stops at the
-    first step without a gradient whose closest pair is ``STOP_MARGIN`` apart, and the
-    plans it returns are those of that step."""
+def _count_rollouts(monkeypatch) -> list:
+    """A list that grows by one at each avoidance step (each rollout of the variables)."""
     import policies.learned.plan_avoidance as avoidance
 
-    eps, u0, state, length, width, mask = _scene()
     calls = []
 
     def counted(*args, **kwargs):
@@ -165,6 +162,17 @@ def test_the_loop_stops_once_the_boxes_are_a_margin_apart(monkeypatch):
         return rollout_with_vjp(*args, **kwargs)
 
     monkeypatch.setattr(avoidance, "rollout_with_vjp", counted)
+    return calls
+
+
+def test_the_loop_stops_once_the_boxes_are_a_margin_apart(monkeypatch):
+    """The two cars driving at each other: with many steps allowed, the loop stops at the
+    first step without a gradient whose closest pair is ``STOP_MARGIN`` apart, and the
+    plans it returns are those of that step."""
+    import policies.learned.plan_avoidance as avoidance
+
+    eps, u0, state, length, width, mask = _scene()
+    calls = _count_rollouts(monkeypatch)
     args = (eps, u0, state, length, width, mask, None, NORMALIZER, DYNAMICS)
     _, _, plans = avoid_overlaps(*args, steps=500, step_size=0.2)
     assert 1 < len(calls) < 500
@@ -176,17 +184,9 @@ def test_nothing_to_correct_stops_after_the_first_gradient(monkeypatch):
     """Two cars side by side in their lanes, same speed: no overlap within the horizon, so
     the first gradient is zero and the loop stops there; the plans are those of zero
     steps, bit for bit (Adam's moments would stay zero)."""
-    import policies.learned.plan_avoidance as avoidance
-
     eps, u0, state, length, width, mask = _scene()
     state[0, 2] = torch.tensor([0.0, 4.0, 10.0, 0.0], dtype=torch.float64)
-    calls = []
-
-    def counted(*args, **kwargs):
-        calls.append(1)
-        return rollout_with_vjp(*args, **kwargs)
-
-    monkeypatch.setattr(avoidance, "rollout_with_vjp", counted)
+    calls = _count_rollouts(monkeypatch)
     args = (eps, u0, state, length, width, mask, None, NORMALIZER, DYNAMICS)
     gain = torch.ones_like(eps[..., :1])
     gain[:, :, 0] = 0.5  # blending first: half the first action's correction
