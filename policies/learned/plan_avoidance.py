@@ -36,24 +36,23 @@ The loop stops early when nothing is left to correct. When the first step's grad
 exactly zero (no pair overlaps within the horizon, no footprint off the road beyond what
 it forgives), every step would be zero (Adam's moments stay zero): the plans are those
 of zero steps, bit for bit; about 60% of the unguided generator's one-scene calls stop
-so. Later, the loop
-stops at a step whose gradient is exactly zero once the closest pair of boxes is at
-least ``STOP_MARGIN`` (0.25 m) apart: after the last overlap is resolved, Adam's momentum
-carries the plans a little further apart, and stopping as soon as the gradient vanishes
-(no margin) tripled the unguided generator's non-ego collision scenes in closed loop,
-while a 0.25 m margin keeps them near those of running every step at a fraction of the
-steps (docs/REALISM.md, round 15). In a batched call each scene stops on its own (its
-rows keep their correction from then on), as it would alone, and the loop ends when
-every scene has stopped.
+so. Later, the loop stops at a step whose gradient is exactly zero once the closest pair
+of boxes is at least ``STOP_MARGIN`` (0.25 m) apart: after the last overlap is resolved,
+Adam's momentum carries the plans a little further apart, and stopping as soon as the
+gradient vanishes (no margin) tripled the unguided generator's non-ego collision scenes
+in closed loop, while a 0.25 m margin keeps them near those of running every step at a
+fraction of the steps (docs/REALISM.md, round 15). In a batched call each scene stops on
+its own (its rows keep their correction from then on), as it would alone, and the loop
+ends when every scene has stopped.
 
 The guided adversaries leave out the pairs that guidance decides (``exempt``): a vehicle
 of the controllable set ``A_c`` and one of its targets. Correcting them only pulled the
 base plan that guidance starts from away from the target, a tug of war that cost steps
 every cycle (docs/REALISM.md, round 15); the unguided generator (``k = 0``) has no such
 pairs, and without ``L_adv`` (``lambda_adv = 0``) guidance pulls no pair together, so
-every pair is corrected. ``steps = 0`` leaves the plans as they are; the MeanFlow adversaries take
-``DEFAULT_AVOID_STEPS`` (20) by default (docs/REALISM.md, rounds 8, 9 and 14: 20 steps
-leave half the overlaps and centre off-road steps of 10).
+every pair is corrected. ``steps = 0`` leaves the plans as they are; the MeanFlow
+adversaries take ``DEFAULT_AVOID_STEPS`` (20) by default (docs/REALISM.md, rounds 8, 9
+and 14: 20 steps leave half the overlaps and centre off-road steps of 10).
 """
 
 from __future__ import annotations

@@ -92,7 +92,6 @@ def overlap_gradient(
     Args:
         trajectories: ``(B, M, A, T, 4)``; ``length``, ``width`` ``(B, A)``; ``pairs``
             ``(B, A, A)`` bool, the pairs scored (as :func:`overlap_scores`).
-
         slack: [m] pairs whose centres are within the sum of their half-diagonals plus
             this are tested (0 finds every overlap; more, every pair closer than it too).
 
