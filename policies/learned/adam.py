@@ -43,6 +43,14 @@ class Adam:
         dims = {dim % like.dim() for dim in shared}
         self.second = like.new_zeros([1 if d in dims else n for d, n in enumerate(like.shape)])
         self.learning_rate, self.count, self.shared = learning_rate, 0, tuple(shared)
+        self._row_shared = 0 in dims
+
+    def select(self, rows: Tensor) -> None:
+        """Keep the moments of the variables' rows ``rows`` (indices or a bool mask along
+        dimension 0) only, for a loop that drops the rows it has finished with."""
+        self.first = self.first[rows]
+        if not self._row_shared:
+            self.second = self.second[rows]
 
     def step(self, gradient: Tensor) -> Tensor:
         """The update of this step (``lr * m_hat / (sqrt(v_hat) + eps)``) for ``gradient``."""

@@ -42,8 +42,9 @@ Adam's momentum carries the plans a little further apart, and stopping as soon a
 gradient vanishes (no margin) tripled the unguided generator's non-ego collision scenes
 in closed loop, while a 0.25 m margin keeps them near those of running every step at a
 fraction of the steps (docs/REALISM.md, round 15). In a batched call each scene stops on
-its own (its rows keep their correction from then on), as it would alone, and the loop
-ends when every scene has stopped.
+its own, as it would alone: its rows keep their correction from then on and leave the
+loop (the later steps roll out and score only the scenes still going), and the loop ends
+when every scene has stopped.
 
 The guided adversaries leave out the pairs that guidance decides (``exempt``): a vehicle
 of the controllable set ``A_c`` and one of its targets. Correcting them only pulled the
@@ -132,7 +133,7 @@ def avoid_overlaps(
                 eps[..., :horizon, :] + u0[..., :horizon, :], state, agent_mask, normalizer,
                 dynamics,
             )  # fmt: skip
-            obstacles = joint.flatten(0, 1)
+            obstacles = joint  # (B, A, H, 4)
             # the pairs that can change: scored, with at least one variable
             pairs = scored_pairs(length, width, agent_mask, state)
             pairs = pairs & (variable[:, :, None] | variable[:, None, :])
@@ -148,35 +149,58 @@ def avoid_overlaps(
             share = 1.0 if gain is None else gain[..., :horizon, :].flatten(0, 1)[rows]
             delta = torch.zeros_like(moving)
             adam = Adam(delta, step_size)
-            num_scenes = variable.shape[0]
-            scene_of_row = rows // variable.shape[1]
-            live = torch.ones(num_scenes, dtype=torch.bool, device=rows.device)  # not stopped
+            num_agents = variable.shape[1]
+            # The loop's scenes are those not stopped yet: ``scene`` (the position of each
+            # variable's scene among them) and ``slot`` index the compacted tensors.
+            scene, slot = rows // num_agents, rows % num_agents
+            u_rows = u.flatten(0, 1)  # a view: the corrections are written through it
             for _ in range(steps):
                 planned, vjp = rollout_with_vjp(
                     now, normalizer.denormalize(moving + share * delta), dynamics
                 )
                 joint = obstacles.clone()
-                joint[rows] = planned
-                joint = joint.reshape(*variable.shape, *joint.shape[1:])
+                joint[scene, slot] = planned
                 d_joint, closest = overlap_gradient(
                     joint[:, None], length, width, pairs, STOP_MARGIN
                 )
-                d_planned = d_joint.flatten(0, 2)[rows]
+                d_planned = d_joint[:, 0][scene, slot]
                 if term is not None:
                     d_planned = d_planned + term.rows_and_gradient(planned)[1]
                 gradient = vjp(d_planned) * scale * share
                 # each scene stops on its own, as it would alone (module docstring)
-                keep = torch.zeros_like(live)  # the scenes with something left to correct
-                keep[scene_of_row[gradient.flatten(1).ne(0).any(dim=1)]] = True
+                keep = torch.zeros_like(closest[:, 0], dtype=torch.bool)  # left to correct
+                keep[scene[gradient.flatten(1).ne(0).any(dim=1)]] = True
                 if adam.count > 0:  # a later step: stop with a margin
                     keep |= closest[:, 0] < STOP_MARGIN
-                live = live & keep
-                if not bool(live.any()):
-                    break
-                delta = delta - adam.step(gradient) * live[scene_of_row, None, None]
-            u.flatten(0, 1)[rows, :horizon] += share * delta
+                if not bool(keep.all()):
+                    # the stopped scenes keep their correction; their rows leave the loop
+                    going = keep[scene]
+                    stopped = ~going
+                    u_rows[rows[stopped], :horizon] += _rows(share, stopped) * delta[stopped]
+                    if not bool(going.any()):
+                        break
+                    scene = (torch.cumsum(keep, 0) - 1)[scene[going]]
+                    rows, slot, moving, now, delta, gradient = (
+                        t[going] for t in (rows, slot, moving, now, delta, gradient)
+                    )
+                    share = _rows(share, going)
+                    obstacles, length, width, pairs = (
+                        t[keep] for t in (obstacles, length, width, pairs)
+                    )
+                    adam.select(going)
+                    if term is not None:
+                        term = map_term_of(rows)
+                        term.forgive(now)
+                delta = delta - adam.step(gradient)
+            else:
+                u_rows[rows, :horizon] += share * delta
     actions, trajectories = decode_plans(eps + u, state, agent_mask, normalizer, dynamics)
     return u, actions, trajectories
+
+
+def _rows(share: Tensor | float, index: Tensor) -> Tensor | float:
+    """The rows ``index`` of a per-row ``share``, or the scalar share itself."""
+    return share[index] if isinstance(share, Tensor) else share
 
 
 def guided_pairs(controllable: Tensor, targets: Tensor) -> Tensor:

@@ -292,3 +292,62 @@ def test_riskflow_leaves_the_guided_pairs_to_guidance(
             targets = present & ~controllable
         assert controllable.sum() == 2
         assert torch.equal(exempt, guided_pairs(controllable, targets))
+
+
+def test_a_batch_drops_each_scene_when_it_stops(monkeypatch):
+    """Three scenes in one call (the two cars head-on 20 m apart; side by side, nothing to
+    correct; head-on 30 m apart near the road's edge, with the map term): each scene's
+    plans are those it gets alone, and a scene's rows leave the loop when it stops (the
+    rollouts shrink), so the call runs as many steps as its longest scene."""
+    from policies.learned.guidance_losses import MapTerm
+    from tests.policies.riskflow.guidance_scenes import ROAD
+
+    parts = [_scene() for _ in range(3)]
+    parts[1][2][0, 2] = torch.tensor([0.0, 4.0, 10.0, 0.0], dtype=torch.float64)
+    parts[2][2][0, 1:3, 1] = 3.5
+    parts[2][2][0, 2, 0] = 30.0
+    eps, u0, state, length, width, mask = (
+        torch.cat([part[i] for part in parts]) for i in range(6)
+    )  # fmt: skip
+    gain = torch.ones_like(eps[..., :1])
+    gain[:, 1:3, 0] = 0.5
+
+    def map_term_of(length, width):
+        def of(rows):
+            frame = torch.zeros(3, dtype=torch.float64)
+            return MapTerm(ROAD, frame, length.flatten()[rows], width.flatten()[rows], 30, 0.2, 0.9)
+
+        return of
+
+    rows_per_call = []
+
+    def counted(now, *args, **kwargs):
+        rows_per_call.append(now.shape[0])
+        return rollout_with_vjp(now, *args, **kwargs)
+
+    import policies.learned.plan_avoidance as avoidance
+
+    monkeypatch.setattr(avoidance, "rollout_with_vjp", counted)
+    options = {"steps": 60, "step_size": 0.2}
+    alone, calls = [], []
+    for index in range(3):
+        part = [t[index : index + 1] for t in (eps, u0, state, length, width, mask)]
+        term = map_term_of(part[3], part[4])
+        rows_per_call.clear()
+        alone.append(
+            avoid_overlaps(
+                *part[:6], term, NORMALIZER, DYNAMICS, gain=gain[index : index + 1], **options
+            )
+        )
+        calls.append(len(rows_per_call))
+    rows_per_call.clear()
+    term = map_term_of(length, width)
+    batched = avoid_overlaps(
+        eps, u0, state, length, width, mask, term, NORMALIZER, DYNAMICS, gain=gain, **options
+    )
+    assert calls[1] == 1 and calls[0] != calls[2] and max(calls) > 2
+    assert len(rows_per_call) == max(calls)
+    assert rows_per_call[0] == 6 and rows_per_call[1] == 4 and rows_per_call[-1] == 2
+    for index, expected in enumerate(alone):
+        for got, want in zip(batched, expected, strict=True):
+            np.testing.assert_allclose(got[index : index + 1], want, rtol=0, atol=1e-9)
