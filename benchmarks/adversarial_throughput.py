@@ -15,11 +15,14 @@ scenes/s to the loop's. Rounds are interleaved (batched, then loop, per B) and t
 round of each is reported (the least disturbed one on a shared machine).
 
 ``--method strive`` measures STRIVE-style the same way (its latent optimisation batched
-over the scenes' rows: one generator forward and backward pass per step for all B).
+over the scenes' rows: one generator forward and backward pass per step for all B), and
+``--method ctg`` (``ctgpp``, ``ccdiff``) the diffusion baselines (one base chain and one
+guided chain for all B scenes; ``--diffusion-steps`` levels, DDIM below the model's 100).
 
     python benchmarks/adversarial_throughput.py [--scenes 1 8 32] [--rounds 3] [--device cpu]
     python benchmarks/adversarial_throughput.py --device cuda --loop-device cpu  # GPU vs today
     python benchmarks/adversarial_throughput.py --method strive --scenes 1 8
+    python benchmarks/adversarial_throughput.py --method ctg --diffusion-steps 10
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import numpy as np
 from tqdm import tqdm
 
 import riskflow_env
+from policies.baselines.diffusion.policy import DiffusionAdversary
 from policies.baselines.strive import StriveAdversary
 from policies.dataclass_cli import parse_dataclass
 from policies.learned.batched_adversary import BatchedAdversary
@@ -46,11 +50,14 @@ class Options:
     scenes: tuple[int, ...] = (1, 8, 32)
     """scenes per planning call (B)"""
     method: str = "riskflow"
-    """'riskflow' (output-space guidance) or 'strive' (STRIVE-style latent optimisation)"""
+    """'riskflow' (output-space guidance), 'strive' (STRIVE-style latent optimisation) or a
+    diffusion baseline ('ctg', 'ctgpp', 'ccdiff')"""
     k: int = 5
     """size of the controllable set A_c in each scene"""
     guidance_steps: int = 30
-    """K_g guidance steps per cycle"""
+    """K_g guidance steps per cycle (riskflow, strive)"""
+    diffusion_steps: int | None = None
+    """denoising levels of the diffusion baselines: None for all (DDPM), fewer for DDIM"""
     rounds: int = 3
     """interleaved timed rounds per B; the best is reported"""
     calls: int = 3
@@ -68,6 +75,19 @@ class Options:
 
 
 METHODS = {"riskflow": RiskFlowAdversary, "strive": StriveAdversary}
+DIFFUSION = ("ctg", "ctgpp", "ccdiff")
+
+
+def make_policy(options: Options, device: str, threads: int, like=None):
+    """The ``--method`` adversary on ``device``; ``like``: a policy whose model it shares."""
+    common = {"k": options.k, "device": device, "threads": threads}
+    if options.method in DIFFUSION:
+        models = {} if like is None else {"denoiser": like.denoiser, "normalizer": like.normalizer}
+        return DiffusionAdversary(
+            variant=options.method, sampling_steps=options.diffusion_steps, **common, **models
+        )
+    models = {} if like is None else {"generator": like.model, "normalizer": like.normalizer}
+    return METHODS[options.method](guidance_steps=options.guidance_steps, **common, **models)
 
 
 def _parse(argv: list[str] | None = None) -> Options:
@@ -98,9 +118,7 @@ def time_calls(plan, calls: int) -> float:
     return (time.perf_counter() - start) / calls
 
 
-def measure(
-    policy: RiskFlowAdversary, batched: RiskFlowAdversary, views: list[SceneView], options: Options
-) -> dict:
+def measure(policy, batched, views: list[SceneView], options: Options) -> dict:
     """Best seconds per planning call of all scenes, batched (copies of ``batched``) and
     one at a time (copies of ``policy``)."""
     batch = BatchedAdversary(batched, len(views))
@@ -131,30 +149,26 @@ def main(argv: list[str] | None = None) -> list[dict]:
     planning of all B scenes], ``phases`` of the last batched call and ``loop_phases``
     summed over the last loop's calls [s])."""
     options = _parse(argv)
-    if options.method not in METHODS:
-        raise SystemExit(f"--method must be one of {sorted(METHODS)}, got {options.method!r}")
-    kind = METHODS[options.method]
+    if options.method not in (*METHODS, *DIFFUSION):
+        choices = sorted((*METHODS, *DIFFUSION))
+        raise SystemExit(f"--method must be one of {choices}, got {options.method!r}")
     loop_device = options.loop_device or options.device
-    policy = kind(
-        k=options.k,
-        guidance_steps=options.guidance_steps,
-        device=loop_device,
-        threads=options.threads,
-    )
+    policy = make_policy(options, loop_device, options.threads)
     batched_threads = options.batched_threads or options.threads
     same_device = loop_device == options.device
-    batched = kind(  # the same model (the same checkpoint), B scenes per call
-        k=options.k,
-        guidance_steps=options.guidance_steps,
-        device=options.device,
-        threads=batched_threads,
-        generator=policy.model if same_device else None,
-        normalizer=policy.normalizer if same_device else None,
+    # the same model (the same checkpoint), B scenes per call
+    batched = make_policy(
+        options, options.device, batched_threads, like=policy if same_device else None
     )
     views = evaluation_views(max(options.scenes))
     agents = [int(v.present.sum()) for v in views]
+    if options.method in DIFFUSION:
+        steps = options.diffusion_steps or "all"
+        planning = f"{options.method}, {steps} denoising levels"
+    else:
+        planning = f"K_g = {options.guidance_steps}"
     print(
-        f"{kind.__name__}, K = {options.k}, K_g = {options.guidance_steps}, shipped "
+        f"{type(policy).__name__}, K = {options.k}, {planning}, shipped "
         f"checkpoint, device {options.device} (loop: {loop_device}), CPU threads: "
         f"{options.threads} one at a time, {batched_threads} batched; shipped "
         f"evaluation scenes 0..{len(views) - 1} ({min(agents)}-{max(agents)} vehicles, mean "

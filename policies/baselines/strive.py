@@ -8,11 +8,13 @@ encoder, base plans ``eps + u_theta(eps, 0, 1; C)``, TTC ranking of ``A_c``) and
 instead of guiding the output ``u``, takes ``K_g`` steps on the ``A_c`` rows of ``eps``::
 
     eps_c <- step(grad_{eps_c} L),   L = lambda_adv L_adv + lambda_map L_map
-                                          + lambda_prior ||eps_c||^2 / 2
+                                          + lambda_prior ||eps_c||^2 / 2 (+ lambda_sep L_sep)
 
 each a forward and backward pass of the generator head (the scene context is computed
 once). ``L_adv``, ``L_map``, their weights, targets, horizon and step rule are RiskFlow's
-(:mod:`policies.riskflow.guidance`), so the comparison isolates latent against
+(:mod:`policies.riskflow.guidance`), and so is the optional ``L_sep`` between the guided
+vehicles (``lambda_sep``; the original penalises collisions between agents that are not
+the attacker and its target too), so the comparison isolates latent against
 output-space optimisation; the other vehicles keep their base plans bit for bit, and
 ``k = 0`` is the unguided generator exactly. docs/BASELINES.md ("STRIVE-style") maps each
 part to the original, says what is simplified and why, and gives the measured effect and
@@ -40,6 +42,7 @@ from policies.riskflow.guidance import (
     GuidanceResult,
     GuidanceScene,
     GuidedRows,
+    Separation,
     flatten_scenes,
     guided_rows,
     plans_from_velocity,
@@ -136,9 +139,9 @@ class StriveAdversary(RiskFlowAdversary):
         for _ in range(config.steps):
             with torch.enable_grad():
                 _, terms = objective(eps_c)
-                adv, off_road, prior = terms.sum(dim=0)
+                adv, off_road, prior, separation = terms.sum(dim=0)
                 loss = config.lambda_adv * adv + config.lambda_map * off_road
-                loss = loss + self.lambda_prior * prior
+                loss = loss + self.lambda_prior * prior + config.lambda_sep * separation
                 (eps_c.grad,) = torch.autograd.grad(loss, eps_c)
             history.append(guided.per_scene(terms.detach(), num_scenes))
             optimizer.step()
@@ -155,7 +158,7 @@ class StriveAdversary(RiskFlowAdversary):
                 actions_c,
                 trajectories_c,
             )
-        history = torch.stack(history)  # (K_g + 1, B, 3)
+        history = torch.stack(history)  # (K_g + 1, B, 4)
         self._keep(latent.reshape(scene.eps.shape), history[..., 2], observed.counts)
         return GuidanceResult(
             u.reshape(*lead, *u.shape[1:]),
@@ -213,11 +216,17 @@ class _LatentObjective:
         flat = flatten_scenes(scene)
         self.eps, self.state, self.agent_mask = flat.eps, flat.state[rows], flat.agent_mask[rows]
         self.map_term = map_term(flat, rows, scene.eps.shape[2], config, guided.scene_of_row)
+        self.separation = None
+        if config.lambda_sep:
+            self.separation = Separation(
+                flat.length[rows], flat.width[rows], guided.scene_of_row, config.horizon
+            )
 
     def __call__(self, eps_c: Tensor) -> tuple[tuple[Tensor, Tensor, Tensor], Tensor]:
-        """``((u_c, actions_c, trajectories_c), terms)``, ``terms`` (C, 3): each row's
-        ``L_adv`` [m], ``L_map`` [m^2] and ``||eps_c||^2 / 2``, differentiable with
-        respect to ``eps_c`` (the losses' gradients in closed form, attached)."""
+        """``((u_c, actions_c, trajectories_c), terms)``, ``terms`` (C, 4): each row's
+        ``L_adv`` [m], ``L_map`` [m^2], ``||eps_c||^2 / 2`` and a zero that carries the
+        gradient of ``L_sep`` (its value is not recorded), differentiable with respect to
+        ``eps_c`` (the losses' gradients in closed form, attached)."""
         policy, rows = self.policy, self.rows
         eps = self.eps.index_put((rows,), eps_c).reshape(self.shape)  # the others keep theirs
         u_c = base_velocity(policy.model, eps, self.context).flatten(0, 1)[rows]
@@ -233,7 +242,12 @@ class _LatentObjective:
             off_road, d_map = self.map_term.rows_and_gradient(trajectories.detach())
             off_road = attach_gradient(off_road, trajectories, d_map, axis=(-2, -1))
         prior = 0.5 * (eps_c * eps_c).sum(dim=(-2, -1))
-        return (u_c, actions, trajectories), torch.stack([adv, off_road, prior], dim=-1)
+        separation = prior * 0.0
+        if self.separation is not None:
+            d_sep = self.separation.gradient(trajectories)
+            separation = attach_gradient(separation.detach(), trajectories, d_sep, (-2, -1))
+        terms = torch.stack([adv, off_road, prior, separation], dim=-1)
+        return (u_c, actions, trajectories), terms
 
 
 __all__ = ["DEFAULT_LAMBDA_PRIOR", "StriveAdversary"]

@@ -14,8 +14,8 @@ rolls one group out:
   :class:`~policies.learned.batched_adversary.BatchedAdversary` that plans every scene due
   to re-plan in one call (RiskFlow and the unguided generator: one encoder pass, one
   generator pass, one guidance loop; STRIVE-style one latent optimisation over all the
-  scenes' rows; the diffusion baselines plan their scenes one after the other inside the
-  call), each scene with its job's noise seed (``policy_seed``); a
+  scenes' rows; the diffusion baselines one base chain and one guided chain for all the
+  scenes), each scene with its job's noise seed (``policy_seed``); a
   rule-based policy (IDM, replay, constant velocity) is asked scene by scene;
 * the ego planner, one per scene, called scene by scene (a Python loop over the scenes:
   the planners under test have no batched form);

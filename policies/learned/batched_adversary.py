@@ -22,9 +22,9 @@ same batched rollout, bit for bit, on one machine. Scene ``b``'s seed is ``seeds
     actions = batch.act([env.view() for env in envs])  # a dict per scene
 
 The STRIVE-style baseline batches its latent optimisation the same way (one generator
-forward and backward pass per step over every scene's ``A_c`` rows); the diffusion
-baselines go through the same call but plan their scenes one after the other inside it
-(their batched cycle is not written yet).
+forward and backward pass per step over every scene's ``A_c`` rows), and the diffusion
+baselines their reverse chains (one denoiser pass per level for every scene, in the base
+chain and in the guided one).
 """
 
 from __future__ import annotations

@@ -320,11 +320,14 @@ def plan_scenes(scenes: Sequence[PlanBufferPolicy], views: Sequence[SceneView]) 
     itself): the same model and options, each with its own plan buffer, episode and noise
     stream, so each scene's noise and plans are those of planning it alone (to float
     rounding: padded batches run other kernels). A subclass with a batched
-    :meth:`~PlanBufferPolicy._plan_cycles` (``RiskFlowAdversary``) runs one encoder
-    pass, one generator pass and one guidance loop for all of them; the others plan
-    scene by scene. Then each scene's new plans are stitched onto its executed ones and
-    its buffer restarts at its ``view.step`` (the new plans smoothed and vehicles at rest
-    held first, with ``smooth_steps`` > 1 and ``hold_distance`` > 0).
+    :meth:`~PlanBufferPolicy._plan_cycles` runs one encoder pass for all of them and
+    then its own batched cycle (``RiskFlowAdversary``: one generator pass and one
+    guidance loop; ``StriveAdversary``: one latent optimisation; ``DiffusionAdversary``:
+    one base chain and one guided chain); a subclass that implements only
+    :meth:`~PlanBufferPolicy._plan_cycle` plans them scene by scene. Then each scene's
+    new plans are stitched onto its executed ones and its buffer restarts at its
+    ``view.step`` (the new plans smoothed and vehicles at rest held first, with
+    ``smooth_steps`` > 1 and ``hold_distance`` > 0).
     ``PlanBufferPolicy.plan`` is the case B = 1.
 
     Every scene's ``timings`` are the call's: its phases (they ran once for all scenes;

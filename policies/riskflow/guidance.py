@@ -23,7 +23,11 @@ the footprint samples off the drivable area; ``lambda_adv > 0`` is more adversar
 paper's "-50" is ``+50`` here). An optional third term, ``lambda_base * L_base`` (off by
 default), tethers each guided row to the generator's own plan: ``L_base`` is half the mean
 over the plan's steps of ``||u - u0||^2``, the output-space counterpart of STRIVE's latent
-prior (docs/REALISM.md, round 11, has what it buys). docs/GENERATOR.md ("Output-space
+prior (docs/REALISM.md, round 11, has what it buys). A fourth, ``lambda_sep * L_sep`` (off
+by default), keeps the guided vehicles of a scene apart from each other: ``L_sep`` is the
+summed squared penetration depth of every pair of guided boxes over the guidance horizon
+(the avoidance steps' objective, :func:`~policies.learned.plan_selection.overlap_gradient`;
+docs/REALISM.md, round 16). docs/GENERATOR.md ("Output-space
 guidance") has the terms, the sign convention and why the steps are Adam steps.
 """
 
@@ -47,6 +51,7 @@ from policies.learned.guidance_losses import (
     map_loss,
     map_term,
 )
+from policies.learned.plan_selection import overlap_gradient
 from policies.learned.sampler import decode_plans
 from policies.riskflow.guidance_scene import (
     PER_AGENT,
@@ -83,12 +88,16 @@ class GuidanceConfig(ObjectiveConfig):
             squared distance of a guided row's residual to its base residual
             [normalised action units^2], >= 0: it keeps the guided plans near the
             generator's own (0: off, the paper's objective).
+        lambda_sep: weight [1/m^2] of ``L_sep``, the summed squared penetration depth of
+            the pairs of guided boxes of a scene over the guidance horizon, >= 0: it keeps
+            the guided vehicles from converging on each other (0: off, the paper's).
     """
 
     steps: int = 30
     step_size: float = 0.1
     optimizer: str = "adam"
     lambda_base: float = 0.0
+    lambda_sep: float = 0.0
 
     def checks(self) -> list[tuple[bool, str]]:
         """The objective's rules and the optimiser's."""
@@ -100,6 +109,10 @@ class GuidanceConfig(ObjectiveConfig):
             (
                 math.isfinite(self.lambda_base) and self.lambda_base >= 0,
                 "lambda_base must be a finite number >= 0",
+            ),
+            (
+                math.isfinite(self.lambda_sep) and self.lambda_sep >= 0,
+                "lambda_sep must be a finite number >= 0",
             ),
         ]
 
@@ -119,6 +132,35 @@ def plans_from_velocity(
     ``agent_mask (..., A)``; returns ``(..., A, T, 2)`` and ``(..., A, T, 4)``.
     """
     return decode_plans(eps + u, state, agent_mask, normalizer, dynamics)
+
+
+class Separation:
+    """The gradient of ``L_sep`` (module docstring) with respect to the guided rows'
+    trajectories: the summed squared penetration depth of every pair of guided boxes of
+    one scene over the first ``horizon`` steps, in closed form
+    (:func:`~policies.learned.plan_selection.overlap_gradient`, the avoidance steps'
+    objective). Shared by output-space guidance and STRIVE-style's latent optimisation.
+
+    Args:
+        length, width: (C,) [m] of the guided rows.
+        scene_of_row: (C,) the scene of each row (pairs are taken within a scene).
+        horizon: ``T_g`` steps; None: the whole plan.
+    """
+
+    def __init__(
+        self, length: Tensor, width: Tensor, scene_of_row: Tensor, horizon: int | None
+    ) -> None:
+        pairs = (scene_of_row[:, None] == scene_of_row[None, :]).triu(diagonal=1)
+        self.boxes = (length[None], width[None], pairs[None])  # one "scene" of C boxes
+        self.horizon = horizon
+
+    def gradient(self, trajectories: Tensor) -> Tensor:
+        """(C, T, 4) ``d L_sep / d trajectories`` of (C, T, 4) states (zero beyond the
+        horizon and in the speed channel)."""
+        gradient = torch.zeros_like(trajectories)
+        near = trajectories[None, None, :, : self.horizon].detach()  # (1, 1, C, T_g, 4)
+        gradient[:, : self.horizon] = overlap_gradient(near, *self.boxes)[0][0, 0]
+        return gradient
 
 
 class _Objective:
@@ -150,6 +192,13 @@ class _Objective:
         self.target_xy, self.target_valid = target_xy, target_valid
         self.horizon, self.dynamics = config.horizon, dynamics
         self.map_term = map_term(scene, rows, scene.eps.shape[1], config, scene_of_row)
+        self.lambda_sep = config.lambda_sep
+        self.separation = None
+        if self.lambda_sep:
+            same = torch.zeros_like(rows) if scene_of_row is None else scene_of_row
+            self.separation = Separation(
+                scene.length[rows], scene.width[rows], same, config.horizon
+            )
 
     def bounds(self) -> tuple[Tensor, Tensor]:
         """(C, T, 2) lower and upper bounds of ``u_c`` that keep the actions inside the
@@ -199,6 +248,8 @@ class _Objective:
         else:
             off_road, d_map = self.map_term.rows_and_gradient(trajectories)
             d_trajectories.add_(d_map, alpha=lambda_map)
+        if self.separation is not None:
+            d_trajectories.add_(self.separation.gradient(trajectories), alpha=self.lambda_sep)
         grad = vjp(d_trajectories) * self.std
         if self.lambda_base:  # L_base = mean_t ||u_c - u0||^2 / 2
             grad.add_(u_c - self.u0, alpha=self.lambda_base / u_c.shape[-2])
@@ -311,6 +362,7 @@ def _guide_scenes(
 
 __all__ = [
     "OPTIMIZERS",
+    "Separation",
     "TARGETS",
     "GuidanceConfig",
     "GuidanceResult",

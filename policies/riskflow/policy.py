@@ -109,6 +109,8 @@ class RiskFlowAdversary(PlanBufferPolicy):
             (:class:`~policies.riskflow.guidance.GuidanceConfig`).
         lambda_base: weight of the tether of the guided plans to the generator's own
             (:class:`GuidanceConfig`); 0 (default): off.
+        lambda_sep: weight of the separation of the guided vehicles from each other
+            (:class:`GuidanceConfig`); 0 (default): off.
         generator: the base-plan generator: a model object (a ``RiskFlowGenerator``, or
             a diffusion ``OneCallSampler``; moved to ``device``, eval mode) with its
             ``normalizer``; or ``"meanflow"`` / ``"diffusion"`` to load that kind from
@@ -144,6 +146,7 @@ class RiskFlowAdversary(PlanBufferPolicy):
         step_size: float = GuidanceConfig.step_size,
         optimizer: str = GuidanceConfig.optimizer,
         lambda_base: float = GuidanceConfig.lambda_base,
+        lambda_sep: float = GuidanceConfig.lambda_sep,
         generator: RiskFlowGenerator | OneCallSampler | str | None = None,
         normalizer: Normalizer | None = None,
         checkpoint: str | os.PathLike | None = None,
@@ -177,6 +180,7 @@ class RiskFlowAdversary(PlanBufferPolicy):
             step_size=step_size,
             optimizer=optimizer,
             lambda_base=lambda_base,
+            lambda_sep=lambda_sep,
             **config.objective(),
         )
         device = torch.device(config.device)

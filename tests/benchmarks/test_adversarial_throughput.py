@@ -29,4 +29,13 @@ def test_strive_and_a_bad_method(capsys):
     assert rows[0]["batched"] > 0 and rows[0]["loop"] > 0
     assert "StriveAdversary, K = 5" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="--method"):
-        bench.main([*argv, "--method", "ctg"])
+        bench.main([*argv, "--method", "ddpm"])
+
+
+def test_a_diffusion_baseline(capsys):
+    bench = _module()
+    argv = ["--scenes", "2", "--rounds", "1", "--calls", "1", "--diffusion-steps", "2"]
+    rows = bench.main([*argv, "--method", "ctgpp"])
+    assert rows[0]["batched"] > 0 and rows[0]["loop"] > 0
+    assert {"denoising", "guidance"} <= set(rows[0]["phases"])
+    assert "DiffusionAdversary, K = 5, ctgpp, 2 denoising levels" in capsys.readouterr().out

@@ -38,6 +38,7 @@ estimates ``x0_hat`` at each level, and there are no separate base plans.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -55,17 +56,19 @@ from policies.learned.data import Normalizer
 from policies.learned.encoder import SceneContext
 from policies.learned.guidance_losses import (
     ObjectiveConfig,
-    adversarial_loss,
+    adversarial_rows,
     map_term,
     target_rows,
 )
 from policies.learned.plan_buffer import hold_still
 from policies.learned.sampler import decode_plans
+from riskflow_env._array import attach_gradient
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
-from riskflow_env.maps import DrivableMap
+from riskflow_env.maps import DrivableMap, MapStack
 
 GRADIENTS = ("mean", "clean")
+PER_AGENT = ("state", "length", "width", "agent_mask")  # SceneGeometry's (B, A) fields
 
 
 @dataclass(frozen=True)
@@ -102,28 +105,39 @@ class DiffusionGuidanceConfig(ObjectiveConfig):
 
 @dataclass(frozen=True)
 class SceneGeometry:
-    """What the losses need about one scene (torch, scene frame).
+    """What the losses need about one scene (torch, scene frame), or about B scenes
+    (batched planning: a leading B axis on every per-agent tensor, agents padded to A).
 
     Attributes:
-        state: (A, 4) current states (x, y [m], v [m/s], psi [rad]).
-        length: (A,) [m].
-        width: (A,) [m].
-        agent_mask: (A,) bool agents present.
-        drivable_map: the map (world frame); None drops ``L_map``.
-        frame: (3,) world pose (x [m], y [m], psi [rad]) of the scene frame.
-        ego: slot of the ego (never guided).
+        state: (A, 4) current states (x, y [m], v [m/s], psi [rad]); (B, A, 4).
+        length: (A,) [m]; (B, A).
+        width: (A,) [m]; (B, A).
+        agent_mask: (A,) bool agents present (False on padding); (B, A).
+        drivable_map: the map (world frame); for B scenes a
+            :class:`~riskflow_env.maps.MapStack` of their maps in scene order, or one map
+            they share; None drops ``L_map``.
+        frame: (3,) world pose (x [m], y [m], psi [rad]) of the scene frame; (B, 3).
+        ego: slot of the ego (never guided; in every scene).
         standing: (A,) bool vehicles that stand still (done: zero actions, current pose at
-            speed 0; never guided); None: none.
+            speed 0; never guided); (B, A); None: none.
     """
 
     state: Tensor
     length: Tensor
     width: Tensor
     agent_mask: Tensor
-    drivable_map: DrivableMap | None
+    drivable_map: DrivableMap | MapStack | None
     frame: Tensor
     ego: int = 0
     standing: Tensor | None = None
+
+    def batched(self) -> SceneGeometry:
+        """The geometry with a leading B axis (B = 1 for one scene)."""
+        if self.state.ndim == 3:
+            return self
+        standing = None if self.standing is None else self.standing[None]
+        fields = {name: getattr(self, name)[None] for name in PER_AGENT}
+        return dataclasses.replace(self, **fields, frame=self.frame[None], standing=standing)
 
 
 @dataclass(frozen=True)
@@ -131,7 +145,8 @@ class GuidedPlans:
     """``actions`` (A, T, 2), ``trajectories`` (A, T, 4) (base plans outside ``A_c`` when
     anchored), the unguided ``base_actions`` / ``base_trajectories`` (the plans themselves
     without ``anchor``), and ``losses`` (N, 2): ``(L_adv [m], L_map [m^2])`` at each
-    gradient evaluation and, last, of the final plans."""
+    gradient evaluation and, last, of the final plans. For B scenes: (B, A, ...) and
+    losses (N, B, 2), each scene's own."""
 
     actions: Tensor
     trajectories: Tensor
@@ -141,18 +156,35 @@ class GuidedPlans:
 
 
 class _Objective:
-    """``(L, L_adv, L_map)`` of the ``A_c`` rows as a function of their normalised actions."""
+    """``(L, L_adv, L_map)`` of the ``A_c`` rows (flat indices of B scenes' agents) as a
+    function of their normalised actions: ``L`` a scalar (summed over the rows: each row's
+    gradient is its own), ``L_adv`` and ``L_map`` summed per scene, (B,) each."""
 
-    def __init__(self, geometry, rows, normalizer, config, dynamics, steps) -> None:
-        self.state = geometry.state[rows]
+    def __init__(self, geometry, rows, scene_of_row, normalizer, config, dynamics, steps):
+        flat = dataclasses.replace(
+            geometry, **{name: getattr(geometry, name).flatten(0, 1) for name in PER_AGENT}
+        )
+        self.state, self.rows, self.scene_of_row = flat.state[rows], rows, scene_of_row
+        self.num_scenes = geometry.state.shape[0]
         self.normalizer, self.config, self.dynamics = normalizer, config, dynamics
-        self.map_term = map_term(geometry, rows, steps, config)
+        self.map_term = map_term(flat, rows, steps, config, scene_of_row)
 
-    def __call__(self, x_c: Tensor, target_xy: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def __call__(self, x_c: Tensor, target_xy: Tensor, target_valid: Tensor):
         trajectories = rollout(self.state, self.normalizer.denormalize(x_c), self.dynamics)
-        adv = adversarial_loss(trajectories[..., :2], target_xy, self.config.horizon)
-        off_road = adv * 0.0 if self.map_term is None else self.map_term(trajectories)
-        return self.config.lambda_adv * adv + self.config.lambda_map * off_road, adv, off_road
+        xy = trajectories[..., :2]
+        adv_rows, gradient = adversarial_rows(xy, target_xy, self.config.horizon, target_valid)
+        adv = attach_gradient(adv_rows.sum(), xy, gradient, axis=None)
+        if self.map_term is None:
+            off_rows, off_road = torch.zeros_like(adv_rows), adv * 0.0
+        else:
+            off_rows, gradient = self.map_term.rows_and_gradient(trajectories)
+            off_road = attach_gradient(off_rows.sum(), trajectories, gradient, axis=None)
+        loss = self.config.lambda_adv * adv + self.config.lambda_map * off_road
+        return loss, self._per_scene(adv_rows), self._per_scene(off_rows)
+
+    def _per_scene(self, values: Tensor) -> Tensor:
+        total = values.new_zeros(self.num_scenes)
+        return total.index_add_(0, self.scene_of_row, values.detach())
 
 
 def _step(grad: Tensor, step_size: float) -> Tensor:
@@ -174,15 +206,19 @@ def guided_sample(
     dynamics: DynamicsConfig = DEFAULT_CONFIG,
     on_base_done: Callable[[], object] | None = None,
 ) -> GuidedPlans:
-    """Base chain, then the guided chain of the ``A_c`` rows (module docstring).
+    """Base chain, then the guided chain of the ``A_c`` rows (module docstring), for one
+    scene or B scenes at once (batched planning: one denoiser pass per level for all of
+    them, each row pulled toward its own scene's targets; each scene gets the plans it
+    gets alone, to float rounding).
 
     Args:
         denoiser: the denoiser.
-        scene: ``denoiser.encode(batch)`` of one scene (``B = 1``).
-        noise: ``(len(levels) + 1, 1, A, T, 2)`` (``sampling.chain_noise``).
+        scene: ``denoiser.encode(batch)`` of one scene (``B = 1``) or of B scenes.
+        noise: ``(len(levels) + 1, B, A, T, 2)`` (``sampling.chain_noise``).
         levels: the chain's transitions (``denoiser.schedule.levels(S)``).
-        geometry: the scene for the losses.
-        controllable: (A,) bool ``A_c``; absent agents and the ego are ignored.
+        geometry: the scene(s) for the losses: (A, ...) tensors for one scene (the
+            result's tensors are then (A, ...)), (B, A, ...) for B scenes.
+        controllable: ``A_c``, (A,) bool, or (B, A); absent agents and the ego are ignored.
         normalizer: action normalisation.
         config: guidance options.
         eta: DDIM stochasticity (1 with all levels: DDPM).
@@ -190,77 +226,103 @@ def guided_sample(
         on_base_done: called when the base chain is done (timing).
     """
     config = config or DiffusionGuidanceConfig()
+    single = geometry.state.ndim == 2
+    geometry = geometry.batched()
+    controllable = controllable.reshape(geometry.agent_mask.shape)
     present = geometry.agent_mask.bool()
     standing = torch.zeros_like(present) if geometry.standing is None else geometry.standing
-    mask = controllable.bool() & present & ~standing.bool()
-    mask[geometry.ego] = False
-    rows = torch.nonzero(mask).flatten()
-    targets = target_rows(present, mask, geometry.ego, config.target)
+    standing = standing.bool()
+    mask = controllable.bool() & present & ~standing
+    mask[:, geometry.ego] = False
+    rows = torch.nonzero(mask.flatten()).flatten()  # flat (scene, agent) indices
+    scene_of_row = torch.div(rows, mask.shape[1], rounding_mode="floor")
+    target_valid = target_rows(present, mask, geometry.ego, config.target)[scene_of_row]
 
     def plans(x0: Tensor) -> tuple[Tensor, Tensor]:
         actions, trajectories = decode_plans(
             x0, geometry.state, geometry.agent_mask, normalizer, dynamics
         )
-        hold_still(actions, trajectories, geometry.state, standing.bool())
+        hold_still(actions, trajectories, geometry.state, standing)
         return actions, trajectories
+
+    def targets_of(trajectories: Tensor) -> Tensor:  # (C, A, T, 2): each row's scene
+        return trajectories[..., :2][scene_of_row]
+
+    def shaped(plans: GuidedPlans) -> GuidedPlans:
+        if not single:
+            return plans
+        losses = plans.losses[:, 0]
+        fields = ("actions", "trajectories", "base_actions", "base_trajectories")
+        return dataclasses.replace(
+            plans, **{name: getattr(plans, name)[0] for name in fields}, losses=losses
+        )
 
     path = None
     if config.anchor or rows.numel() == 0:
         path = reverse_chain(denoiser, scene, noise, levels, eta)
-        base_actions, base_trajectories = plans(path[-1][0])
-        target_xy = base_trajectories[targets, :, :2]
+        base_actions, base_trajectories = plans(path[-1])
+        target_xy = targets_of(base_trajectories)
     if on_base_done is not None:
         on_base_done()
     if rows.numel() == 0:
-        empty = base_actions.new_zeros(0, 2)
-        return GuidedPlans(base_actions, base_trajectories, base_actions, base_trajectories, empty)
-    objective = _Objective(geometry, rows, normalizer, config, dynamics, noise.shape[-2])
+        empty = base_actions.new_zeros(0, mask.shape[0], 2)
+        return shaped(
+            GuidedPlans(base_actions, base_trajectories, base_actions, base_trajectories, empty)
+        )
+    objective = _Objective(
+        geometry, rows, scene_of_row, normalizer, config, dynamics, noise.shape[-2]
+    )
     history, x = [], noise[0]
+
+    def flat(tensor: Tensor) -> Tensor:  # (B, A, ...) -> (B * A, ...), a view (writable)
+        return tensor.view(-1, *tensor.shape[2:])
+
     for index, (k, k_prev) in enumerate(levels):
         if config.gradient == "clean":
             with torch.enable_grad():
                 x_in = x.detach().requires_grad_(True)
                 x0_hat, eps_hat = denoiser(x_in, k, scene, clip=True)
                 if path is None:
-                    target_xy = plans(x0_hat.detach()[0])[1][targets, :, :2]
-                loss, adv, off_road = objective(x0_hat[0, rows], target_xy)
+                    target_xy = targets_of(plans(x0_hat.detach())[1])
+                loss, adv, off_road = objective(flat(x0_hat)[rows], target_xy, target_valid)
                 (grad,) = torch.autograd.grad(loss, x_in)
-            history.append(torch.stack([adv.detach(), off_road.detach()]))
+            history.append(torch.stack([adv, off_road], dim=-1))
             with torch.no_grad():
                 x0_hat, eps_hat = x0_hat.detach(), eps_hat.detach()
                 mean, sigma = denoiser.schedule.reverse_moments(x0_hat, eps_hat, k, k_prev, eta)
-                mean[0, rows] -= _step(grad[0, rows], config.step_size)
+                flat(mean)[rows] -= _step(flat(grad)[rows], config.step_size)
         else:
             with torch.no_grad():
                 x0_hat, _, mean, sigma = denoise_step(denoiser, x, k, k_prev, eta, scene)
                 if path is None:
-                    target_xy = plans(x0_hat[0])[1][targets, :, :2]
-            mean_c = mean[0, rows]
+                    target_xy = targets_of(plans(x0_hat)[1])
+            mean_c = flat(mean)[rows]
             for _ in range(config.inner_steps):
                 with torch.enable_grad():
                     mean_c = mean_c.detach().requires_grad_(True)
-                    loss, adv, off_road = objective(mean_c, target_xy)
+                    loss, adv, off_road = objective(mean_c, target_xy, target_valid)
                     (grad,) = torch.autograd.grad(loss, mean_c)
-                history.append(torch.stack([adv.detach(), off_road.detach()]))
+                history.append(torch.stack([adv, off_road], dim=-1))
                 mean_c = mean_c.detach() - _step(grad, config.step_size)
-            mean[0, rows] = mean_c
+            flat(mean)[rows] = mean_c
         with torch.no_grad():
             x = mean + sigma * noise[index + 1]
             if path is not None:  # inpainting: the others keep the base chain
-                x = torch.where(mask[None, :, None, None], x, path[index + 1])
+                x = torch.where(mask[..., None, None], x, path[index + 1])
     with torch.no_grad():
-        guided_actions, guided_trajectories = plans(x[0])
+        guided_actions, guided_trajectories = plans(x)
         if path is None:
             actions, trajectories = guided_actions, guided_trajectories
             base_actions, base_trajectories = actions, trajectories
-            target_xy = trajectories[targets, :, :2]
+            target_xy = targets_of(trajectories)
         else:
             actions, trajectories = base_actions.clone(), base_trajectories.clone()
-            actions[rows] = guided_actions[rows]
-            trajectories[rows] = guided_trajectories[rows]
-        _, adv, off_road = objective(x[0, rows], target_xy)
-        history.append(torch.stack([adv, off_road]))
-    return GuidedPlans(actions, trajectories, base_actions, base_trajectories, torch.stack(history))
+            flat(actions)[rows] = flat(guided_actions)[rows]
+            flat(trajectories)[rows] = flat(guided_trajectories)[rows]
+        _, adv, off_road = objective(flat(x)[rows], target_xy, target_valid)
+        history.append(torch.stack([adv, off_road], dim=-1))
+    losses = torch.stack(history)  # (N, B, 2)
+    return shaped(GuidedPlans(actions, trajectories, base_actions, base_trajectories, losses))
 
 
 __all__ = ["GRADIENTS", "DiffusionGuidanceConfig", "GuidedPlans", "SceneGeometry", "guided_sample"]

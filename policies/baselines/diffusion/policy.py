@@ -13,6 +13,11 @@ vehicles standing still, world-frame plans, overlays); one planning cycle is
    RiskFlow's ``L_adv + L_map`` on the transition mean (``"ctg"``, ``"ccdiff"``) or
    through the predicted clean sample (``"ctgpp"``), at every level.
 
+Several scenes due to re-plan in one call (:class:`~policies.learned.batched_adversary.
+BatchedAdversary`, ``riskflow-eval --batch-scenes``) share one encoder pass and one
+denoiser pass per level of each chain, agents padded per scene and masked; each scene
+gets the plans it gets alone, to float rounding.
+
 All the cycle's noise (chain start and every transition; kept in ``noise``, shape
 ``(levels + 1, A_window, T, 2)``) is drawn from the seeded generator, so the same seed
 gives the same rollout; ``k = 0`` gives the unguided
@@ -21,6 +26,7 @@ diffusion generator. Method mapping and simplifications: ``docs/BASELINES.md``.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -131,48 +137,62 @@ class DiffusionAdversary(PlanBufferPolicy):
         window_config = config.window_config or default_window_config(model_config)
         super().__init__(config, model_config.future_steps, window_config)
 
-    def _plan_cycle(self, view: SceneView) -> None:
-        """One cycle: window, encoder, ``A_c``, base chain, guided chain (module docstring)."""
-        observed = self._encode_view(view, self.denoiser.encode)
-        window, slots, scene = observed.window, observed.slots, observed.scene
-        live = view.active[slots]
-        if self.selection == "causal":
-            self.ranking = rank_window(window, self.k, self.rank_threshold, live)
-        else:
-            self.ranking = nearest_ranking(window, self.k, live)
+    def _plan_cycles(self, scenes: Sequence[PlanBufferPolicy], views: Sequence[SceneView]) -> None:
+        """One cycle of B scenes (``scenes[b]`` plans ``views[b]``; B = 1 for ``plan``):
+        windows and one encoder pass, ``A_c`` scene by scene, one base chain and one
+        guided chain for all of them (module docstring). Each scene draws its noise from
+        its own stream, with the shape it has alone; the padded rows of smaller scenes are
+        masked everywhere."""
+        observed = self._encode_views(views, self.denoiser.encode)
+        scene, counts = observed.scene, observed.counts
+        num_scenes, num_agents = scene.agent_mask.shape
+        controllable = np.zeros((num_scenes, num_agents), dtype=bool)
+        standing = np.zeros((num_scenes, num_agents), dtype=bool)
+        for index, (policy, view) in enumerate(zip(scenes, views, strict=True)):
+            window, slots = observed.windows[index], observed.slots[index]
+            live = view.active[slots]
+            if self.selection == "causal":
+                policy.ranking = rank_window(window, self.k, self.rank_threshold, live)
+            else:
+                policy.ranking = nearest_ranking(window, self.k, live)
+            controllable[index, : len(slots)] = policy.ranking.controllable
+            standing[index, : len(slots)] = ~live
         clock = self._tick("ranking", observed.clock)
-        shape = (1, len(slots), self.denoiser.config.future_steps, 2)
-        noise = chain_noise(
-            shape, self.levels, self._noise_source(), self.device, scene.context.dtype
-        )
-        self.noise = noise[:, 0]  # (levels + 1, A_w, T, 2): chain start, then each transition
-        state = scene.state[0]
+        steps = self.denoiser.config.future_steps
+        noise = scene.context.new_zeros(len(self.levels) + 1, num_scenes, num_agents, steps, 2)
+        for index, (policy, count) in enumerate(zip(scenes, counts, strict=True)):
+            noise[:, index, :count] = chain_noise(  # the scene's own stream, its own shape
+                (1, count, steps, 2), self.levels, policy._noise_source(), self.device,
+                scene.context.dtype,
+            )[:, 0]  # fmt: skip
         geometry = SceneGeometry(
-            state=state,
-            length=observed.batch.length[0],
-            width=observed.batch.width[0],
-            agent_mask=scene.agent_mask[0],
-            drivable_map=view.map,
+            state=scene.state,
+            length=observed.batch.length,
+            width=observed.batch.width,
+            agent_mask=scene.agent_mask,
+            drivable_map=self._map_of(views),
             frame=observed.frame_tensor(),
-            standing=torch.from_numpy(~live).to(self.device),
+            standing=torch.from_numpy(standing).to(self.device),
         )
-        controllable = torch.from_numpy(self.ranking.controllable).to(self.device)
         marks = [clock]
         result = guided_sample(
-            self.denoiser, scene, noise, self.levels, geometry, controllable,
-            self.normalizer, self.guidance, self.eta, self.dynamics,
+            self.denoiser, scene, noise, self.levels, geometry,
+            torch.from_numpy(controllable).to(self.device), self.normalizer, self.guidance,
+            self.eta, self.dynamics,
             on_base_done=lambda: marks.append(self._tick("denoising", clock)),
         )  # fmt: skip
         self._tick("guidance", marks[-1])
-        self._store(
-            view,
-            slots,
-            result.actions,
-            result.trajectories,
-            result.base_trajectories,
-            observed.frame,
-        )
-        self.guidance_losses = result.losses.cpu().numpy()
+        losses = result.losses.cpu().numpy()
+        for index, (policy, view) in enumerate(zip(scenes, views, strict=True)):
+            slots = observed.slots[index]
+            rows = slice(0, len(slots))
+            # (levels + 1, A_w, T, 2): chain start, then each transition
+            policy.noise = noise[:, index, rows]
+            policy._store(
+                view, slots, result.actions[index, rows], result.trajectories[index, rows],
+                result.base_trajectories[index, rows], observed.frames[index],
+            )  # fmt: skip
+            policy.guidance_losses = losses[:, index]
 
 
 __all__ = ["PHASES", "VARIANTS", "DiffusionAdversary", "nearest_ranking"]

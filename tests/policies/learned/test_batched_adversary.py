@@ -137,8 +137,8 @@ def test_a_scene_noise_does_not_depend_on_the_batch(tiny_meanflow, tiny_normaliz
 def test_other_adversaries_take_the_batched_call(
     kind, tiny_meanflow, tiny_denoiser, tiny_normalizer
 ):
-    """STRIVE-style (batched) and the diffusion baselines (one scene at a time inside the
-    call) take the batched call and plan what they plan alone."""
+    """STRIVE-style and the diffusion baselines take the batched call and plan what they
+    plan alone."""
     options = {"k": 1, "planning_interval": 0.3, "seed": 2}
     if kind == "strive":
         make = lambda seed: StriveAdversary(  # noqa: E731
@@ -225,3 +225,61 @@ def test_act_array_leaves_ended_scenes_alone(tiny_meanflow, tiny_normalizer):
     close(got[[0, 2]], expected[[0, 2]])  # a batch of 2 scenes instead of 3: rounding
     with pytest.raises(ValueError, match="running"):
         masked.act_array(views, np.array([True, False]))
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"variant": "ctg"},
+        {"variant": "ctgpp"},
+        {"variant": "ccdiff", "inner_steps": 2},
+        {"variant": "ctgpp", "anchor": False, "target": "ego"},
+        {"variant": "ctg", "anchor": False, "k": 0},
+    ],
+)
+def test_diffusion_plans_every_scene_in_one_chain(
+    tiny_denoiser, tiny_normalizer, options, monkeypatch
+):
+    """The diffusion baselines plan B scenes (4, 5 and 7 agents: padded) with one denoiser
+    pass per level for all of them, over several re-planning cycles, and each scene gets
+    the plans it gets alone (the same noise, bit for bit)."""
+    options = {"k": 2, "planning_interval": 0.3, "sampling_steps": 3, **options}
+
+    def make(seed):
+        return DiffusionAdversary(
+            denoiser=tiny_denoiser, normalizer=tiny_normalizer, seed=seed, **options
+        )
+
+    seeds = [3, 8, 5]
+    batch = BatchedAdversary(make(seeds[0]), 3, seeds=seeds)
+    alone = [make(seed) for seed in seeds]
+    envs = [make_env(index) for index in range(3)]
+    batch.reset([env.view() for env in envs])
+    for policy, env in zip(alone, envs, strict=True):
+        policy.reset(env.view())
+    calls, cycles = [], 0
+    network = tiny_denoiser.network
+    velocity = network.average_velocity
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return velocity(*args, **kwargs)
+
+    monkeypatch.setattr(network, "average_velocity", counted)
+    for _ in range(7):
+        views = [env.view() for env in envs]
+        calls.clear()
+        got = batch.act(views)
+        batched_calls = len(calls)
+        expected = [policy.act(view) for policy, view in zip(alone, views, strict=True)]
+        if batched_calls:  # a planning step: one chain for all three scenes
+            assert 3 * batched_calls == len(calls) - batched_calls
+            cycles += 1
+        for b, env in enumerate(envs):
+            assert got[b].keys() == expected[b].keys()
+            for name in expected[b]:
+                close(got[b][name], expected[b][name])
+            step(env, got[b])
+        for b in range(3):
+            assert torch.equal(batch.scenes[b].noise, alone[b].noise)
+    assert cycles == 3  # at steps 0, 3 and 6

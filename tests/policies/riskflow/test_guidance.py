@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from policies.learned.plan_penalties import pair_separation
 from policies.learned.sampler import base_velocity, sample
 from policies.learned.synthetic import synthetic_batch
 from policies.riskflow.guidance import (
@@ -77,6 +78,27 @@ def test_base_term_keeps_the_guided_plans_near_the_generators():
     assert max(adversarial[:2]) < adversarial[2] < float(result.losses[0, 0])
 
 
+def test_separation_term_keeps_the_guided_vehicles_apart():
+    """Two guided cars in the outer lanes closing on the ego ahead: without ``L_sep`` their
+    guided boxes overlap each other near the ego; with it they do not, and they still
+    close on the ego (a little less)."""
+    scene = make_scene(
+        [[30.0, 0.0, 8.0, 0.0], [0.0, 3.5, 14.0, 0.0], [0.0, -3.5, 14.0, 0.0], [-40, 3.5, 10, 0]]
+    )
+    rows = [1, 2]
+    penetration, adversarial = [], []
+    for weight in (0.0, 20.0):
+        config = GuidanceConfig(target="ego", lambda_sep=weight)
+        result = guide(scene, mask_of(4, rows), NORMALIZER, config)
+        gaps = pair_separation(
+            result.trajectories[None, rows], scene.length[None, rows], scene.width[None, rows]
+        )[0, 0, 1]
+        penetration.append(float(torch.relu(-gaps).square().sum()))
+        adversarial.append(float(result.losses[-1, 0]))
+    assert penetration[0] > 1.0 and penetration[1] == 0.0
+    assert adversarial[0] < adversarial[1] < 0.9 * float(result.losses[0, 0])
+
+
 def test_sign_convention_negative_weight_pushes_apart():
     scene = make_scene(HIGHWAY)
     push = guide(scene, mask_of(6, [1]), NORMALIZER, GuidanceConfig(lambda_adv=-50.0))
@@ -139,6 +161,8 @@ def test_config_validation():
         {"map_decay": 1.5},
         {"lambda_base": -1.0},
         {"lambda_base": float("inf")},
+        {"lambda_sep": -1.0},
+        {"lambda_sep": float("nan")},
     ):
         with pytest.raises(ValueError, match="GuidanceConfig: "):
             GuidanceConfig(**bad)
@@ -186,8 +210,8 @@ def _padded(scene: GuidanceScene, agents: int) -> GuidanceScene:
     )
 
 
-@pytest.mark.parametrize("target", ["others", "ego"])
-def test_batched_scenes_guide_as_each_scene_alone(target):
+@pytest.mark.parametrize(("target", "lambda_sep"), [("others", 0.0), ("ego", 0.0), ("ego", 50.0)])
+def test_batched_scenes_guide_as_each_scene_alone(target, lambda_sep):
     """Three scenes (4, 6 and 3 agents, padded to 6) with their own maps and frames, guided
     in one loop: each scene's plans and losses are those of guiding it alone."""
     narrow = from_lanes([Lane(np.array([[-50.0, 10.0], [250.0, 40.0]]), 7.0, "narrow")])
@@ -201,7 +225,7 @@ def test_batched_scenes_guide_as_each_scene_alone(target):
         ),
     ]  # fmt: skip
     controllable = [mask_of(4, [1, 3]), mask_of(6, [2, 4, 5]), mask_of(3, [1, 2])]
-    config = GuidanceConfig(steps=8, target=target)
+    config = GuidanceConfig(steps=8, target=target, lambda_sep=lambda_sep)
     alone = [guide(s, c, NORMALIZER, config) for s, c in zip(scenes, controllable, strict=True)]
     padded = [_padded(s, 6) for s in scenes]
     batch = GuidanceScene(
