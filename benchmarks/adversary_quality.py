@@ -78,6 +78,8 @@ class Options:
     optimizer: str = GuidanceConfig.optimizer
     """guidance steps: 'adam' (per coordinate), 'adam-plan' (one second moment per guided
     plan) or 'gradient' (plain steps)"""
+    lambda_sep: float = GuidanceConfig.lambda_sep
+    """weight of the separation term between the guided vehicles (0: off)"""
     stitch_steps: int | None = AdversaryConfig.stitch_steps
     """[steps] blend of a new plan into the executed one (default: 15 blending first, 5
     after; 0: switch at once)"""
@@ -141,6 +143,7 @@ def run(options: Options) -> dict[str, dict]:
             hold_distance=options.hold_distance,
             lambda_map=options.lambda_map,
             optimizer=options.optimizer,
+            lambda_sep=options.lambda_sep,
             stitch_steps=options.stitch_steps,
             stitch_first=options.stitch_first,
         )
@@ -198,7 +201,8 @@ def main(argv: list[str] | None = None) -> None:
     base = (
         f"avoid_steps={options.avoid_steps}, hold_distance={options.hold_distance:g}, "
         f"lambda_map={options.lambda_map:g}, optimizer={options.optimizer}, "
-        f"stitch_steps={stitch}, stitch_first={options.stitch_first}"
+        f"lambda_sep={options.lambda_sep:g}, stitch_steps={stitch}, "
+        f"stitch_first={options.stitch_first}"
     )
     print(f"{options.scenes} scenes, IDM ego, target={options.target}, episodes: {ending}, {base}")
     print(table(results))
