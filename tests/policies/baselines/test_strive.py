@@ -133,3 +133,37 @@ def test_bad_options(strive, tiny_denoiser, tiny_normalizer, tiny_meanflow):
         StriveAdversary(generator=OneCallSampler(tiny_denoiser, 2), normalizer=tiny_normalizer)
     with pytest.raises(ValueError, match="normalizer"):
         StriveAdversary(generator=tiny_meanflow)
+
+
+def _guided_penetration(policy, view) -> float:
+    """Summed squared penetration depth [m^2] of the pairs of guided plans (world frame)."""
+    from policies.learned.plan_penalties import pair_separation
+
+    guided = policy.controllable
+    plans = torch.as_tensor(policy.plans[guided])[None]
+    length = torch.as_tensor(view.length[guided], dtype=plans.dtype)[None]
+    width = torch.as_tensor(view.width[guided], dtype=plans.dtype)[None]
+    gaps = pair_separation(plans, length, width)[0]  # (C, C, T)
+    upper = torch.ones(gaps.shape[:2], dtype=torch.bool).triu(diagonal=1)
+    return float(torch.relu(-gaps[upper]).square().sum())
+
+
+@pytest.mark.parametrize("kind", ["strive", "riskflow"])
+def test_separation_term_keeps_the_guided_vehicles_apart(
+    kind, strive, road_view, tiny_meanflow, tiny_normalizer
+):
+    """STRIVE-style takes RiskFlow's L_sep: three adversaries pulled hard onto the ego
+    overlap each other without it, much less with it; 0 is the objective without it."""
+    options = {"k": 3, "target": "ego", "guidance_steps": 30, "step_size": 0.5}
+    if kind == "riskflow":
+        models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer, "seed": 3}
+        make = lambda **kw: RiskFlowAdversary(**models, **kw)  # noqa: E731
+    else:
+        make = strive
+    _, view = road_view()
+    without = planned(make(**options), road_view)
+    with_term = planned(make(lambda_sep=1000.0, **options), road_view)
+    zero = planned(make(lambda_sep=0.0, **options), road_view)
+    assert _guided_penetration(without, view) > 0.1
+    assert _guided_penetration(with_term, view) < 0.5 * _guided_penetration(without, view)
+    np.testing.assert_array_equal(zero.plans, without.plans)
