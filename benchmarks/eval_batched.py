@@ -59,6 +59,8 @@ class Options:
     """[s] episode length"""
     workers: int = 1
     """--workers of every run"""
+    diffusion_steps: int | None = None
+    """--diffusion-steps of the diffusion baselines (None: all 100, DDPM)"""
     out: str | None = None
     """folder for the runs' results (default: a temporary folder, removed at the end)"""
 
@@ -77,6 +79,8 @@ def run_eval(options: Options, batch: int, out: Path) -> dict:
         "--workers", str(options.workers), "--batch-scenes", str(batch), "--no-report",
         "--out", str(out),
     ]  # fmt: skip
+    if options.diffusion_steps is not None:
+        argv += ["--diffusion-steps", str(options.diffusion_steps)]
     env = {
         **os.environ,
         "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
@@ -130,11 +134,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
     """Print the table; returns its rows (``batch``, ``rollouts``, ``rollout_s``,
     ``command_s``, and for the batched runs ``max_diff`` / ``outcome_differs``)."""
     options = _parse(argv)
+    steps = options.diffusion_steps
     print(
         f"riskflow-eval --methods {' '.join(options.methods)} --k {options.k} --scenes "
-        f"{options.scenes} --duration {options.duration} --workers {options.workers}: "
-        f"per-scene (--batch-scenes 1) vs batched, each in a fresh process, one after the "
-        f"other\n"
+        f"{options.scenes} --duration {options.duration} --workers {options.workers}"
+        f"{'' if steps is None else f' --diffusion-steps {steps}'}: per-scene "
+        f"(--batch-scenes 1) vs batched, each in a fresh process, one after the other\n"
     )
     with tempfile.TemporaryDirectory() as temporary:
         folder = Path(options.out or temporary)

@@ -27,3 +27,15 @@ def test_rows_with_a_number_only_one_run_has_are_apart():
     same = {"steps": 100, "ego_collision": 0.0, "ade": 1.0, "harness": {}}
     result = bench.compare_rows({"a": collided, "b": same}, {"a": missed, "b": dict(same)})
     assert result == {"max_diff": 1.0, "apart": 1, "outcome_differs": 1, "rows": 2}
+
+
+def test_a_diffusion_baseline_with_fewer_levels(capsys):
+    """``--methods ctg --diffusion-steps 2``: the diffusion baseline's chains batched over
+    the scenes, and the rows match the per-scene path's."""
+    bench = load_benchmark("eval_batched")
+    argv = ["--methods", "ctg", "--diffusion-steps", "2", "--scenes", "2", "--batch", "2"]
+    rows = bench.main([*argv, "--duration", "0.5"])
+    assert [row["batch"] for row in rows] == [1, 2]
+    assert rows[1]["rows"] == 2 and rows[1]["outcome_differs"] == 0
+    assert rows[1]["max_diff"] < 1e-4
+    assert "--diffusion-steps 2" in capsys.readouterr().out
