@@ -170,11 +170,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
         "row's numbers from the per-scene row of the same job; rows > 1e-3: rows with a number "
         "further than that; outcome differs: rows whose steps or collision flags differ"
     )
+    width = max([12, *(len(row["label"]) + 2 for row in rows)])  # labels carry options
     print(
-        f"\n{'batch-scenes':>12}{'method':>12}" + "".join(f"{name:>9}" for name in METRICS.values())
+        f"\n{'batch-scenes':>12}{'method':>{width}}"
+        + "".join(f"{name:>9}" for name in METRICS.values())
     )
     for row in rows:
-        print(f"{row['batch']:>12}{row['label']:>12}" + "".join(
+        print(f"{row['batch']:>12}{row['label']:>{width}}" + "".join(
             f"{row['metrics'][name]:>9.4f}" for name in METRICS
         ))  # fmt: skip
     print("\nthe metrics of each run, as its report gives them (riskflow-eval report)")
