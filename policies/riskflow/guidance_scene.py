@@ -82,8 +82,14 @@ class GuidedRows:
 
     def per_scene(self, values: Tensor, num_scenes: int) -> Tensor:
         """(C, K) values of the rows summed per scene: (B, K)."""
-        total = values.new_zeros(num_scenes, values.shape[-1])
-        return total.index_add_(0, self.scene_of_row, values)
+        return sum_per_scene(values, self.scene_of_row, num_scenes)
+
+
+def sum_per_scene(values: Tensor, scene_of_row: Tensor, num_scenes: int) -> Tensor:
+    """(C, ...) values of rows of B scenes (``scene_of_row`` (C,)) summed per scene:
+    (B, ...)."""
+    total = values.new_zeros(num_scenes, *values.shape[1:])
+    return total.index_add_(0, scene_of_row, values)
 
 
 def guided_rows(scene: GuidanceScene, controllable: Tensor, target: str) -> GuidedRows:
@@ -114,4 +120,5 @@ __all__ = [
     "GuidedRows",
     "flatten_scenes",
     "guided_rows",
+    "sum_per_scene",
 ]

@@ -62,6 +62,7 @@ from policies.learned.guidance_losses import (
 )
 from policies.learned.plan_buffer import hold_still
 from policies.learned.sampler import decode_plans
+from policies.riskflow.guidance_scene import sum_per_scene
 from riskflow_env._array import attach_gradient
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
@@ -164,7 +165,7 @@ class _Objective:
         flat = dataclasses.replace(
             geometry, **{name: getattr(geometry, name).flatten(0, 1) for name in PER_AGENT}
         )
-        self.state, self.rows, self.scene_of_row = flat.state[rows], rows, scene_of_row
+        self.state, self.scene_of_row = flat.state[rows], scene_of_row
         self.num_scenes = geometry.state.shape[0]
         self.normalizer, self.config, self.dynamics = normalizer, config, dynamics
         self.map_term = map_term(flat, rows, steps, config, scene_of_row)
@@ -183,8 +184,7 @@ class _Objective:
         return loss, self._per_scene(adv_rows), self._per_scene(off_rows)
 
     def _per_scene(self, values: Tensor) -> Tensor:
-        total = values.new_zeros(self.num_scenes)
-        return total.index_add_(0, self.scene_of_row, values.detach())
+        return sum_per_scene(values.detach(), self.scene_of_row, self.num_scenes)
 
 
 def _step(grad: Tensor, step_size: float) -> Tensor:
