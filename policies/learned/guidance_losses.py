@@ -32,6 +32,7 @@ __all__ = [
     "adversarial_value_and_gradient",
     "map_loss",
     "map_term",
+    "sum_per_scene",
     "target_rows",
 ]
 
@@ -110,6 +111,13 @@ def target_rows(present: Tensor, controllable: Tensor, ego: int, target: str) ->
         targets[..., ego] = True
         return targets
     return present.bool() & ~controllable.bool()
+
+
+def sum_per_scene(values: Tensor, scene_of_row: Tensor, num_scenes: int) -> Tensor:
+    """(C, ...) values of rows of B scenes (``scene_of_row`` (C,)) summed per scene:
+    (B, ...) (the per-scene losses of batched guidance)."""
+    total = values.new_zeros(num_scenes, *values.shape[1:])
+    return total.index_add_(0, scene_of_row, values)
 
 
 def map_term(scene, rows: Tensor, steps: int, config, scene_of_row: Tensor | None = None):

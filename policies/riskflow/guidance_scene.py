@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from policies.learned.guidance_losses import target_rows
+from policies.learned.guidance_losses import sum_per_scene, target_rows
 from riskflow_env.maps import DrivableMap
 
 
@@ -85,13 +85,6 @@ class GuidedRows:
         return sum_per_scene(values, self.scene_of_row, num_scenes)
 
 
-def sum_per_scene(values: Tensor, scene_of_row: Tensor, num_scenes: int) -> Tensor:
-    """(C, ...) values of rows of B scenes (``scene_of_row`` (C,)) summed per scene:
-    (B, ...)."""
-    total = values.new_zeros(num_scenes, *values.shape[1:])
-    return total.index_add_(0, scene_of_row, values)
-
-
 def guided_rows(scene: GuidanceScene, controllable: Tensor, target: str) -> GuidedRows:
     """The :class:`GuidedRows` of B scenes: ``controllable`` (B, A) among the present
     agents, the ego never; targets by :func:`target_rows` (``"others"`` or ``"ego"``)."""
@@ -120,5 +113,4 @@ __all__ = [
     "GuidedRows",
     "flatten_scenes",
     "guided_rows",
-    "sum_per_scene",
 ]

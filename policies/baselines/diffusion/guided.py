@@ -58,11 +58,11 @@ from policies.learned.guidance_losses import (
     ObjectiveConfig,
     adversarial_rows,
     map_term,
+    sum_per_scene,
     target_rows,
 )
 from policies.learned.plan_buffer import hold_still
 from policies.learned.sampler import decode_plans
-from policies.riskflow.guidance_scene import sum_per_scene
 from riskflow_env._array import attach_gradient
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
