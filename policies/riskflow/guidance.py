@@ -23,11 +23,12 @@ the footprint samples off the drivable area; ``lambda_adv > 0`` is more adversar
 paper's "-50" is ``+50`` here). An optional third term, ``lambda_base * L_base`` (off by
 default), tethers each guided row to the generator's own plan: ``L_base`` is half the mean
 over the plan's steps of ``||u - u0||^2``, the output-space counterpart of STRIVE's latent
-prior (docs/REALISM.md, round 11, has what it buys). A fourth, ``lambda_sep * L_sep`` (off
-by default), keeps the guided vehicles of a scene apart from each other: ``L_sep`` is the
-summed squared penetration depth of every pair of guided boxes over the guidance horizon
-(the avoidance steps' objective, :func:`~policies.learned.plan_selection.overlap_gradient`;
-docs/REALISM.md, round 16). docs/GENERATOR.md ("Output-space
+prior (docs/REALISM.md, round 11, has what it buys). A fourth, ``lambda_sep * L_sep`` (on
+by default, weight 100 since docs/REALISM.md round 17), keeps the guided vehicles of a
+scene apart from each other: ``L_sep`` is the summed squared penetration depth of every
+pair of guided boxes over the guidance horizon (the avoidance steps' objective,
+:func:`~policies.learned.plan_selection.overlap_gradient`; docs/REALISM.md, round 16).
+The paper's objective has no such term (``lambda_sep=0``). docs/GENERATOR.md ("Output-space
 guidance") has the terms, the sign convention and why the steps are Adam steps.
 """
 
@@ -90,14 +91,15 @@ class GuidanceConfig(ObjectiveConfig):
             generator's own (0: off, the paper's objective).
         lambda_sep: weight [1/m^2] of ``L_sep``, the summed squared penetration depth of
             the pairs of guided boxes of a scene over the guidance horizon, >= 0: it keeps
-            the guided vehicles from converging on each other (0: off, the paper's).
+            the guided vehicles from converging on each other (default 100,
+            docs/REALISM.md rounds 16-17; 0: off, the paper's objective).
     """
 
     steps: int = 30
     step_size: float = 0.1
     optimizer: str = "adam"
     lambda_base: float = 0.0
-    lambda_sep: float = 0.0
+    lambda_sep: float = 100.0
 
     def checks(self) -> list[tuple[bool, str]]:
         """The objective's rules and the optimiser's."""

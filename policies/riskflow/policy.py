@@ -110,7 +110,7 @@ class RiskFlowAdversary(PlanBufferPolicy):
         lambda_base: weight of the tether of the guided plans to the generator's own
             (:class:`GuidanceConfig`); 0 (default): off.
         lambda_sep: weight of the separation of the guided vehicles from each other
-            (:class:`GuidanceConfig`); 0 (default): off.
+            (:class:`GuidanceConfig`; default 100; 0: off, the paper's objective).
         generator: the base-plan generator: a model object (a ``RiskFlowGenerator``, or
             a diffusion ``OneCallSampler``; moved to ``device``, eval mode) with its
             ``normalizer``; or ``"meanflow"`` / ``"diffusion"`` to load that kind from

@@ -153,7 +153,8 @@ def test_separation_term_keeps_the_guided_vehicles_apart(
     kind, strive, road_view, tiny_meanflow, tiny_normalizer
 ):
     """STRIVE-style takes RiskFlow's L_sep: three adversaries pulled hard onto the ego
-    overlap each other without it, much less with it; 0 is the objective without it."""
+    overlap each other without it (``lambda_sep=0``, the paper's objective), much less
+    with it; the default is a weight of 100."""
     options = {"k": 3, "target": "ego", "guidance_steps": 30, "step_size": 0.5}
     if kind == "riskflow":
         models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer, "seed": 3}
@@ -161,9 +162,10 @@ def test_separation_term_keeps_the_guided_vehicles_apart(
     else:
         make = strive
     _, view = road_view()
-    without = planned(make(**options), road_view)
+    without = planned(make(lambda_sep=0.0, **options), road_view)
     with_term = planned(make(lambda_sep=1000.0, **options), road_view)
-    zero = planned(make(lambda_sep=0.0, **options), road_view)
+    default = planned(make(**options), road_view)
+    hundred = planned(make(lambda_sep=100.0, **options), road_view)
     assert _guided_penetration(without, view) > 0.1
     assert _guided_penetration(with_term, view) < 0.5 * _guided_penetration(without, view)
-    np.testing.assert_array_equal(zero.plans, without.plans)
+    np.testing.assert_array_equal(default.plans, hundred.plans)

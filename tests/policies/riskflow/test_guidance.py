@@ -47,17 +47,22 @@ def test_ego_and_absent_agents_are_never_guided():
         assert torch.equal(result.actions[row], scene.base_actions[row])
 
 
+@pytest.mark.parametrize("lambda_sep", [0.0, GuidanceConfig.lambda_sep])
 @pytest.mark.parametrize("target", ["others", "ego"])
 @pytest.mark.parametrize("optimizer", ["gradient", "adam", "adam-plan"])
-def test_lowers_adversarial_loss_and_keeps_map_loss_bounded(target, optimizer):
+def test_lowers_adversarial_loss_and_keeps_map_loss_bounded(target, optimizer, lambda_sep):
     scene = make_scene(HIGHWAY)
     step_size = 5e-3 if optimizer == "gradient" else 0.1
-    config = GuidanceConfig(target=target, optimizer=optimizer, step_size=step_size)
+    config = GuidanceConfig(
+        target=target, optimizer=optimizer, step_size=step_size, lambda_sep=lambda_sep
+    )
     result = guide(scene, mask_of(6, [1, 2, 3]), NORMALIZER, config)
     (adv_before, map_before), (adv_after, map_after) = result.losses[0], result.losses[-1]
     assert result.losses.shape == (config.steps + 1, 2)
     assert adv_after < 0.8 * adv_before
-    assert map_before < 1e-6 and map_after < 0.5  # [m^2]: stays on the 12 m road
+    # [m^2]: stays on the 12 m road. With the separation term (the default) three cars
+    # closing on one ego spread across it and may graze its edge.
+    assert map_before < 1e-6 and map_after < (0.5 if lambda_sep == 0 else 1.0)
     # The reported losses are those of the returned plans.
     rows = [1, 2, 3]
     targets = [0] if target == "ego" else [0, 4, 5]
