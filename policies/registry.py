@@ -147,6 +147,12 @@ METHODS: dict[str, MethodSpec] = {
             fixed={"lambda_map": 0.0},
         ),
         MethodSpec(
+            "riskflow-nosep",
+            "RiskFlow without L_sep (lambda_sep = 0, the paper's objective; ablation)",
+            _riskflow,
+            fixed={"lambda_sep": 0.0},
+        ),
+        MethodSpec(
             "riskflow-diffusion",
             "RiskFlow guidance on the diffusion generator (DDIM; ablation)",
             _riskflow,
