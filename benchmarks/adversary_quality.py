@@ -11,9 +11,10 @@ The episode ends early when the ego collides (the default ``EnvConfig``), as in 
 stress test; ``--full-episodes`` runs every episode for 10 s instead, so that off-road
 rates are compared over the same exposure. The adversary runs with the library's
 defaults: the realistic base (20 avoidance steps, holding at rest at 4 m, blending first
-over 15 steps) and the map term weighted 20 (docs/REALISM.md, rounds 8-12);
-``--avoid-steps 0 --hold-distance 0 --lambda-map 1 --no-stitch-first`` is the raw base of
-``riskflow-eval``'s ``riskflow-plain``; ``--stitch-steps N`` sets the blend. ``--out``
+over 15 steps), the map term weighted 20 and the separation term between the guided
+vehicles weighted 100 (docs/REALISM.md, rounds 8-17); ``--avoid-steps 0 --hold-distance 0
+--lambda-map 1 --lambda-sep 0 --no-stitch-first`` is the raw base of ``riskflow-eval``'s
+``riskflow-plain``; ``--stitch-steps N`` sets the blend. ``--out``
 receives ``quality.json`` with the summaries and every scene's metrics.
 """
 
@@ -79,7 +80,8 @@ class Options:
     """guidance steps: 'adam' (per coordinate), 'adam-plan' (one second moment per guided
     plan) or 'gradient' (plain steps)"""
     lambda_sep: float = GuidanceConfig.lambda_sep
-    """weight of the separation term between the guided vehicles (0: off)"""
+    """weight of the separation term between the guided vehicles (0: off, the paper's
+    objective)"""
     stitch_steps: int | None = AdversaryConfig.stitch_steps
     """[steps] blend of a new plan into the executed one (default: 15 blending first, 5
     after; 0: switch at once)"""
