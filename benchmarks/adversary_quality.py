@@ -76,6 +76,8 @@ class Options:
     """[m] a vehicle at rest whose plan moves it less keeps its brake on (0: off)"""
     lambda_map: float = AdversaryConfig.lambda_map
     """weight of the guidance's map term"""
+    step_size: float = GuidanceConfig.step_size
+    """guidance step size (Adam's learning rate, normalised action units)"""
     optimizer: str = GuidanceConfig.optimizer
     """guidance steps: 'adam' (per coordinate), 'adam-plan' (one second moment per guided
     plan) or 'gradient' (plain steps)"""
@@ -144,6 +146,7 @@ def run(options: Options) -> dict[str, dict]:
             avoid_steps=options.avoid_steps,
             hold_distance=options.hold_distance,
             lambda_map=options.lambda_map,
+            step_size=options.step_size,
             optimizer=options.optimizer,
             lambda_sep=options.lambda_sep,
             stitch_steps=options.stitch_steps,
@@ -202,7 +205,8 @@ def main(argv: list[str] | None = None) -> None:
     stitch = resolve_stitch_steps(options.stitch_steps, options.stitch_first)
     base = (
         f"avoid_steps={options.avoid_steps}, hold_distance={options.hold_distance:g}, "
-        f"lambda_map={options.lambda_map:g}, optimizer={options.optimizer}, "
+        f"lambda_map={options.lambda_map:g}, step_size={options.step_size:g}, "
+        f"optimizer={options.optimizer}, "
         f"lambda_sep={options.lambda_sep:g}, stitch_steps={stitch}, "
         f"stitch_first={options.stitch_first}"
     )
