@@ -136,16 +136,18 @@ def test_bad_options(strive, tiny_denoiser, tiny_normalizer, tiny_meanflow):
 
 
 def _guided_penetration(policy, view) -> float:
-    """Summed squared penetration depth [m^2] of the pairs of guided plans (world frame)."""
-    from policies.learned.plan_penalties import pair_separation
+    """Summed squared penetration depth [m^2] of the pairs of guided plans (world frame):
+    the avoidance steps' score (``overlap_scores``) on every pair of guided vehicles."""
+    from policies.learned.plan_selection import overlap_scores
 
     guided = policy.controllable
-    plans = torch.as_tensor(policy.plans[guided])[None]
+    plans = torch.as_tensor(policy.plans[guided])[None]  # (1, C, T, 4)
     length = torch.as_tensor(view.length[guided], dtype=plans.dtype)[None]
     width = torch.as_tensor(view.width[guided], dtype=plans.dtype)[None]
-    gaps = pair_separation(plans, length, width)[0]  # (C, C, T)
-    upper = torch.ones(gaps.shape[:2], dtype=torch.bool).triu(diagonal=1)
-    return float(torch.relu(-gaps[upper]).square().sum())
+    count = plans.shape[1]
+    pairs = torch.ones(1, count, count, dtype=torch.bool).triu(diagonal=1)
+    present = torch.ones(1, count, dtype=torch.bool)
+    return float(overlap_scores(plans[:, None], length, width, present, plans[:, :, 0], pairs))
 
 
 @pytest.mark.parametrize("kind", ["strive", "riskflow"])
