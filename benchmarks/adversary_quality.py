@@ -11,11 +11,12 @@ The episode ends early when the ego collides (the default ``EnvConfig``), as in 
 stress test; ``--full-episodes`` runs every episode for 10 s instead, so that off-road
 rates are compared over the same exposure. The adversary runs with the library's
 defaults: the realistic base (20 avoidance steps, holding at rest at 4 m, blending first
-over 15 steps), the map term weighted 20 and the separation term between the guided
-vehicles weighted 100 (docs/REALISM.md, rounds 8-17); ``--avoid-steps 0 --hold-distance 0
---lambda-map 1 --lambda-sep 0 --no-stitch-first`` is the raw base of ``riskflow-eval``'s
-``riskflow-plain``; ``--stitch-steps N`` sets the blend. ``--out``
-receives ``quality.json`` with the summaries and every scene's metrics.
+over 15 steps), the map term weighted 20, the separation term between the guided
+vehicles weighted 100 and the guidance step 0.03 (docs/REALISM.md, rounds 8-18);
+``--avoid-steps 0 --hold-distance 0 --lambda-map 1 --lambda-sep 0 --step-size 0.1
+--no-stitch-first`` is the raw base of ``riskflow-eval``'s ``riskflow-plain``;
+``--stitch-steps N`` sets the blend. ``--out`` receives ``quality.json`` with the
+summaries and every scene's metrics.
 """
 
 from __future__ import annotations

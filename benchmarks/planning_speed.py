@@ -1,11 +1,12 @@
 """Latency of one RiskFlow planning cycle, phase by phase, against peers in the same run.
 
 One cycle of :class:`policies.riskflow.policy.RiskFlowAdversary` on the raw base with the
-paper's objective (``avoid_steps=0, hold_distance=0, stitch_first=False, lambda_sep=0``:
-``riskflow-eval``'s ``riskflow-plain`` plans the same way) on a shipped evaluation scene with ``--agents``
-vehicles (20) and a 52-step plan: window building (``window_from_view``), scene encoder,
-MeanFlow one-step generator, TTC causal ranking and ``--guidance-steps`` (30) steps of
-output-space guidance on the top-``--k`` agents.
+paper's objective and step (``avoid_steps=0, hold_distance=0, stitch_first=False,
+lambda_sep=0, step_size=0.1``: ``riskflow-eval``'s ``riskflow-plain`` plans the same way)
+on a shipped evaluation scene with ``--agents`` vehicles (20) and a 52-step plan: window
+building (``window_from_view``), scene encoder, MeanFlow one-step generator, TTC causal
+ranking and ``--guidance-steps`` (30) steps of output-space guidance on the top-``--k``
+agents.
 Peers, measured interleaved with it (same machine load):
 
 * **unguided** — the same policy with ``k = 0`` (window + encoder + generator + ranking);
@@ -14,9 +15,9 @@ Peers, measured interleaved with it (same machine load):
   sample whose ``A_c`` rows score the lowest ``L_adv``;
 * **on the realistic base** — RiskFlow and the unguided generator with ``--avoid-steps``
   avoidance steps (the default's, ``DEFAULT_AVOID_STEPS``: 20), the default holding at
-  rest (4 m), blending first and (RiskFlow) the separation term ``lambda_sep = 100``: the
-  library's defaults (``riskflow-eval``'s ``riskflow`` and ``bits``; docs/REALISM.md,
-  rounds 8-17);
+  rest (4 m), blending first and (RiskFlow) the separation term ``lambda_sep = 100`` and
+  the step 0.03: the library's defaults (``riskflow-eval``'s ``riskflow`` and ``bits``;
+  docs/REALISM.md, rounds 8-18);
   ``--avoid-steps 0`` leaves these rows out.
 
 Prints the median [ms] of each phase and the ratios to the peers. Target: a full cycle
@@ -137,7 +138,14 @@ def main(argv: list[str] | None = None) -> None:
     view, scene_name = scene_view(options.agents)
     common = dict(generator=model, normalizer=normalizer, device=options.device, threads=threads)
     # the raw base and the paper's objective (riskflow-plain)
-    kwargs = dict(common, avoid_steps=0, hold_distance=0.0, stitch_first=False, lambda_sep=0.0)
+    kwargs = dict(
+        common,
+        avoid_steps=0,
+        hold_distance=0.0,
+        stitch_first=False,
+        lambda_sep=0.0,
+        step_size=0.1,
+    )
     guided = RiskFlowAdversary(k=options.k, guidance_steps=options.guidance_steps, **kwargs)
     unguided = RiskFlowAdversary(k=0, **kwargs)
     kwargs_based = dict(common, avoid_steps=options.avoid_steps)  # the defaults otherwise

@@ -129,10 +129,10 @@ METHODS: dict[str, MethodSpec] = {
         ),
         MethodSpec(
             "riskflow-plain",
-            "RiskFlow on the raw base (bits-plain), lambda_map = 1, no separation term "
-            "(the defaults before REALISM.md round 10)",
+            "RiskFlow on the raw base (bits-plain), lambda_map = 1, no separation term, "
+            "step_size = 0.1 (the defaults before REALISM.md round 10)",
             _riskflow,
-            PLAIN | {"lambda_map": 1.0, "lambda_sep": 0.0},
+            PLAIN | {"lambda_map": 1.0, "lambda_sep": 0.0, "step_size": 0.1},
         ),
         MethodSpec(
             "riskflow-noadv",

@@ -52,6 +52,9 @@ from riskflow_env._array import attach_gradient
 from riskflow_env.view import SceneView
 
 DEFAULT_LAMBDA_PRIOR = 1.0  # weight of ||eps_c||^2 / 2 [per unit of normalised noise^2]
+# Adam's learning rate on the latent [normalised noise units per step]: STRIVE-style's best
+# of 0.03 / 0.1 / 0.3 at every K (docs/RESULTS.md section 4), RiskFlow's is 0.03
+DEFAULT_STEP_SIZE = 0.1
 
 
 class StriveAdversary(RiskFlowAdversary):
@@ -62,12 +65,13 @@ class StriveAdversary(RiskFlowAdversary):
             ``k``, ``target``, ``lambda_adv``, ``lambda_map``, ``seed``, ...; the same
             ``eps`` as ``RiskFlowAdversary`` with the same seed), or as keywords.
         lambda_prior: weight of the latent prior ``||eps_c||^2 / 2``, >= 0.
+        step_size: Adam's learning rate [normalised noise units per step] (default 0.1,
+            this method's best, docs/RESULTS.md section 4), or ``gamma`` of plain steps.
         generator: a MeanFlow ``RiskFlowGenerator`` (with ``normalizer``), ``"meanflow"``,
             or None (the shipped one, or ``checkpoint``'s); a diffusion generator is
             refused (no one-step latent to differentiate through).
         **options: ``RiskFlowAdversary``'s: ``guidance_steps`` (``K_g`` latent optimisation
-            steps per cycle), ``step_size`` (Adam learning rate [normalised noise units
-            per step], or ``gamma`` of plain steps), ``optimizer`` (``"adam"``:
+            steps per cycle), ``optimizer`` (``"adam"``:
             ``torch.optim.Adam`` on the latent, STRIVE's; ``"adam-plan"``: one second
             moment per latent row; ``"gradient"``: plain steps), ``normalizer``,
             ``checkpoint``, and the shared options as keywords.
@@ -84,6 +88,7 @@ class StriveAdversary(RiskFlowAdversary):
         config: AdversaryConfig | None = None,
         *,
         lambda_prior: float = DEFAULT_LAMBDA_PRIOR,
+        step_size: float = DEFAULT_STEP_SIZE,
         generator: RiskFlowGenerator | str | None = None,
         **options: Any,
     ) -> None:
@@ -92,7 +97,7 @@ class StriveAdversary(RiskFlowAdversary):
         if generator == "diffusion" or "sampling_steps" in options:
             raise ValueError(_NOT_DIFFUSION)
         self.lambda_prior = float(lambda_prior)
-        super().__init__(config, generator=generator, **options)
+        super().__init__(config, step_size=step_size, generator=generator, **options)
         if self.generator_kind != "meanflow":
             raise ValueError(_NOT_DIFFUSION)
 
@@ -250,4 +255,4 @@ class _LatentObjective:
         return (u_c, actions, trajectories), terms
 
 
-__all__ = ["DEFAULT_LAMBDA_PRIOR", "StriveAdversary"]
+__all__ = ["DEFAULT_LAMBDA_PRIOR", "DEFAULT_STEP_SIZE", "StriveAdversary"]

@@ -78,9 +78,10 @@ class GuidanceConfig(ObjectiveConfig):
 
     Attributes:
         steps: ``K_g`` guidance steps (0: the base plans).
-        step_size: the Adam learning rate [normalised action units per step], or
-            ``gamma`` [normalised action units per unit of gradient] for ``"gradient"``
-            (e.g. 3e-3 with the default weights).
+        step_size: the Adam learning rate [normalised action units per step] (default
+            0.03, docs/REALISM.md round 18; 0.1 before, the paper's), or ``gamma``
+            [normalised action units per unit of gradient] for ``"gradient"`` (e.g. 3e-3
+            with the default weights).
         optimizer: ``"adam"`` (the default: one second moment per coordinate),
             ``"adam-plan"`` (one per guided plan, :mod:`policies.learned.adam`: a step
             keeps the shape of the plan's gradient; docs/REALISM.md, round 13) or
@@ -96,7 +97,7 @@ class GuidanceConfig(ObjectiveConfig):
     """
 
     steps: int = 30
-    step_size: float = 0.1
+    step_size: float = 0.03
     optimizer: str = "adam"
     lambda_base: float = 0.0
     lambda_sep: float = 100.0

@@ -266,6 +266,20 @@ def test_every_method_builds(name):
     assert isinstance(policy, ScenePolicy)
 
 
+def test_guidance_step_defaults():
+    """RiskFlow guides with a step of 0.03 (docs/REALISM.md round 18), STRIVE-style with
+    its own best, 0.1; the raw base keeps the paper's 0.1; ``--set`` overrides each."""
+    build = lambda name, **options: build_policy(  # noqa: E731
+        name, options, k=2, planning_interval=0.5, target="others", seed=0
+    )
+    assert build("riskflow").guidance.step_size == 0.03
+    assert build("riskflow-nosep").guidance.step_size == 0.03
+    assert build("strive").guidance.step_size == 0.1
+    assert build("riskflow-plain").guidance.step_size == 0.1
+    assert build("riskflow", step_size=0.1).guidance.step_size == 0.1
+    assert build("strive", step_size=0.3).guidance.step_size == 0.3
+
+
 @pytest.mark.reliability
 def test_rows_are_json_without_nan(tiny_run):
     out, _ = tiny_run
