@@ -15,7 +15,16 @@ the same jobs (they match to float rounding, which a long closed-loop rollout ca
 amplify: the largest difference of a row's numbers, and the rows whose outcome differs)
 and the evaluation's metrics from each run (``riskflow-eval report``'s table).
 
+``--perturb STD`` adds a reference: the per-scene path once more, with Gaussian noise of
+standard deviation STD (normalised action units; 3e-7 is about the rounding by which a
+batched generator pass differs from a one-scene pass) added to the MeanFlow generator's
+base residual ``u0`` at every planning cycle. Its rows differ from the per-scene rows as
+much as rounding alone can make a closed-loop rollout differ, so the batched rows'
+differences can be read against it (README, "Batched rollouts"). MeanFlow methods only,
+in one process (``--workers 1``).
+
     python benchmarks/eval_batched.py [--scenes 100] [--batch 100] [--duration 10]
+        [--perturb 3e-7]
 """
 
 from __future__ import annotations
@@ -63,18 +72,52 @@ class Options:
     """--diffusion-steps of the diffusion baselines (None: all 100, DDPM)"""
     out: str | None = None
     """folder for the runs' results (default: a temporary folder, removed at the end)"""
+    perturb: float | None = None
+    """std of the noise on the generator's u0 in one more per-scene run (None: no such run)"""
+
+
+# ``python -c`` program of the perturbed per-scene run: riskflow-eval in this process with
+# the MeanFlow generator's base residual perturbed (argv: STD, then riskflow-eval's own)
+PERTURBED = """
+import sys
+import torch
+import policies.riskflow.policy as policy
+from policies.evaluation.cli import main
+std, base = float(sys.argv[1]), policy.base_velocity
+draw = torch.Generator().manual_seed(0)
+def perturbed(model, eps, scene):
+    u0 = base(model, eps, scene)
+    return u0 + std * torch.randn(u0.shape, generator=draw, dtype=u0.dtype)
+policy.base_velocity = perturbed
+main(sys.argv[2:])
+"""
 
 
 def _parse(argv: list[str] | None = None) -> Options:
-    return parse_dataclass(
+    options = parse_dataclass(
         Options, argv, prog="eval_batched.py", description=__doc__.split("\n")[0]
     )
+    if options.perturb is not None:
+        from policies.registry import METHODS
+
+        if not (math.isfinite(options.perturb) and options.perturb > 0):
+            raise SystemExit(f"--perturb must be a finite number > 0, got {options.perturb}")
+        if options.workers != 1:
+            raise SystemExit(f"--perturb needs --workers 1 (one process), got {options.workers}")
+        diffusion = [name for name in options.methods if METHODS[name].diffusion]
+        if diffusion:
+            raise SystemExit(f"--perturb takes MeanFlow methods only, got {diffusion}")
+    return options
 
 
-def run_eval(options: Options, batch: int, out: Path) -> dict:
-    """One ``riskflow-eval`` run in a fresh process; its rollout and command wall times."""
+def run_eval(options: Options, batch: int, out: Path, perturb: float | None = None) -> dict:
+    """One ``riskflow-eval`` run in a fresh process; its rollout and command wall times.
+    ``perturb``: the per-scene run with the generator's ``u0`` perturbed (``PERTURBED``)."""
+    program = ["-m", "policies.evaluation.cli"]
+    if perturb is not None:
+        program = ["-c", PERTURBED, repr(perturb)]
     argv = [
-        sys.executable, "-m", "policies.evaluation.cli", "--methods", *options.methods,
+        sys.executable, *program, "--methods", *options.methods,
         "--k", options.k, "--scenes", str(options.scenes), "--duration", str(options.duration),
         "--workers", str(options.workers), "--batch-scenes", str(batch), "--no-report",
         "--out", str(out),
@@ -91,7 +134,8 @@ def run_eval(options: Options, batch: int, out: Path) -> dict:
     match = SUMMARY.search(result.stdout)
     if result.returncode != 0 or match is None:
         raise RuntimeError(f"riskflow-eval failed ({result.returncode}):\n{result.stderr[-2000:]}")
-    return {"batch": batch, "rollouts": int(match[1]), "rollout_s": float(match[2]),
+    label = batch if perturb is None else f"1+{perturb:g}"
+    return {"batch": label, "rollouts": int(match[1]), "rollout_s": float(match[2]),
             "command_s": command, "out": out}  # fmt: skip
 
 
@@ -147,6 +191,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
         for batch in options.batch:
             row = run_eval(options, batch, folder / f"batch{batch}")
             rows.append(row | compare(rows[0]["out"], row["out"]))
+        if options.perturb is not None:
+            row = run_eval(options, 1, folder / "perturbed", options.perturb)
+            rows.append(row | compare(rows[0]["out"], row["out"]))
         for row in rows:
             table = build_tables(ResultsStore(row.pop("out")))[0]
             row["label"], row["metrics"] = next(iter(table.metrics.items()))
@@ -169,6 +216,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
         "included); ratio = per-scene rollouts / these; max |diff|: largest difference of a "
         "row's numbers from the per-scene row of the same job; rows > 1e-3: rows with a number "
         "further than that; outcome differs: rows whose steps or collision flags differ"
+        + (
+            f"; 1+{options.perturb:g}: the per-scene path with noise of that std on the "
+            "generator's u0 (the closed loop's own sensitivity to rounding)"
+            if options.perturb is not None
+            else ""
+        )
     )
     width = max([12, *(len(row["label"]) + 2 for row in rows)])  # labels carry options
     print(

@@ -2,18 +2,39 @@
 
 from __future__ import annotations
 
+import pytest
+
 from tests.benchmarks.scripts import load_benchmark
 
 
 def test_prints_the_per_scene_and_batched_rows(capsys):
+    """Per-scene, batched, and the per-scene path with the generator's u0 perturbed
+    (``--perturb``): the noise reaches the rollouts (their rows move), rounding does not
+    move the batched rows past float tolerance here."""
     bench = load_benchmark("eval_batched")
-    rows = bench.main(["--scenes", "2", "--batch", "2", "--duration", "0.5"])
-    assert [row["batch"] for row in rows] == [1, 2]
+    argv = ["--scenes", "2", "--batch", "2", "--duration", "0.5", "--perturb", "0.01"]
+    rows = bench.main(argv)
+    assert [row["batch"] for row in rows] == [1, 2, "1+0.01"]
     assert all(row["rollouts"] == 2 and row["rollout_s"] > 0 for row in rows)
     assert rows[1]["rows"] == 2 and rows[1]["outcome_differs"] == 0
     assert rows[1]["max_diff"] < 1e-4
+    assert rows[2]["rows"] == 2 and rows[2]["max_diff"] > 1e-4
     out = capsys.readouterr().out
-    assert "batch-scenes" in out and "ratio" in out
+    assert "batch-scenes" in out and "ratio" in out and "1+0.01" in out
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--perturb", "0"], "--perturb must be a finite number > 0"),
+        (["--perturb", "1e-6", "--workers", "2"], "--perturb needs --workers 1"),
+        (["--perturb", "1e-6", "--methods", "ctg"], "--perturb takes MeanFlow methods only"),
+    ],
+)
+def test_perturb_refuses_what_it_cannot_perturb(argv, message):
+    bench = load_benchmark("eval_batched")
+    with pytest.raises(SystemExit, match=message):
+        bench.main(argv)
 
 
 def test_rows_with_a_number_only_one_run_has_are_apart():
