@@ -12,7 +12,8 @@ stress test; ``--full-episodes`` runs every episode for 10 s instead, so that of
 rates are compared over the same exposure. The adversary runs with the library's
 defaults: the realistic base (20 avoidance steps, holding at rest at 4 m, blending first
 over 15 steps), the map term weighted 20, the separation term between the guided
-vehicles weighted 100 and the guidance step 0.03 (docs/REALISM.md, rounds 8-18);
+vehicles weighted 100 and the target's guidance step (0.1 with ``--target ego``, 0.03
+with ``others``; docs/REALISM.md, rounds 8-18);
 ``--avoid-steps 0 --hold-distance 0 --lambda-map 1 --lambda-sep 0 --step-size 0.1
 --no-stitch-first`` is the raw base of ``riskflow-eval``'s ``riskflow-plain``;
 ``--stitch-steps N`` sets the blend. ``--out`` receives ``quality.json`` with the
@@ -37,7 +38,7 @@ from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
 from policies.learned.plan_stitching import resolve_stitch_steps
 from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
-from policies.riskflow.guidance import GuidanceConfig
+from policies.riskflow.guidance import STEP_SIZES, GuidanceConfig
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
 from riskflow_env.view import SceneView
@@ -77,8 +78,9 @@ class Options:
     """[m] a vehicle at rest whose plan moves it less keeps its brake on (0: off)"""
     lambda_map: float = AdversaryConfig.lambda_map
     """weight of the guidance's map term"""
-    step_size: float = GuidanceConfig.step_size
-    """guidance step size (Adam's learning rate, normalised action units)"""
+    step_size: float | None = GuidanceConfig.step_size
+    """guidance step size (Adam's learning rate, normalised action units); default: the
+    target's (0.03 with 'others', 0.1 with 'ego')"""
     optimizer: str = GuidanceConfig.optimizer
     """guidance steps: 'adam' (per coordinate), 'adam-plan' (one second moment per guided
     plan) or 'gradient' (plain steps)"""
@@ -204,9 +206,10 @@ def main(argv: list[str] | None = None) -> None:
     (out / "quality.json").write_text(json.dumps({"options": vars(options), **results}, indent=1))
     ending = "full 10 s" if options.full_episodes else "ends at an ego collision"
     stitch = resolve_stitch_steps(options.stitch_steps, options.stitch_first)
+    step_size = options.step_size or STEP_SIZES[options.target]
     base = (
         f"avoid_steps={options.avoid_steps}, hold_distance={options.hold_distance:g}, "
-        f"lambda_map={options.lambda_map:g}, step_size={options.step_size:g}, "
+        f"lambda_map={options.lambda_map:g}, step_size={step_size:g}, "
         f"optimizer={options.optimizer}, "
         f"lambda_sep={options.lambda_sep:g}, stitch_steps={stitch}, "
         f"stitch_first={options.stitch_first}"

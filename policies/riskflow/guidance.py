@@ -66,6 +66,10 @@ from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout, rollout_with_vjp
 
 OPTIMIZERS = ("gradient", "adam", "adam-plan")
+# The default Adam step per target (docs/REALISM.md round 18): 0.03 with the paper's
+# target keeps the guided traffic nearest the log (docs/RESULTS.md section 4); 0.1, the
+# paper's step, with target "ego", where 0.03 hits the ego far less often (real scenes).
+STEP_SIZES = {"others": 0.03, "ego": 0.1}
 PLAN_BLOCK = (1, 2)  # the (T, 2) axes of a guided row: one Adam block per plan ("adam-plan")
 
 
@@ -78,10 +82,11 @@ class GuidanceConfig(ObjectiveConfig):
 
     Attributes:
         steps: ``K_g`` guidance steps (0: the base plans).
-        step_size: the Adam learning rate [normalised action units per step] (default
-            0.03, docs/REALISM.md round 18; 0.1 before, the paper's), or ``gamma``
-            [normalised action units per unit of gradient] for ``"gradient"`` (e.g. 3e-3
-            with the default weights).
+        step_size: the Adam learning rate [normalised action units per step], or
+            ``gamma`` [normalised action units per unit of gradient] for ``"gradient"``
+            (e.g. 3e-3 with the default weights); None (default): ``STEP_SIZES[target]``,
+            0.03 with target ``"others"`` and the paper's 0.1 with ``"ego"``
+            (docs/REALISM.md round 18).
         optimizer: ``"adam"`` (the default: one second moment per coordinate),
             ``"adam-plan"`` (one per guided plan, :mod:`policies.learned.adam`: a step
             keeps the shape of the plan's gradient; docs/REALISM.md, round 13) or
@@ -97,10 +102,15 @@ class GuidanceConfig(ObjectiveConfig):
     """
 
     steps: int = 30
-    step_size: float = 0.03
+    step_size: float | None = None
     optimizer: str = "adam"
     lambda_base: float = 0.0
     lambda_sep: float = 100.0
+
+    def __post_init__(self) -> None:
+        if self.step_size is None:  # the target's default (frozen: set once, here)
+            object.__setattr__(self, "step_size", STEP_SIZES.get(self.target, 0.03))
+        super().__post_init__()
 
     def checks(self) -> list[tuple[bool, str]]:
         """The objective's rules and the optimiser's."""
@@ -365,6 +375,7 @@ def _guide_scenes(
 
 __all__ = [
     "OPTIMIZERS",
+    "STEP_SIZES",
     "Separation",
     "TARGETS",
     "GuidanceConfig",

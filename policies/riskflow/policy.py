@@ -103,7 +103,8 @@ class RiskFlowAdversary(PlanBufferPolicy):
             ``guidance_horizon``, ``rank_threshold``, ``seed``, ``device``,
             ``window_config``, ``threads``); or give them as keywords (``**options``).
         guidance_steps: ``K_g``.
-        step_size: Adam learning rate, or ``gamma`` of plain steps (:class:`GuidanceConfig`).
+        step_size: Adam learning rate, or ``gamma`` of plain steps; None (default): 0.03
+            with target ``"others"``, 0.1 with ``"ego"`` (:class:`GuidanceConfig`).
         optimizer: ``"adam"`` (default), ``"adam-plan"`` (one Adam second moment per
             guided plan) or ``"gradient"`` (the paper's plain steps)
             (:class:`~policies.riskflow.guidance.GuidanceConfig`).
@@ -143,7 +144,7 @@ class RiskFlowAdversary(PlanBufferPolicy):
         config: AdversaryConfig | None = None,
         *,
         guidance_steps: int = 30,
-        step_size: float = GuidanceConfig.step_size,
+        step_size: float | None = GuidanceConfig.step_size,
         optimizer: str = GuidanceConfig.optimizer,
         lambda_base: float = GuidanceConfig.lambda_base,
         lambda_sep: float = GuidanceConfig.lambda_sep,

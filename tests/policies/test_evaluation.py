@@ -267,16 +267,20 @@ def test_every_method_builds(name):
 
 
 def test_guidance_step_defaults():
-    """RiskFlow guides with a step of 0.03 (docs/REALISM.md round 18), STRIVE-style with
-    its own best, 0.1; the raw base keeps the paper's 0.1; ``--set`` overrides each."""
-    build = lambda name, **options: build_policy(  # noqa: E731
-        name, options, k=2, planning_interval=0.5, target="others", seed=0
+    """RiskFlow guides with the target's step (docs/REALISM.md round 18): 0.03 with the
+    paper's target, 0.1 with target ``ego``; STRIVE-style with its own best, 0.1, for
+    either; the raw base keeps the paper's 0.1; ``--set`` overrides each."""
+    build = lambda name, target="others", **options: build_policy(  # noqa: E731
+        name, options, k=2, planning_interval=0.5, target=target, seed=0
     )
     assert build("riskflow").guidance.step_size == 0.03
+    assert build("riskflow", target="ego").guidance.step_size == 0.1
     assert build("riskflow-nosep").guidance.step_size == 0.03
     assert build("strive").guidance.step_size == 0.1
+    assert build("strive", target="ego").guidance.step_size == 0.1
     assert build("riskflow-plain").guidance.step_size == 0.1
     assert build("riskflow", step_size=0.1).guidance.step_size == 0.1
+    assert build("riskflow", target="ego", step_size=0.03).guidance.step_size == 0.03
     assert build("strive", step_size=0.3).guidance.step_size == 0.3
 
 
