@@ -134,11 +134,11 @@ class StriveAdversary(RiskFlowAdversary):
         objective = _LatentObjective(self, scene, observed.scene, guided)
         eps_c = scene.eps.flatten(0, 1)[rows].clone().requires_grad_(True)
         if config.optimizer == "adam":
-            optimizer = torch.optim.Adam([eps_c], lr=config.step_size)
+            optimizer = torch.optim.Adam([eps_c], lr=config.resolved_step_size)
         elif config.optimizer == "adam-plan":  # one second moment per latent row
-            optimizer = _BlockAdam(eps_c, config.step_size, PLAN_BLOCK)
+            optimizer = _BlockAdam(eps_c, config.resolved_step_size, PLAN_BLOCK)
         else:
-            optimizer = torch.optim.SGD([eps_c], lr=config.step_size)
+            optimizer = torch.optim.SGD([eps_c], lr=config.resolved_step_size)
 
         history = []
         for _ in range(config.steps):

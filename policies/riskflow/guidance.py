@@ -107,17 +107,21 @@ class GuidanceConfig(ObjectiveConfig):
     lambda_base: float = 0.0
     lambda_sep: float = 100.0
 
-    def __post_init__(self) -> None:
-        if self.step_size is None:  # the target's default (frozen: set once, here)
-            object.__setattr__(self, "step_size", STEP_SIZES.get(self.target, 0.03))
-        super().__post_init__()
+    @property
+    def resolved_step_size(self) -> float:
+        """The step in use: ``step_size``, or the target's default when it is None (so a
+        copy with another ``target``, e.g. a curriculum's, takes that target's)."""
+        return STEP_SIZES[self.target] if self.step_size is None else self.step_size
 
     def checks(self) -> list[tuple[bool, str]]:
         """The objective's rules and the optimiser's."""
         steps_ok = isinstance(self.steps, int) and not isinstance(self.steps, bool)
         return super().checks() + [
             (steps_ok and self.steps >= 0, "steps must be an int >= 0"),
-            (math.isfinite(self.step_size) and self.step_size > 0, "step_size must be > 0"),
+            (
+                self.step_size is None or (math.isfinite(self.step_size) and self.step_size > 0),
+                "step_size must be None or a number > 0",
+            ),
             (self.optimizer in OPTIMIZERS, f"optimizer must be one of {OPTIMIZERS}"),
             (
                 math.isfinite(self.lambda_base) and self.lambda_base >= 0,
@@ -342,7 +346,8 @@ def _guide_scenes(
     with torch.no_grad():
         lower, upper = objective.bounds()
         u_c = torch.minimum(torch.maximum(flat.u0[rows], lower), upper)
-    adam = Adam(u_c, config.step_size, PLAN_BLOCK if config.optimizer == "adam-plan" else ())
+    step_size = config.resolved_step_size
+    adam = Adam(u_c, step_size, PLAN_BLOCK if config.optimizer == "adam-plan" else ())
     history = []
     # Closed-form gradients: nothing to record, and inference mode skips autograd's
     # per-op bookkeeping (version counters) too; u_c leaves it only through copies.
@@ -351,7 +356,7 @@ def _guide_scenes(
             grad, adv, off_road = objective.gradient(u_c, config.lambda_adv, config.lambda_map)
             history.append(per_scene(adv, off_road))
             if config.optimizer == "gradient":
-                grad = config.step_size * grad
+                grad = step_size * grad
             else:
                 grad = adam.step(grad)
             u_c = torch.minimum(torch.maximum(u_c - grad, lower), upper)

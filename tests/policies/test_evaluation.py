@@ -23,6 +23,7 @@ from policies.evaluation.cli import main
 from policies.evaluation.options import check_device
 from policies.evaluation.report import _mean_first_time, build_tables, safety_metric
 from policies.evaluation.rollout import HISTORY
+from policies.riskflow.guidance import GuidanceConfig
 from riskflow_env.view import ScenePolicy
 
 # tiny: 2 scenes, 1 s episodes, RiskFlow with a 2-step guidance budget
@@ -270,18 +271,26 @@ def test_guidance_step_defaults():
     """RiskFlow guides with the target's step (docs/REALISM.md round 18): 0.03 with the
     paper's target, 0.1 with target ``ego``; STRIVE-style with its own best, 0.1, for
     either; the raw base keeps the paper's 0.1; ``--set`` overrides each."""
-    build = lambda name, target="others", **options: build_policy(  # noqa: E731
-        name, options, k=2, planning_interval=0.5, target=target, seed=0
-    )
-    assert build("riskflow").guidance.step_size == 0.03
-    assert build("riskflow", target="ego").guidance.step_size == 0.1
-    assert build("riskflow-nosep").guidance.step_size == 0.03
-    assert build("strive").guidance.step_size == 0.1
-    assert build("strive", target="ego").guidance.step_size == 0.1
-    assert build("riskflow-plain").guidance.step_size == 0.1
-    assert build("riskflow", step_size=0.1).guidance.step_size == 0.1
-    assert build("riskflow", target="ego", step_size=0.03).guidance.step_size == 0.03
-    assert build("strive", step_size=0.3).guidance.step_size == 0.3
+
+    def build(name, target="others", **options):
+        policy = build_policy(name, options, k=2, planning_interval=0.5, target=target, seed=0)
+        return policy.guidance.resolved_step_size
+
+    assert build("riskflow") == 0.03
+    assert build("riskflow", target="ego") == 0.1
+    assert build("riskflow-nosep") == 0.03
+    assert build("strive") == 0.1
+    assert build("strive", target="ego") == 0.1
+    assert build("riskflow-plain") == 0.1
+    assert build("riskflow", step_size=0.1) == 0.1
+    assert build("riskflow", target="ego", step_size=0.03) == 0.03
+    assert build("strive", step_size=0.3) == 0.3
+    # a curriculum that switches the target (policies.rl.adversary.apply_stage) switches
+    # the default step with it; a given step stays
+    default = build_policy("riskflow", {}, k=2, planning_interval=0.5, target="others", seed=0)
+    assert replace(default.guidance, target="ego").resolved_step_size == 0.1
+    given = GuidanceConfig(step_size=0.05)
+    assert replace(given, target="ego").resolved_step_size == 0.05
 
 
 @pytest.mark.reliability
