@@ -38,7 +38,7 @@ from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
 from policies.learned.plan_stitching import resolve_stitch_steps
 from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
-from policies.riskflow.guidance import STEP_SIZES, GuidanceConfig
+from policies.riskflow.guidance import GuidanceConfig
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
 from riskflow_env.view import SceneView
@@ -206,7 +206,9 @@ def main(argv: list[str] | None = None) -> None:
     (out / "quality.json").write_text(json.dumps({"options": vars(options), **results}, indent=1))
     ending = "full 10 s" if options.full_episodes else "ends at an ego collision"
     stitch = resolve_stitch_steps(options.stitch_steps, options.stitch_first)
-    step_size = options.step_size or STEP_SIZES[options.target]
+    step_size = GuidanceConfig(
+        step_size=options.step_size, target=options.target
+    ).resolved_step_size
     base = (
         f"avoid_steps={options.avoid_steps}, hold_distance={options.hold_distance:g}, "
         f"lambda_map={options.lambda_map:g}, step_size={step_size:g}, "
