@@ -54,6 +54,7 @@ from policies.learned.window_types import WindowBatch
 from riskflow_env.scenarios.folders import scene_files
 
 CHECKPOINT, GENERATOR, METRICS_LOG = "checkpoint.pt", "generator.pt", "metrics.jsonl"
+LR_SCHEDULES = ("constant", "cosine")
 # torch.func.jvp's first call warns that torch.jit.script is deprecated (torch's own use).
 warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.*", category=DeprecationWarning)
 
@@ -101,7 +102,12 @@ class LoopOptions:
     batch_size: int = 16
     """windows (scenes) per batch"""
     lr: float = 1e-4
-    """Adam learning rate"""
+    """Adam learning rate (the peak, with --lr-schedule cosine)"""
+    lr_schedule: str = "constant"
+    """'constant', or 'cosine': linear warm-up over --warmup-steps, then a cosine decay
+    to 0 at --steps (SGDR, Loshchilov & Hutter 2017, without restarts)"""
+    warmup_steps: int = 0
+    """steps of linear learning-rate warm-up from 0 (with --lr-schedule cosine)"""
     ema_decay: float = 0.995
     """EMA decay of the weights per step"""
     grad_clip: float = 1.0
@@ -158,6 +164,8 @@ class LoopOptions:
             "--steps, --batch-size, --stride, --bucket, --eval-every, --log-every, "
             "--num-samples >= 1": min(*counts, self.log_every, self.num_samples) >= 1,
             "--lr > 0": self.lr > 0,
+            f"--lr-schedule in {LR_SCHEDULES}": self.lr_schedule in LR_SCHEDULES,
+            "0 <= --warmup-steps < --steps": 0 <= self.warmup_steps < self.steps,
             "--grad-clip > 0": self.grad_clip > 0,
             "0 <= --ema-decay < 1": 0 <= self.ema_decay < 1,
             "0 < --val-fraction < 1": 0 < self.val_fraction < 1,
@@ -188,6 +196,18 @@ class LoopOptions:
         broken = [rule for rule, holds in self.rules().items() if not holds]
         if broken:
             raise ValueError(f"riskflow-train needs {'; '.join(broken)}")
+
+
+def learning_rate(options: LoopOptions, step: int) -> float:
+    """The learning rate of optimiser step ``step`` (0-based) under ``options.lr_schedule``.
+
+    A pure function of the step, so a resumed run follows the uninterrupted schedule.
+    ``cosine``: ``lr * min(1, (step + 1) / warmup) * (1 + cos(pi * step / steps)) / 2``.
+    """
+    if options.lr_schedule == "constant":
+        return options.lr
+    warmup = min(1.0, (step + 1) / options.warmup_steps) if options.warmup_steps else 1.0
+    return options.lr * warmup * 0.5 * (1.0 + math.cos(math.pi * step / options.steps))
 
 
 def model_config(text: str) -> ModelConfig:
@@ -358,6 +378,9 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
             batch = collated(train_set, batches[step % per_epoch], device)
             eps = torch.randn(batch.actions.shape, generator=noise, device=device)
             loss, values = objective.loss(model, batch, normalizer, eps, noise, **weights)
+            values["lr"] = learning_rate(options, step)
+            for group in optimizer.param_groups:
+                group["lr"] = values["lr"]
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             values["grad_norm"] = torch.nn.utils.clip_grad_norm_(

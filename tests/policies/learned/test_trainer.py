@@ -18,6 +18,7 @@ from policies.learned.checkpoint import load_checkpoint, load_generator
 from policies.learned.config import ModelConfig
 from policies.learned.generator import CheckpointError
 from policies.learned.recovery import RecoveryConfig
+from policies.learned.trainer import learning_rate
 from policies.train import CHECKPOINT, GENERATOR, METRICS_LOG, TrainOptions
 from policies.train import main as train_main
 from tests.policies.highway_banks import write_banks
@@ -66,13 +67,19 @@ def test_main_trains_end_to_end(banks, tmp_path, tiny_config):
     assert metadata["step"] == 4 and "training" not in load_checkpoint(out / GENERATOR)
 
 
-def test_resume_gives_the_uninterrupted_result(banks, tmp_path, tiny_config):
-    """2 steps, then --resume up to 4: bit-identical to 4 steps in one go (CPU)."""
+@pytest.mark.parametrize(
+    "schedule", [(), ("--lr-schedule", "cosine", "--warmup-steps", "1")], ids=["constant", "cosine"]
+)
+def test_resume_gives_the_uninterrupted_result(banks, tmp_path, tiny_config, schedule):
+    """A run stopped early, then --resume up to 4: bit-identical to 4 steps in one go
+    (CPU), with the learning-rate schedule too (a function of the step and --steps: the
+    cosine run is stopped by its time budget after one of its 4 steps)."""
     straight, resumed = tmp_path / "straight", tmp_path / "resumed"
-    train_main(tiny_args(banks, straight, tiny_config))
-    train_main(tiny_args(banks, resumed, tiny_config, steps=2))
-    assert load_checkpoint(resumed / CHECKPOINT)["step"] == 2
-    train_main(tiny_args(banks, resumed, tiny_config, "--resume"))
+    train_main(tiny_args(banks, straight, tiny_config, *schedule))
+    stop = ("--time-budget-min", "1e-9") if schedule else ()
+    train_main(tiny_args(banks, resumed, tiny_config, *schedule, *stop, steps=4 if stop else 2))
+    assert load_checkpoint(resumed / CHECKPOINT)["step"] == (1 if stop else 2)
+    train_main(tiny_args(banks, resumed, tiny_config, *schedule, "--resume"))
     a, b = load_checkpoint(straight / CHECKPOINT), load_checkpoint(resumed / CHECKPOINT)
     assert b["step"] == 4
     for key in a["state_dict"]:
@@ -199,6 +206,33 @@ def test_options_are_typed_documented_and_checked(capsys):
     with pytest.raises(SystemExit):
         parse_dataclass(TrainOptions, ["--help"], "riskflow-train")
     assert "EMA decay of the weights per step" in capsys.readouterr().out
+
+
+def test_learning_rate_schedules():
+    """Constant by default; cosine warms up linearly, peaks at --lr, halves midway, decays
+    towards 0 at --steps; the logged rate is the one used; bad values name the option."""
+    constant = TrainOptions(data=Path("d"), steps=100, lr=1e-3)
+    assert [learning_rate(constant, step) for step in (0, 50, 99)] == [1e-3] * 3
+    cosine = dataclasses.replace(constant, lr_schedule="cosine", warmup_steps=10)
+    rates = np.array([learning_rate(cosine, step) for step in range(100)])
+    np.testing.assert_allclose(rates[:3], 1e-3 * np.array([0.1, 0.2, 0.3]), rtol=1e-2)
+    assert rates.argmax() == 9 and rates[9] <= 1e-3
+    assert learning_rate(cosine, 50) == pytest.approx(0.5e-3)
+    assert np.all(np.diff(rates[9:]) < 0) and 0 < rates[-1] < 1e-6
+    no_warmup = dataclasses.replace(cosine, warmup_steps=0)
+    assert learning_rate(no_warmup, 0) == 1e-3
+    with pytest.raises(ValueError, match="--lr-schedule in"):
+        dataclasses.replace(constant, lr_schedule="linear")
+    with pytest.raises(ValueError, match="--warmup-steps < --steps"):
+        dataclasses.replace(cosine, warmup_steps=100)
+
+
+def test_logged_learning_rate_follows_the_schedule(banks, tmp_path, tiny_config):
+    out = tmp_path / "cosine"
+    train_main(tiny_args(banks, out, tiny_config, "--lr", "1e-3", "--lr-schedule", "cosine"))
+    logged = [json.loads(line)["train_lr"] for line in (out / METRICS_LOG).read_text().splitlines()]
+    options = TrainOptions(data=Path("d"), steps=4, lr=1e-3, lr_schedule="cosine")
+    assert logged == pytest.approx([learning_rate(options, step) for step in range(4)])
 
 
 def test_batch_order_is_seeded_and_buckets_agent_counts():
