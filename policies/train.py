@@ -30,7 +30,8 @@ from typing import Any
 
 from policies.baselines.diffusion.train import DiffusionObjective
 from policies.dataclass_cli import parse_dataclass
-from policies.learned.trainer import CHECKPOINT, GENERATOR, METRICS_LOG, LoopOptions, fit
+from policies.learned.train_options import LoopOptions
+from policies.learned.trainer import CHECKPOINT, GENERATOR, METRICS_LOG, fit
 from policies.riskflow.meanflow import MeanFlowObjective
 from policies.riskflow.time_sampler import TimeSampler
 

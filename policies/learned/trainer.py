@@ -24,11 +24,9 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import sys
 import time
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -50,13 +48,12 @@ from policies.learned.data import ActionNormalizer, compute_action_stats
 from policies.learned.data import load_or_compute_stats as action_stats
 from policies.learned.ema import EMA
 from policies.learned.generator import RiskFlowGenerator
-from policies.learned.recovery import RecoveryConfig
+from policies.learned.train_options import LoopOptions, learning_rate, model_config
 from policies.learned.validation import evaluate
 from policies.learned.window_types import WindowBatch
 from riskflow_env.scenarios.folders import scene_files
 
 CHECKPOINT, GENERATOR, METRICS_LOG = "checkpoint.pt", "generator.pt", "metrics.jsonl"
-LR_SCHEDULES = ("constant", "cosine")
 # torch.func.jvp's first call warns that torch.jit.script is deprecated (torch's own use).
 warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.*", category=DeprecationWarning)
 
@@ -83,142 +80,6 @@ class Objective(Protocol):
     def sampler(self, model: RiskFlowGenerator) -> Any:
         """``model`` as the one-call sampler that validation draws plans from."""
         ...
-
-
-@dataclass(frozen=True)
-class LoopOptions:
-    """Options of the training loop (``riskflow-train`` adds the generator's)."""
-
-    data: tuple[Path, ...]
-    """training scenes: a folder written by `riskflow-data generate`, or a ScenarioNet dataset
-    folder (dataset_summary.pkl; scenes read one at a time when the windows are cut); several
-    folders train on all their scenes together (then --val-data is needed)"""
-    out: Path = Path("runs/riskflow")
-    """output folder: checkpoint.pt (resumable), generator.pt (to ship), metrics.jsonl"""
-    val_data: Path | None = None
-    """validation scenario directory; without it --val-fraction of --data's scenes"""
-    val_fraction: float = 0.1
-    """share of --data's scenes held out for validation when --val-data is not given"""
-    steps: int = 8000
-    """optimiser steps in all (a resumed run continues up to this)"""
-    batch_size: int = 16
-    """windows (scenes) per batch"""
-    lr: float = 1e-4
-    """Adam learning rate (the peak, with --lr-schedule cosine)"""
-    lr_schedule: str = "constant"
-    """'constant', or 'cosine': linear warm-up over --warmup-steps, then a cosine decay
-    to 0 at --steps (SGDR, Loshchilov & Hutter 2017, without restarts)"""
-    warmup_steps: int = 0
-    """steps of linear learning-rate warm-up from 0 (with --lr-schedule cosine)"""
-    ema_decay: float = 0.995
-    """EMA decay of the weights per step"""
-    grad_clip: float = 1.0
-    """maximum global gradient norm (inf: no clipping)"""
-    action_weight: float = 1.0
-    """weight of the normalised action MSE added to the trajectory-space loss (smooth plans)"""
-    heading_weight: float = 0.0
-    """weight [m^2/rad^2] of the heading MSE in the trajectory-space loss"""
-    collision_weight: float = 0.0
-    """weight of the squared penetration depth of decoded box pairs [m^2] (plan_penalties)"""
-    offroad_weight: float = 0.0
-    """weight of the squared SDF excess of planned centres over the reference's [m^2]"""
-    model: str = ""
-    """ModelConfig fields as JSON, or a .json file holding them (empty: defaults)"""
-    stride: int = 5
-    """steps between the current steps of consecutive windows of a scene"""
-    bucket: int = 32
-    """batches per pool sorted by agent count (less padding); 1: plain shuffling"""
-    eval_every: int = 500
-    """steps between validations (and checkpoints)"""
-    val_windows: int = 512
-    """validation windows used (a fixed subset; 0: all)"""
-    num_samples: int = 6
-    """samples per agent for minADE / minFDE"""
-    log_every: int = 50
-    """steps between lines in metrics.jsonl"""
-    seed: int = 0
-    """seed of the model initialisation, batch order, noise and times"""
-    threads: int = 1
-    """torch CPU threads (0: torch's default); 1 avoids oversubscribing a small machine"""
-    device: str = "cpu"
-    """'cpu' or 'cuda' (or 'cuda:N')"""
-    resume: bool = False
-    """continue from OUT/checkpoint.pt"""
-    init: Path | None = None
-    """fine-tune: start from this generator checkpoint's weights (model and EMA), model
-    config and action statistics, with a fresh optimiser (ignored with --resume)"""
-    recovery_copies: int = 0
-    """recovery windows per training window: agents drift off their log and return
-    (policies.learned.recovery; ChauffeurNet-style perturbations)"""
-    recovery_offset: float = 1.0
-    """largest lateral drift of a recovery window's agents [m]"""
-    recovery_parked: int = 0
-    """cars parked beside the road added to each recovery window (policies.learned.parked)"""
-    recovery_kerbside: int = 0
-    """cars parked at the kerb, on the road, added to each recovery window (learned.parked)"""
-    time_budget_min: float = 0.0
-    """stop cleanly and save after this many minutes of this run (0: no limit)"""
-
-    def rules(self) -> dict[str, bool]:
-        """``{rule: holds}`` of the option checks (subclasses add theirs)."""
-        counts = (self.steps, self.batch_size, self.stride, self.bucket, self.eval_every)
-        return {
-            "--steps, --batch-size, --stride, --bucket, --eval-every, --log-every, "
-            "--num-samples >= 1": min(*counts, self.log_every, self.num_samples) >= 1,
-            "--lr > 0": self.lr > 0,
-            f"--lr-schedule in {LR_SCHEDULES}": self.lr_schedule in LR_SCHEDULES,
-            "0 <= --warmup-steps < --steps": 0 <= self.warmup_steps < self.steps,
-            "--grad-clip > 0": self.grad_clip > 0,
-            "0 <= --ema-decay < 1": 0 <= self.ema_decay < 1,
-            "0 < --val-fraction < 1": 0 < self.val_fraction < 1,
-            "--data: one folder, or several with --val-data": len(self.data) == 1
-            or (len(self.data) > 1 and self.val_data is not None),
-            "--recovery-copies, --recovery-parked, --recovery-kerbside >= 0": min(
-                self.recovery_copies, self.recovery_parked, self.recovery_kerbside
-            )
-            >= 0,
-            "--recovery-offset >= 0": math.isfinite(self.recovery_offset)
-            and self.recovery_offset >= 0,
-        }
-
-    def recovery(self) -> RecoveryConfig:
-        """The recovery windows of the training split (none when ``recovery_copies`` is 0)."""
-        return RecoveryConfig(
-            copies=self.recovery_copies,
-            offset=self.recovery_offset,
-            parked=self.recovery_parked,
-            kerbside=self.recovery_kerbside,
-            seed=self.seed,
-        )
-
-    def __post_init__(self) -> None:
-        if isinstance(self.data, (str, os.PathLike)):  # one folder, e.g. from Python
-            object.__setattr__(self, "data", (Path(self.data),))
-        object.__setattr__(self, "data", tuple(Path(folder) for folder in self.data))
-        broken = [rule for rule, holds in self.rules().items() if not holds]
-        if broken:
-            raise ValueError(f"riskflow-train needs {'; '.join(broken)}")
-
-
-def learning_rate(options: LoopOptions, step: int) -> float:
-    """The learning rate of optimiser step ``step`` (0-based) under ``options.lr_schedule``.
-
-    A pure function of the step, so a resumed run follows the uninterrupted schedule.
-    ``cosine``: ``lr * min(1, (step + 1) / warmup) * (1 + cos(pi * step / steps)) / 2``.
-    """
-    if options.lr_schedule == "constant":
-        return options.lr
-    warmup = min(1.0, (step + 1) / options.warmup_steps) if options.warmup_steps else 1.0
-    return options.lr * warmup * 0.5 * (1.0 + math.cos(math.pi * step / options.steps))
-
-
-def model_config(text: str) -> ModelConfig:
-    """``TrainOptions.model`` -> :class:`ModelConfig` (JSON text or a JSON file)."""
-    if not text:
-        return ModelConfig()
-    return ModelConfig.from_dict(
-        json.loads(Path(text).read_text() if text.endswith(".json") else text)
-    )
 
 
 def _plain(options: LoopOptions) -> dict[str, Any]:

@@ -18,7 +18,7 @@ from policies.learned.checkpoint import load_checkpoint, load_generator
 from policies.learned.config import ModelConfig
 from policies.learned.generator import CheckpointError
 from policies.learned.recovery import RecoveryConfig
-from policies.learned.trainer import learning_rate
+from policies.learned.train_options import learning_rate
 from policies.train import CHECKPOINT, GENERATOR, METRICS_LOG, TrainOptions
 from policies.train import main as train_main
 from tests.policies.highway_banks import write_banks
