@@ -1,7 +1,9 @@
-"""The two guidance objectives, shared by RiskFlow and the guided baselines.
+"""The guidance objective's terms, shared by RiskFlow and the guided baselines.
 
 * ``L_adv`` (:func:`adversarial_loss`): pulls controllable agents toward their targets.
 * ``L_map`` (:func:`map_loss`, :class:`MapTerm`): keeps their footprints on the road.
+* ``L_sep`` (:class:`Separation`): keeps the guided vehicles of a scene apart from each
+  other (not in the RiskFlow paper's objective; ``lambda_sep = 0`` drops it).
 
 Definitions, sign and weight conventions: :mod:`policies.riskflow.guidance`. Every
 guided method (RiskFlow's output-space guidance, the CTG / CTG++ / CCDiff-style
@@ -18,6 +20,7 @@ from enum import Enum
 import torch
 from torch import Tensor
 
+from policies.learned.plan_selection import overlap_gradient
 from riskflow_env._array import attach_gradient, requires_grad
 from riskflow_env.geometry import footprint_points
 from riskflow_env.maps import DrivableMap, MapStack
@@ -27,6 +30,7 @@ __all__ = [
     "TARGETS",
     "Target",
     "MapTerm",
+    "Separation",
     "adversarial_loss",
     "adversarial_rows",
     "adversarial_value_and_gradient",
@@ -63,6 +67,10 @@ class ObjectiveConfig:
         target: a :class:`Target` value, ``"others"`` (paper) or ``"ego"`` (stress testing).
         map_margin: footprint samples closer than this to the road edge are penalised [m].
         map_decay: ``w_t = map_decay ** t`` of ``L_map``, in (0, 1].
+        lambda_sep: weight [1/m^2] of ``L_sep``, the summed squared penetration depth of
+            the pairs of guided boxes of a scene over the guidance horizon, >= 0: it keeps
+            the guided vehicles from converging on each other (default 100,
+            docs/REALISM.md rounds 16-17; 0: off, the paper's objective).
     """
 
     lambda_adv: float = 50.0
@@ -71,6 +79,7 @@ class ObjectiveConfig:
     target: str = "others"
     map_margin: float = 0.2
     map_decay: float = 0.98
+    lambda_sep: float = 100.0
 
     def checks(self) -> list[tuple[bool, str]]:
         """``(holds, message)`` of every option rule (subclasses add theirs)."""
@@ -84,6 +93,10 @@ class ObjectiveConfig:
             (horizon_ok, "horizon must be None or an int >= 1"),
             (all(math.isfinite(getattr(self, name)) for name in reals), f"{reals} must be finite"),
             (self.lambda_map >= 0, "lambda_map must be >= 0"),
+            (
+                math.isfinite(self.lambda_sep) and self.lambda_sep >= 0,
+                "lambda_sep must be a finite number >= 0",
+            ),
             (0 < self.map_decay <= 1, "map_decay must be in (0, 1]"),
             (self.target in TARGETS, f"target must be one of {TARGETS}"),
         ]
@@ -92,6 +105,36 @@ class ObjectiveConfig:
         for ok, message in self.checks():
             if not ok:
                 raise ValueError(f"{type(self).__name__}: {message}; got {self}")
+
+
+class Separation:
+    """The gradient of ``L_sep`` (:class:`ObjectiveConfig`) with respect to the guided
+    rows' trajectories: the summed squared penetration depth of every pair of guided boxes
+    of one scene over the first ``horizon`` steps, in closed form
+    (:func:`~policies.learned.plan_selection.overlap_gradient`, the avoidance steps'
+    objective). Shared by output-space guidance, STRIVE-style's latent optimisation and
+    the diffusion baselines' guidance.
+
+    Args:
+        length, width: (C,) [m] of the guided rows.
+        scene_of_row: (C,) the scene of each row (pairs are taken within a scene).
+        horizon: ``T_g`` steps; None: the whole plan.
+    """
+
+    def __init__(
+        self, length: Tensor, width: Tensor, scene_of_row: Tensor, horizon: int | None
+    ) -> None:
+        pairs = (scene_of_row[:, None] == scene_of_row[None, :]).triu(diagonal=1)
+        self.boxes = (length[None], width[None], pairs[None])  # one "scene" of C boxes
+        self.horizon = horizon
+
+    def gradient(self, trajectories: Tensor) -> Tensor:
+        """(C, T, 4) ``d L_sep / d trajectories`` of (C, T, 4) states (zero beyond the
+        horizon and in the speed channel)."""
+        gradient = torch.zeros_like(trajectories)
+        near = trajectories[None, None, :, : self.horizon].detach()  # (1, 1, C, T_g, 4)
+        gradient[:, : self.horizon] = overlap_gradient(near, *self.boxes)[0][0, 0]
+        return gradient
 
 
 def target_rows(present: Tensor, controllable: Tensor, ego: int, target: str) -> Tensor:

@@ -46,13 +46,13 @@ from policies.learned.data import Normalizer
 from policies.learned.guidance_losses import (
     TARGETS,
     ObjectiveConfig,
+    Separation,
     adversarial_loss,
     adversarial_rows,
     adversarial_value_and_gradient,
     map_loss,
     map_term,
 )
-from policies.learned.plan_selection import overlap_gradient
 from policies.learned.sampler import decode_plans
 from policies.riskflow.guidance_scene import (
     PER_AGENT,
@@ -77,8 +77,8 @@ PLAN_BLOCK = (1, 2)  # the (T, 2) axes of a guided row: one Adam block per plan 
 class GuidanceConfig(ObjectiveConfig):
     """Options of output-space guidance: the shared objective's
     (:class:`~policies.learned.guidance_losses.ObjectiveConfig`: ``lambda_adv``,
-    ``lambda_map``, ``horizon``, ``target``, ``map_margin``, ``map_decay``) and the
-    optimiser's.
+    ``lambda_map``, ``horizon``, ``target``, ``map_margin``, ``map_decay``,
+    ``lambda_sep``) and the optimiser's.
 
     Attributes:
         steps: ``K_g`` guidance steps (0: the base plans).
@@ -95,17 +95,12 @@ class GuidanceConfig(ObjectiveConfig):
             squared distance of a guided row's residual to its base residual
             [normalised action units^2], >= 0: it keeps the guided plans near the
             generator's own (0: off, the paper's objective).
-        lambda_sep: weight [1/m^2] of ``L_sep``, the summed squared penetration depth of
-            the pairs of guided boxes of a scene over the guidance horizon, >= 0: it keeps
-            the guided vehicles from converging on each other (default 100,
-            docs/REALISM.md rounds 16-17; 0: off, the paper's objective).
     """
 
     steps: int = 30
     step_size: float | None = None
     optimizer: str = "adam"
     lambda_base: float = 0.0
-    lambda_sep: float = 100.0
 
     @property
     def resolved_step_size(self) -> float:
@@ -127,10 +122,6 @@ class GuidanceConfig(ObjectiveConfig):
                 math.isfinite(self.lambda_base) and self.lambda_base >= 0,
                 "lambda_base must be a finite number >= 0",
             ),
-            (
-                math.isfinite(self.lambda_sep) and self.lambda_sep >= 0,
-                "lambda_sep must be a finite number >= 0",
-            ),
         ]
 
 
@@ -149,35 +140,6 @@ def plans_from_velocity(
     ``agent_mask (..., A)``; returns ``(..., A, T, 2)`` and ``(..., A, T, 4)``.
     """
     return decode_plans(eps + u, state, agent_mask, normalizer, dynamics)
-
-
-class Separation:
-    """The gradient of ``L_sep`` (module docstring) with respect to the guided rows'
-    trajectories: the summed squared penetration depth of every pair of guided boxes of
-    one scene over the first ``horizon`` steps, in closed form
-    (:func:`~policies.learned.plan_selection.overlap_gradient`, the avoidance steps'
-    objective). Shared by output-space guidance and STRIVE-style's latent optimisation.
-
-    Args:
-        length, width: (C,) [m] of the guided rows.
-        scene_of_row: (C,) the scene of each row (pairs are taken within a scene).
-        horizon: ``T_g`` steps; None: the whole plan.
-    """
-
-    def __init__(
-        self, length: Tensor, width: Tensor, scene_of_row: Tensor, horizon: int | None
-    ) -> None:
-        pairs = (scene_of_row[:, None] == scene_of_row[None, :]).triu(diagonal=1)
-        self.boxes = (length[None], width[None], pairs[None])  # one "scene" of C boxes
-        self.horizon = horizon
-
-    def gradient(self, trajectories: Tensor) -> Tensor:
-        """(C, T, 4) ``d L_sep / d trajectories`` of (C, T, 4) states (zero beyond the
-        horizon and in the speed channel)."""
-        gradient = torch.zeros_like(trajectories)
-        near = trajectories[None, None, :, : self.horizon].detach()  # (1, 1, C, T_g, 4)
-        gradient[:, : self.horizon] = overlap_gradient(near, *self.boxes)[0][0, 0]
-        return gradient
 
 
 class _Objective:

@@ -1,9 +1,11 @@
 """Guided reverse chains: CTG-, CTG++- and CCDiff-style guidance with RiskFlow's losses.
 
 All three bend the plans of a controllable set ``A_c`` at *every* denoising level,
-minimising RiskFlow's own ``L = lambda_adv L_adv + lambda_map L_map``
+minimising RiskFlow's own ``L = lambda_adv L_adv + lambda_map L_map + lambda_sep L_sep``
 (:mod:`policies.learned.guidance_losses`; definitions, signs and weights in
-:mod:`policies.riskflow.guidance`), so that only the guidance mechanism differs:
+:mod:`policies.riskflow.guidance`; ``L_sep``, on by default as for RiskFlow and
+STRIVE-style, is not in the original methods: ``lambda_sep = 0`` drops it), so that only
+the guidance mechanism differs:
 
 * ``gradient="mean"`` (**CTG**, Zhong et al. 2023, "Guided Conditional Diffusion for
   Controllable Traffic Simulation", sec. 4.2): the transition mean ``mu`` of the ``A_c``
@@ -56,6 +58,7 @@ from policies.learned.data import Normalizer
 from policies.learned.encoder import SceneContext
 from policies.learned.guidance_losses import (
     ObjectiveConfig,
+    Separation,
     adversarial_rows,
     map_term,
     sum_per_scene,
@@ -76,7 +79,8 @@ PER_AGENT = ("state", "length", "width", "agent_mask")  # SceneGeometry's (B, A)
 class DiffusionGuidanceConfig(ObjectiveConfig):
     """Options of diffusion guidance (module docstring): the shared objective's
     (:class:`~policies.learned.guidance_losses.ObjectiveConfig`: ``lambda_adv``,
-    ``lambda_map``, ``horizon``, ``target``, ``map_margin``, ``map_decay``) and these.
+    ``lambda_map``, ``horizon``, ``target``, ``map_margin``, ``map_decay``,
+    ``lambda_sep``) and these.
 
     Attributes:
         gradient: ``"mean"`` (CTG, CCDiff) or ``"clean"`` (CTG++).
@@ -159,7 +163,8 @@ class GuidedPlans:
 class _Objective:
     """``(L, L_adv, L_map)`` of the ``A_c`` rows (flat indices of B scenes' agents) as a
     function of their normalised actions: ``L`` a scalar (summed over the rows: each row's
-    gradient is its own), ``L_adv`` and ``L_map`` summed per scene, (B,) each."""
+    gradient is its own scene's), ``L_adv`` and ``L_map`` summed per scene, (B,) each
+    (``L_sep`` enters ``L`` through its gradient only; its value is not recorded)."""
 
     def __init__(self, geometry, rows, scene_of_row, normalizer, config, dynamics, steps):
         flat = dataclasses.replace(
@@ -169,6 +174,11 @@ class _Objective:
         self.num_scenes = geometry.state.shape[0]
         self.normalizer, self.config, self.dynamics = normalizer, config, dynamics
         self.map_term = map_term(flat, rows, steps, config, scene_of_row)
+        self.separation = None
+        if config.lambda_sep:
+            self.separation = Separation(
+                flat.length[rows], flat.width[rows], scene_of_row, config.horizon
+            )
 
     def __call__(self, x_c: Tensor, target_xy: Tensor, target_valid: Tensor):
         trajectories = rollout(self.state, self.normalizer.denormalize(x_c), self.dynamics)
@@ -181,6 +191,11 @@ class _Objective:
             off_rows, gradient = self.map_term.rows_and_gradient(trajectories)
             off_road = attach_gradient(off_rows.sum(), trajectories, gradient, axis=None)
         loss = self.config.lambda_adv * adv + self.config.lambda_map * off_road
+        if self.separation is not None:
+            d_sep = self.separation.gradient(trajectories)
+            loss = loss + attach_gradient(
+                adv.new_zeros(()), trajectories, self.config.lambda_sep * d_sep, axis=None
+            )
         return loss, self._per_scene(adv_rows), self._per_scene(off_rows)
 
     def _per_scene(self, values: Tensor) -> Tensor:

@@ -86,6 +86,9 @@ class DiffusionAdversary(PlanBufferPolicy):
         sampling_steps: levels of the chain: None for all ``K`` (DDPM), fewer for DDIM.
         eta: DDIM stochasticity (1: DDPM-like ancestral noise; 0: deterministic).
         step_size: per-agent RMS of one guidance step [normalised action units].
+        lambda_sep: weight of the separation of the guided vehicles from each other
+            (:class:`~policies.learned.guidance_losses.ObjectiveConfig`; default 100, as
+            RiskFlow's and STRIVE-style's; 0: off, the original methods' objective).
         inner_steps: guidance steps per level (``"ctg"``, ``"ccdiff"``).
         anchor: the vehicles outside ``A_c`` follow the unguided chain, bit for bit (two
             chains per cycle); False: one chain, they are denoised jointly with ``A_c``
@@ -106,6 +109,7 @@ class DiffusionAdversary(PlanBufferPolicy):
         sampling_steps: int | None = None,
         eta: float = 1.0,
         step_size: float = DiffusionGuidanceConfig.step_size,
+        lambda_sep: float = DiffusionGuidanceConfig.lambda_sep,
         inner_steps: int = 1,
         anchor: bool = True,
         denoiser: DiffusionDenoiser | None = None,
@@ -123,6 +127,7 @@ class DiffusionAdversary(PlanBufferPolicy):
             gradient=gradient,
             inner_steps=inner_steps,
             step_size=step_size,
+            lambda_sep=lambda_sep,
             anchor=anchor,
             **config.objective(),
         )
