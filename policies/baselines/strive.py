@@ -34,7 +34,7 @@ from policies.learned.adam import Adam
 from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.encoded_views import EncodedViews
 from policies.learned.generator import RiskFlowGenerator
-from policies.learned.guidance_losses import adversarial_rows, map_term
+from policies.learned.guidance_losses import Separation, adversarial_rows, map_term
 from policies.learned.plan_buffer import PlanBufferPolicy
 from policies.learned.sampler import base_velocity
 from policies.riskflow.guidance import (
@@ -42,7 +42,6 @@ from policies.riskflow.guidance import (
     GuidanceResult,
     GuidanceScene,
     GuidedRows,
-    Separation,
     flatten_scenes,
     guided_rows,
     plans_from_velocity,

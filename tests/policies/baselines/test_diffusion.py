@@ -180,9 +180,10 @@ def test_separation_term_keeps_the_guided_vehicles_apart(gradient):
     same term): without ``L_sep`` their guided boxes overlap near the ego; with it they
     overlap far less, and they still close on the ego."""
     denoiser, scene, geometry = scene_problem(agents=4)
-    state = [[30.0, 0.0, 8.0, 0.0], [0.0, 3.5, 14.0, 0.0], [0.0, -3.5, 14.0, 0.0], [-40, 3.5, 10, 0]]
+    ego, left, right, behind = [30, 0, 8, 0], [0, 3.5, 14, 0], [0, -3.5, 14, 0], [-40, 3.5, 10, 0]
+    state = [ego, left, right, behind]
     geometry = dataclasses.replace(
-        geometry, state=torch.tensor(state), length=torch.full((4,), 4.5),
+        geometry, state=torch.tensor(state, dtype=torch.float32), length=torch.full((4,), 4.5),
         width=torch.full((4,), 1.8),
     )  # fmt: skip
     levels, rows = denoiser.schedule.levels(8), [1, 2]
