@@ -34,9 +34,10 @@ from policies.learned.adam import Adam
 from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.encoded_views import EncodedViews
 from policies.learned.generator import RiskFlowGenerator
-from policies.learned.guidance_losses import Separation, adversarial_rows, map_term
+from policies.learned.guidance_losses import adversarial_rows, map_term
 from policies.learned.plan_buffer import PlanBufferPolicy
 from policies.learned.sampler import base_velocity
+from policies.learned.separation_term import separation_term
 from policies.riskflow.guidance import (
     PLAN_BLOCK,
     GuidanceResult,
@@ -221,11 +222,7 @@ class _LatentObjective:
         flat = flatten_scenes(scene)
         self.eps, self.state, self.agent_mask = flat.eps, flat.state[rows], flat.agent_mask[rows]
         self.map_term = map_term(flat, rows, scene.eps.shape[2], config, guided.scene_of_row)
-        self.separation = None
-        if config.lambda_sep:
-            self.separation = Separation(
-                flat.length[rows], flat.width[rows], guided.scene_of_row, config.horizon
-            )
+        self.separation = separation_term(flat, rows, config, guided.scene_of_row)
 
     def __call__(self, eps_c: Tensor) -> tuple[tuple[Tensor, Tensor, Tensor], Tensor]:
         """``((u_c, actions_c, trajectories_c), terms)``, ``terms`` (C, 4): each row's

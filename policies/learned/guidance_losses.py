@@ -2,8 +2,9 @@
 
 * ``L_adv`` (:func:`adversarial_loss`): pulls controllable agents toward their targets.
 * ``L_map`` (:func:`map_loss`, :class:`MapTerm`): keeps their footprints on the road.
-* ``L_sep`` (:class:`Separation`): keeps the guided vehicles of a scene apart from each
-  other (not in the RiskFlow paper's objective; ``lambda_sep = 0`` drops it).
+* ``L_sep`` (:mod:`policies.learned.separation_term`): keeps the guided vehicles of a
+  scene apart from each other (not in the RiskFlow paper's objective; ``lambda_sep = 0``
+  drops it).
 
 Definitions, sign and weight conventions: :mod:`policies.riskflow.guidance`. Every
 guided method (RiskFlow's output-space guidance, the CTG / CTG++ / CCDiff-style
@@ -20,7 +21,6 @@ from enum import Enum
 import torch
 from torch import Tensor
 
-from policies.learned.plan_selection import overlap_gradient
 from riskflow_env._array import attach_gradient, requires_grad
 from riskflow_env.geometry import footprint_points
 from riskflow_env.maps import DrivableMap, MapStack
@@ -30,7 +30,6 @@ __all__ = [
     "TARGETS",
     "Target",
     "MapTerm",
-    "Separation",
     "adversarial_loss",
     "adversarial_rows",
     "adversarial_value_and_gradient",
@@ -105,36 +104,6 @@ class ObjectiveConfig:
         for ok, message in self.checks():
             if not ok:
                 raise ValueError(f"{type(self).__name__}: {message}; got {self}")
-
-
-class Separation:
-    """The gradient of ``L_sep`` (:class:`ObjectiveConfig`) with respect to the guided
-    rows' trajectories: the summed squared penetration depth of every pair of guided boxes
-    of one scene over the first ``horizon`` steps, in closed form
-    (:func:`~policies.learned.plan_selection.overlap_gradient`, the avoidance steps'
-    objective). Shared by output-space guidance, STRIVE-style's latent optimisation and
-    the diffusion baselines' guidance.
-
-    Args:
-        length, width: (C,) [m] of the guided rows.
-        scene_of_row: (C,) the scene of each row (pairs are taken within a scene).
-        horizon: ``T_g`` steps; None: the whole plan.
-    """
-
-    def __init__(
-        self, length: Tensor, width: Tensor, scene_of_row: Tensor, horizon: int | None
-    ) -> None:
-        pairs = (scene_of_row[:, None] == scene_of_row[None, :]).triu(diagonal=1)
-        self.boxes = (length[None], width[None], pairs[None])  # one "scene" of C boxes
-        self.horizon = horizon
-
-    def gradient(self, trajectories: Tensor) -> Tensor:
-        """(C, T, 4) ``d L_sep / d trajectories`` of (C, T, 4) states (zero beyond the
-        horizon and in the speed channel)."""
-        gradient = torch.zeros_like(trajectories)
-        near = trajectories[None, None, :, : self.horizon].detach()  # (1, 1, C, T_g, 4)
-        gradient[:, : self.horizon] = overlap_gradient(near, *self.boxes)[0][0, 0]
-        return gradient
 
 
 def target_rows(present: Tensor, controllable: Tensor, ego: int, target: str) -> Tensor:

@@ -46,7 +46,6 @@ from policies.learned.data import Normalizer
 from policies.learned.guidance_losses import (
     TARGETS,
     ObjectiveConfig,
-    Separation,
     adversarial_loss,
     adversarial_rows,
     adversarial_value_and_gradient,
@@ -54,6 +53,7 @@ from policies.learned.guidance_losses import (
     map_term,
 )
 from policies.learned.sampler import decode_plans
+from policies.learned.separation_term import Separation, separation_term
 from policies.riskflow.guidance_scene import (
     PER_AGENT,
     GuidanceResult,
@@ -172,12 +172,7 @@ class _Objective:
         self.horizon, self.dynamics = config.horizon, dynamics
         self.map_term = map_term(scene, rows, scene.eps.shape[1], config, scene_of_row)
         self.lambda_sep = config.lambda_sep
-        self.separation = None
-        if self.lambda_sep:
-            same = torch.zeros_like(rows) if scene_of_row is None else scene_of_row
-            self.separation = Separation(
-                scene.length[rows], scene.width[rows], same, config.horizon
-            )
+        self.separation = separation_term(scene, rows, config, scene_of_row)
 
     def bounds(self) -> tuple[Tensor, Tensor]:
         """(C, T, 2) lower and upper bounds of ``u_c`` that keep the actions inside the

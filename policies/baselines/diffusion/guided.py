@@ -58,7 +58,6 @@ from policies.learned.data import Normalizer
 from policies.learned.encoder import SceneContext
 from policies.learned.guidance_losses import (
     ObjectiveConfig,
-    Separation,
     adversarial_rows,
     map_term,
     sum_per_scene,
@@ -66,6 +65,7 @@ from policies.learned.guidance_losses import (
 )
 from policies.learned.plan_buffer import hold_still
 from policies.learned.sampler import decode_plans
+from policies.learned.separation_term import separation_term
 from riskflow_env._array import attach_gradient
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
@@ -174,11 +174,7 @@ class _Objective:
         self.num_scenes = geometry.state.shape[0]
         self.normalizer, self.config, self.dynamics = normalizer, config, dynamics
         self.map_term = map_term(flat, rows, steps, config, scene_of_row)
-        self.separation = None
-        if config.lambda_sep:
-            self.separation = Separation(
-                flat.length[rows], flat.width[rows], scene_of_row, config.horizon
-            )
+        self.separation = separation_term(flat, rows, config, scene_of_row)
 
     def __call__(self, x_c: Tensor, target_xy: Tensor, target_valid: Tensor):
         trajectories = rollout(self.state, self.normalizer.denormalize(x_c), self.dynamics)
