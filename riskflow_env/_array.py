@@ -205,6 +205,19 @@ def cummin(x: Array, axis: int = -1) -> Array:
     return np.minimum.accumulate(x, axis=axis)
 
 
+def take(table: Array, index: Array) -> Array:
+    """``table[index]`` for a 1-D ``table`` and an integer ``index`` of any shape.
+
+    The same values as advanced indexing, gathered the cheaper way: torch's
+    ``index_select`` (2-4x faster than ``table[index]`` on a CPU, whose generic index
+    kernel dominated the map lookups of the guidance loop) and numpy's ``take``.
+    Gradients flow to ``table`` as with indexing.
+    """
+    if type(table) is np.ndarray:
+        return np.take(table, index)
+    return table.index_select(0, index.reshape(-1)).reshape(index.shape)
+
+
 def device(x: Array) -> Any:
     """Device of ``x`` (``array_api_compat.device``; "cpu" for numpy without the lookup)."""
     return "cpu" if type(x) is np.ndarray else array_api_compat.device(x)

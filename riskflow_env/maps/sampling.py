@@ -16,6 +16,7 @@ from riskflow_env._array import (
     is_torch,
     namespace,
     requires_grad,
+    take,
 )
 
 
@@ -112,10 +113,11 @@ def interpolate_flat(
     base = row0 * width + col0 + offset
     if isinstance(width, (int, np.integer)):  # one gather of the four corners
         steps = asarray_like(np.array([0, 1, width, width + 1]), base)
-        gathered = flat[base[..., None] + steps]  # (..., 4)
+        gathered = take(flat, base[..., None] + steps)  # (..., 4)
         corners = tuple(gathered[..., k] for k in range(4))
     else:  # a raster per point (MapStack)
-        corners = (flat[base], flat[base + 1], flat[base + width], flat[base + width + 1])
+        below = base + width
+        corners = (take(flat, base), take(flat, base + 1), take(flat, below), take(flat, below + 1))
     if flat.dtype != fc.dtype:
         # A float32 raster queried in float64: cast the four corners once (exactly as the
         # promotion would) rather than inside every mixed-type op.

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from riskflow_env._array import _NUMPY_IS_STANDARD, asarray_like, device, namespace
+from riskflow_env._array import _NUMPY_IS_STANDARD, asarray_like, device, namespace, take
 
 pytestmark = pytest.mark.skipif(
     not _NUMPY_IS_STANDARD, reason="numpy < 2.1 uses the compat namespace"
@@ -162,3 +162,20 @@ def test_attach_gradient_keeps_the_value_and_sets_the_gradient():
     assert torch.equal(torch.autograd.grad(rows.sum(), x)[0], gradient)
     array = np.ones(3)
     assert detach(array) is array
+
+
+@pytest.mark.parametrize("shape", [(), (7,), (3, 5), (2, 3, 4), (0, 4)])
+def test_take_gathers_what_indexing_gathers(shape):
+    rng = np.random.default_rng(1)
+    table = rng.normal(size=50)
+    index = rng.integers(0, 50, size=shape)
+    assert np.array_equal(take(table, index), table[index])
+    for dtype in (torch.float64, torch.float32):
+        t_table = torch.tensor(table, dtype=dtype, requires_grad=True)
+        t_index = torch.as_tensor(index)
+        gathered = take(t_table, t_index)
+        assert gathered.shape == t_index.shape and gathered.dtype == dtype
+        assert torch.equal(gathered, t_table[t_index])
+        gathered.sum().backward()  # the gradient reaches the table as with indexing
+        counts = np.bincount(index.reshape(-1), minlength=50)
+        assert np.array_equal(t_table.grad.numpy(), counts.astype(t_table.grad.numpy().dtype))
