@@ -72,6 +72,7 @@ SIZES: dict[str, str] = {
     "--duration": "1",  # riskflow-eval episode length [s]
     "--diffusion-steps": "2",  # riskflow-eval DDIM levels of the diffusion methods
     "--time-budget-min": "1",
+    "--warmup-steps": "1",  # riskflow-train learning-rate warm-up (< --steps)
     "--copies": "1",  # benchmarks/scenarionet_dataset.py: copies of each scene
     "--batch": FIRST,  # benchmarks/eval_batched.py: --batch-scenes of the batched runs
 }
