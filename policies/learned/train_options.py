@@ -53,6 +53,9 @@ class LoopOptions:
     """weight of the squared penetration depth of decoded box pairs [m^2] (plan_penalties)"""
     offroad_weight: float = 0.0
     """weight of the squared SDF excess of planned centres over the reference's [m^2]"""
+    jerk_weight: float = 0.0
+    """weight [m s^3] of the decoded plans' mean absolute longitudinal jerk [m/s^3]
+    (plan_penalties.jerk_penalty: an L1 term against step-to-step acceleration noise)"""
     model: str = ""
     """ModelConfig fields as JSON, or a .json file holding them (empty: defaults)"""
     stride: int = 5
@@ -110,6 +113,10 @@ class LoopOptions:
             >= 0,
             "--recovery-offset >= 0": math.isfinite(self.recovery_offset)
             and self.recovery_offset >= 0,
+            "--collision-weight, --offroad-weight, --jerk-weight finite and >= 0": all(
+                math.isfinite(w) and w >= 0
+                for w in (self.collision_weight, self.offroad_weight, self.jerk_weight)
+            ),
         }
 
     def recovery(self) -> RecoveryConfig:

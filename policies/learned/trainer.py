@@ -193,7 +193,13 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
         )
     weights = {
         name: getattr(options, name)
-        for name in ("heading_weight", "action_weight", "collision_weight", "offroad_weight")
+        for name in (
+            "heading_weight",
+            "action_weight",
+            "collision_weight",
+            "offroad_weight",
+            "jerk_weight",
+        )
     }
 
     def validate() -> dict[str, float]:

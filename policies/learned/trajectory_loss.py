@@ -14,7 +14,7 @@ from torch import Tensor
 
 from policies.learned.data import Normalizer
 from policies.learned.encoder import SceneContext
-from policies.learned.plan_penalties import offroad_penalty, overlap_penalty
+from policies.learned.plan_penalties import jerk_penalty, offroad_penalty, overlap_penalty
 from policies.learned.window_types import WindowBatch
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout, wrap_angle
@@ -36,6 +36,7 @@ def trajectory_loss(
     dynamics: DynamicsConfig = DEFAULT_CONFIG,
     collision_weight: float = 0.0,
     offroad_weight: float = 0.0,
+    jerk_weight: float = 0.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """Masked squared error of the rolled-out reconstruction to the reference future,
     plus the optional realism penalties of :mod:`policies.learned.plan_penalties`.
@@ -52,17 +53,20 @@ def trajectory_loss(
             pairs [m^2]; from ``length``, ``width``).
         offroad_weight: weight of ``offroad`` (squared excess of the planned centres'
             SDF [m^2], from ``map_crops``).
+        jerk_weight: weight [m s^3] of ``jerk`` (mean absolute longitudinal jerk of
+            the de-normalised plan [m/s^3], every step of every agent in the scene).
 
     Returns:
         ``loss = position_mse + heading_weight * heading_mse + collision_weight *
-        overlap + offroad_weight * offroad`` (means over valid agent steps, per step:
-        ``|p_hat - p|^2`` [m^2]) and detached metrics ``position_mse``, ``heading_mse``
-        [rad^2], ``ade`` [m] (mean over valid agent-steps), ``fde`` [m] (mean over agents
-        of the error at their last valid step:
+        overlap + offroad_weight * offroad + jerk_weight * jerk`` (means over valid agent
+        steps, per step: ``|p_hat - p|^2`` [m^2]) and detached metrics ``position_mse``,
+        ``heading_mse`` [rad^2], ``ade`` [m] (mean over valid agent-steps), ``fde`` [m]
+        (mean over agents of the error at their last valid step:
         :func:`riskflow_env.metrics.displacement.masked_displacement`), and ``overlap`` /
-        ``offroad`` when their weight is not 0.
+        ``offroad`` / ``jerk`` when their weight is not 0.
     """
-    trajectory = rollout(scene.state, normalizer.denormalize(a_hat), dynamics)  # (B, A, T, 4)
+    actions = normalizer.denormalize(a_hat)
+    trajectory = rollout(scene.state, actions, dynamics)  # (B, A, T, 4)
     future = batch.future
     mask = batch.future_valid.bool() & scene.agent_mask[..., None]
     weight = mask.to(a_hat.dtype)
@@ -79,6 +83,10 @@ def trajectory_loss(
     if offroad_weight:
         penalties["offroad"] = offroad_penalty(trajectory, batch, scene.state, mask)
         loss = loss + offroad_weight * penalties["offroad"]
+    if jerk_weight:
+        planned = scene.agent_mask[..., None].expand(actions.shape[:-1])
+        penalties["jerk"] = jerk_penalty(actions, planned, dynamics.dt)
+        loss = loss + jerk_weight * penalties["jerk"]
     with torch.no_grad():
         distance = squared.detach().sqrt()
         # FDE per agent as the metrics define it; "ade" here pools the agent-steps.

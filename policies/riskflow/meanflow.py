@@ -114,6 +114,7 @@ def meanflow_loss(
     dynamics: DynamicsConfig = DEFAULT_CONFIG,
     collision_weight: float = 0.0,
     offroad_weight: float = 0.0,
+    jerk_weight: float = 0.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """RiskFlow's MeanFlow objective (see the module docstring).
 
@@ -131,7 +132,7 @@ def meanflow_loss(
             see high-frequency action errors; this term (the MeanFlow regression
             itself) pins those down.
         dynamics: time step and bounds of the rollout.
-        collision_weight, offroad_weight: weights of the realism penalties
+        collision_weight, offroad_weight, jerk_weight: weights of the realism penalties
             (:func:`trajectory_loss`).
 
     Returns:
@@ -153,7 +154,11 @@ def meanflow_loss(
     u, dudt = average_velocity_jvp(u_theta, z_t, t, r, v)
     dudt = dudt.detach()
     a_hat = eps + u + (t_ - r_) * dudt.clamp(-clip, clip)
-    penalties = {"collision_weight": collision_weight, "offroad_weight": offroad_weight}
+    penalties = {
+        "collision_weight": collision_weight,
+        "offroad_weight": offroad_weight,
+        "jerk_weight": jerk_weight,
+    }
     loss, metrics = _loss(
         a_hat, a_star, batch, scene, normalizer, heading_weight, action_weight, dynamics,
         **penalties,
@@ -174,6 +179,7 @@ def flow_matching_loss(
     dynamics: DynamicsConfig = DEFAULT_CONFIG,
     collision_weight: float = 0.0,
     offroad_weight: float = 0.0,
+    jerk_weight: float = 0.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """Plain flow matching (``r = t``, no JVP): ``a_hat = eps + u_theta(z_t, t, t; C)``.
 
@@ -186,7 +192,11 @@ def flow_matching_loss(
     a_star = target_actions(batch, normalizer)
     t_ = _time_as(t)
     u = model.average_velocity((1.0 - t_) * eps + t_ * a_star, t, t, scene)
-    penalties = {"collision_weight": collision_weight, "offroad_weight": offroad_weight}
+    penalties = {
+        "collision_weight": collision_weight,
+        "offroad_weight": offroad_weight,
+        "jerk_weight": jerk_weight,
+    }
     return _loss(
         eps + u, a_star, batch, scene, normalizer, heading_weight, action_weight, dynamics,
         **penalties,

@@ -46,6 +46,7 @@ def diffusion_loss(
     dynamics: DynamicsConfig = DEFAULT_CONFIG,
     collision_weight: float = 0.0,
     offroad_weight: float = 0.0,
+    jerk_weight: float = 0.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """The denoiser's training loss (module docstring).
 
@@ -58,8 +59,8 @@ def diffusion_loss(
         heading_weight: weight [m^2/rad^2] of the heading error (not ``"epsilon"``).
         action_weight: weight of the normalised action error (not ``"epsilon"``).
         dynamics: time step and bounds of the rollout.
-        collision_weight, offroad_weight: weights of the realism penalties on the
-            decoded ``x0_hat`` (``policies.learned.trajectory_loss``; not
+        collision_weight, offroad_weight, jerk_weight: weights of the realism penalties
+            on the decoded ``x0_hat`` (``policies.learned.trajectory_loss``; not
             ``"epsilon"``).
 
     Returns:
@@ -85,7 +86,11 @@ def diffusion_loss(
     action_mse = (((x0_hat - a_star) ** 2).sum(dim=-1) * weight).sum() / count
     eps_mse = (((eps_hat - eps) ** 2).sum(dim=-1) * weight).sum() / count
     if denoiser.diffusion.prediction != "epsilon":
-        penalties = {"collision_weight": collision_weight, "offroad_weight": offroad_weight}
+        penalties = {
+            "collision_weight": collision_weight,
+            "offroad_weight": offroad_weight,
+            "jerk_weight": jerk_weight,
+        }
         loss, metrics = trajectory_loss(
             x0_hat, batch, scene, normalizer, heading_weight, dynamics, **penalties
         )

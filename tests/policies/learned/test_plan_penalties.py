@@ -7,7 +7,7 @@ from types import SimpleNamespace
 
 import torch
 
-from policies.learned.plan_penalties import offroad_penalty, overlap_penalty
+from policies.learned.plan_penalties import jerk_penalty, offroad_penalty, overlap_penalty
 
 
 def _states(xy, yaw=0.0):
@@ -51,3 +51,22 @@ def test_offroad_penalty_reads_the_agents_own_crop():
     penalty = offroad_penalty(planned, batch, start, valid)
     # sdf 2 m + half width 1 m - allowance relu(-1 + 1) = 0 -> 3^2 over 2 agent-steps.
     assert math.isclose(float(penalty), 9.0 / 2, rel_tol=1e-9)
+
+
+def test_jerk_penalty_is_the_mean_absolute_jerk_of_the_counted_steps():
+    # Accelerations 0, 1, 1, -1 m/s^2 at dt = 0.5 s: jerks 2, 0, -4 m/s^3 -> mean |j| 2.
+    accel = torch.tensor([[[0.0, 1.0, 1.0, -1.0]]], dtype=torch.float64)
+    actions = torch.stack([accel, torch.full_like(accel, 0.3)], dim=-1).requires_grad_(True)
+    valid = torch.ones(1, 1, 4, dtype=torch.bool)
+    penalty = jerk_penalty(actions, valid, dt=0.5)
+    assert math.isclose(float(penalty), 2.0)
+    penalty.backward()  # L1: every change pulled toward 0 with the same force; yaw rate free
+    grad = actions.grad[0, 0]
+    assert torch.equal(grad[:, 1], torch.zeros(4, dtype=torch.float64))
+    # d/da of |a1 - a0| / dt / 3 etc.: the ends move toward their neighbours, |grad| 2/3
+    expected = torch.tensor([-2.0, 2.0, 2.0, -2.0], dtype=torch.float64) / 3
+    assert torch.allclose(grad[:, 0], expected)
+    # A sample needs both of its steps: dropping the last step leaves jerks 2 and 0.
+    valid[..., 3] = False
+    assert math.isclose(float(jerk_penalty(actions, valid, dt=0.5)), 1.0)
+    assert float(jerk_penalty(actions, torch.zeros_like(valid), dt=0.5)) == 0.0

@@ -235,6 +235,21 @@ def test_logged_learning_rate_follows_the_schedule(banks, tmp_path, tiny_config)
     assert logged == pytest.approx([learning_rate(options, step) for step in range(4)])
 
 
+def test_realism_penalties_reach_the_loss_and_bad_weights_name_the_option(
+    banks, tmp_path, tiny_config
+):
+    out = tmp_path / "penalties"
+    weights = ["--collision-weight", "10", "--offroad-weight", "10", "--jerk-weight", "0.03"]
+    assert train_main(tiny_args(banks, out, tiny_config, *weights, steps=2)) == 0
+    logged = [json.loads(line) for line in (out / METRICS_LOG).read_text().splitlines()]
+    for line in logged:  # each penalty is computed and logged once its weight is set
+        assert all(np.isfinite(line[f"train_{name}"]) for name in ("overlap", "offroad", "jerk"))
+        assert line["train_jerk"] > 0  # an untrained plan is rough
+    assert load_checkpoint(out / GENERATOR)["train_config"]["jerk_weight"] == 0.03
+    with pytest.raises(ValueError, match="--jerk-weight finite and >= 0"):
+        TrainOptions(data=Path("d"), jerk_weight=-1.0)
+
+
 def test_batch_order_is_seeded_and_buckets_agent_counts():
     agents = np.random.default_rng(0).integers(1, 33, size=103)
     order = batch_order(agents, 4, 8, seed=1, epoch=2)
