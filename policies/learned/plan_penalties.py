@@ -3,7 +3,8 @@
 The trajectory-space loss pulls each agent's plan toward its own logged future; nothing
 in it says that two plans must not overlap or that a plan must stay on the road, and
 one-shot joint plans of the shipped generator overlapped in 57% of scenes (the log: 0%).
-These two terms say it, through pieces the simulator already has:
+The first two terms say it, through pieces the simulator already has; the third asks for
+the data's smoothness:
 
 * :func:`overlap_penalty`: ``relu(-separation)^2`` [m^2] of every pair of decoded boxes at
   every step (``riskflow_env.geometry.separation``: the SAT penetration depth, the
@@ -14,17 +15,16 @@ These two terms say it, through pieces the simulator already has:
   SDF [m], negative on the road; ``docs/WINDOWS.md``), where ``w / 2`` asks for the
   whole width on the road and ``allowance = relu(sdf_ref + w / 2)`` forgives what the
   reference itself does. Steps that leave the crop (48 m at 1 m/px: about the first
-  2 s at highway speed) get no term.
-
-Both are means over the valid agent-steps of the batch, so their weights compare with
-the position MSE [m^2] of the trajectory loss.
-
+  2 s at highway speed) get no term;
 * :func:`jerk_penalty`: the mean ``|j|`` [m/s^3] of the plan's longitudinal jerk ``j_t =
   (a_{t+1} - a_t) / dt``. Half the logged steps have ``|j| < 0.1`` while the one-step
   plans of the shipped generator carry step-to-step noise on every step (median 1.2
   m/s^3; docs/REALISM.md, round 22), which is most of KDD's jerk term. An L1 term (total
   variation of the acceleration, Rudin, Osher & Fatemi 1992) pulls small changes to zero
   and leaves the few large ones the data has, where a squared one would shrink them all.
+
+All three are means over the agent-steps that count in the batch, so their weights
+compare with the position MSE [m^2] of the trajectory loss.
 """
 
 from __future__ import annotations
