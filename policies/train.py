@@ -11,7 +11,8 @@ The loop (batches, Adam, clipping, EMA, validation, checkpoints, ``--resume``) i
 
 * ``--generator meanflow`` (default): RiskFlow's MeanFlow objective
   (:class:`~policies.riskflow.meanflow.MeanFlowObjective`; times from
-  ``TimeSampler``: logit-normal, ``r = t`` for 20 %, always with ``--flow-matching``).
+  ``TimeSampler``: logit-normal, ``r = t`` for 20 %, always with ``--flow-matching``;
+  ``--one-step-fraction`` puts a share at the sampler's own call ``(0, 1)``).
   The loss is the trajectory-space error plus ``action_weight`` (default 1) times the
   normalised action error: positions barely see high-frequency action noise, so without
   it one-step plans keep the noise of ``eps`` (pilot: jerk 16 m/s^3 against 4.6 with it,
@@ -56,6 +57,8 @@ class TrainOptions(LoopOptions):
     """--generator diffusion: deterministic DDIM levels of the validation samples"""
     equal_fraction: float = 0.2
     """share of MeanFlow samples with r = t"""
+    one_step_fraction: float = 0.0
+    """share of MeanFlow samples at the sampler's own call (t, r) = (0, 1)"""
 
     def rules(self) -> dict[str, bool]:
         """The loop's checks and the generator options'."""
@@ -63,6 +66,12 @@ class TrainOptions(LoopOptions):
             f"--generator in {GENERATORS}": self.generator in GENERATORS,
             "--flow-matching only with --generator meanflow": not (
                 self.flow_matching and self.generator != "meanflow"
+            ),
+            "--equal-fraction, --one-step-fraction in [0, 1]": all(
+                0.0 <= share <= 1.0 for share in (self.equal_fraction, self.one_step_fraction)
+            ),
+            "--one-step-fraction only with --generator meanflow, without --flow-matching": not (
+                self.one_step_fraction and (self.flow_matching or self.generator != "meanflow")
             ),
             "--diffusion-steps, --val-sampling-steps >= 1": min(
                 self.diffusion_steps, self.val_sampling_steps
@@ -75,7 +84,11 @@ def objective(options: TrainOptions) -> MeanFlowObjective | DiffusionObjective:
     """The objective of ``options.generator``."""
     if options.generator == "diffusion":
         return DiffusionObjective.from_options(options)
-    times = TimeSampler(equal_fraction=options.equal_fraction, flow_matching=options.flow_matching)
+    times = TimeSampler(
+        equal_fraction=options.equal_fraction,
+        flow_matching=options.flow_matching,
+        one_step_fraction=options.one_step_fraction,
+    )
     return MeanFlowObjective(times, flow_matching=options.flow_matching)
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -19,7 +20,8 @@ from policies.learned.config import ModelConfig
 from policies.learned.generator import CheckpointError
 from policies.learned.recovery import RecoveryConfig
 from policies.learned.train_options import learning_rate
-from policies.train import CHECKPOINT, GENERATOR, METRICS_LOG, TrainOptions
+from policies.riskflow.time_sampler import TimeSampler
+from policies.train import CHECKPOINT, GENERATOR, METRICS_LOG, TrainOptions, objective
 from policies.train import main as train_main
 from tests.policies.highway_banks import write_banks
 
@@ -248,6 +250,25 @@ def test_realism_penalties_reach_the_loss_and_bad_weights_name_the_option(
     assert load_checkpoint(out / GENERATOR)["train_config"]["jerk_weight"] == 0.03
     with pytest.raises(ValueError, match="--jerk-weight finite and >= 0"):
         TrainOptions(data=Path("d"), jerk_weight=-1.0)
+
+
+def test_one_step_share_trains_at_the_samplers_call_and_bad_shares_name_the_option(
+    banks, tmp_path, tiny_config
+):
+    out = tmp_path / "one_step"
+    args = tiny_args(banks, out, tiny_config, "--one-step-fraction", "1", "--jerk-weight", "1")
+    assert train_main(args) == 0  # every pair at (t, r) = (0, 1): finite, the JVP included
+    logged = [json.loads(line) for line in (out / METRICS_LOG).read_text().splitlines()]
+    assert all(np.isfinite(line["train_loss"]) and line["train_jerk"] > 0 for line in logged)
+    assert load_checkpoint(out / GENERATOR)["train_config"]["one_step_fraction"] == 1.0
+    assert objective(TrainOptions(data=Path("d"), one_step_fraction=0.1)).times == TimeSampler(
+        one_step_fraction=0.1
+    )
+    for bad in ({"one_step_fraction": 1.5}, {"equal_fraction": math.nan}):
+        with pytest.raises(ValueError, match="--equal-fraction, --one-step-fraction in"):
+            TrainOptions(data=Path("d"), **bad)
+    with pytest.raises(ValueError, match="--one-step-fraction only with --generator meanflow"):
+        TrainOptions(data=Path("d"), one_step_fraction=0.1, flow_matching=True)
 
 
 def test_batch_order_is_seeded_and_buckets_agent_counts():

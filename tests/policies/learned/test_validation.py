@@ -42,6 +42,7 @@ def test_evaluate_is_deterministic_and_measures_constant_velocity(
     assert first != evaluate(model, batches, normalizer, num_samples=3, seed=6)
     assert first["min_ade"] < first["ade"]  # best of 3 noise plans beats a typical one
     assert first["jerk_rms"] > 10 * first["data_jerk_rms"]  # noise is far from smooth
+    assert first["jerk_median"] > 10 * first["data_jerk_median"]
     # constant velocity on data that keeps its speed and heading: zero error
     still = [
         dataclasses.replace(
@@ -52,6 +53,16 @@ def test_evaluate_is_deterministic_and_measures_constant_velocity(
     metrics = evaluate(model, still, normalizer, num_samples=2)
     assert metrics["cv_ade"] == pytest.approx(0.0, abs=1e-4)
     assert metrics["data_jerk_rms"] == 0.0 and math.isfinite(metrics["ade"])
+    # One change of the logged acceleration per plan: the RMS sees it, the median does not.
+    steps = still[0].actions.shape[2]
+    braking = [
+        dataclasses.replace(
+            b, actions=b.actions.index_fill(2, torch.arange(steps // 2, steps), -1.0)
+        )
+        for b in still
+    ]
+    metrics = evaluate(model, braking, normalizer, num_samples=2)
+    assert metrics["data_jerk_rms"] > 0.0 and metrics["data_jerk_median"] == 0.0
 
 
 def _constant_velocity_future(batch):

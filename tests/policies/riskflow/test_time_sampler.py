@@ -1,4 +1,5 @@
-"""Logit-normal (t, r) sampling: ordering, logit moments, r = t rate, flow-matching mode."""
+"""Logit-normal (t, r) sampling: ordering, logit moments, r = t rate, flow-matching mode,
+the one-step share."""
 
 from __future__ import annotations
 
@@ -61,8 +62,33 @@ def test_same_generator_seed_gives_the_same_times():
         ({"std": 0.0}, "std"),
         ({"mean": math.nan}, "mean"),
         ({"equal_fraction": 1.5}, "equal_fraction"),
+        ({"one_step_fraction": -0.1}, "one_step_fraction"),
+        ({"one_step_fraction": 0.1, "flow_matching": True}, "one_step_fraction"),
     ],
 )
 def test_invalid_settings_are_rejected(kwargs, match):
     with pytest.raises(ValueError, match=match):
         TimeSampler(**kwargs)
+
+
+@pytest.mark.parametrize("fraction", [0.1, 0.5])
+def test_one_step_share_is_the_samplers_own_call(fraction):
+    t, r = _draw(TimeSampler(one_step_fraction=fraction))
+    one_step = (t == 0) & (r == 1)
+    assert abs(float(one_step.double().mean()) - fraction) < 5 * math.sqrt(0.25 / N)
+    rest_t, rest_r = t[~one_step], r[~one_step]
+    assert bool((0 < rest_t).all() and (rest_t <= rest_r).all() and (rest_r < 1).all())
+    # The r = t share is drawn first and kept among the other pairs.
+    rate = float((rest_r == rest_t).double().mean())
+    assert abs(rate - 0.2) < 5 * math.sqrt(0.25 / len(rest_t))
+
+
+def test_no_one_step_share_keeps_the_earlier_draws_bit_for_bit():
+    assert all(
+        torch.equal(a, b)
+        for a, b in zip(
+            _draw(TimeSampler(), seed=5),
+            _draw(TimeSampler(one_step_fraction=0.0), seed=5),
+            strict=True,
+        )
+    )
