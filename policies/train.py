@@ -12,8 +12,7 @@ The loop (batches, Adam, clipping, EMA, validation, checkpoints, ``--resume``) i
 * ``--generator meanflow`` (default): RiskFlow's MeanFlow objective
   (:class:`~policies.riskflow.meanflow.MeanFlowObjective`; times from
   ``TimeSampler``: logit-normal, ``r = t`` for 20 %, always with ``--flow-matching``;
-  ``--one-step-fraction`` puts a share at the sampler's own call ``(0, 1)``;
-  ``--sample-penalties`` adds the realism penalties of the sampler's own plan).
+  ``--one-step-fraction`` puts a share at the sampler's own call ``(0, 1)``).
   The loss is the trajectory-space error plus ``action_weight`` (default 1) times the
   normalised action error: positions barely see high-frequency action noise, so without
   it one-step plans keep the noise of ``eps`` (pilot: jerk 16 m/s^3 against 4.6 with it,
@@ -60,9 +59,6 @@ class TrainOptions(LoopOptions):
     """share of MeanFlow samples with r = t"""
     one_step_fraction: float = 0.0
     """share of MeanFlow samples at the sampler's own call (t, r) = (0, 1)"""
-    sample_penalties: bool = False
-    """also apply the realism penalties (same weights) to the plan the sampler makes from
-    each batch's noise, eps + u(eps, 0, 1), with no data term on it"""
 
     def rules(self) -> dict[str, bool]:
         """The loop's checks and the generator options'."""
@@ -76,13 +72,6 @@ class TrainOptions(LoopOptions):
             ),
             "--one-step-fraction only with --generator meanflow, without --flow-matching": not (
                 self.one_step_fraction and (self.flow_matching or self.generator != "meanflow")
-            ),
-            "--sample-penalties only with --generator meanflow, without --flow-matching, "
-            "and a penalty weight > 0": not self.sample_penalties
-            or (
-                self.generator == "meanflow"
-                and not self.flow_matching
-                and max(self.collision_weight, self.offroad_weight, self.jerk_weight) > 0
             ),
             "--diffusion-steps, --val-sampling-steps >= 1": min(
                 self.diffusion_steps, self.val_sampling_steps
@@ -100,9 +89,7 @@ def objective(options: TrainOptions) -> MeanFlowObjective | DiffusionObjective:
         flow_matching=options.flow_matching,
         one_step_fraction=options.one_step_fraction,
     )
-    return MeanFlowObjective(
-        times, flow_matching=options.flow_matching, sample_penalties=options.sample_penalties
-    )
+    return MeanFlowObjective(times, flow_matching=options.flow_matching)
 
 
 def train(options: TrainOptions) -> dict[str, Any]:

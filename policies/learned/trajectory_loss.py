@@ -27,47 +27,6 @@ def target_actions(batch: WindowBatch, normalizer: Normalizer) -> Tensor:
     return torch.where(valid, normalizer.normalize(batch.actions), 0.0)
 
 
-def add_realism_penalties(
-    loss: Tensor,
-    actions: Tensor,
-    trajectory: Tensor,
-    batch: WindowBatch,
-    scene: SceneContext,
-    dynamics: DynamicsConfig,
-    weights: dict[str, float],
-) -> tuple[Tensor, dict[str, Tensor]]:
-    """``loss`` plus the weighted realism penalties of one decoded plan (those whose weight
-    is not 0), added one by one: overlap, off-road, jerk.
-
-    Args:
-        loss: the scalar to add them to.
-        actions: ``(B, A, T, 2)`` de-normalised plans.
-        trajectory: ``(B, A, T, 4)`` their rollout from ``scene.state``.
-        batch: the windows (boxes, map crops, reference future and its validity).
-        scene: the encoder output (current states and agent mask).
-        dynamics: time step of the plans.
-        weights: ``{"overlap": w, "offroad": w, "jerk": w}`` (``collision_weight``,
-            ``offroad_weight``, ``jerk_weight`` of :func:`trajectory_loss`).
-
-    Returns:
-        ``(loss + sum of weight * penalty, {name: penalty})`` over the names whose weight
-        is not 0; overlap and off-road count the steps where the reference is valid, jerk
-        every step of every agent in the scene.
-    """
-    mask = batch.future_valid.bool() & scene.agent_mask[..., None]
-    terms = {
-        "overlap": lambda: overlap_penalty(trajectory, batch, mask),
-        "offroad": lambda: offroad_penalty(trajectory, batch, scene.state, mask),
-        "jerk": lambda: jerk_penalty(
-            actions, scene.agent_mask[..., None].expand(actions.shape[:-1]), dynamics.dt
-        ),
-    }
-    penalties = {name: term() for name, term in terms.items() if weights.get(name, 0.0)}
-    for name, value in penalties.items():
-        loss = loss + weights[name] * value
-    return loss, penalties
-
-
 def trajectory_loss(
     a_hat: Tensor,
     batch: WindowBatch,
@@ -117,10 +76,17 @@ def trajectory_loss(
     position_mse = (squared * weight).sum() / count
     heading_mse = (heading * weight).sum() / count
     loss = position_mse + heading_weight * heading_mse
-    weights = {"overlap": collision_weight, "offroad": offroad_weight, "jerk": jerk_weight}
-    loss, penalties = add_realism_penalties(
-        loss, actions, trajectory, batch, scene, dynamics, weights
-    )
+    penalties = {}
+    if collision_weight:
+        penalties["overlap"] = overlap_penalty(trajectory, batch, mask)
+        loss = loss + collision_weight * penalties["overlap"]
+    if offroad_weight:
+        penalties["offroad"] = offroad_penalty(trajectory, batch, scene.state, mask)
+        loss = loss + offroad_weight * penalties["offroad"]
+    if jerk_weight:
+        planned = scene.agent_mask[..., None].expand(actions.shape[:-1])
+        penalties["jerk"] = jerk_penalty(actions, planned, dynamics.dt)
+        loss = loss + jerk_weight * penalties["jerk"]
     with torch.no_grad():
         distance = squared.detach().sqrt()
         # FDE per agent as the metrics define it; "ade" here pools the agent-steps.

@@ -40,12 +40,7 @@ from torch import Tensor
 from policies.learned.data import Normalizer
 from policies.learned.encoder import SceneContext
 from policies.learned.generator import RiskFlowGenerator
-from policies.learned.sampler import base_velocity, decode_plans
-from policies.learned.trajectory_loss import (
-    add_realism_penalties,
-    target_actions,
-    trajectory_loss,
-)
+from policies.learned.trajectory_loss import target_actions, trajectory_loss
 from policies.learned.window_types import WindowBatch
 from policies.riskflow.time_sampler import TimeSampler
 from riskflow_env.config import DynamicsConfig
@@ -120,7 +115,6 @@ def meanflow_loss(
     collision_weight: float = 0.0,
     offroad_weight: float = 0.0,
     jerk_weight: float = 0.0,
-    sample_penalties: bool = False,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """RiskFlow's MeanFlow objective (see the module docstring).
 
@@ -140,18 +134,12 @@ def meanflow_loss(
         dynamics: time step and bounds of the rollout.
         collision_weight, offroad_weight, jerk_weight: weights of the realism penalties
             (:func:`trajectory_loss`).
-        sample_penalties: also add the realism penalties, with the same weights, of the
-            plan the sampler makes from this ``eps``: ``eps + u(eps, 0, 1)``, decoded as
-            ``sampler.sample`` decodes it, which the reconstruction at ``(t, r)`` does
-            not see.
-            No data term pulls that plan, so it is not drawn toward the mean plan.
 
     Returns:
         ``(loss, metrics)``: the scalar loss and detached scalar metrics: those of
         :func:`trajectory_loss`, ``loss``, ``action_mse`` (normalised ``|a_hat - a*|^2``
         on valid actions: MeanFlow's own regression error), ``dudt_abs`` (mean
-        ``|du/dt|``) and ``dudt_clipped`` (share of entries beyond ``clip``), and with
-        ``sample_penalties`` the sampled plan's penalties as ``sample_overlap``, ...
+        ``|du/dt|``) and ``dudt_clipped`` (share of entries beyond ``clip``).
     """
     _check(batch, eps, t, r)
     scene = model.encode(batch)
@@ -177,17 +165,6 @@ def meanflow_loss(
     )  # fmt: skip
     metrics["dudt_abs"] = dudt.abs().mean()
     metrics["dudt_clipped"] = (dudt.abs() > clip).to(dudt.dtype).mean()
-    if sample_penalties:
-        plan = eps + base_velocity(model, eps, scene)  # what sampler.sample draws
-        actions, trajectory = decode_plans(
-            plan, scene.state, scene.agent_mask, normalizer, dynamics
-        )
-        weights = {"overlap": collision_weight, "offroad": offroad_weight, "jerk": jerk_weight}
-        loss, values = add_realism_penalties(
-            loss, actions, trajectory, batch, scene, dynamics, weights
-        )
-        metrics |= {f"sample_{name}": value.detach() for name, value in values.items()}
-        metrics["loss"] = loss.detach()
     return loss, metrics
 
 
@@ -285,19 +262,12 @@ class MeanFlowObjective:
     Args:
         times: the ``(t, r)`` sampler.
         flow_matching: train the flow-matching reference (``r = t``).
-        sample_penalties: add the realism penalties of the sampler's own plan
-            (:func:`meanflow_loss`).
     """
 
     kind = "meanflow"
 
-    def __init__(
-        self, times: TimeSampler, flow_matching: bool = False, sample_penalties: bool = False
-    ) -> None:
-        if flow_matching and sample_penalties:
-            raise ValueError("sample_penalties needs the MeanFlow objective, not flow_matching")
+    def __init__(self, times: TimeSampler, flow_matching: bool = False) -> None:
         self.times, self.flow_matching = times, flow_matching
-        self.sample_penalties = sample_penalties
 
     def loss(
         self,
@@ -312,9 +282,7 @@ class MeanFlowObjective:
         t, r = self.times(eps.shape[0], generator=generator, device=eps.device)
         if self.flow_matching:
             return flow_matching_loss(model, batch, normalizer, eps, t, **weights)
-        return meanflow_loss(
-            model, batch, normalizer, eps, t, r, sample_penalties=self.sample_penalties, **weights
-        )
+        return meanflow_loss(model, batch, normalizer, eps, t, r, **weights)
 
     def sampler(self, model: RiskFlowGenerator) -> RiskFlowGenerator | OneStepFlowMatching:
         """What validation samples: the model's one step (one Euler step for flow matching)."""

@@ -9,8 +9,6 @@ import numpy as np
 import pytest
 import torch
 
-from policies.learned.plan_penalties import jerk_penalty, offroad_penalty, overlap_penalty
-from policies.learned.sampler import sample
 from policies.learned.synthetic import synthetic_batch
 from policies.learned.trajectory_loss import target_actions, trajectory_loss
 from policies.learned.window_types import FUTURE_FIELDS, collate_windows
@@ -106,43 +104,6 @@ def test_loss_gradient_flows_through_u_only(make_model, normalizer):
         torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-6)
     assert all(bool(g.abs().sum() > 0) for g in grads), "every parameter gets a gradient"
     assert set(metrics) >= {"loss", "position_mse", "ade", "fde", "action_mse", "dudt_clipped"}
-
-
-def test_sample_penalties_add_the_penalties_of_the_samplers_own_plan(make_model, normalizer):
-    model = make_model()
-    batch = synthetic_batch(2, 5, seed=6)
-    eps = torch.randn(batch.actions.shape, generator=torch.Generator().manual_seed(1))
-    t, r = _times(2)
-    weights = {"collision_weight": 10.0, "offroad_weight": 10.0, "jerk_weight": 0.5}
-    plain, _ = meanflow_loss(model, batch, normalizer, eps, t, r, **weights)
-    loss, metrics = meanflow_loss(
-        model, batch, normalizer, eps, t, r, sample_penalties=True, **weights
-    )
-    # By hand: the plan sampler.sample makes from eps, and the three penalties on it.
-    scene = model.encode(batch)
-    actions, path = sample(model, scene, eps, normalizer)
-    mask = batch.future_valid & batch.agent_mask[..., None]
-    planned = batch.agent_mask[..., None].expand(actions.shape[:-1])
-    by_hand = {
-        "overlap": overlap_penalty(path, batch, mask),
-        "offroad": offroad_penalty(path, batch, scene.state, mask),
-        "jerk": jerk_penalty(actions, planned, 0.1),
-    }
-    for name, value in by_hand.items():
-        torch.testing.assert_close(metrics[f"sample_{name}"], value.detach())
-    assert float(by_hand["jerk"]) > 0
-    added = 10.0 * by_hand["overlap"] + 10.0 * by_hand["offroad"] + 0.5 * by_hand["jerk"]
-    torch.testing.assert_close(loss, plain + added)
-    torch.testing.assert_close(metrics["loss"], loss.detach())
-    # The sampled plan's jerk pulls on the network: its gradient alone is not zero.
-    jerk_only = {"jerk_weight": 1.0}
-    with_sample, _ = meanflow_loss(
-        model, batch, normalizer, eps, t, r, sample_penalties=True, **jerk_only
-    )
-    without, _ = meanflow_loss(model, batch, normalizer, eps, t, r, **jerk_only)
-    head = [p for name, p in model.named_parameters() if "encoder" not in name]
-    extra = torch.autograd.grad(with_sample - without, head, allow_unused=True)
-    assert any(g is not None and bool(g.abs().sum() > 0) for g in extra)
 
 
 def test_loss_ignores_padded_agents_and_invalid_future_steps(make_model, normalizer):
