@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from policies.learned.sampler import base_velocity
 from policies.learned.synthetic import synthetic_batch
 from policies.learned.trajectory_loss import target_actions, trajectory_loss
 from policies.learned.window_types import FUTURE_FIELDS, collate_windows
@@ -104,6 +105,22 @@ def test_loss_gradient_flows_through_u_only(make_model, normalizer):
         torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-6)
     assert all(bool(g.abs().sum() > 0) for g in grads), "every parameter gets a gradient"
     assert set(metrics) >= {"loss", "position_mse", "ade", "fde", "action_mse", "dudt_clipped"}
+
+
+def test_at_the_samplers_call_the_reconstruction_is_the_sampled_plan(make_model, normalizer):
+    """(t, r) = (0, 1), the pairs of --one-step-fraction: z_t is the noise and, up to the
+    clipped du/dt correction, a_hat is the plan the sampler makes from it."""
+    model = make_model()
+    batch = synthetic_batch(2, 4, seed=7)
+    eps = torch.randn(batch.actions.shape, generator=torch.Generator().manual_seed(3))
+    t, r = torch.zeros(2), torch.ones(2)
+    loss, _ = meanflow_loss(model, batch, normalizer, eps, t, r, clip=0.0)
+    scene = model.encode(batch)
+    plan = eps + base_velocity(model, eps, scene)  # what sampler.sample decodes
+    reference, _ = trajectory_loss(plan, batch, scene, normalizer)
+    torch.testing.assert_close(loss, reference)
+    clipped = float(meanflow_loss(model, batch, normalizer, eps, t, r)[0].detach())
+    assert math.isfinite(clipped) and clipped != float(loss.detach())
 
 
 def test_loss_ignores_padded_agents_and_invalid_future_steps(make_model, normalizer):
