@@ -86,7 +86,8 @@ def test_the_window_actions_drive_its_future_and_return_to_the_log(made, scene, 
                            axis=-1)  # fmt: skip
     moved = held.all(axis=1) & (start > 0.3)
     assert moved.any()
-    assert np.median(offset[moved, -1] / start[moved]) < 0.5  # most come back toward the log
+    ratio = offset[moved, -1] / start[moved]  # < 1: nearer the log 5 s later than at the cut
+    assert (ratio < 1).mean() > 0.75 and np.median(ratio) < 0.6  # most come back toward it
 
 
 def test_agents_outside_the_window_keep_their_logged_future(generator, scene):
