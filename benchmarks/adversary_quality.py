@@ -12,8 +12,8 @@ stress test; ``--full-episodes`` runs every episode for 10 s instead, so that of
 rates are compared over the same exposure. The adversary runs with the library's
 defaults: the realistic base (20 avoidance steps, holding at rest at 4 m, blending first
 over 15 steps), the map term weighted 20, the separation term between the guided
-vehicles weighted 100 and the target's guidance step (0.1 with ``--target ego``, 0.03
-with ``others``; docs/REALISM.md, rounds 8-18);
+vehicles weighted 100 and the target's guidance step (0.1 with ``--target ego``, 0.01
+with ``others``; docs/REALISM.md, rounds 8-18 and 26);
 ``--avoid-steps 0 --hold-distance 0 --lambda-map 1 --lambda-sep 0 --step-size 0.1
 --no-stitch-first`` is the raw base of ``riskflow-eval``'s ``riskflow-plain``;
 ``--stitch-steps N`` sets the blend. ``--out`` receives ``quality.json`` with the
@@ -80,7 +80,7 @@ class Options:
     """weight of the guidance's map term"""
     step_size: float | None = GuidanceConfig.step_size
     """guidance step size (Adam's learning rate, normalised action units); default: the
-    target's (0.03 with 'others', 0.1 with 'ego')"""
+    target's (0.01 with 'others', 0.1 with 'ego')"""
     optimizer: str = GuidanceConfig.optimizer
     """guidance steps: 'adam' (per coordinate), 'adam-plan' (one second moment per guided
     plan) or 'gradient' (plain steps)"""

@@ -16,8 +16,8 @@ Peers, measured interleaved with it (same machine load):
 * **on the realistic base** — RiskFlow and the unguided generator with ``--avoid-steps``
   avoidance steps (the default's, ``DEFAULT_AVOID_STEPS``: 20), the default holding at
   rest (4 m), blending first and (RiskFlow) the separation term ``lambda_sep = 100`` and
-  the step 0.03: the library's defaults (``riskflow-eval``'s ``riskflow`` and ``bits``;
-  docs/REALISM.md, rounds 8-18);
+  the step 0.01: the library's defaults (``riskflow-eval``'s ``riskflow`` and ``bits``;
+  docs/REALISM.md, rounds 8-18 and 26);
   ``--avoid-steps 0`` leaves these rows out.
 
 Prints the median [ms] of each phase and the ratios to the peers. Target: a full cycle

@@ -103,7 +103,7 @@ class RiskFlowAdversary(PlanBufferPolicy):
             ``guidance_horizon``, ``rank_threshold``, ``seed``, ``device``,
             ``window_config``, ``threads``); or give them as keywords (``**options``).
         guidance_steps: ``K_g``.
-        step_size: Adam learning rate, or ``gamma`` of plain steps; None (default): 0.03
+        step_size: Adam learning rate, or ``gamma`` of plain steps; None (default): 0.01
             with target ``"others"``, 0.1 with ``"ego"`` (:class:`GuidanceConfig`).
         optimizer: ``"adam"`` (default), ``"adam-plan"`` (one Adam second moment per
             guided plan) or ``"gradient"`` (the paper's plain steps)

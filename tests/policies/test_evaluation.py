@@ -268,17 +268,17 @@ def test_every_method_builds(name):
 
 
 def test_guidance_step_defaults():
-    """RiskFlow guides with the target's step (docs/REALISM.md round 18): 0.03 with the
-    paper's target, 0.1 with target ``ego``; STRIVE-style with its own best, 0.1, for
+    """RiskFlow guides with the target's step (docs/REALISM.md rounds 18 and 26): 0.01
+    with the paper's target, 0.1 with target ``ego``; STRIVE-style with its own best, 0.1, for
     either; the raw base keeps the paper's 0.1; ``--set`` overrides each."""
 
     def build(name, target="others", **options):
         policy = build_policy(name, options, k=2, planning_interval=0.5, target=target, seed=0)
         return policy.guidance.resolved_step_size
 
-    assert build("riskflow") == 0.03
+    assert build("riskflow") == 0.01
     assert build("riskflow", target="ego") == 0.1
-    assert build("riskflow-nosep") == 0.03
+    assert build("riskflow-nosep") == 0.01
     assert build("strive") == 0.1
     assert build("strive", target="ego") == 0.1
     assert build("riskflow-plain") == 0.1
