@@ -23,6 +23,24 @@ half its width minus 0.2 m (the whole box on the road, its outer side 0.2-1.5 m 
 edge), with the same clearances. The traffic of the log then passes close to a car that
 stands in an unused lane, as in a street lined with parked cars (the nuScenes samples'
 remaining collisions are moving vehicles driving into standing ones: docs/REALISM.md).
+
+Two options bring the cars nearer to the parked cars of recorded scenes (docs/REALISM.md,
+round 27: in the nuScenes car park the cars that a generator drives away stand across the
+lanes, 4-17 m off the road, and their logged speeds are not 0):
+
+* ``turn``: the share of cars parked across the road (their heading turned by a quarter
+  turn, as in the bays of a car park); such a car keeps half its length, not half its
+  width, clear of the drivable area (or of the edge, at the kerb).
+* ``jitter`` [m/s]: the recorded positions of a parked car wander by centimetres from step
+  to step (annotation noise; nuScenes' parked cars show logged speeds of 0.1-0.3 m/s,
+  some up to 0.8), and a generator that has only seen exact zeros reads that as a car that
+  has started to move. Each car draws a noise level ``sigma`` uniform in ``[0, jitter]``;
+  over its history (up to and including the current step) it creeps back and forth along
+  its heading with velocity ``sigma * n(t)`` (``n``: unit white noise smoothed over half a
+  second, scaled back to unit variance), its speed channel reads ``|sigma * n(t)|``, and
+  its position is the integral of that velocity, ending at its spot at the current step.
+  Its future stands at the spot with speed 0: the window's reference actions bring a
+  jittering car to rest.
 """
 
 from __future__ import annotations
@@ -30,14 +48,16 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from scipy.ndimage import uniform_filter1d
 
-from riskflow_env.dynamics import YAW
+from riskflow_env.dynamics import SPEED, YAW
 from riskflow_env.geometry import separation
 from riskflow_env.scenarios.scenario import Scenario
 
 OFFSETS = np.arange(1.5, 13.0, 1.0)  # [m] tried from the track outwards
 CANDIDATES_PER_CAR = 8
 CLEARANCE = 0.5  # [m] least gap to every logged box (geometry.separation) and other parked cars
+JITTER_SMOOTHING = 0.5  # [s] window of the moving average over the white noise of ``jitter``
 
 
 def add_parked(
@@ -46,6 +66,8 @@ def add_parked(
     current_index: int,
     rng: np.random.Generator,
     on_road: bool = False,
+    turn: float = 0.0,
+    jitter: float = 0.0,
 ) -> Scenario:
     """``scenario`` with up to ``count`` parked cars appended as new rows.
 
@@ -57,11 +79,19 @@ def add_parked(
         rng: the draws.
         on_road: park at the kerb, on the drivable area (module docstring), instead of
             beside the road.
+        turn: share of the cars parked across the road, in ``[0, 1]`` (module docstring).
+        jitter: largest noise level [m/s] of the cars' logged history, ``>= 0`` (module
+            docstring). With ``turn`` and ``jitter`` 0 nothing more is drawn from ``rng``.
 
     Returns:
         The scene with the cars as rows after the existing ones: valid at every step,
-        speed 0, one pose throughout; lengths in [4, 5] m, widths in [1.7, 2] m.
+        speed 0, one pose throughout (with ``jitter``, from the current step on);
+        lengths in [4, 5] m, widths in [1.7, 2] m.
     """
+    if not 0.0 <= turn <= 1.0:
+        raise ValueError(f"add_parked: turn must be a share in [0, 1], got {turn!r}")
+    if not (np.isfinite(jitter) and jitter >= 0.0):
+        raise ValueError(f"add_parked: jitter must be a finite speed >= 0 [m/s], got {jitter!r}")
     if count <= 0:
         return scenario
     states, valid = scenario.states, scenario.valid
@@ -76,10 +106,12 @@ def add_parked(
     length, width = rng.uniform(4.0, 5.0, tries), rng.uniform(1.7, 2.0, tries)
     flip = np.where(rng.random(tries) < 1.0 / 3.0, np.pi, 0.0)
     heading = base[:, YAW] + flip + rng.uniform(-0.1, 0.1, tries)
+    across = rng.random(tries) < turn if turn else np.zeros(tries, dtype=bool)
+    heading = heading + np.where(across, np.pi / 2, 0.0)
     normal = side[:, None] * np.stack([-np.sin(base[:, YAW]), np.cos(base[:, YAW])], axis=-1)
     points = base[:, None, :2] + OFFSETS[None, :, None] * normal[:, None, :]  # (C, K, 2)
     sdf = np.asarray(scenario.map.sdf_at(points))
-    half = width[:, None] / 2
+    half = np.where(across, length, width)[:, None] / 2  # the extent towards the road
     if on_road:  # the whole box on the road, its outer side near the edge
         fits = (sdf >= -half - 1.5) & (sdf <= -half - 0.2)
     else:  # just off the drivable area
@@ -111,6 +143,8 @@ def add_parked(
         [spot[chosen], np.zeros((chosen.size, 1)), heading[chosen, None]], axis=-1
     )
     parked = np.broadcast_to(pose[:, None, :], (chosen.size, states.shape[1], 4))
+    if jitter:
+        parked = _jittered(parked, current_index, scenario.dt, jitter, rng)
     extra = {}
     if scenario.agent_ids:
         first = sum(name.startswith("parked-") for name in scenario.agent_ids)
@@ -126,6 +160,25 @@ def add_parked(
         width=np.concatenate([scenario.width, width[chosen].astype(scenario.width.dtype)]),
         **extra,
     )
+
+
+def _jittered(
+    parked: np.ndarray, current_index: int, dt: float, jitter: float, rng: np.random.Generator
+) -> np.ndarray:
+    """``parked`` (N, T, 4) with the annotation-like creep of the module docstring over
+    the steps up to ``current_index``."""
+    count, history = parked.shape[0], current_index + 1
+    sigma = jitter * rng.random(count)  # (N,) [m/s]
+    width = max(1, round(JITTER_SMOOTHING / dt))
+    noise = uniform_filter1d(rng.standard_normal((count, history)), width, axis=1, mode="nearest")
+    velocity = sigma[:, None] * noise * np.sqrt(width)  # (N, H) [m/s], signed along the heading
+    travelled = np.cumsum(velocity * dt, axis=1)
+    along = travelled - travelled[:, -1:]  # (N, H) [m]: 0 at the current step
+    out = np.array(parked, dtype=np.float64)
+    direction = np.stack([np.cos(out[:, 0, YAW]), np.sin(out[:, 0, YAW])], axis=-1)  # (N, 2)
+    out[:, :history, :2] += along[..., None] * direction[:, None, :]
+    out[:, :history, SPEED] = np.abs(velocity)
+    return out
 
 
 __all__ = ["add_parked"]

@@ -57,6 +57,11 @@ class RecoveryConfig:
             (``add_parked(on_road=True)``); 0 draws nothing, so windows without them keep
             their bits and their cache files (:meth:`settings`).
         seed: seed of the draws (each window copy has its own stream).
+        parked_turn: share of the parked cars (both kinds) parked across the road, in
+            ``[0, 1]`` (``add_parked(turn=...)``).
+        parked_jitter: largest noise level [m/s] of the parked cars' logged history,
+            ``>= 0`` (``add_parked(jitter=...)``). Like ``kerbside``, both leave the bits
+            and the cache files of windows made without them unchanged when 0.
     """
 
     copies: int = 0
@@ -68,6 +73,8 @@ class RecoveryConfig:
     parked: int = 0
     seed: int = 0
     kerbside: int = 0
+    parked_turn: float = 0.0
+    parked_jitter: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("copies", "parked", "kerbside"):
@@ -76,7 +83,11 @@ class RecoveryConfig:
                 raise ValueError(f"RecoveryConfig.{name} must be an int >= 0, got {value!r}")
         if not 0.0 <= self.share <= 1.0:
             raise ValueError(f"RecoveryConfig.share must be in [0, 1], got {self.share!r}")
-        for name in ("offset", "max_heading", "min_speed"):
+        if not 0.0 <= self.parked_turn <= 1.0:
+            raise ValueError(
+                f"RecoveryConfig.parked_turn must be in [0, 1], got {self.parked_turn!r}"
+            )
+        for name in ("offset", "max_heading", "min_speed", "parked_jitter"):
             value = getattr(self, name)
             if not math.isfinite(value) or value < 0:
                 raise ValueError(f"RecoveryConfig.{name} must be a number >= 0, got {value!r}")
@@ -89,10 +100,12 @@ class RecoveryConfig:
 
     def settings(self) -> dict:
         """The fields as a dict for cache fingerprints and file names, without
-        ``kerbside`` when it is 0 (so caches written before it existed stay valid)."""
+        ``kerbside``, ``parked_turn`` and ``parked_jitter`` when they are 0 (so caches
+        written before they existed stay valid)."""
         settings = dataclasses.asdict(self)
-        if not self.kerbside:
-            del settings["kerbside"]
+        for name in ("kerbside", "parked_turn", "parked_jitter"):
+            if not settings[name]:
+                del settings[name]
         return settings
 
 

@@ -90,6 +90,11 @@ class LoopOptions:
     """cars parked beside the road added to each recovery window (policies.learned.parked)"""
     recovery_kerbside: int = 0
     """cars parked at the kerb, on the road, added to each recovery window (learned.parked)"""
+    recovery_parked_turn: float = 0.0
+    """share of the parked cars parked across the road, as in a car park (learned.parked)"""
+    recovery_parked_jitter: float = 0.0
+    """largest noise level [m/s] of the parked cars' logged history: they creep back and
+    forth before the current step, as annotated parked cars do (learned.parked)"""
     time_budget_min: float = 0.0
     """stop cleanly and save after this many minutes of this run (0: no limit)"""
 
@@ -113,6 +118,11 @@ class LoopOptions:
             >= 0,
             "--recovery-offset >= 0": math.isfinite(self.recovery_offset)
             and self.recovery_offset >= 0,
+            "0 <= --recovery-parked-turn <= 1": 0 <= self.recovery_parked_turn <= 1,
+            "--recovery-parked-jitter finite and >= 0 [m/s]": math.isfinite(
+                self.recovery_parked_jitter
+            )
+            and self.recovery_parked_jitter >= 0,
             "--collision-weight, --offroad-weight, --jerk-weight finite and >= 0": all(
                 math.isfinite(w) and w >= 0
                 for w in (self.collision_weight, self.offroad_weight, self.jerk_weight)
@@ -127,6 +137,8 @@ class LoopOptions:
             parked=self.recovery_parked,
             kerbside=self.recovery_kerbside,
             seed=self.seed,
+            parked_turn=self.recovery_parked_turn,
+            parked_jitter=self.recovery_parked_jitter,
         )
 
     def __post_init__(self) -> None:

@@ -264,8 +264,10 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
             for key, value in values.items():
                 sums.setdefault(key, []).append(float(value))
             bar.update()
-            bar.set_postfix(
-                loss=f"{float(values['loss']):.3f}", samples_s=f"{values['samples_per_s']:.1f}"
+            bar.set_postfix(  # shown at the bar's next refresh (mininterval), not now
+                loss=f"{float(values['loss']):.3f}",
+                samples_s=f"{values['samples_per_s']:.1f}",
+                refresh=False,
             )
             over_budget = time.perf_counter() - started > budget
             done = step >= options.steps or over_budget

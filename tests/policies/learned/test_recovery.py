@@ -175,7 +175,7 @@ def test_kerbside_zero_keeps_the_windows_and_their_cache_name(scenes):
     assert "kerbside" not in settings
     assert settings == {
         k: v for k, v in dataclasses.asdict(RecoveryConfig(copies=1, parked=2)).items()
-        if k != "kerbside"
+        if k not in ("kerbside", "parked_turn", "parked_jitter")
     }  # fmt: skip
     with_cars = RecoveryConfig(copies=1, parked=2, kerbside=2)
     assert with_cars.settings()["kerbside"] == 2
@@ -197,3 +197,80 @@ def test_recovery_copies_with_parked_cars_show_them_standing(scenes):
     assert rows.sum() == 2
     np.testing.assert_array_equal(copy.actions[rows], 0.0)
     np.testing.assert_array_equal(copy.future[rows, :, 2], 0.0)
+
+
+def test_turned_cars_stand_across_the_road_with_their_length_off_it(scenes):
+    """``turn=1`` parks every car across the road, so half its length (not its width)
+    stays clear of the drivable area."""
+    kept = 0
+    for seed, scene in enumerate(scenes):
+        out = add_parked(scene, 2, CURRENT, np.random.default_rng(seed), turn=1.0)
+        count = out.states.shape[0] - scene.states.shape[0]
+        kept += count
+        if not count:
+            continue
+        parked = out.states[-count:]
+        assert np.all(parked == parked[:, :1]) and np.all(parked[..., 2] == 0.0)
+        sdf = np.asarray(scene.map.sdf_at(parked[:, 0, :2]))
+        assert np.all(sdf >= out.length[-count:] / 2 + 0.3 - 1e-6), sdf
+        assert_clear_of_every_track(scene, out, count)
+    assert kept >= 2
+
+
+def test_jittered_cars_creep_before_the_current_step_and_stand_after_it(scenes):
+    scene = scenes[0]
+    out = add_parked(scene, 3, CURRENT, np.random.default_rng(4), jitter=0.3)
+    count = out.states.shape[0] - scene.states.shape[0]
+    assert count == 3
+    parked = out.states[-count:]
+    pose = parked[:, CURRENT:][..., [0, 1, 3]]  # at its spot from the current step on
+    assert np.all(pose == pose[:, :1]) and np.all(parked[:, CURRENT + 1 :, 2] == 0.0)
+    history = parked[:, : CURRENT + 1]
+    assert np.all(history[..., 2] >= 0.0) and history[..., 2].max() > 0.05
+    assert np.all(history[..., 3] == history[:, :1, 3])  # the heading stays
+    # each step moves along the heading, by at most the speed it reads
+    steps = np.diff(history[..., :2], axis=1)
+    direction = np.stack([np.cos(history[:, 0, 3]), np.sin(history[:, 0, 3])], axis=-1)
+    along = np.einsum("ntk,nk->nt", steps, direction)
+    np.testing.assert_allclose(np.abs(steps).sum(-1) > 0, np.abs(along) > 0)
+    np.testing.assert_allclose(np.abs(along), history[:, 1:, 2] * scene.dt, atol=1e-6)
+    # without the options nothing more is drawn: the cars of the plain call
+    plain = add_parked(scene, 3, CURRENT, np.random.default_rng(4))
+    np.testing.assert_array_equal(
+        out.states[-count:, CURRENT, [0, 1, 3]], plain.states[-count:, 0, [0, 1, 3]]
+    )
+    np.testing.assert_array_equal(
+        add_parked(scene, 3, CURRENT, np.random.default_rng(4), turn=0.0, jitter=0.0).states,
+        plain.states,
+    )
+
+
+@pytest.mark.parametrize(
+    ("options", "match"),
+    [({"turn": 1.5}, r"turn must be a share in \[0, 1\]"), ({"jitter": -0.1}, "jitter must be")],
+)
+def test_bad_parked_looks_name_the_argument(scenes, options, match):
+    with pytest.raises(ValueError, match=match):
+        add_parked(scenes[0], 1, CURRENT, np.random.default_rng(0), **options)
+
+
+def test_parked_looks_zero_keep_the_cache_settings_and_name_their_field():
+    plain = RecoveryConfig(copies=1, parked=2)
+    looks = RecoveryConfig(copies=1, parked=2, parked_turn=0.5, parked_jitter=0.3)
+    assert plain.settings().keys().isdisjoint({"parked_turn", "parked_jitter"})
+    assert looks.settings()["parked_turn"] == 0.5 and looks.settings()["parked_jitter"] == 0.3
+    with pytest.raises(ValueError, match=r"parked_turn must be in \[0, 1\]"):
+        RecoveryConfig(parked_turn=-0.1)
+    with pytest.raises(ValueError, match="parked_jitter must be a number >= 0"):
+        RecoveryConfig(parked_jitter=float("inf"))
+
+
+def test_recovery_copies_with_jittered_parked_cars_stop_them(scenes):
+    """A jittered parked car's reference actions bring it to rest and keep it there."""
+    recovery = RecoveryConfig(copies=1, parked=2, parked_jitter=0.3)
+    data = WindowDataset(scenes[:1], stride=40, recovery=recovery)
+    copy = data.window(1)
+    rows = copy.agent_index >= scenes[0].states.shape[0]
+    assert rows.sum() == 2
+    np.testing.assert_array_equal(copy.future[rows, :, 2], 0.0)
+    assert np.all(copy.actions[rows, :, 0] <= 1e-6)  # braking or nothing, never speeding up
