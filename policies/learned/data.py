@@ -203,10 +203,10 @@ class WindowDataset(Dataset):
             self.config.dynamics.yaw_rate_max,
         )  # fmt: skip
         moved = dataclasses.replace(scenario, states=states.astype(scenario.states.dtype))
-        looks = {"turn": recovery.parked_turn, "jitter": recovery.parked_jitter}
-        moved = add_parked(moved, recovery.parked, current, rng, **looks)
+        turn, jitter = recovery.parked_turn, recovery.parked_jitter
+        moved = add_parked(moved, recovery.parked, current, rng, turn=turn, jitter=jitter)
         if recovery.kerbside:  # drawn after the others: without them the bits are kept
-            moved = add_parked(moved, recovery.kerbside, current, rng, on_road=True, **looks)
+            moved = add_parked(moved, recovery.kerbside, current, rng, on_road=True, jitter=jitter)
         return window_from_scenario(moved, current, self.config)
 
     def __len__(self) -> int:

@@ -30,7 +30,9 @@ lanes, 4-17 m off the road, and their logged speeds are not 0):
 
 * ``turn``: the share of cars parked across the road (their heading turned by a quarter
   turn, as in the bays of a car park); such a car keeps half its length, not half its
-  width, clear of the drivable area (or of the edge, at the kerb).
+  width, clear of the drivable area (with ``on_road``, half its length inside the edge's
+  band: a car across a lane, which seldom finds room clear of the logged tracks, so the
+  recovery windows turn only the cars beside the road).
 * ``jitter`` [m/s]: the recorded positions of a parked car wander by centimetres from step
   to step (annotation noise; nuScenes' parked cars show logged speeds of 0.1-0.3 m/s,
   some up to 0.8), and a generator that has only seen exact zeros reads that as a car that

@@ -57,10 +57,11 @@ class RecoveryConfig:
             (``add_parked(on_road=True)``); 0 draws nothing, so windows without them keep
             their bits and their cache files (:meth:`settings`).
         seed: seed of the draws (each window copy has its own stream).
-        parked_turn: share of the parked cars (both kinds) parked across the road, in
-            ``[0, 1]`` (``add_parked(turn=...)``).
-        parked_jitter: largest noise level [m/s] of the parked cars' logged history,
-            ``>= 0`` (``add_parked(jitter=...)``). Like ``kerbside``, both leave the bits
+        parked_turn: share of the cars parked beside the road that stand across it, in
+            ``[0, 1]`` (``add_parked(turn=...)``; not the kerbside cars: across a lane at
+            the kerb a car finds no room clear of the logged tracks).
+        parked_jitter: largest noise level [m/s] of the parked cars' logged history (both
+            kinds), ``>= 0`` (``add_parked(jitter=...)``). Like ``kerbside``, both leave the bits
             and the cache files of windows made without them unchanged when 0.
     """
 

@@ -91,7 +91,8 @@ class LoopOptions:
     recovery_kerbside: int = 0
     """cars parked at the kerb, on the road, added to each recovery window (learned.parked)"""
     recovery_parked_turn: float = 0.0
-    """share of the parked cars parked across the road, as in a car park (learned.parked)"""
+    """share of the cars parked beside the road (--recovery-parked) that stand across it, as
+    in a car park (learned.parked)"""
     recovery_parked_jitter: float = 0.0
     """largest noise level [m/s] of the parked cars' logged history: they creep back and
     forth before the current step, as annotated parked cars do (learned.parked)"""

@@ -151,21 +151,33 @@ def test_parked_cars_stand_beside_the_road_clear_of_every_track(scenes):
     assert add_parked(scenes[0], 0, CURRENT, np.random.default_rng(0)) is scenes[0]
 
 
-def test_kerbside_cars_stand_on_the_road_clear_of_every_track(scenes):
+@pytest.mark.parametrize(
+    ("options", "extent", "band"),
+    [  # the signed distance of the centre, from the extent towards the road [m]
+        ({"on_road": True}, "width", (-1.5, -0.2)),  # at the kerb, on the road
+        ({"turn": 1.0}, "length", (0.3, 3.0)),  # across the road, off it
+    ],
+)
+def test_kerbside_and_turned_cars_keep_their_band_clear_of_every_track(
+    scenes, options, extent, band
+):
+    """Kerbside cars stand on the road near its edge; cars parked across the road keep
+    half their length (not their width) in the band."""
     kept = 0
     for seed, scene in enumerate(scenes):
-        out = add_parked(scene, 2, CURRENT, np.random.default_rng(seed), on_road=True)
+        out = add_parked(scene, 2, CURRENT, np.random.default_rng(seed), **options)
         count = out.states.shape[0] - scene.states.shape[0]
         kept += count
         if not count:
             continue
         parked = out.states[-count:]
         assert np.all(parked == parked[:, :1]) and np.all(parked[..., 2] == 0.0)
-        half = out.width[-count:] / 2
+        half = getattr(out, extent)[-count:] / 2
         sdf = np.asarray(scene.map.sdf_at(parked[:, 0, :2]))
-        assert np.all((sdf >= -half - 1.5 - 1e-6) & (sdf <= -half - 0.2 + 1e-6)), sdf
+        signed = np.sign(band[0]) * half
+        assert np.all((sdf >= signed + band[0] - 1e-6) & (sdf <= signed + band[1] + 1e-6)), sdf
         assert_clear_of_every_track(scene, out, count)
-    assert kept >= 2, "some road in the three scenes has room at the kerb"
+    assert kept >= 2, "some road in the three scenes has room"
 
 
 def test_kerbside_zero_keeps_the_windows_and_their_cache_name(scenes):
@@ -197,24 +209,6 @@ def test_recovery_copies_with_parked_cars_show_them_standing(scenes):
     assert rows.sum() == 2
     np.testing.assert_array_equal(copy.actions[rows], 0.0)
     np.testing.assert_array_equal(copy.future[rows, :, 2], 0.0)
-
-
-def test_turned_cars_stand_across_the_road_with_their_length_off_it(scenes):
-    """``turn=1`` parks every car across the road, so half its length (not its width)
-    stays clear of the drivable area."""
-    kept = 0
-    for seed, scene in enumerate(scenes):
-        out = add_parked(scene, 2, CURRENT, np.random.default_rng(seed), turn=1.0)
-        count = out.states.shape[0] - scene.states.shape[0]
-        kept += count
-        if not count:
-            continue
-        parked = out.states[-count:]
-        assert np.all(parked == parked[:, :1]) and np.all(parked[..., 2] == 0.0)
-        sdf = np.asarray(scene.map.sdf_at(parked[:, 0, :2]))
-        assert np.all(sdf >= out.length[-count:] / 2 + 0.3 - 1e-6), sdf
-        assert_clear_of_every_track(scene, out, count)
-    assert kept >= 2
 
 
 def test_jittered_cars_creep_before_the_current_step_and_stand_after_it(scenes):
