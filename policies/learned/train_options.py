@@ -98,6 +98,9 @@ class LoopOptions:
     forth before the current step, as annotated parked cars do (learned.parked)"""
     time_budget_min: float = 0.0
     """stop cleanly and save after this many minutes of this run (0: no limit)"""
+    stop_step: int = 0
+    """end the run at this step (0: at --steps), on --steps' learning-rate schedule: repeats
+    a run that its time budget stopped, on any machine (the shipped file: --stop-step 8951)"""
 
     def rules(self) -> dict[str, bool]:
         """``{rule: holds}`` of the option checks (subclasses add theirs)."""
@@ -108,6 +111,7 @@ class LoopOptions:
             "--lr > 0": self.lr > 0,
             f"--lr-schedule in {LR_SCHEDULES}": self.lr_schedule in LR_SCHEDULES,
             "0 <= --warmup-steps < --steps": 0 <= self.warmup_steps < self.steps,
+            "0 <= --stop-step <= --steps": 0 <= self.stop_step <= self.steps,
             "--grad-clip > 0": self.grad_clip > 0,
             "0 <= --ema-decay < 1": 0 <= self.ema_decay < 1,
             "0 < --val-fraction < 1": 0 < self.val_fraction < 1,

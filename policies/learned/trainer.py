@@ -230,14 +230,13 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     budget = 60.0 * options.time_budget_min if options.time_budget_min > 0 else math.inf
+    end = options.stop_step or options.steps  # --stop-step: early, on --steps' schedule
     interval = 0.5 if sys.stderr.isatty() else 30.0  # [s]: a log file gets few lines
-    bar = tqdm(
-        total=options.steps, desc="riskflow-train", initial=step, unit="step", mininterval=interval
-    )
+    bar = tqdm(total=end, desc="riskflow-train", initial=step, unit="step", mininterval=interval)
     sums: dict[str, list[float]] = {}
     epoch, batches = -1, np.zeros((0, options.batch_size), dtype=np.int64)
     with (out / METRICS_LOG).open("a") as log:
-        while step < options.steps:
+        while step < end:
             tick = time.perf_counter()
             if step // per_epoch != epoch:
                 epoch = step // per_epoch
@@ -270,7 +269,7 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
                 refresh=False,
             )
             over_budget = time.perf_counter() - started > budget
-            done = step >= options.steps or over_budget
+            done = step >= end or over_budget
             logged = step % options.log_every == 0 or step % options.eval_every == 0 or done
             if logged:
                 metrics = {f"train_{k}": sum(v) / len(v) for k, v in sums.items()}

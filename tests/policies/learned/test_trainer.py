@@ -69,18 +69,35 @@ def test_main_trains_end_to_end(banks, tmp_path, tiny_config):
     assert metadata["step"] == 4 and "training" not in load_checkpoint(out / GENERATOR)
 
 
+COSINE = ("--lr-schedule", "cosine", "--warmup-steps", "1")
+
+
 @pytest.mark.parametrize(
-    "schedule", [(), ("--lr-schedule", "cosine", "--warmup-steps", "1")], ids=["constant", "cosine"]
+    ("schedule", "stop", "stopped_at"),
+    [
+        ((), ("--steps", "2"), 2),
+        (COSINE, ("--time-budget-min", "1e-9"), 1),
+        (COSINE, ("--stop-step", "3"), 3),
+    ],
+    ids=["constant", "cosine-budget", "cosine-stop-step"],
 )
-def test_resume_gives_the_uninterrupted_result(banks, tmp_path, tiny_config, schedule):
+def test_resume_gives_the_uninterrupted_result(
+    banks, tmp_path, tiny_config, schedule, stop, stopped_at
+):
     """A run stopped early, then --resume up to 4: bit-identical to 4 steps in one go
     (CPU), with the learning-rate schedule too (a function of the step and --steps: the
-    cosine run is stopped by its time budget after one of its 4 steps)."""
+    cosine runs are stopped by a time budget after one of their 4 steps, or by
+    --stop-step, which repeats such a run's steps on any machine)."""
     straight, resumed = tmp_path / "straight", tmp_path / "resumed"
     train_main(tiny_args(banks, straight, tiny_config, *schedule))
-    stop = ("--time-budget-min", "1e-9") if schedule else ()
-    train_main(tiny_args(banks, resumed, tiny_config, *schedule, *stop, steps=4 if stop else 2))
-    assert load_checkpoint(resumed / CHECKPOINT)["step"] == (1 if stop else 2)
+    train_main(tiny_args(banks, resumed, tiny_config, *schedule, *stop))
+    early = load_checkpoint(resumed / CHECKPOINT)
+    assert early["step"] == stopped_at
+    rates = [
+        [json.loads(line)["train_lr"] for line in (run / METRICS_LOG).read_text().splitlines()]
+        for run in (straight, resumed)
+    ]
+    assert rates[1] == rates[0][:stopped_at]  # the uninterrupted run's schedule
     train_main(tiny_args(banks, resumed, tiny_config, *schedule, "--resume"))
     a, b = load_checkpoint(straight / CHECKPOINT), load_checkpoint(resumed / CHECKPOINT)
     assert b["step"] == 4
@@ -212,7 +229,8 @@ def test_options_are_typed_documented_and_checked(capsys):
 
 def test_learning_rate_schedules():
     """Constant by default; cosine warms up linearly, peaks at --lr, halves midway, decays
-    towards 0 at --steps; the logged rate is the one used; bad values name the option."""
+    towards 0 at --steps; the logged rate is the one used; bad values (--stop-step past
+    --steps too) name the option."""
     constant = TrainOptions(data=Path("d"), steps=100, lr=1e-3)
     assert [learning_rate(constant, step) for step in (0, 50, 99)] == [1e-3] * 3
     cosine = dataclasses.replace(constant, lr_schedule="cosine", warmup_steps=10)
@@ -227,6 +245,9 @@ def test_learning_rate_schedules():
         dataclasses.replace(constant, lr_schedule="linear")
     with pytest.raises(ValueError, match="--warmup-steps < --steps"):
         dataclasses.replace(cosine, warmup_steps=100)
+    for stop in (-1, 101):
+        with pytest.raises(ValueError, match="--stop-step <= --steps"):
+            dataclasses.replace(cosine, stop_step=stop)
 
 
 def test_logged_learning_rate_follows_the_schedule(banks, tmp_path, tiny_config):
