@@ -236,7 +236,11 @@ class _LatentObjective:
             eps_c, u_c, self.state, self.agent_mask, policy.normalizer, policy.dynamics
         )
         xy = trajectories[..., :2]
-        adv, d_xy = adversarial_rows(xy, self.target_xy, policy.guidance.horizon, self.target_valid)
+        guidance = policy.guidance
+        adv, d_xy = adversarial_rows(
+            xy, self.target_xy, guidance.horizon, self.target_valid,
+            temperature=guidance.adv_temperature,
+        )  # fmt: skip
         adv = attach_gradient(adv, xy, d_xy, axis=(-2, -1))
         if self.map_term is None:
             off_road = adv * 0.0

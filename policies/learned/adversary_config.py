@@ -47,6 +47,10 @@ class AdversaryConfig:
         lambda_adv: weight of ``L_adv`` [1/m]; > 0 is more adversarial.
         lambda_map: weight of ``L_map`` [1/m^2], >= 0 (default: ``ObjectiveConfig``'s, 20).
         guidance_horizon: ``T_g`` [steps] of ``L_adv``; None: the whole plan.
+        adv_temperature: [m] None (default): ``L_adv`` is the mean over time of the
+            nearest-target distance (the paper's); a number > 0: its soft minimum over
+            time at that temperature, which pulls the closest approach
+            (:class:`~policies.learned.guidance_losses.ObjectiveConfig`).
         rank_threshold: risk above which a pair is an edge of the risk graph (ranking).
         seed: noise seed (the noise of cycle ``c`` of episode ``e`` comes from
             ``(seed, e, c)``).
@@ -74,6 +78,7 @@ class AdversaryConfig:
     lambda_adv: float = 50.0
     lambda_map: float = ObjectiveConfig.lambda_map
     guidance_horizon: int | None = None
+    adv_temperature: float | None = ObjectiveConfig.adv_temperature
     rank_threshold: float = DEFAULT_THRESHOLD
     seed: int = 0
     device: torch.device | str = "cpu"
@@ -148,6 +153,7 @@ class AdversaryConfig:
             "lambda_map": self.lambda_map,
             "horizon": self.guidance_horizon,
             "target": self.target,
+            "adv_temperature": self.adv_temperature,
         }
 
 

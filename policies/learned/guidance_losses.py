@@ -70,6 +70,12 @@ class ObjectiveConfig:
             the pairs of guided boxes of a scene over the guidance horizon, >= 0: it keeps
             the guided vehicles from converging on each other (default 100,
             docs/REALISM.md rounds 16-17; 0: off, the paper's objective).
+        adv_temperature: how ``L_adv`` reduces each row's nearest-target distances over
+            the horizon: None (default) is their mean (the paper's); a temperature
+            ``tau`` [m] > 0 takes their soft minimum ``-tau log mean_t exp(-d_t / tau)``,
+            whose gradient weighs the steps by ``softmax(-d / tau)``, so that the pull
+            falls on the closest approach instead of on the whole plan (the mean is its
+            limit as ``tau`` grows; docs/REALISM.md, round 29).
     """
 
     lambda_adv: float = 50.0
@@ -79,6 +85,7 @@ class ObjectiveConfig:
     map_margin: float = 0.2
     map_decay: float = 0.98
     lambda_sep: float = 100.0
+    adv_temperature: float | None = None
 
     def checks(self) -> list[tuple[bool, str]]:
         """``(holds, message)`` of every option rule (subclasses add theirs)."""
@@ -97,6 +104,11 @@ class ObjectiveConfig:
                 "lambda_sep must be a finite number >= 0",
             ),
             (0 < self.map_decay <= 1, "map_decay must be in (0, 1]"),
+            (
+                self.adv_temperature is None
+                or (math.isfinite(self.adv_temperature) and self.adv_temperature > 0),
+                "adv_temperature must be None or a finite number > 0",
+            ),
             (self.target in TARGETS, f"target must be one of {TARGETS}"),
         ]
 
@@ -153,8 +165,11 @@ def map_term(scene, rows: Tensor, steps: int, config, scene_of_row: Tensor | Non
     return MapTerm(drivable_map, frame, length, width, steps, config.map_margin, config.map_decay)
 
 
-def adversarial_loss(xy: Tensor, target_xy: Tensor, horizon: int | None = None) -> Tensor:
-    """``L_adv``: summed over agents, mean over ``t < horizon`` of the nearest-target distance.
+def adversarial_loss(
+    xy: Tensor, target_xy: Tensor, horizon: int | None = None, temperature: float | None = None
+) -> Tensor:
+    """``L_adv``: summed over agents, mean (or soft minimum) over ``t < horizon`` of the
+    nearest-target distance.
 
     Differentiable with respect to ``xy`` (targets are constants): the value and its
     gradient come from :func:`adversarial_value_and_gradient`.
@@ -163,26 +178,30 @@ def adversarial_loss(xy: Tensor, target_xy: Tensor, horizon: int | None = None) 
         xy: (C, T, 2) [m] controllable agents' positions.
         target_xy: (J, T, 2) [m] targets' positions.
         horizon: ``T_g`` steps; None: all.
+        temperature: None (the mean over time, the paper's) or the soft minimum's
+            ``tau`` [m] (:class:`ObjectiveConfig`'s ``adv_temperature``).
 
     Returns:
         scalar [m]; 0 if there is no agent or no target.
     """
     if not requires_grad(xy):
-        return _adversarial(xy, target_xy, horizon, None, with_gradient=False)[0].sum()
-    value, gradient = adversarial_value_and_gradient(xy, target_xy, horizon)
+        rows, _ = _adversarial(xy, target_xy, horizon, None, False, temperature)
+        return rows.sum()
+    value, gradient = adversarial_value_and_gradient(xy, target_xy, horizon, temperature)
     return attach_gradient(value, xy, gradient, axis=None)
 
 
 def adversarial_value_and_gradient(
-    xy: Tensor, target_xy: Tensor, horizon: int | None = None
+    xy: Tensor, target_xy: Tensor, horizon: int | None = None, temperature: float | None = None
 ) -> tuple[Tensor, Tensor]:
     """:func:`adversarial_loss` [m] and its gradient (C, T, 2) [m/m] with respect to ``xy``.
 
-    The gradient of a min is the gradient at the argmin; ``(1 / T_g)`` times the unit
-    vector from the nearest target to the agent for ``t < T_g`` (0 where the agent sits
-    exactly on it), 0 beyond ``T_g``. No autograd graph is built.
+    The gradient of a min is the gradient at the argmin: at each ``t < T_g`` the unit
+    vector from the nearest target to the agent (0 where the agent sits exactly on it)
+    times the step's weight, ``1 / T_g`` for the mean and ``softmax_t(-d / tau)`` for the
+    soft minimum; 0 beyond ``T_g``. No autograd graph is built.
     """
-    values, gradient = adversarial_rows(xy, target_xy, horizon)
+    values, gradient = adversarial_rows(xy, target_xy, horizon, temperature=temperature)
     return values.sum(), gradient
 
 
@@ -192,6 +211,7 @@ def adversarial_rows(
     horizon: int | None = None,
     target_valid: Tensor | None = None,
     with_gradient: bool = True,
+    temperature: float | None = None,
 ) -> tuple[Tensor, Tensor | None]:
     """``L_adv`` of each controllable agent and its gradient, each with its own targets.
 
@@ -204,12 +224,13 @@ def adversarial_rows(
         horizon: ``T_g`` steps; None: all.
         target_valid: None (every target), or (C, J) bool, the targets of each row.
         with_gradient: also return the gradient (C, T, 2) [m/m] (else None).
+        temperature: None (the mean over time) or the soft minimum's ``tau`` [m].
 
     Returns:
-        (C,) [m] each row's mean nearest-target distance (0 for a row without target)
-        and its gradient; no autograd graph is built.
+        (C,) [m] each row's mean (or soft-minimum) nearest-target distance (0 for a row
+        without target) and its gradient; no autograd graph is built.
     """
-    return _adversarial(xy.detach(), target_xy, horizon, target_valid, with_gradient)
+    return _adversarial(xy.detach(), target_xy, horizon, target_valid, with_gradient, temperature)
 
 
 def _adversarial(
@@ -218,6 +239,7 @@ def _adversarial(
     horizon: int | None,
     target_valid: Tensor | None,
     with_gradient: bool,
+    temperature: float | None = None,
 ) -> tuple[Tensor, Tensor | None]:
     """The one implementation of :func:`adversarial_rows` (and so of the loss)."""
     near, target_xy = xy[:, :horizon], target_xy[..., :horizon, :].detach()
@@ -237,12 +259,19 @@ def _adversarial(
     distance = torch.linalg.vector_norm(offset, dim=-1)  # (C, T_g)
     if target_valid is not None:  # rows without a target: 0
         distance = distance * target_valid.any(dim=1, keepdim=True).to(distance.dtype)
-    values = distance.sum(dim=1) / near.shape[1]
+    steps = near.shape[1]
+    if temperature is None:  # the mean over time: each step weighs 1 / T_g
+        values = distance.sum(dim=1) / steps
+        scale = distance * steps
+    else:  # -tau log mean_t exp(-d_t / tau): each step weighs w_t = softmax_t(-d / tau)
+        logits = distance / -temperature
+        values = -temperature * (torch.logsumexp(logits, dim=1) - math.log(steps))
+        scale = distance / torch.softmax(logits, dim=1)  # d_t / w_t
     if not with_gradient:
         return values, None
-    scale = torch.where(distance > 0, distance * near.shape[1], torch.inf)  # 0 on a target
+    scale = torch.where(distance > 0, scale, torch.inf)  # 0 on a target
     gradient = torch.zeros_like(xy)
-    gradient[:, : near.shape[1]] = offset / scale[..., None]
+    gradient[:, :steps] = offset / scale[..., None]
     return values, gradient
 
 

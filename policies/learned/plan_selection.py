@@ -19,6 +19,11 @@ The score of a joint plan, over its first ``horizon`` steps (the plans are re-dr
   the footprint samples [m^2]).
 
 Both are in m^2 and are added.
+
+:func:`select_attack_plans` is the adversary's counterpart, per guided vehicle: among M
+samples of its plan it keeps the one the guidance objective scores best (nearest its
+targets, on the road), so that guidance starts from a sample of the generator that already
+heads for an interaction instead of bending a plan that does not.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from policies.learned.guidance_losses import ObjectiveConfig, adversarial_rows
 from policies.learned.plan_penalties import pair_separation
 from riskflow_env.geometry import separation, separation_gradient
 
@@ -184,10 +190,57 @@ def select_joint_plans(
     return scores.argmin(dim=1), scores
 
 
+def select_attack_plans(
+    trajectories: Tensor,
+    target_xy: Tensor,
+    controllable: Tensor,
+    targets: Tensor,
+    objective: ObjectiveConfig,
+    map_rows: Callable[[Tensor], Tensor] | None,
+    horizon: int = SELECTION_HORIZON,
+) -> Tensor:
+    """Per controllable vehicle, the index of the best of its M sampled plans by the
+    guidance objective ``lambda_adv * L_adv + lambda_map * L_map`` (module docstring).
+
+    Args:
+        trajectories: ``(B, M, A, T, 4)`` the M samples of every agent's plan.
+        target_xy: ``(B, A, T, 2)`` [m] the plans the targets follow (held fixed, as
+            guidance holds them).
+        controllable: ``(B, A)`` bool, the vehicles to choose for (``A_c``).
+        targets: ``(B, A)`` bool, the agents ``L_adv`` pulls toward
+            (:func:`~policies.learned.guidance_losses.target_rows`).
+        objective: the weights, ``L_adv``'s horizon and temperature.
+        map_rows: ``(M * C, T_s, 4) -> (M * C,)`` the map term of the C controllable rows
+            (in ``controllable.nonzero()`` order, the M samples one after another), or
+            None (no map term).
+        horizon: steps of the map term.
+
+    Returns:
+        ``(B, A)`` int64 indices into M; 0 outside ``controllable``.
+    """
+    num_scenes, num_samples = trajectories.shape[:2]
+    pick = torch.zeros(controllable.shape, dtype=torch.long, device=trajectories.device)
+    scene, agent = torch.nonzero(controllable, as_tuple=True)
+    if scene.numel() == 0:
+        return pick
+    rows = trajectories[scene, :, agent].transpose(0, 1).flatten(0, 1)  # (M * C, T, 4)
+    per_row_targets = target_xy[scene].repeat(num_samples, 1, 1, 1)  # (M * C, A, T, 2)
+    valid = targets[scene].repeat(num_samples, 1)
+    adv, _ = adversarial_rows(
+        rows[..., :2], per_row_targets, objective.horizon, valid, False, objective.adv_temperature
+    )
+    score = objective.lambda_adv * adv
+    if map_rows is not None and objective.lambda_map:
+        score = score + objective.lambda_map * map_rows(rows[:, :horizon])
+    pick[scene, agent] = score.reshape(num_samples, -1).argmin(dim=0)
+    return pick
+
+
 __all__ = [
     "SELECTION_HORIZON",
     "overlap_gradient",
     "overlap_scores",
     "scored_pairs",
+    "select_attack_plans",
     "select_joint_plans",
 ]

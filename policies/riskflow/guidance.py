@@ -171,6 +171,7 @@ class _Objective:
         self.state = scene.state[rows]
         self.target_xy, self.target_valid = target_xy, target_valid
         self.horizon, self.dynamics = config.horizon, dynamics
+        self.temperature = config.adv_temperature
         self.map_term = map_term(scene, rows, scene.eps.shape[1], config, scene_of_row)
         self.lambda_sep = config.lambda_sep
         self.separation = separation_term(scene, rows, config, scene_of_row)
@@ -193,8 +194,9 @@ class _Objective:
         (no gradient)."""
         trajectories = rollout(self.state, self.actions(u_c), self.dynamics)
         adv, _ = adversarial_rows(
-            trajectories[..., :2], self.target_xy, self.horizon, self.target_valid, False
-        )
+            trajectories[..., :2], self.target_xy, self.horizon, self.target_valid, False,
+            self.temperature,
+        )  # fmt: skip
         if self.map_term is None:
             return trajectories, adv, adv * 0.0
         return trajectories, adv, self.map_term.rows(trajectories)
@@ -214,8 +216,9 @@ class _Objective:
             self.state, self.actions(u_c), self.dynamics, clip=False
         )
         adv, d_xy = adversarial_rows(
-            trajectories[..., :2], self.target_xy, self.horizon, self.target_valid
-        )
+            trajectories[..., :2], self.target_xy, self.horizon, self.target_valid,
+            temperature=self.temperature,
+        )  # fmt: skip
         d_trajectories = torch.zeros_like(trajectories)
         d_trajectories[..., :2] = lambda_adv * d_xy
         if self.map_term is None:

@@ -73,7 +73,11 @@ from policies.learned.guidance_losses import map_term, target_rows
 from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS, avoid_overlaps, guided_pairs
 from policies.learned.plan_buffer import PlanBufferPolicy, hold_still
 from policies.learned.plan_overlay import BASE_COLOR, GUIDED_COLOR
-from policies.learned.plan_selection import SELECTION_HORIZON, select_joint_plans
+from policies.learned.plan_selection import (
+    SELECTION_HORIZON,
+    select_attack_plans,
+    select_joint_plans,
+)
 from policies.learned.plan_stitching import CORRECTION_STITCH_STEPS, blend_share
 from policies.learned.ranking import rank_window
 from policies.learned.sampler import base_velocity
@@ -100,8 +104,9 @@ class RiskFlowAdversary(PlanBufferPolicy):
         config: the options every learned adversary shares
             (:class:`~policies.learned.adversary_config.AdversaryConfig`: ``k``,
             ``planning_interval``, ``target``, ``lambda_adv``, ``lambda_map``,
-            ``guidance_horizon``, ``rank_threshold``, ``seed``, ``device``,
-            ``window_config``, ``threads``); or give them as keywords (``**options``).
+            ``guidance_horizon``, ``adv_temperature``, ``rank_threshold``, ``seed``,
+            ``device``, ``window_config``, ``threads``); or give them as keywords
+            (``**options``).
         guidance_steps: ``K_g``.
         step_size: Adam learning rate, or ``gamma`` of plain steps; None (default): 0.01
             with target ``"others"``, 0.1 with ``"ego"`` (:class:`GuidanceConfig`).
@@ -125,6 +130,10 @@ class RiskFlowAdversary(PlanBufferPolicy):
             that overlaps least and stays on the road best
             (:mod:`policies.learned.plan_selection`, BITS-style selection), 1 (default)
             the single draw.
+        attack_samples: M_a plans drawn per vehicle of ``A_c`` and cycle; M_a > 1 starts
+            guidance from the one the guidance objective scores best (nearest its targets,
+            on the road; :func:`~policies.learned.plan_selection.select_attack_plans`),
+            1 (default) from the single draw. Rows outside ``A_c`` are not affected.
         avoid_steps: Adam steps that pull the base plans apart and onto the road before
             ranking (:mod:`policies.learned.plan_avoidance`); None (default):
             ``DEFAULT_AVOID_STEPS`` (20) with the MeanFlow generator, 0 with a diffusion
@@ -153,14 +162,16 @@ class RiskFlowAdversary(PlanBufferPolicy):
         checkpoint: str | os.PathLike | None = None,
         sampling_steps: int | None = None,
         base_samples: int = 1,
+        attack_samples: int = 1,
         avoid_steps: int | None = None,
         avoid_step_size: float = 0.1,
         stitch_first: bool = True,
         **options: Any,
     ) -> None:
         config = AdversaryConfig.resolve(config, options, type(self).__name__)
-        if isinstance(base_samples, bool) or not isinstance(base_samples, int) or base_samples < 1:
-            raise ValueError(f"base_samples must be an int >= 1, got {base_samples!r}")
+        for name, value in (("base_samples", base_samples), ("attack_samples", attack_samples)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an int >= 1, got {value!r}")
         if avoid_steps is not None and (
             isinstance(avoid_steps, bool) or not isinstance(avoid_steps, int) or avoid_steps < 0
         ):
@@ -173,7 +184,7 @@ class RiskFlowAdversary(PlanBufferPolicy):
             )
         if not isinstance(stitch_first, (bool, np.bool_)):
             raise ValueError(f"stitch_first must be a bool, got {stitch_first!r}")
-        self.base_samples = base_samples
+        self.base_samples, self.attack_samples = base_samples, attack_samples
         self.stitch_first = bool(stitch_first)
         self.avoid_step_size = float(avoid_step_size)
         self.guidance = GuidanceConfig(
@@ -198,10 +209,11 @@ class RiskFlowAdversary(PlanBufferPolicy):
                     "not with a model object"
                 )
             self.generator_kind = generator_kind(generator)
-        if base_samples > 1 and self.generator_kind != "meanflow":
-            raise ValueError(
-                f"base_samples > 1 needs the MeanFlow generator, got {self.generator_kind!r}"
-            )
+        for name, value in (("base_samples", base_samples), ("attack_samples", attack_samples)):
+            if value > 1 and self.generator_kind != "meanflow":
+                raise ValueError(
+                    f"{name} > 1 needs the MeanFlow generator, got {self.generator_kind!r}"
+                )
         if avoid_steps is None:
             avoid_steps = DEFAULT_AVOID_STEPS if self.generator_kind == "meanflow" else 0
         if avoid_steps > 0 and self.generator_kind != "meanflow":
@@ -231,7 +243,7 @@ class RiskFlowAdversary(PlanBufferPolicy):
         controllable = torch.from_numpy(controllable).to(self.device)
         clock = self._tick("ranking", observed.clock)
         steps = self.model.config.future_steps
-        samples = self.base_samples
+        samples = max(self.base_samples, self.attack_samples)
         with torch.no_grad():
             eps = scene.context.new_zeros(num_scenes, samples, num_agents, steps, 2)
             for index, (policy, count) in enumerate(zip(scenes, counts, strict=True)):
@@ -247,7 +259,7 @@ class RiskFlowAdversary(PlanBufferPolicy):
             )
             if samples > 1:
                 eps, u0, actions, trajectories = self._select(
-                    observed, views, (eps, u0, actions, trajectories)
+                    observed, views, (eps, u0, actions, trajectories), controllable
                 )
             gain = None
             if self.stitch_first:
@@ -324,21 +336,41 @@ class RiskFlowAdversary(PlanBufferPolicy):
         observed: EncodedViews,
         views: Sequence[SceneView],
         plans: tuple[torch.Tensor, ...],
+        controllable: torch.Tensor,
     ) -> tuple[torch.Tensor, ...]:
-        """Keep the best of the ``base_samples`` joint plans of each scene
-        (:func:`~policies.learned.plan_selection.select_joint_plans`); ``plans`` are
+        """Keep the best of the first ``base_samples`` joint plans of each scene
+        (:func:`~policies.learned.plan_selection.select_joint_plans`; the first sample
+        when 1), and for each vehicle of ``A_c`` (``controllable`` (B, A) bool) the best of
+        its first ``attack_samples`` plans against the targets' kept plans
+        (:func:`~policies.learned.plan_selection.select_attack_plans`); ``plans`` are
         ``(B * M, A, ...)`` tensors, a scene's M samples in a row, returned as ``(B, A, ...)``."""
         scene, batch = observed.scene, observed.batch
-        num_scenes = scene.agent_mask.shape[0]
-        samples = self.base_samples
-        trajectories = plans[3].reshape(num_scenes, samples, *plans[3].shape[1:])
-        term = self._map_term_of_rows(observed, views)
-        best, _ = select_joint_plans(
-            trajectories, batch.length, batch.width, scene.agent_mask, scene.state,
-            None if term is None else term.rows,
-        )  # fmt: skip
-        pick = torch.arange(num_scenes, device=self.device) * samples + best
-        return tuple(tensor[pick] for tensor in plans)
+        num_scenes, num_agents = scene.agent_mask.shape
+        shaped = [tensor.reshape(num_scenes, -1, *tensor.shape[1:]) for tensor in plans]
+        trajectories = shaped[3]
+        best = torch.zeros(num_scenes, dtype=torch.long, device=self.device)
+        if self.base_samples > 1:
+            term = self._map_term_of_rows(observed, views)
+            best, _ = select_joint_plans(
+                trajectories[:, : self.base_samples], batch.length, batch.width,
+                scene.agent_mask, scene.state, None if term is None else term.rows,
+            )  # fmt: skip
+        scenes = torch.arange(num_scenes, device=self.device)
+        pick = best[:, None].expand(num_scenes, num_agents)
+        if self.attack_samples > 1 and self.guidance.lambda_adv != 0:
+            present = scene.agent_mask.bool()
+            attacking = controllable & present
+            attacking[:, 0] = False  # the ego's slot
+            targets = target_rows(present, attacking, 0, self.guidance.target)
+            rows = torch.nonzero(attacking.reshape(-1)).flatten().repeat(self.attack_samples)
+            term = self._map_term_of_rows(observed, views, rows)
+            chosen = select_attack_plans(
+                trajectories[:, : self.attack_samples], trajectories[scenes, best, ..., :2],
+                attacking, targets, self.guidance, None if term is None else term.rows,
+            )  # fmt: skip
+            pick = torch.where(attacking, chosen, pick)
+        agents = torch.arange(num_agents, device=self.device)
+        return tuple(tensor[scenes[:, None], pick, agents[None]] for tensor in shaped)
 
     def _map_term_of_rows(
         self, observed: EncodedViews, views: Sequence[SceneView], rows: torch.Tensor | None = None

@@ -179,7 +179,10 @@ class _Objective:
     def __call__(self, x_c: Tensor, target_xy: Tensor, target_valid: Tensor):
         trajectories = rollout(self.state, self.normalizer.denormalize(x_c), self.dynamics)
         xy = trajectories[..., :2]
-        adv_rows, gradient = adversarial_rows(xy, target_xy, self.config.horizon, target_valid)
+        config = self.config
+        adv_rows, gradient = adversarial_rows(
+            xy, target_xy, config.horizon, target_valid, temperature=config.adv_temperature
+        )
         adv = attach_gradient(adv_rows.sum(), xy, gradient, axis=None)
         if self.map_term is None:
             off_rows, off_road = torch.zeros_like(adv_rows), adv * 0.0

@@ -47,6 +47,7 @@ def close(a: np.ndarray, b: np.ndarray) -> None:
     [
         {"base_samples": 1},
         {"base_samples": 3},
+        {"attack_samples": 3, "base_samples": 2},  # per guided vehicle, after the joint choice
         {"avoid_steps": 3, "hold_distance": 1.0},
         {"avoid_steps": 3, "stitch_steps": 8, "stitch_first": True},
         {"avoid_steps": 3, "stitch_first": False},  # the 5-step blend after planning

@@ -9,7 +9,13 @@ import pytest
 import torch
 
 from policies.baselines.nominal import NominalGenerator
-from policies.learned.plan_selection import overlap_gradient, overlap_scores, select_joint_plans
+from policies.learned.guidance_losses import ObjectiveConfig
+from policies.learned.plan_selection import (
+    overlap_gradient,
+    overlap_scores,
+    select_attack_plans,
+    select_joint_plans,
+)
 from policies.learned.sampler import sample
 from policies.learned.window_types import collate_windows
 from policies.learned.windows import window_from_view
@@ -137,6 +143,39 @@ def test_the_lowest_score_wins_with_the_map_term_added():
     assert best.tolist() == [2]
 
 
+def test_attack_selection_keeps_each_guided_vehicles_sample_nearest_its_targets():
+    """Per vehicle of ``A_c``: the sample with the lowest ``lambda_adv * L_adv + lambda_map
+    * L_map`` against the targets' plans; 0 for every other vehicle."""
+    # agents: 0 the ego at (0, 0), 1 guided, 2 guided, 3 a bystander at (0, 20)
+    samples = [
+        still([(0.0, 0.0), (30.0, 0.0), (30.0, 20.0), (0.0, 20.0)]),
+        still([(0.0, 0.0), (10.0, 0.0), (12.0, 35.0), (0.0, 40.0)]),
+        still([(0.0, 0.0), (20.0, 0.0), (20.0, 5.0), (0.0, 0.0)]),
+    ]
+    plans = torch.stack(samples)[None]  # (1, 3, 4, T, 4)
+    controllable = torch.tensor([[False, True, True, False]])
+    targets = torch.tensor([[True, False, False, True]])
+    target_xy = plans[:, 0, ..., :2]  # the targets follow sample 0: ego (0, 0), (0, 20)
+    objective = ObjectiveConfig()
+    pick = select_attack_plans(plans, target_xy, controllable, targets, objective, None)
+    # 1: 30 / 10 / 20 m from the ego; 2: 30 / 19.2 / 20.6 m from its nearest target
+    assert pick.tolist() == [[0, 1, 1, 0]]
+    ego_only = torch.tensor([[True, False, False, False]])
+    pick = select_attack_plans(plans, target_xy, controllable, ego_only, objective, None)
+    assert pick.tolist() == [[0, 1, 2, 0]]  # 2: 36.1 / 37.0 / 20.6 m from the ego
+
+    def off_road_below_x_15(rows: torch.Tensor) -> torch.Tensor:  # (M * C, T, 4) -> (M * C,)
+        return 10.0 * (rows[:, :, 0] < 15.0).double().sum(dim=1)
+
+    # "road" from x = 15 m: sample 1 leaves it (20 * 30 m^2 outweighs 50 * 10 m) for both
+    pick = select_attack_plans(
+        plans, target_xy, controllable, targets, objective, off_road_below_x_15
+    )
+    assert pick.tolist() == [[0, 2, 2, 0]]
+    nobody = torch.zeros_like(controllable)
+    assert select_attack_plans(plans, target_xy, nobody, targets, objective, None).sum() == 0
+
+
 @pytest.fixture
 def model(make_model, tiny_config):
     return make_model(tiny_config, seed=1).eval()
@@ -169,7 +208,32 @@ def test_one_sample_is_the_single_draw_bit_for_bit(model):
     np.testing.assert_array_equal(default.plan(env.view()), one.plan(env.view()))
 
 
-def test_bad_base_samples_name_the_argument(model):
+@pytest.mark.parametrize("name", ["base_samples", "attack_samples"])
+def test_bad_sample_counts_name_the_argument(model, name):
     for bad in (0, -2, 1.5, True):
-        with pytest.raises(ValueError, match="base_samples must be an int >= 1"):
-            RiskFlowAdversary(generator=model, normalizer=TINY_NORMALIZER, base_samples=bad)
+        with pytest.raises(ValueError, match=f"{name} must be an int >= 1"):
+            RiskFlowAdversary(generator=model, normalizer=TINY_NORMALIZER, **{name: bad})
+
+
+def test_attack_samples_guide_from_a_generator_sample_deterministically(model):
+    """With ``attack_samples`` each guided vehicle starts from another of its sampled plans
+    (the same ones for the same seed, bit for bit); the other vehicles keep the first joint
+    sample, which is the single draw's (guidance, avoidance and blending off here)."""
+    env = road_env(CONFIG)
+    plans = {}
+    for samples in (4, 4, 1):
+        policy = RiskFlowAdversary(
+            generator=model, normalizer=TINY_NORMALIZER, seed=5, k=2, attack_samples=samples,
+            guidance_steps=0, avoid_steps=0, stitch_first=False, hold_distance=0.0,
+        )  # fmt: skip
+        policy.reset(env.view())
+        policy.plan(env.view())
+        if samples in plans:
+            np.testing.assert_array_equal(policy.plan_actions, plans[samples])
+        plans[samples] = policy.plan_actions.copy()
+    slots = window_from_view(env.view(), policy.window_config).agent_index
+    guided = np.zeros(len(policy.plan_actions), dtype=bool)
+    guided[slots] = policy.ranking.controllable[: len(slots)]
+    assert guided.any()
+    np.testing.assert_allclose(plans[4][~guided], plans[1][~guided], rtol=0, atol=1e-5)
+    assert not np.allclose(plans[4][guided], plans[1][guided], atol=1e-3)
