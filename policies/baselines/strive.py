@@ -97,6 +97,12 @@ class StriveAdversary(RiskFlowAdversary):
             raise ValueError(f"lambda_prior must be a finite number >= 0, got {lambda_prior!r}")
         if generator == "diffusion" or "sampling_steps" in options:
             raise ValueError(_NOT_DIFFUSION)
+        if options.get("attack_samples", 1) != 1:
+            raise ValueError(
+                "StriveAdversary takes attack_samples=1 only: it re-decodes the guided rows' "
+                "noise with the other rows', so a row's sampled plan would not be the one "
+                f"scored; got attack_samples={options['attack_samples']!r}"
+            )
         self.lambda_prior = float(lambda_prior)
         super().__init__(config, step_size=step_size, generator=generator, **options)
         if self.generator_kind != "meanflow":

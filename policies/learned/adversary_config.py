@@ -48,7 +48,8 @@ class AdversaryConfig:
         lambda_map: weight of ``L_map`` [1/m^2], >= 0 (default: ``ObjectiveConfig``'s, 20).
         guidance_horizon: ``T_g`` [steps] of ``L_adv``; None: the whole plan.
         adv_temperature: [m] None (default): ``L_adv`` is the mean over time of the
-            nearest-target distance (the paper's); a number > 0: its soft minimum over
+            nearest-target distance (the paper's sum, divided by ``T_g``); a number > 0:
+            its soft minimum over
             time at that temperature, which pulls the closest approach
             (:class:`~policies.learned.guidance_losses.ObjectiveConfig`).
         rank_threshold: risk above which a pair is an edge of the risk graph (ranking).

@@ -71,7 +71,8 @@ class ObjectiveConfig:
             the guided vehicles from converging on each other (default 100,
             docs/REALISM.md rounds 16-17; 0: off, the paper's objective).
         adv_temperature: how ``L_adv`` reduces each row's nearest-target distances over
-            the horizon: None (default) is their mean (the paper's); a temperature
+            the horizon: None (default) is their mean (the paper's sum over time, divided
+            by ``T_g``); a temperature
             ``tau`` [m] > 0 takes their soft minimum ``-tau log mean_t exp(-d_t / tau)``,
             whose gradient weighs the steps by ``softmax(-d / tau)``, so that the pull
             falls on the closest approach instead of on the whole plan (the mean is its
@@ -106,8 +107,13 @@ class ObjectiveConfig:
             (0 < self.map_decay <= 1, "map_decay must be in (0, 1]"),
             (
                 self.adv_temperature is None
-                or (math.isfinite(self.adv_temperature) and self.adv_temperature > 0),
-                "adv_temperature must be None or a finite number > 0",
+                or (
+                    isinstance(self.adv_temperature, (int, float))
+                    and not isinstance(self.adv_temperature, bool)
+                    and math.isfinite(self.adv_temperature)
+                    and self.adv_temperature > 0
+                ),
+                "adv_temperature must be None or a finite number > 0 [m]",
             ),
             (self.target in TARGETS, f"target must be one of {TARGETS}"),
         ]
@@ -178,8 +184,8 @@ def adversarial_loss(
         xy: (C, T, 2) [m] controllable agents' positions.
         target_xy: (J, T, 2) [m] targets' positions.
         horizon: ``T_g`` steps; None: all.
-        temperature: None (the mean over time, the paper's) or the soft minimum's
-            ``tau`` [m] (:class:`ObjectiveConfig`'s ``adv_temperature``).
+        temperature: None (the mean over time: the paper's sum divided by ``T_g``) or the
+            soft minimum's ``tau`` [m] (:class:`ObjectiveConfig`'s ``adv_temperature``).
 
     Returns:
         scalar [m]; 0 if there is no agent or no target.
@@ -262,13 +268,17 @@ def _adversarial(
     steps = near.shape[1]
     if temperature is None:  # the mean over time: each step weighs 1 / T_g
         values = distance.sum(dim=1) / steps
-        scale = distance * steps
     else:  # -tau log mean_t exp(-d_t / tau): each step weighs w_t = softmax_t(-d / tau)
         logits = distance / -temperature
         values = -temperature * (torch.logsumexp(logits, dim=1) - math.log(steps))
-        scale = distance / torch.softmax(logits, dim=1)  # d_t / w_t
+        if target_valid is not None:  # rows without a target: 0, not -tau * rounding
+            values = values * target_valid.any(dim=1).to(values.dtype)
     if not with_gradient:
         return values, None
+    if temperature is None:
+        scale = distance * steps
+    else:
+        scale = distance / torch.softmax(logits, dim=1)  # d_t / w_t
     scale = torch.where(distance > 0, scale, torch.inf)  # 0 on a target
     gradient = torch.zeros_like(xy)
     gradient[:, :steps] = offset / scale[..., None]

@@ -199,8 +199,10 @@ def select_attack_plans(
     map_rows: Callable[[Tensor], Tensor] | None,
     horizon: int = SELECTION_HORIZON,
 ) -> Tensor:
-    """Per controllable vehicle, the index of the best of its M sampled plans by the
-    guidance objective ``lambda_adv * L_adv + lambda_map * L_map`` (module docstring).
+    """Per controllable vehicle, the index of the best of its M sampled plans by
+    ``lambda_adv * L_adv + lambda_map * L_map`` (module docstring): the guidance objective's
+    two terms, ``L_map`` over the first ``horizon`` steps, against the targets' plans as
+    given (``L_sep`` is left to guidance).
 
     Args:
         trajectories: ``(B, M, A, T, 4)`` the M samples of every agent's plan.
@@ -210,9 +212,10 @@ def select_attack_plans(
         targets: ``(B, A)`` bool, the agents ``L_adv`` pulls toward
             (:func:`~policies.learned.guidance_losses.target_rows`).
         objective: the weights, ``L_adv``'s horizon and temperature.
-        map_rows: ``(M * C, T_s, 4) -> (M * C,)`` the map term of the C controllable rows
-            (in ``controllable.nonzero()`` order, the M samples one after another), or
-            None (no map term).
+        map_rows: ``(M * C, T_s, 4) -> (M * C,)`` the map term of the C controllable rows,
+            sample-major (sample 0's C rows in ``controllable.nonzero()`` order, then
+            sample 1's, ...: the rows of a map term built for ``rows.repeat(M)``), or None
+            (no map term).
         horizon: steps of the map term.
 
     Returns:

@@ -79,7 +79,7 @@ class GuidanceConfig(ObjectiveConfig):
     """Options of output-space guidance: the shared objective's
     (:class:`~policies.learned.guidance_losses.ObjectiveConfig`: ``lambda_adv``,
     ``lambda_map``, ``horizon``, ``target``, ``map_margin``, ``map_decay``,
-    ``lambda_sep``) and the optimiser's.
+    ``lambda_sep``, ``adv_temperature``) and the optimiser's.
 
     Attributes:
         steps: ``K_g`` guidance steps (0: the base plans).

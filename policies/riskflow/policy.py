@@ -130,10 +130,13 @@ class RiskFlowAdversary(PlanBufferPolicy):
             that overlaps least and stays on the road best
             (:mod:`policies.learned.plan_selection`, BITS-style selection), 1 (default)
             the single draw.
-        attack_samples: M_a plans drawn per vehicle of ``A_c`` and cycle; M_a > 1 starts
-            guidance from the one the guidance objective scores best (nearest its targets,
-            on the road; :func:`~policies.learned.plan_selection.select_attack_plans`),
-            1 (default) from the single draw. Rows outside ``A_c`` are not affected.
+        attack_samples: M_a plans drawn per vehicle of ``A_c`` and cycle (M_a joint
+            plans in the one generator pass); M_a > 1 starts guidance from the one that
+            ``lambda_adv * L_adv`` plus the map term over the selection horizon scores best
+            against the targets' kept plans (nearest its targets, on the road;
+            :func:`~policies.learned.plan_selection.select_attack_plans`; skipped when
+            ``lambda_adv == 0``), 1 (default) from the single draw. The other vehicles
+            keep the joint plan of ``base_samples`` (drawn first, as without this option).
         avoid_steps: Adam steps that pull the base plans apart and onto the road before
             ranking (:mod:`policies.learned.plan_avoidance`); None (default):
             ``DEFAULT_AVOID_STEPS`` (20) with the MeanFlow generator, 0 with a diffusion
@@ -244,13 +247,20 @@ class RiskFlowAdversary(PlanBufferPolicy):
         clock = self._tick("ranking", observed.clock)
         steps = self.model.config.future_steps
         samples = max(self.base_samples, self.attack_samples)
+        # The joint samples first, then the guided vehicles' extra ones: a draw of another
+        # shape is not a prefix of it (CPU normal fill), and the joint samples stay those
+        # of attack_samples = 1.
+        blocks = [self.base_samples] + [samples - self.base_samples] * (samples > self.base_samples)
         with torch.no_grad():
             eps = scene.context.new_zeros(num_scenes, samples, num_agents, steps, 2)
             for index, (policy, count) in enumerate(zip(scenes, counts, strict=True)):
-                eps[index, :, :count] = torch.randn(  # the scene's own stream, its own shape
-                    (samples, count, steps, 2), generator=policy._noise_source(),
-                    device=self.device, dtype=scene.context.dtype,
-                )  # fmt: skip
+                source = policy._noise_source()
+                eps[index, :, :count] = torch.cat([
+                    torch.randn(  # the scene's own stream, its own shape
+                        (block, count, steps, 2), generator=source, device=self.device,
+                        dtype=scene.context.dtype,
+                    ) for block in blocks
+                ])  # fmt: skip
             eps = eps.flatten(0, 1)  # (B * M, A, T, 2), a scene's samples in a row
             many = scene.repeat_scenes(samples) if samples > 1 else scene
             u0 = base_velocity(self.model, eps, many)

@@ -80,7 +80,7 @@ class DiffusionGuidanceConfig(ObjectiveConfig):
     """Options of diffusion guidance (module docstring): the shared objective's
     (:class:`~policies.learned.guidance_losses.ObjectiveConfig`: ``lambda_adv``,
     ``lambda_map``, ``horizon``, ``target``, ``map_margin``, ``map_decay``,
-    ``lambda_sep``) and these.
+    ``lambda_sep``, ``adv_temperature``) and these.
 
     Attributes:
         gradient: ``"mean"`` (CTG, CCDiff) or ``"clean"`` (CTG++).

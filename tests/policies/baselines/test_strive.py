@@ -124,9 +124,12 @@ def test_bad_options(strive, tiny_denoiser, tiny_normalizer, tiny_meanflow):
         ({"planning_interval": 0.0}, "planning_interval"),
         ({"target": "everyone"}, "target must be one of"),
         ({"guidance_steps": -1}, "GuidanceConfig: steps"),
+        ({"attack_samples": 4}, "attack_samples=1 only"),
+        ({"adv_temperature": 0.0}, "adv_temperature must be"),
     ):
         with pytest.raises(ValueError, match=match):
             strive(**kwargs)
+    assert strive(adv_temperature=2.0).guidance.adv_temperature == 2.0  # the shared objective
     with pytest.raises(ValueError, match="diffusion"):
         StriveAdversary(generator="diffusion")
     with pytest.raises(ValueError, match="diffusion"):

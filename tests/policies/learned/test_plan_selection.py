@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from policies.baselines.diffusion.sampling import OneCallSampler
 from policies.baselines.nominal import NominalGenerator
 from policies.learned.guidance_losses import ObjectiveConfig
 from policies.learned.plan_selection import (
@@ -209,16 +210,20 @@ def test_one_sample_is_the_single_draw_bit_for_bit(model):
 
 
 @pytest.mark.parametrize("name", ["base_samples", "attack_samples"])
-def test_bad_sample_counts_name_the_argument(model, name):
+def test_bad_sample_counts_name_the_argument(model, name, tiny_denoiser, tiny_normalizer):
     for bad in (0, -2, 1.5, True):
         with pytest.raises(ValueError, match=f"{name} must be an int >= 1"):
             RiskFlowAdversary(generator=model, normalizer=TINY_NORMALIZER, **{name: bad})
+    sampler = OneCallSampler(tiny_denoiser, 2)
+    with pytest.raises(ValueError, match=f"{name} > 1 needs the MeanFlow generator"):
+        RiskFlowAdversary(generator=sampler, normalizer=tiny_normalizer, **{name: 2})
 
 
 def test_attack_samples_guide_from_a_generator_sample_deterministically(model):
     """With ``attack_samples`` each guided vehicle starts from another of its sampled plans
     (the same ones for the same seed, bit for bit); the other vehicles keep the first joint
-    sample, which is the single draw's (guidance, avoidance and blending off here)."""
+    sample, drawn with the single draw's noise (guidance, avoidance and blending off here;
+    the generator's batched pass of 4 samples may round differently from a pass of one)."""
     env = road_env(CONFIG)
     plans = {}
     for samples in (4, 4, 1):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from policies.learned.guidance_losses import MapTerm
+from policies.learned.guidance_losses import MapTerm, adversarial_rows
 from policies.riskflow import guidance
 from policies.riskflow.guidance import (
     GuidanceConfig,
@@ -100,6 +100,9 @@ def test_soft_minimum_over_time_is_autograd_of_its_formula(temperature):
         assert (gradient[1, 2] == 0).all() and (horizon is None or (gradient[:, 5:] == 0).all())
         rows = adversarial_loss(xy[:1], targets, horizon, temperature)
         assert distance[0].min() <= rows <= distance[0].mean()
+    valid = torch.tensor([[True] * 4, [False] * 4, [True, False, True, False]])
+    rows, _ = adversarial_rows(xy, targets, 7, valid, False, temperature)
+    assert rows[1] == 0.0 and rows[0] > 0 and rows[2] > 0  # a row without target: exactly 0
     mean = adversarial_loss(xy, targets, None)
     torch.testing.assert_close(adversarial_loss(xy, targets, None, 1e4), mean, rtol=1e-3, atol=0)
 
