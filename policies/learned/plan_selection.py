@@ -33,7 +33,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from policies.learned.guidance_losses import ObjectiveConfig, adversarial_rows
+from policies.learned.adversarial_term import adversarial_rows
+from policies.learned.guidance_losses import ObjectiveConfig
 from policies.learned.plan_penalties import pair_separation
 from riskflow_env.geometry import separation, separation_gradient
 

@@ -55,7 +55,6 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
-from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -69,19 +68,13 @@ from policies.learned.adversary_config import (
 from policies.learned.data import Normalizer
 from policies.learned.encoded_views import EncodedViews
 from policies.learned.generator import RiskFlowGenerator
-from policies.learned.guidance_losses import map_term, target_rows
-from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS, avoid_overlaps, guided_pairs
+from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
 from policies.learned.plan_buffer import PlanBufferPolicy, hold_still
 from policies.learned.plan_overlay import BASE_COLOR, GUIDED_COLOR
-from policies.learned.plan_selection import (
-    SELECTION_HORIZON,
-    select_attack_plans,
-    select_joint_plans,
-)
-from policies.learned.plan_stitching import CORRECTION_STITCH_STEPS, blend_share
 from policies.learned.ranking import rank_window
 from policies.learned.sampler import base_velocity
 from policies.riskflow.base_generator import generator_kind, load_base_generator
+from policies.riskflow.base_plans import BasePlanSteps
 from policies.riskflow.guidance import (
     GuidanceConfig,
     GuidanceResult,
@@ -97,7 +90,7 @@ if TYPE_CHECKING:
 PHASES = ("window", "encoder", "generator", "ranking", "guidance")
 
 
-class RiskFlowAdversary(PlanBufferPolicy):
+class RiskFlowAdversary(BasePlanSteps, PlanBufferPolicy):
     """RiskFlow adversary for every non-ego vehicle (module docstring).
 
     Args:
@@ -311,118 +304,6 @@ class RiskFlowAdversary(PlanBufferPolicy):
                 trajectories[index, rows], observed.frames[index],
             )  # fmt: skip
             policy.guidance_losses = losses[:, index]
-
-    def _blend_first(
-        self,
-        scenes: Sequence[PlanBufferPolicy],
-        views: Sequence[SceneView],
-        slots: Sequence[np.ndarray],
-        eps: torch.Tensor,
-        u0: torch.Tensor,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The base residual ``u0`` (B, A, T, 2) of plans whose first actions are blended
-        into each scene's executed plans (blending first,
-        :mod:`policies.learned.plan_stitching`), and the gain (B, A, T, 1) of the
-        avoidance steps' corrections: blended over ``CORRECTION_STITCH_STEPS``."""
-        old, share = torch.zeros_like(u0), torch.zeros_like(u0[..., :1])
-        for index, (policy, view) in enumerate(zip(scenes, views, strict=True)):
-            blend = policy._continuation(view, slots[index], u0.shape[2])
-            if blend is not None:
-                previous, weight = (torch.as_tensor(x, dtype=u0.dtype) for x in blend)
-                rows, steps = slice(0, len(slots[index])), weight.shape[1]
-                old[index, rows, :steps] = previous.to(u0.device)
-                share[index, rows, :steps, 0] = weight.to(u0.device)
-        actions = self.normalizer.denormalize(eps + u0)
-        blended = self.normalizer.normalize(share * old + (1 - share) * actions) - eps
-        steps = min(CORRECTION_STITCH_STEPS, share.shape[2])
-        gain = torch.ones_like(share)
-        gain[:, :, :steps] -= torch.where(
-            share[:, :, :steps] > 0, share.new_tensor(blend_share(steps))[:, None], 0.0
-        )
-        return blended, gain
-
-    def _select(
-        self,
-        observed: EncodedViews,
-        views: Sequence[SceneView],
-        plans: tuple[torch.Tensor, ...],
-        controllable: torch.Tensor,
-    ) -> tuple[torch.Tensor, ...]:
-        """Keep the best of the first ``base_samples`` joint plans of each scene
-        (:func:`~policies.learned.plan_selection.select_joint_plans`; the first sample
-        when 1), and for each vehicle of ``A_c`` (``controllable`` (B, A) bool) the best of
-        its first ``attack_samples`` plans against the targets' kept plans
-        (:func:`~policies.learned.plan_selection.select_attack_plans`); ``plans`` are
-        ``(B * M, A, ...)`` tensors, a scene's M samples in a row, returned as ``(B, A, ...)``."""
-        scene, batch = observed.scene, observed.batch
-        num_scenes, num_agents = scene.agent_mask.shape
-        shaped = [tensor.reshape(num_scenes, -1, *tensor.shape[1:]) for tensor in plans]
-        trajectories = shaped[3]
-        best = torch.zeros(num_scenes, dtype=torch.long, device=self.device)
-        if self.base_samples > 1:
-            term = self._map_term_of_rows(observed, views)
-            best, _ = select_joint_plans(
-                trajectories[:, : self.base_samples], batch.length, batch.width,
-                scene.agent_mask, scene.state, None if term is None else term.rows,
-            )  # fmt: skip
-        scenes = torch.arange(num_scenes, device=self.device)
-        pick = best[:, None].expand(num_scenes, num_agents)
-        if self.attack_samples > 1 and self.guidance.lambda_adv != 0:
-            present = scene.agent_mask.bool()
-            attacking = controllable & present
-            attacking[:, 0] = False  # the ego's slot
-            targets = target_rows(present, attacking, 0, self.guidance.target)
-            rows = torch.nonzero(attacking.reshape(-1)).flatten().repeat(self.attack_samples)
-            term = self._map_term_of_rows(observed, views, rows)
-            chosen = select_attack_plans(
-                trajectories[:, : self.attack_samples], trajectories[scenes, best, ..., :2],
-                attacking, targets, self.guidance, None if term is None else term.rows,
-            )  # fmt: skip
-            pick = torch.where(attacking, chosen, pick)
-        agents = torch.arange(num_agents, device=self.device)
-        return tuple(tensor[scenes[:, None], pick, agents[None]] for tensor in shaped)
-
-    def _map_term_of_rows(
-        self, observed: EncodedViews, views: Sequence[SceneView], rows: torch.Tensor | None = None
-    ):
-        """The guidance's map term over the first ``SELECTION_HORIZON`` steps of the
-        ``rows`` of the ``B * A`` agent rows (scene after scene; None: every row), or None
-        without ``L_map``; the score of best-of-M selection and of the avoidance steps."""
-        batch, num_agents = observed.batch, observed.scene.agent_mask.shape[1]
-        if rows is None:
-            rows = torch.arange(observed.scene.agent_mask.numel(), device=self.device)
-        flat = SimpleNamespace(
-            length=batch.length.flatten(), width=batch.width.flatten(),
-            drivable_map=self._map_of(views), frame=observed.frame_tensor(),
-        )  # fmt: skip
-        return map_term(flat, rows, SELECTION_HORIZON, self.guidance, rows // num_agents)
-
-    def _avoid(
-        self,
-        observed: EncodedViews,
-        views: Sequence[SceneView],
-        eps: torch.Tensor,
-        u0: torch.Tensor,
-        gain: torch.Tensor | None = None,
-        controllable: torch.Tensor | None = None,
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Avoidance steps on the base plans of every scene
-        (:func:`~policies.learned.plan_avoidance.avoid_overlaps`; ``gain`` the share of
-        each step's correction that is kept, blending first): ``(u0, actions,
-        trajectories)`` after them. The pairs of a vehicle of ``A_c`` (``controllable``,
-        (B, A) bool) and one of its targets are left to guidance, when it pulls them
-        together (``lambda_adv > 0``)."""
-        scene, batch = observed.scene, observed.batch
-        exempt = None
-        if controllable is not None and self.guidance.lambda_adv > 0 and bool(controllable.any()):
-            targets = target_rows(scene.agent_mask, controllable, 0, self.guidance.target)
-            exempt = guided_pairs(controllable, targets)
-        return avoid_overlaps(
-            eps, u0, scene.state, batch.length, batch.width, scene.agent_mask,
-            lambda rows: self._map_term_of_rows(observed, views, rows),
-            self.normalizer, self.dynamics, steps=self.avoid_steps,
-            step_size=self.avoid_step_size, gain=gain, exempt=exempt,
-        )  # fmt: skip
 
     def _guide(
         self, scene: GuidanceScene, controllable: torch.Tensor, observed: EncodedViews
