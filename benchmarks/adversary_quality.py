@@ -16,8 +16,9 @@ vehicles weighted 100 and the target's guidance step (0.1 with ``--target ego``,
 with ``others``; docs/REALISM.md, rounds 8-18 and 26);
 ``--avoid-steps 0 --hold-distance 0 --lambda-map 1 --lambda-sep 0 --step-size 0.1
 --no-stitch-first`` is the raw base of ``riskflow-eval``'s ``riskflow-plain``;
-``--stitch-steps N`` sets the blend. ``--out`` receives ``quality.json`` with the
-summaries and every scene's metrics.
+``--stitch-steps N`` sets the blend and ``--guidance-horizon N`` the steps of the plan
+that the adversarial term pulls (docs/REALISM.md, round 30). ``--out`` receives
+``quality.json`` with the summaries and every scene's metrics.
 """
 
 from __future__ import annotations
@@ -87,6 +88,8 @@ class Options:
     lambda_sep: float = GuidanceConfig.lambda_sep
     """weight of the separation term between the guided vehicles (0: off, the paper's
     objective)"""
+    guidance_horizon: int | None = AdversaryConfig.guidance_horizon
+    """[steps] guidance horizon T_g of the adversarial term; default: the whole plan"""
     stitch_steps: int | None = AdversaryConfig.stitch_steps
     """[steps] blend of a new plan into the executed one (default: 15 blending first, 5
     after; 0: switch at once)"""
@@ -152,6 +155,7 @@ def run(options: Options) -> dict[str, dict]:
             step_size=options.step_size,
             optimizer=options.optimizer,
             lambda_sep=options.lambda_sep,
+            guidance_horizon=options.guidance_horizon,
             stitch_steps=options.stitch_steps,
             stitch_first=options.stitch_first,
         )
@@ -213,7 +217,8 @@ def main(argv: list[str] | None = None) -> None:
         f"avoid_steps={options.avoid_steps}, hold_distance={options.hold_distance:g}, "
         f"lambda_map={options.lambda_map:g}, step_size={step_size:g}, "
         f"optimizer={options.optimizer}, "
-        f"lambda_sep={options.lambda_sep:g}, stitch_steps={stitch}, "
+        f"lambda_sep={options.lambda_sep:g}, guidance_horizon={options.guidance_horizon}, "
+        f"stitch_steps={stitch}, "
         f"stitch_first={options.stitch_first}"
     )
     print(f"{options.scenes} scenes, IDM ego, target={options.target}, episodes: {ending}, {base}")

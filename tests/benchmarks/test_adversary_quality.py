@@ -31,9 +31,10 @@ def test_a_tiny_run_on_the_realistic_base(tmp_path, capsys):
     bench = load_benchmark("adversary_quality")
     argv = ["--scenes", "1", "--ks", "2,0", "--avoid-steps", "1", "--hold-distance", "2"]
     options = ["--lambda-map", "5", "--step-size", "0.03", "--optimizer", "adam-plan"]
+    options += ["--guidance-horizon", "20"]
     bench.main([*argv, *options, "--out", str(tmp_path)])
     out = capsys.readouterr().out
     assert "avoid_steps=1, hold_distance=2, lambda_map=5, step_size=0.03, " in out
-    assert "optimizer=adam-plan, lambda_sep=100" in out
+    assert "optimizer=adam-plan, lambda_sep=100, guidance_horizon=20" in out
     assert "agent-steps of guided vehicles, footprint off road" in out
     assert (tmp_path / "quality.json").stat().st_size > 0
