@@ -26,7 +26,12 @@ Markdown tables:
   plan moves each (its largest distance from the start over the plan), for those that
   stand in the log over the same steps (within 0.5 m) and those that start (beyond 2 m),
   and the share that the holding rule (``hold_distance``,
-  :mod:`policies.learned.plan_stitching`) would hold at 0.5, 1 and 2 m.
+  :mod:`policies.learned.plan_stitching`) would hold at 0.5, 1 and 2 m;
+* **lateral acceleration by road family:** p95 |v x yaw rate| of the generator's
+  vehicles against their own logs over the same steps (KDD's samples,
+  :func:`riskflow_env.metrics.kinematic_samples`): whether a high pooled value is the
+  generator's or the roads' (the recorded traffic drives the racetrack and the U-turn
+  faster than real drivers would).
 
 ``--hold-distance`` and ``--avoid-steps`` run the generator with those options.
 
@@ -43,6 +48,7 @@ import numpy as np
 
 from policies.baselines import NominalGenerator
 from policies.dataclass_cli import parse_dataclass
+from policies.evaluation.rollout import rollout_record
 from policies.harness import ClosedLoop
 from policies.learned.checkpoint import load_generator
 from policies.learned.plan_stitching import REST_SPEED
@@ -51,11 +57,12 @@ from riskflow_env.agents.lane_graph import LaneGraph
 from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import SPEED, YAW
 from riskflow_env.geometry import CENTRE, pairwise_overlap
-from riskflow_env.metrics import offroad_counts
+from riskflow_env.metrics import kinematic_samples, offroad_counts
 from riskflow_env.metrics.safety import footprint_sdf
 from riskflow_env.scenarios import load_bank, shipped_bank
 
 CURVED = ("roundabout", "racetrack", "u-turn", "intersection")
+NO_FAMILY = "(no family)"  # e.g. recorded scenes: neither curved nor straight
 STANDING = 0.5  # [m/s]
 STANDS, STARTS = 0.5, 2.0  # [m] a vehicle at rest that the log moves less / more than this
 HOLDS = (0.5, 1.0, 2.0)  # [m] holding distances the at-rest table tries
@@ -158,8 +165,9 @@ def diagnose(
     avoid_steps: int = 0,
     stitch_first: bool = False,
 ) -> dict:
-    """Run the episodes; returns per-family rows, collision kinds, time buckets and the
-    at-rest vehicles' first-plan reach."""
+    """Run the episodes; returns per-family rows, collision kinds, time buckets, the
+    at-rest vehicles' first-plan reach and per-family lateral accelerations (generated,
+    logged)."""
     source = shipped_bank("eval") if bank is None else load_bank(bank)
     models = {}
     if checkpoint:
@@ -171,6 +179,7 @@ def diagnose(
     )  # fmt: skip
     at_rest: list[tuple[float, float]] = []
     families: dict[str, list] = {}
+    lateral: dict[str, list] = {}
     kinds: Counter = Counter()
     buckets = np.zeros((5, 2))  # off-road centroid steps, live steps per 2 s bucket
     recorder = FirstPlans(policy)
@@ -195,7 +204,15 @@ def diagnose(
             buckets[: starts.size, 1] += np.add.reduceat(live[:, :steps].sum(0), starts)
             episode = collision_kinds(record)
             kinds.update(episode)
-            families.setdefault(scenario.family or "(no family)", []).append(
+            family = scenario.family or NO_FAMILY
+            samples = kinematic_samples(rollout_record(scenario, record))
+            lateral.setdefault(family, []).append(
+                (
+                    samples.generated["lateral_acceleration"],
+                    samples.reference["lateral_acceleration"],
+                )
+            )
+            families.setdefault(family, []).append(
                 (
                     plan_overlap,
                     plan_offroad,
@@ -204,7 +221,26 @@ def diagnose(
                     *rates,  # 0 for a scene without a generator vehicle
                 )
             )
-    return {"families": families, "kinds": kinds, "buckets": buckets, "at_rest": at_rest}
+    return {
+        "families": families, "kinds": kinds, "buckets": buckets, "at_rest": at_rest,
+        "lateral": lateral,
+    }  # fmt: skip
+
+
+def grouped(rows: dict[str, list]) -> dict[str, list]:
+    """Each family's entries, then the curved roads, the straight roads (the other named
+    families) and all."""
+    groups = dict(rows)
+    groups["curved roads"] = [r for name in CURVED for r in rows.get(name, [])]
+    straight = [name for name in rows if name not in (*CURVED, NO_FAMILY)]
+    groups["straight roads"] = [r for name in straight for r in rows[name]]
+    groups["all"] = [r for name in rows for r in rows[name]]
+    return groups
+
+
+def _p95(values: list[np.ndarray]) -> float:
+    pooled = np.abs(np.concatenate(values)) if values else np.zeros(0)
+    return float(np.percentile(pooled, 95)) if pooled.size else float("nan")
 
 
 def report(result: dict) -> str:
@@ -215,12 +251,7 @@ def report(result: dict) -> str:
         "centroid past a road's end |",
         "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
-    rows = result["families"]
-    groups = {name: rows[name] for name in rows}
-    groups["curved roads"] = [r for name in CURVED for r in rows.get(name, [])]
-    groups["straight roads"] = [r for name in rows if name not in CURVED for r in rows[name]]
-    groups["all"] = [r for name in rows for r in rows[name]]
-    for name, entries in groups.items():
+    for name, entries in grouped(result["families"]).items():
         if not entries:
             continue
         values = np.array(entries, dtype=float).mean(axis=0)
@@ -251,6 +282,15 @@ def report(result: dict) -> str:
             p50, p90, p95 = np.percentile(rows, [50, 90, 95])
             held = " | ".join(f"{np.mean(rows < d):.3f}" for d in HOLDS)
             lines.append(f"| {name} | {rows.size} | {p50:.2f} / {p90:.2f} / {p95:.2f} | {held} |")
+    lines += [
+        "",
+        "| family | p95 lateral acceleration: generator [m/s^2] | its log [m/s^2] |",
+        "| --- | ---: | ---: |",
+    ]
+    for name, entries in grouped(result["lateral"]).items():
+        if entries:
+            generated, logged = zip(*entries, strict=True)
+            lines.append(f"| {name} | {_p95(list(generated)):.2f} | {_p95(list(logged)):.2f} |")
     return "\n".join(lines)
 
 

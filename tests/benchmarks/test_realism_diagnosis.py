@@ -18,6 +18,9 @@ def test_one_scene_gives_every_table(diagnosis, capsys):
     for heading in (*headings, "centroid past a road's end", "at rest at the start"):
         assert heading in text
     assert "| highway | 1 |" in text and "| 0-2 |" in text
+    lateral = text.split("p95 lateral acceleration: generator")[1].splitlines()
+    generated, logged = (float(cell) for cell in lateral[2].split("|")[2:4])  # highway
+    assert lateral[2].startswith("| highway |") and generated >= 0.0 and logged >= 0.0
     assert "1 scenes in" in capsys.readouterr().out
 
 
@@ -56,3 +59,10 @@ def test_a_bank_of_your_own(diagnosis, tmp_path):
     save_scenario(scene, tmp_path / "00000-mine.npz", map_dir=tmp_path / "maps")
     text = diagnosis.main(["--bank", str(tmp_path), "--scenes", "3"])
     assert "| roundabout | 1 |" in text
+
+
+def test_scenes_without_a_family_are_neither_curved_nor_straight(diagnosis):
+    rows = {"highway": [1], diagnosis.NO_FAMILY: [2], "racetrack": [3]}
+    groups = diagnosis.grouped(rows)
+    assert groups["curved roads"] == [3] and groups["straight roads"] == [1]
+    assert sorted(groups["all"]) == [1, 2, 3] and groups[diagnosis.NO_FAMILY] == [2]
