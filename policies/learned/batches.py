@@ -22,6 +22,7 @@ from policies.learned.data import WindowDataset
 from policies.learned.data_cache import derived_dir
 from policies.learned.recovery import RecoveryConfig
 from policies.learned.window_types import WindowBatch, collate_windows
+from policies.learned.windows import WindowConfig
 from riskflow_env.scenarios.folders import scene_files
 from riskflow_env.scenarios.io import load_scenario
 from riskflow_env.scenarios.scenario import Scenario
@@ -34,6 +35,7 @@ def load_splits(
     val_fraction: float,
     stride: int,
     recovery: RecoveryConfig | None = None,
+    window: WindowConfig | None = None,
 ) -> tuple[WindowDataset, WindowDataset]:
     """Training and validation windows, cached under ``<folder>/cache/``.
 
@@ -53,6 +55,8 @@ def load_splits(
         stride: steps between windows of a scene (``WindowDataset``).
         recovery: recovery windows added to the training split only
             (:mod:`policies.learned.recovery`); their cache has its own file.
+        window: how windows are cut (None: ``WindowConfig()``; a model's own:
+            :func:`~policies.learned.adversary_config.default_window_config`).
     """
     folders = [Path(data)] if isinstance(data, (str, Path)) else [Path(f) for f in data]
     if not folders:
@@ -64,6 +68,8 @@ def load_splits(
         )
     data = folders[0]
     name = f"windows-stride{stride}"
+    if window is not None and window.crop_ahead:  # centred crops keep their file names
+        name += f"-ahead{window.crop_ahead:g}"
     train_name = name
     if recovery is not None and recovery.copies:
         settings = json.dumps(recovery.settings(), sort_keys=True).encode()
@@ -80,10 +86,10 @@ def load_splits(
         sources = [_source(folder) for folder in folders]
         # one folder is passed alone: its cache fingerprint stays that of earlier versions
         train = WindowDataset(
-            sources if len(sources) > 1 else sources[0], None, stride,
+            sources if len(sources) > 1 else sources[0], window, stride,
             caches[data] / f"{train_name}.npz", recovery,
         )  # fmt: skip
-        val = WindowDataset(_source(val_data), None, stride, caches[val_data] / f"{name}.npz")
+        val = WindowDataset(_source(val_data), window, stride, caches[val_data] / f"{name}.npz")
         return train, val
     scenes = scene_files(data)
     count = round(val_fraction * len(scenes))
@@ -101,7 +107,7 @@ def load_splits(
             source = [load_scenario(scenes[i]) for i in picked]
         prefix, extra = (train_name, recovery) if role == "train" else (name, None)
         cache = caches[data] / f"{prefix}-val{val_fraction:g}-{role}.npz"
-        datasets.append(WindowDataset(source, None, stride, cache, extra))
+        datasets.append(WindowDataset(source, window, stride, cache, extra))
     return datasets[0], datasets[1]
 
 

@@ -46,6 +46,9 @@ class ModelConfig:
         mlp_ratio: hidden width of the transformer MLPs, as a multiple of the width.
         map_channels: channels of the map crops (drivable share, SDF [m]).
         map_size: crop side [px].
+        map_ahead: the crop's centre lies this far ahead of the agent along its heading
+            [m]; 0 (the default, every checkpoint before it) centres the crop on the agent,
+            so that it sees as much behind as ahead.
         map_widths: channels of the CNN's stride-2 conv stages.
         time_frequencies: sinusoid frequencies of the time embeddings of t and r - t.
         time_scale: t and r - t are multiplied by this before the sinusoids.
@@ -71,6 +74,7 @@ class ModelConfig:
     mlp_ratio: int = 2
     map_channels: int = 2
     map_size: int = 48
+    map_ahead: float = 0.0
     map_widths: tuple[int, ...] = (16, 32, 48)
     time_frequencies: int = 32
     time_scale: float = 1000.0
@@ -102,6 +106,13 @@ class ModelConfig:
             f"ModelConfig.map_widths must be a non-empty tuple of ints, got {self.map_widths!r}",
         )
         _require(self.time_scale > 0, f"ModelConfig.time_scale must be > 0, got {self.time_scale}")
+        ahead = self.map_ahead
+        _require(
+            not isinstance(ahead, bool)
+            and isinstance(ahead, (int, float))
+            and 0 <= ahead < math.inf,
+            f"ModelConfig.map_ahead must be a finite number >= 0 [m], got {ahead!r}",
+        )
         for name, size in (
             ("map_widths", None),
             ("history_scale", len(HISTORY_FEATURES)),

@@ -35,6 +35,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
+from policies.learned.adversary_config import default_window_config
 from policies.learned.batches import batch_order, collated, load_splits
 from policies.learned.checkpoint import (
     build_checkpoint,
@@ -143,11 +144,6 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
                 scene_files(folder)
         except (OSError, ValueError) as err:  # missing, a file, no scenes, a bad index
             raise SystemExit(f"riskflow-train: {flag}: {err}") from None
-    try:
-        splits = (options.data, options.val_data, options.val_fraction, options.stride)
-        train_set, val_set = load_splits(*splits, recovery=options.recovery())
-    except ValueError as err:
-        raise SystemExit(f"riskflow-train: {err}") from None
     state = load_checkpoint(out / CHECKPOINT, device) if options.resume else {}
     if start is not None:
         config = start[0].config
@@ -155,6 +151,12 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
         config = ModelConfig.from_dict(state["config"])
     else:
         config = model_config(options.model)
+    try:
+        splits = (options.data, options.val_data, options.val_fraction, options.stride)
+        window = default_window_config(config)  # the crops the model reads
+        train_set, val_set = load_splits(*splits, recovery=options.recovery(), window=window)
+    except ValueError as err:
+        raise SystemExit(f"riskflow-train: {err}") from None
     model = RiskFlowGenerator(config).to(device)
     if start is not None:
         model.load_state_dict(start[0].state_dict())

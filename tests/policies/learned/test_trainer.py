@@ -330,3 +330,45 @@ def test_training_on_the_shipped_bank_writes_nothing_into_the_package(
     assert train_main([*args, "--stride", "80"]) == 0
     assert sorted(ASSETS.rglob("*")) == before
     assert list((tmp_path / "user-cache").rglob("norm_stats.json"))
+
+
+def test_a_model_that_looks_ahead_trains_and_plans_on_its_own_crops(banks, tmp_path, tiny_config):
+    """``ModelConfig.map_ahead``: training cuts crops centred that far ahead (their own
+    cache file), the checkpoint keeps it, and the policy's windows use it."""
+    from policies.baselines import NominalGenerator
+    from policies.learned.adversary_config import default_window_config
+    from policies.learned.data import WindowDataset
+    from policies.learned.windows import WindowConfig
+    from riskflow_env.scenarios import load_bank
+
+    ahead = dataclasses.replace(tiny_config, map_ahead=12.0)
+    out = tmp_path / "ahead"
+    assert train_main(tiny_args(banks, out, ahead, steps=2)) == 0
+    model, normalizer, _ = load_generator(out / GENERATOR)
+    assert model.config.map_ahead == 12.0
+    window = default_window_config(model.config)
+    assert window.crop_ahead == 12.0 and window.crop_size == ahead.map_size
+    centred = WindowDataset(banks[1], WindowConfig(crop_size=ahead.map_size), stride=16)
+    shifted = WindowDataset(banks[1], window, stride=16)
+    assert not np.array_equal(centred[0].map_crops, shifted[0].map_crops)
+    caches = sorted(p.name for p in (banks[1] / "cache").glob("*ahead*.npz"))
+    assert caches == ["windows-stride16-ahead12.npz"]  # beside the centred crops' file
+    policy = NominalGenerator(generator=model, normalizer=normalizer)
+    assert policy.window_config.crop_ahead == 12.0
+    scenario = load_bank(banks[1]).scenarios[0]
+    from policies.harness import ClosedLoop
+    from policies.planners import IDMPlanner
+
+    with ClosedLoop(IDMPlanner(), policy) as loop:
+        record = loop.run(scenario)
+    assert np.isfinite(record.states[record.present]).all()
+
+
+@pytest.mark.parametrize("bad", [-1.0, float("nan"), float("inf"), True])
+def test_map_ahead_must_be_a_finite_number_at_least_zero(bad):
+    from policies.learned.windows import WindowConfig
+
+    with pytest.raises(ValueError, match="map_ahead"):
+        ModelConfig(map_ahead=bad)
+    with pytest.raises(ValueError, match="crop_ahead"):
+        WindowConfig(crop_ahead=bad)
