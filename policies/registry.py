@@ -116,9 +116,9 @@ class MethodSpec:
 
 
 _ADVERSARY = "adversarial guidance on the top-K agents"
-# the raw generator's plans: no avoidance steps, no holding at rest, the 5-step re-plan
-# blend after planning (docs/REALISM.md)
-PLAIN: Mapping[str, Any] = {"avoid_steps": 0, "hold_distance": 0.0, "stitch_first": False}
+# the raw generator's plans: the realistic base's rule layer (avoidance steps, holding at
+# rest) left out, so its effect can be reported next to the model's own
+RAW: Mapping[str, Any] = {"avoid_steps": 0, "hold_distance": 0.0}
 METHODS: dict[str, MethodSpec] = {
     spec.name: spec
     for spec in (
@@ -128,11 +128,10 @@ METHODS: dict[str, MethodSpec] = {
             _riskflow,
         ),
         MethodSpec(
-            "riskflow-plain",
-            "RiskFlow on the raw base (bits-plain), lambda_map = 1, no separation term, "
-            "step_size = 0.1 (the defaults before REALISM.md round 10)",
+            "riskflow-raw",
+            "RiskFlow on the raw generator (bits-raw): no avoidance steps, no holding at rest",
             _riskflow,
-            PLAIN | {"lambda_map": 1.0, "lambda_sep": 0.0, "step_size": 0.1},
+            RAW,
         ),
         MethodSpec(
             "riskflow-noadv",
@@ -189,11 +188,10 @@ METHODS: dict[str, MethodSpec] = {
             takes=("planning_interval", "seed", "device"),
         ),
         MethodSpec(
-            "bits-plain",
-            "the raw unguided generator: no avoidance steps, no holding at rest, the "
-            "re-plan blend after planning",
+            "bits-raw",
+            "the raw unguided generator: no avoidance steps, no holding at rest",
             _nominal,
-            PLAIN,
+            RAW,
             takes=("planning_interval", "seed", "device"),
         ),
         MethodSpec(

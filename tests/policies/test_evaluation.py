@@ -268,9 +268,9 @@ def test_every_method_builds(name):
 
 
 def test_guidance_step_defaults():
-    """RiskFlow guides with the target's step (docs/REALISM.md rounds 18 and 26): 0.01
+    """RiskFlow guides with the target's step : 0.01
     with the paper's target, 0.1 with target ``ego``; STRIVE-style with its own best, 0.1, for
-    either; the raw base keeps the paper's 0.1; ``--set`` overrides each."""
+    either; ``--set`` overrides each."""
 
     def build(name, target="others", **options):
         policy = build_policy(name, options, k=2, planning_interval=0.5, target=target, seed=0)
@@ -281,7 +281,6 @@ def test_guidance_step_defaults():
     assert build("riskflow-nosep") == 0.01
     assert build("strive") == 0.1
     assert build("strive", target="ego") == 0.1
-    assert build("riskflow-plain") == 0.1
     assert build("riskflow", step_size=0.1) == 0.1
     assert build("riskflow", target="ego", step_size=0.03) == 0.03
     assert build("strive", step_size=0.3) == 0.3

@@ -22,7 +22,7 @@ from policies.evaluation.cli import main
 # batched path's rounding past these tolerances within 3 s (their plans are checked cycle
 # by cycle in tests/policies/learned/test_batched_adversary.py).
 RUN = EvalOptions(
-    methods=("riskflow-plain", "idm", "replay"),
+    methods=("riskflow-raw", "idm", "replay"),
     k=("5",),
     interval=(0.5,),
     scenes=4,

@@ -225,7 +225,7 @@ def test_the_diffusion_generator_refuses_it(tiny_denoiser, tiny_normalizer):
 def test_the_defaults_are_the_realistic_base(tiny_meanflow, tiny_denoiser, tiny_normalizer):
     """20 avoidance steps with MeanFlow (none with a diffusion generator, which has no
     one-step output to step on), holding at rest at 4 m and the map term weighted 20;
-    ``riskflow-plain`` / ``bits-plain`` are the raw base."""
+    ``riskflow-raw`` / ``bits-raw`` are the raw generator."""
     from policies.registry import build_policy
 
     meanflow = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
@@ -235,9 +235,9 @@ def test_the_defaults_are_the_realistic_base(tiny_meanflow, tiny_denoiser, tiny_
     diffusion = {"generator": OneCallSampler(tiny_denoiser, 3), "normalizer": tiny_normalizer}
     assert NominalGenerator(**diffusion).avoid_steps == 0
     shared = {"k": 5, "planning_interval": 0.5, "target": "others", "seed": 0}
-    plain = build_policy("riskflow-plain", meanflow, **shared)
-    assert (plain.avoid_steps, plain.hold_distance, plain.guidance.lambda_map) == (0, 0.0, 1.0)
-    raw = build_policy("bits-plain", meanflow, **shared)
+    plain = build_policy("riskflow-raw", meanflow, **shared)
+    assert (plain.avoid_steps, plain.hold_distance, plain.guidance.lambda_map) == (0, 0.0, 20.0)
+    raw = build_policy("bits-raw", meanflow, **shared)
     assert (raw.avoid_steps, raw.hold_distance) == (0, 0.0)
 
 
