@@ -183,12 +183,11 @@ def option_names(cls: type) -> tuple[str, ...]:
 
 def default_window_config(config: ModelConfig) -> WindowConfig:
     """The windows a model with architecture ``config`` was trained on (history, plan
-    length, map crop size and look-ahead; the other options at their defaults)."""
+    length and map crop size; the other options at their defaults)."""
     return WindowConfig(
         history_steps=config.history_steps,
         future_steps=config.future_steps,
         crop_size=config.map_size,
-        crop_ahead=config.map_ahead,
     )
 
 

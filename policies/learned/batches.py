@@ -68,8 +68,6 @@ def load_splits(
         )
     data = folders[0]
     name = f"windows-stride{stride}"
-    if window is not None and window.crop_ahead:  # centred crops keep their file names
-        name += f"-ahead{window.crop_ahead:g}"
     train_name = name
     if recovery is not None and recovery.copies:
         settings = json.dumps(recovery.settings(), sort_keys=True).encode()

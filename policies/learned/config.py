@@ -19,6 +19,8 @@ from typing import Any
 
 # Feature layout of the per-agent history tokens (encoder.py), in the agent's own frame.
 HISTORY_FEATURES = ("x", "y", "cos_dpsi", "sin_dpsi", "speed", "valid", "length", "width")
+# A field of earlier versions: the crop's centre that far ahead of the agent [m].
+_REMOVED_MAP_AHEAD = "map_ahead"
 
 
 def _require(condition: bool, message: str) -> None:
@@ -46,9 +48,6 @@ class ModelConfig:
         mlp_ratio: hidden width of the transformer MLPs, as a multiple of the width.
         map_channels: channels of the map crops (drivable share, SDF [m]).
         map_size: crop side [px].
-        map_ahead: the crop's centre lies this far ahead of the agent along its heading
-            [m]; 0 (the default, every checkpoint before it) centres the crop on the agent,
-            so that it sees as much behind as ahead.
         map_widths: channels of the CNN's stride-2 conv stages.
         time_frequencies: sinusoid frequencies of the time embeddings of t and r - t.
         time_scale: t and r - t are multiplied by this before the sinusoids.
@@ -74,7 +73,6 @@ class ModelConfig:
     mlp_ratio: int = 2
     map_channels: int = 2
     map_size: int = 48
-    map_ahead: float = 0.0
     map_widths: tuple[int, ...] = (16, 32, 48)
     time_frequencies: int = 32
     time_scale: float = 1000.0
@@ -106,13 +104,6 @@ class ModelConfig:
             f"ModelConfig.map_widths must be a non-empty tuple of ints, got {self.map_widths!r}",
         )
         _require(self.time_scale > 0, f"ModelConfig.time_scale must be > 0, got {self.time_scale}")
-        ahead = self.map_ahead
-        _require(
-            not isinstance(ahead, bool)
-            and isinstance(ahead, (int, float))
-            and 0 <= ahead < math.inf,
-            f"ModelConfig.map_ahead must be a finite number >= 0 [m], got {ahead!r}",
-        )
         for name, size in (
             ("map_widths", None),
             ("history_scale", len(HISTORY_FEATURES)),
@@ -149,7 +140,20 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ModelConfig:
-        """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError`` naming them."""
+        """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError`` naming them.
+
+        A stored ``map_ahead`` (a crop centred ahead of the agent, an option of earlier
+        versions) is accepted when it is 0, the agent-centred crop every model reads now,
+        and refused otherwise: such a model was trained on crops this version cannot cut.
+        """
+        data = dict(data)
+        ahead = data.pop(_REMOVED_MAP_AHEAD, 0)
+        if ahead != 0:
+            raise ValueError(
+                f"ModelConfig.{_REMOVED_MAP_AHEAD} = {ahead!r}: this model was trained on map "
+                "crops centred ahead of the agent, which this version no longer cuts (every "
+                "crop is centred on its agent); use a version that has map_ahead, or retrain"
+            )
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - names)
         if unknown:

@@ -158,10 +158,7 @@ class WindowDataset(Dataset):
         self.stride = stride
         self.recovery = recovery if recovery is not None and recovery.copies else None
         parts, scenes = _scenes(source, cache_path)
-        window = dataclasses.asdict(self.config)
-        if not window["crop_ahead"]:  # caches of centred crops keep their fingerprint
-            del window["crop_ahead"]
-        settings = [_CACHE_VERSION, window, stride, parts]
+        settings = [_CACHE_VERSION, dataclasses.asdict(self.config), stride, parts]
         if self.recovery is not None:  # caches without recovery keep their fingerprint
             settings.append(self.recovery.settings())
         fingerprint = hashlib.sha256(json.dumps(settings).encode()).hexdigest()

@@ -90,7 +90,6 @@ def offroad_penalty(
     start: Tensor,
     valid: Tensor,
     crop_resolution: float = 1.0,
-    crop_ahead: float = 0.0,
 ) -> Tensor:
     """Mean squared excess of the planned centres' SDF over the reference's [m^2].
 
@@ -101,8 +100,6 @@ def offroad_penalty(
         start: ``(B, A, 4)`` current states, scene frame (the crops' centres and axes).
         valid: ``(B, A, T)`` bool, agent-steps that count.
         crop_resolution: crop pixel size [m/px].
-        crop_ahead: forward offset of the crops' centres from the agents [m]
-            (``WindowConfig.crop_ahead``).
 
     Returns:
         Scalar, see the module docstring.
@@ -114,10 +111,9 @@ def offroad_penalty(
     def sdf_at(states: Tensor) -> tuple[Tensor, Tensor]:  # (B, A, T) sdf [m], inside crop
         dx = states[..., X] - start[..., X, None]
         dy = states[..., Y] - start[..., Y, None]
-        # crop_points: pixel (r, c) at forward (c - (S-1)/2) * res + ahead,
-        # left (r - (S-1)/2) * res
+        # crop_points: pixel (r, c) at forward (c - (S-1)/2) * res, left (r - (S-1)/2) * res
         forward, left = to_frame(dx, dy, cos, sin)
-        forward, left = (forward - crop_ahead) / crop_resolution, left / crop_resolution
+        forward, left = forward / crop_resolution, left / crop_resolution
         half = (size - 1) / 2.0
         grid = torch.stack([forward / half, left / half], dim=-1)  # (x -> columns, y -> rows)
         inside = (grid.abs() <= 1.0).all(dim=-1)

@@ -37,7 +37,6 @@ def trajectory_loss(
     collision_weight: float = 0.0,
     offroad_weight: float = 0.0,
     jerk_weight: float = 0.0,
-    crop_ahead: float = 0.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """Masked squared error of the rolled-out reconstruction to the reference future,
     plus the optional realism penalties of :mod:`policies.learned.plan_penalties`.
@@ -56,8 +55,6 @@ def trajectory_loss(
             SDF [m^2], from ``map_crops``).
         jerk_weight: weight [m s^3] of ``jerk`` (mean absolute longitudinal jerk of
             the de-normalised plan [m/s^3], every step of every agent in the scene).
-        crop_ahead: forward offset of ``map_crops``' centres from the agents [m] (the
-            model's ``ModelConfig.map_ahead``), for ``offroad``.
 
     Returns:
         ``loss = position_mse + heading_weight * heading_mse + collision_weight *
@@ -84,9 +81,7 @@ def trajectory_loss(
         penalties["overlap"] = overlap_penalty(trajectory, batch, mask)
         loss = loss + collision_weight * penalties["overlap"]
     if offroad_weight:
-        penalties["offroad"] = offroad_penalty(
-            trajectory, batch, scene.state, mask, crop_ahead=crop_ahead
-        )
+        penalties["offroad"] = offroad_penalty(trajectory, batch, scene.state, mask)
         loss = loss + offroad_weight * penalties["offroad"]
     if jerk_weight:
         planned = scene.agent_mask[..., None].expand(actions.shape[:-1])

@@ -51,8 +51,6 @@ class WindowConfig:
         future_steps: reference future states after the current one [steps].
         crop_size: side of the agent-centred map crops [px].
         crop_resolution: crop pixel size [m/px].
-        crop_ahead: the crop's centre lies this far ahead of the agent along its heading
-            [m] (0: the agent at the centre; :func:`riskflow_env.maps.sampling.crop_points`).
         sdf_clip: the SDF crop layer is clipped to [-sdf_clip, sdf_clip] [m].
         max_agents: window slots at most, the ego included.
         max_distance: agents farther than this from the ego at the current step are left
@@ -67,7 +65,6 @@ class WindowConfig:
     future_steps: int = 52
     crop_size: int = 48
     crop_resolution: float = 1.0
-    crop_ahead: float = 0.0
     sdf_clip: float = 10.0
     max_agents: int = 32
     max_distance: float = 150.0
@@ -84,15 +81,6 @@ class WindowConfig:
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or math.isnan(value) or value <= 0:
                 raise ValueError(f"WindowConfig.{name} must be a number > 0, got {value!r}")
-        ahead = self.crop_ahead
-        if (
-            isinstance(ahead, bool)
-            or not isinstance(ahead, (int, float))
-            or not 0 <= ahead < math.inf
-        ):
-            raise ValueError(
-                f"WindowConfig.crop_ahead must be a finite number >= 0 [m], got {ahead!r}"
-            )
 
 
 def build_window(
@@ -163,13 +151,8 @@ def build_window(
     now_world = tracks[rows, current_index].astype(np.float32)
     crops = [
         drivable_map.crop(
-            now_world[:, :2],
-            now_world[:, YAW],
-            config.crop_size,
-            config.crop_resolution,
-            layer,
-            config.crop_ahead,
-        )  # fmt: skip
+            now_world[:, :2], now_world[:, YAW], config.crop_size, config.crop_resolution, layer
+        )
         for layer in CROP_LAYERS
     ]
     crops[1] = np.clip(crops[1], -config.sdf_clip, config.sdf_clip)

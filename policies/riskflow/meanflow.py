@@ -158,7 +158,6 @@ def meanflow_loss(
         "collision_weight": collision_weight,
         "offroad_weight": offroad_weight,
         "jerk_weight": jerk_weight,
-        "crop_ahead": model.config.map_ahead,
     }
     loss, metrics = _loss(
         a_hat, a_star, batch, scene, normalizer, heading_weight, action_weight, dynamics,
@@ -197,7 +196,6 @@ def flow_matching_loss(
         "collision_weight": collision_weight,
         "offroad_weight": offroad_weight,
         "jerk_weight": jerk_weight,
-        "crop_ahead": model.config.map_ahead,
     }
     return _loss(
         eps + u, a_star, batch, scene, normalizer, heading_weight, action_weight, dynamics,

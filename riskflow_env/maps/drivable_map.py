@@ -175,13 +175,11 @@ class DrivableMap:
         size: int = 64,
         resolution: float | None = None,
         layer: CropLayer = "drivable",
-        ahead: float = 0.0,
     ) -> Array:
         """Agent-centred, heading-aligned crops, sampled bilinearly.
 
-        The agent sits at the crop centre (``ahead`` metres behind it when ``ahead`` is
-        not 0); columns increase along its heading and rows increase to its left (see
-        :func:`~riskflow_env.maps.sampling.crop_points`).
+        The agent sits at the crop centre; columns increase along its heading and
+        rows increase to its left (see :func:`~riskflow_env.maps.sampling.crop_points`).
 
         Args:
             xy: (N, 2) [m] agent positions, numpy or torch.
@@ -190,7 +188,6 @@ class DrivableMap:
             resolution: crop pixel size [m/px]; the map's when None.
             layer: "drivable" gives the drivable fraction in [0, 1] (0 beyond the
                 raster); "sdf" gives the signed distance [m].
-            ahead: [m] forward offset of the crop's centre from the agent.
 
         Returns:
             (N, size, size) in ``xy``'s backend, dtype and device.
@@ -205,8 +202,7 @@ class DrivableMap:
             raise ValueError(f"crop size must be an int >= 1 [px], got {size!r}")
         if resolution is not None:
             resolution = finite_number("crop resolution", resolution, "m/px")
-        ahead = finite_number("crop ahead", ahead, "m", allow_zero=True)
-        points = crop_points(xy, yaw, int(size), resolution or self.resolution, ahead)
+        points = crop_points(xy, yaw, int(size), resolution or self.resolution)
         if layer == "sdf":
             return bilinear(self._table("sdf", xy), points, self._origin, self.resolution, True)
         if layer == "drivable":

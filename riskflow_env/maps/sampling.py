@@ -156,22 +156,19 @@ def _last(xp, size: int | Array, like: Array) -> float | Array:
     return xp.astype(size - 1, like.dtype)
 
 
-def crop_points(xy: Array, yaw: Array, size: int, resolution: float, ahead: float = 0.0) -> Array:
+def crop_points(xy: Array, yaw: Array, size: int, resolution: float) -> Array:
     """World coordinates of the pixel centres of agent-centred, heading-aligned crops.
 
-    Crop pixel (r, c) sits at forward offset ``(c - (size-1)/2) * resolution + ahead``
-    and leftward offset ``(r - (size-1)/2) * resolution`` from the agent: with
-    ``ahead = 0`` the agent is at the crop centre; columns increase along the heading,
-    rows increase to its left (so a crop shown with the row axis pointing up is the
-    agent's view, nose right). ``ahead > 0`` moves the crop's centre that far along the
-    heading, so the crop sees more of the road in front than behind.
+    Crop pixel (r, c) sits at forward offset ``(c - (size-1)/2) * resolution`` and
+    leftward offset ``(r - (size-1)/2) * resolution`` from the agent: the agent is at
+    the crop centre, columns increase along the heading, rows increase to its left
+    (so a crop shown with the row axis pointing up is the agent's view, nose right).
 
     Args:
         xy: (N, 2) [m] agent positions.
         yaw: (N,) [rad] agent headings.
         size: crop side [px].
         resolution: crop pixel size [m/px].
-        ahead: [m] forward offset of the crop's centre from the agent.
 
     Returns:
         (N, size, size, 2) [m] world points.
@@ -179,7 +176,7 @@ def crop_points(xy: Array, yaw: Array, size: int, resolution: float, ahead: floa
     xp = namespace(xy, yaw)
     offsets = (np.arange(size, dtype=np.float64) - (size - 1) / 2.0) * resolution
     offsets = asarray_like(offsets, xy)
-    forward = offsets[None, None, :] + ahead  # varies along columns
+    forward = offsets[None, None, :]  # varies along columns
     left = offsets[None, :, None]  # varies along rows
     cos = xp.cos(yaw)[:, None, None]
     sin = xp.sin(yaw)[:, None, None]

@@ -90,7 +90,6 @@ def diffusion_loss(
             "collision_weight": collision_weight,
             "offroad_weight": offroad_weight,
             "jerk_weight": jerk_weight,
-            "crop_ahead": denoiser.config.map_ahead,
         }
         loss, metrics = trajectory_loss(
             x0_hat, batch, scene, normalizer, heading_weight, dynamics, **penalties

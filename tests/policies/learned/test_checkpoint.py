@@ -47,6 +47,20 @@ def test_round_trip_gives_identical_samples(tmp_path, make_model, normalizer, ti
     assert rebuilt.config == tiny_config
 
 
+def test_a_stored_map_ahead_loads_when_zero_and_is_refused_otherwise(
+    tmp_path, make_model, normalizer, tiny_config
+):
+    """Files of the versions that had ``ModelConfig.map_ahead`` store it: 0 (the centred
+    crop) loads as before, anything else is refused with the field named."""
+    model = make_model(tiny_config).eval()
+    config = model.checkpoint()["config"]
+    centred = _write(tmp_path / "a.pt", model, normalizer, config=config | {"map_ahead": 0.0})
+    assert load_generator(centred)[0].config == tiny_config
+    ahead = _write(tmp_path / "b.pt", model, normalizer, config=config | {"map_ahead": 12.0})
+    with pytest.raises(CheckpointError, match=r"map_ahead = 12\.0.*centred on its agent"):
+        load_generator(ahead)
+
+
 def test_mismatches_raise_clear_errors(tmp_path, make_model, normalizer, tiny_config):
     model = make_model(tiny_config)
     path = _write(tmp_path / "a.pt", model, normalizer)

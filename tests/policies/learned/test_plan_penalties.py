@@ -70,26 +70,3 @@ def test_jerk_penalty_is_the_mean_absolute_jerk_of_the_counted_steps():
     valid[..., 3] = False
     assert math.isclose(float(jerk_penalty(actions, valid, dt=0.5)), 1.0)
     assert float(jerk_penalty(actions, torch.zeros_like(valid), dt=0.5)) == 0.0
-
-
-def test_offroad_penalty_with_a_crop_that_looks_ahead():
-    """A crop centred 2 m ahead of the agent (``crop_ahead``) holds the same road: the
-    penalty reads the same SDF at the same world points as the centred crop's."""
-    size = 9
-    forward = torch.arange(size, dtype=torch.float64) - 4.0
-    centred = (forward - 3.0).expand(size, size)  # sdf = forward - 3 around the agent
-    ahead = (forward + 2.0 - 3.0).expand(size, size)  # the same road, crop 2 m ahead
-    start = torch.tensor([[[10.0, 5.0, 0.0, math.pi / 2]]], dtype=torch.float64)
-    planned = _states([[[10.0, 8.0], [10.0, 20.0]]], yaw=math.pi / 2)
-    reference = _states([[[10.0, 5.0], [10.0, 5.0]]], yaw=math.pi / 2)
-    valid = torch.ones(1, 1, 2, dtype=torch.bool)
-
-    def penalty(sdf, crop_ahead):
-        crops = torch.stack([torch.zeros(size, size, dtype=torch.float64), sdf])[None, None]
-        batch = SimpleNamespace(future=reference, width=torch.full((1, 1), 2.0), map_crops=crops)
-        return float(offroad_penalty(planned, batch, start, valid, crop_ahead=crop_ahead))
-
-    assert math.isclose(penalty(ahead, 2.0), penalty(centred, 0.0), rel_tol=1e-12)
-    # 3 m ahead: sdf 0 + half width 1 m, allowance relu(-3 + 1) = 0 -> 1^2 over 2 steps
-    assert math.isclose(penalty(ahead, 2.0), 1.0 / 2, rel_tol=1e-9)
-    assert penalty(ahead, 0.0) != penalty(ahead, 2.0)  # read as centred, it is wrong

@@ -171,25 +171,6 @@ def test_crop_sdf_layer_and_backends(rect_map: DrivableMap) -> None:
     assert drivable[0].min() == 1.0 and drivable[2].max() == 0.0
 
 
-def test_crop_ahead_moves_the_crop_along_the_heading(rect_map: DrivableMap) -> None:
-    """``ahead`` metres forward: the crop of an agent equals the centred crop of a point
-    that far ahead along its heading; the agent's own pixel moves back from the centre."""
-    xy = np.array([[10.0, 5.0], [18.0, 1.0]])
-    yaw = np.array([0.3, -2.0])
-    ahead = 3.0
-    shifted = xy + ahead * np.stack([np.cos(yaw), np.sin(yaw)], axis=-1)
-    for layer in ("sdf", "drivable"):
-        moved = rect_map.crop(xy, yaw, 9, 1.0, layer, ahead)
-        np.testing.assert_allclose(moved, rect_map.crop(shifted, yaw, 9, 1.0, layer), atol=1e-9)
-    sdf = rect_map.crop(xy, yaw, 9, 1.0, "sdf", ahead)  # 1 m/px
-    np.testing.assert_allclose(sdf[:, 4, 4 - 3], rect_map.sdf_at(xy), atol=1e-6)  # 3 px back
-    torch_sdf = rect_map.crop(torch.as_tensor(xy), torch.as_tensor(yaw), 9, 1.0, "sdf", ahead)
-    np.testing.assert_allclose(torch_sdf.numpy(), sdf, atol=1e-9)
-    for bad in (-1.0, float("nan"), float("inf"), True):
-        with pytest.raises(ValueError, match="crop ahead"):
-            rect_map.crop(xy, yaw, size=9, ahead=bad)
-
-
 def test_nearest_lane_and_lane_by_id() -> None:
     lanes = (
         Lane(np.array([[0.0, 0.0], [50.0, 0.0]]), 4.0, "a->b#0", 30.0, ("b->c#0",)),
