@@ -8,9 +8,6 @@
 
 ``--stop-share P`` makes each recorded vehicle stop once in its lane with probability P
 (queues behind it, lane changes around it; :class:`~riskflow_env.scenarios.recording.DriverConfig`).
-``--curve-accel A`` makes the drivers slow down ahead of curves so that they take them
-with at most A m/s^2 of lateral acceleration (highway-env's IDM does not slow down for
-curves: up to about 1.5 g in the U-turn).
 
 ``generate`` writes scene ``i`` of family ``families[i % len(families)]`` to
 ``OUT/<i:05d>-<family>.npz`` (maps once each under ``OUT/maps/``), seeded by
@@ -72,8 +69,6 @@ class GenerateOptions:
     """reference future per scene [steps of 0.1 s]"""
     stop_share: float = 0.0
     """probability per recorded vehicle that it stops once in its lane (DriverConfig)"""
-    curve_accel: float = 0.0
-    """largest lateral acceleration in curves [m/s^2] (DriverConfig; 0: highway-env's IDM)"""
 
     def __post_init__(self) -> None:
         for name, minimum in (("scenes", 0), ("seed", 0), ("workers", 1), ("future_steps", 1)):
@@ -82,9 +77,6 @@ class GenerateOptions:
                 raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}")
         if not isinstance(self.stop_share, float | int) or not 0.0 <= self.stop_share <= 1.0:
             raise ValueError(f"stop_share must be a number in [0, 1], got {self.stop_share!r}")
-        accel = self.curve_accel
-        if not isinstance(accel, float | int) or not (np.isfinite(accel) and accel >= 0.0):
-            raise ValueError(f"curve_accel must be a number >= 0 [m/s^2], got {accel!r}")
         if self.split not in SPLIT_KEYS:
             raise ValueError(f"split must be one of {tuple(SPLIT_KEYS)}, got {self.split!r}")
         unknown = [family for family in self.families if family not in FAMILIES]
@@ -92,8 +84,8 @@ class GenerateOptions:
             raise ValueError(f"families must be a non-empty subset of {FAMILIES}, got {unknown}")
 
     def settings(self) -> dict:
-        """What the files depend on (recorded in the manifest; ``stop_share`` and
-        ``curve_accel`` only when not 0, so banks made before they existed still resume)."""
+        """What the files depend on (recorded in the manifest; ``stop_share`` only when
+        not 0, so banks made before it existed still resume)."""
         settings = {
             "source": SOURCE,
             "families": list(self.families),
@@ -103,8 +95,6 @@ class GenerateOptions:
         }
         if self.stop_share:
             settings["stop_share"] = self.stop_share
-        if self.curve_accel:
-            settings["curve_accel"] = self.curve_accel
         return settings
 
 
@@ -117,9 +107,7 @@ def make_scene(options: GenerateOptions, index: int) -> Path:
     """Generate and write scene ``index`` (what each worker runs)."""
     family = options.families[index % len(options.families)]
     seed = np.random.SeedSequence(options.seed, spawn_key=(SPLIT_KEYS[options.split], index))
-    driver = DriverConfig(
-        stop_share=float(options.stop_share), curve_accel=float(options.curve_accel)
-    )
+    driver = DriverConfig(stop_share=float(options.stop_share))
     config = SceneConfig(future_steps=options.future_steps, driver=driver)
     name = f"{family}-{options.split}-s{options.seed}-{index:05d}"
     scene = generate_scenario(family, np.random.default_rng(seed), config, name=name)
@@ -248,11 +236,6 @@ def share(text: str) -> float:
     return _number(text, lambda value: 0.0 <= value <= 1.0, "a number in [0, 1]")
 
 
-def non_negative(text: str) -> float:
-    """An argparse ``type``: a finite number >= 0, else a usage error naming the option."""
-    return _number(text, lambda value: np.isfinite(value) and value >= 0.0, "a number >= 0")
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The ``riskflow-data`` parser (subcommands ``generate`` and ``info``)."""
     formatter = argparse.ArgumentDefaultsHelpFormatter
@@ -279,9 +262,6 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--stop-share", type=share, default=0.0,
                      help="probability per vehicle that it stops once in its lane (a "
                      "breakdown, a drop-off): queues, vehicles passing standing ones")  # fmt: skip
-    gen.add_argument("--curve-accel", type=non_negative, default=0.0,
-                     help="drivers slow down ahead of curves to take them with at most "
-                     "this lateral acceleration [m/s^2]; 0: highway-env's IDM")  # fmt: skip
     show = commands.add_parser(
         "info", help="count the scenes of a bank per family", formatter_class=formatter
     )
@@ -309,7 +289,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         workers=args.workers,
         future_steps=args.future_steps,
         stop_share=args.stop_share,
-        curve_accel=args.curve_accel,
     )
     generate(options)
     return 0

@@ -76,12 +76,6 @@ class DriverConfig:
             default) draws nothing, so banks made without stops keep their exact bits.
         stop_start: when the stop begins, after the vehicle appears [s].
         stop_duration: how long it stands, braking time not included [s].
-        curve_accel: largest lateral acceleration v^2 * curvature [m/s^2] a driver
-            takes a curve with: it slows down ahead of curves, at its comfortable
-            deceleration, to ``sqrt(curve_accel / curvature)``
-            (:func:`~riskflow_env.scenarios.road_stepper.curve_speed`). 0 (the default)
-            keeps highway-env's IDM, which takes every curve at its desired speed (up to
-            about 1.5 g in the U-turn), so banks made without it keep their exact bits.
     """
 
     extra_headway: tuple[float, float] = (0.2, 2.0)
@@ -104,16 +98,10 @@ class DriverConfig:
     stop_share: float = 0.0
     stop_start: tuple[float, float] = (0.0, 25.0)
     stop_duration: tuple[float, float] = (3.0, 20.0)
-    curve_accel: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.stop_share <= 1.0:
             raise ValueError(f"DriverConfig.stop_share must be in [0, 1], got {self.stop_share}")
-        if not (np.isfinite(self.curve_accel) and self.curve_accel >= 0.0):
-            raise ValueError(
-                f"DriverConfig.curve_accel must be a finite number >= 0 [m/s^2] (0: off), "
-                f"got {self.curve_accel!r}"
-            )
         for name in ("stop_start", "stop_duration"):
             low, high = getattr(self, name)
             if not 0.0 <= low <= high:
@@ -264,7 +252,6 @@ class _Traffic:
         vehicle.is_yielding = False
         vehicle.row = -1
         vehicle.halting = False
-        vehicle.curve_accel = cfg.curve_accel
         vehicle.stop_at, vehicle.stand_left = 0, 0  # its stop: first step, steps at rest
         if cfg.stop_share > 0.0 and rng.random() < cfg.stop_share:
             vehicle.stop_at = self.stepper.steps + round(rng.uniform(*cfg.stop_start) / DT)

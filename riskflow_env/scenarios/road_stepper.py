@@ -27,8 +27,6 @@ MAX_YAW_RATE = 1.0  # [rad/s] steering is capped so the yaw rate stays within (e
 CONFLICT_MARGIN = 20.0  # [m] added to the reach of the conflict broad phase (extents)
 STOP_EASE_SPEED = 2.0  # [m/s] a halting vehicle below this brakes less, in proportion
 STOP_MIN_SPEED = 0.1  # [m/s] floor of that speed, so a halting vehicle does come to rest
-CURVE_SAMPLE = 1.0  # [m] spacing of the curvature profiles of lanes
-CURVE_PREVIEW = 120.0  # [m] longest look-ahead for curves
 
 
 class RoadStepper:
@@ -252,50 +250,6 @@ def move_unicycle(vehicles: list, dt: float) -> None:
             vehicle.on_state_update()
 
 
-def lane_curvature(road, lane_index: tuple) -> np.ndarray:
-    """|curvature| [1/m] of a highway-env lane every ``CURVE_SAMPLE`` metres along it (the
-    heading's change over the sample spacing), computed once per lane and road."""
-    profiles = road.__dict__.setdefault("curvature_profiles", {})
-    if lane_index not in profiles:
-        lane = road.network.get_lane(lane_index)
-        s = np.arange(0.0, max(lane.length, CURVE_SAMPLE) + CURVE_SAMPLE, CURVE_SAMPLE)
-        heading = np.unwrap([lane.heading_at(value) for value in s])
-        profiles[lane_index] = np.abs(np.diff(heading)) / CURVE_SAMPLE
-    return profiles[lane_index]
-
-
-def curve_speed(vehicle, lateral_accel: float, decel: float) -> float:
-    """The highest speed [m/s] at which ``vehicle`` can still slow down, at ``decel``
-    [m/s^2], to ``sqrt(lateral_accel / curvature)`` before every curve within its stopping
-    distance along its lane and the lanes that follow (the most curved one where the road
-    forks, as the vehicle's choice is not made yet): ``min_d sqrt(v_c(d)^2 + 2 decel d)``.
-    ``inf`` on straight roads."""
-    network = vehicle.road.network
-    end = vehicle.lane_index[1]
-    s0 = float(vehicle.lane.local_coordinates(vehicle.position)[0])
-    reach = min(CURVE_PREVIEW, vehicle.speed**2 / (2.0 * decel) + 10.0)
-    profile = lane_curvature(vehicle.road, vehicle.lane_index)
-    first = int(np.clip(s0 // CURVE_SAMPLE, 0, len(profile) - 1))
-    curvature = [profile[first:]]
-    covered = (len(profile) - first) * CURVE_SAMPLE
-    while covered < reach and end in network.graph:
-        ahead = [
-            lane_curvature(vehicle.road, (end, after, i))
-            for after, lanes in network.graph[end].items()
-            for i in range(len(lanes))
-        ]
-        if not ahead:
-            break
-        size = min(len(a) for a in ahead)
-        curvature.append(np.max([a[:size] for a in ahead], axis=0))
-        covered += size * CURVE_SAMPLE
-        end = next(iter(network.graph[end]))  # one more lane is enough within the reach
-    curvature = np.concatenate(curvature)[: int(reach / CURVE_SAMPLE) + 1]
-    distance = np.arange(len(curvature)) * CURVE_SAMPLE
-    limit = lateral_accel / np.maximum(curvature, 1e-9) + 2.0 * decel * distance
-    return float(np.sqrt(limit.min()))
-
-
 @functools.lru_cache(maxsize=4)
 def _dynamics_config(dt: float):
     from riskflow_env.config import DynamicsConfig
@@ -315,9 +269,6 @@ def traffic_vehicle_class() -> type:
       1 m/s, so a queue at a lane end, e.g. the merge lane's, would wait forever); MOBIL
       then evaluates it as if moving at 1 m/s;
     * its lane can be updated by :class:`RoadStepper` for all vehicles at once;
-    * with a ``curve_accel`` > 0 (``DriverConfig.curve_accel``), its IDM desired speed is
-      capped by :func:`curve_speed`, and above that speed it brakes at least at its
-      comfortable deceleration, so it slows down ahead of curves;
     * while its ``halting`` flag is set (a stop drawn by the recorder), it brakes to a
       standstill at its comfortable deceleration, in proportion to its speed below
       ``STOP_EASE_SPEED`` (no jerk spike at rest), and stays there; IDM's own braking
@@ -348,20 +299,7 @@ def traffic_vehicle_class() -> type:
             return float(np.clip(steering, -limit, limit))
 
         def acceleration(self, ego_vehicle, front_vehicle=None, rear_vehicle=None) -> float:
-            curve_accel = getattr(ego_vehicle, "curve_accel", 0.0)
-            if curve_accel > 0.0 and ego_vehicle.lane is not None:  # slow down for curves
-                target = ego_vehicle.target_speed
-                decel = -float(ego_vehicle.COMFORT_ACC_MIN)
-                allowed = curve_speed(ego_vehicle, curve_accel, decel)
-                ego_vehicle.target_speed = min(target, allowed)
-                try:
-                    acceleration = super().acceleration(ego_vehicle, front_vehicle, rear_vehicle)
-                finally:
-                    ego_vehicle.target_speed = target
-                if ego_vehicle.speed > allowed:  # above the braking profile: follow it
-                    acceleration = min(acceleration, -decel)
-            else:
-                acceleration = super().acceleration(ego_vehicle, front_vehicle, rear_vehicle)
+            acceleration = super().acceleration(ego_vehicle, front_vehicle, rear_vehicle)
             if not getattr(ego_vehicle, "halting", False):
                 return acceleration
             speed = max(float(ego_vehicle.speed), 0.0)

@@ -91,8 +91,6 @@ def test_stop_share_is_recorded_only_when_used(tmp_path):
     """Banks made before ``--stop-share`` existed keep resuming: the key is absent at 0."""
     assert "stop_share" not in _tiny(tmp_path / "a").settings()
     assert _tiny(tmp_path / "b", stop_share=0.2).settings()["stop_share"] == 0.2
-    assert "curve_accel" not in _tiny(tmp_path / "c").settings()
-    assert _tiny(tmp_path / "d", curve_accel=3.0).settings()["curve_accel"] == 3.0
 
 
 @pytest.mark.reliability
@@ -104,7 +102,6 @@ def test_stop_share_is_recorded_only_when_used(tmp_path):
         (["--workers", "0"], "argument --workers: expected an int >= 1, got '0'"),
         (["--future-steps", "x"], "argument --future-steps: expected an int >= 1, got 'x'"),
         (["--stop-share", "1.5"], "argument --stop-share: expected a number in [0, 1], got '1.5'"),
-        (["--curve-accel", "-1"], "argument --curve-accel: expected a number >= 0, got '-1'"),
     ],
 )
 def test_bad_numbers_are_usage_errors_before_anything_is_written(args, message, tmp_path, capsys):
@@ -138,7 +135,6 @@ def test_out_that_is_a_file_is_a_usage_error(tmp_path, capsys):
         ({"split": "test"}, "split must be one of"),
         ({"families": ("moon",)}, "families must be a non-empty subset"),
         ({"stop_share": -0.1}, "stop_share must be a number in"),
-        ({"curve_accel": float("nan")}, "curve_accel must be a number >= 0"),
     ],
 )
 def test_generate_options_are_validated(changes, message, tmp_path):

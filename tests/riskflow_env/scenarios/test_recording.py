@@ -114,47 +114,9 @@ def test_a_halting_vehicle_brakes_at_its_comfortable_rate_easing_near_rest():
     assert -0.2 < vehicle.acceleration(vehicle) < 0.0
 
 
-def test_curve_accel_slows_the_drivers_down_ahead_of_curves():
-    """``curve_accel``: highway-env's IDM takes the U-turn at its desired speed (several
-    m/s^2 of lateral acceleration); with a 3 m/s^2 cap the drivers brake before it."""
-    lateral = {}
-    for accel in (0.0, 3.0):
-        driver = DriverConfig(curve_accel=accel)
-        recording = record_traffic("u-turn", np.random.default_rng(0), 300, 5, driver)
-        states, valid = recording.states, recording.valid
-        yaw_rate = np.diff(states[..., 3], axis=1) / 0.1  # headings are unwrapped
-        moving = valid[:, 1:] & valid[:, :-1] & (np.arange(299) >= 100)  # placed ones gone
-        lateral[accel] = np.abs(yaw_rate * states[:, 1:, 2])[moving]
-    assert np.percentile(lateral[0.0], 95) > 5.0
-    assert np.percentile(lateral[3.0], 95) < 3.5
-
-
-def test_curve_speed_is_the_braking_profile_ahead():
-    import gymnasium
-    import highway_env  # noqa: F401
-
-    from riskflow_env.maps.highway import ENV_IDS
-    from riskflow_env.scenarios.road_stepper import curve_speed, traffic_vehicle_class
-
-    straight = gymnasium.make("highway-v0").unwrapped.road
-    vehicle = traffic_vehicle_class()(straight, [0.0, 0.0], 0.0, 20.0, target_speed=20.0)
-    assert curve_speed(vehicle, 3.0, 2.0) > 100.0  # no curve in reach
-    turn = gymnasium.make(ENV_IDS["u-turn"]).unwrapped
-    turn.reset(seed=0)
-    lane = turn.road.network.get_lane(("b", "c", 0))  # the U-turn's half circle
-    radius = lane.radius
-    on_curve = traffic_vehicle_class()(turn.road, lane.position(5.0, 0.0), lane.heading_at(5.0),
-                                       10.0, target_speed=10.0)  # fmt: skip
-    assert curve_speed(on_curve, 3.0, 2.0) == pytest.approx(np.sqrt(3.0 * radius), rel=0.05)
-    on_curve.curve_accel, on_curve.COMFORT_ACC_MIN = 3.0, -2.0
-    assert on_curve.acceleration(on_curve) <= -2.0  # too fast for the curve: brakes
-
-
 def test_driver_config_is_validated():
     with pytest.raises(ValueError, match="stop_share must be in"):
         DriverConfig(stop_share=1.5)
-    with pytest.raises(ValueError, match="curve_accel must be"):
-        DriverConfig(curve_accel=-1.0)
     with pytest.raises(ValueError, match="stop_duration"):
         DriverConfig(stop_duration=(5.0, 1.0))
 
