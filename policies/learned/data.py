@@ -205,8 +205,6 @@ class WindowDataset(Dataset):
         moved = dataclasses.replace(scenario, states=states.astype(scenario.states.dtype))
         turn, jitter = recovery.parked_turn, recovery.parked_jitter
         moved = add_parked(moved, recovery.parked, current, rng, turn=turn, jitter=jitter)
-        if recovery.kerbside:  # drawn after the others: without them the bits are kept
-            moved = add_parked(moved, recovery.kerbside, current, rng, on_road=True, jitter=jitter)
         return window_from_scenario(moved, current, self.config)
 
     def __len__(self) -> int:

@@ -17,22 +17,13 @@ along that vehicle's heading (or against it, one in three) with a jitter of up t
 agent (``riskflow_env.geometry.separation``) and its centre clear of the other parked
 cars by half the sum of the two diagonals plus 0.5 m.
 
-``on_road=True`` parks the car at the kerb instead, on the drivable area: the first
-offset where the signed distance is between minus half its width minus 1.5 m and minus
-half its width minus 0.2 m (the whole box on the road, its outer side 0.2-1.5 m from the
-edge), with the same clearances. The traffic of the log then passes close to a car that
-stands in an unused lane, as in a street lined with parked cars (the nuScenes samples'
-remaining collisions are moving vehicles driving into standing ones: docs/REALISM.md).
-
-Two options bring the cars nearer to the parked cars of recorded scenes (docs/REALISM.md,
-round 27: in the nuScenes car park the cars that a generator drives away stand across the
-lanes, 4-17 m off the road, and their logged speeds are not 0):
+Two options bring the cars nearer to the parked cars of recorded scenes (in the nuScenes
+car park the cars that a generator drives away stand across the lanes, 4-17 m off the
+road, and their logged speeds are not 0):
 
 * ``turn``: the share of cars parked across the road (their heading turned by a quarter
   turn, as in the bays of a car park); such a car keeps half its length, not half its
-  width, clear of the drivable area (with ``on_road``, half its length inside the edge's
-  band: a car across a lane, which seldom finds room clear of the logged tracks, so the
-  recovery windows turn only the cars beside the road).
+  width, clear of the drivable area.
 * ``jitter`` [m/s]: the recorded positions of a parked car wander by centimetres from step
   to step (annotation noise; nuScenes' parked cars show logged speeds of 0.1-0.3 m/s,
   some up to 0.8), and a generator that has only seen exact zeros reads that as a car that
@@ -67,7 +58,6 @@ def add_parked(
     count: int,
     current_index: int,
     rng: np.random.Generator,
-    on_road: bool = False,
     turn: float = 0.0,
     jitter: float = 0.0,
 ) -> Scenario:
@@ -79,8 +69,6 @@ def add_parked(
         current_index: the window's current step: base points are drawn from the 3 s
             before and the 5.2 s after it.
         rng: the draws.
-        on_road: park at the kerb, on the drivable area (module docstring), instead of
-            beside the road.
         turn: share of the cars parked across the road, in ``[0, 1]`` (module docstring).
         jitter: largest noise level [m/s] of the cars' logged history, ``>= 0`` (module
             docstring). With ``turn`` and ``jitter`` 0 nothing more is drawn from ``rng``.
@@ -114,10 +102,7 @@ def add_parked(
     points = base[:, None, :2] + OFFSETS[None, :, None] * normal[:, None, :]  # (C, K, 2)
     sdf = np.asarray(scenario.map.sdf_at(points))
     half = np.where(across, length, width)[:, None] / 2  # the extent towards the road
-    if on_road:  # the whole box on the road, its outer side near the edge
-        fits = (sdf >= -half - 1.5) & (sdf <= -half - 0.2)
-    else:  # just off the drivable area
-        fits = (sdf >= half + 0.3) & (sdf <= half + 3.0)
+    fits = (sdf >= half + 0.3) & (sdf <= half + 3.0)  # just off the drivable area
     found = fits.any(axis=1)
     spot = points[np.arange(tries), fits.argmax(axis=1)]  # (C, 2): first offset that fits
     gap = separation(  # (C, N, T): SAT gap of each candidate to every logged box [m]

@@ -53,16 +53,12 @@ class RecoveryConfig:
         min_speed: agents slower than this anywhere in the bump stay on the log [m/s].
         parked: cars parked beside the road added to each copy, clear of the (perturbed)
             tracks (:func:`policies.learned.parked.add_parked`; fewer where there is no room).
-        kerbside: cars parked at the kerb, on the drivable area, added after those
-            (``add_parked(on_road=True)``); 0 draws nothing, so windows without them keep
-            their bits and their cache files (:meth:`settings`).
         seed: seed of the draws (each window copy has its own stream).
         parked_turn: share of the cars parked beside the road that stand across it, in
-            ``[0, 1]`` (``add_parked(turn=...)``; not the kerbside cars: across a lane at
-            the kerb a car finds no room clear of the logged tracks).
-        parked_jitter: largest noise level [m/s] of the parked cars' logged history (both
-            kinds), ``>= 0`` (``add_parked(jitter=...)``). Like ``kerbside``, both leave the bits
-            and the cache files of windows made without them unchanged when 0.
+            ``[0, 1]`` (``add_parked(turn=...)``).
+        parked_jitter: largest noise level [m/s] of the parked cars' logged history,
+            ``>= 0`` (``add_parked(jitter=...)``). Both leave the bits and the cache files
+            of windows made without them unchanged when 0 (:meth:`settings`).
     """
 
     copies: int = 0
@@ -73,12 +69,11 @@ class RecoveryConfig:
     min_speed: float = 2.0
     parked: int = 0
     seed: int = 0
-    kerbside: int = 0
     parked_turn: float = 0.0
     parked_jitter: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("copies", "parked", "kerbside"):
+        for name in ("copies", "parked"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ValueError(f"RecoveryConfig.{name} must be an int >= 0, got {value!r}")
@@ -101,10 +96,10 @@ class RecoveryConfig:
 
     def settings(self) -> dict:
         """The fields as a dict for cache fingerprints and file names, without
-        ``kerbside``, ``parked_turn`` and ``parked_jitter`` when they are 0 (so caches
-        written before they existed stay valid)."""
+        ``parked_turn`` and ``parked_jitter`` when they are 0 (so caches written before
+        they existed stay valid)."""
         settings = dataclasses.asdict(self)
-        for name in ("kerbside", "parked_turn", "parked_jitter"):
+        for name in ("parked_turn", "parked_jitter"):
             if not settings[name]:
                 del settings[name]
         return settings

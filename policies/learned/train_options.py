@@ -88,8 +88,6 @@ class LoopOptions:
     """largest lateral drift of a recovery window's agents [m]"""
     recovery_parked: int = 0
     """cars parked beside the road added to each recovery window (policies.learned.parked)"""
-    recovery_kerbside: int = 0
-    """cars parked at the kerb, on the road, added to each recovery window (learned.parked)"""
     recovery_parked_turn: float = 0.0
     """share of the cars parked beside the road (--recovery-parked) that stand across it, as
     in a car park (learned.parked)"""
@@ -117,10 +115,8 @@ class LoopOptions:
             "0 < --val-fraction < 1": 0 < self.val_fraction < 1,
             "--data: one folder, or several with --val-data": len(self.data) == 1
             or (len(self.data) > 1 and self.val_data is not None),
-            "--recovery-copies, --recovery-parked, --recovery-kerbside >= 0": min(
-                self.recovery_copies, self.recovery_parked, self.recovery_kerbside
-            )
-            >= 0,
+            "--recovery-copies, --recovery-parked >= 0": self.recovery_copies >= 0
+            and self.recovery_parked >= 0,
             "--recovery-offset >= 0": math.isfinite(self.recovery_offset)
             and self.recovery_offset >= 0,
             "0 <= --recovery-parked-turn <= 1": 0 <= self.recovery_parked_turn <= 1,
@@ -140,7 +136,6 @@ class LoopOptions:
             copies=self.recovery_copies,
             offset=self.recovery_offset,
             parked=self.recovery_parked,
-            kerbside=self.recovery_kerbside,
             seed=self.seed,
             parked_turn=self.recovery_parked_turn,
             parked_jitter=self.recovery_parked_jitter,

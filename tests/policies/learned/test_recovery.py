@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 
 import numpy as np
 import pytest
@@ -151,53 +153,36 @@ def test_parked_cars_stand_beside_the_road_clear_of_every_track(scenes):
     assert add_parked(scenes[0], 0, CURRENT, np.random.default_rng(0)) is scenes[0]
 
 
-@pytest.mark.parametrize(
-    ("options", "extent", "band"),
-    [  # the signed distance of the centre, from the extent towards the road [m]
-        ({"on_road": True}, "width", (-1.5, -0.2)),  # at the kerb, on the road
-        ({"turn": 1.0}, "length", (0.3, 3.0)),  # across the road, off it
-    ],
-)
-def test_kerbside_and_turned_cars_keep_their_band_clear_of_every_track(
-    scenes, options, extent, band
-):
-    """Kerbside cars stand on the road near its edge; cars parked across the road keep
-    half their length (not their width) in the band."""
+def test_turned_cars_keep_half_their_length_off_the_road_clear_of_every_track(scenes):
+    """Cars parked across the road keep half their length (not their width) in the band
+    of 0.3-3 m beyond the edge."""
     kept = 0
     for seed, scene in enumerate(scenes):
-        out = add_parked(scene, 2, CURRENT, np.random.default_rng(seed), **options)
+        out = add_parked(scene, 2, CURRENT, np.random.default_rng(seed), turn=1.0)
         count = out.states.shape[0] - scene.states.shape[0]
         kept += count
         if not count:
             continue
         parked = out.states[-count:]
         assert np.all(parked == parked[:, :1]) and np.all(parked[..., 2] == 0.0)
-        half = getattr(out, extent)[-count:] / 2
+        half = out.length[-count:] / 2
         sdf = np.asarray(scene.map.sdf_at(parked[:, 0, :2]))
-        signed = np.sign(band[0]) * half
-        assert np.all((sdf >= signed + band[0] - 1e-6) & (sdf <= signed + band[1] + 1e-6)), sdf
+        assert np.all((sdf >= half + 0.3 - 1e-6) & (sdf <= half + 3.0 + 1e-6)), sdf
         assert_clear_of_every_track(scene, out, count)
     assert kept >= 2, "some road in the three scenes has room"
 
 
-def test_kerbside_zero_keeps_the_windows_and_their_cache_name(scenes):
-    """``kerbside=0`` draws nothing and leaves the settings (cache fingerprints and file
-    names) as they were before the field existed."""
-    settings = RecoveryConfig(copies=1, parked=2).settings()
-    assert "kerbside" not in settings
-    assert settings == {
-        k: v for k, v in dataclasses.asdict(RecoveryConfig(copies=1, parked=2)).items()
-        if k not in ("kerbside", "parked_turn", "parked_jitter")
-    }  # fmt: skip
-    with_cars = RecoveryConfig(copies=1, parked=2, kerbside=2)
-    assert with_cars.settings()["kerbside"] == 2
-    plain = WindowDataset(scenes[:1], stride=40, recovery=RecoveryConfig(copies=1, parked=2))
-    more = WindowDataset(scenes[:1], stride=40, recovery=with_cars)
-    np.testing.assert_array_equal(more.window(0).history, plain.window(0).history)
-    extra = more.window(1).agent_index.size - plain.window(1).agent_index.size
-    assert 0 <= extra <= 2
-    with pytest.raises(ValueError, match="kerbside must be an int >= 0"):
-        RecoveryConfig(kerbside=-1)
+def test_the_recovery_cache_names_of_the_shipped_recipes_stay_the_same():
+    """The window caches of the shipped recipes' recovery settings keep their file names
+    (a hash of :meth:`RecoveryConfig.settings`) across versions."""
+
+    def name(config):
+        text = json.dumps(config.settings(), sort_keys=True).encode()
+        return hashlib.sha256(text).hexdigest()[:12]
+
+    assert name(RecoveryConfig(copies=1, parked=2)) == "72456277d5e0"
+    shipped = RecoveryConfig(copies=1, parked=2, parked_turn=0.5, parked_jitter=0.3)
+    assert name(shipped) == "1bd534b715f2"
 
 
 def test_recovery_copies_with_parked_cars_show_them_standing(scenes):
