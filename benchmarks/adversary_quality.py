@@ -1,23 +1,20 @@
 """Does the RiskFlow adversary make the IDM ego fail, without driving off the road?
 
-Runs every configuration (default: K=5 and K=0, the unguided generator) closed loop for
-10 s on the first ``--scenes`` shipped evaluation scenes, with the IDM ego planner, and
-prints collision and off-road rates with 95% confidence intervals (Wilson for rates,
-bootstrap for means) plus the ratios of each K to K=0::
+Runs ``riskflow`` (the library's default, :func:`policies.registry.build_policy` with no
+options: the realistic base) at every K of ``--ks`` (default K=5 and K=0, the unguided
+generator) closed loop for 10 s on the first ``--scenes`` shipped evaluation scenes, with
+the IDM ego planner, and prints collision and off-road rates with 95% confidence
+intervals (Wilson for rates, bootstrap for means) plus the ratio of the first K to the
+last::
 
-    python benchmarks/adversary_quality.py --scenes 50 --ks 5,0 --target ego
+    python benchmarks/adversary_quality.py --scenes 50 --ks 5,0 --target ego [--raw]
 
-The episode ends early when the ego collides (the default ``EnvConfig``), as in a
-stress test; ``--full-episodes`` runs every episode for 10 s instead, so that off-road
-rates are compared over the same exposure. The adversary runs with the library's
-defaults: the realistic base (20 avoidance steps, holding at rest at 4 m, blending first
-over 15 steps), the map term weighted 20, the separation term between the guided
-vehicles weighted 100 and the target's guidance step (0.1 with ``--target ego``, 0.01
-with ``others``; docs/REALISM.md, rounds 8-18 and 26);
-``--avoid-steps 0 --hold-distance 0 --lambda-map 1 --lambda-sep 0 --step-size 0.1
---no-stitch-first`` is the raw base of ``riskflow-eval``'s ``riskflow-plain``;
-``--stitch-steps N`` sets the blend and ``--guidance-horizon N`` the steps of the plan
-that the adversarial term pulls (docs/REALISM.md, round 30). ``--out`` receives
+``--raw`` adds ``riskflow-raw`` (the raw generator: no avoidance steps, no holding at
+rest) at the same K values, next to the default, with its own ratio. ``--set key=value``
+gives the policies options as ``riskflow-eval --set`` does (e.g. ``step_size=0.03``,
+``guidance_horizon=20``). The episode ends early when the ego collides (the default
+``EnvConfig``), as in a stress test; ``--full-episodes`` runs every episode for 10 s
+instead, so that off-road rates are compared over the same exposure. ``--out`` receives
 ``quality.json`` with the summaries and every scene's metrics.
 """
 
@@ -25,25 +22,23 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from methods import make_policy, with_raw
 from tqdm import tqdm
 
 from policies.dataclass_cli import parse_dataclass
+from policies.evaluation.options import parse_k
 from policies.harness import ClosedLoop, EpisodeRecord, mean_summary, summarize
-from policies.learned.adversary_config import AdversaryConfig
-from policies.learned.checkpoint import load_generator
-from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
-from policies.learned.plan_stitching import resolve_stitch_steps
 from policies.planners import IDMPlanner
-from policies.riskflow import RiskFlowAdversary
-from policies.riskflow.guidance import GuidanceConfig
+from policies.registry import method_options
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
-from riskflow_env.view import SceneView
+from riskflow_env.view import ScenePolicy, SceneView
 
+METHOD = "riskflow"
 ROWS = {
     "collision_rate": "episodes with any collision",
     "ego_collision_rate": "episodes with an ego collision",
@@ -65,45 +60,37 @@ class Options:
     """comma-separated K values to compare (ints or 'all'); the last one is the reference"""
     target: str = "ego"
     """guidance target: 'ego' (stress test) or 'others' (the paper's)"""
-    planning_interval: float = 0.5
-    """[s] replanning period"""
     seed: int = 0
     """adversary noise seed"""
     full_episodes: bool = False
     """run every episode for the full 10 s (no termination on collision or off-road)"""
     checkpoint: str | None = None
     """generator checkpoint; default: the shipped one"""
-    avoid_steps: int = DEFAULT_AVOID_STEPS
-    """avoidance steps on the base plans (0: off)"""
-    hold_distance: float = AdversaryConfig.hold_distance
-    """[m] a vehicle at rest whose plan moves it less keeps its brake on (0: off)"""
-    lambda_map: float = AdversaryConfig.lambda_map
-    """weight of the guidance's map term"""
-    step_size: float | None = GuidanceConfig.step_size
-    """guidance step size (Adam's learning rate, normalised action units); default: the
-    target's (0.01 with 'others', 0.1 with 'ego')"""
-    optimizer: str = GuidanceConfig.optimizer
-    """guidance steps: 'adam' (per coordinate), 'adam-plan' (one second moment per guided
-    plan) or 'gradient' (plain steps)"""
-    lambda_sep: float = GuidanceConfig.lambda_sep
-    """weight of the separation term between the guided vehicles (0: off, the paper's
-    objective)"""
-    guidance_horizon: int | None = AdversaryConfig.guidance_horizon
-    """[steps] guidance horizon T_g of the adversarial term; default: the whole plan"""
-    stitch_steps: int | None = AdversaryConfig.stitch_steps
-    """[steps] blend of a new plan into the executed one (default: 15 blending first, 5
-    after; 0: switch at once)"""
-    stitch_first: bool = True
-    """blend the base plans before the avoidance steps (RiskFlowAdversary stitch_first)"""
+    raw: bool = False
+    """also riskflow-raw (the raw generator, without the rule layer) at every K"""
+    overrides: tuple[str, ...] = field(default=(), metadata={"flag": "--set"})
+    """policy options key=value (riskflow-eval --set), e.g. step_size=0.03"""
     out: str = "outputs/adversary_quality"
     """output directory"""
+
+    def __post_init__(self) -> None:
+        if self.scenes < 1:
+            raise ValueError(f"--scenes must be >= 1, got {self.scenes}")
+        for k in self.ks.split(","):
+            parse_k(k)
+        method_options(with_raw((METHOD,), self.raw), self.overrides, None)
+
+    @property
+    def k_values(self) -> list[int | str]:
+        """The K values of ``--ks``."""
+        return [parse_k(k) for k in self.ks.split(",")]
 
 
 class GuidedSteps:
     """The adversary, recording after each ``act`` the names it guides (its current
     cycle's ``A_c``); everything else is the adversary's."""
 
-    def __init__(self, adversary: RiskFlowAdversary) -> None:
+    def __init__(self, adversary: ScenePolicy) -> None:
         self.adversary = adversary
         self.guided: list[tuple[str, ...]] = []
 
@@ -136,93 +123,91 @@ def _json(value: float) -> float | None:
 
 
 def run(options: Options) -> dict[str, dict]:
-    """Summaries per K (``{k: {metric: {value, low, high, n}}}``)."""
-    generator, normalizer, _ = load_generator(options.checkpoint)
+    """Summaries per column (``{"K=5": {"summary": {metric: {value, low, high, n}},
+    "scenes": [...]}}``; raw columns are labelled ``"K=5 raw"``)."""
     bank = shipped_bank("eval")
     scenes = [bank[i] for i in range(min(options.scenes, len(bank)))]
+    methods = with_raw((METHOD,), options.raw)
+    settings = method_options(methods, options.overrides, None)
+    model = {} if options.checkpoint is None else {"checkpoint": options.checkpoint}
+    config = (
+        EnvConfig(terminate_on_collision="none", terminate_on_offroad="none")
+        if options.full_episodes
+        else None
+    )
     results: dict[str, dict] = {}
-    for k in options.ks.split(","):
-        adversary = RiskFlowAdversary(
-            k=k if k == "all" else int(k),
-            planning_interval=options.planning_interval,
-            target=options.target,
-            seed=options.seed,
-            generator=generator,
-            normalizer=normalizer,
-            avoid_steps=options.avoid_steps,
-            hold_distance=options.hold_distance,
-            lambda_map=options.lambda_map,
-            step_size=options.step_size,
-            optimizer=options.optimizer,
-            lambda_sep=options.lambda_sep,
-            guidance_horizon=options.guidance_horizon,
-            stitch_steps=options.stitch_steps,
-            stitch_first=options.stitch_first,
-        )
-        config = (
-            EnvConfig(terminate_on_collision="none", terminate_on_offroad="none")
-            if options.full_episodes
-            else None
-        )
-        recorder, guided = GuidedSteps(adversary), []
-        with ClosedLoop(IDMPlanner(), recorder, config=config) as loop:
-            for scenario in tqdm(scenes, desc=f"K={k}"):
-                record = loop.run(scenario)
-                guided.append(guided_footprint_rate(record, recorder.guided))
-                record.metrics["orr_footprint_guided"] = _json(guided[-1])
-            summary = summarize(loop.records)
-            summary["orr_footprint_guided"] = mean_summary(guided)
-            results[k] = {
-                "summary": summary,
-                "scenes": [record.metrics for record in loop.records],
-            }
+    for method in methods:
+        for k in options.k_values:
+            adversary = make_policy(
+                method, settings[method] | model, k=k, target=options.target, seed=options.seed
+            )
+            label = column(method, k)
+            recorder, guided = GuidedSteps(adversary), []
+            with ClosedLoop(IDMPlanner(), recorder, config=config) as loop:
+                for scenario in tqdm(scenes, desc=label):
+                    record = loop.run(scenario)
+                    guided.append(guided_footprint_rate(record, recorder.guided))
+                    record.metrics["orr_footprint_guided"] = _json(guided[-1])
+                summary = summarize(loop.records)
+                summary["orr_footprint_guided"] = mean_summary(guided)
+                results[label] = {
+                    "method": method,
+                    "summary": summary,
+                    "scenes": [record.metrics for record in loop.records],
+                }
     return results
 
 
+def column(method: str, k: int | str) -> str:
+    """A column's label: ``K=5`` for the default method, ``K=5 raw`` for its raw variant."""
+    return f"K={k}" if method == METHOD else f"K={k} raw"
+
+
+def _cell(entry: dict) -> str:
+    value = entry["value"]
+    if value is None:
+        return "n/a"
+    if entry["low"] is None:
+        return f"{value:.3f}"
+    return f"{value:.3f} [{entry['low']:.3f}, {entry['high']:.3f}]"
+
+
 def table(results: dict[str, dict]) -> str:
-    """Markdown table: one column per K, the last K as reference for the ratios."""
-    ks = list(results)
-    reference = results[ks[-1]]["summary"]
-    header = "| metric | " + " | ".join(f"K={k}" for k in ks) + " | ratio to K=" + ks[-1] + " |"
-    lines = [header, "|" + " --- |" * (len(ks) + 2)]
-    for name, label in ROWS.items():
-        cells = []
-        for k in ks:
-            entry = results[k]["summary"][name]
-            value = entry["value"]
-            if value is None:
-                cells.append("n/a")
-            elif entry["low"] is None:
-                cells.append(f"{value:.3f}")
-            else:
-                cells.append(f"{value:.3f} [{entry['low']:.3f}, {entry['high']:.3f}]")
-        first, base = results[ks[0]]["summary"][name]["value"], reference[name]["value"]
-        ratio = f"{first / base:.2f}x" if first is not None and base else "n/a"
-        lines.append(f"| {label} | " + " | ".join(cells) + f" | {ratio} |")
+    """Markdown table: one column per K (and method), then per method the ratio of its
+    first K to its last."""
+    labels = list(results)
+    groups: dict[str, list[str]] = {}
+    for label in labels:
+        groups.setdefault(results[label]["method"], []).append(label)
+    ratios = [f"{group[0]} / {group[-1]}" for group in groups.values()]
+    lines = ["| metric | " + " | ".join(labels + ratios) + " |"]
+    lines.append("|" + " --- |" * (len(labels) + len(ratios) + 1))
+    for name, text in ROWS.items():
+        cells = [_cell(results[label]["summary"][name]) for label in labels]
+        for group in groups.values():
+            first = results[group[0]]["summary"][name]["value"]
+            base = results[group[-1]]["summary"][name]["value"]
+            cells.append(f"{first / base:.2f}x" if first is not None and base else "n/a")
+        lines.append(f"| {text} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None) -> dict[str, dict]:
+    """Run, write ``quality.json``, print the table; returns :func:`run`'s result."""
     options = parse_dataclass(Options, argv, prog="adversary_quality")
     results = run(options)
     out = Path(options.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "quality.json").write_text(json.dumps({"options": vars(options), **results}, indent=1))
     ending = "full 10 s" if options.full_episodes else "ends at an ego collision"
-    stitch = resolve_stitch_steps(options.stitch_steps, options.stitch_first)
-    step_size = GuidanceConfig(
-        step_size=options.step_size, target=options.target
-    ).resolved_step_size
-    base = (
-        f"avoid_steps={options.avoid_steps}, hold_distance={options.hold_distance:g}, "
-        f"lambda_map={options.lambda_map:g}, step_size={step_size:g}, "
-        f"optimizer={options.optimizer}, "
-        f"lambda_sep={options.lambda_sep:g}, guidance_horizon={options.guidance_horizon}, "
-        f"stitch_steps={stitch}, "
-        f"stitch_first={options.stitch_first}"
+    methods = ", ".join(with_raw((METHOD,), options.raw))
+    given = ", ".join(options.overrides) or "the library's defaults"
+    print(
+        f"{options.scenes} scenes, IDM ego, target={options.target}, episodes: {ending}; "
+        f"{methods}: {given}"
     )
-    print(f"{options.scenes} scenes, IDM ego, target={options.target}, episodes: {ending}, {base}")
     print(table(results))
+    return results
 
 
 if __name__ == "__main__":

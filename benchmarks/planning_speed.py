@@ -1,31 +1,25 @@
 """Latency of one RiskFlow planning cycle, phase by phase, against peers in the same run.
 
-One cycle of :class:`policies.riskflow.policy.RiskFlowAdversary` on the raw base with the
-paper's objective and step (``avoid_steps=0, hold_distance=0, stitch_first=False,
-lambda_sep=0, step_size=0.1``: ``riskflow-eval``'s ``riskflow-plain`` plans the same way)
-on a shipped evaluation scene with ``--agents`` vehicles (20) and a 52-step plan: window
-building (``window_from_view``), scene encoder, MeanFlow one-step generator, TTC causal
-ranking and ``--guidance-steps`` (30) steps of output-space guidance on the top-``--k``
-agents.
+One cycle of ``riskflow`` (:func:`policies.registry.build_policy` with no options: the
+library's default, on the realistic base) on a shipped evaluation scene with
+``--agents`` vehicles (20) and a 52-step plan: window building (``window_from_view``),
+scene encoder, MeanFlow one-step generator, avoidance steps, TTC causal ranking and the
+default ``K_g`` (30) steps of output-space guidance on the top-``--k`` agents.
 Peers, measured interleaved with it (same machine load):
 
-* **unguided** — the same policy with ``k = 0`` (window + encoder + generator + ranking);
-* **re-sampling** — the gradient-free alternative to guidance: one batched pass drawing
-  ``--guidance-steps`` plans per agent (``sample(num_samples=N)``), then keeping the
-  sample whose ``A_c`` rows score the lowest ``L_adv``;
-* **on the realistic base** — RiskFlow and the unguided generator with ``--avoid-steps``
-  avoidance steps (the default's, ``DEFAULT_AVOID_STEPS``: 20), the default holding at
-  rest (4 m), blending first and (RiskFlow) the separation term ``lambda_sep = 100`` and
-  the step 0.01: the library's defaults (``riskflow-eval``'s ``riskflow`` and ``bits``;
-  docs/REALISM.md, rounds 8-18 and 26);
-  ``--avoid-steps 0`` leaves these rows out.
+* **unguided** -- ``bits``, the unguided generator on the same realistic base;
+* **re-sampling** -- the gradient-free alternative to guidance: one batched pass drawing
+  ``K_g`` plans per agent (``sample(num_samples=N)``), then keeping the sample whose
+  ``A_c`` rows score the lowest ``L_adv``;
+* **raw** (``--raw``) -- ``riskflow-raw`` and ``bits-raw``, the same methods on the raw
+  generator (no avoidance steps, no holding at rest), with the ratio of each default
+  cycle to its raw one.
 
-Prints the median [ms] of each phase and the ratios to the peers. Target: a full cycle
-within 50 ms on a laptop-class CPU. Speed does not depend on the weights: without the
-shipped checkpoint the default-size model is randomly initialised.
+Prints the median [ms] of each phase and the ratios to the peers. Speed does not depend
+on the weights: without the shipped checkpoint the default-size model is randomly
+initialised.
 
-    python benchmarks/planning_speed.py [--agents 20] [--threads 1] [--repeats 30]
-        [--avoid-steps 20]
+    python benchmarks/planning_speed.py [--agents 20] [--threads 1] [--repeats 30] [--raw]
 """
 
 from __future__ import annotations
@@ -35,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from methods import make_policy, raw_variant
 from timing import interleaved_ms
 
 import riskflow_env
@@ -43,11 +38,11 @@ from policies.learned.config import ModelConfig
 from policies.learned.data import ActionNormalizer
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.guidance_losses import adversarial_loss
-from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
 from policies.learned.ranking import rank_window
 from policies.learned.sampler import sample
 from policies.learned.window_types import collate_windows
 from policies.learned.windows import window_from_view
+from policies.registry import method_spec
 from policies.riskflow.policy import PHASES, RiskFlowAdversary
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
@@ -63,8 +58,8 @@ class Options:
     """vehicles in the scene (the ego included)"""
     k: int = 5
     """size of the controllable set A_c"""
-    guidance_steps: int = 30
-    """K_g (also the re-sampling peer's sample count)"""
+    guidance_steps: int | None = None
+    """K_g (also the re-sampling peer's sample count); default: the policy's"""
     threads: int = 1
     """torch CPU threads while planning (0: torch's default)"""
     device: str = "cpu"
@@ -73,12 +68,12 @@ class Options:
     """timed cycles per method (the median is reported)"""
     warmup: int = 3
     """untimed cycles per method first"""
-    avoid_steps: int = DEFAULT_AVOID_STEPS
-    """avoidance steps of the realistic-base peers (0: no such peers)"""
+    raw: bool = False
+    """also riskflow-raw and bits-raw, the raw generator without the rule layer"""
 
     def __post_init__(self) -> None:
-        if self.avoid_steps < 0:
-            raise ValueError(f"--avoid-steps must be >= 0, got {self.avoid_steps}")
+        if self.guidance_steps is not None and self.guidance_steps < 1:
+            raise ValueError(f"--guidance-steps must be >= 1, got {self.guidance_steps}")
 
 
 def _parse(argv: list[str] | None = None) -> Options:
@@ -131,30 +126,27 @@ def resampling_cycle(policy: RiskFlowAdversary, view, samples: int) -> None:
         int(torch.stack(scores).argmin())
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None) -> dict[str, float]:
+    """Print the tables; returns the median cycle [ms] of each method."""
     options = _parse(argv)
     threads = options.threads or None
     model, normalizer, origin = load_model(options.device)
     view, scene_name = scene_view(options.agents)
-    common = dict(generator=model, normalizer=normalizer, device=options.device, threads=threads)
-    # the raw base and the paper's objective (riskflow-plain)
-    kwargs = dict(
-        common,
-        avoid_steps=0,
-        hold_distance=0.0,
-        stitch_first=False,
-        lambda_sep=0.0,
-        step_size=0.1,
-    )
-    guided = RiskFlowAdversary(k=options.k, guidance_steps=options.guidance_steps, **kwargs)
-    unguided = RiskFlowAdversary(k=0, **kwargs)
-    kwargs_based = dict(common, avoid_steps=options.avoid_steps)  # the defaults otherwise
-    based = [
-        RiskFlowAdversary(k=options.k, guidance_steps=options.guidance_steps, **kwargs_based),
-        RiskFlowAdversary(k=0, **kwargs_based),
-    ]
-    for policy in (guided, unguided, *based):
+    models = dict(generator=model, normalizer=normalizer, threads=threads)
+    steps = {} if options.guidance_steps is None else {"guidance_steps": options.guidance_steps}
+    methods = ("riskflow", "bits")
+    if options.raw:
+        methods += tuple(raw_variant(name) for name in methods)
+    policies = {}
+    for name in methods:
+        guided_options = steps if method_spec(name).uses_k else {}
+        policies[name] = make_policy(
+            name, models | guided_options, k=options.k, device=options.device
+        )
+    for policy in policies.values():
         policy.reset(view)
+    guided = policies["riskflow"]
+    samples = guided.guidance.steps
 
     phases: dict[str, list[float]] = {phase: [] for phase in (*PHASES, "total")}
 
@@ -167,49 +159,47 @@ def main(argv: list[str] | None = None) -> None:
         previous = torch.get_num_threads()
         torch.set_num_threads(threads or previous)
         try:
-            resampling_cycle(guided, view, options.guidance_steps)
+            resampling_cycle(guided, view, samples)
         finally:
             torch.set_num_threads(previous)
 
-    cycles = {"riskflow": guided_cycle, "unguided": lambda: unguided.plan(view)}
-    cycles["resample"] = resample
-    if options.avoid_steps:
-        cycles["riskflow-avoid"] = lambda: based[0].plan(view)
-        cycles["unguided-avoid"] = lambda: based[1].plan(view)
+    cycles = {name: (lambda p=policy: p.plan(view)) for name, policy in policies.items()}
+    cycles["riskflow"], cycles["resample"] = guided_cycle, resample
     walls = interleaved_ms(cycles, options.repeats, options.warmup)
     med = {name: statistics.median(values) for name, values in walls.items()}
     print(
-        f"RiskFlow planning cycle: {scene_name}, {int(guided.plan_mask.sum())} agents, "
-        f"{model.config.future_steps}-step plans, K = {options.k}, K_g = {options.guidance_steps}"
-        f"\nmodel: {model.num_parameters():,} parameters, {origin}; device {options.device}, "
-        f"{threads or torch.get_num_threads()} CPU thread(s); median of {options.repeats} cycles\n"
+        f"riskflow planning cycle (the library's default): {scene_name}, "
+        f"{int(guided.plan_mask.sum())} agents, {model.config.future_steps}-step plans, "
+        f"K = {options.k}, K_g = {samples}\nmodel: {model.num_parameters():,} parameters, "
+        f"{origin}; device {options.device}, {threads or torch.get_num_threads()} CPU "
+        f"thread(s); median of {options.repeats} cycles\n"
     )
     total = statistics.median(phases["total"])
     print(f"{'phase':<34}{'ms':>9}{'share':>8}")
     for phase in PHASES:
         value = statistics.median(phases[phase])
         print(f"{phase:<34}{value:9.2f}{value / total:8.0%}")
-    per_step = statistics.median(phases["guidance"]) / max(options.guidance_steps, 1)
+    per_step = statistics.median(phases["guidance"]) / max(samples, 1)
     print(f"{'  guidance, per step':<34}{per_step:9.2f}")
     print(f"{'total (policy timer)':<34}{total:9.2f}")
     print(f"{'total (wall, incl. bookkeeping)':<34}{med['riskflow']:9.2f}\n")
-    print(f"{'method':<34}{'ms':>9}{'RiskFlow / it':>15}")
-    rows = [
-        (f"RiskFlow, K={options.k}, {options.guidance_steps} guidance steps", med["riskflow"]),
-        ("unguided generator (K=0)", med["unguided"]),
-        (f"re-sampling, best of {options.guidance_steps} samples", med["resample"]),
-    ]
-    if options.avoid_steps:
-        rows += [
-            (f"RiskFlow, {options.avoid_steps} avoidance steps", med["riskflow-avoid"]),
-            (f"unguided, {options.avoid_steps} avoidance steps", med["unguided-avoid"]),
-        ]
-    for name, value in rows:
-        print(f"{name:<34}{value:9.2f}{med['riskflow'] / value:14.2f}x")
-    verdict = "meets" if med["riskflow"] <= 50.0 else "misses"
-    print(f"\ntarget <= 50 ms per cycle: {verdict} ({med['riskflow']:.1f} ms)")
+    labels = {
+        "riskflow": f"riskflow, K={options.k}",
+        "bits": "bits (unguided, K=0)",
+        "resample": f"re-sampling, best of {samples}",
+        "riskflow-raw": f"riskflow-raw, K={options.k}",
+        "bits-raw": "bits-raw (unguided, K=0)",
+    }
+    print(f"{'method':<34}{'ms':>9}{'riskflow / it':>15}")
+    for name in (*methods[:2], "resample", *methods[2:]):
+        print(f"{labels[name]:<34}{med[name]:9.2f}{med['riskflow'] / med[name]:14.2f}x")
+    if options.raw:
+        print("\nrealistic base / raw generator, same method:")
+        for name in ("riskflow", "bits"):
+            print(f"{name:<34}{med[name] / med[raw_variant(name)]:9.2f}x")
     spread = np.percentile(walls["riskflow"], [10, 90])
-    print(f"RiskFlow cycle p10-p90: {spread[0]:.1f}-{spread[1]:.1f} ms")
+    print(f"\nriskflow cycle p10-p90: {spread[0]:.1f}-{spread[1]:.1f} ms")
+    return med
 
 
 if __name__ == "__main__":

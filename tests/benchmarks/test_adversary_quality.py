@@ -6,6 +6,7 @@ import math
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from tests.benchmarks.scripts import load_benchmark
 
@@ -27,14 +28,23 @@ def test_guided_footprint_rate_counts_the_guided_vehicles_steps_only():
     assert math.isnan(bench.guided_footprint_rate(record, [(), (), ()]))
 
 
-def test_a_tiny_run_on_the_realistic_base(tmp_path, capsys):
+def test_a_tiny_run_of_the_default_and_the_raw_generator(tmp_path, capsys):
+    """The default riskflow, riskflow-raw next to it with --raw, --set options for both."""
     bench = load_benchmark("adversary_quality")
-    argv = ["--scenes", "1", "--ks", "2,0", "--avoid-steps", "1", "--hold-distance", "2"]
-    options = ["--lambda-map", "5", "--step-size", "0.03", "--optimizer", "adam-plan"]
-    options += ["--guidance-horizon", "20"]
-    bench.main([*argv, *options, "--out", str(tmp_path)])
+    argv = ["--scenes", "1", "--ks", "2", "--raw", "--set", "guidance_steps=2"]
+    results = bench.main([*argv, "--out", str(tmp_path)])
+    assert list(results) == ["K=2", "K=2 raw"]
+    assert [results[label]["method"] for label in results] == ["riskflow", "riskflow-raw"]
     out = capsys.readouterr().out
-    assert "avoid_steps=1, hold_distance=2, lambda_map=5, step_size=0.03, " in out
-    assert "optimizer=adam-plan, lambda_sep=100, guidance_horizon=20" in out
+    assert "riskflow, riskflow-raw: guidance_steps=2" in out
+    assert "| K=2 | K=2 raw | K=2 / K=2 | K=2 raw / K=2 raw |" in out
     assert "agent-steps of guided vehicles, footprint off road" in out
     assert (tmp_path / "quality.json").stat().st_size > 0
+
+
+def test_bad_options_name_the_flag(capsys):
+    bench = load_benchmark("adversary_quality")
+    for argv, flag in ((["--ks", "5,-1"], "--k"), (["--set", "nope=1"], "--set")):
+        with pytest.raises(SystemExit):
+            bench.main(argv)
+        assert flag in capsys.readouterr().err

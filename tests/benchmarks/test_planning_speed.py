@@ -4,24 +4,31 @@ from __future__ import annotations
 
 import pytest
 
-from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
 from tests.benchmarks.scripts import load_benchmark
+
+TINY = ["--agents", "6", "--guidance-steps", "2", "--repeats", "1", "--warmup", "0"]
 
 
 def test_prints_the_phases_and_every_peer(capsys):
     bench = load_benchmark("planning_speed")
-    bench.main(
-        ["--agents", "6", "--guidance-steps", "2", "--repeats", "1", "--warmup", "0",
-         "--avoid-steps", "2"]
-    )  # fmt: skip
+    medians = bench.main(TINY)
+    assert set(medians) == {"riskflow", "bits", "resample"}
     out = capsys.readouterr().out
-    rows = ("guidance, per step", "unguided generator (K=0)", "re-sampling, best of 2",
-            "RiskFlow, 2 avoidance steps", "unguided, 2 avoidance steps", "p10-p90")  # fmt: skip
+    rows = ("the library's default", "guidance, per step", "bits (unguided, K=0)",
+            "re-sampling, best of 2", "p10-p90")  # fmt: skip
     assert all(row in out for row in rows), out
+    assert "riskflow-raw" not in out
 
 
-def test_the_realistic_base_peers_take_the_default_avoidance_steps():
+def test_raw_runs_the_raw_generator_next_to_the_default(capsys):
     bench = load_benchmark("planning_speed")
-    assert bench._parse([]).avoid_steps == DEFAULT_AVOID_STEPS
+    medians = bench.main([*TINY, "--raw"])
+    assert set(medians) == {"riskflow", "bits", "resample", "riskflow-raw", "bits-raw"}
+    out = capsys.readouterr().out
+    assert "riskflow-raw, K=5" in out and "realistic base / raw generator" in out
+
+
+def test_bad_guidance_steps_name_the_flag():
+    bench = load_benchmark("planning_speed")
     with pytest.raises(SystemExit):
-        bench._parse(["--avoid-steps", "-1"])
+        bench._parse(["--guidance-steps", "0"])
