@@ -10,7 +10,6 @@ from pathlib import Path
 
 import pytest
 
-from policies.closed_loop_data import ClosedLoopOptions
 from policies.dataclass_cli import dataclass_parser
 from policies.evaluation.cli import parser as eval_parser
 from policies.evaluation.cli import report_parser
@@ -69,14 +68,12 @@ def test_script_options_have_help_and_defaults(relative, monkeypatch):
         lambda: dataclass_parser(TrainOptions, "riskflow-train"),
         eval_parser,
         report_parser,
-        lambda: dataclass_parser(ClosedLoopOptions, "riskflow-closed-loop"),
     ],
     ids=[
         "riskflow-data",
         "riskflow-train",
         "riskflow-eval",
         "riskflow-eval report",
-        "riskflow-closed-loop",
     ],
 )
 def test_console_script_options_have_help_and_defaults(build):
