@@ -1,11 +1,14 @@
-"""Realism of learned traffic in closed loop: the table of issue 13, item 2.
+"""Realism of learned traffic in closed loop, against IDM traffic and log replay.
 
-One run measures, on the same scenes and seeds, the unguided generator (``riskflow-eval``
-method ``bits``: the RiskFlow generator with K = 0) for each ``--checkpoint`` (a row
-named by the file), IDM traffic (``idm``) and log replay (``replay``), all against the
-IDM ego, closed loop, ``--duration`` seconds. The rollouts are ``riskflow-eval``'s
-(:func:`policies.evaluation.rollout.rollout_episode`); the numbers are
-:mod:`riskflow_env.metrics`'s. Columns (the controlled vehicles are the non-ego ones):
+One run measures, on the same scenes and seeds, the unguided generator as it ships
+(``riskflow-eval`` method ``bits`` with no options: the realistic base, avoidance steps,
+holding at rest, blending first), IDM traffic (``idm``) and log replay (``replay``), all
+against the IDM ego, closed loop, ``--duration`` seconds. ``--raw`` adds ``bits-raw``
+(the raw generator, without that rule layer) next to ``bits``; ``--checkpoint`` gives
+the generator rows other weights (a row of each generator method per file, named by it).
+The rollouts are ``riskflow-eval``'s (:func:`policies.evaluation.rollout.rollout_episode`);
+the numbers are :mod:`riskflow_env.metrics`'s. Columns (the controlled vehicles are the
+non-ego ones):
 
 * ``veh_coll``: share of non-ego vehicles that overlap another non-ego vehicle at some
   step (:func:`~riskflow_env.metrics.collision_involvement`);
@@ -27,16 +30,14 @@ IDM ego, closed loop, ``--duration`` seconds. The rollouts are ``riskflow-eval``
 By default 14 scenes, two per road family of the shipped evaluation bank (``--full``:
 every scene)::
 
-    python benchmarks/traffic_realism.py [--checkpoint A.pt B.pt] [--scenes 14 | --full]
-        [--seeds 0 1 2] [--bank DIR] [--workers 1] [--out realism.json]
-        [--base-samples 1 8] [--hold-distance 0 1] [--avoid-steps 0 10] [--smooth-steps 1 3]
-        [--stitch-steps 5 10] [--stitch-first] [--leave-when-log-ends]
+    python benchmarks/traffic_realism.py [--raw] [--checkpoint A.pt B.pt]
+        [--scenes 14 | --full] [--seeds 0 1 2] [--bank DIR] [--workers 1]
+        [--out realism.json] [--leave-when-log-ends]
 """
 
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import json
 import multiprocessing
 import os
@@ -48,6 +49,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from methods import with_raw
 
 from policies.dataclass_cli import parse_dataclass
 from policies.evaluation.options import SHIPPED, EvalOptions, Job, RunConfig
@@ -67,9 +69,7 @@ from riskflow_env.metrics import (
 )
 from riskflow_env.scenarios import Scenario, load_bank, shipped_bank
 
-SHIPPED_CHECKPOINT = (
-    Path(__file__).resolve().parents[1] / "policies/checkpoints/riskflow_default.pt"
-)
+GENERATOR = "bits"  # the unguided generator as it ships
 BASELINES = ("idm", "replay")
 STILL_RADIUS = 2.0  # [m] a vehicle that stands still in the log may drift this far
 COLUMNS = (  # (key, header, format)
@@ -91,38 +91,15 @@ COLUMNS = (  # (key, header, format)
 )
 
 
-# The integer row options: (name, least value, may be empty: then the generator's own).
-STEP_OPTIONS = (("base_samples", 1, False), ("smooth_steps", 1, False),
-                ("avoid_steps", 0, False), ("stitch_steps", 0, True))  # fmt: skip
-
-
 @dataclass(frozen=True)
 class Options:
     """Benchmark options."""
 
-    checkpoint: tuple[str, ...] = (str(SHIPPED_CHECKPOINT),)
-    """generator checkpoints, one row each (named by the file)"""
-    base_samples: tuple[int, ...] = (1,)
-    """joint plans drawn per cycle, the best kept (NominalGenerator base_samples); a row
-    per checkpoint and value"""
-    hold_distance: tuple[float, ...] = (0.0,)
-    """[m] vehicles at rest whose plan moves them less than this keep their brake on
-    (NominalGenerator hold_distance; 0: off); a row per checkpoint, --base-samples value
-    and value"""
-    smooth_steps: tuple[int, ...] = (1,)
-    """[steps] moving average over each plan's accelerations (NominalGenerator
-    smooth_steps; 1: off); a row per value of this and the options above"""
-    avoid_steps: tuple[int, ...] = (0,)
-    """avoidance steps on each cycle's base plans (NominalGenerator avoid_steps; 0: off);
-    a row per checkpoint, --base-samples, --hold-distance and value"""
-    stitch_steps: tuple[int, ...] = ()
-    """[steps] a new plan's first actions blended with the executed plan (NominalGenerator
-    stitch_steps; 0: switch at once); a row per value of this and the options above;
-    default: the generator's (5 steps after planning, 15 blending first)"""
-    stitch_first: bool = False
-    """blend each new base plan into the executed one before the avoidance steps
-    (NominalGenerator stitch_first, its default), for every generator row; off: the raw
-    generator's blend after planning"""
+    raw: bool = False
+    """also bits-raw (the raw generator, without the rule layer) next to bits"""
+    checkpoint: tuple[str, ...] = ()
+    """generator checkpoints, a row of each generator method per file (named by it);
+    default: the shipped one"""
     baselines: tuple[str, ...] = BASELINES
     """reference methods of riskflow-eval measured in the same run"""
     bank: str | None = None
@@ -157,15 +134,6 @@ class Options:
         if not self.duration > 0 or not self.interval > 0:
             raise ValueError(
                 f"--duration and --interval must be > 0, got {self.duration} and {self.interval}"
-            )
-        for name, least, optional in STEP_OPTIONS:
-            values = getattr(self, name)
-            if (not values and not optional) or any(n < least for n in values):
-                flag = "--" + name.replace("_", "-")
-                raise ValueError(f"{flag} must be ints >= {least}, got {values}")
-        if not self.hold_distance or not all(0 <= d < float("inf") for d in self.hold_distance):
-            raise ValueError(
-                f"--hold-distance must be finite numbers >= 0 [m], got {self.hold_distance}"
             )
         for path in self.checkpoint:
             if not Path(path).is_file():
@@ -265,41 +233,6 @@ def summarise(label: str, results: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-# The generator-row options, in label order: (NominalGenerator option and Options field,
-# default, always passed (not the policy's defaults), label of a value other than the default)
-AXES = (
-    ("base_samples", 1, False, "best of {}"),
-    ("hold_distance", 0.0, True, "hold {:g} m"),
-    ("avoid_steps", 0, True, "avoid {}"),
-    ("smooth_steps", 1, False, "smooth {}"),
-    ("stitch_steps", None, False, "stitch {}"),  # None: the generator's own
-    ("stitch_first", False, True, "first"),
-)
-
-
-def _with_defaults(values: tuple) -> tuple:
-    return values + tuple(axis[1] for axis in AXES[len(values) :])
-
-
-def sampled(*values: Any) -> dict[str, Any]:
-    """The generator's options for the values of ``AXES`` in order (``--base-samples``,
-    ``--hold-distance``, ``--avoid-steps``, ``--smooth-steps``, ``--stitch-steps``,
-    ``--stitch-first``; missing ones the defaults): hold, avoid and stitch_first always,
-    the others where not the default."""
-    pairs = zip(AXES, _with_defaults(values), strict=True)
-    return {name: v for (name, default, always, _), v in pairs if always or v != default}
-
-
-def labelled(label: str, *values: Any) -> str:
-    """A generator row's label: the checkpoint's, then each value of ``AXES`` other than
-    the default (``best of M``, ``hold D m``, ``avoid N``, ``smooth S``, ``stitch B``,
-    ``first``)."""
-    pairs = zip(AXES, _with_defaults(values), strict=True)
-    return " ".join(
-        [label] + [text.format(v) for (_, default, _, text), v in pairs if v != default]
-    )
-
-
 def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[RealismJob]:
     options = EvalOptions(
         data=args.bank,
@@ -310,17 +243,15 @@ def _jobs(args: Options, scenes: Sequence[Scenario], picked: list[int]) -> list[
     )
     run = RunConfig.from_options(options)
     period = round(args.interval / DynamicsConfig().dt)  # steps per planning cycle
-    names = [Path(p).name for p in args.checkpoint]
-    unique = len(set(names)) == len(names)
-    labels = names if unique else list(args.checkpoint)
-    axes = [(getattr(args, name), default) for name, default, *_ in AXES]
-    axes = [(v or (default,)) if isinstance(v, tuple) else (v,) for v, default in axes]
-    variants = list(itertools.product(*axes))
-    methods = [
-        ("bits", {"checkpoint": str(Path(path).resolve()), **sampled(*v)}, labelled(label, *v))
-        for path, label in zip(args.checkpoint, labels, strict=True)
-        for v in variants
-    ]
+    methods = [(name, {}, name) for name in with_raw((GENERATOR,), args.raw)]
+    if args.checkpoint:
+        names = [Path(p).name for p in args.checkpoint]
+        labels = names if len(set(names)) == len(names) else list(args.checkpoint)
+        methods = [
+            (name, {"checkpoint": str(Path(path).resolve())}, f"{name} {label}")
+            for path, label in zip(args.checkpoint, labels, strict=True)
+            for name, _, _ in methods
+        ]
     methods += [(name, {}, name) for name in args.baselines]
     jobs = []
     for method, options, label in methods:
@@ -391,8 +322,8 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
         "interval_s": args.interval,
         "dt": dt,
         "ego": args.ego,
-        "checkpoints": list(args.checkpoint),
-        "base_samples": list(args.base_samples),
+        "methods": list(dict.fromkeys(job.job.method for job in jobs)),
+        "checkpoints": list(args.checkpoint) or ["shipped"],
     }
     print(f"{len(picked)} scenes ({len({scenes[i].family for i in picked})} families) x "
           f"{len(args.seeds)} seeds x {len(jobs) // max(len(picked) * len(args.seeds), 1)} "

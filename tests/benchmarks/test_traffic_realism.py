@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,15 +19,17 @@ def test_one_scene_rows_with_every_column(tmp_path, capsys):
     bench = _module()
     out = tmp_path / "realism.json"
     rows = bench.main(["--scenes", "1", "--duration", "1.0", "--out", str(out)])
-    assert [row["label"] for row in rows] == ["riskflow_default.pt", "idm", "replay"]
+    assert [row["label"] for row in rows] == ["bits", "idm", "replay"]
     keys = {key for key, _, _ in bench.COLUMNS} | {"jerk_p95_by_phase", "rollouts", "vehicles"}
     for row in rows:
         assert keys <= set(row)
         assert row["rollouts"] == 1 and len(row["jerk_p95_by_phase"]) == 5
         assert 0.0 <= row["veh_coll"] <= 1.0 and 0.0 <= row["orr_fp"] <= 1.0
         assert np.isfinite(row["jerk_p95"]) and np.isfinite(row["wosac"])
-    assert json.loads(out.read_text())["rows"][0]["label"] == "riskflow_default.pt"
-    assert "| riskflow_default.pt |" in capsys.readouterr().out
+    written = json.loads(out.read_text())
+    assert written["rows"][0]["label"] == "bits"
+    assert written["config"]["methods"] == ["bits", "idm", "replay"]
+    assert "| bits |" in capsys.readouterr().out
 
 
 def test_scene_choice_covers_every_family():
@@ -41,17 +44,20 @@ def test_scene_choice_covers_every_family():
     assert bench.pick_scenes(scenes, 5) == [0, 1, 3, 4, 6]
 
 
-def test_generator_rows_per_option_value():
+def test_raw_and_checkpoint_rows(capsys):
+    """--raw puts bits-raw next to bits; --checkpoint makes both rows per file, named by it."""
     bench = _module()
-    # hold, avoidance and blending first always explicit: the rows do not take the
-    # policy's defaults (the raw generator unless asked); the blend length is the policy's
-    raw = {"hold_distance": 0.0, "avoid_steps": 0, "stitch_first": False}
-    assert bench.sampled(1) == raw
-    moved = {"base_samples": 8, "hold_distance": 1.5, "avoid_steps": 10}
-    assert bench.sampled(8, 1.5, 10) == raw | moved
-    assert bench.sampled(1, 0.0, 0, 1, 20, True) == raw | {"stitch_steps": 20, "stitch_first": True}
-    assert bench.labelled("g.pt", 1, 0.0) == "g.pt"
-    assert bench.labelled("g.pt", 8, 2.0) == "g.pt best of 8 hold 2 m"
-    assert bench.labelled("g.pt", 1, 4.0, 10, 1, None, True) == "g.pt hold 4 m avoid 10 first"
+    shipped = Path(bench.__file__).resolve().parents[1] / "policies/checkpoints/riskflow_default.pt"
+    argv = ["--scenes", "1", "--duration", "0.5", "--baselines", "replay", "--raw"]
+    rows = bench.main([*argv, "--checkpoint", str(shipped)])
+    labels = ["bits riskflow_default.pt", "bits-raw riskflow_default.pt", "replay"]
+    assert [row["label"] for row in rows] == labels
+    assert "| bits-raw riskflow_default.pt |" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "argv", [["--scenes", "0"], ["--duration", "0"], ["--checkpoint", "missing.pt"]]
+)
+def test_bad_options(argv):
     with pytest.raises(SystemExit):
-        bench.parse_args(["--hold-distance", "-1"])
+        _module().parse_args(argv)
