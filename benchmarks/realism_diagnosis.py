@@ -1,13 +1,16 @@
 """Where the unguided generator's collisions and off-road steps come from.
 
     python benchmarks/realism_diagnosis.py                      # first 21 eval scenes
+    python benchmarks/realism_diagnosis.py --raw                # and the raw generator
     python benchmarks/realism_diagnosis.py --scenes 105 --checkpoint runs/x/generator.pt
     python benchmarks/realism_diagnosis.py --bank DIR --scenes 4   # e.g. real scenes as .npz
 
 For each scene of the shipped evaluation bank (scenes 0..N-1: the families take turns;
-``--bank``: a scene folder of your own),
-the unguided generator (``NominalGenerator``, K = 0, re-planning every 0.5 s) drives every
-vehicle but an IDM ego for 10 s. Episodes run their full length (nothing terminates on a
+``--bank``: a scene folder of your own), the unguided generator as it ships
+(``riskflow-eval`` method ``bits`` with no options: the realistic base, re-planning every
+0.5 s) drives every vehicle but an IDM ego for 10 s; ``--raw`` runs ``bits-raw`` (the raw
+generator: no avoidance steps, no holding at rest) on the same scenes too, each method's
+tables under its name. Episodes run their full length (nothing terminates on a
 collision or off the road) so that every time bucket sees every scene. Printed, as
 Markdown tables:
 
@@ -25,15 +28,14 @@ Markdown tables:
 * **vehicles at rest at the start** (speed <= ``REST_SPEED``): how far the first cycle's
   plan moves each (its largest distance from the start over the plan), for those that
   stand in the log over the same steps (within 0.5 m) and those that start (beyond 2 m),
-  and the share that the holding rule (``hold_distance``,
-  :mod:`policies.learned.plan_stitching`) would hold at 0.5, 1 and 2 m;
+  and the share that the holding rule at 0.5, 1 and 2 m would hold (``hold_distance``,
+  :mod:`policies.learned.plan_stitching`; ``bits`` holds at its default, ``bits-raw``
+  not at all);
 * **lateral acceleration by road family:** p95 |v x yaw rate| of the generator's
   vehicles against their own logs over the same steps (KDD's samples,
   :func:`riskflow_env.metrics.kinematic_samples`): whether a high pooled value is the
   generator's or the roads' (the recorded traffic drives the racetrack and the U-turn
   faster than real drivers would).
-
-``--hold-distance`` and ``--avoid-steps`` run the generator with those options.
 
 Curved roads are the roundabout, racetrack, U-turn and intersection families.
 """
@@ -45,12 +47,11 @@ from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
+from methods import make_policy, with_raw
 
-from policies.baselines import NominalGenerator
 from policies.dataclass_cli import parse_dataclass
 from policies.evaluation.rollout import rollout_record
 from policies.harness import ClosedLoop
-from policies.learned.checkpoint import load_generator
 from policies.learned.plan_stitching import REST_SPEED
 from policies.planners import IDMPlanner
 from riskflow_env.agents.lane_graph import LaneGraph
@@ -60,7 +61,9 @@ from riskflow_env.geometry import CENTRE, pairwise_overlap
 from riskflow_env.metrics import kinematic_samples, offroad_counts
 from riskflow_env.metrics.safety import footprint_sdf
 from riskflow_env.scenarios import load_bank, shipped_bank
+from riskflow_env.view import ScenePolicy
 
+GENERATOR = "bits"  # the unguided generator as it ships
 CURVED = ("roundabout", "racetrack", "u-turn", "intersection")
 NO_FAMILY = "(no family)"  # e.g. recorded scenes: neither curved nor straight
 STANDING = 0.5  # [m/s]
@@ -89,7 +92,7 @@ class FirstPlans:
     ``first = (plans (A, T, 4), planned (A,) non-ego rows with a plan)`` and the states
     they start from, ``start`` (A, 4)."""
 
-    def __init__(self, policy: NominalGenerator) -> None:
+    def __init__(self, policy: ScenePolicy) -> None:
         self.policy, self.first = policy, None
 
     def reset(self, view) -> None:
@@ -161,22 +164,13 @@ def diagnose(
     checkpoint: str | None,
     seed: int,
     bank: str | None = None,
-    hold_distance: float = 0.0,
-    avoid_steps: int = 0,
-    stitch_first: bool = False,
+    method: str = GENERATOR,
 ) -> dict:
-    """Run the episodes; returns per-family rows, collision kinds, time buckets, the
-    at-rest vehicles' first-plan reach and per-family lateral accelerations (generated,
-    logged)."""
+    """Run the episodes of ``method`` (``bits`` or ``bits-raw``); returns per-family
+    rows, collision kinds, time buckets, the at-rest vehicles' first-plan reach and
+    per-family lateral accelerations (generated, logged)."""
     source = shipped_bank("eval") if bank is None else load_bank(bank)
-    models = {}
-    if checkpoint:
-        generator, normalizer, _ = load_generator(checkpoint)
-        models = {"generator": generator, "normalizer": normalizer}
-    policy = NominalGenerator(
-        planning_interval=0.5, seed=seed, hold_distance=hold_distance, avoid_steps=avoid_steps,
-        stitch_first=stitch_first, **models,
-    )  # fmt: skip
+    policy = make_policy(method, {"checkpoint": checkpoint} if checkpoint else {}, seed=seed)
     at_rest: list[tuple[float, float]] = []
     families: dict[str, list] = {}
     lateral: dict[str, list] = {}
@@ -306,22 +300,12 @@ class Options:
     """noise seed of the generator"""
     bank: str | None = None
     """scene folder (riskflow_env.scenarios.load_bank); default: the shipped evaluation bank"""
-    hold_distance: float = 0.0
-    """[m] the generator's holding at rest (NominalGenerator hold_distance; 0: off)"""
-    avoid_steps: int = 0
-    """the generator's avoidance steps (NominalGenerator avoid_steps; 0: off)"""
-    stitch_first: bool = False
-    """blend each new base plan into the executed one before the avoidance steps
-    (NominalGenerator stitch_first; off: the raw generator's blend after planning)"""
+    raw: bool = False
+    """also bits-raw (the raw generator, without the rule layer), its tables after bits'"""
 
     def __post_init__(self) -> None:
         if self.scenes < 1:
             raise ValueError(f"--scenes must be >= 1, got {self.scenes}")
-        if not 0 <= self.hold_distance < float("inf") or self.avoid_steps < 0:
-            raise ValueError(
-                f"--hold-distance must be finite and >= 0 and --avoid-steps >= 0, got "
-                f"{self.hold_distance} and {self.avoid_steps}"
-            )
 
 
 def main(argv: list[str] | None = None) -> str:
@@ -330,16 +314,11 @@ def main(argv: list[str] | None = None) -> str:
         Options, argv, prog="realism_diagnosis.py", description=__doc__.split("\n")[0]
     )
     start = time.perf_counter()
-    result = diagnose(
-        args.scenes,
-        args.checkpoint,
-        args.seed,
-        args.bank,
-        args.hold_distance,
-        args.avoid_steps,
-        args.stitch_first,
-    )
-    text = report(result)
+    sections = []
+    for method in with_raw((GENERATOR,), args.raw):
+        result = diagnose(args.scenes, args.checkpoint, args.seed, args.bank, method)
+        sections.append(f"### {method}\n\n{report(result)}")
+    text = "\n\n".join(sections)
     count = sum(len(rows) for rows in result["families"].values())
     print(text)
     print(f"\n{count} scenes in {time.perf_counter() - start:.0f} s")

@@ -14,6 +14,7 @@ def diagnosis():
 
 def test_one_scene_gives_every_table(diagnosis, capsys):
     text = diagnosis.main(["--scenes", "1"])
+    assert text.startswith("### bits\n") and "bits-raw" not in text
     headings = ("one-shot plans overlap", "collision starts", "off-road centroid share")
     for heading in (*headings, "centroid past a road's end", "at rest at the start"):
         assert heading in text
@@ -24,12 +25,16 @@ def test_one_scene_gives_every_table(diagnosis, capsys):
     assert "1 scenes in" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize(
-    "argv", [["--scenes", "0"], ["--hold-distance", "-1"], ["--avoid-steps", "-2"]]
-)
-def test_bad_options(diagnosis, argv):
+def test_raw_adds_the_raw_generators_tables(diagnosis):
+    text = diagnosis.main(["--scenes", "1", "--raw"])
+    default, raw = text.split("### bits-raw\n")
+    assert default.startswith("### bits\n")
+    assert all("| highway | 1 |" in part and "collision starts" in part for part in (default, raw))
+
+
+def test_bad_options(diagnosis):
     with pytest.raises(SystemExit):
-        diagnosis.main(argv)
+        diagnosis.main(["--scenes", "0"])
 
 
 def test_at_rest_reach_of_a_plan_that_stays_and_one_that_creeps(diagnosis):
