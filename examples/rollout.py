@@ -13,7 +13,7 @@ adversary runs with its defaults, the realistic base of docs/REALISM.md (20 avoi
 steps pull the base plans apart and onto the road, parked cars within 4 m of rest keep
 standing, new plans blended into the executed ones first) with the map term weighted 20
 (the guided vehicles keep to the road while they attack); ``--avoid-steps 0
---hold-distance 0 --lambda-map 1 --no-stitch-first`` is the raw base. With
+--hold-distance 0`` is the raw generator. With
 ``--traffic replay`` the others replay the scenario's reference future instead (open loop:
 a scenario saved by ``stress_test_planner.py`` replays what happened).
 
@@ -78,9 +78,6 @@ class Options:
     """[m] vehicles at rest whose plan moves them less keep standing (0: off)"""
     lambda_map: float = AdversaryConfig.lambda_map
     """weight of the guidance's map term"""
-    stitch_first: bool = True
-    """blend each new base plan into the executed one before the avoidance steps
-    (RiskFlowAdversary stitch_first; off: the 5-step blend after planning)"""
 
     def __post_init__(self) -> None:
         if self.video not in VIDEO_FORMATS:
@@ -144,7 +141,6 @@ def make_traffic(options: Options) -> RiskFlowAdversary | ReplayPolicy:
         avoid_steps=options.avoid_steps,
         hold_distance=options.hold_distance,
         lambda_map=options.lambda_map,
-        stitch_first=options.stitch_first,
     )
 
 

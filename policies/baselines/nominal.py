@@ -20,9 +20,9 @@ bi-level policy: a high-level goal          one scene-level generator, no explic
 (spatial intent) predictor, then a          the MeanFlow head maps noise to every
 goal-conditioned low-level trajectory       agent's 5.2 s action plan in one pass
 policy
-prediction-and-planning module: samples     one joint sample per cycle by default; with
-several goals, predicts the others, picks   ``base_samples = M`` the best of M joint
-the plan with the best rule-based score     samples by an overlap + off-road score
+prediction-and-planning module: samples     one joint sample per cycle, then avoidance
+several goals, predicts the others, picks   steps on a rule-based overlap + off-road
+the plan with the best rule-based score     score (:mod:`policies.learned.plan_avoidance`)
 per-agent rasterised (BEV) context          vector histories + map crops, social
                                             attention between agents
 trained on nuScenes / Lyft Level 5          trained on the shipped highway-env bank
@@ -58,25 +58,18 @@ class NominalGenerator(RiskFlowAdversary):
         sampling_steps: DDIM levels of a diffusion generator (None: 10).
         window_config: window options (default: the model's training windows).
         threads: torch CPU threads while planning; None keeps torch's setting.
-        base_samples: M joint plans drawn per cycle, the best kept (``RiskFlowAdversary``:
-            BITS's selection step, :mod:`policies.learned.plan_selection`); 1: one draw.
         hold_distance: [m] vehicles at rest whose plan moves them less than this keep
             their brake on (``AdversaryConfig.hold_distance``, default 4); 0: off.
-        smooth_steps: [steps] moving average over each plan's accelerations
-            (``AdversaryConfig.smooth_steps``); 1: off.
         stitch_steps: [steps] a new plan's first actions blended with the executed plan
             (``AdversaryConfig.stitch_steps``; None: 15 blending first, 5 after); 0:
             switch at once.
-        stitch_first: blend the base plans before the avoidance steps
-            (``RiskFlowAdversary``, :mod:`policies.learned.plan_stitching`); default on.
         avoid_steps, avoid_step_size: Adam steps (None: 20 with the MeanFlow generator,
             0 with a diffusion one; 0: off) and their size that pull the base plans' boxes
             apart and onto the road (``RiskFlowAdversary``,
             :mod:`policies.learned.plan_avoidance`).
 
-    The defaults are the realistic base (docs/REALISM.md, rounds 8, 9 and 12);
-    ``avoid_steps=0, hold_distance=0, stitch_first=False`` is the raw generator
-    (``riskflow-eval --methods bits-plain``).
+    The defaults are the realistic base; ``avoid_steps=0, hold_distance=0`` is the raw
+    generator (``riskflow-eval --methods bits-raw``).
     """
 
     overlay_prefix = "nominal"
@@ -92,18 +85,15 @@ class NominalGenerator(RiskFlowAdversary):
         sampling_steps: int | None = None,
         window_config: WindowConfig | None = None,
         threads: int | None = 1,
-        base_samples: int = 1,
         hold_distance: float = AdversaryConfig.hold_distance,
-        smooth_steps: int = 1,
         stitch_steps: int | None = AdversaryConfig.stitch_steps,
         avoid_steps: int | None = None,
         avoid_step_size: float = 0.1,
-        stitch_first: bool = True,
     ) -> None:
         config = AdversaryConfig(
             k=0, planning_interval=planning_interval, seed=seed, device=device,
             window_config=window_config, threads=threads, hold_distance=hold_distance,
-            smooth_steps=smooth_steps, stitch_steps=stitch_steps,
+            stitch_steps=stitch_steps,
         )  # fmt: skip
         super().__init__(
             config,
@@ -112,10 +102,8 @@ class NominalGenerator(RiskFlowAdversary):
             normalizer=normalizer,
             checkpoint=checkpoint,
             sampling_steps=sampling_steps,
-            base_samples=base_samples,
             avoid_steps=avoid_steps,
             avoid_step_size=avoid_step_size,
-            stitch_first=stitch_first,
         )
 
 

@@ -30,7 +30,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from policies.learned.adam import Adam
 from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.encoded_views import EncodedViews
 from policies.learned.generator import RiskFlowGenerator
@@ -39,7 +38,6 @@ from policies.learned.plan_buffer import PlanBufferPolicy
 from policies.learned.sampler import base_velocity
 from policies.learned.separation_term import separation_term
 from policies.riskflow.guidance import (
-    PLAN_BLOCK,
     GuidanceResult,
     GuidanceScene,
     GuidedRows,
@@ -72,9 +70,8 @@ class StriveAdversary(RiskFlowAdversary):
             or None (the shipped one, or ``checkpoint``'s); a diffusion generator is
             refused (no one-step latent to differentiate through).
         **options: ``RiskFlowAdversary``'s: ``guidance_steps`` (``K_g`` latent optimisation
-            steps per cycle), ``optimizer`` (``"adam"``:
-            ``torch.optim.Adam`` on the latent, STRIVE's; ``"adam-plan"``: one second
-            moment per latent row; ``"gradient"``: plain steps), ``normalizer``,
+            steps per cycle), ``optimizer`` (``"adam"``: ``torch.optim.Adam`` on the
+            latent, STRIVE's; ``"gradient"``: plain steps), ``normalizer``,
             ``checkpoint``, and the shared options as keywords.
 
     After each cycle: ``guidance_losses`` ((K_g + 1, 2): ``L_adv``, ``L_map`` before each
@@ -97,12 +94,6 @@ class StriveAdversary(RiskFlowAdversary):
             raise ValueError(f"lambda_prior must be a finite number >= 0, got {lambda_prior!r}")
         if generator == "diffusion" or "sampling_steps" in options:
             raise ValueError(_NOT_DIFFUSION)
-        if options.get("attack_samples", 1) != 1:
-            raise ValueError(
-                "StriveAdversary takes attack_samples=1 only: it re-decodes the guided rows' "
-                "noise with the other rows', so a row's sampled plan would not be the one "
-                f"scored; got attack_samples={options['attack_samples']!r}"
-            )
         self.lambda_prior = float(lambda_prior)
         super().__init__(config, step_size=step_size, generator=generator, **options)
         if self.generator_kind != "meanflow":
@@ -142,8 +133,6 @@ class StriveAdversary(RiskFlowAdversary):
         eps_c = scene.eps.flatten(0, 1)[rows].clone().requires_grad_(True)
         if config.optimizer == "adam":
             optimizer = torch.optim.Adam([eps_c], lr=config.resolved_step_size)
-        elif config.optimizer == "adam-plan":  # one second moment per latent row
-            optimizer = _BlockAdam(eps_c, config.resolved_step_size, PLAN_BLOCK)
         else:
             optimizer = torch.optim.SGD([eps_c], lr=config.resolved_step_size)
 
@@ -190,18 +179,6 @@ class StriveAdversary(RiskFlowAdversary):
         ]
 
 
-class _BlockAdam:
-    """``optimizer.step()`` of :class:`~policies.learned.adam.Adam` with ``shared``
-    dimensions on one leaf tensor (``optimizer="adam-plan"``)."""
-
-    def __init__(self, variable: Tensor, learning_rate: float, shared: tuple[int, ...]) -> None:
-        self.variable, self.adam = variable, Adam(variable, learning_rate, shared)
-
-    def step(self) -> None:
-        with torch.no_grad():
-            self.variable -= self.adam.step(self.variable.grad)
-
-
 _NOT_DIFFUSION = (
     "StriveAdversary optimises the latent of the one-step MeanFlow generator; a diffusion "
     "generator has no one-step latent map to differentiate through: use generator=None, "
@@ -243,10 +220,7 @@ class _LatentObjective:
         )
         xy = trajectories[..., :2]
         guidance = policy.guidance
-        adv, d_xy = adversarial_rows(
-            xy, self.target_xy, guidance.horizon, self.target_valid,
-            temperature=guidance.adv_temperature,
-        )  # fmt: skip
+        adv, d_xy = adversarial_rows(xy, self.target_xy, guidance.horizon, self.target_valid)
         adv = attach_gradient(adv, xy, d_xy, axis=(-2, -1))
         if self.map_term is None:
             off_road = adv * 0.0

@@ -47,11 +47,6 @@ class AdversaryConfig:
         lambda_adv: weight of ``L_adv`` [1/m]; > 0 is more adversarial.
         lambda_map: weight of ``L_map`` [1/m^2], >= 0 (default: ``ObjectiveConfig``'s, 20).
         guidance_horizon: ``T_g`` [steps] of ``L_adv``; None: the whole plan.
-        adv_temperature: [m] None (default): ``L_adv`` is the mean over time of the
-            nearest-target distance (the paper's sum, divided by ``T_g``); a number > 0:
-            its soft minimum over
-            time at that temperature, which pulls the closest approach
-            (:class:`~policies.learned.guidance_losses.ObjectiveConfig`).
         rank_threshold: risk above which a pair is an edge of the risk graph (ranking).
         seed: noise seed (the noise of cycle ``c`` of episode ``e`` comes from
             ``(seed, e, c)``).
@@ -63,14 +58,12 @@ class AdversaryConfig:
             threads only slow down (on CPU).
         hold_distance: [m] a vehicle at rest whose new plan moves it less than this over
             the horizon keeps its brake on (:mod:`policies.learned.plan_stitching`);
-            default 4 (parked cars stay parked: docs/REALISM.md, round 9); 0: off.
-        smooth_steps: [steps] centred moving average over each new plan's accelerations
-            (:mod:`policies.learned.plan_stitching`); 1 (default): off.
+            default 4 (parked cars stay parked); 0: off.
         stitch_steps: [steps] a new plan's first actions blended with the plan being
             executed (:mod:`policies.learned.plan_stitching`); None (default): 15 for a
             policy that blends first (``RiskFlowAdversary``, ``NominalGenerator``,
-            STRIVE-style), 5 for one that blends after planning (the diffusion baselines,
-            ``stitch_first=False``); 0: switch at once.
+            STRIVE-style), 5 for one that blends after planning (the diffusion
+            baselines); 0: switch at once.
     """
 
     k: int | str = 5
@@ -79,14 +72,12 @@ class AdversaryConfig:
     lambda_adv: float = 50.0
     lambda_map: float = ObjectiveConfig.lambda_map
     guidance_horizon: int | None = None
-    adv_temperature: float | None = ObjectiveConfig.adv_temperature
     rank_threshold: float = DEFAULT_THRESHOLD
     seed: int = 0
     device: torch.device | str = "cpu"
     window_config: WindowConfig | None = None
     threads: int | None = 1
     hold_distance: float = DEFAULT_HOLD_DISTANCE
-    smooth_steps: int = 1
     stitch_steps: int | None = None
 
     def __post_init__(self) -> None:
@@ -106,10 +97,6 @@ class AdversaryConfig:
         if isinstance(hold, bool) or not isinstance(hold, (int, float)) or not 0 <= hold < math.inf:
             raise ValueError(f"hold_distance must be a finite number >= 0 [m], got {hold!r}")
         object.__setattr__(self, "hold_distance", float(hold))
-        smooth = self.smooth_steps
-        if isinstance(smooth, bool) or not isinstance(smooth, (int, np.integer)) or smooth < 1:
-            raise ValueError(f"smooth_steps must be an int >= 1 [steps], got {smooth!r}")
-        object.__setattr__(self, "smooth_steps", int(smooth))
         stitch = self.stitch_steps
         if stitch is not None:
             if isinstance(stitch, bool) or not isinstance(stitch, (int, np.integer)) or stitch < 0:
@@ -154,7 +141,6 @@ class AdversaryConfig:
             "lambda_map": self.lambda_map,
             "horizon": self.guidance_horizon,
             "target": self.target,
-            "adv_temperature": self.adv_temperature,
         }
 
 

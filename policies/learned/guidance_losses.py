@@ -66,22 +66,15 @@ class ObjectiveConfig:
         lambda_adv: weight of ``L_adv`` [1/m]; > 0 is adversarial (RiskFlow's convention).
         lambda_map: weight of ``L_map`` [1/m^2], >= 0. The default 20 keeps the guided
             vehicles' footprints on the road (<= 2% of their steps off it, attacking the
-            ego; docs/REALISM.md, round 9), where 1 left 6%.
+            ego, where 1 left 6%; docs/GENERATOR.md).
         horizon: ``T_g`` plan steps of ``L_adv``; None: the whole plan.
         target: a :class:`Target` value, ``"others"`` (paper) or ``"ego"`` (stress testing).
         map_margin: footprint samples closer than this to the road edge are penalised [m].
         map_decay: ``w_t = map_decay ** t`` of ``L_map``, in (0, 1].
         lambda_sep: weight [1/m^2] of ``L_sep``, the summed squared penetration depth of
             the pairs of guided boxes of a scene over the guidance horizon, >= 0: it keeps
-            the guided vehicles from converging on each other (default 100,
-            docs/REALISM.md rounds 16-17; 0: off, the paper's objective).
-        adv_temperature: how ``L_adv`` reduces each row's nearest-target distances over
-            the horizon: None (default) is their mean (the paper's sum over time, divided
-            by ``T_g``); a temperature
-            ``tau`` [m] > 0 takes their soft minimum ``-tau log mean_t exp(-d_t / tau)``,
-            whose gradient weighs the steps by ``softmax(-d / tau)``, so that the pull
-            falls on the closest approach instead of on the whole plan (the mean is its
-            limit as ``tau`` grows; docs/REALISM.md, round 29).
+            the guided vehicles from converging on each other (default 100; 0: off, the
+            paper's objective).
     """
 
     lambda_adv: float = 50.0
@@ -91,7 +84,6 @@ class ObjectiveConfig:
     map_margin: float = 0.2
     map_decay: float = 0.98
     lambda_sep: float = 100.0
-    adv_temperature: float | None = None
 
     def checks(self) -> list[tuple[bool, str]]:
         """``(holds, message)`` of every option rule (subclasses add theirs)."""
@@ -110,16 +102,6 @@ class ObjectiveConfig:
                 "lambda_sep must be a finite number >= 0",
             ),
             (0 < self.map_decay <= 1, "map_decay must be in (0, 1]"),
-            (
-                self.adv_temperature is None
-                or (
-                    isinstance(self.adv_temperature, (int, float))
-                    and not isinstance(self.adv_temperature, bool)
-                    and math.isfinite(self.adv_temperature)
-                    and self.adv_temperature > 0
-                ),
-                "adv_temperature must be None or a finite number > 0 [m]",
-            ),
             (self.target in TARGETS, f"target must be one of {TARGETS}"),
         ]
 

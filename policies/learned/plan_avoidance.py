@@ -8,8 +8,8 @@ docs/REALISM.md). Rule guidance of the sampler's output is how CTG (Zhong et al.
 "Guided Conditional Diffusion for Controllable Traffic Simulation", ICRA) keeps its
 traffic from colliding and leaving the road; here it is applied to the one-step output
 ``u`` (normalised action space) of every agent at once, with the same objective as the
-best-of-M selection (:mod:`policies.learned.plan_selection`) over its first
-``SELECTION_HORIZON`` steps:
+best-of-M selection (:mod:`policies.learned.plan_overlap`) over its first
+``OVERLAP_HORIZON`` steps:
 
     L(u) = sum_pairs relu(-separation)^2 + L_map,   u <- Adam(u, grad L),
 
@@ -28,7 +28,7 @@ Each step costs what a guidance step does on the same rows (:mod:`policies.riskf
 the variables' rows are rolled out over the scored steps only, and every gradient is in
 closed form, with no autograd graph: the map term's, the rollout's vector-Jacobian
 product (``riskflow_env.dynamics.rollout_with_vjp``) and the overlap's
-(:func:`~policies.learned.plan_selection.overlap_gradient`, the SAT separation's
+(:func:`~policies.learned.plan_overlap.overlap_gradient`, the SAT separation's
 derivative, only for the pairs whose boxes can touch: a pair of variables, or a variable
 and an obstacle).
 
@@ -66,7 +66,7 @@ from torch import Tensor
 from policies.learned.adam import Adam
 from policies.learned.data import Normalizer
 from policies.learned.guidance_losses import MapTerm
-from policies.learned.plan_selection import SELECTION_HORIZON, overlap_gradient, scored_pairs
+from policies.learned.plan_overlap import OVERLAP_HORIZON, overlap_gradient, scored_pairs
 from policies.learned.plan_stitching import REST_SPEED
 from policies.learned.sampler import decode_plans
 from riskflow_env.config import DynamicsConfig
@@ -92,7 +92,7 @@ def avoid_overlaps(
     steps: int,
     step_size: float,
     ego: int = 0,
-    horizon: int = SELECTION_HORIZON,
+    horizon: int = OVERLAP_HORIZON,
     gain: Tensor | None = None,
     exempt: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:

@@ -24,8 +24,7 @@ scenes in one encoder pass, one generator pass and one guidance loop) or
 * **stitching** (:mod:`policies.learned.plan_stitching`): a new plan's first
   ``stitch_steps`` actions are blended with the plan being executed, so the actions stay
   continuous across a re-plan (``stitch_steps=0`` switches at once); before
-  that, with ``smooth_steps`` > 1, the new plans' accelerations are smoothed, and with
-  ``hold_distance`` > 0, vehicles at rest whose plan hardly moves them keep their brake
+  that, with ``hold_distance`` > 0, vehicles at rest whose plan hardly moves them keep their brake
   on (same module);
 * **render overlays** of the plans (:mod:`policies.learned.plan_overlay`).
 
@@ -99,7 +98,6 @@ class PlanBufferPolicy(PlanStitching, PlanOverlay):
         self.dynamics = window_config.dynamics
         self.seed = config.seed
         self.hold_distance = float(config.hold_distance)
-        self.smooth_steps = int(config.smooth_steps)
         self.stitch_steps = resolve_stitch_steps(config.stitch_steps, self.stitch_first)
         self.device = torch.device(config.device)
         self.threads = config.threads
@@ -326,8 +324,7 @@ def plan_scenes(scenes: Sequence[PlanBufferPolicy], views: Sequence[SceneView]) 
     one base chain and one guided chain); a subclass that implements only
     :meth:`~PlanBufferPolicy._plan_cycle` plans them scene by scene. Then each scene's
     new plans are stitched onto its executed ones and its buffer restarts at its
-    ``view.step`` (the new plans smoothed and vehicles at rest held first, with
-    ``smooth_steps`` > 1 and ``hold_distance`` > 0).
+    ``view.step`` (vehicles at rest held first, with ``hold_distance`` > 0).
     ``PlanBufferPolicy.plan`` is the case B = 1.
 
     Every scene's ``timings`` are the call's: its phases (they ran once for all scenes;

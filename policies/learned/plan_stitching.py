@@ -29,13 +29,6 @@ guided rows are blended (guidance changed them after the blend).
 and to ``DEFAULT_STITCH_STEPS`` (5) blending after planning (the diffusion baselines, the
 raw base); docs/REALISM.md, rounds 11 and 12.
 
-**Smoothing** (``AdversaryConfig.smooth_steps``, off by default). The one-step
-generator's plans carry step-to-step noise in the acceleration that the data does not
-have: it is most of the generated traffic's KDD (the Wasserstein distance of its jerk to
-the log's, 1.4 m/s^3 against 0.4 for IDM traffic). A centred moving average of
-``smooth_steps`` steps over each new plan's accelerations (the ends held) removes it
-before the plan is rolled out again; the yaw rates are left as they are.
-
 **Holding at rest** (``AdversaryConfig.hold_distance``, ``DEFAULT_HOLD_DISTANCE`` = 4 m by
 default; 0 turns it off). A vehicle at rest
 (speed <= ``REST_SPEED``) whose new plan moves it less than ``hold_distance`` [m] over the
@@ -49,14 +42,13 @@ touch their neighbours in rows of parked cars. A plan that moves the vehicle by 
 has the measurements (at 4 m, 97% of the real samples' parked cars stay within 2 m).
 
 :class:`PlanStitching` is a mixin of :class:`~policies.learned.plan_buffer.PlanBufferPolicy`
-(``plan_scenes`` calls :meth:`PlanStitching._shape`, smoothing then holding at rest,
+(``plan_scenes`` calls :meth:`PlanStitching._shape`, holding at rest,
 and :meth:`PlanStitching._stitch` on every scene that planned).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import uniform_filter1d
 
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import SPEED, inverse, rollout
@@ -90,7 +82,6 @@ class PlanStitching:
     stitch_steps: int = DEFAULT_STITCH_STEPS  # [steps] re-plan blend; 0: switch at once
     stitch_first: bool = False  # blend the base plans before the avoidance steps
     hold_distance: float = 0.0  # [m] holding at rest (module docstring); 0: off
-    smooth_steps: int = 1  # [steps] moving average of the accelerations; 1: off
     dynamics: DynamicsConfig
     plan_actions: np.ndarray
     plans: np.ndarray | None
@@ -99,21 +90,8 @@ class PlanStitching:
     controllable: np.ndarray
 
     def _shape(self, view: SceneView) -> None:
-        """Smooth the new plans, then hold vehicles at rest (module docstring)."""
-        self._smooth(view)
+        """Hold vehicles at rest (module docstring)."""
         self._hold_at_rest(view)
-
-    def _smooth(self, view: SceneView) -> None:
-        """Centred moving average of ``smooth_steps`` over the new plans' accelerations
-        (module docstring); the plans are rolled out again."""
-        if self.smooth_steps <= 1:
-            return
-        rows = np.flatnonzero(self.plan_mask & view.active)
-        if rows.size == 0:
-            return
-        smooth = self.plan_actions[rows]
-        smooth[..., 0] = uniform_filter1d(smooth[..., 0], self.smooth_steps, axis=1, mode="nearest")
-        self._replace_plans(view, rows, smooth)
 
     def _hold_at_rest(self, view: SceneView) -> None:
         """Keep the brake on for vehicles at rest whose new plan hardly moves them

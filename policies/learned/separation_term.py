@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from policies.learned.guidance_losses import ObjectiveConfig
-from policies.learned.plan_selection import overlap_gradient
+from policies.learned.plan_overlap import overlap_gradient
 
 __all__ = ["Separation", "separation_term"]
 
@@ -23,7 +23,7 @@ class Separation:
     """The gradient of ``L_sep`` (module docstring) with respect to the guided
     rows' trajectories: the summed squared penetration depth of every pair of guided boxes
     of one scene over the first ``horizon`` steps, in closed form
-    (:func:`~policies.learned.plan_selection.overlap_gradient`, the avoidance steps'
+    (:func:`~policies.learned.plan_overlap.overlap_gradient`, the avoidance steps'
     objective). Shared by output-space guidance, STRIVE-style's latent optimisation and
     the diffusion baselines' guidance.
 

@@ -1,8 +1,6 @@
 """What a RiskFlow planning cycle does to the base plans before guidance, as methods of
 :class:`~policies.riskflow.policy.RiskFlowAdversary` (and so of STRIVE-style and the
-unguided generator): blending them into the executed plans, choosing among sampled joint
-plans and, per guided vehicle, among its sampled plans, and the avoidance steps
-(docs/REALISM.md, rounds 5, 8-15 and 29)."""
+unguided generator): blending them into the executed plans and the avoidance steps."""
 
 from __future__ import annotations
 
@@ -16,11 +14,7 @@ from policies.learned.encoded_views import EncodedViews
 from policies.learned.guidance_losses import map_term, target_rows
 from policies.learned.plan_avoidance import avoid_overlaps, guided_pairs
 from policies.learned.plan_buffer import PlanBufferPolicy
-from policies.learned.plan_selection import (
-    SELECTION_HORIZON,
-    select_attack_plans,
-    select_joint_plans,
-)
+from policies.learned.plan_overlap import OVERLAP_HORIZON
 from policies.learned.plan_stitching import CORRECTION_STITCH_STEPS, blend_share
 from riskflow_env.view import SceneView
 
@@ -28,8 +22,7 @@ from riskflow_env.view import SceneView
 class BasePlanSteps:
     """The base-plan steps of a planning cycle (module docstring); the host class has the
     generator's ``normalizer``, ``dynamics``, ``device``, ``guidance`` (its objective),
-    ``base_samples``, ``attack_samples``, ``avoid_steps``, ``avoid_step_size`` and
-    ``_map_of``."""
+    ``avoid_steps``, ``avoid_step_size`` and ``_map_of``."""
 
     def _blend_first(
         self,
@@ -60,53 +53,12 @@ class BasePlanSteps:
         )
         return blended, gain
 
-    def _select(
-        self,
-        observed: EncodedViews,
-        views: Sequence[SceneView],
-        plans: tuple[torch.Tensor, ...],
-        controllable: torch.Tensor,
-    ) -> tuple[torch.Tensor, ...]:
-        """Keep the best of the first ``base_samples`` joint plans of each scene
-        (:func:`~policies.learned.plan_selection.select_joint_plans`; the first sample
-        when 1), and for each vehicle of ``A_c`` (``controllable`` (B, A) bool) the best of
-        its first ``attack_samples`` plans against the targets' kept plans
-        (:func:`~policies.learned.plan_selection.select_attack_plans`); ``plans`` are
-        ``(B * M, A, ...)`` tensors, a scene's M samples in a row, returned as ``(B, A, ...)``."""
-        scene, batch = observed.scene, observed.batch
-        num_scenes, num_agents = scene.agent_mask.shape
-        shaped = [tensor.reshape(num_scenes, -1, *tensor.shape[1:]) for tensor in plans]
-        trajectories = shaped[3]
-        best = torch.zeros(num_scenes, dtype=torch.long, device=self.device)
-        if self.base_samples > 1:
-            term = self._map_term_of_rows(observed, views)
-            best, _ = select_joint_plans(
-                trajectories[:, : self.base_samples], batch.length, batch.width,
-                scene.agent_mask, scene.state, None if term is None else term.rows,
-            )  # fmt: skip
-        scenes = torch.arange(num_scenes, device=self.device)
-        pick = best[:, None].expand(num_scenes, num_agents)
-        if self.attack_samples > 1 and self.guidance.lambda_adv != 0:
-            present = scene.agent_mask.bool()
-            attacking = controllable & present
-            attacking[:, 0] = False  # the ego's slot
-            targets = target_rows(present, attacking, 0, self.guidance.target)
-            rows = torch.nonzero(attacking.reshape(-1)).flatten().repeat(self.attack_samples)
-            term = self._map_term_of_rows(observed, views, rows)
-            chosen = select_attack_plans(
-                trajectories[:, : self.attack_samples], trajectories[scenes, best, ..., :2],
-                attacking, targets, self.guidance, None if term is None else term.rows,
-            )  # fmt: skip
-            pick = torch.where(attacking, chosen, pick)
-        agents = torch.arange(num_agents, device=self.device)
-        return tuple(tensor[scenes[:, None], pick, agents[None]] for tensor in shaped)
-
     def _map_term_of_rows(
         self, observed: EncodedViews, views: Sequence[SceneView], rows: torch.Tensor | None = None
     ):
-        """The guidance's map term over the first ``SELECTION_HORIZON`` steps of the
+        """The guidance's map term over the first ``OVERLAP_HORIZON`` steps of the
         ``rows`` of the ``B * A`` agent rows (scene after scene; None: every row), or None
-        without ``L_map``; the score of best-of-M selection and of the avoidance steps."""
+        without ``L_map``; the avoidance steps' off-road score."""
         batch, num_agents = observed.batch, observed.scene.agent_mask.shape[1]
         if rows is None:
             rows = torch.arange(observed.scene.agent_mask.numel(), device=self.device)
@@ -114,7 +66,7 @@ class BasePlanSteps:
             length=batch.length.flatten(), width=batch.width.flatten(),
             drivable_map=self._map_of(views), frame=observed.frame_tensor(),
         )  # fmt: skip
-        return map_term(flat, rows, SELECTION_HORIZON, self.guidance, rows // num_agents)
+        return map_term(flat, rows, OVERLAP_HORIZON, self.guidance, rows // num_agents)
 
     def _avoid(
         self,

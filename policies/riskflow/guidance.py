@@ -14,20 +14,16 @@ respect to the trajectories, :mod:`policies.learned.guidance_losses`; the rollou
 vector-Jacobian product, ``riskflow_env.dynamics.rollout_with_vjp``; ``denorm`` is a
 diagonal scale); the gradients agree with autograd to float rounding. Only ``A_c`` rows
 are variables: every other row is the base plan, bit for bit. Steps are projected so that
-the actions stay inside the dynamics bounds; Adam by default (per coordinate, or with one
-second moment per guided plan: ``optimizer="adam-plan"``), or the paper's plain steps.
+the actions stay inside the dynamics bounds; Adam by default, or the paper's plain steps.
 
 ``L_adv`` is the mean distance over the guidance horizon to the nearest target (every
 present agent outside ``A_c``, or the ego only), ``L_map`` the decayed squared depth of
 the footprint samples off the drivable area; ``lambda_adv > 0`` is more adversarial (the
-paper's "-50" is ``+50`` here). An optional third term, ``lambda_base * L_base`` (off by
-default), tethers each guided row to the generator's own plan: ``L_base`` is half the mean
-over the plan's steps of ``||u - u0||^2``, the output-space counterpart of STRIVE's latent
-prior (docs/REALISM.md, round 11, has what it buys). A fourth, ``lambda_sep * L_sep`` (on
-by default, weight 100 since docs/REALISM.md round 17), keeps the guided vehicles of a
-scene apart from each other: ``L_sep`` is the summed squared penetration depth of every
-pair of guided boxes over the guidance horizon (the avoidance steps' objective,
-:func:`~policies.learned.plan_selection.overlap_gradient`; docs/REALISM.md, round 16).
+paper's "-50" is ``+50`` here). A third term, ``lambda_sep * L_sep`` (weight 100 by
+default), keeps the guided vehicles of a scene apart from each other, so that they do not
+converge on one target as a swarm: ``L_sep`` is the summed squared penetration depth of
+every pair of guided boxes over the guidance horizon (the avoidance steps' objective,
+:func:`~policies.learned.plan_overlap.overlap_gradient`).
 The paper's objective has no such term (``lambda_sep=0``). docs/GENERATOR.md ("Output-space
 guidance") has the terms, the sign convention and why the steps are Adam steps.
 """
@@ -65,13 +61,11 @@ from policies.riskflow.guidance_scene import (
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout, rollout_with_vjp
 
-OPTIMIZERS = ("gradient", "adam", "adam-plan")
-# The default Adam step per target: 0.01 with the paper's target (docs/REALISM.md round 26:
-# on the round-23 generator it keeps the guided traffic nearest the log and still collides
-# more than STRIVE-style, docs/RESULTS.md section 4; 0.03 before); 0.1, the paper's step,
-# with target "ego", where 0.03 hits the ego far less often (round 18, real scenes).
+OPTIMIZERS = ("gradient", "adam")
+# The default Adam step per target: 0.01 with the paper's target (it keeps the guided traffic
+# nearest the log and still collides more than STRIVE-style, docs/RESULTS.md section 4);
+# 0.1, the paper's step, with target "ego", where smaller steps hit the ego far less often.
 STEP_SIZES = {"others": 0.01, "ego": 0.1}
-PLAN_BLOCK = (1, 2)  # the (T, 2) axes of a guided row: one Adam block per plan ("adam-plan")
 
 
 @dataclass(frozen=True)
@@ -79,29 +73,21 @@ class GuidanceConfig(ObjectiveConfig):
     """Options of output-space guidance: the shared objective's
     (:class:`~policies.learned.guidance_losses.ObjectiveConfig`: ``lambda_adv``,
     ``lambda_map``, ``horizon``, ``target``, ``map_margin``, ``map_decay``,
-    ``lambda_sep``, ``adv_temperature``) and the optimiser's.
+    ``lambda_sep``) and the optimiser's.
 
     Attributes:
         steps: ``K_g`` guidance steps (0: the base plans).
         step_size: the Adam learning rate [normalised action units per step], or
             ``gamma`` [normalised action units per unit of gradient] for ``"gradient"``
             (e.g. 3e-3 with the default weights); None (default): ``STEP_SIZES[target]``,
-            0.01 with target ``"others"`` and the paper's 0.1 with ``"ego"``
-            (docs/REALISM.md rounds 18 and 26).
-        optimizer: ``"adam"`` (the default: one second moment per coordinate),
-            ``"adam-plan"`` (one per guided plan, :mod:`policies.learned.adam`: a step
-            keeps the shape of the plan's gradient; docs/REALISM.md, round 13) or
+            0.01 with target ``"others"`` and the paper's 0.1 with ``"ego"``.
+        optimizer: ``"adam"`` (the default, :mod:`policies.learned.adam`) or
             ``"gradient"`` (plain steps, the paper's).
-        lambda_base: weight of ``L_base``, half the mean over the plan's steps of the
-            squared distance of a guided row's residual to its base residual
-            [normalised action units^2], >= 0: it keeps the guided plans near the
-            generator's own (0: off, the paper's objective).
     """
 
     steps: int = 30
     step_size: float | None = None
     optimizer: str = "adam"
-    lambda_base: float = 0.0
 
     @property
     def resolved_step_size(self) -> float:
@@ -119,10 +105,6 @@ class GuidanceConfig(ObjectiveConfig):
                 "step_size must be None or a number > 0",
             ),
             (self.optimizer in OPTIMIZERS, f"optimizer must be one of {OPTIMIZERS}"),
-            (
-                math.isfinite(self.lambda_base) and self.lambda_base >= 0,
-                "lambda_base must be a finite number >= 0",
-            ),
         ]
 
 
@@ -166,12 +148,9 @@ class _Objective:
         zero = torch.zeros_like(scene.eps[:1, :1])
         self.std = normalizer.denormalize(zero + 1.0) - normalizer.denormalize(zero)
         self.offset = normalizer.denormalize(scene.eps[rows])  # a = offset + std * u_c
-        self.u0 = scene.u0[rows]
-        self.lambda_base = config.lambda_base
         self.state = scene.state[rows]
         self.target_xy, self.target_valid = target_xy, target_valid
         self.horizon, self.dynamics = config.horizon, dynamics
-        self.temperature = config.adv_temperature
         self.map_term = map_term(scene, rows, scene.eps.shape[1], config, scene_of_row)
         self.lambda_sep = config.lambda_sep
         self.separation = separation_term(scene, rows, config, scene_of_row)
@@ -194,9 +173,8 @@ class _Objective:
         (no gradient)."""
         trajectories = rollout(self.state, self.actions(u_c), self.dynamics)
         adv, _ = adversarial_rows(
-            trajectories[..., :2], self.target_xy, self.horizon, self.target_valid, False,
-            self.temperature,
-        )  # fmt: skip
+            trajectories[..., :2], self.target_xy, self.horizon, self.target_valid, False
+        )
         if self.map_term is None:
             return trajectories, adv, adv * 0.0
         return trajectories, adv, self.map_term.rows(trajectories)
@@ -216,9 +194,8 @@ class _Objective:
             self.state, self.actions(u_c), self.dynamics, clip=False
         )
         adv, d_xy = adversarial_rows(
-            trajectories[..., :2], self.target_xy, self.horizon, self.target_valid,
-            temperature=self.temperature,
-        )  # fmt: skip
+            trajectories[..., :2], self.target_xy, self.horizon, self.target_valid
+        )
         d_trajectories = torch.zeros_like(trajectories)
         d_trajectories[..., :2] = lambda_adv * d_xy
         if self.map_term is None:
@@ -228,10 +205,7 @@ class _Objective:
             d_trajectories.add_(d_map, alpha=lambda_map)
         if self.separation is not None:
             d_trajectories.add_(self.separation.gradient(trajectories), alpha=self.lambda_sep)
-        grad = vjp(d_trajectories) * self.std
-        if self.lambda_base:  # L_base = mean_t ||u_c - u0||^2 / 2
-            grad.add_(u_c - self.u0, alpha=self.lambda_base / u_c.shape[-2])
-        return grad, adv, off_road
+        return vjp(d_trajectories) * self.std, adv, off_road
 
 
 def guide(
@@ -308,7 +282,7 @@ def _guide_scenes(
         lower, upper = objective.bounds()
         u_c = torch.minimum(torch.maximum(flat.u0[rows], lower), upper)
     step_size = config.resolved_step_size
-    adam = Adam(u_c, step_size, PLAN_BLOCK if config.optimizer == "adam-plan" else ())
+    adam = Adam(u_c, step_size)
     history = []
     # Closed-form gradients: nothing to record, and inference mode skips autograd's
     # per-op bookkeeping (version counters) too; u_c leaves it only through copies.

@@ -31,16 +31,14 @@ diffusion baselines' denoiser run as a deterministic DDIM chain from ``eps`` ins
 with the same ranking and output-space guidance (the generator ablation of issue 7).
 ``lambda_adv = 0`` / ``lambda_map = 0`` drop a guidance term (the loss ablation).
 
-The realistic base (the defaults; docs/REALISM.md, rounds 8-12, 14 and 15): each new base
-plan is blended into the executed one over 15 steps (blending first,
-:mod:`policies.learned.plan_stitching`), then up to 20 avoidance steps pull the MeanFlow
-base plans' boxes apart and onto the road (:mod:`policies.learned.plan_avoidance`; the
-pairs of a vehicle of ``A_c`` and one of its targets are left to guidance), and vehicles
-at rest whose new plan moves them less than 4 m keep their brake on; the map term weighs
-20. ``avoid_steps=0, hold_distance=0, lambda_map=1, stitch_first=False`` is
-RiskFlow on the raw base, the defaults before round 10 (``riskflow-eval --methods
-riskflow-plain``). Blending first is the default whatever the generator (the diffusion
-generator's plans too: ``riskflow-diffusion``, ``bits-diffusion``).
+The realistic base (the defaults): each new base plan is blended into the executed one
+over 15 steps (blending first, :mod:`policies.learned.plan_stitching`), then up to 20
+avoidance steps pull the MeanFlow base plans' boxes apart and onto the road
+(:mod:`policies.learned.plan_avoidance`; the pairs of a vehicle of ``A_c`` and one of its
+targets are left to guidance), and vehicles at rest whose new plan moves them less than
+4 m keep their brake on; the map term weighs 20. ``avoid_steps=0, hold_distance=0`` is
+RiskFlow on the raw generator (``riskflow-eval --methods riskflow-raw``), to report the
+model's own traffic next to the rule layer's.
 
 Many scenes: ``_plan_cycles`` plans B scenes in one call (``plan_scenes``,
 ``BatchedAdversary``; ``plan`` is B = 1): the windows are cut and ranked scene by scene
@@ -97,17 +95,14 @@ class RiskFlowAdversary(BasePlanSteps, PlanBufferPolicy):
         config: the options every learned adversary shares
             (:class:`~policies.learned.adversary_config.AdversaryConfig`: ``k``,
             ``planning_interval``, ``target``, ``lambda_adv``, ``lambda_map``,
-            ``guidance_horizon``, ``adv_temperature``, ``rank_threshold``, ``seed``,
+            ``guidance_horizon``, ``rank_threshold``, ``seed``,
             ``device``, ``window_config``, ``threads``); or give them as keywords
             (``**options``).
         guidance_steps: ``K_g``.
         step_size: Adam learning rate, or ``gamma`` of plain steps; None (default): 0.01
             with target ``"others"``, 0.1 with ``"ego"`` (:class:`GuidanceConfig`).
-        optimizer: ``"adam"`` (default), ``"adam-plan"`` (one Adam second moment per
-            guided plan) or ``"gradient"`` (the paper's plain steps)
+        optimizer: ``"adam"`` (default) or ``"gradient"`` (the paper's plain steps)
             (:class:`~policies.riskflow.guidance.GuidanceConfig`).
-        lambda_base: weight of the tether of the guided plans to the generator's own
-            (:class:`GuidanceConfig`); 0 (default): off.
         lambda_sep: weight of the separation of the guided vehicles from each other
             (:class:`GuidanceConfig`; default 100; 0: off, the paper's objective).
         generator: the base-plan generator: a model object (a ``RiskFlowGenerator``, or
@@ -119,26 +114,11 @@ class RiskFlowAdversary(BasePlanSteps, PlanBufferPolicy):
         checkpoint: a ``riskflow-train`` checkpoint file to load (its kind is read from
             it); not with a model object.
         sampling_steps: DDIM levels of a diffusion generator (None: 10); MeanFlow: None.
-        base_samples: M joint base plans drawn per scene and cycle; M > 1 keeps the one
-            that overlaps least and stays on the road best
-            (:mod:`policies.learned.plan_selection`, BITS-style selection), 1 (default)
-            the single draw.
-        attack_samples: M_a plans drawn per vehicle of ``A_c`` and cycle (M_a joint
-            plans in the one generator pass); M_a > 1 starts guidance from the one that
-            ``lambda_adv * L_adv`` plus the map term over the selection horizon scores best
-            against the targets' kept plans (nearest its targets, on the road;
-            :func:`~policies.learned.plan_selection.select_attack_plans`; skipped when
-            ``lambda_adv == 0``), 1 (default) from the single draw. The other vehicles
-            keep the joint plan of ``base_samples`` (drawn first, as without this option).
         avoid_steps: Adam steps that pull the base plans apart and onto the road before
             ranking (:mod:`policies.learned.plan_avoidance`); None (default):
             ``DEFAULT_AVOID_STEPS`` (20) with the MeanFlow generator, 0 with a diffusion
             one (which has none); 0: off.
         avoid_step_size: their Adam learning rate (normalised action units).
-        stitch_first: blend each new base plan into the executed one before the avoidance
-            steps, and only the guided rows after planning
-            (:mod:`policies.learned.plan_stitching`; default True, over 15 steps unless
-            ``stitch_steps`` says otherwise); False: every plan after (5 steps).
         **options: :class:`AdversaryConfig` fields, when ``config`` is not given.
     """
 
@@ -151,23 +131,16 @@ class RiskFlowAdversary(BasePlanSteps, PlanBufferPolicy):
         guidance_steps: int = 30,
         step_size: float | None = GuidanceConfig.step_size,
         optimizer: str = GuidanceConfig.optimizer,
-        lambda_base: float = GuidanceConfig.lambda_base,
         lambda_sep: float = GuidanceConfig.lambda_sep,
         generator: RiskFlowGenerator | OneCallSampler | str | None = None,
         normalizer: Normalizer | None = None,
         checkpoint: str | os.PathLike | None = None,
         sampling_steps: int | None = None,
-        base_samples: int = 1,
-        attack_samples: int = 1,
         avoid_steps: int | None = None,
         avoid_step_size: float = 0.1,
-        stitch_first: bool = True,
         **options: Any,
     ) -> None:
         config = AdversaryConfig.resolve(config, options, type(self).__name__)
-        for name, value in (("base_samples", base_samples), ("attack_samples", attack_samples)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be an int >= 1, got {value!r}")
         if avoid_steps is not None and (
             isinstance(avoid_steps, bool) or not isinstance(avoid_steps, int) or avoid_steps < 0
         ):
@@ -178,16 +151,12 @@ class RiskFlowAdversary(BasePlanSteps, PlanBufferPolicy):
             raise ValueError(
                 f"avoid_step_size must be a finite number > 0, got {avoid_step_size!r}"
             )
-        if not isinstance(stitch_first, (bool, np.bool_)):
-            raise ValueError(f"stitch_first must be a bool, got {stitch_first!r}")
-        self.base_samples, self.attack_samples = base_samples, attack_samples
-        self.stitch_first = bool(stitch_first)
+        self.stitch_first = True
         self.avoid_step_size = float(avoid_step_size)
         self.guidance = GuidanceConfig(
             steps=guidance_steps,
             step_size=step_size,
             optimizer=optimizer,
-            lambda_base=lambda_base,
             lambda_sep=lambda_sep,
             **config.objective(),
         )
@@ -205,11 +174,6 @@ class RiskFlowAdversary(BasePlanSteps, PlanBufferPolicy):
                     "not with a model object"
                 )
             self.generator_kind = generator_kind(generator)
-        for name, value in (("base_samples", base_samples), ("attack_samples", attack_samples)):
-            if value > 1 and self.generator_kind != "meanflow":
-                raise ValueError(
-                    f"{name} > 1 needs the MeanFlow generator, got {self.generator_kind!r}"
-                )
         if avoid_steps is None:
             avoid_steps = DEFAULT_AVOID_STEPS if self.generator_kind == "meanflow" else 0
         if avoid_steps > 0 and self.generator_kind != "meanflow":
@@ -239,37 +203,22 @@ class RiskFlowAdversary(BasePlanSteps, PlanBufferPolicy):
         controllable = torch.from_numpy(controllable).to(self.device)
         clock = self._tick("ranking", observed.clock)
         steps = self.model.config.future_steps
-        samples = max(self.base_samples, self.attack_samples)
-        # The joint samples first, then the guided vehicles' extra ones: a draw of another
-        # shape is not a prefix of it (CPU normal fill), and the joint samples stay those
-        # of attack_samples = 1.
-        blocks = [self.base_samples] + [samples - self.base_samples] * (samples > self.base_samples)
         with torch.no_grad():
-            eps = scene.context.new_zeros(num_scenes, samples, num_agents, steps, 2)
+            eps = scene.context.new_zeros(num_scenes, num_agents, steps, 2)
             for index, (policy, count) in enumerate(zip(scenes, counts, strict=True)):
-                source = policy._noise_source()
-                eps[index, :, :count] = torch.cat([
-                    torch.randn(  # the scene's own stream, its own shape
-                        (block, count, steps, 2), generator=source, device=self.device,
-                        dtype=scene.context.dtype,
-                    ) for block in blocks
-                ])  # fmt: skip
-            eps = eps.flatten(0, 1)  # (B * M, A, T, 2), a scene's samples in a row
-            many = scene.repeat_scenes(samples) if samples > 1 else scene
-            u0 = base_velocity(self.model, eps, many)
-            actions, trajectories = plans_from_velocity(
-                eps, u0, many.state, many.agent_mask, self.normalizer, self.dynamics
-            )
-            if samples > 1:
-                eps, u0, actions, trajectories = self._select(
-                    observed, views, (eps, u0, actions, trajectories), controllable
+                eps[index, :count] = torch.randn(  # the scene's own stream, its own shape
+                    (count, steps, 2),
+                    generator=policy._noise_source(),
+                    device=self.device,
+                    dtype=scene.context.dtype,
                 )
+            u0 = base_velocity(self.model, eps, scene)
             gain = None
             if self.stitch_first:
                 u0, gain = self._blend_first(scenes, views, observed.slots, eps, u0)
-                actions, trajectories = plans_from_velocity(
-                    eps, u0, scene.state, scene.agent_mask, self.normalizer, self.dynamics
-                )
+            actions, trajectories = plans_from_velocity(
+                eps, u0, scene.state, scene.agent_mask, self.normalizer, self.dynamics
+            )
             if self.avoid_steps > 0:
                 u0, actions, trajectories = self._avoid(
                     observed, views, eps, u0, gain, controllable

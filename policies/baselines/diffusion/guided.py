@@ -80,7 +80,7 @@ class DiffusionGuidanceConfig(ObjectiveConfig):
     """Options of diffusion guidance (module docstring): the shared objective's
     (:class:`~policies.learned.guidance_losses.ObjectiveConfig`: ``lambda_adv``,
     ``lambda_map``, ``horizon``, ``target``, ``map_margin``, ``map_decay``,
-    ``lambda_sep``, ``adv_temperature``) and these.
+    ``lambda_sep``) and these.
 
     Attributes:
         gradient: ``"mean"`` (CTG, CCDiff) or ``"clean"`` (CTG++).
@@ -180,9 +180,7 @@ class _Objective:
         trajectories = rollout(self.state, self.normalizer.denormalize(x_c), self.dynamics)
         xy = trajectories[..., :2]
         config = self.config
-        adv_rows, gradient = adversarial_rows(
-            xy, target_xy, config.horizon, target_valid, temperature=config.adv_temperature
-        )
+        adv_rows, gradient = adversarial_rows(xy, target_xy, config.horizon, target_valid)
         adv = attach_gradient(adv_rows.sum(), xy, gradient, axis=None)
         if self.map_term is None:
             off_rows, off_road = torch.zeros_like(adv_rows), adv * 0.0

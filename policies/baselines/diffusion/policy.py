@@ -80,7 +80,7 @@ class DiffusionAdversary(PlanBufferPolicy):
         config: the options every learned adversary shares
             (:class:`~policies.learned.adversary_config.AdversaryConfig`: ``k``,
             ``planning_interval``, ``target``, ``lambda_adv``, ``lambda_map``,
-            ``guidance_horizon``, ``adv_temperature``, ``rank_threshold`` (``"ccdiff"``),
+            ``guidance_horizon``, ``rank_threshold`` (``"ccdiff"``),
             ``seed``, ``device``, ``window_config``, ``threads``); or give them as keywords
             (``**options``).
         variant: ``"ctg"``, ``"ctgpp"`` or ``"ccdiff"``.

@@ -127,11 +127,10 @@ def test_draw_and_bad_options(denoiser):
         ({"eta": 2.0}, "eta"),
         ({"inner_steps": 2, "variant": "ctgpp"}, "inner_steps"),
         ({"sampling_steps": 101}, "sampling_steps"),
-        ({"adv_temperature": -1.0}, "adv_temperature must be"),
     ):
         with pytest.raises(ValueError, match=match):
             adversary(denoiser, **kwargs)
-    assert adversary(denoiser, adv_temperature=2.0).guidance.adv_temperature == 2.0
+    assert adversary(denoiser, guidance_horizon=7).guidance.horizon == 7
     with pytest.raises(ValueError, match="normalizer"):
         DiffusionAdversary(denoiser=denoiser)
 

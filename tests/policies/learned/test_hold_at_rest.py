@@ -1,6 +1,5 @@
 """Holding at rest (``AdversaryConfig.hold_distance``): a vehicle at rest whose new plan
-hardly moves it keeps its brake on; every other plan is left as it is. And smoothing
-(``AdversaryConfig.smooth_steps``), the other way new plans are shaped before stitching."""
+hardly moves it keeps its brake on; every other plan is left as it is."""
 
 from __future__ import annotations
 
@@ -91,31 +90,3 @@ def test_hold_distance_is_checked():
         with pytest.raises(ValueError, match="hold_distance"):
             AdversaryConfig(hold_distance=bad)
     assert AdversaryConfig(hold_distance=2).hold_distance == 2.0
-
-
-def test_smoothing_averages_the_accelerations_of_new_plans(tiny_meanflow, tiny_normalizer, view):
-    """``smooth_steps``: a centred moving average over each new plan's accelerations (the
-    ends held), the yaw rates untouched, the plans rolled out again; 1 changes nothing."""
-    from scipy.ndimage import uniform_filter1d
-
-    # holding at rest off: it would act on the smoothed plans only
-    models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer, "hold_distance": 0}
-    free = RiskFlowAdversary(k=0, planning_interval=0.5, seed=3, **models)
-    free.reset(view)
-    free.plan(view)
-    policy = RiskFlowAdversary(k=0, planning_interval=0.5, seed=3, smooth_steps=3, **models)
-    policy.reset(view)
-    policy.plan(view)
-    rows = policy.plan_mask & view.active
-    raw = free.plan_actions[rows]
-    expected = uniform_filter1d(raw[..., 0], 3, axis=1, mode="nearest")
-    np.testing.assert_allclose(policy.plan_actions[rows, :, 0], expected, atol=1e-12)
-    np.testing.assert_array_equal(policy.plan_actions[rows, :, 1], raw[..., 1])
-    steps = np.abs(np.diff(policy.plan_actions[rows, :, 0], axis=1)).mean()
-    assert steps < np.abs(np.diff(raw[..., 0], axis=1)).mean()  # smoother
-    np.testing.assert_array_equal(
-        policy.plans[rows], rollout(view.current[rows], policy.plan_actions[rows], policy.dynamics)
-    )
-    for bad in (0, -1, 2.5, True):
-        with pytest.raises(ValueError, match="smooth_steps"):
-            AdversaryConfig(smooth_steps=bad)

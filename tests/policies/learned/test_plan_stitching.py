@@ -20,15 +20,16 @@ from riskflow_env.dynamics import rollout
 
 
 def _adversary(models, stitch_steps: int, k: int = 0) -> RiskFlowAdversary:
-    """Blending after planning (``stitch_first=False``)."""
-    return RiskFlowAdversary(
-        k=k, planning_interval=0.3, seed=2, stitch_steps=stitch_steps, stitch_first=False,
-        **models,
-    )  # fmt: skip
+    """Blending after planning, as the diffusion baselines do, on the MeanFlow adversary."""
+    policy = RiskFlowAdversary(
+        k=k, planning_interval=0.3, seed=2, stitch_steps=stitch_steps, **models
+    )
+    policy.stitch_first = False
+    return policy
 
 
 def test_stitch_steps_is_a_checked_shared_option(tiny_meanflow, tiny_normalizer, tiny_denoiser):
-    assert AdversaryConfig().stitch_steps is None  # the blend that goes with stitch_first
+    assert AdversaryConfig().stitch_steps is None  # the blend that goes with the method
     assert AdversaryConfig(stitch_steps=np.int64(10)).stitch_steps == 10
     for bad in (-1, 2.5, True, "5"):
         with pytest.raises(ValueError, match="stitch_steps must be None or an int >= 0"):
@@ -37,8 +38,7 @@ def test_stitch_steps_is_a_checked_shared_option(tiny_meanflow, tiny_normalizer,
     # the MeanFlow adversaries blend first over 15 steps, the others after over 5
     assert RiskFlowAdversary(k=0, **models).stitch_steps == DEFAULT_FIRST_STITCH_STEPS == 15
     assert RiskFlowAdversary(k=0, **models).stitch_first
-    plain = RiskFlowAdversary(k=0, stitch_first=False, **models)
-    assert plain.stitch_steps == DEFAULT_STITCH_STEPS == PlanStitching.stitch_steps == 5
+    assert DEFAULT_STITCH_STEPS == PlanStitching.stitch_steps == 5
     assert RiskFlowAdversary(k=0, stitch_steps=7, **models).stitch_steps == 7
     diffusion = DiffusionAdversary(k=0, denoiser=tiny_denoiser, normalizer=tiny_normalizer)
     assert not diffusion.stitch_first and diffusion.stitch_steps == DEFAULT_STITCH_STEPS
@@ -91,7 +91,7 @@ def test_blending_first_blends_the_base_plans_into_the_executed_ones(
         k=0, planning_interval=0.3, seed=2, avoid_steps=0, hold_distance=0.0,
         generator=tiny_meanflow, normalizer=tiny_normalizer,
     )  # fmt: skip
-    policy = RiskFlowAdversary(stitch_steps=n, stitch_first=True, **options)
+    policy = RiskFlowAdversary(stitch_steps=n, **options)
     env, _ = closed_loop(policy, 3)  # cycle 0 planned at step 0, 3 steps executed
     view = env.view()
     rows = np.flatnonzero(policy.plan_mask & view.active)
@@ -143,9 +143,8 @@ def test_planning_passes_the_correction_gain_to_the_avoidance_steps(
     blending after planning hands None (every correction whole)."""
     models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
     for first in (True, False):
-        policy = RiskFlowAdversary(
-            k=0, planning_interval=0.3, seed=2, avoid_steps=2, stitch_first=first, **models
-        )
+        policy = RiskFlowAdversary(k=0, planning_interval=0.3, seed=2, avoid_steps=2, **models)
+        policy.stitch_first = first
         gains = []
         avoid = policy._avoid
 
@@ -162,13 +161,8 @@ def test_planning_passes_the_correction_gain_to_the_avoidance_steps(
             assert gains == [None, None]
 
 
-def test_continuation_is_none_before_the_first_plan_and_stitch_first_is_checked(
-    tiny_meanflow, tiny_normalizer, closed_loop
-):
+def test_continuation_is_none_before_the_first_plan(tiny_meanflow, tiny_normalizer, closed_loop):
     models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
-    policy = RiskFlowAdversary(k=0, stitch_first=True, **models)
+    policy = RiskFlowAdversary(k=0, **models)
     env, _ = closed_loop(policy, 0)
     assert policy._continuation(env.view(), np.arange(2), 52) is None
-    for bad in (1, "yes", None):
-        with pytest.raises(ValueError, match="stitch_first must be a bool"):
-            RiskFlowAdversary(k=0, stitch_first=bad, **models)

@@ -49,7 +49,7 @@ def test_ego_and_absent_agents_are_never_guided():
 
 @pytest.mark.parametrize("lambda_sep", [0.0, GuidanceConfig.lambda_sep])
 @pytest.mark.parametrize("target", ["others", "ego"])
-@pytest.mark.parametrize("optimizer", ["gradient", "adam", "adam-plan"])
+@pytest.mark.parametrize("optimizer", ["gradient", "adam"])
 def test_lowers_adversarial_loss_and_keeps_map_loss_bounded(target, optimizer, lambda_sep):
     scene = make_scene(HIGHWAY)
     step_size = 5e-3 if optimizer == "gradient" else 0.1
@@ -68,19 +68,6 @@ def test_lowers_adversarial_loss_and_keeps_map_loss_bounded(target, optimizer, l
     targets = [0] if target == "ego" else [0, 4, 5]
     xy, target_xy = result.trajectories[rows, :, :2], scene.base_trajectories[targets, :, :2]
     assert torch.allclose(adversarial_loss(xy, target_xy), adv_after)
-
-
-def test_base_term_keeps_the_guided_plans_near_the_generators():
-    scene = make_scene(HIGHWAY)
-    rows = [1, 2, 3]
-    distances, adversarial = [], []
-    for weight in (0.0, 30.0, 3000.0):
-        result = guide(scene, mask_of(6, rows), NORMALIZER, GuidanceConfig(lambda_base=weight))
-        distances.append(float((result.u[rows] - scene.u0[rows]).square().mean()))
-        adversarial.append(float(result.losses[-1, 0]))
-    assert distances[0] > distances[1] > distances[2] > 0
-    # A heavier tether gives up attack (Adam's steps need not order the lighter ones).
-    assert max(adversarial[:2]) < adversarial[2] < float(result.losses[0, 0])
 
 
 def test_separation_term_keeps_the_guided_vehicles_apart():
@@ -166,8 +153,7 @@ def test_config_validation():
         {"target": "all"},
         {"optimizer": "sgd"},
         {"map_decay": 1.5},
-        {"lambda_base": -1.0},
-        {"lambda_base": float("inf")},
+        {"optimizer": "adam-plan"},
         {"lambda_sep": -1.0},
         {"lambda_sep": float("nan")},
     ):

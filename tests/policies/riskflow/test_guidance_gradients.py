@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from policies.learned.guidance_losses import MapTerm, adversarial_rows
+from policies.learned.guidance_losses import MapTerm
 from policies.riskflow import guidance
 from policies.riskflow.guidance import (
     GuidanceConfig,
@@ -79,53 +79,6 @@ def test_adversarial_gradient_is_autograd_of_the_nearest_distance():
         assert torch.equal(through_loss, gradient)
 
 
-@pytest.mark.parametrize("temperature", [0.5, 3.0])
-def test_soft_minimum_over_time_is_autograd_of_its_formula(temperature):
-    """``adv_temperature``: each row's ``-tau log mean_t exp(-d_t / tau)`` of the
-    nearest-target distance, its gradient autograd's; it lies between the minimum and the
-    mean over time and tends to the mean as ``tau`` grows."""
-    generator = torch.Generator().manual_seed(2)
-    xy = torch.randn(3, 12, 2, generator=generator, dtype=torch.float64) * 5
-    targets = torch.randn(4, 12, 2, generator=generator, dtype=torch.float64) * 5
-    targets[0, 2] = xy[1, 2]  # on a target: a zero gradient there, not NaN
-    for horizon in (None, 5):
-        plain = xy.clone().requires_grad_(True)
-        distance = (plain[:, None] - targets[None]).norm(dim=-1).amin(dim=1)[:, :horizon]
-        steps = distance.shape[1]
-        soft = -temperature * (torch.logsumexp(-distance / temperature, dim=1) - np.log(steps))
-        (expected,) = torch.autograd.grad(soft.sum(), plain)
-        value, gradient = adversarial_value_and_gradient(xy, targets, horizon, temperature)
-        torch.testing.assert_close(value, soft.detach().sum())
-        torch.testing.assert_close(gradient, torch.nan_to_num(expected))
-        assert (gradient[1, 2] == 0).all() and (horizon is None or (gradient[:, 5:] == 0).all())
-        rows = adversarial_loss(xy[:1], targets, horizon, temperature)
-        assert distance[0].min() <= rows <= distance[0].mean()
-    valid = torch.tensor([[True] * 4, [False] * 4, [True, False, True, False]])
-    rows, _ = adversarial_rows(xy, targets, 7, valid, False, temperature)
-    assert rows[1] == 0.0 and rows[0] > 0 and rows[2] > 0  # a row without target: exactly 0
-    mean = adversarial_loss(xy, targets, None)
-    torch.testing.assert_close(adversarial_loss(xy, targets, None, 1e4), mean, rtol=1e-3, atol=0)
-
-
-@pytest.mark.parametrize("bad", [0.0, -1.0, float("inf"), float("nan")])
-def test_bad_temperature_names_the_option(bad):
-    with pytest.raises(ValueError, match="adv_temperature must be None or a finite number > 0"):
-        GuidanceConfig(adv_temperature=bad)
-
-
-def test_soft_minimum_pulls_the_closest_approach():
-    """With a small temperature the pull falls on the step nearest the target, where the
-    mean pulls every step alike."""
-    time = torch.arange(10, dtype=torch.float32)
-    xy = torch.stack([time, torch.zeros(10)], dim=-1)[None]
-    parked = torch.tensor([[[7.0, 1.0]]]).expand(1, 10, 2)  # closest at t = 7
-    _, mean = adversarial_value_and_gradient(xy, parked)
-    _, soft = adversarial_value_and_gradient(xy, parked, temperature=0.2)
-    norms, mean_norms = soft[0].norm(dim=-1), mean[0].norm(dim=-1)
-    assert int(norms.argmax()) == 7 and norms[7] > 0.75 and norms.sum() == pytest.approx(1.0)
-    torch.testing.assert_close(mean_norms, torch.full((10,), 0.1))
-
-
 def test_map_gradient_matches_finite_differences():
     """``MapTerm.value_and_gradient`` against central differences in (x, y, psi), in a
     rotated scene frame, with samples off the road; autograd through ``MapTerm`` agrees."""
@@ -179,33 +132,27 @@ def test_map_term_forgives_what_a_vehicle_is_off_the_road_now():
     assert torch.equal(term.rows(onto)[1], plain.rows(onto)[1])
 
 
-def _autograd_adversarial(xy, target_xy, horizon, target_valid, temperature=None):
+def _autograd_adversarial(xy, target_xy, horizon, target_valid):
     """Each row's ``L_adv`` by plain autograd ops (the reference of the closed form)."""
     targets = target_xy if target_xy.ndim == 4 else target_xy[None].expand(len(xy), -1, -1, -1)
     distance = torch.linalg.vector_norm(xy[:, None, :horizon] - targets[:, :, :horizon], dim=-1)
     if target_valid is not None:
         distance = distance.masked_fill(~target_valid[..., None], torch.inf)
-    nearest = distance.min(dim=1).values
-    if temperature is None:
-        return nearest.mean(dim=1)
-    soft = torch.logsumexp(-nearest / temperature, dim=1) - np.log(nearest.shape[1])
-    return -temperature * soft
+    return distance.min(dim=1).values.mean(dim=1)
 
 
 def _autograd_gradient(objective, u_c, lambda_adv, lambda_map):
     """The autograd path the closed form replaces: through the rollout and the losses
-    (``L_base`` too). Returns the gradient and each row's ``L_adv`` and ``L_map`` (as
+    Returns the gradient and each row's ``L_adv`` and ``L_map`` (as
     ``gradient`` does)."""
     with torch.inference_mode(False), torch.enable_grad():  # guide's loop runs in inference
         u_c = u_c.clone().requires_grad_(True)
         trajectories = rollout(objective.state, objective.actions(u_c), objective.dynamics)
         adv = _autograd_adversarial(
-            trajectories[..., :2], objective.target_xy, objective.horizon,
-            objective.target_valid, objective.temperature,
-        )  # fmt: skip
+            trajectories[..., :2], objective.target_xy, objective.horizon, objective.target_valid
+        )
         off_road = objective.map_term(trajectories)
-        base = 0.5 * (u_c - objective.u0).square().sum(dim=(-2, -1)) / u_c.shape[-2]
-        loss = lambda_adv * adv.sum() + lambda_map * off_road + objective.lambda_base * base.sum()
+        loss = lambda_adv * adv.sum() + lambda_map * off_road
         (grad,) = torch.autograd.grad(loss, u_c)
     return grad, adv.detach(), objective.map_term.rows(trajectories.detach())
 
@@ -226,13 +173,10 @@ def _stopping_scene() -> GuidanceScene:
     return dataclasses.replace(scene, u0=u0, base_actions=actions, base_trajectories=trajectories)
 
 
-@pytest.mark.parametrize(("lambda_base", "temperature"), [(0.0, None), (30.0, None), (0.0, 1.0)])
-def test_closed_form_gradient_and_plans_equal_the_autograd_path(
-    monkeypatch, lambda_base, temperature
-):
+def test_closed_form_gradient_and_plans_equal_the_autograd_path(monkeypatch):
     scene = _stopping_scene()
     controllable = mask_of(6, [1, 3, 5])
-    config = GuidanceConfig(lambda_base=lambda_base, adv_temperature=temperature)
+    config = GuidanceConfig()
     rows = torch.tensor([1, 3, 5])
     targets = scene.base_trajectories[[0, 2, 4], :, :2]
     objective = guidance._Objective(scene, rows, targets, NORMALIZER, config, DEFAULT_CONFIG)

@@ -31,22 +31,25 @@ def test_diffusion_base_plans_are_the_ddim_chain_and_guidance_moves_only_a_c(
     # (matrix products round differently with another count); blending first passes the
     # base plans through the action normalisation and back (equal to float rounding), so
     # the bit-for-bit comparison blends after planning.
-    kwargs = {
-        "generator": sampler, "normalizer": tiny_normalizer, "seed": 2, "threads": None,
-        "stitch_first": False,
-    }  # fmt: skip
-    unguided, view = planned(RiskFlowAdversary(k=0, **kwargs), road_view)
+    kwargs = {"generator": sampler, "normalizer": tiny_normalizer, "seed": 2, "threads": None}
+
+    def after(**options):  # blending after planning
+        policy = RiskFlowAdversary(**kwargs, **options)
+        policy.stitch_first = False
+        return policy
+
+    unguided, view = planned(after(k=0), road_view)
     assert unguided.generator_kind == "diffusion"
     window = window_from_view(view, unguided.window_config)
     batch = collate_windows([window])
     actions, _ = sample(sampler, batch, unguided.noise[None], tiny_normalizer)
     np.testing.assert_array_equal(unguided.plan_actions[window.agent_index], actions[0].numpy())
-    first, _ = planned(RiskFlowAdversary(k=0, **(kwargs | {"stitch_first": True})), road_view)
+    first, _ = planned(RiskFlowAdversary(k=0, **kwargs), road_view)
     np.testing.assert_allclose(
         first.plan_actions[window.agent_index], actions[0].numpy(), rtol=0, atol=1e-5
     )
 
-    guided, _ = planned(RiskFlowAdversary(k=2, guidance_steps=6, **kwargs), road_view)
+    guided, _ = planned(after(k=2, guidance_steps=6), road_view)
     np.testing.assert_array_equal(guided.base_plans, unguided.plans)
     same = guided.plan_mask & ~guided.controllable
     np.testing.assert_array_equal(guided.plans[same], unguided.plans[same])

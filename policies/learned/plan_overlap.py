@@ -1,45 +1,23 @@
-"""Best of M joint plans: a rule-based score that keeps the plan set that collides least.
+"""Overlap of planned boxes: the score and gradient the avoidance steps and the guidance's
+separation term share.
 
-The one-step generator draws a *joint* plan of every agent of a scene from one noise
-sample. Drawing M samples and keeping, per scene, the one with the lowest score is the
-selection step of BITS's prediction-and-planning module (Xu et al. 2023, "BITS:
-Bi-level Imitation for Traffic Simulation", ICRA: sample several candidates, score them
-with rules such as collision and off-road, keep the best), here applied to whole joint
-plans, so the kept plans stay samples of the generator (no output is edited) and the
-agents' plans stay mutually consistent.
-
-The score of a joint plan, over its first ``horizon`` steps (the plans are re-drawn every
-0.5 s, so the near future matters most):
-
-* **overlap**: ``sum relu(-separation)^2`` [m^2] over every pair of present agents and
-  step (``riskflow_env.geometry.separation``: the SAT penetration depth, the simulator's
-  own collision test), over pairs that do not already overlap now;
-* **off-road**: the guidance's map term ``L_map`` of every present agent
-  (:class:`~policies.learned.guidance_losses.MapTerm`: decayed squared off-road depth of
-  the footprint samples [m^2]).
-
-Both are in m^2 and are added.
-
-:func:`select_attack_plans` is the adversary's counterpart, per guided vehicle: among M
-samples of its plan it keeps the one the guidance objective scores best (nearest its
-targets, on the road), so that guidance starts from a sample of the generator that already
-heads for an interaction instead of bending a plan that does not.
+Over the first ``horizon`` steps of each plan (the plans are re-drawn every 0.5 s, so the
+near future matters most), the **overlap** of a set of plans is ``sum relu(-separation)^2``
+[m^2] over every pair of present agents and step
+(``riskflow_env.geometry.separation``: the SAT penetration depth, the simulator's own
+collision test), over pairs that do not already overlap now.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import torch
 from torch import Tensor
 
-from policies.learned.adversarial_term import adversarial_rows
-from policies.learned.guidance_losses import ObjectiveConfig
 from policies.learned.plan_penalties import pair_separation
 from riskflow_env.geometry import separation, separation_gradient
 
-SELECTION_HORIZON = 30
-"""steps of each plan the score looks at (3 s of the 5.2 s plan)"""
+OVERLAP_HORIZON = 30
+"""steps of each plan the overlap score looks at (3 s of the 5.2 s plan)"""
 
 
 def scored_pairs(length: Tensor, width: Tensor, agent_mask: Tensor, now: Tensor) -> Tensor:
@@ -157,94 +135,9 @@ def _boxes(trajectories: Tensor, length: Tensor, width: Tensor, b, m, i, j) -> t
     return *box(i), *box(j)
 
 
-def select_joint_plans(
-    trajectories: Tensor,
-    length: Tensor,
-    width: Tensor,
-    agent_mask: Tensor,
-    now: Tensor,
-    map_rows: Callable[[Tensor], Tensor] | None,
-    horizon: int = SELECTION_HORIZON,
-) -> tuple[Tensor, Tensor]:
-    """The index of the best of M joint plans of each scene (module docstring).
-
-    Args:
-        trajectories: ``(B, M, A, T, 4)``.
-        length, width, agent_mask, now: as :func:`overlap_scores`.
-        map_rows: ``(B * A, T_s, 4) -> (B * A,)`` the map term of each agent's plan
-            (rows of absent agents are ignored), or None (no map term).
-        horizon: steps scored.
-
-    Returns:
-        ``(B,)`` int64 indices into M, and the ``(B, M)`` scores.
-    """
-    scored = trajectories[..., :horizon, :]
-    scores = overlap_scores(scored, length, width, agent_mask, now)
-    if map_rows is not None:
-        num_scenes, num_samples, num_agents = scored.shape[:3]
-        flat = scored.transpose(0, 1).reshape(
-            num_samples, num_scenes * num_agents, *scored.shape[3:]
-        )
-        per_row = torch.stack([map_rows(sample) for sample in flat])  # (M, B * A)
-        per_row = per_row.reshape(num_samples, num_scenes, num_agents) * agent_mask
-        scores = scores + per_row.sum(dim=-1).transpose(0, 1)
-    return scores.argmin(dim=1), scores
-
-
-def select_attack_plans(
-    trajectories: Tensor,
-    target_xy: Tensor,
-    controllable: Tensor,
-    targets: Tensor,
-    objective: ObjectiveConfig,
-    map_rows: Callable[[Tensor], Tensor] | None,
-    horizon: int = SELECTION_HORIZON,
-) -> Tensor:
-    """Per controllable vehicle, the index of the best of its M sampled plans by
-    ``lambda_adv * L_adv + lambda_map * L_map`` (module docstring): the guidance objective's
-    two terms, ``L_map`` over the first ``horizon`` steps, against the targets' plans as
-    given (``L_sep`` is left to guidance).
-
-    Args:
-        trajectories: ``(B, M, A, T, 4)`` the M samples of every agent's plan.
-        target_xy: ``(B, A, T, 2)`` [m] the plans the targets follow (held fixed, as
-            guidance holds them).
-        controllable: ``(B, A)`` bool, the vehicles to choose for (``A_c``).
-        targets: ``(B, A)`` bool, the agents ``L_adv`` pulls toward
-            (:func:`~policies.learned.guidance_losses.target_rows`).
-        objective: the weights, ``L_adv``'s horizon and temperature.
-        map_rows: ``(M * C, T_s, 4) -> (M * C,)`` the map term of the C controllable rows,
-            sample-major (sample 0's C rows in ``controllable.nonzero()`` order, then
-            sample 1's, ...: the rows of a map term built for ``rows.repeat(M)``), or None
-            (no map term).
-        horizon: steps of the map term.
-
-    Returns:
-        ``(B, A)`` int64 indices into M; 0 outside ``controllable``.
-    """
-    num_scenes, num_samples = trajectories.shape[:2]
-    pick = torch.zeros(controllable.shape, dtype=torch.long, device=trajectories.device)
-    scene, agent = torch.nonzero(controllable, as_tuple=True)
-    if scene.numel() == 0:
-        return pick
-    rows = trajectories[scene, :, agent].transpose(0, 1).flatten(0, 1)  # (M * C, T, 4)
-    per_row_targets = target_xy[scene].repeat(num_samples, 1, 1, 1)  # (M * C, A, T, 2)
-    valid = targets[scene].repeat(num_samples, 1)
-    adv, _ = adversarial_rows(
-        rows[..., :2], per_row_targets, objective.horizon, valid, False, objective.adv_temperature
-    )
-    score = objective.lambda_adv * adv
-    if map_rows is not None and objective.lambda_map:
-        score = score + objective.lambda_map * map_rows(rows[:, :horizon])
-    pick[scene, agent] = score.reshape(num_samples, -1).argmin(dim=0)
-    return pick
-
-
 __all__ = [
-    "SELECTION_HORIZON",
+    "OVERLAP_HORIZON",
     "overlap_gradient",
     "overlap_scores",
     "scored_pairs",
-    "select_attack_plans",
-    "select_joint_plans",
 ]
