@@ -41,7 +41,7 @@ of boxes is at least ``STOP_MARGIN`` (0.25 m) apart: after the last overlap is r
 Adam's momentum carries the plans a little further apart, and stopping as soon as the
 gradient vanishes (no margin) tripled the unguided generator's non-ego collision scenes
 in closed loop, while a 0.25 m margin keeps them near those of running every step at a
-fraction of the steps (docs/REALISM.md, round 15). In a batched call each scene stops on
+fraction of the steps. In a batched call each scene stops on
 its own, as it would alone: its rows keep their correction from then on and leave the
 loop (the later steps roll out and score only the scenes still going), and the loop ends
 when every scene has stopped.
@@ -49,11 +49,11 @@ when every scene has stopped.
 The guided adversaries leave out the pairs that guidance decides (``exempt``): a vehicle
 of the controllable set ``A_c`` and one of its targets. Correcting them only pulled the
 base plan that guidance starts from away from the target, a tug of war that cost steps
-every cycle (docs/REALISM.md, round 15); the unguided generator (``k = 0``) has no such
+every cycle; the unguided generator (``k = 0``) has no such
 pairs, and without ``L_adv`` (``lambda_adv = 0``) guidance pulls no pair together, so
 every pair is corrected. ``steps = 0`` leaves the plans as they are; the MeanFlow
-adversaries take ``DEFAULT_AVOID_STEPS`` (20) by default (docs/REALISM.md, rounds 8, 9
-and 14: 20 steps leave half the overlaps and centre off-road steps of 10).
+adversaries take ``DEFAULT_AVOID_STEPS`` (20) by default (20 steps leave half the
+overlaps and centre off-road steps of 10).
 """
 
 from __future__ import annotations

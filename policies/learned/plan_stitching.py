@@ -10,10 +10,9 @@ plans had about twice the p95 jerk of the steps within a plan).
 ``AdversaryConfig.stitch_steps`` sets the length (None, the default: 15 steps = 1.5 s
 blending first, 5 blending after planning; 0 switches at once). A blend longer than the
 planning interval reaches into the next re-plan's blend, so each executed action is a
-weighted mean of the last few plans; it damps the generator's plan-to-plan noise
-(docs/REALISM.md, round 11).
+weighted mean of the last few plans; it damps the generator's plan-to-plan noise.
 
-**Blending first** (``RiskFlowAdversary(stitch_first=True)``: the default of
+**Blending first** (the MeanFlow adversaries:
 ``RiskFlowAdversary``, ``NominalGenerator`` and STRIVE-style, whatever their generator,
 over ``DEFAULT_FIRST_STITCH_STEPS`` = 15 steps). Blended after planning, a long
 blend delays every correction that planning made, the avoidance steps' too, and costs
@@ -27,7 +26,7 @@ correction blends delay the avoidance and cost off-road steps); after planning o
 guided rows are blended (guidance changed them after the blend).
 ``AdversaryConfig.stitch_steps=None`` (the default) resolves to 15 steps blending first
 and to ``DEFAULT_STITCH_STEPS`` (5) blending after planning (the diffusion baselines, the
-raw base); docs/REALISM.md, rounds 11 and 12.
+raw base).
 
 **Holding at rest** (``AdversaryConfig.hold_distance``, ``DEFAULT_HOLD_DISTANCE`` = 4 m by
 default; 0 turns it off). A vehicle at rest
@@ -38,8 +37,8 @@ generator's plans for a standing vehicle carry zero-mean acceleration noise (abo
 m/s^2 per step on the real scenes), which the bound rectifies into forward motion, and the
 yaw rate turns a unicycle in place; re-planned every 0.5 s, parked cars creep 1-3 m and
 touch their neighbours in rows of parked cars. A plan that moves the vehicle by more than
-``hold_distance`` (a start from a queue) runs as it is. docs/REALISM.md, rounds 8 and 9,
-has the measurements (at 4 m, 97% of the real samples' parked cars stay within 2 m).
+``hold_distance`` (a start from a queue) runs as it is. At 4 m, 97% of the real samples'
+parked cars stay within 2 m.
 
 :class:`PlanStitching` is a mixin of :class:`~policies.learned.plan_buffer.PlanBufferPolicy`
 (``plan_scenes`` calls :meth:`PlanStitching._shape`, holding at rest,

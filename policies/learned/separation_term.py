@@ -2,8 +2,8 @@
 (:class:`~policies.learned.guidance_losses.ObjectiveConfig`, ``lambda_sep``): the summed
 squared penetration depth of every pair of guided boxes of a scene over the guidance
 horizon, so that the guided vehicles do not converge on each other. Not in the RiskFlow
-paper's objective (``lambda_sep = 0`` drops it); docs/REALISM.md rounds 16-17 have what it
-buys.
+paper's objective (``lambda_sep = 0`` drops it): without it several guided vehicles
+converge on one target as a swarm.
 """
 
 from __future__ import annotations

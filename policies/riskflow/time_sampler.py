@@ -12,7 +12,7 @@ The sampler calls the model at one pair only, ``(t, r) = (0, 1)`` (one step from
 noise), which the logit-normal draws almost never come near (about 1% of pairs have
 ``t < 0.05``, under 0.1% have ``r > 0.95``). ``one_step_fraction`` sets that share of
 pairs to exactly ``(0, 1)``, so the loss (and its realism penalties) sees the plan the
-sampler makes (docs/REALISM.md, round 23).
+sampler makes.
 """
 
 from __future__ import annotations
