@@ -1,15 +1,17 @@
 """Planning throughput of the K = 5 adversary: B scenes per call vs B one-scene calls.
 
-Issue 18, table 1. The shipped checkpoint plans the first B shipped evaluation scenes
+The ``--method`` adversary (default ``riskflow``, built by
+:func:`policies.registry.build_policy` with the library's defaults: the realistic base;
+``riskflow-raw`` is the raw generator) plans the first B shipped evaluation scenes
 (``shipped_bank("eval")``, each reset in its own env) in two ways, measured in one run:
 
 * **batched**: :class:`policies.learned.batched_adversary.BatchedAdversary` plans all B
   scenes in one call (one encoder pass, one generator pass, one guidance loop);
-* **one at a time**: today's loop, B policy copies each planning its own scene
-  (``RiskFlowAdversary.plan``, the one-scene path).
+* **one at a time**: B policy copies each planning its own scene (``plan``, the
+  one-scene path).
 
-Both run the same cycle (window, encoder, MeanFlow pass, TTC ranking, ``--guidance-steps``
-Adam steps on the top-``--k`` vehicles, plan stitching) on the same views. Reported per B:
+Both run the same cycle (window, encoder, MeanFlow pass, avoidance steps, TTC ranking,
+the guidance steps on the top-``--k`` vehicles, plan stitching) on the same views. Reported per B:
 planning calls per second, scenes planned per second and the ratio of the batched
 scenes/s to the loop's. Rounds are interleaved (batched, then loop, per B) and the best
 round of each is reported (the least disturbed one on a shared machine).
@@ -20,7 +22,8 @@ over the scenes' rows: one generator forward and backward pass per step for all 
 guided chain for all B scenes; ``--diffusion-steps`` levels, DDIM below the model's 100).
 
     python benchmarks/adversarial_throughput.py [--scenes 1 8 32] [--rounds 3] [--device cpu]
-    python benchmarks/adversarial_throughput.py --device cuda --loop-device cpu  # GPU vs today
+    python benchmarks/adversarial_throughput.py --device cuda --loop-device cpu  # GPU vs CPU
+    python benchmarks/adversarial_throughput.py --method riskflow-raw
     python benchmarks/adversarial_throughput.py --method strive --scenes 1 8
     python benchmarks/adversarial_throughput.py --method ctg --diffusion-steps 10
 """
@@ -31,14 +34,13 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from methods import make_policy
 from tqdm import tqdm
 
 import riskflow_env
-from policies.baselines.diffusion.policy import DiffusionAdversary
-from policies.baselines.strive import StriveAdversary
 from policies.dataclass_cli import parse_dataclass
 from policies.learned.batched_adversary import BatchedAdversary
-from policies.riskflow.policy import RiskFlowAdversary
+from policies.registry import DIFFUSION_STEPS_OPTION, METHODS, method_spec
 from riskflow_env.scenarios import shipped_bank
 from riskflow_env.view import SceneView
 
@@ -50,12 +52,13 @@ class Options:
     scenes: tuple[int, ...] = (1, 8, 32)
     """scenes per planning call (B)"""
     method: str = "riskflow"
-    """'riskflow' (output-space guidance), 'strive' (STRIVE-style latent optimisation) or a
-    diffusion baseline ('ctg', 'ctgpp', 'ccdiff')"""
+    """an adversary of riskflow-eval --list: 'riskflow' (output-space guidance),
+    'riskflow-raw' (on the raw generator), 'strive' (STRIVE-style latent optimisation), a
+    diffusion baseline ('ctg', 'ctgpp', 'ccdiff'), ..."""
     k: int = 5
     """size of the controllable set A_c in each scene"""
-    guidance_steps: int = 30
-    """K_g guidance steps per cycle (riskflow, strive)"""
+    guidance_steps: int | None = None
+    """K_g guidance steps per cycle (riskflow, strive); default: the method's"""
     diffusion_steps: int | None = None
     """denoising levels of the diffusion baselines: None for all (DDPM), fewer for DDIM"""
     rounds: int = 3
@@ -74,20 +77,25 @@ class Options:
     cpu, so ``--device cuda --loop-device cpu`` compares batched GPU planning with it"""
 
 
-METHODS = {"riskflow": RiskFlowAdversary, "strive": StriveAdversary}
-DIFFUSION = ("ctg", "ctgpp", "ccdiff")
+# the adversaries: methods with a controllable set (the reference traffic and the unguided
+# generators have none)
+ADVERSARIES = tuple(name for name, spec in METHODS.items() if spec.uses_k)
 
 
-def make_policy(options: Options, device: str, threads: int, like=None):
+def build(options: Options, device: str, threads: int, like=None):
     """The ``--method`` adversary on ``device``; ``like``: a policy whose model it shares."""
-    common = {"k": options.k, "device": device, "threads": threads}
-    if options.method in DIFFUSION:
-        models = {} if like is None else {"denoiser": like.denoiser, "normalizer": like.normalizer}
-        return DiffusionAdversary(
-            variant=options.method, sampling_steps=options.diffusion_steps, **common, **models
-        )
-    models = {} if like is None else {"generator": like.model, "normalizer": like.normalizer}
-    return METHODS[options.method](guidance_steps=options.guidance_steps, **common, **models)
+    spec, extra = method_spec(options.method), {"threads": threads}
+    if spec.diffusion:
+        if options.diffusion_steps is not None:
+            extra[DIFFUSION_STEPS_OPTION] = options.diffusion_steps
+        if like is not None:
+            extra |= {"denoiser": like.denoiser, "normalizer": like.normalizer}
+    else:
+        if options.guidance_steps is not None:
+            extra["guidance_steps"] = options.guidance_steps
+        if like is not None:
+            extra |= {"generator": like.model, "normalizer": like.normalizer}
+    return make_policy(options.method, extra, k=options.k, device=device)
 
 
 def _parse(argv: list[str] | None = None) -> Options:
@@ -149,26 +157,22 @@ def main(argv: list[str] | None = None) -> list[dict]:
     planning of all B scenes], ``phases`` of the last batched call and ``loop_phases``
     summed over the last loop's calls [s])."""
     options = _parse(argv)
-    if options.method not in (*METHODS, *DIFFUSION):
-        choices = sorted((*METHODS, *DIFFUSION))
-        raise SystemExit(f"--method must be one of {choices}, got {options.method!r}")
+    if options.method not in ADVERSARIES:
+        raise SystemExit(f"--method must be one of {list(ADVERSARIES)}, got {options.method!r}")
     loop_device = options.loop_device or options.device
-    policy = make_policy(options, loop_device, options.threads)
+    policy = build(options, loop_device, options.threads)
     batched_threads = options.batched_threads or options.threads
     same_device = loop_device == options.device
     # the same model (the same checkpoint), B scenes per call
-    batched = make_policy(
-        options, options.device, batched_threads, like=policy if same_device else None
-    )
+    batched = build(options, options.device, batched_threads, like=policy if same_device else None)
     views = evaluation_views(max(options.scenes))
     agents = [int(v.present.sum()) for v in views]
-    if options.method in DIFFUSION:
-        steps = options.diffusion_steps or "all"
-        planning = f"{options.method}, {steps} denoising levels"
+    if method_spec(options.method).diffusion:
+        planning = f"{options.diffusion_steps or 'all'} denoising levels"
     else:
-        planning = f"K_g = {options.guidance_steps}"
+        planning = f"K_g = {options.guidance_steps or 'the default'}"
     print(
-        f"{type(policy).__name__}, K = {options.k}, {planning}, shipped "
+        f"{options.method} ({type(policy).__name__}), K = {options.k}, {planning}, shipped "
         f"checkpoint, device {options.device} (loop: {loop_device}), CPU threads: "
         f"{options.threads} one at a time, {batched_threads} batched; shipped "
         f"evaluation scenes 0..{len(views) - 1} ({min(agents)}-{max(agents)} vehicles, mean "

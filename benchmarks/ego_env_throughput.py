@@ -1,15 +1,15 @@
-"""Ego env-steps per second against the K = 5 RiskFlow adversary: the vector env vs today's loop.
+"""Ego env-steps per second against the K = 5 RiskFlow adversary: the vector env vs a loop.
 
-Issue 18, table of deliverable 3. N scenes of the ego's training env, the other vehicles
-driven by the shipped-checkpoint RiskFlow adversary (``--k``, ``--guidance-steps``,
-re-planning every ``--planning-interval`` s), the ego holding speed and heading (action
-0), finished episodes reset (scenes drawn from the shipped ``--split`` bank), in two ways
-measured in one run:
+N scenes of the ego's training env, the other vehicles driven by the ``--method``
+adversary (default ``riskflow``, built by :func:`policies.registry.build_policy` with the
+library's defaults: the shipped checkpoint on the realistic base; ``riskflow-raw`` is the
+raw generator), the ego holding speed and heading (action 0), finished episodes reset
+(scenes drawn from the shipped ``--split`` bank), in two ways measured in one run:
 
 * **vector**: :class:`policies.rl.vector_env.EgoVectorEnv`, the N scenes stepped by one
   batched transition and planned by one ``BatchedAdversary`` call per cycle;
-* **loop**: today's path, N ``EgoTrainingEnv`` (``EgoEnv``) stepped one after the other
-  in one process (as SB3's ``DummyVecEnv`` does), each adversary planning its own scene.
+* **loop**: N ``EgoTrainingEnv`` (``EgoEnv``) stepped one after the other in one process
+  (as SB3's ``DummyVecEnv`` does), each adversary planning its own scene.
 
 Both see the same scenes (seeds ``b``), the same model and the same actions. Reported per
 N: ego env-steps per second (N x steps / seconds) of each and their ratio. Each round
@@ -17,7 +17,7 @@ times ``--steps`` steps of all N scenes after one warm-up step; rounds alternate
 then loop) and the best of ``--rounds`` is kept.
 
     python benchmarks/ego_env_throughput.py [--scenes 1 8 32] [--steps 20] [--device cpu]
-    python benchmarks/ego_env_throughput.py --device cuda --loop-device cpu  # GPU vs today
+    python benchmarks/ego_env_throughput.py --device cuda --loop-device cpu  # GPU vs CPU
 """
 
 from __future__ import annotations
@@ -27,14 +27,16 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from methods import make_policy
 from tqdm import tqdm
 
 from policies.dataclass_cli import parse_dataclass
-from policies.riskflow.policy import RiskFlowAdversary
+from policies.registry import method_spec
 from policies.rl.envs import EgoTrainingEnv
 from policies.rl.vector_env import EgoVectorEnv
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
+from riskflow_env.view import ScenePolicy
 from riskflow_env.wrappers import EgoEnv
 
 
@@ -48,12 +50,12 @@ class Options:
     """timed steps of all N scenes per round"""
     rounds: int = 1
     """timed rounds per N and way; the best is reported"""
+    method: str = "riskflow"
+    """the adversary (riskflow-eval --list; e.g. riskflow-raw, strive)"""
     k: int = 5
     """size of the controllable set A_c in each scene"""
-    guidance_steps: int = 30
-    """K_g guidance steps per planning cycle"""
-    planning_interval: float = 0.5
-    """re-planning interval [s]"""
+    guidance_steps: int | None = None
+    """K_g guidance steps per planning cycle; default: the method's"""
     episode_steps: int = 100
     """episode length [steps of 0.1 s]"""
     split: str = "eval"
@@ -63,8 +65,12 @@ class Options:
     device: str = "cpu"
     """torch device (cuda where a GPU is present)"""
     loop_device: str | None = None
-    """torch device of the loop's adversaries (None: --device); today's loop runs on cpu, so
-    ``--device cuda --loop-device cpu`` compares the vector env on the GPU with it"""
+    """torch device of the loop's adversaries (None: --device); ``--device cuda
+    --loop-device cpu`` compares the vector env on the GPU with the loop on the CPU"""
+
+    def __post_init__(self) -> None:
+        if not method_spec(self.method).uses_k:
+            raise ValueError(f"--method: {self.method!r} is not an adversary (it has no K)")
 
 
 def _parse(argv: list[str] | None = None) -> Options:
@@ -81,8 +87,8 @@ def _time(step, steps: int) -> float:
 
 
 def measure(
-    policy: RiskFlowAdversary,
-    loop_policy: RiskFlowAdversary,
+    policy: ScenePolicy,
+    loop_policy: ScenePolicy,
     count: int,
     config: EnvConfig,
     options: Options,
@@ -125,22 +131,19 @@ def main(argv: list[str] | None = None) -> list[dict]:
     options = _parse(argv)
     torch.set_num_threads(options.threads)
 
-    def adversary(device: str) -> RiskFlowAdversary:
-        return RiskFlowAdversary(
-            k=options.k,
-            guidance_steps=options.guidance_steps,
-            planning_interval=options.planning_interval,
-            device=device,
-            threads=options.threads,
-        )
+    steps = {} if options.guidance_steps is None else {"guidance_steps": options.guidance_steps}
+
+    def adversary(device: str) -> ScenePolicy:
+        extra = {"threads": options.threads, **steps}
+        return make_policy(options.method, extra, k=options.k, device=device)
 
     policy = adversary(options.device)
     loop_device = options.loop_device or options.device
     loop_policy = policy if loop_device == options.device else adversary(loop_device)
     config = EnvConfig(episode_steps=options.episode_steps)
     print(
-        f"ego env-steps/s, RiskFlow adversary K = {options.k}, K_g = {options.guidance_steps}, "
-        f"re-plan every {options.planning_interval} s, shipped checkpoint, device "
+        f"ego env-steps/s, {options.method} adversary K = {options.k}, K_g = "
+        f"{options.guidance_steps or 'the default'}, shipped checkpoint, device "
         f"{options.device} (loop: {loop_device}), {options.threads} torch thread(s); shipped "
         f"{options.split} scenes, "
         f"{options.episode_steps}-step episodes; best of {options.rounds} round(s) of "

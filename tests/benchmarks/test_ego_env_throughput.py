@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from tests.benchmarks.scripts import load_benchmark
 
 
@@ -13,3 +15,11 @@ def test_prints_a_row_per_scene_count(capsys):
     assert all(row["vector"] > 0 and row["loop"] > 0 for row in rows)
     out = capsys.readouterr().out
     assert "vector steps/s" in out and "ratio" in out
+
+
+def test_the_raw_generator_and_a_method_without_k(capsys):
+    bench = load_benchmark("ego_env_throughput")
+    rows = bench.main(["--scenes", "1", "--steps", "2", "--method", "riskflow-raw"])
+    assert rows[0]["vector"] > 0 and "riskflow-raw adversary" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        bench.main(["--method", "bits"])
