@@ -343,19 +343,22 @@ def _sum_to_shape(x: Array, shape: tuple) -> Array:
     return xp.sum(x, axis=stretched, keepdims=True) if stretched else x
 
 
-def step(state: Array, action: Array, config: DynamicsConfig = DEFAULT_CONFIG) -> Array:
+def step(
+    state: Array, action: Array, config: DynamicsConfig = DEFAULT_CONFIG, clip: bool = True
+) -> Array:
     """Advance one time step (:func:`rollout` with ``T = 1``).
 
     Args:
         state: ``(..., 4)`` ``(x [m], y [m], v [m/s], psi [rad])``.
         action: ``(..., 2)`` ``(accel [m/s^2], yaw_rate [rad/s])``, clipped to bounds.
         config: time step ``dt`` [s] and bounds.
+        clip: False when the caller has clipped the actions already (the simulator).
 
     Returns:
         ``(..., 4)`` the state ``dt`` later (leading dimensions broadcast).
     """
     _require_last_dim(action, ACTION_DIM, "action")
-    return rollout(state, action[..., None, :], config)[..., 0, :]
+    return rollout(state, action[..., None, :], config, clip)[..., 0, :]
 
 
 def inverse(states: Array, config: DynamicsConfig = DEFAULT_CONFIG, clip: bool = False) -> Array:

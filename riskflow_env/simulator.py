@@ -144,7 +144,7 @@ def advance(
     xp = namespace(current, actions)
     live = active[..., None]
     applied = xp.where(live, dynamics.clip_actions(actions, config), 0.0)
-    moved = dynamics.step(current, applied, config)
+    moved = dynamics.step(current, applied, config, clip=False)  # clipped once, above
     halt = present[..., None] & asarray_like(_SPEED_COLUMN, present)  # zero a done car's speed
     return xp.where(live, moved, xp.where(halt, 0.0, current)), applied
 
