@@ -1,10 +1,11 @@
 """``riskflow-eval`` per-scene vs batched: the wall time of one evaluation both ways, in one run.
 
-Issue 18, deliverable 5. Runs the same evaluation (default: the 100-scene K = 5 RiskFlow
-evaluation, 10 s episodes, IDM ego, shipped checkpoint) with ``riskflow-eval``, each in a
-fresh process of its own, one after the other:
+Runs the same evaluation (default: the 100-scene K = 5 evaluation of ``riskflow`` as it
+ships, 10 s episodes, IDM ego; ``--methods`` takes any of ``riskflow-eval --list``, e.g.
+``riskflow-raw``) with ``riskflow-eval``, each in a fresh process of its own, one after
+the other:
 
-* **per-scene**: ``--batch-scenes 1``, today's path, one ``ClosedLoop`` rollout at a time;
+* **per-scene**: ``--batch-scenes 1``, one ``ClosedLoop`` rollout at a time;
 * **batched**: ``--batch-scenes N`` for each N of ``--batch``: N scenes stepped by one
   ``SceneBatch`` transition, the adversary planning every scene due in one call.
 
@@ -206,10 +207,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
         diff = f"{row['max_diff']:.1e}" if "max_diff" in row else "-"
         differs = f"{row['outcome_differs']} of {row['rows']}" if "rows" in row else "-"
         apart = f"{row['apart']} of {row['rows']}" if "rows" in row else "-"
+        # riskflow-eval prints its rollout time to 0.1 s: a tiny run may read 0
+        ratio = f"{base / row['rollout_s']:.2f}x" if row["rollout_s"] > 0 else "n/a"
         print(
             f"{row['batch']:>12}{row['rollouts']:>10}{row['rollout_s']:>14.1f}"
-            f"{row['command_s']:>13.1f}{base / row['rollout_s']:>7.2f}x"
-            f"{diff:>12}{apart:>13}{differs:>17}"
+            f"{row['command_s']:>13.1f}{ratio:>8}{diff:>12}{apart:>13}{differs:>17}"
         )
     print(
         "\nrollouts [s]: riskflow-eval's rollout wall time; command: the process's (start-up "

@@ -110,8 +110,9 @@ def training_steps(model: RiskFlowGenerator, options: Options) -> tuple[float, f
     return meanflow_ms, flow_matching_ms
 
 
-def main() -> None:
-    options = _parse()
+def main(argv: list[str] | None = None) -> dict[str, float]:
+    """Print the table; returns its rows (measurement -> median ms)."""
+    options = _parse(argv)
     if options.threads:
         torch.set_num_threads(options.threads)
     torch.manual_seed(0)
@@ -142,6 +143,7 @@ def main() -> None:
     print(f"{'MeanFlow training throughput [scenes/s]':<{width}}  {throughput:9.1f}")
     agents = throughput * options.train_agents
     print(f"{'MeanFlow training throughput [agent plans/s]':<{width}}  {agents:9.1f}")
+    return dict(rows)
 
 
 if __name__ == "__main__":

@@ -113,7 +113,9 @@ def miss_vs_hit(path: Path, crop: bool, repeats: int, root: Path) -> tuple[float
     return statistics.median(misses), statistics.median(hits), size
 
 
-def main(options: Options) -> None:
+def main(argv: list[str] | None = None) -> None:
+    """Print both tables."""
+    options = parse_dataclass(Options, argv, "scenarionet_dataset", __doc__.split("\n")[0])
     source = Dataset(options.data, map_cache=False)
     with tempfile.TemporaryDirectory() as scratch:
         root = Path(scratch)
@@ -139,4 +141,4 @@ def main(options: Options) -> None:
 
 
 if __name__ == "__main__":
-    main(parse_dataclass(Options, None, "scenarionet_dataset", __doc__.split("\n")[0]))
+    main()

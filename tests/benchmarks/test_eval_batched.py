@@ -8,6 +8,19 @@ from tests.benchmarks.scripts import load_benchmark
 
 
 def test_prints_the_per_scene_and_batched_rows(capsys):
+    """The smoke test: one per-scene and one batched riskflow-eval process, the smallest
+    run (its rollout time may read 0.0 s: the ratio says n/a, no division by zero)."""
+    bench = load_benchmark("eval_batched")
+    rows = bench.main(["--scenes", "2", "--batch", "2", "--duration", "0.3"])
+    assert [row["batch"] for row in rows] == [1, 2]
+    assert all(row["rollouts"] == 2 for row in rows)
+    assert rows[1]["rows"] == 2 and rows[1]["outcome_differs"] == 0
+    out = capsys.readouterr().out
+    assert "batch-scenes" in out and "ratio" in out and "riskflow-eval --methods riskflow" in out
+
+
+@pytest.mark.slow  # three riskflow-eval processes
+def test_perturbed_per_scene_rows(capsys):
     """Per-scene, batched, and the per-scene path with the generator's u0 perturbed
     (``--perturb``): the noise reaches the rollouts (their rows move), rounding does not
     move the batched rows past float tolerance here."""
@@ -50,6 +63,7 @@ def test_rows_with_a_number_only_one_run_has_are_apart():
     assert result == {"max_diff": 1.0, "apart": 1, "outcome_differs": 1, "rows": 2}
 
 
+@pytest.mark.slow  # two riskflow-eval processes of a diffusion baseline
 def test_a_diffusion_baseline_with_fewer_levels(capsys):
     """``--methods ctg --diffusion-steps 2``: the diffusion baseline's chains batched over
     the scenes, and the rows match the per-scene path's."""

@@ -13,6 +13,17 @@ pytest.importorskip(
 TINY = "--scenes 3 --episode-steps 10 --guidance-steps 1 --n-steps 4 --batch-size 8 --n-epochs 1"
 
 
+def test_one_row_prints_the_table(capsys):
+    """The smoke test: the vector env's row alone, one PPO update of 16 decisions."""
+    bench = load_benchmark("ppo_throughput")
+    extra = "--scenes 1 --episode-steps 5 --guidance-steps 1 --n-steps 1 --batch-size 16"
+    rows = bench.main(["--decisions", "16", "--rows", "vector", "--extra", f"{extra} --n-epochs 1"])
+    assert [row["row"] for row in rows] == ["vector"] and rows[0]["fps"] > 0
+    out = capsys.readouterr().out
+    assert "decisions/s" in out and "ratio = row / vector" in out
+
+
+@pytest.mark.slow  # two PPO runs, one of them with subprocess envs, one with two shards
 def test_prints_the_table(capsys):
     bench = load_benchmark("ppo_throughput")
     rows = bench.main(["--decisions", "64", "--rows", "recipe", "vector-shards2", "--extra", TINY])
