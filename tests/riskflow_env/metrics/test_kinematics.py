@@ -12,6 +12,7 @@ from riskflow_env.metrics import (
     kdd_over_records,
     kinematic_samples,
 )
+from riskflow_env.metrics.kinematics import kinematic_p95
 from tests.riskflow_env.metrics.records import record_of
 
 STEPS = 40
@@ -68,3 +69,27 @@ def test_pooled_over_records(rolled, straight):
     # Generated accelerations: half 0, half -2; reference all 0: W1 = 0.5 * 2 = 1.
     result = kdd_over_records([record_of(cruise, cruise), record_of(braking, cruise)])
     assert result["longitudinal_acceleration"] == pytest.approx(1.0)
+
+
+def test_samples_of_a_constant_turn_and_a_constant_braking_and_their_p95(rolled):
+    """Agent 0 turns at omega = 0.2 rad/s at a constant 10 m/s (lateral v omega = 2
+    m/s^2), agent 1 brakes straight at a = -3 m/s^2 from 20 m/s: every sample sits at
+    these values, jerk is 0, and the p95 of |value| over both agents is 3 (longitudinal)
+    and 2 (lateral)."""
+    turning = rolled(np.array([0.0, 0.0, 10.0, 0.0]), actions(0.0, 0.2))
+    braking = rolled(np.array([0.0, 10.0, 20.0, 0.0]), actions(-3.0))
+    tracks = np.stack([turning, braking])
+    samples = kinematic_samples(record_of(tracks, tracks)).generated
+    steps = STEPS - 1
+    expected_long = np.concatenate([np.zeros(steps), np.full(steps, -3.0)])
+    expected_lat = np.concatenate([np.full(steps, 2.0), np.zeros(steps)])
+    np.testing.assert_allclose(samples["longitudinal_acceleration"], expected_long, atol=1e-9)
+    np.testing.assert_allclose(samples["lateral_acceleration"], expected_lat, atol=1e-9)
+    np.testing.assert_allclose(samples["jerk"], 0.0, atol=1e-8)
+    p95 = kinematic_p95(tracks, np.ones(tracks.shape[:2], bool), 0.1)
+    assert p95 == {
+        "longitudinal_acceleration": pytest.approx(3.0),
+        "lateral_acceleration": pytest.approx(2.0),
+        "jerk": pytest.approx(0.0, abs=1e-8),
+    }
+    assert np.isnan(kinematic_p95(tracks, np.zeros(tracks.shape[:2], bool), 0.1)["jerk"])

@@ -18,6 +18,7 @@ from riskflow_env.metrics.wosac_features import (
     box_signed_distance,
     interaction_features,
     kinematic_features,
+    wosac_features,
 )
 from tests.riskflow_env.metrics.records import record_of
 
@@ -67,6 +68,48 @@ def test_kinematic_features_of_a_constant_turn(rolled):
     assert accel_ok.sum() == STEPS - 4
 
 
+def test_kinematic_features_of_constant_accelerations():
+    """Agent 0 drives straight at a = 1.5 m/s^2 from 5 m/s; agent 1 turns in place at
+    alpha = 0.5 rad/s^2 from rest. Central differences are exact on these quadratics:
+    speed 5 + a t, linear acceleration a, angular speed alpha t, angular acceleration
+    alpha, wherever the neighbouring steps exist."""
+    dt, accel, alpha = 0.1, 1.5, 0.5
+    time = dt * np.arange(STEPS)
+    tracks = np.zeros((2, STEPS, 4))
+    tracks[0, :, 0] = 5.0 * time + 0.5 * accel * time**2
+    tracks[1, :, 3] = 0.5 * alpha * time**2
+    features = kinematic_features(tracks, np.ones((2, STEPS), bool), dt)
+    inner, inner2 = slice(1, -1), slice(2, -2)
+    np.testing.assert_allclose(features["linear_speed"][0][0, inner], 5.0 + accel * time[inner])
+    np.testing.assert_allclose(features["linear_acceleration"][0][0, inner2], accel)
+    np.testing.assert_allclose(features["angular_speed"][0][1, inner], alpha * time[inner])
+    np.testing.assert_allclose(features["angular_acceleration"][0][1, inner2], alpha)
+    np.testing.assert_allclose(features["linear_speed"][0][1, inner], 0.0, atol=1e-12)
+    np.testing.assert_allclose(features["angular_speed"][0][0, inner], 0.0, atol=1e-12)
+
+
+def test_nearest_object_collision_flag_and_road_edge(road):
+    """Three 4 m x 2 m boxes on the 10 m wide box road, heading along it: a touches b
+    nose to tail (distance 0: a collision, as in the env), c stands beside b, 2.5 m
+    between the boxes; a alone has nothing near. Road edge: the SDF of the footprint
+    point furthest out, a corner."""
+    states = np.zeros((3, 1, 4))
+    states[:, 0, :2] = [[10.0, 0.0], [14.0, 0.0], [14.0, 4.5]]  # a, b, c
+    sizes = np.full(3, 4.0), np.full(3, 2.0)
+    out = interaction_features(states, np.ones((3, 1), bool), *sizes)
+    np.testing.assert_allclose(out["distance_to_nearest_object"][:, 0], [0.0, 0.0, 2.5])
+    assert out["collision_indication"][:, 0].tolist() == [True, True, False]
+    valid = np.array([[True], [False], [False]])  # only a is in the scene
+    alone = interaction_features(states, valid, *sizes)
+    assert alone["distance_to_nearest_object"][0, 0] == np.inf
+    assert not alone["collision_indication"][0, 0]
+    features = wosac_features(states, np.ones((3, 1), bool), *sizes, 0.1, road)
+    edge, offroad = features["distance_to_road_edge"][0], features["offroad_indication"][0]
+    # a, b: corners at |y| = 1, 4 m inside; c: corners at y = 5.5, 0.5 m outside
+    np.testing.assert_allclose(edge[:, 0], [-4.0, -4.0, 0.5], atol=0.25)  # 0.5 m raster
+    assert offroad[:, 0].tolist() == [False, False, True]
+
+
 def test_histogram_and_bernoulli_estimators():
     config = FeatureConfig(1.0, 0.0, 1.0, 2, 1.0)
     sim = np.array([0.2, 0.3, 0.4]).reshape(3, 1, 1)  # 3 rollouts, 1 agent, 1 step
@@ -83,15 +126,51 @@ def scene(road, sims, log):
     return [record_of(sim, log, drivable_map=road, num_context=3, scene_id="box") for sim in sims]
 
 
-def test_rollouts_identical_to_the_log_score_near_one(road, straight):
-    log = np.stack([straight(5.0, 8.0, STEPS, y=-2.0), straight(12.0, 8.0, STEPS, y=2.0)])
-    scores = wosac_scene(scene(road, [log] * 8, log))
-    # Every histogram holds all its n samples (8 rollouts x up to 27 scored steps) in the
-    # logged value's bin: p = (n + 0.1) / (n + 0.1 * bins) >= 0.995.
-    for name in WOSAC_2024:
-        assert scores[f"{name}_likelihood"] > 0.995, name
-    assert scores["metametric"] > 0.995 and scores["num_rollouts"] == 8.0
+def _histogram_p(samples: int, bins: int, pseudocount: float = 0.1) -> float:
+    """Probability of the bin that holds all ``samples`` of a smoothed histogram."""
+    return (samples + pseudocount) / (samples + pseudocount * bins)
+
+
+def test_rollouts_identical_to_the_log_score_the_closed_form(road, straight):
+    """Every feature constant in time and every rollout equal to the log: each histogram
+    holds its n samples in the logged value's bin, p = (n + 0.1) / (n + 0.1 * bins), with
+    n = N x the scored steps where the feature is defined (27 scored steps 3..29; speeds
+    need a step either side, accelerations two); the flags are never set, p = (N + 0.001)
+    / (N + 0.002); the metametric and buckets are the weighted means of these."""
+    rollouts = 8
+    # centres 1.5 m off the middle: corners 2.5 m inside the 10 m road (SDF -2.5, mid-bin)
+    log = np.stack([straight(5.0, 8.0, STEPS, y=-1.5), straight(12.0, 8.0, STEPS, y=1.5)])
+    scores = wosac_scene(scene(road, [log] * rollouts, log))
+    steps = {"linear_speed": 26, "linear_acceleration": 25, "angular_speed": 26,
+             "angular_acceleration": 25}  # fmt: skip
+    expected = {}
+    for name, feature in WOSAC_2024.items():
+        if feature.bernoulli:
+            expected[name] = (rollouts + 0.001) / (rollouts + 0.002)
+        else:
+            expected[name] = _histogram_p(rollouts * steps.get(name, 27), feature.num_bins)
+    for name, value in expected.items():
+        assert scores[f"{name}_likelihood"] == pytest.approx(value, rel=1e-12), name
+    weighted = sum(WOSAC_2024[name].weight * value for name, value in expected.items())
+    total = sum(feature.weight for feature in WOSAC_2024.values())
+    assert scores["metametric"] == pytest.approx(weighted / total, rel=1e-12)
+    kinematic = [expected[name] for name in steps]  # four features of equal weight
+    assert scores["kinematic"] == pytest.approx(np.mean(kinematic), rel=1e-12)
+    assert scores["map_based"] == pytest.approx(
+        (0.1 * expected["distance_to_road_edge"] + 0.25 * expected["offroad_indication"]) / 0.35
+    )
+    assert scores["num_rollouts"] == rollouts
     assert wosac_aggregate([scores, scores])["metametric"] == pytest.approx(scores["metametric"])
+
+
+def test_speed_likelihood_of_rollouts_half_at_the_logged_speed(road, straight):
+    """One rollout at the logged 8 m/s, one at 16 m/s: each agent's speed histogram has
+    26 samples in the logged bin and 26 in another, p = (26 + 0.1) / (52 + 10 x 0.1)."""
+    log = np.stack([straight(5.0, 8.0, STEPS, y=-1.5), straight(12.0, 8.0, STEPS, y=1.5)])
+    fast = log.copy()
+    fast[..., 0] = log[:, :1, 0] + 2.0 * (log[..., 0] - log[:, :1, 0])
+    scores = wosac_scene(scene(road, [log, fast], log))
+    assert scores["linear_speed_likelihood"] == pytest.approx(26.1 / 53.0, rel=1e-12)
 
 
 def test_shifted_rollouts_score_lower(road, straight):
