@@ -14,6 +14,12 @@ attribute docstring (the string literal written under it), followed by the defau
     options = parse_dataclass(Options, ["--steps", "5"], prog="tool")
 
 A ``ValueError`` from the dataclass's ``__post_init__`` becomes a usage error (exit 2).
+
+With ``recipes`` (:class:`Recipes`), the command also takes ``--recipe NAME_OR_PATH``: a
+file of field values (JSON types: numbers, strings for paths, lists for tuples, null for
+None) that replace the defaults, so that the flags given beside it override the recipe
+(``riskflow-train --recipe riskflow-default --steps 100``). Its values are checked
+against the field types like the flags' (:func:`field_values`).
 """
 
 from __future__ import annotations
@@ -22,9 +28,12 @@ import argparse
 import ast
 import dataclasses
 import inspect
+import sys
 import textwrap
 import typing
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, TypeVar
 
 T = TypeVar("T")
@@ -47,8 +56,22 @@ def field_docs(cls: type) -> dict[str, str]:
     return docs
 
 
-def dataclass_parser(cls: type, prog: str, description: str = "") -> argparse.ArgumentParser:
-    """An ``ArgumentParser`` with one option per field of the dataclass ``cls``."""
+@dataclass(frozen=True)
+class Recipes:
+    """Where ``--recipe NAME_OR_PATH`` reads its values."""
+
+    read: Callable[[str], Mapping[str, Any]]
+    """NAME_OR_PATH -> {field: value} as read from the file (OSError or ValueError naming
+    what is wrong)"""
+    names: tuple[str, ...] = ()
+    """the shipped recipes' names, listed in the help"""
+
+
+def dataclass_parser(
+    cls: type, prog: str, description: str = "", recipes: Recipes | None = None
+) -> argparse.ArgumentParser:
+    """An ``ArgumentParser`` with one option per field of the dataclass ``cls`` (and
+    ``--recipe`` with ``recipes``)."""
     parser = argparse.ArgumentParser(
         prog=prog, description=description, formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
@@ -70,16 +93,114 @@ def dataclass_parser(cls: type, prog: str, description: str = "") -> argparse.Ar
             )
         flag = field.metadata.get("flag", "--" + field.name.replace("_", "-"))
         parser.add_argument(flag, **kwargs)
+    if recipes is not None:
+        shipped = f" (shipped: {', '.join(recipes.names)})" if recipes.names else ""
+        parser.add_argument(
+            "--recipe",
+            metavar="NAME_OR_PATH",
+            help=f"start from a recipe's values: a shipped recipe's name{shipped} or a .json "
+            "file; the options given on the command line override them",
+        )
     return parser
 
 
+def field_values(cls: type, values: Mapping[str, Any]) -> dict[str, Any]:
+    """``values`` (read from JSON) as the typed field values of the dataclass ``cls``.
+
+    Raises:
+        ValueError: naming the field: an unknown field, or a value of another type than
+            the field's (an int for an int, a number for a float, a string for a str or
+            Path, a list for a tuple, null only for ``X | None``).
+    """
+    if not isinstance(values, Mapping):
+        raise ValueError(f"expected an object of options, got {type(values).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = [field.name for field in dataclasses.fields(cls)]
+    unknown = sorted(set(values) - set(names))
+    if unknown:
+        raise ValueError(f"unknown option(s) {unknown}; the options are {names}")
+    return {name: _typed(hints[name], value, name) for name, value in values.items()}
+
+
+_KINDS = {
+    bool: "true or false",
+    int: "an int",
+    float: "a number",
+    str: "a string",
+    Path: "a path (a string)",
+}
+
+
+def _typed(hint: Any, value: Any, where: str) -> Any:
+    """``value`` as type ``hint`` (:func:`field_values`)."""
+    args = typing.get_args(hint)
+    if typing.get_origin(hint) is tuple:
+        if not isinstance(value, list):
+            raise ValueError(f"{where} must be a list, got {value!r}")
+        return tuple(_typed(args[0], item, f"{where}[{i}]") for i, item in enumerate(value))
+    if type(None) in args:  # X | None
+        if value is None:
+            return None
+        hint = next(arg for arg in args if arg is not type(None))
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    fits = {
+        bool: isinstance(value, bool),
+        int: number and isinstance(value, int),
+        float: number,
+        str: isinstance(value, str),
+        Path: isinstance(value, str),
+    }
+    if hint not in fits:
+        raise TypeError(f"{where}: fields of type {hint} cannot be read from a recipe")
+    if not fits[hint]:
+        raise ValueError(f"{where} must be {_KINDS[hint]}, got {value!r}")
+    return hint(value)
+
+
 def parse_dataclass(
-    cls: type[T], argv: Sequence[str] | None = None, prog: str | None = None, description: str = ""
+    cls: type[T],
+    argv: Sequence[str] | None = None,
+    prog: str | None = None,
+    description: str = "",
+    recipes: Recipes | None = None,
 ) -> T:
-    """Parse ``argv`` (``sys.argv[1:]`` if None) into an instance of the dataclass ``cls``."""
-    parser = dataclass_parser(cls, prog or cls.__name__, description)
+    """Parse ``argv`` (``sys.argv[1:]`` if None) into an instance of the dataclass ``cls``
+    (with ``recipes``, a ``--recipe``'s values replace the defaults)."""
+    parser = dataclass_parser(cls, prog or cls.__name__, description, recipes)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if recipes is not None:
+        _apply_recipe(parser, cls, argv, recipes)
     values = vars(parser.parse_args(argv))
+    if recipes is not None:
+        del values["recipe"]
     try:
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
     except ValueError as err:
         parser.error(str(err))
+
+
+def _apply_recipe(
+    parser: argparse.ArgumentParser, cls: type, argv: list[str], recipes: Recipes
+) -> None:
+    """Set ``parser``'s defaults to the values of the ``--recipe`` in ``argv``, if any (a
+    usage error naming the recipe when it cannot be read or does not fit ``cls``)."""
+    required = [action for action in parser._actions if action.required]
+    for action in required:  # the recipe may give them
+        action.required = False
+    name = parser.parse_known_args(argv)[0].recipe
+    for action in required:
+        action.required = True
+    if name is None:
+        return
+    try:
+        raw = recipes.read(name)
+    except (OSError, ValueError) as err:  # the message names the file
+        parser.error(f"--recipe: {err}")
+    try:
+        values = field_values(cls, raw)
+    except ValueError as err:
+        parser.error(f"--recipe {name}: {err}")
+    for action in parser._actions:
+        if action.dest in values:
+            action.required = False
+    parser.set_defaults(**values)

@@ -5,6 +5,10 @@
     riskflow-data generate --out data/train --scenes 626 --split train --seed 0
     riskflow-data generate --out data/val --scenes 140 --split eval --seed 1
     riskflow-train --data data/train --val-data data/val --out runs/riskflow --lr 5e-4
+    riskflow-train --recipe riskflow-default  # the shipped checkpoint's run (README)
+
+``--recipe NAME_OR_PATH`` starts from a recipe file's values (:mod:`policies.recipes`:
+one per shipped checkpoint); the options given beside it override them.
 
 The loop (batches, Adam, clipping, EMA, validation, checkpoints, ``--resume``) is
 :func:`policies.learned.trainer.fit`; this command picks the objective it runs:
@@ -24,19 +28,22 @@ The loop (batches, Adam, clipping, EMA, validation, checkpoints, ``--resume``) i
 
 from __future__ import annotations
 
+import argparse
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from policies.baselines.diffusion.train import DiffusionObjective
-from policies.dataclass_cli import parse_dataclass
+from policies.dataclass_cli import Recipes, dataclass_parser, parse_dataclass
 from policies.learned.train_options import LoopOptions
 from policies.learned.trainer import CHECKPOINT, GENERATOR, METRICS_LOG, fit
+from policies.recipes import read_recipe, shipped_recipes
 from policies.riskflow.meanflow import MeanFlowObjective
 from policies.riskflow.time_sampler import TimeSampler
 
 GENERATORS = ("meanflow", "diffusion")
+PROG = "riskflow-train"
 
 
 @dataclass(frozen=True)
@@ -97,13 +104,38 @@ def train(options: TrainOptions) -> dict[str, Any]:
     return fit(options, objective(options))
 
 
+def _recipes() -> Recipes:
+    return Recipes(read_recipe, shipped_recipes())
+
+
+def parser() -> argparse.ArgumentParser:
+    """The ``riskflow-train`` command line (``--help``)."""
+    return dataclass_parser(TrainOptions, PROG, __doc__.split("\n")[0], _recipes())
+
+
+def parse_options(argv: Sequence[str] | None = None) -> TrainOptions:
+    """``riskflow-train``'s options from ``argv`` (``sys.argv[1:]`` if None): a
+    ``--recipe``'s values, then the options given (a usage error names what is wrong)."""
+    return parse_dataclass(TrainOptions, argv, PROG, __doc__.split("\n")[0], _recipes())
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``riskflow-train`` console script."""
-    train(parse_dataclass(TrainOptions, argv, "riskflow-train", __doc__.split("\n")[0]))
+    train(parse_options(argv))
     return 0
 
 
-__all__ = ["CHECKPOINT", "GENERATOR", "METRICS_LOG", "TrainOptions", "main", "objective", "train"]
+__all__ = [
+    "CHECKPOINT",
+    "GENERATOR",
+    "METRICS_LOG",
+    "TrainOptions",
+    "main",
+    "objective",
+    "parse_options",
+    "parser",
+    "train",
+]
 
 if __name__ == "__main__":
     sys.exit(main())

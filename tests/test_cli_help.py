@@ -13,7 +13,7 @@ import pytest
 from policies.dataclass_cli import dataclass_parser
 from policies.evaluation.cli import parser as eval_parser
 from policies.evaluation.cli import report_parser
-from policies.train import TrainOptions
+from policies.train import parser as train_parser
 from riskflow_env.scenarios.cli import build_parser as data_parser
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -65,7 +65,7 @@ def test_script_options_have_help_and_defaults(relative, monkeypatch):
     "build",
     [
         data_parser,
-        lambda: dataclass_parser(TrainOptions, "riskflow-train"),
+        train_parser,
         eval_parser,
         report_parser,
     ],

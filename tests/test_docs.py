@@ -85,7 +85,11 @@ SMALLEST: list[tuple[str, str]] = [
         "--scenes 1 --duration 1 --workers 1 --diffusion-steps 2",  # absent: DDPM, 100 levels
     ),
     (r"riskflow-data generate", "--scenes 1 --workers 1"),
-    (r"riskflow-train", "--steps 2 --eval-every 2 --val-windows 2 --batch-size 4"),
+    # --warmup-steps and --stop-step: a recipe's own are larger than --steps 2
+    (
+        r"riskflow-train",
+        "--steps 2 --eval-every 2 --val-windows 2 --batch-size 4 --warmup-steps 1 --stop-step 2",
+    ),
     (r"python examples/rollout\.py", "--steps 5"),
     (r"python benchmarks/traffic_realism\.py", "--scenes 1 --duration 1"),
     (r"python benchmarks/eval_batched\.py", "--scenes 1 --duration 1 --batch 2"),
