@@ -1,7 +1,8 @@
 """PPO decisions per second of the ego recipe: subprocess envs vs the vector env.
 
 How many more decisions the PPO ego recipe trains on in the same wall time when its envs
-are stepped as one vector env. Each row runs ``examples/train_ego_ppo.py`` as a user would, with the recipe's options (its adversary, curriculum, interface and PPO
+are stepped as one vector env. Each row runs ``examples/train_ego_ppo.py`` as a user
+would, with the recipe's options (its adversary, curriculum, interface and PPO
 hyperparameters) and one way of stepping the envs, for ``--decisions`` decisions, one
 row after the other in one run:
 

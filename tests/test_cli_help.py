@@ -17,7 +17,7 @@ from policies.train import parser as train_parser
 from riskflow_env.scenarios.cli import build_parser as data_parser
 
 ROOT = Path(__file__).resolve().parents[1]
-HELPERS = ("benchmarks/timing.py",)  # imported by the scripts; no command line
+HELPERS = ("benchmarks/methods.py", "benchmarks/timing.py")  # imported by the scripts
 SCRIPTS = sorted(
     str(path.relative_to(ROOT)) for folder in ("examples", "benchmarks")
     for path in (ROOT / folder).glob("*.py") if str(path.relative_to(ROOT)) not in HELPERS
