@@ -19,7 +19,7 @@ the data's smoothness:
 * :func:`jerk_penalty`: the mean ``|j|`` [m/s^3] of the plan's longitudinal jerk ``j_t =
   (a_{t+1} - a_t) / dt``. Half the logged steps have ``|j| < 0.1`` while the one-step
   plans of the shipped generator carry step-to-step noise on every step (median 1.2
-  m/s^3; docs/REALISM.md, round 22), which is most of KDD's jerk term. An L1 term (total
+  m/s^3), which is most of KDD's jerk term. An L1 term (total
   variation of the acceleration, Rudin, Osher & Fatemi 1992) pulls small changes to zero
   and leaves the few large ones the data has, where a squared one would shrink them all.
 

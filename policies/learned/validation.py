@@ -14,7 +14,7 @@ measures, over every agent with at least one valid future step:
 * ``jerk_median`` / ``data_jerk_median`` [m/s^3]: the median absolute longitudinal jerk.
   The RMS is dominated by the data's rare large steps (a driver that brakes at once);
   the median shows the step-to-step noise of every plan, which the RMS hides (logged
-  traffic holds its acceleration on most steps: docs/REALISM.md, round 22).
+  traffic holds its acceleration on most steps).
 
 ADE of an agent is the mean distance over its valid future steps, FDE the distance at
 its last valid step; both are averaged over agents. The noise comes from a generator
