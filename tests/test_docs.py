@@ -24,6 +24,8 @@ docs/*.md runs, in a scratch folder, in a subprocess.
   is missing (``.ci/run`` runs them in its second environment).
 * Blocks too slow even at their smallest size are marked ``slow`` (``SLOW``, with why),
   run with ``python -m pytest -m slow``.
+* Every test here is in the ``docs`` tier (tests/conftest.py), which the default run leaves
+  out: ``python -m pytest -n auto -m docs`` runs it.
 """
 
 from __future__ import annotations
@@ -125,18 +127,23 @@ INSTEAD: dict[str, str] = {
     "python -m pytest": "python -m pytest --collect-only -q -p no:cacheprovider",
 }
 
-# Blocks marked slow, with why. Their scripts also have smoke tests in the default suite
-# (tests/policies/test_rl.py, test_rl_marl.py, test_evaluation.py).
-SLOW: dict[str, str] = {
+# Blocks marked slow, with why: (file, a command the block runs) -> why. Keyed by content, not
+# by the block's index, so that a block added above does not move the mark onto another one.
+# Their scripts also have smoke tests in the default run (tests/policies/test_rl.py,
+# test_rl_marl.py).
+SLOW: dict[tuple[str, str], str] = {
+    # The README's 3 RL scripts: about 50 s at their smallest.
+    ("README.md", "python examples/train_ego_ppo.py"): "PPO training and evaluation, about 50 s",
     # 9 PPO training / evaluation processes (each loads stable-baselines3 and plays its
     # evaluation episodes against the adversary): about 110 s even at 64 timesteps.
-    "docs/RL.md-1-bash": "PPO training and evaluation scripts, about 110 s",
-    # The README's 3 RL scripts: about 50 s at their smallest.
-    "README.md-16-bash": "PPO training and evaluation scripts, about 50 s",
-    # 9 riskflow-eval runs (one-scene rollouts of 12 methods, STRIVE and DDIM included):
-    # about 60 s, mostly process start-up and model loading.
-    "docs/RESULTS.md-0-bash": "nine riskflow-eval runs, about 110 s",
+    ("docs/RL.md", "python examples/train_ego_ppo.py"): "PPO training and evaluation, about 110 s",
 }
+
+
+def slow(path: Path, code: str) -> bool:
+    """Whether the block ``code`` of ``path`` is one of ``SLOW``."""
+    name = path.relative_to(ROOT).as_posix()
+    return any(name == file and command in code for file, command in SLOW)
 
 
 # Optional libraries: module -> the extra that installs it (the first match names the extra).
@@ -230,7 +237,7 @@ PARAMS = [
         code,
         id=block_id(path, index, language, code),
         marks=[
-            *([pytest.mark.slow] if block_id(path, index, language, code) in SLOW else []),
+            *([pytest.mark.slow] if slow(path, code) else []),
             *([pytest.mark.extras] if optional_imports(code, language) else []),
         ],
     )
@@ -242,6 +249,10 @@ def test_blocks_are_collected_and_complete() -> None:
     """The collector finds the blocks, and none has a ``...`` placeholder outside comments
     (a new user copies them as they are)."""
     assert len(PARAMS) >= 20, "the collector lost the documentation's code blocks"
+    for file, command in SLOW:
+        assert any(slow(path, code) for path, _, _, code in blocks() if path == ROOT / file), (
+            f"SLOW names a block of {file} that runs {command!r}; there is none"
+        )
     for param in PARAMS:
         code = "\n".join(line.split("#")[0] for line in param.values[2].splitlines())
         assert "..." not in code, f"{param.id} has a '...' placeholder:\n{param.values[2]}"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import runpy
 import subprocess
 import sys
 from pathlib import Path
@@ -79,10 +80,15 @@ def test_rollout(checkpoint, tmp_path):
         (["--lambda-map", "-1"], "--lambda-map must be finite and >= 0"),
     ],
 )
-def test_rollout_rejects_bad_options(argv, message):
-    command = [sys.executable, str(EXAMPLES / "rollout.py"), *argv]
-    done = subprocess.run(command, capture_output=True, text=True, cwd=ROOT, timeout=120)
-    assert done.returncode == 2 and message in done.stderr
+def test_rollout_rejects_bad_options(argv, message, monkeypatch, capsys):
+    """The script's ``__main__`` block, run in this process (``runpy``, as ``python
+    examples/rollout.py ...`` runs it, without starting an interpreter per option)."""
+    script = EXAMPLES / "rollout.py"
+    monkeypatch.setattr(sys, "argv", [str(script), *argv])
+    monkeypatch.syspath_prepend(str(EXAMPLES))  # as when run: its folder first
+    with pytest.raises(SystemExit) as exit_:
+        runpy.run_path(str(script), run_name="__main__")
+    assert exit_.value.code == 2 and message in capsys.readouterr().err
 
 
 @pytest.mark.skipif(not SHIPPED.is_file(), reason="the shipped checkpoint is not trained yet")
