@@ -5,7 +5,7 @@ The ``--method`` adversary (default ``riskflow``, built by
 ``riskflow-raw`` is the raw generator) plans the first B shipped evaluation scenes
 (``shipped_bank("eval")``, each reset in its own env) in two ways, measured in one run:
 
-* **batched**: :class:`policies.learned.batched_adversary.BatchedAdversary` plans all B
+* **batched**: :class:`policies.pipeline.batched.BatchedAdversary` plans all B
   scenes in one call (one encoder pass, one generator pass, one guidance loop);
 * **one at a time**: B policy copies each planning its own scene (``plan``, the
   one-scene path).
@@ -39,7 +39,7 @@ from tqdm import tqdm
 
 import riskflow_env
 from policies.dataclass_cli import parse_dataclass
-from policies.learned.batched_adversary import BatchedAdversary
+from policies.pipeline.batched import BatchedAdversary
 from policies.registry import DIFFUSION_STEPS_OPTION, METHODS, method_spec
 from riskflow_env.scenarios import shipped_bank
 from riskflow_env.view import SceneView

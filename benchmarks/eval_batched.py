@@ -82,7 +82,7 @@ class Options:
 PERTURBED = """
 import sys
 import torch
-import policies.riskflow.policy as policy
+import policies.pipeline.stages as policy
 from policies.evaluation.cli import main
 std, base = float(sys.argv[1]), policy.base_velocity
 draw = torch.Generator().manual_seed(0)

@@ -45,7 +45,7 @@ INTEGRATION_PATHS = (
     "tests/policies/test_rl",  # PPO / multi-agent training against the adversary
     "tests/policies/test_harness.py",  # the closed-loop harness
     "tests/policies/test_leaving_vehicles.py",  # evaluation rollouts, per scene and batched
-    "tests/policies/learned/test_batched_adversary.py",  # batched vs per-scene closed loops
+    "tests/policies/pipeline/test_batched.py",  # batched vs per-scene closed loops
     "tests/policies/learned/test_closed_loop.py",  # closed-loop training data
     "tests/riskflow_env/scenarios/test_cli.py",  # riskflow-data generate, worker processes
 )

@@ -7,7 +7,9 @@ that role is played by RiskFlow's own learned generator with no guidance: it is
 :class:`~policies.riskflow.policy.RiskFlowAdversary` with ``k = 0`` (no controllable
 set, so no guidance step runs and every vehicle follows its base plan ``clip(denorm(eps +
 u_theta(eps, 0, 1; C)))``, bit for bit the plans of ``RiskFlowAdversary(k=0)`` with the
-same seed), re-planned every ``planning_interval`` from the current scene. The same
+same seed), re-planned every ``planning_interval`` from the current scene. Its cycle is
+RiskFlow's without the ``rank`` and ``guide`` stages
+(:func:`~policies.riskflow.policy.generator_stages`). The same
 class with ``generator="diffusion"`` is the unguided diffusion generator (deterministic
 DDIM from ``eps``).
 
@@ -36,14 +38,17 @@ import os
 
 import torch
 
-from policies.learned.adversary_config import AdversaryConfig
+from policies.learned.adversary_config import AdversaryConfig, default_window_config
 from policies.learned.data import Normalizer
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.windows import WindowConfig
-from policies.riskflow.policy import RiskFlowAdversary
+from policies.pipeline.policy import PipelinePolicy
+from policies.riskflow.base_generator import resolve_avoid_steps, resolve_generator
+from policies.riskflow.guidance import GuidanceConfig
+from policies.riskflow.policy import generator_stages
 
 
-class NominalGenerator(RiskFlowAdversary):
+class NominalGenerator(PipelinePolicy):
     """The unguided generator for every non-ego vehicle (module docstring).
 
     Args:
@@ -95,15 +100,20 @@ class NominalGenerator(RiskFlowAdversary):
             window_config=window_config, threads=threads, hold_distance=hold_distance,
             stitch_steps=stitch_steps,
         )  # fmt: skip
+        # The objective's map term scores the avoidance steps' off-road depth.
+        self.guidance = GuidanceConfig(steps=0, **config.objective())
+        self.model, self.normalizer, self.generator_kind = resolve_generator(
+            generator, normalizer, checkpoint, sampling_steps, torch.device(device)
+        )
+        self.avoid_steps = resolve_avoid_steps(avoid_steps, avoid_step_size, self.generator_kind)
+        self.avoid_step_size = float(avoid_step_size)
+        model_config = self.model.config
         super().__init__(
             config,
-            guidance_steps=0,
-            generator=generator,
-            normalizer=normalizer,
-            checkpoint=checkpoint,
-            sampling_steps=sampling_steps,
-            avoid_steps=avoid_steps,
-            avoid_step_size=avoid_step_size,
+            model_config.future_steps,
+            window_config or default_window_config(model_config),
+            generator_stages(self.avoid_steps, config.hold_distance, None),
+            self.model.encode,
         )
 
 

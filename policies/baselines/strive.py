@@ -23,6 +23,7 @@ cost.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from typing import Any
 
@@ -30,24 +31,25 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from policies.learned.adversary_config import AdversaryConfig
-from policies.learned.encoded_views import EncodedViews
+from policies.learned.adversary_config import AdversaryConfig, default_window_config
+from policies.learned.data import Normalizer
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.guidance_losses import adversarial_rows, map_term
-from policies.learned.plan_buffer import PlanBufferPolicy
 from policies.learned.sampler import base_velocity
 from policies.learned.separation_term import separation_term
+from policies.pipeline.plan_set import PlanSet
+from policies.pipeline.policy import PipelinePolicy
+from policies.riskflow.base_generator import resolve_avoid_steps, resolve_generator
 from policies.riskflow.guidance import (
-    GuidanceResult,
+    GuidanceConfig,
     GuidanceScene,
     GuidedRows,
     flatten_scenes,
     guided_rows,
     plans_from_velocity,
 )
-from policies.riskflow.policy import RiskFlowAdversary
+from policies.riskflow.policy import PHASES, generator_stages, guidance_scene
 from riskflow_env._array import attach_gradient
-from riskflow_env.view import SceneView
 
 DEFAULT_LAMBDA_PRIOR = 1.0  # weight of ||eps_c||^2 / 2 [per unit of normalised noise^2]
 # Adam's learning rate on the latent [normalised noise units per step]: STRIVE-style's best
@@ -56,7 +58,83 @@ DEFAULT_LAMBDA_PRIOR = 1.0  # weight of ||eps_c||^2 / 2 [per unit of normalised 
 DEFAULT_STEP_SIZE = 0.1
 
 
-class StriveAdversary(RiskFlowAdversary):
+def optimise_latent(policy: StriveAdversary, plans: PlanSet) -> PlanSet:
+    """The ``guide`` stage of STRIVE-style: ``K_g`` steps on the ``A_c`` rows of ``eps``
+    of B scenes at once (module docstring). The loss is the sum of the scenes' losses and
+    rows of different scenes do not interact (the generator attends within a scene, each
+    row has its own scene's targets and map, Adam is per coordinate), so each scene's
+    latent is the one it would get alone, to float rounding. Each scene keeps its
+    optimised ``latent`` and its ``prior_losses`` (``PlannerState.extras``)."""
+    config = policy.guidance
+    scene = guidance_scene(plans)
+    num_scenes, num_agents = scene.agent_mask.shape
+    counts = plans.observed.counts
+    guided = guided_rows(scene, plans.controllable, config.target)
+    rows = guided.rows
+    if rows.numel() == 0:  # nothing to optimise: the unguided generator, bit for bit
+        losses = scene.eps.new_zeros(config.steps + 1, num_scenes, 2)
+        extras = _extras(scene.eps, None, counts, config.steps + 1)
+        return plans.replace(
+            actions=scene.base_actions, trajectories=scene.base_trajectories, losses=losses,
+            extras=extras,
+        )  # fmt: skip
+    objective = _LatentObjective(policy, scene, plans.observed.scene, guided)
+    eps_c = scene.eps.flatten(0, 1)[rows].clone().requires_grad_(True)
+    if config.optimizer == "adam":
+        optimizer = torch.optim.Adam([eps_c], lr=config.resolved_step_size)
+    else:
+        optimizer = torch.optim.SGD([eps_c], lr=config.resolved_step_size)
+
+    history = []
+    for _ in range(config.steps):
+        with torch.enable_grad():
+            _, terms = objective(eps_c)
+            adv, off_road, prior, separation = terms.sum(dim=0)
+            loss = config.lambda_adv * adv + config.lambda_map * off_road
+            loss = loss + policy.lambda_prior * prior + config.lambda_sep * separation
+            (eps_c.grad,) = torch.autograd.grad(loss, eps_c)
+        history.append(guided.per_scene(terms.detach(), num_scenes))
+        optimizer.step()
+    with torch.no_grad():
+        (u_c, actions_c, trajectories_c), terms = objective(eps_c)
+        history.append(guided.per_scene(terms, num_scenes))
+        lead = (num_scenes, num_agents)
+        latent, u = scene.eps.flatten(0, 1).clone(), scene.u0.flatten(0, 1).clone()
+        actions = scene.base_actions.flatten(0, 1).clone()
+        trajectories = scene.base_trajectories.flatten(0, 1).clone()
+        latent[rows], u[rows], actions[rows], trajectories[rows] = (
+            eps_c,
+            u_c,
+            actions_c,
+            trajectories_c,
+        )
+    history = torch.stack(history)  # (K_g + 1, B, 4)
+    extras = _extras(latent.reshape(scene.eps.shape), history[..., 2], counts, config.steps + 1)
+    return plans.replace(
+        u=u.reshape(*lead, *u.shape[1:]),
+        actions=actions.reshape(*lead, *actions.shape[1:]),
+        trajectories=trajectories.reshape(*lead, *trajectories.shape[1:]),
+        losses=history[..., :2],
+        extras=extras,
+    )
+
+
+optimise_latent.phase = "guidance"
+
+
+def _extras(latent: Tensor, prior: Tensor | None, counts: Sequence[int], steps: int) -> list:
+    """Each scene's optimised ``latent`` (its ``count`` rows) and ``prior_losses``
+    ((K_g + 1,); zeros for None)."""
+    return [
+        {
+            "latent": latent[index, :count].clone(),
+            "prior_losses": np.zeros(steps) if prior is None else prior[:, index].cpu().numpy(),
+        }
+        for index, count in enumerate(counts)
+    ]
+
+
+class StriveAdversary(PipelinePolicy):
     """STRIVE-style adversary for every non-ego vehicle (module docstring).
 
     Args:
@@ -66,13 +144,15 @@ class StriveAdversary(RiskFlowAdversary):
         lambda_prior: weight of the latent prior ``||eps_c||^2 / 2``, >= 0.
         step_size: Adam's learning rate [normalised noise units per step] (default 0.1,
             this method's best, docs/RESULTS.md section 4), or ``gamma`` of plain steps.
+        guidance_steps: ``K_g`` latent optimisation steps per cycle.
+        optimizer: ``"adam"`` (``torch.optim.Adam`` on the latent, STRIVE's) or
+            ``"gradient"`` (plain steps).
+        lambda_sep: weight of the separation of the guided vehicles (as RiskFlow's).
         generator: a MeanFlow ``RiskFlowGenerator`` (with ``normalizer``), ``"meanflow"``,
             or None (the shipped one, or ``checkpoint``'s); a diffusion generator is
             refused (no one-step latent to differentiate through).
-        **options: ``RiskFlowAdversary``'s: ``guidance_steps`` (``K_g`` latent optimisation
-            steps per cycle), ``optimizer`` (``"adam"``: ``torch.optim.Adam`` on the
-            latent, STRIVE's; ``"gradient"``: plain steps), ``normalizer``,
-            ``checkpoint``, and the shared options as keywords.
+        normalizer, checkpoint, avoid_steps, avoid_step_size: as ``RiskFlowAdversary``'s.
+        **options: the shared options as keywords.
 
     After each cycle: ``guidance_losses`` ((K_g + 1, 2): ``L_adv``, ``L_map`` before each
     step and after the last), ``prior_losses`` ((K_g + 1,): ``||eps_c||^2 / 2``) and
@@ -80,6 +160,7 @@ class StriveAdversary(RiskFlowAdversary):
     """
 
     overlay_prefix = "strive"
+    phases = PHASES
 
     def __init__(
         self,
@@ -87,96 +168,49 @@ class StriveAdversary(RiskFlowAdversary):
         *,
         lambda_prior: float = DEFAULT_LAMBDA_PRIOR,
         step_size: float = DEFAULT_STEP_SIZE,
+        guidance_steps: int = 30,
+        optimizer: str = GuidanceConfig.optimizer,
+        lambda_sep: float = GuidanceConfig.lambda_sep,
         generator: RiskFlowGenerator | str | None = None,
+        normalizer: Normalizer | None = None,
+        checkpoint: str | os.PathLike | None = None,
+        avoid_steps: int | None = None,
+        avoid_step_size: float = 0.1,
         **options: Any,
     ) -> None:
         if not (isinstance(lambda_prior, (int, float)) and 0 <= lambda_prior < float("inf")):
             raise ValueError(f"lambda_prior must be a finite number >= 0, got {lambda_prior!r}")
         if generator == "diffusion" or "sampling_steps" in options:
             raise ValueError(_NOT_DIFFUSION)
+        config = AdversaryConfig.resolve(config, options, type(self).__name__)
         self.lambda_prior = float(lambda_prior)
-        super().__init__(config, step_size=step_size, generator=generator, **options)
+        self.guidance = GuidanceConfig(
+            steps=guidance_steps,
+            step_size=step_size,
+            optimizer=optimizer,
+            lambda_sep=lambda_sep,
+            **config.objective(),
+        )
+        self.model, self.normalizer, self.generator_kind = resolve_generator(
+            generator, normalizer, checkpoint, None, torch.device(config.device)
+        )
         if self.generator_kind != "meanflow":
             raise ValueError(_NOT_DIFFUSION)
-
-    def _clear(self) -> None:
-        super()._clear()
-        self.prior_losses: np.ndarray | None = None
-        self.latent: Tensor | None = None
-
-    def _plan_cycles(self, scenes: Sequence[PlanBufferPolicy], views: Sequence[SceneView]) -> None:
-        """B scenes in one cycle: ``RiskFlowAdversary``'s (one encoder pass, one generator
-        pass, the ranking), then one latent optimisation over every scene's ``A_c`` rows
-        (:meth:`_guide`); each scene keeps its own ``latent`` and ``prior_losses``."""
-        super()._plan_cycles(scenes, views)
-        for policy, latent, prior in zip(scenes, self._latents, self._priors, strict=True):
-            policy.latent, policy.prior_losses = latent.clone(), prior
-        del self._latents, self._priors  # handed over: the planner keeps no other scene's
-
-    def _guide(
-        self, scene: GuidanceScene, controllable: Tensor, observed: EncodedViews
-    ) -> GuidanceResult:
-        """``K_g`` steps on the ``A_c`` rows of ``eps`` of B scenes at once (module
-        docstring). The loss is the sum of the scenes' losses and rows of different scenes
-        do not interact (the generator attends within a scene, each row has its own
-        scene's targets and map, Adam is per coordinate or per row), so each scene's
-        latent is the one it would get alone, to float rounding."""
-        config = self.guidance
-        num_scenes, num_agents = scene.agent_mask.shape
-        guided = guided_rows(scene, controllable, config.target)
-        rows = guided.rows
-        self._keep(scene.eps, None, observed.counts)
-        if rows.numel() == 0:  # nothing to optimise: the unguided generator, bit for bit
-            losses = scene.eps.new_zeros(config.steps + 1, num_scenes, 2)
-            return GuidanceResult(scene.u0, scene.base_actions, scene.base_trajectories, losses)
-        objective = _LatentObjective(self, scene, observed.scene, guided)
-        eps_c = scene.eps.flatten(0, 1)[rows].clone().requires_grad_(True)
-        if config.optimizer == "adam":
-            optimizer = torch.optim.Adam([eps_c], lr=config.resolved_step_size)
-        else:
-            optimizer = torch.optim.SGD([eps_c], lr=config.resolved_step_size)
-
-        history = []
-        for _ in range(config.steps):
-            with torch.enable_grad():
-                _, terms = objective(eps_c)
-                adv, off_road, prior, separation = terms.sum(dim=0)
-                loss = config.lambda_adv * adv + config.lambda_map * off_road
-                loss = loss + self.lambda_prior * prior + config.lambda_sep * separation
-                (eps_c.grad,) = torch.autograd.grad(loss, eps_c)
-            history.append(guided.per_scene(terms.detach(), num_scenes))
-            optimizer.step()
-        with torch.no_grad():
-            (u_c, actions_c, trajectories_c), terms = objective(eps_c)
-            history.append(guided.per_scene(terms, num_scenes))
-            lead = (num_scenes, num_agents)
-            latent, u = scene.eps.flatten(0, 1).clone(), scene.u0.flatten(0, 1).clone()
-            actions = scene.base_actions.flatten(0, 1).clone()
-            trajectories = scene.base_trajectories.flatten(0, 1).clone()
-            latent[rows], u[rows], actions[rows], trajectories[rows] = (
-                eps_c,
-                u_c,
-                actions_c,
-                trajectories_c,
-            )
-        history = torch.stack(history)  # (K_g + 1, B, 4)
-        self._keep(latent.reshape(scene.eps.shape), history[..., 2], observed.counts)
-        return GuidanceResult(
-            u.reshape(*lead, *u.shape[1:]),
-            actions.reshape(*lead, *actions.shape[1:]),
-            trajectories.reshape(*lead, *trajectories.shape[1:]),
-            history[..., :2],
+        self.avoid_steps = resolve_avoid_steps(avoid_steps, avoid_step_size, self.generator_kind)
+        self.avoid_step_size = float(avoid_step_size)
+        model_config = self.model.config
+        super().__init__(
+            config,
+            model_config.future_steps,
+            config.window_config or default_window_config(model_config),
+            generator_stages(self.avoid_steps, config.hold_distance, optimise_latent),
+            self.model.encode,
         )
 
-    def _keep(self, latent: Tensor, prior: Tensor | None, counts: Sequence[int]) -> None:
-        """Each scene's optimised latent (its ``count`` rows) and prior losses ((K_g + 1,);
-        zeros for None), for :meth:`_plan_cycles` to hand to the scene's policy."""
-        steps = self.guidance.steps + 1
-        self._latents = [latent[index, :count] for index, count in enumerate(counts)]
-        self._priors = [
-            np.zeros(steps) if prior is None else prior[:, index].cpu().numpy()
-            for index in range(len(counts))
-        ]
+    latent = property(lambda self: self.state.extras.get("latent"), doc="(A_w, T, 2) latent")
+    prior_losses = property(
+        lambda self: self.state.extras.get("prior_losses"), doc="(K_g + 1,) prior losses"
+    )
 
 
 _NOT_DIFFUSION = (

@@ -11,7 +11,7 @@ rolls one group out:
 * the traffic of every scene from one policy of the method
   (:func:`~policies.rl.vector_traffic.batched_traffic`): a learned adversary (RiskFlow and
   its ablations, the unguided generator, STRIVE-style, the diffusion baselines) becomes a
-  :class:`~policies.learned.batched_adversary.BatchedAdversary` that plans every scene due
+  :class:`~policies.pipeline.batched.BatchedAdversary` that plans every scene due
   to re-plan in one call (RiskFlow and the unguided generator: one encoder pass, one
   generator pass, one guidance loop; STRIVE-style one latent optimisation over all the
   scenes' rows; the diffusion baselines one base chain and one guided chain for all the
@@ -48,7 +48,7 @@ import torch
 from policies.evaluation.options import Job
 from policies.evaluation.rollout import job_policy, job_scenario, rollout_record, score, warm_up
 from policies.harness import EGO, EpisodeRecord, episode_record, planning_metrics
-from policies.learned.batched_adversary import BatchedAdversary
+from policies.pipeline.batched import BatchedAdversary
 from policies.planners import make_planner
 from policies.planners.base import EgoPlanner, as_action, reset_planner
 from policies.rl.vector_traffic import SceneLoop, batched_traffic

@@ -12,15 +12,15 @@
 * sampling and validation of a one-call generator: :mod:`~policies.learned.sampler`,
   :mod:`~policies.learned.validation`, :mod:`~policies.learned.ema`;
 * the adversary's loop: :mod:`~policies.learned.adversary_config` (the shared options),
-  :mod:`~policies.learned.plan_buffer` (receding-horizon plans, many scenes per call),
   :mod:`~policies.learned.encoded_views` (a call's windows, encoded once),
   :mod:`~policies.learned.plan_stitching` (re-plans blended into the executed plan),
-  :mod:`~policies.learned.plan_overlay` (the plans on the video frames),
-  :mod:`~policies.learned.batched_adversary` (B scenes, one planning call),
+  :mod:`~policies.learned.plan_avoidance` (the avoidance steps),
+  :mod:`~policies.pipeline.batched` (B scenes, one planning call),
   :mod:`~policies.learned.ranking` (TTC causal ranking of the controllable set),
   :mod:`~policies.learned.guidance_losses` (the adversarial and map objective),
   :mod:`~policies.learned.plan_penalties` (collision / off-road penalties of plans).
 
-Nothing here imports :mod:`policies.riskflow` or :mod:`policies.baselines`
-(docs/ARCHITECTURE.md); import the submodules directly.
+The planning cycle that strings these together is :mod:`policies.pipeline`. Nothing here
+imports :mod:`policies.riskflow` or :mod:`policies.baselines` (docs/ARCHITECTURE.md);
+import the submodules directly.
 """

@@ -1,7 +1,7 @@
 """``AdversaryConfig``: the options every learned adversary shares, as one typed object.
 
 RiskFlow, STRIVE-style, the unguided generator and the guided-diffusion baselines plan
-alike (:mod:`policies.learned.plan_buffer`): the size K of the controllable set, the
+alike (:mod:`policies.pipeline`): the size K of the controllable set, the
 planning interval, the guidance target and weights, the ranking threshold, the noise
 seed, the device, the window options and the torch threads. Each takes them as one
 ``AdversaryConfig``, or as keywords that build one, next to its own options::

@@ -1,11 +1,9 @@
 """What one planning call observes of its scenes: windows, the collated batch, the context.
 
-:func:`encode_views` (what :meth:`policies.learned.plan_buffer.PlanBufferPolicy._encode_views`
-runs) cuts a window from each scene's view, collates them (agents padded to the largest
-scene) and runs the model's encoder once; :class:`EncodedViews` holds the result for B
-scenes and
-:class:`EncodedView` for one (what the one-scene methods, STRIVE-style and the diffusion
-baselines, work on: :meth:`EncodedViews.view` cuts scene ``b`` out, without padding).
+:func:`encode_views` (the ``encode`` stage of :mod:`policies.pipeline.stages`) cuts a
+window from each scene's view, collates them (agents padded to the largest scene) and runs
+the model's encoder once; :class:`EncodedViews` holds the result for B scenes, and
+:meth:`EncodedViews.view` cuts scene ``b`` out as :class:`EncodedView`, without padding.
 """
 
 from __future__ import annotations
@@ -25,7 +23,7 @@ from riskflow_env.view import SceneView
 
 @dataclass(frozen=True)
 class EncodedView:
-    """One cycle's observation of the scene (:meth:`PlanBufferPolicy._encode_view`).
+    """One cycle's observation of the scene (:meth:`EncodedViews.view`).
 
     Attributes:
         window: the :class:`Window` (``docs/WINDOWS.md``; ego frame, ego in slot 0; no
@@ -52,7 +50,7 @@ class EncodedView:
 
 @dataclass(frozen=True)
 class EncodedViews:
-    """One planning call's observation of B scenes (:meth:`PlanBufferPolicy._encode_views`).
+    """One planning call's observation of B scenes (:func:`encode_views`).
 
     Attributes:
         windows: the B :class:`Window` objects (``docs/WINDOWS.md``; ego frame, ego in

@@ -18,7 +18,7 @@ over ``DEFAULT_FIRST_STITCH_STEPS`` = 15 steps). Blended after planning, a long
 blend delays every correction that planning made, the avoidance steps' too, and costs
 off-road steps and collisions. Blending first, the MeanFlow adversaries blend each new
 *base* plan into the executed one before the avoidance steps
-(:meth:`PlanStitching._continuation` gives the executed plans' continuation and weights),
+(:func:`continuation` gives the executed plans' continuation and weights),
 so the avoidance steps correct the plan that will run; their corrections are blended
 too, over ``CORRECTION_STITCH_STEPS`` (1: half of the first action's correction), which
 removes the jerk spike that unblended corrections leave at the re-plan step (longer
@@ -40,18 +40,21 @@ touch their neighbours in rows of parked cars. A plan that moves the vehicle by 
 ``hold_distance`` (a start from a queue) runs as it is. At 4 m, 97% of the real samples'
 parked cars stay within 2 m.
 
-:class:`PlanStitching` is a mixin of :class:`~policies.learned.plan_buffer.PlanBufferPolicy`
-(``plan_scenes`` calls :meth:`PlanStitching._shape`, holding at rest,
-and :meth:`PlanStitching._stitch` on every scene that planned).
+The ``hold`` and ``restitch`` stages of :mod:`policies.pipeline.stages` call
+:func:`hold_at_rest` and :func:`stitch_after` on every scene that planned.
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import SPEED, inverse, rollout
 from riskflow_env.view import SceneView
+
+PlannerState = Any  # policies.pipeline.state.PlannerState (the pipeline layer sits above)
 
 REST_SPEED = 0.2  # [m/s] a vehicle at or below this speed is at rest (holding at rest)
 DEFAULT_HOLD_DISTANCE = 4.0  # [m] the adversaries' default holding distance (module docstring)
@@ -69,118 +72,99 @@ def resolve_stitch_steps(stitch_steps: int | None, stitch_first: bool) -> int:
     return DEFAULT_FIRST_STITCH_STEPS if stitch_first else DEFAULT_STITCH_STEPS
 
 
-class PlanStitching:
-    """Blends new plans into the executed ones and holds vehicles at rest (module
-    docstring).
+def replace_plans(
+    state: PlannerState, view: SceneView, rows: np.ndarray, actions: np.ndarray, dynamics
+) -> None:
+    """In place: new actions (R, T, 2) for the plans of ``rows`` of ``state``, rolled out
+    from the current states; the unguided rows' alternative (``base_plans``) is the same
+    plan, the guided rows' is left as it is."""
+    state.plan_actions[rows] = actions
+    state.plans[rows] = rollout(view.current[rows], actions, dynamics)
+    unguided = rows[~state.controllable[rows]]
+    state.base_plans[unguided] = state.plans[unguided]
 
-    Works on the policy's stored plans: ``plan_actions`` (A, T, 2), ``plans`` and
-    ``base_plans`` (A, T, 4), ``plan_mask`` and ``controllable`` (A,), with its
-    ``dynamics`` and ``hold_distance``.
-    """
 
-    stitch_steps: int = DEFAULT_STITCH_STEPS  # [steps] re-plan blend; 0: switch at once
-    stitch_first: bool = False  # blend the base plans before the avoidance steps
-    hold_distance: float = 0.0  # [m] holding at rest (module docstring); 0: off
-    dynamics: DynamicsConfig
-    plan_actions: np.ndarray
-    plans: np.ndarray | None
-    base_plans: np.ndarray | None
-    plan_mask: np.ndarray
-    controllable: np.ndarray
+def hold_at_rest(
+    state: PlannerState, view: SceneView, hold_distance: float, dynamics: DynamicsConfig
+) -> None:
+    """In place: keep the brake on for vehicles at rest whose new plan hardly moves them
+    (module docstring); their plans are rolled out again. Guided vehicles are held alike;
+    their unguided alternative (``base_plans``) is left as it is."""
+    current = view.current
+    rows = np.flatnonzero(state.plan_mask & view.active & (current[:, SPEED] <= REST_SPEED))
+    if rows.size == 0:
+        return
+    reach = np.linalg.norm(state.plans[rows, :, :2] - current[rows, None, :2], axis=-1)
+    rows = rows[reach.max(axis=1) < hold_distance]
+    if rows.size == 0:
+        return
+    held = state.plan_actions[rows]
+    held[..., 0] = np.minimum(held[..., 0], 0.0)
+    held[..., 1] = 0.0
+    replace_plans(state, view, rows, held, dynamics)
 
-    def _shape(self, view: SceneView) -> None:
-        """Hold vehicles at rest (module docstring)."""
-        self._hold_at_rest(view)
 
-    def _hold_at_rest(self, view: SceneView) -> None:
-        """Keep the brake on for vehicles at rest whose new plan hardly moves them
-        (module docstring); their plans are rolled out again. Guided vehicles are held
-        alike; their unguided alternative (``base_plans``) is left as it is."""
-        if self.hold_distance <= 0.0:
-            return
-        current = view.current
-        rows = np.flatnonzero(self.plan_mask & view.active & (current[:, SPEED] <= REST_SPEED))
-        if rows.size == 0:
-            return
-        reach = np.linalg.norm(self.plans[rows, :, :2] - current[rows, None, :2], axis=-1)
-        rows = rows[reach.max(axis=1) < self.hold_distance]
-        if rows.size == 0:
-            return
-        held = self.plan_actions[rows]
-        held[..., 0] = np.minimum(held[..., 0], 0.0)
-        held[..., 1] = 0.0
-        self._replace_plans(view, rows, held)
+def continuation(
+    state: PlannerState, view: SceneView, slots: np.ndarray, steps: int, stitch_steps: int
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """What the blend of a new plan of ``steps`` steps needs, before planning (blending
+    first, module docstring): the executed plans' actions from now on ``(S, n, 2)`` for the
+    env ``slots`` and the previous plan's share ``(S, n)`` (0 for slots without a plan to
+    continue); None when nothing is blended."""
+    if state.plan_step is None or stitch_steps <= 0:
+        return None
+    if slots.size and slots.max() >= state.plan_mask.shape[0]:  # not the planned slots
+        return None
+    elapsed = view.step - state.plan_step
+    n = min(stitch_steps, state.plan_actions.shape[1] - elapsed, steps)
+    if n <= 0:
+        return None
+    old = state.plan_actions[slots, elapsed : elapsed + n]
+    live = state.plan_mask[slots] & view.active[slots]
+    share = np.where(live[:, None], blend_share(n)[None], 0.0)
+    return old, share
 
-    def _replace_plans(self, view: SceneView, rows: np.ndarray, actions: np.ndarray) -> None:
-        """New actions (R, T, 2) for the plans of ``rows``, rolled out from the current
-        states; the unguided rows' alternative (``base_plans``) is the same plan, the
-        guided rows' is left as it is."""
-        self.plan_actions[rows] = actions
-        self.plans[rows] = rollout(view.current[rows], actions, self.dynamics)
-        unguided = rows[~self.controllable[rows]]
-        self.base_plans[unguided] = self.plans[unguided]
 
-    def _continuation(
-        self, view: SceneView, slots: np.ndarray, steps: int
-    ) -> tuple[np.ndarray, np.ndarray] | None:
-        """What the blend of a new plan of ``steps`` steps needs, before planning
-        (blending first, module docstring): the executed plans' actions from now on
-        ``(S, n, 2)`` for the env ``slots`` and the previous plan's share ``(S, n)``
-        (0 for slots without a plan to continue); None when nothing is blended."""
-        if self._plan_step is None or self.stitch_steps <= 0:
-            return None
-        if slots.size and slots.max() >= self.plan_mask.shape[0]:  # not the planned slots
-            return None
-        elapsed = view.step - self._plan_step
-        n = min(self.stitch_steps, self.plan_actions.shape[1] - elapsed, steps)
-        if n <= 0:
-            return None
-        old = self.plan_actions[slots, elapsed : elapsed + n]
-        share = np.where(
-            (self.plan_mask[slots] & view.active[slots])[:, None], blend_share(n)[None], 0.0
-        )
-        return old, share
+def stitch_after(
+    state: PlannerState,
+    previous: PlannerState,
+    view: SceneView,
+    stitch_steps: int,
+    guided_only: bool,
+    dynamics: DynamicsConfig,
+) -> None:
+    """In place: blend the first ``stitch_steps`` actions of ``state``'s new plans with the
+    rest of ``previous``'s plans (module docstring) and roll the plans out again; with
+    ``guided_only`` the guided rows only (the others were blended first)."""
+    if previous.plan_step is None or stitch_steps <= 0:
+        return
+    actions, mask = previous.plan_actions, previous.plan_mask
+    elapsed = view.step - previous.plan_step
+    steps = min(stitch_steps, actions.shape[1] - elapsed, state.plan_actions.shape[1])
+    same = mask.shape == state.plan_mask.shape
+    chosen = state.plan_mask & (state.controllable if guided_only else True)
+    rows = np.flatnonzero(chosen & mask & view.active) if same else []
+    if steps <= 0 or len(rows) == 0:
+        return
+    keep = blend_share(steps)[:, None]  # previous plan's share
+    old = actions[rows, elapsed : elapsed + steps]
 
-    def _stitch(
-        self,
-        view: SceneView,
-        actions: np.ndarray,
-        mask: np.ndarray,
-        elapsed: int,
-        guided_only: bool = False,
-    ) -> None:
-        """Blend the first ``stitch_steps`` actions of the new plans with the rest of the
-        previous plans (module docstring) and roll the plans out again.
+    def blend(plan_actions: np.ndarray, executed: np.ndarray) -> np.ndarray:
+        plan_actions[:, :steps] = keep * executed + (1.0 - keep) * plan_actions[:, :steps]
+        return plan_actions
 
-        Args: the previous ``plan_actions`` (A, T, 2) and ``plan_mask`` (A,), the steps
-        executed of them (``elapsed``), and whether to blend the guided rows only (the
-        others were blended first).
-        """
-        steps = min(self.stitch_steps, actions.shape[1] - elapsed, self.plan_actions.shape[1])
-        same = mask.shape == self.plan_mask.shape
-        chosen = self.plan_mask & (self.controllable if guided_only else True)
-        rows = np.flatnonzero(chosen & mask & view.active) if same else []
-        if steps <= 0 or len(rows) == 0:
-            return
-        keep = blend_share(steps)[:, None]  # previous plan's share
-        old = actions[rows, elapsed : elapsed + steps]
-
-        def blend(plan_actions: np.ndarray, previous: np.ndarray) -> np.ndarray:
-            plan_actions[:, :steps] = keep * previous + (1.0 - keep) * plan_actions[:, :steps]
-            return plan_actions
-
-        current = view.current[rows]
-        self.plan_actions[rows] = blend(self.plan_actions[rows], old)
-        self.plans[rows] = rollout(current, self.plan_actions[rows], self.dynamics)
-        # The unguided alternative is stitched alike: the same plans where nothing was
-        # guided; for A_c its own actions (inverse dynamics of the base plan), blended.
-        guided = self.controllable[rows]
-        self.base_plans[rows[~guided]] = self.plans[rows[~guided]]
-        if guided.any():
-            start = current[guided][:, None]
-            base = inverse(np.concatenate([start, self.base_plans[rows[guided]]], axis=1))
-            base = blend(base, old[guided])
-            self.base_plans[rows[guided]] = rollout(current[guided], base, self.dynamics)
+    current = view.current[rows]
+    state.plan_actions[rows] = blend(state.plan_actions[rows], old)
+    state.plans[rows] = rollout(current, state.plan_actions[rows], dynamics)
+    # The unguided alternative is stitched alike: the same plans where nothing was
+    # guided; for A_c its own actions (inverse dynamics of the base plan), blended.
+    guided = state.controllable[rows]
+    state.base_plans[rows[~guided]] = state.plans[rows[~guided]]
+    if guided.any():
+        start = current[guided][:, None]
+        base = inverse(np.concatenate([start, state.base_plans[rows[guided]]], axis=1))
+        base = blend(base, old[guided])
+        state.base_plans[rows[guided]] = rollout(current[guided], base, dynamics)
 
 
 def blend_share(steps: int) -> np.ndarray:
@@ -194,7 +178,10 @@ __all__ = [
     "DEFAULT_FIRST_STITCH_STEPS",
     "DEFAULT_STITCH_STEPS",
     "REST_SPEED",
-    "PlanStitching",
     "blend_share",
+    "continuation",
+    "hold_at_rest",
+    "replace_plans",
+    "stitch_after",
     "resolve_stitch_steps",
 ]

@@ -10,7 +10,7 @@ planners:
   and heading (:class:`ConstantVelocityPrediction`): an ordinary planner, which sees no
   more than the current states of the other vehicles;
 * :class:`OraclePlanner` reads what the adversary intends to do
-  (:meth:`~policies.learned.plan_buffer.PlanBufferPolicy.predicted_states`), which no
+  (:meth:`~policies.pipeline.policy.PipelinePolicy.predicted_states`), which no
   real ego can see. It answers whether the collisions the adversary sets up are
   avoidable at all.
 

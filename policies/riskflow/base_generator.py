@@ -1,7 +1,7 @@
 """The base-plan generator of the one-step adversaries: MeanFlow, or diffusion seen as one step.
 
-``RiskFlowAdversary`` (and the STRIVE-style and nominal baselines built on it) needs one
-thing from its generator: ``u0 = average_velocity(eps, 0, 1; C)``, the residual whose
+``RiskFlowAdversary``, the unguided generator and STRIVE-style need one thing from their
+generator: ``u0 = average_velocity(eps, 0, 1; C)``, the residual whose
 ``eps + u0`` is every agent's normalised plan. Two kinds provide it:
 
 * ``"meanflow"``: :class:`~policies.learned.generator.RiskFlowGenerator`, one forward
@@ -86,7 +86,63 @@ def load_base_generator(
     return OneCallSampler(denoiser, steps), normalizer, kind
 
 
+def resolve_generator(
+    generator: object,
+    normalizer: object,
+    checkpoint: str | os.PathLike | None,
+    sampling_steps: int | None,
+    device: torch.device,
+) -> tuple[object, object, str]:
+    """The base generator a policy's arguments ask for, on ``device`` in eval mode, with
+    its normalizer and kind: a model object with its ``normalizer``, or ``generator`` None
+    or a kind name to load from ``checkpoint`` (default: the shipped file of that kind).
+
+    Raises:
+        ValueError: a model without its normalizer (or the reverse), or ``checkpoint`` /
+            ``sampling_steps`` given with a model object.
+    """
+    from policies.learned.adversary_config import check_model_pair
+
+    if generator is None or isinstance(generator, str):
+        check_model_pair(None, normalizer, "generator")
+        generator, normalizer, kind = load_base_generator(
+            generator, checkpoint, device, sampling_steps
+        )
+    else:
+        check_model_pair(generator, normalizer, "generator")
+        if checkpoint is not None or sampling_steps is not None:
+            raise ValueError(
+                "checkpoint and sampling_steps go with generator=None or a kind name, "
+                "not with a model object"
+            )
+        kind = generator_kind(generator)
+    return generator.to(device).eval(), normalizer, kind
+
+
+def resolve_avoid_steps(avoid_steps: int | None, avoid_step_size: float, kind: str) -> int:
+    """The avoidance steps of a generator of ``kind``: ``avoid_steps``, or for None 20
+    with MeanFlow and 0 with a diffusion generator (which has no one-step output to step
+    on). ValueError naming the argument for a bad value."""
+    from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
+
+    if avoid_steps is not None and (
+        isinstance(avoid_steps, bool) or not isinstance(avoid_steps, int) or avoid_steps < 0
+    ):
+        raise ValueError(f"avoid_steps must be None or an int >= 0, got {avoid_steps!r}")
+    if isinstance(avoid_step_size, bool) or not (
+        isinstance(avoid_step_size, (int, float)) and 0 < avoid_step_size < float("inf")
+    ):
+        raise ValueError(f"avoid_step_size must be a finite number > 0, got {avoid_step_size!r}")
+    if avoid_steps is None:
+        return DEFAULT_AVOID_STEPS if kind == "meanflow" else 0
+    if avoid_steps > 0 and kind != "meanflow":
+        raise ValueError(f"avoid_steps > 0 needs the MeanFlow generator, got {kind!r}")
+    return avoid_steps
+
+
 __all__ = [
+    "resolve_avoid_steps",
+    "resolve_generator",
     "DEFAULT_SAMPLING_STEPS",
     "GENERATOR_KINDS",
     "checkpoint_kind",

@@ -8,7 +8,7 @@ over ``RiskFlowEgo-v0``): N scenes, each its own episode drawn from the scenario
   step count);
 * with the traffic driven by **one** batched adversary: a learned adversary
   (``RiskFlowAdversary``, the unguided generator...) becomes a
-  :class:`~policies.learned.batched_adversary.BatchedAdversary` that plans every scene due
+  :class:`~policies.pipeline.batched.BatchedAdversary` that plans every scene due
   to re-plan in one call; any other scene policy (IDM traffic) drives a copy per scene
   (:class:`~policies.rl.vector_traffic.SceneLoop`);
 * with the ego's observation, action, reward, termination and episode outcome of

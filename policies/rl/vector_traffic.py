@@ -10,8 +10,8 @@
   elsewhere, what batched stepping takes;
 * ``scenes``: the per-scene policies (for curriculum stages).
 
-A learned adversary (a :class:`~policies.learned.plan_buffer.PlanBufferPolicy`) becomes a
-:class:`~policies.learned.batched_adversary.BatchedAdversary`: every scene due to re-plan
+A learned adversary (a :class:`~policies.pipeline.policy.PipelinePolicy`) becomes a
+:class:`~policies.pipeline.batched.BatchedAdversary`: every scene due to re-plan
 is planned in one call. Any other :class:`~riskflow_env.view.ScenePolicy` (IDM traffic,
 log replay) is copied per scene and asked scene by scene (:class:`SceneLoop`), its
 actions checked as ``EgoEnv`` checks them.
@@ -24,8 +24,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from policies.learned.batched_adversary import BatchedAdversary
-from policies.learned.plan_buffer import PlanBufferPolicy
+from policies.pipeline.batched import BatchedAdversary
+from policies.pipeline.policy import PipelinePolicy
 from riskflow_env.action_input import ActionInput
 from riskflow_env.agents.base import check_policy, policy_actions, restart_policy
 from riskflow_env.config import EnvConfig
@@ -74,7 +74,7 @@ def batched_traffic(
     policy: ScenePolicy, num_scenes: int, config: EnvConfig
 ) -> BatchedAdversary | SceneLoop:
     """The traffic of ``num_scenes`` scenes driven by ``policy`` (module docstring)."""
-    if isinstance(policy, PlanBufferPolicy):
+    if isinstance(policy, PipelinePolicy):
         return BatchedAdversary(policy, num_scenes)
     return SceneLoop(policy, num_scenes, config)
 

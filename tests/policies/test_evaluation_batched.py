@@ -20,7 +20,7 @@ from policies.evaluation.cli import main
 # groups of 3 leave scene 3 alone in a group of one. RiskFlow on the raw base: the
 # avoidance steps of the default base are one more optimiser in the loop, which grows the
 # batched path's rounding past these tolerances within 3 s (their plans are checked cycle
-# by cycle in tests/policies/learned/test_batched_adversary.py).
+# by cycle in tests/policies/pipeline/test_batched.py).
 RUN = EvalOptions(
     methods=("riskflow-raw", "idm", "replay"),
     k=("5",),
@@ -60,7 +60,7 @@ def _assert_close(expected, actual, where: str) -> None:
 
     The two paths differ by float rounding in each planning call (a map stack, padded
     network batches: equal to 1e-5 per call, tests/policies/learned/
-    test_batched_adversary.py); 30 closed-loop steps amplify it to about 5e-4 m with the
+    pipeline/test_batched.py); 30 closed-loop steps amplify it to about 5e-4 m with the
     shipped checkpoint here, and by other amounts on other machines, hence 1e-3 on the
     rows and 1e-2 m on the sample arrays. Counts and outcomes must be equal."""
     if isinstance(expected, dict):

@@ -63,9 +63,9 @@ from policies.learned.guidance_losses import (
     sum_per_scene,
     target_rows,
 )
-from policies.learned.plan_buffer import hold_still
 from policies.learned.sampler import decode_plans
 from policies.learned.separation_term import separation_term
+from policies.pipeline.stages import stand_still
 from riskflow_env._array import attach_gradient
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
@@ -254,7 +254,7 @@ def guided_sample(
         actions, trajectories = decode_plans(
             x0, geometry.state, geometry.agent_mask, normalizer, dynamics
         )
-        hold_still(actions, trajectories, geometry.state, standing)
+        stand_still(actions, trajectories, geometry.state, standing)
         return actions, trajectories
 
     def targets_of(trajectories: Tensor) -> Tensor:  # (C, A, T, 2): each row's scene

@@ -1,19 +1,22 @@
 """``DiffusionAdversary``: the CTG-, CTG++- and CCDiff-style scene policies.
 
 The same closed-loop machinery as ``RiskFlowAdversary``
-(:class:`~policies.learned.plan_buffer.PlanBufferPolicy`: re-plan every
-``planning_interval``, plan buffer, seeded noise per (seed, episode, cycle), done
-vehicles standing still, world-frame plans, overlays); one planning cycle is
+(:class:`~policies.pipeline.policy.PipelinePolicy`: re-plan every ``planning_interval``,
+plan buffer, seeded noise per (seed, episode, cycle), done vehicles standing still,
+world-frame plans, overlays); its planning cycle is the stages
 
-1. ``window_from_view`` -> one window, one encoder pass (the scene context);
-2. the controllable set ``A_c``: the ``k`` live vehicles nearest the ego (``"ctg"``,
-   ``"ctgpp"``) or the TTC causal ranking (``"ccdiff"``; :mod:`policies.learned.ranking`);
-3. the unguided reverse chain (DDPM with all ``K`` levels, or DDIM with
+1. ``encode``: one window, one encoder pass (the scene context);
+2. ``select``: the controllable set ``A_c``: the ``k`` live vehicles nearest the ego
+   (``"ctg"``, ``"ctgpp"``) or the TTC causal ranking (``"ccdiff"``;
+   :mod:`policies.learned.ranking`);
+3. ``chain``: the unguided reverse chain (DDPM with all ``K`` levels, or DDIM with
    ``sampling_steps``), then the guided chain of ``A_c`` (:mod:`.guided`): gradient of
    RiskFlow's ``L_adv + L_map`` on the transition mean (``"ctg"``, ``"ccdiff"``) or
-   through the predicted clean sample (``"ctgpp"``), at every level.
+   through the predicted clean sample (``"ctgpp"``), at every level;
+4. ``emit``, ``hold``, ``restitch``: the plans into the plan buffer, vehicles at rest
+   held, every new plan blended into the executed one (over 5 steps).
 
-Several scenes due to re-plan in one call (:class:`~policies.learned.batched_adversary.
+Several scenes due to re-plan in one call (:class:`~policies.pipeline.batched.
 BatchedAdversary`, ``riskflow-eval --batch-scenes``) share one encoder pass and one
 denoiser pass per level of each chain, agents padded per scene and masked; each scene
 gets the plans it gets alone, to float rounding.
@@ -26,7 +29,7 @@ diffusion generator. Method mapping and simplifications: ``docs/BASELINES.md``.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import time
 from typing import Any
 
 import numpy as np
@@ -45,10 +48,11 @@ from policies.learned.adversary_config import (
     default_window_config,
 )
 from policies.learned.data import Normalizer
-from policies.learned.plan_buffer import PlanBufferPolicy
 from policies.learned.ranking import NO_GROUP, Ranking, rank_window
 from policies.learned.window_types import Window
-from riskflow_env.view import SceneView
+from policies.pipeline import stages
+from policies.pipeline.plan_set import PlanSet
+from policies.pipeline.policy import PipelinePolicy
 
 PHASES = ("window", "encoder", "ranking", "denoising", "guidance")
 # variant -> (A_c selection, guidance gradient)
@@ -73,7 +77,7 @@ def nearest_ranking(window: Window, k: int | str, candidates: np.ndarray) -> Ran
     return Ranking(controllable, -distance, groups, order)
 
 
-class DiffusionAdversary(PlanBufferPolicy):
+class DiffusionAdversary(PipelinePolicy):
     """A guided diffusion adversary for every non-ego vehicle (module docstring).
 
     Args:
@@ -141,64 +145,72 @@ class DiffusionAdversary(PlanBufferPolicy):
         self.levels = denoiser.schedule.levels(sampling_steps)
         model_config = denoiser.config
         window_config = config.window_config or default_window_config(model_config)
-        super().__init__(config, model_config.future_steps, window_config)
-
-    def _plan_cycles(self, scenes: Sequence[PlanBufferPolicy], views: Sequence[SceneView]) -> None:
-        """One cycle of B scenes (``scenes[b]`` plans ``views[b]``; B = 1 for ``plan``):
-        windows and one encoder pass, ``A_c`` scene by scene, one base chain and one
-        guided chain for all of them (module docstring). Each scene draws its noise from
-        its own stream, with the shape it has alone; the padded rows of smaller scenes are
-        masked everywhere."""
-        observed = self._encode_views(views, self.denoiser.encode)
-        scene, counts = observed.scene, observed.counts
-        num_scenes, num_agents = scene.agent_mask.shape
-        controllable = np.zeros((num_scenes, num_agents), dtype=bool)
-        standing = np.zeros((num_scenes, num_agents), dtype=bool)
-        for index, (policy, view) in enumerate(zip(scenes, views, strict=True)):
-            window, slots = observed.windows[index], observed.slots[index]
-            live = view.active[slots]
-            if self.selection == "causal":
-                policy.ranking = rank_window(window, self.k, self.rank_threshold, live)
-            else:
-                policy.ranking = nearest_ranking(window, self.k, live)
-            controllable[index, : len(slots)] = policy.ranking.controllable
-            standing[index, : len(slots)] = ~live
-        clock = self._tick("ranking", observed.clock)
-        steps = self.denoiser.config.future_steps
-        noise = scene.context.new_zeros(len(self.levels) + 1, num_scenes, num_agents, steps, 2)
-        for index, (policy, count) in enumerate(zip(scenes, counts, strict=True)):
-            noise[:, index, :count] = chain_noise(  # the scene's own stream, its own shape
-                (1, count, steps, 2), self.levels, policy._noise_source(), self.device,
-                scene.context.dtype,
-            )[:, 0]  # fmt: skip
-        geometry = SceneGeometry(
-            state=scene.state,
-            length=observed.batch.length,
-            width=observed.batch.width,
-            agent_mask=scene.agent_mask,
-            drivable_map=self._map_of(views),
-            frame=observed.frame_tensor(),
-            standing=torch.from_numpy(standing).to(self.device),
-        )
-        marks = [clock]
-        result = guided_sample(
-            self.denoiser, scene, noise, self.levels, geometry,
-            torch.from_numpy(controllable).to(self.device), self.normalizer, self.guidance,
-            self.eta, self.dynamics,
-            on_base_done=lambda: marks.append(self._tick("denoising", clock)),
-        )  # fmt: skip
-        self._tick("guidance", marks[-1])
-        losses = result.losses.cpu().numpy()
-        for index, (policy, view) in enumerate(zip(scenes, views, strict=True)):
-            slots = observed.slots[index]
-            rows = slice(0, len(slots))
-            # (levels + 1, A_w, T, 2): chain start, then each transition
-            policy.noise = noise[:, index, rows]
-            policy._store(
-                view, slots, result.actions[index, rows], result.trajectories[index, rows],
-                result.base_trajectories[index, rows], observed.frames[index],
-            )  # fmt: skip
-            policy.guidance_losses = losses[:, index]
+        cycle = [stages.encode, select, chain, stages.emit]
+        cycle += [stages.hold] * (config.hold_distance > 0) + [stages.restitch]
+        super().__init__(config, model_config.future_steps, window_config, cycle, denoiser.encode)
 
 
-__all__ = ["PHASES", "VARIANTS", "DiffusionAdversary", "nearest_ranking"]
+def select(policy: DiffusionAdversary, plans: PlanSet) -> PlanSet:
+    """``A_c`` of each scene: the ``k`` live vehicles nearest the ego, or the TTC causal
+    ranking (``"ccdiff"``); numpy, scene by scene."""
+    observed = plans.observed
+    controllable = np.zeros(observed.scene.agent_mask.shape, dtype=bool)
+    rankings = []
+    for index, view in enumerate(plans.views):
+        window, slots = observed.windows[index], observed.slots[index]
+        live = view.active[slots]
+        if policy.selection == "causal":
+            ranking = rank_window(window, policy.k, policy.rank_threshold, live)
+        else:
+            ranking = nearest_ranking(window, policy.k, live)
+        controllable[index, : len(slots)] = ranking.controllable
+        rankings.append(ranking)
+    controllable = torch.from_numpy(controllable).to(policy.device)
+    return plans.replace(controllable=controllable, rankings=rankings)
+
+
+select.phase = "ranking"
+
+
+def chain(policy: DiffusionAdversary, plans: PlanSet) -> PlanSet:
+    """One base chain and one guided chain for all scenes (module docstring). Each scene
+    draws its noise from its own stream, with the shape it has alone; the padded rows of
+    smaller scenes are masked everywhere."""
+    observed = plans.observed
+    scene, counts = observed.scene, observed.counts
+    num_scenes, num_agents = scene.agent_mask.shape
+    standing = np.zeros((num_scenes, num_agents), dtype=bool)
+    for index, (view, slots) in enumerate(zip(plans.views, observed.slots, strict=True)):
+        standing[index, : len(slots)] = ~view.active[slots]
+    steps = policy.horizon
+    noise = scene.context.new_zeros(len(policy.levels) + 1, num_scenes, num_agents, steps, 2)
+    for index, (state, count) in enumerate(zip(plans.states, counts, strict=True)):
+        noise[:, index, :count] = chain_noise(  # the scene's own stream, its own shape
+            (1, count, steps, 2), policy.levels, state.noise_source(policy.device),
+            policy.device, scene.context.dtype,
+        )[:, 0]  # fmt: skip
+    geometry = SceneGeometry(
+        state=scene.state,
+        length=observed.batch.length,
+        width=observed.batch.width,
+        agent_mask=scene.agent_mask,
+        drivable_map=plans.drivable_map,
+        frame=observed.frame_tensor(),
+        standing=torch.from_numpy(standing).to(policy.device),
+    )
+    marks = [time.perf_counter()]
+    result = guided_sample(
+        policy.denoiser, scene, noise, policy.levels, geometry, plans.controllable,
+        policy.normalizer, policy.guidance, policy.eta, policy.dynamics,
+        on_base_done=lambda: marks.append(policy.clock.tick("denoising", marks[0])),
+    )  # fmt: skip
+    policy.clock.tick("guidance", marks[-1])
+    # (levels + 1, A_w, T, 2) per scene: chain start, then each transition
+    kept = [noise[:, index, :count] for index, count in enumerate(counts)]
+    return plans.replace(
+        base_trajectories=result.base_trajectories, actions=result.actions,
+        trajectories=result.trajectories, losses=result.losses, noise=kept,
+    )  # fmt: skip
+
+
+__all__ = ["PHASES", "VARIANTS", "DiffusionAdversary", "chain", "nearest_ranking", "select"]

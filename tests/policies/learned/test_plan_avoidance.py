@@ -263,7 +263,7 @@ def test_riskflow_leaves_the_guided_pairs_to_guidance(
     """The pairs of a vehicle of ``A_c`` and one of its targets are exempt from the
     avoidance steps (guidance decides them); with ``k = 0`` or without ``L_adv``
     nothing is."""
-    import policies.riskflow.base_plans as riskflow
+    import policies.pipeline.stages as riskflow
 
     seen = []
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch
@@ -12,20 +14,28 @@ from policies.learned.plan_stitching import (
     CORRECTION_STITCH_STEPS,
     DEFAULT_FIRST_STITCH_STEPS,
     DEFAULT_STITCH_STEPS,
-    PlanStitching,
     blend_share,
+    continuation,
 )
+from policies.pipeline import stages
+from policies.pipeline.plan_set import PlanSet
 from policies.riskflow.policy import RiskFlowAdversary
 from riskflow_env.dynamics import rollout
 
 
 def _adversary(models, stitch_steps: int, k: int = 0) -> RiskFlowAdversary:
-    """Blending after planning, as the diffusion baselines do, on the MeanFlow adversary."""
+    """Blending after planning, as the diffusion baselines do: the MeanFlow adversary's
+    cycle without its ``stitch`` stage."""
     policy = RiskFlowAdversary(
         k=k, planning_interval=0.3, seed=2, stitch_steps=stitch_steps, **models
     )
-    policy.stitch_first = False
+    policy.stages = tuple(stage for stage in policy.stages if stage is not stages.stitch)
     return policy
+
+
+def _same_cycle(fresh, policy) -> None:
+    """``fresh`` draws the noise of ``policy``'s next cycle."""
+    fresh.state = fresh.state.replace(cycles=1, episode=policy.state.episode)
 
 
 def test_stitch_steps_is_a_checked_shared_option(tiny_meanflow, tiny_normalizer, tiny_denoiser):
@@ -37,11 +47,12 @@ def test_stitch_steps_is_a_checked_shared_option(tiny_meanflow, tiny_normalizer,
     models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
     # the MeanFlow adversaries blend first over 15 steps, the others after over 5
     assert RiskFlowAdversary(k=0, **models).stitch_steps == DEFAULT_FIRST_STITCH_STEPS == 15
-    assert RiskFlowAdversary(k=0, **models).stitch_first
-    assert DEFAULT_STITCH_STEPS == PlanStitching.stitch_steps == 5
+    assert stages.stitch in RiskFlowAdversary(k=0, **models).stages
+    assert DEFAULT_STITCH_STEPS == 5
     assert RiskFlowAdversary(k=0, stitch_steps=7, **models).stitch_steps == 7
     diffusion = DiffusionAdversary(k=0, denoiser=tiny_denoiser, normalizer=tiny_normalizer)
-    assert not diffusion.stitch_first and diffusion.stitch_steps == DEFAULT_STITCH_STEPS
+    assert stages.stitch not in diffusion.stages
+    assert diffusion.stitch_steps == DEFAULT_STITCH_STEPS
 
 
 @pytest.mark.parametrize("k", [0, 2])
@@ -58,7 +69,7 @@ def test_replan_blends_into_the_executed_plan(tiny_meanflow, tiny_normalizer, cl
 
     fresh = _adversary(models, stitch_steps=0, k=k)  # the same cycle-1 plans, unblended
     fresh.reset(view)
-    fresh.cycles, fresh._episode = 1, policy._episode
+    _same_cycle(fresh, policy)
     fresh.plan(view)
     keep = np.arange(n, 0, -1)[:, None] / (n + 1.0)  # n/(n+1), ..., 1/(n+1)
     expected = fresh.plan_actions[rows].copy()
@@ -95,13 +106,13 @@ def test_blending_first_blends_the_base_plans_into_the_executed_ones(
     env, _ = closed_loop(policy, 3)  # cycle 0 planned at step 0, 3 steps executed
     view = env.view()
     rows = np.flatnonzero(policy.plan_mask & view.active)
-    old, share = policy._continuation(view, rows, 52)
+    old, share = continuation(policy.state, view, rows, 52, policy.stitch_steps)
     np.testing.assert_allclose(share, np.broadcast_to(blend_share(n), share.shape))
     np.testing.assert_array_equal(old, policy.plan_actions[rows, 3 : 3 + n])
     policy.act(view)  # step 3: cycle 1
     fresh = RiskFlowAdversary(stitch_steps=0, **options)  # the same cycle-1 plans, unblended
     fresh.reset(view)
-    fresh.cycles, fresh._episode = 1, policy._episode
+    _same_cycle(fresh, policy)
     fresh.plan(view)
     unblended = fresh.plan_actions[rows]
     dynamics = policy.dynamics
@@ -129,7 +140,11 @@ def test_blending_first_blends_the_avoidance_corrections_of_the_first_action(
     continued = policy.plan_mask & view.active
     assert continued.any()
     u0 = torch.zeros(1, slots.size + 1, 52, 2, dtype=torch.float64)  # a padded row
-    _, gain = policy._blend_first([policy], [view], [slots], torch.zeros_like(u0), u0)
+    plans = PlanSet(
+        [view], [policy.state], view.map, SimpleNamespace(slots=[slots]),
+        eps=torch.zeros_like(u0), u=u0,
+    )  # fmt: skip
+    gain = stages.stitch(policy, plans).gain
     expected = np.ones(gain.shape)
     expected[0, : slots.size][continued, 0] = 1.0 - blend_share(CORRECTION_STITCH_STEPS)[0]
     np.testing.assert_array_equal(gain.numpy(), expected)
@@ -137,22 +152,21 @@ def test_blending_first_blends_the_avoidance_corrections_of_the_first_action(
 
 
 def test_planning_passes_the_correction_gain_to_the_avoidance_steps(
-    tiny_meanflow, tiny_normalizer, closed_loop, monkeypatch
+    tiny_meanflow, tiny_normalizer, closed_loop
 ):
-    """A re-plan blending first hands ``_blend_first``'s gain to the avoidance steps; one
-    blending after planning hands None (every correction whole)."""
+    """A re-plan blending first hands the ``stitch`` stage's gain to the avoidance steps;
+    a cycle without that stage hands None (every correction whole)."""
     models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
     for first in (True, False):
         policy = RiskFlowAdversary(k=0, planning_interval=0.3, seed=2, avoid_steps=2, **models)
-        policy.stitch_first = first
         gains = []
-        avoid = policy._avoid
 
-        def spy(observed, views, eps, u0, gain=None, controllable=None, avoid=avoid, gains=gains):
-            gains.append(gain)
-            return avoid(observed, views, eps, u0, gain, controllable)
+        def spy(policy, plans, gains=gains):
+            gains.append(plans.gain)
+            return stages.avoid(policy, plans)
 
-        monkeypatch.setattr(policy, "_avoid", spy)
+        cycle = [spy if stage is stages.avoid else stage for stage in policy.stages]
+        policy.stages = tuple(s for s in cycle if first or s is not stages.stitch)
         closed_loop(policy, 4)  # cycles at steps 0 and 3
         assert len(gains) == 2
         if first:
@@ -165,4 +179,4 @@ def test_continuation_is_none_before_the_first_plan(tiny_meanflow, tiny_normaliz
     models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
     policy = RiskFlowAdversary(k=0, **models)
     env, _ = closed_loop(policy, 0)
-    assert policy._continuation(env.view(), np.arange(2), 52) is None
+    assert continuation(policy.state, env.view(), np.arange(2), 52, policy.stitch_steps) is None

@@ -12,6 +12,7 @@ from policies.learned.checkpoint import build_checkpoint, load_checkpoint, save_
 from policies.learned.sampler import sample
 from policies.learned.window_types import collate_windows
 from policies.learned.windows import window_from_view
+from policies.pipeline import stages
 from policies.riskflow.base_generator import checkpoint_kind, load_base_generator
 from policies.riskflow.policy import RiskFlowAdversary
 
@@ -33,9 +34,9 @@ def test_diffusion_base_plans_are_the_ddim_chain_and_guidance_moves_only_a_c(
     # the bit-for-bit comparison blends after planning.
     kwargs = {"generator": sampler, "normalizer": tiny_normalizer, "seed": 2, "threads": None}
 
-    def after(**options):  # blending after planning
+    def after(**options):  # blending after planning: the cycle without its stitch stage
         policy = RiskFlowAdversary(**kwargs, **options)
-        policy.stitch_first = False
+        policy.stages = tuple(stage for stage in policy.stages if stage is not stages.stitch)
         return policy
 
     unguided, view = planned(after(k=0), road_view)

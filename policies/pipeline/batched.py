@@ -1,10 +1,10 @@
 """``BatchedAdversary``: one learned adversary driving the traffic of B scenes at once.
 
-A :class:`~policies.learned.plan_buffer.PlanBufferPolicy` plans one scene per call. To
+A :class:`~policies.pipeline.policy.PipelinePolicy` plans one scene per call. To
 drive many scenes (a vectorised env, an evaluation over many scenes) the adversary holds
-one copy per scene (:meth:`PlanBufferPolicy.spawn`: the model and options shared, the
-plan buffer, episode count and noise stream its own) and plans every scene that is due
-in **one call** (:func:`~policies.learned.plan_buffer.plan_scenes`): for
+one copy per scene (:meth:`PipelinePolicy.spawn`: the model and options shared, the
+planner state its own) and plans every scene that is due
+in **one call** (:func:`~policies.pipeline.policy.plan_scenes`): for
 ``RiskFlowAdversary`` (and the unguided generator) one encoder pass, one generator pass
 and one guidance loop over all those scenes' controllable rows, agents padded per scene
 and masked. Scenes re-plan on their own schedules: a scene reset at another step, or
@@ -12,7 +12,7 @@ with another planning phase, is planned in the calls where it is due, and the ot
 keep playing their buffered plans.
 
 Each scene's plans are those of planning it alone with a policy of its seed, to float
-rounding (tests/policies/learned/test_batched_adversary.py); the same seeds give the
+rounding (tests/policies/pipeline/test_batched.py); the same seeds give the
 same batched rollout, bit for bit, on one machine. Scene ``b``'s seed is ``seeds[b]``
 (default ``policy.seed + b``): its noise of cycle ``c`` of its episode ``e`` comes from
 ``(seeds[b], e, c)``, whatever the other scenes do.
@@ -33,7 +33,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from policies.learned.plan_buffer import PlanBufferPolicy, plan_scenes
+from policies.pipeline.policy import PipelinePolicy, plan_scenes
 from riskflow_env.view import SceneView
 
 
@@ -48,11 +48,11 @@ class BatchedAdversary:
     """
 
     def __init__(
-        self, policy: PlanBufferPolicy, num_scenes: int, seeds: Sequence[int] | None = None
+        self, policy: PipelinePolicy, num_scenes: int, seeds: Sequence[int] | None = None
     ) -> None:
-        if not isinstance(policy, PlanBufferPolicy):
+        if not isinstance(policy, PipelinePolicy):
             raise TypeError(
-                f"policy must be a learned adversary (a PlanBufferPolicy), got {type(policy)}"
+                f"policy must be a learned adversary (a PipelinePolicy), got {type(policy)}"
             )
         if isinstance(num_scenes, bool) or not isinstance(num_scenes, int) or num_scenes < 1:
             raise ValueError(f"num_scenes must be an int >= 1, got {num_scenes!r}")
@@ -61,7 +61,7 @@ class BatchedAdversary:
         seeds = list(seeds)
         if len(seeds) != num_scenes:
             raise ValueError(f"seeds must hold num_scenes = {num_scenes} seeds, got {len(seeds)}")
-        self.scenes: tuple[PlanBufferPolicy, ...] = tuple(policy.spawn(seed) for seed in seeds)
+        self.scenes: tuple[PipelinePolicy, ...] = tuple(policy.spawn(seed) for seed in seeds)
         self.last_planned: tuple[int, ...] = ()
 
     def __len__(self) -> int:

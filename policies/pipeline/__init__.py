@@ -1,0 +1,15 @@
+"""The planning cycle of every learned scene policy, as a list of stages.
+
+* :mod:`~policies.pipeline.state`: ``PlannerState``, what a policy keeps of one scene
+  between cycles (one value, passed in and returned);
+* :mod:`~policies.pipeline.plan_set`: ``PlanSet``, the typed plans the stages of one cycle
+  hand each other (B scenes, torch, ego frame);
+* :mod:`~policies.pipeline.stages`: the shared stages (encode, rank, generate, stitch,
+  decode, avoid, stand, emit, hold, restitch);
+* :mod:`~policies.pipeline.policy`: ``PipelinePolicy`` (schedule, plan buffer, seeding,
+  many scenes per cycle) and ``plan_scenes``.
+
+A method is a ``PipelinePolicy`` with its list of stages: RiskFlow
+(:mod:`policies.riskflow.policy`), the unguided generator and STRIVE-style
+(:mod:`policies.baselines`), the guided diffusion baselines. docs/ARCHITECTURE.md draws it.
+"""

@@ -1,0 +1,285 @@
+"""The stages of a planning cycle, shared by every learned scene policy.
+
+A stage is a function ``stage(policy, plans) -> plans`` over one :class:`PlanSet` of B
+scenes; ``policy`` supplies the model and the options. A method is its list of stages
+(:mod:`policies.pipeline.policy` runs them in order)::
+
+    RiskFlow       encode rank generate stitch decode avoid stand guide emit hold restitch
+    unguided       encode      generate stitch decode avoid stand       emit hold restitch
+    STRIVE-style   as RiskFlow, with the latent optimisation as ``guide``
+    diffusion      encode select chain                                  emit hold restitch
+
+* ``encode``: windows (ego frame) of every scene, collated, one encoder pass;
+* ``rank``: the TTC causal ranking, ``A_c`` (:mod:`policies.learned.ranking`);
+* ``generate``: each scene's noise from its own stream, one generator pass, ``u0``;
+* ``stitch``: each new base plan blended into the executed one (blending first);
+* ``decode``: actions and their rollout from ``eps + u``;
+* ``avoid``: the avoidance steps (:mod:`policies.learned.plan_avoidance`);
+* ``stand``: done vehicles stand still (the env keeps them at speed 0);
+* ``guide``: the method's own (RiskFlow: output-space guidance of the ``A_c`` rows,
+  :func:`policies.riskflow.policy.guide`);
+* ``emit``: the plans into each scene's new planner state, world frame, numpy;
+* ``hold``: vehicles at rest keep their brake on; ``restitch``: the rows not blended first
+  (the guided ones, or all of them) blended into the executed plans
+  (:mod:`policies.learned.plan_stitching`).
+"""
+
+from __future__ import annotations
+
+import time
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import torch
+
+from policies.learned.encoded_views import encode_views
+from policies.learned.guidance_losses import map_term, target_rows
+from policies.learned.plan_avoidance import avoid_overlaps, guided_pairs
+from policies.learned.plan_overlap import OVERLAP_HORIZON
+from policies.learned.plan_stitching import (
+    CORRECTION_STITCH_STEPS,
+    blend_share,
+    continuation,
+    hold_at_rest,
+    stitch_after,
+)
+from policies.learned.ranking import rank_window
+from policies.learned.sampler import base_velocity, decode_plans
+from policies.pipeline.plan_set import PlanSet
+from policies.pipeline.state import world_plans
+
+PipelinePolicy = Any  # policies.pipeline.policy.PipelinePolicy, which runs the stages
+
+
+def encode(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
+    """Windows of every scene, collated (agents padded), one encoder pass."""
+    observed = encode_views(
+        plans.views, policy.window_config, policy.device, policy.encoder, policy.clock.tick
+    )
+    return plans.replace(observed=observed)
+
+
+def rank(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
+    """``A_c`` of each scene by the TTC causal ranking of its window (numpy, scene by
+    scene); done vehicles are never in it."""
+    observed = plans.observed
+    controllable = np.zeros(observed.scene.agent_mask.shape, dtype=bool)
+    rankings = []
+    for index, view in enumerate(plans.views):
+        window, slots = observed.windows[index], observed.slots[index]
+        ranking = rank_window(window, policy.k, policy.rank_threshold, view.active[slots])
+        controllable[index, : len(slots)] = ranking.controllable
+        rankings.append(ranking)
+    controllable = torch.from_numpy(controllable).to(policy.device)
+    return plans.replace(controllable=controllable, rankings=rankings)
+
+
+def generate(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
+    """Each scene's noise from its own stream, with the shape it has alone, and one
+    generator pass for all: ``u0 = u_theta(eps, 0, 1; C)``."""
+    scene = plans.observed.scene
+    num_scenes, num_agents = scene.agent_mask.shape
+    steps = policy.horizon
+    with torch.no_grad():
+        eps = scene.context.new_zeros(num_scenes, num_agents, steps, 2)
+        for index, (state, count) in enumerate(
+            zip(plans.states, plans.observed.counts, strict=True)
+        ):
+            eps[index, :count] = torch.randn(
+                (count, steps, 2),
+                generator=state.noise_source(policy.device),
+                device=policy.device,
+                dtype=scene.context.dtype,
+            )
+        u0 = base_velocity(policy.model, eps, scene)
+    return plans.replace(eps=eps, u=u0)
+
+
+def stitch(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
+    """Blend each new base plan into the plan being executed (blending first): ``u`` of
+    plans whose first actions are the blend, and the gain of the avoidance steps'
+    corrections, blended over ``CORRECTION_STITCH_STEPS``."""
+    eps, u0, slots = plans.eps, plans.u, plans.observed.slots
+    old, share = torch.zeros_like(u0), torch.zeros_like(u0[..., :1])
+    for index, (state, view) in enumerate(zip(plans.states, plans.views, strict=True)):
+        blend = continuation(state, view, slots[index], u0.shape[2], policy.stitch_steps)
+        if blend is not None:
+            previous, weight = (torch.as_tensor(x, dtype=u0.dtype) for x in blend)
+            rows, steps = slice(0, len(slots[index])), weight.shape[1]
+            old[index, rows, :steps] = previous.to(u0.device)
+            share[index, rows, :steps, 0] = weight.to(u0.device)
+    with torch.no_grad():
+        actions = policy.normalizer.denormalize(eps + u0)
+        blended = policy.normalizer.normalize(share * old + (1 - share) * actions) - eps
+    steps = min(CORRECTION_STITCH_STEPS, share.shape[2])
+    gain = torch.ones_like(share)
+    gain[:, :, :steps] -= torch.where(
+        share[:, :, :steps] > 0, share.new_tensor(blend_share(steps))[:, None], 0.0
+    )
+    return plans.replace(u=blended, gain=gain)
+
+
+def decode(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
+    """The base plans: actions ``clip(denorm(eps + u))`` and their rollout."""
+    scene = plans.observed.scene
+    with torch.no_grad():
+        actions, trajectories = decode_plans(
+            plans.eps + plans.u, scene.state, scene.agent_mask, policy.normalizer,
+            policy.dynamics,
+        )  # fmt: skip
+    return plans.replace(base_actions=actions, base_trajectories=trajectories)
+
+
+def avoid(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
+    """The avoidance steps on every scene's base plans
+    (:func:`~policies.learned.plan_avoidance.avoid_overlaps`). The pairs of a vehicle of
+    ``A_c`` and one of its targets are left to guidance, when it pulls them together."""
+    observed, controllable = plans.observed, plans.controllable
+    scene, batch = observed.scene, observed.batch
+    exempt = None
+    if controllable is not None and policy.guidance.lambda_adv > 0 and bool(controllable.any()):
+        targets = target_rows(scene.agent_mask, controllable, 0, policy.guidance.target)
+        exempt = guided_pairs(controllable, targets)
+    num_agents = scene.agent_mask.shape[1]
+    flat = SimpleNamespace(
+        length=batch.length.flatten(), width=batch.width.flatten(),
+        drivable_map=plans.drivable_map, frame=observed.frame_tensor(),
+    )  # fmt: skip
+
+    def map_term_of(rows: torch.Tensor):
+        return map_term(flat, rows, OVERLAP_HORIZON, policy.guidance, rows // num_agents)
+
+    with torch.no_grad():
+        u0, actions, trajectories = avoid_overlaps(
+            plans.eps, plans.u, scene.state, batch.length, batch.width, scene.agent_mask,
+            map_term_of, policy.normalizer, policy.dynamics, steps=policy.avoid_steps,
+            step_size=policy.avoid_step_size, gain=plans.gain, exempt=exempt,
+        )  # fmt: skip
+    return plans.replace(u=u0, base_actions=actions, base_trajectories=trajectories)
+
+
+def stand(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
+    """Done vehicles stand still in the base plans: zero actions, their current pose at
+    speed 0 (the env keeps them as obstacles)."""
+    scene = plans.observed.scene
+    done = np.zeros(scene.agent_mask.shape, dtype=bool)
+    for index, (view, slots) in enumerate(zip(plans.views, plans.observed.slots, strict=True)):
+        done[index, : len(slots)] = ~view.active[slots]
+    done = torch.from_numpy(done).to(policy.device)
+    stand_still(plans.base_actions, plans.base_trajectories, scene.state, done)
+    return plans
+
+
+def stand_still(
+    actions: torch.Tensor, trajectories: torch.Tensor, state: torch.Tensor, done: torch.Tensor
+) -> None:
+    """In place: ``done`` rows get zero actions and stand at their current pose, speed 0.
+    Shapes (..., A, T, 2), (..., A, T, 4), (..., A, 4), (..., A)."""
+    actions[done] = 0.0
+    standing = state.clone()
+    standing[..., 2] = 0.0
+    trajectories[done] = standing[done, None].expand_as(trajectories[done])
+
+
+def emit(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
+    """Each scene's new planner state: its plans in env slot order, world frame, numpy
+    (NaN rows for slots without a plan); the cycle's noise, ranking and losses."""
+    observed = plans.observed
+    num_scenes = len(plans.views)
+    actions = plans.base_actions if plans.actions is None else plans.actions
+    trajectories = plans.base_trajectories if plans.trajectories is None else plans.trajectories
+    losses = plans.losses
+    if losses is None:  # nothing guided: zero losses before the (absent) first step
+        losses = torch.zeros(1, num_scenes, 2, dtype=plans.base_actions.dtype)
+    losses = losses.cpu().numpy()
+    controllable = plans.controllable
+    new_states = []
+    for index, (state, view) in enumerate(zip(plans.states, plans.views, strict=True)):
+        slots, num = observed.slots[index], view.num_agents
+        rows = slice(0, len(slots))
+        plan_actions = np.zeros((num, policy.horizon, 2))
+        plan_actions[slots] = actions[index, rows].cpu().numpy()
+        plan_mask = np.zeros(num, dtype=bool)
+        plan_mask[slots] = True
+        chosen = np.zeros(num, dtype=bool)
+        if controllable is not None:
+            chosen[slots] = controllable[index, rows].cpu().numpy()
+        frame = observed.frames[index]
+        new_states.append(
+            state.replace(
+                plan_actions=plan_actions,
+                plans=world_plans(trajectories[index, rows].cpu().numpy(), slots, num, frame),
+                base_plans=world_plans(
+                    plans.base_trajectories[index, rows].cpu().numpy(), slots, num, frame
+                ),
+                plan_mask=plan_mask,
+                controllable=chosen,
+                names=view.agent_names,
+                ranking=plans.rankings[index] if plans.rankings else None,
+                noise=plans.eps[index, rows] if plans.noise is None else plans.noise[index],
+                guidance_losses=losses[:, index],
+                extras=dict(plans.extras[index]) if plans.extras else {},
+            )
+        )
+    return plans.replace(new_states=new_states)
+
+
+def hold(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
+    """Vehicles at rest whose new plan hardly moves them keep their brake on."""
+    for state, view in zip(plans.new_states, plans.views, strict=True):
+        hold_at_rest(state, view, policy.hold_distance, policy.dynamics)
+    return plans
+
+
+def restitch(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
+    """The new plans not blended before planning (the guided rows of a method that blends
+    first, every row of one that does not) blended into the executed plans."""
+    guided_only = stitch in policy.stages
+    for new, previous, view in zip(plans.new_states, plans.states, plans.views, strict=True):
+        stitch_after(new, previous, view, policy.stitch_steps, guided_only, policy.dynamics)
+    return plans
+
+
+class PhaseClock:
+    """Wall time per phase of a cycle (a stage's ``phase``); CUDA is synchronised first."""
+
+    def __init__(self, device: torch.device) -> None:
+        self.device, self.timings = device, {}
+
+    def tick(self, phase: str, start: float) -> float:
+        """Add the time since ``start`` to ``phase``; returns now."""
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        now = time.perf_counter()
+        self.timings[phase] = self.timings.get(phase, 0.0) + now - start
+        return now
+
+
+# The phase of each stage in a cycle's timings ("window" and "encoder" are encode's own; a
+# method's own stages carry a ``phase`` attribute).
+PHASE_OF = {
+    rank: "ranking",
+    generate: "generator",
+    stitch: "generator",
+    decode: "generator",
+    avoid: "generator",
+    stand: "generator",
+}
+
+
+__all__ = [
+    "PHASE_OF",
+    "PhaseClock",
+    "avoid",
+    "decode",
+    "emit",
+    "encode",
+    "generate",
+    "hold",
+    "rank",
+    "restitch",
+    "stand",
+    "stand_still",
+    "stitch",
+]
