@@ -12,9 +12,8 @@ and every step:
 * every live vehicle is inside the map's raster, or flagged off-road (the map counts
   everything beyond its raster as off-road): ``info["offroad_fraction"] > 0``.
 
-10,000 steps run in the default test run and in ``python -m pytest -m reliability``;
-100,000 steps are a ``slow`` test only (``python -m pytest -m slow``), so that neither
-the default run nor the reliability suite takes minutes.
+10,000 steps run in ``python -m pytest -m reliability``; 100,000 steps are a ``slow`` test
+only (``python -m pytest -m slow``), so that the reliability suite does not take minutes.
 """
 
 from __future__ import annotations
