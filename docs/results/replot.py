@@ -13,7 +13,7 @@ import re
 import sys
 from pathlib import Path
 
-from policies.evaluation.plots import _colors, _cs_rs, _name, _realism
+from policies.evaluation.plots import write_metric_plots
 from policies.evaluation.report import METRIC_COLUMNS, Table
 
 HEADING = re.compile(r"^## K=(\S+), T=(\S+?)(?: s)? \((\d+) scenes")
@@ -41,17 +41,8 @@ def tables_from_report(path: Path) -> list[Table]:
 
 
 def replot(folder: Path) -> list[Path]:
-    tables = tables_from_report(folder / "report.md")
-    colors = _colors(sorted({label for table in tables for label in table.metrics}))
-    files = []
-    for interval in dict.fromkeys(table.interval for table in tables):
-        group = [t for t in tables if t.interval == interval]
-        files.append(_cs_rs(group, colors, folder / f"cs_rs_T{_name(interval)}.png"))
-    for k in dict.fromkeys(table.k for table in tables):
-        group = [t for t in tables if t.k == k]
-        if len(group) > 1:  # a line needs several intervals
-            files.append(_realism(group, colors, folder / f"realism_vs_horizon_K{_name(k)}.png"))
-    return files
+    """Redraw the metric plots of ``folder`` from its ``report.md``; returns the files."""
+    return write_metric_plots(tables_from_report(folder / "report.md"), folder)
 
 
 if __name__ == "__main__":

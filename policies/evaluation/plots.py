@@ -35,14 +35,25 @@ def _colors(labels: list[str]) -> dict[str, tuple]:
     return {label: cmap(i % 10) for i, label in enumerate(labels)}
 
 
+def _method_colors(tables: list[Table]) -> dict[str, tuple]:
+    """One colour per method of ``tables``, in sorted order (the same in every plot)."""
+    return _colors(sorted({label for table in tables for label in table.metrics}))
+
+
 def _name(value: object) -> str:
     return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 def write_plots(tables: list[Table], out: Path) -> list[Path]:
     """Write every plot into ``out``; returns the files."""
-    labels = sorted({label for table in tables for label in table.metrics})
-    colors = _colors(labels)
+    files = write_metric_plots(tables, out)
+    return [*files, _speed(tables, _method_colors(tables), out / "speed.png")]
+
+
+def write_metric_plots(tables: list[Table], out: Path) -> list[Path]:
+    """Write the plots drawn from the metric tables alone (CS-RS, realism against the
+    planning interval; not ``speed.png``) into ``out``; returns the files."""
+    colors = _method_colors(tables)
     files = []
     for interval in dict.fromkeys(table.interval for table in tables):
         group = [t for t in tables if t.interval == interval]
@@ -51,7 +62,6 @@ def write_plots(tables: list[Table], out: Path) -> list[Path]:
         group = [t for t in tables if t.k == k]
         if len(group) > 1:  # a line over the planning intervals needs several of them
             files.append(_realism(group, colors, out / f"realism_vs_horizon_K{_name(k)}.png"))
-    files.append(_speed(tables, colors, out / "speed.png"))
     return files
 
 
