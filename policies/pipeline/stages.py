@@ -4,16 +4,17 @@ A stage is a function ``stage(policy, plans) -> plans`` over one :class:`PlanSet
 scenes; ``policy`` supplies the model and the options. A method is its list of stages
 (:mod:`policies.pipeline.policy` runs them in order)::
 
-    RiskFlow       encode rank generate stitch decode avoid stand guide emit hold restitch
-    unguided       encode      generate stitch decode avoid stand       emit hold restitch
+    RiskFlow       encode rank generate stitch avoid stand guide emit hold restitch
+    unguided       encode      generate stitch avoid stand       emit hold restitch
     STRIVE-style   as RiskFlow, with the latent optimisation as ``guide``
-    diffusion      encode select chain                                  emit hold restitch
+    raw variants   ``decode`` in place of ``avoid``; no ``hold``
+    diffusion      encode select chain                           emit hold restitch
 
 * ``encode``: windows (ego frame) of every scene, collated, one encoder pass;
 * ``rank``: the TTC causal ranking, ``A_c`` (:mod:`policies.learned.ranking`);
 * ``generate``: each scene's noise from its own stream, one generator pass, ``u0``;
 * ``stitch``: each new base plan blended into the executed one (blending first);
-* ``decode``: actions and their rollout from ``eps + u``;
+* ``decode``: actions and their rollout from ``eps + u`` (``avoid`` decodes its own);
 * ``avoid``: the avoidance steps (:mod:`policies.learned.plan_avoidance`);
 * ``stand``: done vehicles stand still (the env keeps them at speed 0);
 * ``guide``: the method's own (RiskFlow: output-space guidance of the ``A_c`` rows,

@@ -110,7 +110,8 @@ guide.phase = "guidance"
 
 def generator_stages(avoid_steps: int, hold_distance: float, guide: Stage | None) -> tuple:
     """The cycle of a policy on the one-step generator: the avoidance steps and holding
-    at rest only when on (``avoid_steps > 0``, ``hold_distance > 0``), the ranking and
+    at rest only when on (``avoid_steps > 0``, ``hold_distance > 0``; the avoidance steps
+    decode the plans they return, so ``decode`` runs only without them), the ranking and
     ``guide`` only with a guidance stage."""
     guided = guide is not None
     return tuple(
@@ -120,7 +121,7 @@ def generator_stages(avoid_steps: int, hold_distance: float, guide: Stage | None
             (stages.rank, guided),
             (stages.generate, True),
             (stages.stitch, True),
-            (stages.decode, True),
+            (stages.decode, avoid_steps == 0),  # the avoidance steps decode their result
             (stages.avoid, avoid_steps > 0),
             (stages.stand, True),
             (guide, guided),
