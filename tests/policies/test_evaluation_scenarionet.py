@@ -63,6 +63,7 @@ def test_bad_dataset_folders_name_the_argument(scenarionet_toy, tmp_path, capsys
     assert not out.exists()
 
 
+@pytest.mark.slow  # 10 s rollouts of three methods on every real sample: about 20 s of CPU
 def test_realism_ranks_replay_over_the_generator_over_the_adversary(tmp_path, monkeypatch):
     """On the real nuScenes samples (10 s, IDM ego, one seed): log replay is more realistic
     than the unguided generator, which is more realistic than the RiskFlow adversary
