@@ -34,6 +34,7 @@ from tqdm import tqdm
 from policies.dataclass_cli import parse_dataclass
 from policies.planners import OraclePlanner, make_planner
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
+from policies.rl.envs import interface_options
 from policies.rl.evaluation import RandomPlanner, evaluate, load_ppo_planner, summarize_ego
 from policies.rl.paired import PAIRED_OUTCOMES, paired_counts
 from policies.rl.report import markdown_table, paired_table, plot_summaries, plot_training
@@ -110,14 +111,7 @@ def run_options(run: Path) -> tuple[int, dict]:
     """Training seed of a run folder and the options its policy needs at evaluation (base
     planner, action repeat, maneuver features and actions), from its options.json."""
     options = json.loads((run / "options.json").read_text())
-    policy = {
-        "base_planner": options["base_planner"],
-        "action_repeat": options.get("action_repeat", 1),
-        "maneuver_features": options.get("maneuver_features", False),
-        "maneuver_actions": options.get("maneuver_actions", False),
-        "maneuver_set": options.get("maneuver_set", "compact"),
-    }
-    return int(options["seed"]), policy
+    return int(options["seed"]), interface_options(options)
 
 
 def ppo_factory(path: str, policy: dict):

@@ -62,7 +62,7 @@ from policies.dataclass_cli import parse_dataclass
 from policies.evaluation.options import check_device
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.curriculum import CurriculumCallback, LinearCurriculum, OutcomeCallback
-from policies.rl.envs import EgoEnvConfig, make_env
+from policies.rl.envs import EgoEnvConfig, interface_options, make_env
 from policies.rl.features import MANEUVER_SETS
 from policies.rl.progress import StepProgressBar
 from policies.rl.sb3_shards import ShardedEgoVecEnv
@@ -217,11 +217,7 @@ def env_config(options: Options) -> EgoEnvConfig:
         ),
         split=options.split,
         scenes=options.scenes,
-        base_planner=options.base_planner,
-        action_repeat=options.action_repeat,
-        maneuver_features=options.maneuver_features,
-        maneuver_actions=options.maneuver_actions,
-        maneuver_set=options.maneuver_set,
+        **interface_options(options),
     )
 
 

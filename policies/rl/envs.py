@@ -29,6 +29,7 @@ worker: it seeds the adversary per worker and limits torch to one thread per wor
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -179,6 +180,9 @@ class EgoInterface:
         return compose_action(action, base, self.dynamics, self.maneuvers, substep)
 
 
+INTERFACE_OPTIONS = tuple(inspect.signature(EgoInterface).parameters)[1:]  # after dynamics
+
+
 @dataclass(frozen=True)
 class EgoEnvConfig:
     """Everything a worker needs to build its env (picklable for ``SubprocVecEnv``).
@@ -260,6 +264,14 @@ class EgoTrainingEnv(gymnasium.Wrapper):
         apply_stage(self.env.unwrapped.policy, stage)
 
 
+def interface_options(source: Any) -> dict[str, Any]:
+    """The :class:`EgoInterface` options of ``source``: its attributes (an
+    :class:`EgoEnvConfig`, a script's options) or a mapping's keys (``options.json``)."""
+    if isinstance(source, Mapping):
+        return {name: source[name] for name in INTERFACE_OPTIONS if name in source}
+    return {name: getattr(source, name) for name in INTERFACE_OPTIONS}
+
+
 def training_scenes(config: EgoEnvConfig) -> list:
     """The scenes of ``config``: its shipped split, the first ``config.scenes`` of them."""
     from riskflow_env.scenarios import shipped_bank
@@ -272,14 +284,7 @@ def build_env(config: EgoEnvConfig, seed: int = 0) -> EgoTrainingEnv:
     """One training env (not yet reset); the adversary's noise seed is ``seed``."""
     policy = make_traffic(config.traffic, seed=seed)
     env = EgoEnv(config=config.env, scenarios=training_scenes(config), policy=policy)
-    return EgoTrainingEnv(
-        env,
-        base_planner=config.base_planner,
-        action_repeat=config.action_repeat,
-        maneuver_features=config.maneuver_features,
-        maneuver_actions=config.maneuver_actions,
-        maneuver_set=config.maneuver_set,
-    )
+    return EgoTrainingEnv(env, **interface_options(config))
 
 
 def make_env(config: EgoEnvConfig, rank: int, seed: int) -> Callable[[], gymnasium.Env]:

@@ -38,12 +38,9 @@ class PPOPlanner:
             are applied), or None.
         deterministic: act with the mean of the Gaussian (True) or sample it.
         dynamics: the env's bounds (to de-normalise actions).
-        base_planner: ``"none"``, or ``"idm"`` / ``"lane"`` for a residual policy (as
-            trained).
-        action_repeat: env steps per policy decision (as trained).
-        maneuver_features: append the maneuver-clearance features (as trained).
-        maneuver_actions: the policy's actions are maneuver indices (as trained).
-        maneuver_set: the maneuvers of features and actions (as trained).
+        **interface: ``base_planner``, ``action_repeat``, ``maneuver_features``,
+            ``maneuver_actions``, ``maneuver_set`` of
+            :class:`~policies.rl.envs.EgoInterface`, as trained.
     """
 
     def __init__(
@@ -52,22 +49,11 @@ class PPOPlanner:
         normalize: Any = None,
         deterministic: bool = True,
         dynamics: DynamicsConfig | None = None,
-        base_planner: str = "none",
-        action_repeat: int = 1,
-        maneuver_features: bool = False,
-        maneuver_actions: bool = False,
-        maneuver_set: str = "compact",
+        **interface: Any,
     ) -> None:
         self.model, self.normalize = model, normalize
         self.deterministic = deterministic
-        self.interface = EgoInterface(
-            dynamics or DynamicsConfig(),
-            base_planner,
-            action_repeat,
-            maneuver_features,
-            maneuver_actions,
-            maneuver_set,
-        )
+        self.interface = EgoInterface(dynamics or DynamicsConfig(), **interface)
         self._held: Any = None
         self._calls = 0
 
@@ -119,13 +105,9 @@ class UntrustedModelError(PermissionError):
 def load_ppo_planner(
     run: str,
     deterministic: bool = True,
-    base_planner: str = "none",
-    action_repeat: int = 1,
-    maneuver_features: bool = False,
-    maneuver_actions: bool = False,
-    maneuver_set: str = "compact",
     *,
     trusted: bool = False,
+    **interface: Any,
 ) -> PPOPlanner:
     """A :class:`PPOPlanner` from a model file (``.zip``) saved by ``train_ego_ppo.py``;
 
@@ -137,8 +119,8 @@ def load_ppo_planner(
 
     the ``VecNormalize`` statistics are read from the same name with ``_vecnormalize.pkl``
     in place of ``.zip`` (checkpoints: ``ppo_N_steps.zip`` -> ``ppo_vecnormalize_N_steps.pkl``)
-    when that file exists. ``base_planner``, ``action_repeat``, ``maneuver_features``,
-    ``maneuver_actions`` and ``maneuver_set`` must be those the model was trained with."""
+    when that file exists. ``interface`` (:class:`PPOPlanner`'s) must be what the model
+    was trained with."""
     from pathlib import Path
 
     from stable_baselines3 import PPO
@@ -160,17 +142,7 @@ def load_ppo_planner(
     if stats.is_file():
         normalize = VecNormalize.load(str(stats), venv=_DummyVec(model))
         normalize.training, normalize.norm_reward = False, False
-    return PPOPlanner(
-        model,
-        normalize,
-        deterministic,
-        None,
-        base_planner,
-        action_repeat,
-        maneuver_features,
-        maneuver_actions,
-        maneuver_set,
-    )
+    return PPOPlanner(model, normalize, deterministic, None, **interface)
 
 
 class _DummyVec:

@@ -57,6 +57,7 @@ from policies.rl.adversary import AdversaryStage, apply_stage, make_traffic
 from policies.rl.envs import (
     EgoEnvConfig,
     EgoInterface,
+    interface_options,
     record_outcome,
     scale_action,
     training_scenes,
@@ -81,9 +82,10 @@ class EgoVectorEnv(VectorEnv):
         scenarios: the scenario source the scenes draw from (None: the shipped
             evaluation bank).
         policy: drives every vehicle but the ego (None: IDM traffic, as ``EgoEnv``).
-        base_planner, action_repeat, maneuver_features, maneuver_actions, maneuver_set: the ego's
-            interface (:class:`~policies.rl.envs.EgoInterface`).
         autoreset_mode: ``SAME_STEP`` or ``NEXT_STEP`` (module docstring).
+        **interface: ``base_planner``, ``action_repeat``, ``maneuver_features``,
+            ``maneuver_actions``, ``maneuver_set``: the ego's interface
+            (:class:`~policies.rl.envs.EgoInterface`).
     """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
@@ -95,12 +97,8 @@ class EgoVectorEnv(VectorEnv):
         scenarios: ScenarioSource | Sequence[Scenario] | Scenario | None = None,
         policy: ScenePolicy | None = None,
         *,
-        base_planner: str = "none",
-        action_repeat: int = 1,
-        maneuver_features: bool = False,
-        maneuver_actions: bool = False,
-        maneuver_set: str = "compact",
         autoreset_mode: AutoresetMode | str = AutoresetMode.SAME_STEP,
+        **interface: Any,
     ) -> None:
         modes = (AutoresetMode.SAME_STEP, AutoresetMode.NEXT_STEP)
         if autoreset_mode not in modes and autoreset_mode not in [m.value for m in modes]:
@@ -113,14 +111,7 @@ class EgoVectorEnv(VectorEnv):
         self.num_envs = len(self.scenes)
         self.config = self.scenes.config
         dynamics = self.config.dynamics
-        options = {
-            "base_planner": base_planner,
-            "action_repeat": action_repeat,
-            "maneuver_features": maneuver_features,
-            "maneuver_actions": maneuver_actions,
-            "maneuver_set": maneuver_set,
-        }
-        self.interfaces = tuple(EgoInterface(dynamics, **options) for _ in range(self.num_envs))
+        self.interfaces = tuple(EgoInterface(dynamics, **interface) for _ in range(self.num_envs))
         if policy is None:
             policy = IDMPolicy(controlled="others", dynamics=dynamics)
         self.traffic = batched_traffic(policy, self.num_envs, self.config)
@@ -341,9 +332,5 @@ def build_vector_env(config: EgoEnvConfig, num_envs: int, seed: int = 0) -> EgoV
         config=config.env,
         scenarios=training_scenes(config),
         policy=make_traffic(config.traffic, seed=seed),
-        base_planner=config.base_planner,
-        action_repeat=config.action_repeat,
-        maneuver_features=config.maneuver_features,
-        maneuver_actions=config.maneuver_actions,
-        maneuver_set=config.maneuver_set,
+        **interface_options(config),
     )
