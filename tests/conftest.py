@@ -17,6 +17,7 @@ no test file has to list its own:
 (tests that cannot be made shorter without asserting less). ``pyproject.toml`` runs
 ``-m 'not docs and not reliability and not slow'`` by default; a ``-m`` on the command line
 replaces it (``-m docs``, ``-m reliability``, ``-m slow``, ``-m unit``; ``-m ''`` runs all).
+tests/test_tiers.py checks that every path named here exists and that every test has one tier.
 ``.ci/run`` runs every tier.
 """
 
@@ -46,7 +47,7 @@ INTEGRATION_PATHS = (
     "tests/policies/test_harness.py",  # the closed-loop harness
     "tests/policies/test_leaving_vehicles.py",  # evaluation rollouts, per scene and batched
     "tests/policies/pipeline/test_batched.py",  # batched vs per-scene closed loops
-    "tests/policies/learned/test_closed_loop.py",  # closed-loop training data
+    "tests/policies/pipeline/test_default_rollouts.py",  # the shipped methods' rollouts
     "tests/riskflow_env/scenarios/test_cli.py",  # riskflow-data generate, worker processes
 )
 INTEGRATION_FIXTURES = frozenset({"closed_loop", "local_ray"})
