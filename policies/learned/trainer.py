@@ -50,6 +50,7 @@ from policies.learned.data import load_or_compute_stats as action_stats
 from policies.learned.ema import EMA
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.train_options import LoopOptions, learning_rate, model_config
+from policies.learned.trajectory_loss import LossWeights
 from policies.learned.validation import evaluate
 from policies.learned.window_types import WindowBatch
 from riskflow_env.scenarios.folders import scene_files
@@ -72,7 +73,7 @@ class Objective(Protocol):
         normalizer: ActionNormalizer,
         eps: Tensor,
         generator: torch.Generator,
-        **weights: float,
+        weights: LossWeights,
     ) -> tuple[Tensor, dict[str, Tensor]]:
         """One step's loss and metrics from the noise ``eps`` (the batch's action shape);
         further draws (times, levels) come from ``generator``."""
@@ -193,16 +194,7 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
         val_indices = np.sort(
             np.random.default_rng(0).choice(val_indices, options.val_windows, False)
         )
-    weights = {
-        name: getattr(options, name)
-        for name in (
-            "heading_weight",
-            "action_weight",
-            "collision_weight",
-            "offroad_weight",
-            "jerk_weight",
-        )
-    }
+    weights = LossWeights.from_options(options)
 
     def validate() -> dict[str, float]:
         batches = (
@@ -247,7 +239,7 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
                 )
             batch = collated(train_set, batches[step % per_epoch], device)
             eps = torch.randn(batch.actions.shape, generator=noise, device=device)
-            loss, values = objective.loss(model, batch, normalizer, eps, noise, **weights)
+            loss, values = objective.loss(model, batch, normalizer, eps, noise, weights)
             values["lr"] = learning_rate(options, step)
             for group in optimizer.param_groups:
                 group["lr"] = values["lr"]

@@ -9,6 +9,9 @@ trajectory-space reconstruction; docs/GENERATOR.md).
 
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
+from typing import Any
+
 import torch
 from torch import Tensor
 
@@ -19,6 +22,41 @@ from policies.learned.window_types import WindowBatch
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout, wrap_angle
 from riskflow_env.metrics.displacement import masked_displacement
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """Weights of the training loss's terms besides ``position_mse`` (0: the term is left
+    out); every generator kind's objective takes one (``riskflow-train``'s
+    ``--heading-weight``, ``--action-weight``, ``--collision-weight``,
+    ``--offroad-weight``, ``--jerk-weight``).
+
+    Attributes:
+        heading: [m^2/rad^2] of ``heading_mse``.
+        action: of ``action_mse``, the normalised action error that the objectives add
+            (:func:`trajectory_loss` leaves it to them).
+        collision: of ``overlap`` (squared penetration depth of decoded box pairs
+            [m^2]; from ``length``, ``width``).
+        offroad: of ``offroad`` (squared excess of the planned centres' SDF [m^2], from
+            ``map_crops``).
+        jerk: [m s^3] of ``jerk`` (mean absolute longitudinal jerk of the de-normalised
+            plan [m/s^3], every step of every agent in the scene).
+    """
+
+    heading: float = 0.0
+    action: float = 0.0
+    collision: float = 0.0
+    offroad: float = 0.0
+    jerk: float = 0.0
+
+    @classmethod
+    def from_options(cls, options: Any) -> LossWeights:
+        """The weights that ``riskflow-train``'s options give (``heading_weight`` for
+        ``heading``, and so on)."""
+        return cls(**{term.name: getattr(options, f"{term.name}_weight") for term in fields(cls)})
+
+
+POSITION_ONLY = LossWeights()  # the position error alone
 
 
 def target_actions(batch: WindowBatch, normalizer: Normalizer) -> Tensor:
@@ -32,11 +70,8 @@ def trajectory_loss(
     batch: WindowBatch,
     scene: SceneContext,
     normalizer: Normalizer,
-    heading_weight: float = 0.0,
+    weights: LossWeights = POSITION_ONLY,
     dynamics: DynamicsConfig = DEFAULT_CONFIG,
-    collision_weight: float = 0.0,
-    offroad_weight: float = 0.0,
-    jerk_weight: float = 0.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """Masked squared error of the rolled-out reconstruction to the reference future,
     plus the optional realism penalties of :mod:`policies.learned.plan_penalties`.
@@ -47,18 +82,13 @@ def trajectory_loss(
             (B, A, T)`` (scene frame).
         scene: the encoder output (current states and agent mask).
         normalizer: action normalisation.
-        heading_weight: weight [m^2/rad^2] of ``heading_mse`` in the loss.
+        weights: ``heading``, ``collision``, ``offroad``, ``jerk`` (``action`` is not
+            used here).
         dynamics: time step and bounds of the rollout.
-        collision_weight: weight of ``overlap`` (squared penetration depth of decoded box
-            pairs [m^2]; from ``length``, ``width``).
-        offroad_weight: weight of ``offroad`` (squared excess of the planned centres'
-            SDF [m^2], from ``map_crops``).
-        jerk_weight: weight [m s^3] of ``jerk`` (mean absolute longitudinal jerk of
-            the de-normalised plan [m/s^3], every step of every agent in the scene).
 
     Returns:
-        ``loss = position_mse + heading_weight * heading_mse + collision_weight *
-        overlap + offroad_weight * offroad + jerk_weight * jerk`` (means over valid agent
+        ``loss = position_mse + heading * heading_mse + collision * overlap + offroad *
+        offroad + jerk * jerk`` (weights as ``weights``'s; means over valid agent
         steps, per step: ``|p_hat - p|^2`` [m^2]) and detached metrics ``position_mse``,
         ``heading_mse`` [rad^2], ``ade`` [m] (mean over valid agent-steps), ``fde`` [m]
         (mean over agents of the error at their last valid step:
@@ -75,18 +105,18 @@ def trajectory_loss(
     heading = wrap_angle(trajectory[..., 3] - future[..., 3]) ** 2
     position_mse = (squared * weight).sum() / count
     heading_mse = (heading * weight).sum() / count
-    loss = position_mse + heading_weight * heading_mse
+    loss = position_mse + weights.heading * heading_mse
     penalties = {}
-    if collision_weight:
+    if weights.collision:
         penalties["overlap"] = overlap_penalty(trajectory, batch, mask)
-        loss = loss + collision_weight * penalties["overlap"]
-    if offroad_weight:
+        loss = loss + weights.collision * penalties["overlap"]
+    if weights.offroad:
         penalties["offroad"] = offroad_penalty(trajectory, batch, scene.state, mask)
-        loss = loss + offroad_weight * penalties["offroad"]
-    if jerk_weight:
+        loss = loss + weights.offroad * penalties["offroad"]
+    if weights.jerk:
         planned = scene.agent_mask[..., None].expand(actions.shape[:-1])
         penalties["jerk"] = jerk_penalty(actions, planned, dynamics.dt)
-        loss = loss + jerk_weight * penalties["jerk"]
+        loss = loss + weights.jerk * penalties["jerk"]
     with torch.no_grad():
         distance = squared.detach().sqrt()
         # FDE per agent as the metrics define it; "ade" here pools the agent-steps.

@@ -26,8 +26,8 @@ Gradients flow through ``u`` only.
 Caveat: ``rollout`` clips actions to the dynamics bounds, so a reconstructed action
 beyond a bound gets no gradient through that step; and positions integrate the actions
 twice, so they barely constrain high-frequency action errors. ``metrics["action_mse"]``
-(the plain action-space MeanFlow error) shows both; ``action_weight > 0`` adds it to the
-loss.
+(the plain action-space MeanFlow error) shows both; a ``weights.action > 0`` adds it to
+the loss.
 """
 
 from __future__ import annotations
@@ -40,7 +40,12 @@ from torch import Tensor
 from policies.learned.data import Normalizer
 from policies.learned.encoder import SceneContext
 from policies.learned.generator import RiskFlowGenerator
-from policies.learned.trajectory_loss import target_actions, trajectory_loss
+from policies.learned.trajectory_loss import (
+    POSITION_ONLY,
+    LossWeights,
+    target_actions,
+    trajectory_loss,
+)
 from policies.learned.window_types import WindowBatch
 from policies.riskflow.time_sampler import TimeSampler
 from riskflow_env.config import DynamicsConfig
@@ -109,12 +114,8 @@ def meanflow_loss(
     t: Tensor,
     r: Tensor,
     clip: float = DUDT_CLIP,
-    heading_weight: float = 0.0,
-    action_weight: float = 0.0,
+    weights: LossWeights = POSITION_ONLY,
     dynamics: DynamicsConfig = DEFAULT_CONFIG,
-    collision_weight: float = 0.0,
-    offroad_weight: float = 0.0,
-    jerk_weight: float = 0.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """RiskFlow's MeanFlow objective (see the module docstring).
 
@@ -126,14 +127,11 @@ def meanflow_loss(
         t: ``(B,)`` or ``(B, A)`` start times in [0, 1] (``time_sampler.TimeSampler``).
         r: like ``t``, end times ``r >= t``.
         clip: ``c``, bound of ``sg(du/dt)`` in the reconstruction.
-        heading_weight: weight [m^2/rad^2] of ``heading_mse`` in the loss.
-        action_weight: weight of ``action_mse`` in the loss (0: RiskFlow's pure
-            trajectory-space loss). Positions integrate actions twice, so they barely
-            see high-frequency action errors; this term (the MeanFlow regression
+        weights: of the loss's terms. ``action`` weighs ``action_mse`` (0: RiskFlow's
+            pure trajectory-space loss): positions integrate actions twice, so they
+            barely see high-frequency action errors; this term (the MeanFlow regression
             itself) pins those down.
         dynamics: time step and bounds of the rollout.
-        collision_weight, offroad_weight, jerk_weight: weights of the realism penalties
-            (:func:`trajectory_loss`).
 
     Returns:
         ``(loss, metrics)``: the scalar loss and detached scalar metrics: those of
@@ -154,15 +152,7 @@ def meanflow_loss(
     u, dudt = average_velocity_jvp(u_theta, z_t, t, r, v)
     dudt = dudt.detach()
     a_hat = eps + u + (t_ - r_) * dudt.clamp(-clip, clip)
-    penalties = {
-        "collision_weight": collision_weight,
-        "offroad_weight": offroad_weight,
-        "jerk_weight": jerk_weight,
-    }
-    loss, metrics = _loss(
-        a_hat, a_star, batch, scene, normalizer, heading_weight, action_weight, dynamics,
-        **penalties,
-    )  # fmt: skip
+    loss, metrics = _loss(a_hat, a_star, batch, scene, normalizer, weights, dynamics)
     metrics["dudt_abs"] = dudt.abs().mean()
     metrics["dudt_clipped"] = (dudt.abs() > clip).to(dudt.dtype).mean()
     return loss, metrics
@@ -174,12 +164,8 @@ def flow_matching_loss(
     normalizer: Normalizer,
     eps: Tensor,
     t: Tensor,
-    heading_weight: float = 0.0,
-    action_weight: float = 0.0,
+    weights: LossWeights = POSITION_ONLY,
     dynamics: DynamicsConfig = DEFAULT_CONFIG,
-    collision_weight: float = 0.0,
-    offroad_weight: float = 0.0,
-    jerk_weight: float = 0.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """Plain flow matching (``r = t``, no JVP): ``a_hat = eps + u_theta(z_t, t, t; C)``.
 
@@ -192,15 +178,7 @@ def flow_matching_loss(
     a_star = target_actions(batch, normalizer)
     t_ = _time_as(t)
     u = model.average_velocity((1.0 - t_) * eps + t_ * a_star, t, t, scene)
-    penalties = {
-        "collision_weight": collision_weight,
-        "offroad_weight": offroad_weight,
-        "jerk_weight": jerk_weight,
-    }
-    return _loss(
-        eps + u, a_star, batch, scene, normalizer, heading_weight, action_weight, dynamics,
-        **penalties,
-    )  # fmt: skip
+    return _loss(eps + u, a_star, batch, scene, normalizer, weights, dynamics)
 
 
 def _loss(
@@ -209,20 +187,16 @@ def _loss(
     batch: WindowBatch,
     scene: SceneContext,
     normalizer: Normalizer,
-    heading_weight: float,
-    action_weight: float,
+    weights: LossWeights,
     dynamics: DynamicsConfig,
-    **penalties: float,
 ) -> tuple[Tensor, dict[str, Tensor]]:
-    """Trajectory loss (with its penalties) plus ``action_weight * action_mse``."""
-    loss, metrics = trajectory_loss(
-        a_hat, batch, scene, normalizer, heading_weight, dynamics, **penalties
-    )
+    """Trajectory loss (with its penalties) plus ``weights.action * action_mse``."""
+    loss, metrics = trajectory_loss(a_hat, batch, scene, normalizer, weights, dynamics)
     weight = (batch.actions_valid.bool() & scene.agent_mask[..., None]).to(a_hat.dtype)
     squared = ((a_hat - a_star) ** 2).sum(dim=-1)
     action_mse = (squared * weight).sum() / weight.sum().clamp(min=1.0)
-    if action_weight:
-        loss = loss + action_weight * action_mse
+    if weights.action:
+        loss = loss + weights.action * action_mse
     metrics["action_mse"] = action_mse.detach()
     metrics["loss"] = loss.detach()
     return loss, metrics
@@ -276,13 +250,13 @@ class MeanFlowObjective:
         normalizer: Normalizer,
         eps: Tensor,
         generator: torch.Generator,
-        **weights: float,
+        weights: LossWeights,
     ) -> tuple[Tensor, dict[str, Tensor]]:
         """One step's loss and metrics (``weights`` as :func:`meanflow_loss`)."""
         t, r = self.times(eps.shape[0], generator=generator, device=eps.device)
         if self.flow_matching:
-            return flow_matching_loss(model, batch, normalizer, eps, t, **weights)
-        return meanflow_loss(model, batch, normalizer, eps, t, r, **weights)
+            return flow_matching_loss(model, batch, normalizer, eps, t, weights)
+        return meanflow_loss(model, batch, normalizer, eps, t, r, weights=weights)
 
     def sampler(self, model: RiskFlowGenerator) -> RiskFlowGenerator | OneStepFlowMatching:
         """What validation samples: the model's one step (one Euler step for flow matching)."""

@@ -7,7 +7,7 @@ the denoiser, and
 
 * ``prediction="v"`` (default) or ``"sample"`` (CTG-like): RiskFlow's *same* reconstruction loss on
   ``x0_hat``: the trajectory-space error of ``rollout(denorm(x0_hat))`` against the
-  reference future (``policies.learned.trajectory_loss``) plus ``action_weight`` times the
+  reference future (``policies.learned.trajectory_loss``) plus ``weights.action`` times the
   normalised action error, exactly what ``meanflow_loss`` puts on its ``a_hat``, so
   the two generators differ in how they generate, not in what they are fit to;
 * ``prediction="epsilon"``: the "simple" loss ``|eps_hat - eps|^2`` (Ho et al. 2020).
@@ -22,10 +22,12 @@ from torch import Tensor
 
 from policies.baselines.diffusion.model import DiffusionDenoiser
 from policies.learned.data import Normalizer
-from policies.learned.trajectory_loss import target_actions, trajectory_loss
+from policies.learned.trajectory_loss import LossWeights, target_actions, trajectory_loss
 from policies.learned.window_types import WindowBatch
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG
+
+DEFAULT_WEIGHTS = LossWeights(action=1.0)  # the reconstruction's action error at weight 1
 
 
 def draw_levels(
@@ -41,12 +43,8 @@ def diffusion_loss(
     normalizer: Normalizer,
     eps: Tensor,
     k: Tensor,
-    heading_weight: float = 0.0,
-    action_weight: float = 1.0,
+    weights: LossWeights = DEFAULT_WEIGHTS,
     dynamics: DynamicsConfig = DEFAULT_CONFIG,
-    collision_weight: float = 0.0,
-    offroad_weight: float = 0.0,
-    jerk_weight: float = 0.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """The denoiser's training loss (module docstring).
 
@@ -56,12 +54,9 @@ def diffusion_loss(
         normalizer: action normalisation.
         eps: ``(B, A, T, 2)`` standard normal noise.
         k: ``(B,)`` int levels in ``[0, K)`` (:func:`draw_levels`).
-        heading_weight: weight [m^2/rad^2] of the heading error (not ``"epsilon"``).
-        action_weight: weight of the normalised action error (not ``"epsilon"``).
+        weights: of the reconstruction loss on the decoded ``x0_hat`` (not with
+            ``"epsilon"``): its action error, heading error and realism penalties.
         dynamics: time step and bounds of the rollout.
-        collision_weight, offroad_weight, jerk_weight: weights of the realism penalties
-            on the decoded ``x0_hat`` (``policies.learned.trajectory_loss``; not
-            ``"epsilon"``).
 
     Returns:
         ``(loss, metrics)``: detached scalars ``loss``, ``action_mse`` (normalised
@@ -86,18 +81,11 @@ def diffusion_loss(
     action_mse = (((x0_hat - a_star) ** 2).sum(dim=-1) * weight).sum() / count
     eps_mse = (((eps_hat - eps) ** 2).sum(dim=-1) * weight).sum() / count
     if denoiser.diffusion.prediction != "epsilon":
-        penalties = {
-            "collision_weight": collision_weight,
-            "offroad_weight": offroad_weight,
-            "jerk_weight": jerk_weight,
-        }
-        loss, metrics = trajectory_loss(
-            x0_hat, batch, scene, normalizer, heading_weight, dynamics, **penalties
-        )
-        loss = loss + action_weight * action_mse
+        loss, metrics = trajectory_loss(x0_hat, batch, scene, normalizer, weights, dynamics)
+        loss = loss + weights.action * action_mse
     else:
         with torch.no_grad():
-            _, metrics = trajectory_loss(x0_hat, batch, scene, normalizer, 0.0, dynamics)
+            _, metrics = trajectory_loss(x0_hat, batch, scene, normalizer, dynamics=dynamics)
         loss = eps_mse
     metrics |= {
         "loss": loss.detach(),
@@ -107,4 +95,4 @@ def diffusion_loss(
     return loss, metrics
 
 
-__all__ = ["diffusion_loss", "draw_levels"]
+__all__ = ["DEFAULT_WEIGHTS", "diffusion_loss", "draw_levels"]

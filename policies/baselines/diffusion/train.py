@@ -29,6 +29,7 @@ from policies.baselines.diffusion.objective import diffusion_loss, draw_levels
 from policies.baselines.diffusion.sampling import OneCallSampler
 from policies.learned.data import Normalizer
 from policies.learned.generator import RiskFlowGenerator
+from policies.learned.trajectory_loss import LossWeights
 from policies.learned.window_types import WindowBatch
 
 
@@ -67,11 +68,11 @@ class DiffusionObjective:
         normalizer: Normalizer,
         eps: Tensor,
         generator: torch.Generator,
-        **weights: float,
+        weights: LossWeights,
     ) -> tuple[Tensor, dict[str, Tensor]]:
-        """One step's loss and metrics; ``weights``: ``heading_weight``, ``action_weight``."""
+        """One step's loss and metrics (``weights`` as :func:`diffusion_loss`)."""
         k = draw_levels(eps.shape[0], self.diffusion.num_steps, generator, eps.device)
-        return diffusion_loss(self.denoiser(model), batch, normalizer, eps, k, **weights)
+        return diffusion_loss(self.denoiser(model), batch, normalizer, eps, k, weights)
 
     def sampler(self, model: RiskFlowGenerator) -> OneCallSampler:
         """What validation samples: deterministic DDIM with ``val_sampling_steps`` levels."""
