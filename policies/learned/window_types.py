@@ -18,7 +18,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -71,8 +71,29 @@ def _check_fields(obj: Any, lead: int) -> None:
             )
 
 
+class _WindowFields:
+    """What :class:`Window` and :class:`WindowBatch` share: the check of their fields
+    (``LEAD`` axes before the agent axis), ``has_future``, the fields that are set."""
+
+    LEAD: ClassVar[int]
+
+    def __post_init__(self) -> None:
+        _check_fields(self, lead=self.LEAD)
+
+    @property
+    def has_future(self) -> bool:
+        """Whether the future fields are set (windows of a recorded scene, training batches)."""
+        return self.future is not None
+
+    def _set_fields(self) -> Iterator[tuple[str, Any]]:
+        for name in WINDOW_FIELDS:
+            value = getattr(self, name)
+            if value is not None:
+                yield name, value
+
+
 @dataclass(frozen=True, eq=False)
-class Window:
+class Window(_WindowFields):
     """One scene at one current step (docs/WINDOWS.md); slot 0 is the ego.
 
     Frame: positions and headings in the scene frame (the ego's pose at the current
@@ -118,30 +139,20 @@ class Window:
     future_valid: np.ndarray | None = None
     actions: np.ndarray | None = None
     actions_valid: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        _check_fields(self, lead=0)
+    LEAD: ClassVar[int] = 0
 
     @property
     def num_agents(self) -> int:
         """Agents ``A`` of the window."""
         return int(self.history.shape[0])
 
-    @property
-    def has_future(self) -> bool:
-        """Whether the future fields are set (a window of a recorded scene)."""
-        return self.future is not None
-
     def arrays(self) -> Iterator[tuple[str, np.ndarray]]:
         """``(name, array)`` of every field that is set, in :data:`WINDOW_FIELDS` order."""
-        for name in WINDOW_FIELDS:
-            value = getattr(self, name)
-            if value is not None:
-                yield name, value
+        return self._set_fields()
 
 
 @dataclass(frozen=True, eq=False)
-class WindowBatch:
+class WindowBatch(_WindowFields):
     """Collated windows: the fields of :class:`Window` as torch tensors with a leading
     batch axis ``B`` and the agent axis padded to ``A = max A_b`` (padded slots: 0,
     False, ``agent_index`` -1). Shapes and units as in :class:`Window`, e.g.
@@ -177,9 +188,7 @@ class WindowBatch:
     future_valid: Tensor | None = None
     actions: Tensor | None = None
     actions_valid: Tensor | None = None
-
-    def __post_init__(self) -> None:
-        _check_fields(self, lead=1)
+    LEAD: ClassVar[int] = 1
 
     @property
     def batch_size(self) -> int:
@@ -191,17 +200,9 @@ class WindowBatch:
         """Agent slots ``A`` (padded)."""
         return int(self.history.shape[1])
 
-    @property
-    def has_future(self) -> bool:
-        """Whether the future fields are set (training batches)."""
-        return self.future is not None
-
     def tensors(self) -> Iterator[tuple[str, Tensor]]:
         """``(name, tensor)`` of every field that is set, in :data:`WINDOW_FIELDS` order."""
-        for name in WINDOW_FIELDS:
-            value = getattr(self, name)
-            if value is not None:
-                yield name, value
+        return self._set_fields()
 
     def map(self, fn: Callable[[Tensor], Tensor]) -> WindowBatch:
         """A batch with ``fn(tensor)`` in place of every tensor that is set."""
