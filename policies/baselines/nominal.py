@@ -38,17 +38,15 @@ import os
 
 import torch
 
-from policies.learned.adversary_config import AdversaryConfig, default_window_config
+from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.data import Normalizer
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.windows import WindowConfig
-from policies.pipeline.policy import PipelinePolicy
-from policies.riskflow.base_generator import resolve_avoid_steps, resolve_generator
 from policies.riskflow.guidance import GuidanceConfig
-from policies.riskflow.policy import generator_stages
+from policies.riskflow.policy import GeneratorPolicy
 
 
-class NominalGenerator(PipelinePolicy):
+class NominalGenerator(GeneratorPolicy):
     """The unguided generator for every non-ego vehicle (module docstring).
 
     Args:
@@ -100,21 +98,10 @@ class NominalGenerator(PipelinePolicy):
             window_config=window_config, threads=threads, hold_distance=hold_distance,
             stitch_steps=stitch_steps,
         )  # fmt: skip
-        # The objective's map term scores the avoidance steps' off-road depth.
-        self.guidance = GuidanceConfig(steps=0, **config.objective())
-        self.model, self.normalizer, self.generator_kind = resolve_generator(
-            generator, normalizer, checkpoint, sampling_steps, torch.device(device)
-        )
-        self.avoid_steps = resolve_avoid_steps(avoid_steps, avoid_step_size, self.generator_kind)
-        self.avoid_step_size = float(avoid_step_size)
-        model_config = self.model.config
         super().__init__(
-            config,
-            model_config.future_steps,
-            window_config or default_window_config(model_config),
-            generator_stages(self.avoid_steps, config.hold_distance, None),
-            self.model.encode,
-        )
+            config, GuidanceConfig(steps=0, **config.objective()), None, generator, normalizer,
+            checkpoint, sampling_steps, avoid_steps, avoid_step_size,
+        )  # fmt: skip
 
 
 __all__ = ["NominalGenerator"]

@@ -31,15 +31,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from policies.learned.adversary_config import AdversaryConfig, default_window_config
+from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.data import Normalizer
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.guidance_losses import adversarial_rows, map_term
 from policies.learned.sampler import base_velocity
 from policies.learned.separation_term import separation_term
 from policies.pipeline.plan_set import PlanSet
-from policies.pipeline.policy import PipelinePolicy
-from policies.riskflow.base_generator import resolve_avoid_steps, resolve_generator
 from policies.riskflow.guidance import (
     GuidanceConfig,
     GuidanceScene,
@@ -48,7 +46,7 @@ from policies.riskflow.guidance import (
     guided_rows,
     plans_from_velocity,
 )
-from policies.riskflow.policy import PHASES, generator_stages, guidance_scene
+from policies.riskflow.policy import PHASES, GeneratorPolicy, guidance_scene
 from riskflow_env._array import attach_gradient
 
 DEFAULT_LAMBDA_PRIOR = 1.0  # weight of ||eps_c||^2 / 2 [per unit of normalised noise^2]
@@ -134,7 +132,7 @@ def _extras(latent: Tensor, prior: Tensor | None, counts: Sequence[int], steps: 
     ]
 
 
-class StriveAdversary(PipelinePolicy):
+class StriveAdversary(GeneratorPolicy):
     """STRIVE-style adversary for every non-ego vehicle (module docstring).
 
     Args:
@@ -184,28 +182,19 @@ class StriveAdversary(PipelinePolicy):
             raise ValueError(_NOT_DIFFUSION)
         config = AdversaryConfig.resolve(config, options, type(self).__name__)
         self.lambda_prior = float(lambda_prior)
-        self.guidance = GuidanceConfig(
+        guidance = GuidanceConfig(
             steps=guidance_steps,
             step_size=step_size,
             optimizer=optimizer,
             lambda_sep=lambda_sep,
             **config.objective(),
         )
-        self.model, self.normalizer, self.generator_kind = resolve_generator(
-            generator, normalizer, checkpoint, None, torch.device(config.device)
-        )
+        super().__init__(
+            config, guidance, optimise_latent, generator, normalizer, checkpoint, None,
+            avoid_steps, avoid_step_size,
+        )  # fmt: skip
         if self.generator_kind != "meanflow":
             raise ValueError(_NOT_DIFFUSION)
-        self.avoid_steps = resolve_avoid_steps(avoid_steps, avoid_step_size, self.generator_kind)
-        self.avoid_step_size = float(avoid_step_size)
-        model_config = self.model.config
-        super().__init__(
-            config,
-            model_config.future_steps,
-            config.window_config or default_window_config(model_config),
-            generator_stages(self.avoid_steps, config.hold_distance, optimise_latent),
-            self.model.encode,
-        )
 
     latent = property(lambda self: self.state.extras.get("latent"), doc="(A_w, T, 2) latent")
     prior_losses = property(

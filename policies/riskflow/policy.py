@@ -133,7 +133,52 @@ def generator_stages(avoid_steps: int, hold_distance: float, guide: Stage | None
     )
 
 
-class RiskFlowAdversary(PipelinePolicy):
+class GeneratorPolicy(PipelinePolicy):
+    """A pipeline policy on the one-step base generator: what RiskFlow, the unguided
+    generator and STRIVE-style share (the generator, its avoidance steps and the cycle of
+    :func:`generator_stages` with the method's ``guide`` stage, or none).
+
+    Args:
+        config: the shared options.
+        guidance: the guidance objective and optimiser (its map term also scores the
+            avoidance steps' off-road depth).
+        guide_stage: the method's ``guide`` stage; None: unguided.
+        generator, normalizer, checkpoint, sampling_steps: the base generator
+            (:func:`~policies.riskflow.base_generator.resolve_generator`).
+        avoid_steps, avoid_step_size: the avoidance steps
+            (:func:`~policies.riskflow.base_generator.resolve_avoid_steps`).
+    """
+
+    def __init__(
+        self,
+        config: AdversaryConfig,
+        guidance: GuidanceConfig,
+        guide_stage: Stage | None,
+        generator: object,
+        normalizer: Normalizer | None,
+        checkpoint: str | os.PathLike | None,
+        sampling_steps: int | None,
+        avoid_steps: int | None,
+        avoid_step_size: float,
+        /,
+    ) -> None:
+        self.guidance = guidance
+        self.model, self.normalizer, self.generator_kind = resolve_generator(
+            generator, normalizer, checkpoint, sampling_steps, torch.device(config.device)
+        )
+        self.avoid_steps = resolve_avoid_steps(avoid_steps, avoid_step_size, self.generator_kind)
+        self.avoid_step_size = float(avoid_step_size)
+        model_config = self.model.config
+        super().__init__(
+            config,
+            model_config.future_steps,
+            config.window_config or default_window_config(model_config),
+            generator_stages(self.avoid_steps, config.hold_distance, guide_stage),
+            self.model.encode,
+        )
+
+
+class RiskFlowAdversary(GeneratorPolicy):
     """RiskFlow adversary for every non-ego vehicle (module docstring).
     Args:
         config: the options every learned adversary shares
@@ -185,33 +230,24 @@ class RiskFlowAdversary(PipelinePolicy):
         **options: Any,
     ) -> None:
         config = AdversaryConfig.resolve(config, options, type(self).__name__)
-        self.guidance = GuidanceConfig(
+        guidance = GuidanceConfig(
             steps=guidance_steps,
             step_size=step_size,
             optimizer=optimizer,
             lambda_sep=lambda_sep,
             **config.objective(),
         )
-        device = torch.device(config.device)
-        self.model, self.normalizer, self.generator_kind = resolve_generator(
-            generator, normalizer, checkpoint, sampling_steps, device
-        )
-        self.avoid_steps = resolve_avoid_steps(avoid_steps, avoid_step_size, self.generator_kind)
-        self.avoid_step_size = float(avoid_step_size)
-        model_config = self.model.config
         super().__init__(
-            config,
-            model_config.future_steps,
-            config.window_config or default_window_config(model_config),
-            generator_stages(self.avoid_steps, config.hold_distance, guide),
-            self.model.encode,
-        )
+            config, guidance, guide, generator, normalizer, checkpoint, sampling_steps,
+            avoid_steps, avoid_step_size,
+        )  # fmt: skip
 
 
 __all__ = [
     "BASE_COLOR",
     "GUIDED_COLOR",
     "PHASES",
+    "GeneratorPolicy",
     "RiskFlowAdversary",
     "generator_stages",
     "guidance_scene",
