@@ -10,12 +10,21 @@ at most ``MAX_SCENE_GROUPS`` groups of at least ``MIN_GROUP_SCENES`` scenes
 (:class:`SceneGroup`), each padded only to its own widest scene (a loop over these few
 groups, not over scenes).
 
+Planning groups scenes by their exact width instead (:func:`exact_scene_widths`, which
+the planning cycle runs under): every scene's social attention then has the shape it has
+alone, so a scene planned in a batch gets the network outputs it gets alone, bit for bit
+(padding to another width changes the reductions' rounding). It costs one attention call
+per distinct width; training keeps the few groups of similar width.
+
 Gathering and scattering are ``index_select`` / ``index_copy``: differentiable in both
 modes (the MeanFlow objective's ``torch.func.jvp`` goes through them).
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +35,18 @@ MAX_SCENE_GROUPS = 3  # groups of scenes of similar width in social attention
 # Scenes per group at least: smaller groups cost more in per-call overhead than they save
 # (measured on one CPU thread: a gain at B = 32, a loss at B = 8 in three groups).
 MIN_GROUP_SCENES = 8
+_EXACT_WIDTHS = ContextVar("exact_scene_widths", default=False)
+
+
+@contextmanager
+def exact_scene_widths() -> Iterator[None]:
+    """Within it, :meth:`AgentPacking.from_mask` groups scenes by exact width (module
+    docstring)."""
+    token = _EXACT_WIDTHS.set(True)
+    try:
+        yield
+    finally:
+        _EXACT_WIDTHS.reset(token)
 
 
 @dataclass(frozen=True)
@@ -75,12 +96,20 @@ class AgentPacking:
         index = agent_mask.reshape(-1).nonzero()[:, 0]
         slot = torch.arange(1, num_agents + 1, device=agent_mask.device)
         widths = (agent_mask * slot).amax(dim=1).tolist()  # last real slot + 1
-        num_groups = min(MAX_SCENE_GROUPS, batch_size // MIN_GROUP_SCENES)
+        exact = _EXACT_WIDTHS.get()
+        num_groups = (
+            len(set(widths)) if exact else min(MAX_SCENE_GROUPS, batch_size // MIN_GROUP_SCENES)
+        )
         if not grouped or num_groups < 2 or len(set(widths)) == 1:
             return cls(index, batch_size, num_agents)
         position = (agent_mask.reshape(-1).cumsum(0) - 1).reshape(batch_size, num_agents)
         groups = []
-        chunks = np.array_split(np.argsort(widths, kind="stable"), num_groups)
+        order = np.argsort(widths, kind="stable")
+        if exact:  # one group per width
+            cuts = np.flatnonzero(np.diff(np.asarray(widths)[order])) + 1
+            chunks = np.split(order, cuts)
+        else:
+            chunks = np.array_split(order, num_groups)
         for chunk in (c for c in chunks if len(c)):
             scenes = torch.as_tensor(np.sort(chunk), device=agent_mask.device)
             width = max(widths[b] for b in chunk.tolist())
@@ -103,4 +132,4 @@ class AgentPacking:
         return x.reshape(self.batch_size, self.num_agents, *x.shape[1:])
 
 
-__all__ = ["AgentPacking"]
+__all__ = ["AgentPacking", "exact_scene_widths"]

@@ -36,6 +36,7 @@ import torch
 
 from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.encoder import SceneContext
+from policies.learned.packing import exact_scene_widths
 from policies.learned.plan_stitching import resolve_stitch_steps
 from policies.learned.window_types import WindowBatch
 from policies.learned.windows import WindowConfig
@@ -277,7 +278,8 @@ def plan_scenes(scenes: Sequence[PipelinePolicy], views: Sequence[SceneView]) ->
         plans = plans.replace(drivable_map=planner.map_of(views))
         for stage in planner.stages:
             begin = time.perf_counter()
-            plans = stage(planner, plans)
+            with exact_scene_widths():  # a scene's network outputs are those it gets alone
+                plans = stage(planner, plans)
             phase = stage_functions.PHASE_OF.get(stage, getattr(stage, "phase", None))
             if phase is not None:
                 planner.clock.tick(phase, begin)
