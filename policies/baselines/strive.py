@@ -182,13 +182,7 @@ class StriveAdversary(GeneratorPolicy):
             raise ValueError(_NOT_DIFFUSION)
         config = AdversaryConfig.resolve(config, options, type(self).__name__)
         self.lambda_prior = float(lambda_prior)
-        guidance = GuidanceConfig(
-            steps=guidance_steps,
-            step_size=step_size,
-            optimizer=optimizer,
-            lambda_sep=lambda_sep,
-            **config.objective(),
-        )
+        guidance = GuidanceConfig.of(config, guidance_steps, step_size, optimizer, lambda_sep)
         super().__init__(
             config, guidance, optimise_latent, generator, normalizer, checkpoint, None,
             avoid_steps, avoid_step_size,

@@ -89,6 +89,25 @@ class GuidanceConfig(ObjectiveConfig):
     step_size: float | None = None
     optimizer: str = "adam"
 
+    @classmethod
+    def of(
+        cls,
+        config,
+        steps: int,
+        step_size: float | None,
+        optimizer: str,
+        lambda_sep: float,
+    ) -> GuidanceConfig:
+        """The guidance of an adversary: the objective of its shared options ``config``
+        (:meth:`~policies.learned.adversary_config.AdversaryConfig.objective`) and these."""
+        return cls(
+            steps=steps,
+            step_size=step_size,
+            optimizer=optimizer,
+            lambda_sep=lambda_sep,
+            **config.objective(),
+        )
+
     @property
     def resolved_step_size(self) -> float:
         """The step in use: ``step_size``, or the target's default when it is None (so a

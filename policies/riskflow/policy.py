@@ -230,13 +230,7 @@ class RiskFlowAdversary(GeneratorPolicy):
         **options: Any,
     ) -> None:
         config = AdversaryConfig.resolve(config, options, type(self).__name__)
-        guidance = GuidanceConfig(
-            steps=guidance_steps,
-            step_size=step_size,
-            optimizer=optimizer,
-            lambda_sep=lambda_sep,
-            **config.objective(),
-        )
+        guidance = GuidanceConfig.of(config, guidance_steps, step_size, optimizer, lambda_sep)
         super().__init__(
             config, guidance, guide, generator, normalizer, checkpoint, sampling_steps,
             avoid_steps, avoid_step_size,
