@@ -27,8 +27,9 @@ rolls one group out:
 Each episode becomes the harness's :class:`~policies.harness.EpisodeRecord`
 (:func:`~policies.harness.episode_record`) and is scored by :func:`~.rollout.score`, as on
 the per-scene path: a row matches the per-scene path's row of the same job to float
-rounding (map lookups go through a ``MapStack``, the network runs on padded batches), and
-the same jobs give the same rows, bit for bit.
+rounding (the network's outputs are those of the scene alone, bit for bit; the guidance's
+Adam steps amplify the last bits of a few batch-shaped ops), and the same jobs give the
+same rows, bit for bit.
 
 Timings: the group's wall times (``rollout_s``, ``setup_s``, ``warmup_s``) are shared
 equally by its rollouts and each planning call's by the scenes it planned (``planning_s``,
