@@ -63,13 +63,13 @@ DEFAULT_FIRST_STITCH_STEPS = 15  # [steps] the default blend when blending first
 CORRECTION_STITCH_STEPS = 1  # [steps] blend of the avoidance corrections, blending first
 
 
-def resolve_stitch_steps(stitch_steps: int | None, stitch_first: bool) -> int:
+def resolve_stitch_steps(stitch_steps: int | None, blends_first: bool) -> int:
     """The re-plan blend [steps] of ``AdversaryConfig.stitch_steps``: the given length, or
     for None 15 steps for a policy that blends first and 5 for one that blends after
     planning (module docstring)."""
     if stitch_steps is not None:
         return int(stitch_steps)
-    return DEFAULT_FIRST_STITCH_STEPS if stitch_first else DEFAULT_STITCH_STEPS
+    return DEFAULT_FIRST_STITCH_STEPS if blends_first else DEFAULT_STITCH_STEPS
 
 
 def replace_plans(

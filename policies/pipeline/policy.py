@@ -170,9 +170,9 @@ class PipelinePolicy:
         own state (``seed``; None: this policy's). Copies plan together in
         :func:`plan_scenes`; call ``reset`` on the copy first."""
         other = copy.copy(self)
-        other.state = PlannerState(seed=self.state.seed if seed is None else seed)
+        other.state = PlannerState(seed=self.state.seed)
         if seed is not None:
-            other.reseed(seed)
+            other.reseed(seed)  # checks it
         return other
 
     def plan(self, view: SceneView) -> np.ndarray:
@@ -274,8 +274,8 @@ def plan_scenes(scenes: Sequence[PipelinePolicy], views: Sequence[SceneView]) ->
     try:
         start = time.perf_counter()
         planner.clock = stage_functions.PhaseClock(planner.device)
-        plans = PlanSet(views=views, states=[scene.state for scene in scenes], drivable_map=None)
-        plans = plans.replace(drivable_map=planner.map_of(views))
+        states = [scene.state for scene in scenes]
+        plans = PlanSet(views=views, states=states, drivable_map=planner.map_of(views))
         for stage in planner.stages:
             begin = time.perf_counter()
             with exact_scene_widths():  # a scene's network outputs are those it gets alone
