@@ -25,6 +25,7 @@ ends an episode when the ego collides or leaves the road, or after 10 s.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -87,6 +88,9 @@ class EpisodeRecord:
         events: the episode's rows of the event log (``episode_summary`` last).
         metrics: :data:`METRICS` of the episode.
         dt: time step [s].
+        guided: (A, S + 1) bool, the vehicle was in the scene policy's controllable set
+            ``A_c`` when it chose the action of step ``s`` (the last column repeats the
+            one before); None when the policy has no ``controllable`` (e.g. IDM, replay).
     """
 
     scenario: Scenario
@@ -100,6 +104,7 @@ class EpisodeRecord:
     events: tuple[dict[str, Any], ...]
     metrics: dict[str, Any] = field(default_factory=dict)
     dt: float = 0.1
+    guided: np.ndarray | None = None
 
     @property
     def present(self) -> np.ndarray:
@@ -227,7 +232,7 @@ class ClosedLoop:
         policy.reset(view)
         draw = getattr(policy, "draw", None) if self.video is not None else None
         frames = [_frame(base)]
-        cycle_times, ego_times = [], []
+        cycle_times, ego_times, guided = [], [], []
         while env.agents:
             view = base.view()
             cycles, start = getattr(policy, "cycles", None), time.perf_counter()
@@ -235,6 +240,7 @@ class ClosedLoop:
             elapsed = time.perf_counter() - start
             if cycles is None or getattr(policy, "cycles", None) != cycles:
                 cycle_times.append(elapsed)
+            guided.append(_controllable(policy, view.num_agents))
             if draw is not None:
                 draw(self.video.renderer)
             if EGO in env.agents:
@@ -245,8 +251,18 @@ class ClosedLoop:
             frames.append(_frame(base))
         record = _record(base, frames, tuple(env.events[first_event:]))
         record.metrics.update(planning_metrics(cycle_times, ego_times))
+        if guided and all(flags is not None for flags in guided):
+            record = dataclasses.replace(record, guided=np.stack([*guided, guided[-1]], axis=1))
         self.records.append(record)
         return record
+
+
+def _controllable(policy: ScenePolicy, num_agents: int) -> np.ndarray | None:
+    """(A,) copy of the policy's ``A_c`` after ``act`` (None if it has none)."""
+    controllable = getattr(policy, "controllable", None)
+    if controllable is None or np.shape(controllable) != (num_agents,):
+        return None
+    return np.array(controllable, dtype=bool)
 
 
 def _frame(base: RiskFlowParallelEnv) -> tuple[np.ndarray, ...]:

@@ -1,0 +1,129 @@
+"""The stress test's headline: failure rates that rank planners, with their intervals.
+
+:func:`stress_summary` aggregates analysed episodes (:class:`Analysed`: a record and its
+:class:`~policies.stress.failures.Failure` s). Rates over episodes and over collisions
+carry Wilson 95% intervals, means a bootstrap interval (:mod:`policies.statistics`):
+
+=========================  ==============================================================
+``ego_collision_rate``     episodes in which the ego collided
+``avoidable_failure_rate`` episodes with an ego collision shown avoidable: the headline
+                           that ranks planners (a planner is blamed only for what it
+                           could have avoided)
+``avoidable_share``        ego collisions shown avoidable
+``standing_strike_share``  ego collisions with the ego standing (below 0.5 m/s)
+``plausible_share``        ego collisions whose attacker stayed within the human bounds
+``attackers_at_impact``    mean guided vehicles within 5 m of the ego at impact
+``non_ego_contact_share``  non-ego vehicles in a collision that does not involve the ego
+``progress``               mean distance the ego drove [m] (the counter-metric: a
+                           planner that stands still is rarely to blame)
+=========================  ==============================================================
+
+``types`` counts the ego collisions of each :data:`~policies.stress.failures.FAILURE_TYPES`
+(with how many were avoidable), ``families`` the ego collision rate per road family.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from policies.harness import EGO, EpisodeRecord, mean_summary
+from policies.statistics import wilson_interval
+from policies.stress.failures import FAILURE_TYPES, Failure
+
+
+@dataclass(frozen=True)
+class Analysed:
+    """One episode and the analysis of its ego collisions."""
+
+    record: EpisodeRecord
+    failures: tuple[Failure, ...]
+
+
+def rate(hits: int, trials: int, confidence: float = 0.95) -> dict[str, Any]:
+    """``{"value", "low", "high", "n"}`` of a rate with its Wilson interval (None when
+    there is no trial)."""
+    if trials == 0:
+        return {"value": None, "low": None, "high": None, "n": 0}
+    low, high = wilson_interval(hits, trials, confidence)
+    return {"value": hits / trials, "low": low, "high": high, "n": trials}
+
+
+def non_ego_contacts(record: EpisodeRecord) -> tuple[int, int]:
+    """(non-ego vehicles in a collision without the ego, non-ego vehicles present)."""
+    struck = {
+        name
+        for event in record.events
+        if event["event"] == "collision_start" and not event["ego_involved"]
+        for name in event["agents"]
+    }
+    present = [name for name, here in zip(record.agent_names, record.present, strict=True) if here]
+    return len(struck), sum(name != EGO for name in present)
+
+
+def progress(record: EpisodeRecord) -> float:
+    """[m] distance the ego drove over the episode."""
+    xy = record.states[0, :, :2]
+    return float(np.linalg.norm(np.diff(xy, axis=0), axis=-1).sum())
+
+
+def stress_summary(episodes: list[Analysed], confidence: float = 0.95) -> dict[str, Any]:
+    """The summary of module docstring's table, ``types`` and ``families``."""
+    failures = [failure for episode in episodes for failure in episode.failures]
+    collided = [bool(episode.failures) for episode in episodes]
+    avoidable = [any(f.avoidable for f in episode.failures) for episode in episodes]
+    contacts = [non_ego_contacts(episode.record) for episode in episodes]
+    summary = {
+        "episodes": len(episodes),
+        "ego_collisions": len(failures),
+        "ego_collision_rate": rate(sum(collided), len(episodes), confidence),
+        "avoidable_failure_rate": rate(sum(avoidable), len(episodes), confidence),
+        "avoidable_share": rate(sum(f.avoidable for f in failures), len(failures), confidence),
+        "standing_strike_share": rate(
+            sum(f.standing_ego for f in failures), len(failures), confidence
+        ),
+        "plausible_share": rate(sum(f.plausible for f in failures), len(failures), confidence),
+        "attackers_at_impact": mean_summary([f.guided_nearby for f in failures], confidence),
+        "non_ego_contact_share": rate(
+            sum(c[0] for c in contacts), sum(c[1] for c in contacts), confidence
+        ),
+        "progress": mean_summary([progress(e.record) for e in episodes], confidence),
+    }
+    kinds = Counter(f.type for f in failures)
+    saved = Counter(f.type for f in failures if f.avoidable)
+    summary["types"] = {
+        kind: {"collisions": kinds[kind], "avoidable": saved[kind]} for kind in FAILURE_TYPES
+    }
+    by_family: dict[str, list[bool]] = {}
+    for episode, hit in zip(episodes, collided, strict=True):
+        family = episode.record.scenario.family or "unknown"
+        by_family.setdefault(family, []).append(hit)
+    summary["families"] = {
+        family: rate(sum(hits), len(hits), confidence) for family, hits in sorted(by_family.items())
+    }
+    return summary
+
+
+def headline(summary: dict[str, Any]) -> str:
+    """One line: the avoidable-failure rate with its interval, and the counter-metrics."""
+
+    def fmt(entry: dict[str, Any], scale: float = 100.0, unit: str = "%") -> str:
+        value, low, high = entry["value"], entry["low"], entry["high"]
+        if value is None or math.isnan(value):
+            return "n/a"
+        interval = "" if low is None else f" [{scale * low:.0f}, {scale * high:.0f}]"
+        return f"{scale * value:.0f}{unit}{interval}"
+
+    return (
+        f"avoidable failures {fmt(summary['avoidable_failure_rate'])} of "
+        f"{summary['episodes']} episodes; ego collisions {fmt(summary['ego_collision_rate'])}, "
+        f"{fmt(summary['avoidable_share'])} of them avoidable; ego progress "
+        f"{fmt(summary['progress'], 1.0, ' m')}"
+    )
+
+
+__all__ = ["Analysed", "headline", "non_ego_contacts", "progress", "rate", "stress_summary"]
