@@ -231,7 +231,7 @@ def collision_type(ego: np.ndarray, other: np.ndarray, size: np.ndarray, dt: flo
         dt: [s] time step.
     """
     e, o = ego[-1], other[-1]
-    turn = abs(float(wrap_angle(o[YAW] - e[YAW])))
+    turn = abs(float(wrap_angle(np.asarray(o[YAW] - e[YAW]))))
     if turn > np.radians(135):
         return "head_on"
     if turn > np.radians(45):
@@ -245,7 +245,7 @@ def collision_type(ego: np.ndarray, other: np.ndarray, size: np.ndarray, dt: flo
     before = max(0, len(ego) - 1 - round(LOOK_BACK / dt))
     ahead, _ = _offset(e, o)
     _, beside = _offset(ego[before], other[before])
-    if ahead > 0 and abs(beside) > LANE_HALF_WIDTH and "rear" != ego_kind:
+    if ego_kind == "front" and ahead > 0 and abs(beside) > LANE_HALF_WIDTH:
         return "cut_in"
     if ego_kind == "front" and other_kind == "rear":
         return "striking_from_behind"
