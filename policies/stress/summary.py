@@ -43,6 +43,29 @@ class Analysed:
     record: EpisodeRecord
     failures: tuple[Failure, ...]
 
+    def outcome(self) -> dict[str, Any]:
+        """The episode as :func:`stress_summary` reads it (JSON-ready, no arrays)."""
+        return episode_outcome(self.record, self.failures)
+
+
+def episode_outcome(record: EpisodeRecord, failures: tuple[Failure, ...]) -> dict[str, Any]:
+    """What the summary needs of an episode, JSON-ready (a line of a results file):
+    ``scenario``, ``family``, ``steps``, ``failures`` (:meth:`Failure.to_dict` without the
+    witness), ``non_ego_contacts`` [in contact, present] and ``progress`` [m]."""
+    rows = []
+    for failure in failures:
+        row = failure.to_dict()
+        row.pop("witness")
+        rows.append(row)
+    return {
+        "scenario": record.scenario.name,
+        "family": record.scenario.family or "unknown",
+        "steps": int(record.states.shape[1] - 1),
+        "failures": rows,
+        "non_ego_contacts": list(non_ego_contacts(record)),
+        "progress": progress(record),
+    }
+
 
 def rate(hits: int, trials: int, confidence: float = 0.95) -> dict[str, Any]:
     """``{"value", "low", "high", "n"}`` of a rate with its Wilson interval (None when
@@ -71,37 +94,42 @@ def progress(record: EpisodeRecord) -> float:
     return float(np.linalg.norm(np.diff(xy, axis=0), axis=-1).sum())
 
 
-def stress_summary(episodes: list[Analysed], confidence: float = 0.95) -> dict[str, Any]:
-    """The summary of module docstring's table, ``types`` and ``families``."""
-    failures = [failure for episode in episodes for failure in episode.failures]
-    collided = [bool(episode.failures) for episode in episodes]
-    avoidable = [any(f.avoidable for f in episode.failures) for episode in episodes]
-    contacts = [non_ego_contacts(episode.record) for episode in episodes]
+def stress_summary(
+    episodes: list[Analysed | dict[str, Any]], confidence: float = 0.95
+) -> dict[str, Any]:
+    """The summary of module docstring's table, ``types`` and ``families``, from analysed
+    episodes or their :func:`episode_outcome` rows."""
+    outcomes = [e.outcome() if isinstance(e, Analysed) else e for e in episodes]
+    failures = [failure for outcome in outcomes for failure in outcome["failures"]]
+    collided = [bool(outcome["failures"]) for outcome in outcomes]
+    avoidable = [any(f["avoidable"] for f in outcome["failures"]) for outcome in outcomes]
+    contacts = np.array([outcome["non_ego_contacts"] for outcome in outcomes]).reshape(-1, 2)
+
+    def share(flag: str) -> dict[str, Any]:
+        return rate(sum(bool(f[flag]) for f in failures), len(failures), confidence)
+
     summary = {
-        "episodes": len(episodes),
+        "episodes": len(outcomes),
         "ego_collisions": len(failures),
-        "ego_collision_rate": rate(sum(collided), len(episodes), confidence),
-        "avoidable_failure_rate": rate(sum(avoidable), len(episodes), confidence),
-        "avoidable_share": rate(sum(f.avoidable for f in failures), len(failures), confidence),
-        "standing_strike_share": rate(
-            sum(f.standing_ego for f in failures), len(failures), confidence
-        ),
-        "plausible_share": rate(sum(f.plausible for f in failures), len(failures), confidence),
-        "attackers_at_impact": mean_summary([f.guided_nearby for f in failures], confidence),
+        "ego_collision_rate": rate(sum(collided), len(outcomes), confidence),
+        "avoidable_failure_rate": rate(sum(avoidable), len(outcomes), confidence),
+        "avoidable_share": share("avoidable"),
+        "standing_strike_share": share("standing_ego"),
+        "plausible_share": share("plausible"),
+        "attackers_at_impact": mean_summary([f["guided_nearby"] for f in failures], confidence),
         "non_ego_contact_share": rate(
-            sum(c[0] for c in contacts), sum(c[1] for c in contacts), confidence
+            int(contacts[:, 0].sum()), int(contacts[:, 1].sum()), confidence
         ),
-        "progress": mean_summary([progress(e.record) for e in episodes], confidence),
+        "progress": mean_summary([o["progress"] for o in outcomes], confidence),
     }
-    kinds = Counter(f.type for f in failures)
-    saved = Counter(f.type for f in failures if f.avoidable)
+    kinds = Counter(f["type"] for f in failures)
+    saved = Counter(f["type"] for f in failures if f["avoidable"])
     summary["types"] = {
         kind: {"collisions": kinds[kind], "avoidable": saved[kind]} for kind in FAILURE_TYPES
     }
     by_family: dict[str, list[bool]] = {}
-    for episode, hit in zip(episodes, collided, strict=True):
-        family = episode.record.scenario.family or "unknown"
-        by_family.setdefault(family, []).append(hit)
+    for outcome, hit in zip(outcomes, collided, strict=True):
+        by_family.setdefault(outcome["family"], []).append(hit)
     summary["families"] = {
         family: rate(sum(hits), len(hits), confidence) for family, hits in sorted(by_family.items())
     }
@@ -126,4 +154,12 @@ def headline(summary: dict[str, Any]) -> str:
     )
 
 
-__all__ = ["Analysed", "headline", "non_ego_contacts", "progress", "rate", "stress_summary"]
+__all__ = [
+    "Analysed",
+    "episode_outcome",
+    "headline",
+    "non_ego_contacts",
+    "progress",
+    "rate",
+    "stress_summary",
+]
