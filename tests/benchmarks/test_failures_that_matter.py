@@ -1,0 +1,22 @@
+"""benchmarks/failures_that_matter.py: a tiny run prints the table and resumes."""
+
+from __future__ import annotations
+
+from tests.benchmarks.scripts import load_benchmark
+
+
+def test_a_tiny_run_prints_the_table_and_a_rerun_resumes(tmp_path, capsys):
+    bench = load_benchmark("failures_that_matter")
+    out = tmp_path / "results.jsonl"
+    options = bench.Options(
+        planners="idm,constant_velocity", scenes=1, seeds="0,1", steps=20, out=out
+    )
+    summaries = bench.main(options)
+    assert list(summaries) == ["idm", "constant_velocity"]
+    assert summaries["idm"]["episodes"] == 2
+    printed = capsys.readouterr().out
+    assert "avoidable failures" in printed and "idm - constant_velocity" in printed
+    lines = out.read_text().splitlines()
+    assert len(lines) == 4
+    bench.main(options)  # everything is done: nothing runs again
+    assert out.read_text().splitlines() == lines
