@@ -7,7 +7,10 @@ interrupted run never compares methods over different scenes; the table says how
 Aggregation is :func:`riskflow_env.metrics.method_metrics` (SCR and ego rate over
 rollouts, ORR over pooled agent-steps, ADE/FDE over pooled agents, KDD over pooled
 samples), the mean of the per-rollout WOSAC scores, the mean time of the first collision
-(any, and the ego's) over the rollouts that have one, and CS / RS
+(any, and the ego's) over the rollouts that have one, the share of rollouts with an ego
+collision the ego could have avoided ("ego avoidable", :mod:`policies.stress.failures`:
+the stress test's headline, next to the ego SCR that counts every ego collision), and
+CS / RS
 (:func:`riskflow_env.metrics.safety_realism_scores`) across the table's scenario
 generators: reference traffic (IDM, replay, constant velocity: ``MethodSpec.reference``)
 is shown but left out of the normalisation. CS normalises SCR, or the ego-collision rate
@@ -33,6 +36,7 @@ REFERENCE_METHOD = "riskflow"  # timing ratios are to this label when present
 METRIC_COLUMNS = (
     ("scr", "SCR"),
     ("ego_collision_rate", "ego SCR"),
+    ("avoidable_failure_rate", "ego avoidable"),
     ("first_collision_s", "TTFC [s]"),
     ("first_ego_collision_s", "ego TTFC [s]"),
     ("orr", "ORR"),
@@ -118,7 +122,16 @@ def _method_metrics(store: ResultsStore, rows: list[dict]) -> dict[str, float]:
     for key, name in (("first_collision_s", "first_collision_step"),
                       ("first_ego_collision_s", "first_ego_collision_step")):  # fmt: skip
         out[key] = _mean_first_time([_nan(row.get(name)) for row in rows])
+    out["avoidable_failure_rate"] = _avoidable_rate(rows)
     return out
+
+
+def _avoidable_rate(rows: list[dict]) -> float:
+    """Share of rollouts with an ego collision the ego could have avoided (shown by the
+    escape search, :mod:`policies.stress.failures`); NaN where a row predates it."""
+    if not rows or any("failures" not in row for row in rows):
+        return math.nan
+    return float(np.mean([any(f["avoidable"] for f in row["failures"]) for row in rows]))
 
 
 def _mean_first_time(steps: list[float]) -> float:

@@ -4,7 +4,9 @@
 policy (noise seeded from the job's seed and scene only, so a rollout does not depend on
 which worker ran it or on what it ran before), a fresh ego planner, one
 :class:`~policies.harness.ClosedLoop` episode, then the metrics of
-:mod:`riskflow_env.metrics` on the episode's :class:`RolloutRecord`. The ego is the
+:mod:`riskflow_env.metrics` on the episode's :class:`RolloutRecord` and the failure
+analysis of its ego collisions (:mod:`policies.stress.failures`: type, avoidability,
+attacker plausibility; the row's ``failures``). The ego is the
 planner under test, so the realism metrics (ORR, ADE/FDE, KDD, WOSAC) score the other
 vehicles only; SCR counts every pair, the ego included.
 """
@@ -24,6 +26,8 @@ from policies.evaluation.options import Job, method_label, open_data
 from policies.harness import ClosedLoop, EpisodeRecord
 from policies.planners import make_planner
 from policies.registry import build_policy
+from policies.stress.failures import analyse
+from policies.stress.summary import episode_outcome
 from riskflow_env.config import EnvConfig
 from riskflow_env.metrics import RolloutRecord, kinematic_samples, rollout_metrics, wosac_scene
 from riskflow_env.scenarios import Scenario, ScenarioBank
@@ -153,6 +157,7 @@ def score(
     if run.wosac:
         wosac = {key: json_number(v) for key, v in wosac_scene([record]).items()}
     samples = kinematic_samples(record).as_arrays()
+    failures = episode_outcome(episode, analyse(episode))["failures"]
     scored = time.perf_counter() - start
 
     m = episode.metrics
@@ -179,6 +184,7 @@ def score(
             "min_distance_to_ego": json_number(m["min_distance_to_ego"]),
             "ego_offroad": bool(m["ego_offroad"]),
         },
+        "failures": failures,
         "wosac": wosac,
         "timing": {
             **timing,
