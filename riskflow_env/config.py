@@ -146,7 +146,9 @@ class EnvConfig:
     Attributes:
         max_agents: number of agent slots, the ego included (``possible_agents``).
         episode_steps: steps before truncation (100 steps of 0.1 s = 10 s).
-        terminate_on_collision: which agents terminate when they collide: "all", "ego",
+        terminate_on_collision: which agents terminate when they collide: "all" (the
+            default: both vehicles of every collision stop where they touched and stay
+            as obstacles), "ego" (the other vehicles drive on through their contacts),
             "none", or a tuple of agent names.
         terminate_on_offroad: same, for driving off the road.
         end_with_ego: when the ego is done, truncate every other agent too.
@@ -164,7 +166,7 @@ class EnvConfig:
 
     max_agents: int = 32
     episode_steps: int = 100
-    terminate_on_collision: str | tuple[str, ...] = "ego"
+    terminate_on_collision: str | tuple[str, ...] = "all"
     terminate_on_offroad: str | tuple[str, ...] = "ego"
     end_with_ego: bool = True
     leave_when_log_ends: bool = False

@@ -35,8 +35,11 @@ Arguments (``parallel_env(config=None, scenarios=None, render_mode=None)``):
 
 Termination: an agent terminates when it collides (or drives off the road) and
 ``config.terminate_on_collision`` (``terminate_on_offroad``) selects it; a done vehicle
-stops where it is and stays on the map as an obstacle. With ``end_with_ego`` the whole
-episode ends when the ego is done. ``info[agent]["reward_terms"]`` breaks each reward
+stops where it is and stays on the map as an obstacle. By default both vehicles of every
+collision terminate at the first contact, so a pair freezes where it touched and its
+boxes never sink further into each other; ``terminate_on_collision="ego"`` lets the other
+vehicles drive on through their contacts. With ``end_with_ego`` the whole episode ends
+when the ego is done. ``info[agent]["reward_terms"]`` breaks each reward
 into its terms.
 
 Version history:

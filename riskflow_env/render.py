@@ -7,7 +7,8 @@ paced at ``env.metadata["render_fps"]``. Nothing here runs unless the env render
 Layers, bottom up: the map (road grey, off-road green, anti-aliased edge taken from the
 SDF, lane centrelines faint), trails (the last ``trail_seconds`` of ``scene.history``),
 overlays (polylines pushed by a scene policy, e.g. planned trajectories), vehicles (boxes
-with a heading mark; ego orange with a white outline, others blue, done vehicles grey;
+with a heading mark; ego orange with a white outline, others blue, done vehicles grey, so
+a pair frozen at a collision is grey with the red collision marks below while it stands;
 highlighted agents haloed in their overlay's colour), event markers (collisions: red
 outline and a ring between the pair; off-road: amber outline) and a text line: time, ego
 speed, collision events so far (a pair coming into contact, counted as the event log and

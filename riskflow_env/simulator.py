@@ -127,7 +127,9 @@ def advance(
 ) -> tuple[Array, Array]:
     """Next states of all slots: active agents follow the unicycle model under
     ``actions``; present but inactive agents (done) stand still where they are (speed 0);
-    empty slots keep their state.
+    empty slots keep their state. A vehicle done at step k (e.g. at a collision) thus
+    keeps its pose of step k, and the speed it had then (the impact speed the event log
+    reports), and is at rest from step k + 1 on.
 
     Args:
         current: (..., A, 4) states (x [m], y [m], v [m/s], psi [rad]).

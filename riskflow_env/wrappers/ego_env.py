@@ -14,7 +14,8 @@ Termination         the ego terminates (collision / off-road, per ``EnvConfig``)
                     truncated (``episode_steps``, default 100 = 10 s)
 Other vehicles      a :class:`~riskflow_env.view.ScenePolicy` (default
                     :class:`~riskflow_env.agents.IDMPolicy` with
-                    ``controlled="others"``: IDM car following and lane keeping)
+                    ``controlled="others"``: IDM car following and lane keeping);
+                    by default two that collide stop there, as obstacles
 ==================  ==============================================================
 
 Arguments (``EgoEnv(config=None, scenarios=None, policy=None, render_mode=None,
