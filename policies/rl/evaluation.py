@@ -5,7 +5,8 @@ it was trained with) into an :class:`~policies.planners.EgoPlanner`; :class:`Ran
 draws uniform actions. :func:`evaluate` runs every planner against every traffic on the
 same scenes and seeds through :class:`~policies.harness.ClosedLoop` (the harness of the
 stress tests); :func:`summarize_ego` reduces the episodes to the ego's collision rate,
-off-road rate, progress and time to first collision with 95% intervals over all
+the rate of collisions it could have avoided, off-road rate, progress and time to first
+collision with 95% intervals over all
 (seed, scene) episodes: Wilson for rates, percentile bootstrap for means.
 """
 
@@ -21,6 +22,8 @@ from policies.harness import ClosedLoop, EpisodeRecord, summarize
 from policies.rl.adversary import ScenePolicyConfig, make_traffic
 from policies.rl.envs import EgoInterface
 from policies.statistics import mean_interval
+from policies.stress.failures import analyse
+from policies.stress.summary import progress, rate
 from riskflow_env.config import DynamicsConfig, EnvConfig
 from riskflow_env.scenarios import Scenario
 from riskflow_env.view import SceneView
@@ -195,17 +198,13 @@ def evaluate(
     return results
 
 
-def ego_progress(record: EpisodeRecord) -> float:
-    """Distance the ego drove in the episode [m] (path length of its executed states)."""
-    xy = record.states[0, :, :2]
-    return float(np.hypot(*np.diff(xy, axis=0).T).sum())
-
-
 def summarize_ego(records: Sequence[EpisodeRecord]) -> dict[str, dict[str, Any]]:
     """The ego's metrics with 95% intervals: ``{name: {"value", "low", "high", "n"}}``.
 
     * ``ego_collision_rate``, ``ego_offroad_rate``: shares of episodes (Wilson);
     * ``ego_failure_rate``: share with a collision or an off-road excursion (Wilson);
+    * ``avoidable_failure_rate``: share with an ego collision the ego could have avoided
+      (:mod:`policies.stress.failures`: a hindsight escape search found a witness);
     * ``progress`` [m]: distance driven by the ego (bootstrap);
     * ``time_to_first_ego_collision`` [s]: over the episodes with one (bootstrap).
     """
@@ -214,12 +213,14 @@ def summarize_ego(records: Sequence[EpisodeRecord]) -> dict[str, dict[str, Any]]
     base = summarize(list(records))
     failures = sum(r.metrics["ego_collided"] or r.metrics["ego_offroad"] for r in records)
     low, high = wilson_interval(failures, len(records))
-    distances = [ego_progress(r) for r in records]
+    distances = [progress(r) for r in records]
+    avoidable = sum(any(f.avoidable for f in analyse(record)) for record in records)
     d_low, d_high = mean_interval(distances)
     return {
         "ego_collision_rate": base["ego_collision_rate"],
         "ego_offroad_rate": base["ego_offroad_rate"],
         "ego_failure_rate": _entry(failures / max(len(records), 1), low, high, len(records)),
+        "avoidable_failure_rate": rate(avoidable, len(records)),
         "progress": _entry(float(np.mean(distances)), d_low, d_high, len(distances)),
         "time_to_first_ego_collision": base["time_to_first_ego_collision"],
     }

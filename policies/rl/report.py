@@ -17,6 +17,7 @@ METRIC_LABELS = {
     "ego_collision_rate": "ego collision rate",
     "ego_offroad_rate": "ego off-road rate",
     "ego_failure_rate": "collision or off-road",
+    "avoidable_failure_rate": "avoidable collision",
     "progress": "progress [m]",
     "time_to_first_ego_collision": "time to 1st ego collision [s]",
 }
