@@ -130,3 +130,14 @@ def test_human_bounds_are_the_training_banks_p99():
     measured = kinematic_bounds(shipped_bank("train"))
     for name in ("accel", "jerk", "yaw_rate"):
         assert getattr(measured, name) == pytest.approx(getattr(HUMAN_BOUNDS, name), rel=1e-3)
+
+
+def test_the_rl_evaluation_reports_the_avoidable_failure_rate():
+    from policies.rl.evaluation import summarize_ego
+
+    road = shapely.box(-60.0, -6.0, 120.0, 6.0)
+    avoidable = closed_loop([(0.0, 0.0, 8.0, 0.0), (-20.0, 0.0, 18.0, 0.0)], road)
+    clear = closed_loop([(0.0, 0.0, 8.0, 0.0), (20.0, 4.0, 8.0, 0.0)], road, steps=10)
+    summary = summarize_ego([avoidable, clear])
+    assert summary["avoidable_failure_rate"]["value"] == 0.5
+    assert summary["ego_collision_rate"]["value"] == 0.5
