@@ -20,7 +20,9 @@ reference future is what was executed, so that :class:`~policies.baselines.Repla
 replays it. :func:`summarize` aggregates records with 95% confidence intervals.
 
 Episodes end as ``config`` says; the default :class:`~riskflow_env.config.EnvConfig`
-ends an episode when the ego collides or leaves the road, or after 10 s.
+ends an episode when the ego collides or leaves the road, or after 10 s, and freezes both
+vehicles of every collision where they touched. :mod:`policies.stress.failures` analyses
+a record's ego collisions (type, avoidability, the attacker's kinematics).
 """
 
 from __future__ import annotations
