@@ -1,0 +1,164 @@
+"""``riskflow-stress``: stress-test your planner against the RiskFlow adversary (docs/STRESS.md).
+
+::
+
+    riskflow-stress --planner my_planner.py:plan --scenes 20 --seeds 0 1 2 --workers 2 \\
+        --out outputs/stress                      # report.md, report.html, failures/*.npz
+    riskflow-stress replay outputs/stress/failures/<scene>-seed0.npz --planner my_planner.py:plan
+    riskflow-stress compare idm sampling_mpc --scenes 20 --out outputs/compare
+
+``--planner`` takes a built-in name (idm, sampling_mpc, constant_velocity, lane_keeping),
+``package.module:object`` or ``path/to/file.py:object``
+(:mod:`policies.stress.planner_spec`). The options of a run are :class:`RunOptions` (one
+flag per field, its docstring as help); bad arguments exit with a usage error naming the
+argument.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from policies.dataclass_cli import dataclass_parser
+from policies.stress.runner import StressOptions
+
+PROG = "riskflow-stress"
+FORMS = "a built-in name, package.module:object or path/to/file.py:object, as --planner"
+
+
+@dataclass(frozen=True)
+class RunOptions(StressOptions):
+    """Options of ``riskflow-stress``: the planner and the stress test."""
+
+    planner: str = "idm"
+    """the planner under test: a built-in name (idm, sampling_mpc, constant_velocity,
+    lane_keeping), package.module:object or path/to/file.py:object (a planner callable
+    (observation, view) -> action, or a class or factory called with no argument)"""
+
+
+def parser() -> argparse.ArgumentParser:
+    """The parser of a run (one option per :class:`RunOptions` field)."""
+    description = (
+        "Stress-test a planner against the RiskFlow adversary; 'riskflow-stress replay FILE' "
+        "puts it back into a saved failure, 'riskflow-stress compare A B' pairs two planners."
+    )
+    return dataclass_parser(RunOptions, PROG, description)
+
+
+def compare_parser() -> argparse.ArgumentParser:
+    """The parser of ``riskflow-stress compare A B`` (the run's options but the planner)."""
+    compare = dataclass_parser(StressOptions, f"{PROG} compare", "Two planners, paired.")
+    compare.add_argument("a", help=f"planner A: {FORMS}")
+    compare.add_argument("b", help="planner B, in the same forms")
+    return compare
+
+
+def replay_parser() -> argparse.ArgumentParser:
+    """The parser of ``riskflow-stress replay FILE``."""
+    replay = argparse.ArgumentParser(
+        prog=f"{PROG} replay",
+        description="Re-run a saved failure (closed loop: the same scene, adversary seed and "
+        "options) with a planner, and say whether the failure recurs.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    replay.add_argument("file", help="a replay file (failures/*.npz of a run)")
+    replay.add_argument(
+        "--planner",
+        default=None,
+        help=f"the planner to put back: {FORMS} of a run; default: the planner that failed",
+    )
+    replay.add_argument("--video", default=None, help="write the episode as a .gif or .mp4")
+    return replay
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Entry point of ``riskflow-stress``."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["replay"]:
+        _replay(argv[1:])
+    elif argv[:1] == ["compare"]:
+        _compare(argv[1:])
+    else:
+        _run(argv)
+
+
+def _options(cls: type, values: dict[str, Any], usage: argparse.ArgumentParser) -> Any:
+    try:
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
+    except ValueError as err:
+        usage.error(str(err))
+
+
+def stress_kwargs(options: StressOptions) -> dict[str, Any]:
+    """:func:`riskflow_stress`'s keyword arguments of ``options`` (but scenes and seeds)."""
+    names = {field.name for field in dataclasses.fields(StressOptions)} - {"scenes", "seeds"}
+    return {name: getattr(options, name) for name in names}
+
+
+def _run(argv: list[str]) -> None:
+    from policies.stress.planner_spec import PlannerSpecError
+    from policies.stress.runner import SceneSourceError
+    from policies.stress.stress_test import riskflow_stress
+
+    usage = parser()
+    values = vars(usage.parse_args(argv))
+    planner = values.pop("planner")
+    options = _options(StressOptions, values, usage)
+    try:
+        result = riskflow_stress(planner, options.scenes, options.seeds, **stress_kwargs(options))
+    except PlannerSpecError as err:
+        usage.error(err.named("--planner"))
+    except SceneSourceError as err:
+        usage.error(str(err))
+    print(result.headline)
+    print(f"wrote {result.out}/report.html, report.md, summary.json; {len(result.replays)} "
+          f"replay file(s) in {result.out}/failures/")  # fmt: skip
+
+
+def _compare(argv: list[str]) -> None:
+    from policies.stress.compare import compare, markdown
+    from policies.stress.planner_spec import PlannerSpecError
+    from policies.stress.runner import SceneSourceError
+
+    usage = compare_parser()
+    values = vars(usage.parse_args(argv))
+    a, b = values.pop("a"), values.pop("b")
+    options = _options(StressOptions, values, usage)
+    try:
+        table = compare(a, b, options.scenes, options.seeds, **stress_kwargs(options))
+    except PlannerSpecError as err:
+        usage.error(err.named("a" if err.spec == a else "b"))
+    except SceneSourceError as err:
+        usage.error(str(err))
+    print(markdown(table))
+    print(f"wrote {options.out}/compare.md, compare.json and both runs' reports")
+
+
+def _replay(argv: list[str]) -> None:
+    from policies.stress.planner_spec import PlannerSpecError, load_planner
+    from policies.stress.replay import load_replay, replay
+
+    usage = replay_parser()
+    args = usage.parse_args(argv)
+    try:
+        saved = load_replay(args.file)
+    except (OSError, ValueError) as err:
+        usage.error(f"file: {err}")
+    spec = args.planner or saved.meta["planner"]
+    try:
+        planner = load_planner(spec, saved.setup.env_config().dynamics)
+    except PlannerSpecError as err:
+        hint = "" if args.planner else " (the saved planner; give --planner)"
+        usage.error(err.named("--planner") + hint)
+    result = replay(saved, planner, video=args.video)
+    print(result.describe())
+    if args.video:
+        print(f"wrote {args.video}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,161 @@
+"""``riskflow-stress compare A B``: two planners on the same scenes and seeds, paired.
+
+Both planners face every (scene, seed) episode (a full stress test each, in
+``<out>/a-<name>/`` and ``<out>/b-<name>/``); an episode's outcome for A and for B is one
+pair. Per outcome (an ego collision; an ego collision shown avoidable) the table gives each
+planner's rate, the difference A - B with the Wald interval of paired proportions and the
+exact McNemar test on the discordant pairs (:func:`policies.statistics.paired_difference`):
+pairing removes the between-scene variance, so it separates planners that two overlapping
+Wilson intervals cannot. The ego's progress is the counter-metric (a planner that stands
+still is rarely hit). ``compare.json`` and ``compare.md`` hold the table.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from policies.planners import EgoPlanner
+from policies.statistics import paired_difference
+from policies.stress.stress_test import StressResult, riskflow_stress
+from riskflow_env.scenarios import Scenario
+
+OUTCOMES = {
+    "ego_collided": "ego collision rate",
+    "avoidable_failure": "avoidable-failure rate",
+}
+
+
+def compare(
+    a: str | EgoPlanner,
+    b: str | EgoPlanner,
+    scenes: int | Sequence[Scenario] = 20,
+    seeds: Sequence[int] = (0,),
+    *,
+    out: str | os.PathLike | None = None,
+    **options: Any,
+) -> dict[str, Any]:
+    """Stress-test planners ``a`` and ``b`` on the same episodes; the paired table.
+
+    Args:
+        a, b: the planners (objects or specs, as :func:`riskflow_stress` takes them).
+        scenes, seeds: the episodes, as :func:`riskflow_stress` takes them.
+        out: folder of both runs and ``compare.json`` / ``compare.md``; None: no files.
+        **options: further :func:`riskflow_stress` arguments (``k``, ``steps``, ...).
+
+    Returns:
+        ``{"a", "b", "episodes", "rows"}``: the two planners' names, the number of paired
+        episodes, and a row per outcome (:data:`OUTCOMES`) and for the progress.
+    """
+    folder = None if out is None else Path(out)
+    runs = []
+    for letter, planner in (("a", a), ("b", b)):
+        sub = None if folder is None else folder / f"{letter}-{_safe(_label(planner))}"
+        runs.append(riskflow_stress(planner, scenes, seeds, out=sub, **options))
+    table = paired_table(*runs)
+    if folder is not None:
+        (folder / "compare.json").write_text(json.dumps(table, indent=2) + "\n", encoding="utf-8")
+        (folder / "compare.md").write_text(markdown(table) + "\n", encoding="utf-8")
+    return table
+
+
+def paired_table(a: StressResult, b: StressResult) -> dict[str, Any]:
+    """The paired comparison of two runs of the same episodes (module docstring)."""
+    rows_a, rows_b = a.summary["per_episode"], b.summary["per_episode"]
+    if [(r["scene"], r["seed"]) for r in rows_a] != [(r["scene"], r["seed"]) for r in rows_b]:
+        raise ValueError("a and b must be runs of the same scenes and seeds, in the same order")
+    rows = []
+    for key, label in OUTCOMES.items():
+        hit_a = np.array([r[key] for r in rows_a], dtype=bool)
+        hit_b = np.array([r[key] for r in rows_b], dtype=bool)
+        test = paired_difference(
+            {
+                "n": len(hit_a),
+                "trained": int(hit_a.sum()),
+                "untrained": int(hit_b.sum()),
+                "trained_only": int((hit_a & ~hit_b).sum()),
+                "untrained_only": int((~hit_a & hit_b).sum()),
+            }
+        )
+        rows.append(
+            {
+                "outcome": label,
+                "a": a.summary[_SUMMARY[key]],
+                "b": b.summary[_SUMMARY[key]],
+                "a_only": test["trained_only"],
+                "b_only": test["untrained_only"],
+                "difference": test["difference"],
+                "low": test["low"],
+                "high": test["high"],
+                "p_value": test["p_value"],
+            }
+        )
+    rows.append(
+        {
+            "outcome": "ego progress [m] (counter-metric)",
+            "a": a.summary["progress"],
+            "b": b.summary["progress"],
+        }
+    )
+    return {
+        "a": a.summary["planner"],
+        "b": b.summary["planner"],
+        "episodes": len(rows_a),
+        "rows": rows,
+    }
+
+
+_SUMMARY = {"ego_collided": "ego_collision_rate", "avoidable_failure": "avoidable_failure_rate"}
+
+
+def markdown(table: dict[str, Any]) -> str:
+    """The table in Markdown (``compare.md``, and what the command prints)."""
+    lines = [
+        f"A = {table['a']}, B = {table['b']}, {table['episodes']} paired episodes",
+        "",
+        "| outcome | A | B | A - B [95% CI] | A only / B only | McNemar p |",
+        "|---|---|---|---|---|---|",
+    ]
+    for row in table["rows"]:
+        percent = "difference" in row
+        a, b = (_value(row[side], percent) for side in ("a", "b"))
+        if not percent:
+            lines.append(f"| {row['outcome']} | {a} | {b} | | | |")
+            continue
+        difference = "n/a"
+        if row["difference"] is not None:
+            difference = (
+                f"{100 * row['difference']:+.1f} pts "
+                f"[{100 * row['low']:+.1f}, {100 * row['high']:+.1f}]"
+            )
+        lines.append(
+            f"| {row['outcome']} | {a} | {b} | {difference} | {row['a_only']} / "
+            f"{row['b_only']} | {row['p_value']:.3g} |"
+        )
+    return "\n".join(lines)
+
+
+def _value(entry: dict[str, Any], percent: bool) -> str:
+    value = entry["value"]
+    if value is None:
+        return "n/a"
+    return f"{100 * value:.1f}%" if percent else f"{value:.1f}"
+
+
+def _label(planner: str | EgoPlanner) -> str:
+    if isinstance(planner, str):
+        return planner.rpartition(":")[2] or planner
+    return getattr(planner, "__name__", None) or type(planner).__name__
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", name)
+
+
+__all__ = ["OUTCOMES", "compare", "markdown", "paired_table"]

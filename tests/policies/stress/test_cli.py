@@ -1,0 +1,188 @@
+"""``riskflow-stress`` as a user runs it: a planner from a file or an import path, the run
+end to end on two scenes (its files, the same results with two workers), bad ``--planner``
+errors, a failure replayed bit for bit with the user's planner, and ``compare``."""
+
+from __future__ import annotations
+
+import json
+import textwrap
+
+import numpy as np
+import pytest
+
+from policies.planners import ConstantVelocityPlanner, IDMPlanner
+from policies.stress import load_planner, load_replay, replay, riskflow_stress
+from policies.stress.cli import main
+from policies.stress.planner_spec import PlannerSpecError, spec_of
+from riskflow_env.scenarios import load_scenario, save_scenario, shipped_bank
+
+pytestmark = pytest.mark.integration
+
+# A user's planner file: ``reckless`` steers into the nearest vehicle (a failure within a
+# few steps on a busy scene); ``Cautious`` is a class with state that ``reset`` clears.
+PLANNER_FILE = textwrap.dedent(
+    """
+    import numpy as np
+
+    def reckless(observation, view):
+        others = observation[6:94].reshape(8, 11)
+        present = others[:, 10] > 0
+        if not present.any():
+            return np.array([2.0, 0.0])
+        distance = np.where(present, np.hypot(others[:, 0], others[:, 1]), np.inf)
+        dx, dy = others[np.argmin(distance), :2]
+        return np.array([3.0, np.clip(2.0 * np.arctan2(dy, dx), -1.0, 1.0)])
+
+    class Cautious:
+        def reset(self, view):
+            self.calls = 0
+
+        def __call__(self, observation, view):
+            self.calls += 1
+            return reckless(observation, view) if self.calls > 3 else np.zeros(2)
+
+    def make_cautious():
+        return Cautious()
+
+    SPEED = 12.0
+    """
+)
+STEPS = 30
+SCENES = (7, 5)  # busy highway and exit scenes of the shipped evaluation bank
+
+
+@pytest.fixture(scope="module")
+def planner_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("user") / "user_planners.py"
+    path.write_text(PLANNER_FILE)
+    return path
+
+
+@pytest.fixture(scope="module")
+def scenes_dir(tmp_path_factory):
+    """Two shipped scenes as a --data folder."""
+    folder = tmp_path_factory.mktemp("scenes")
+    bank = shipped_bank("eval")
+    for index in SCENES:
+        save_scenario(bank[index], folder / f"{bank[index].name}.npz")
+    return folder
+
+
+@pytest.fixture(scope="module")
+def run(planner_file, scenes_dir, tmp_path_factory):
+    """The CLI end to end: the file planner on two scenes, two workers."""
+    out = tmp_path_factory.mktemp("run")
+    main([
+        "--planner", f"{planner_file}:reckless", "--data", str(scenes_dir), "--scenes", "2",
+        "--steps", str(STEPS), "--workers", "2", "--gifs", "1", "--no-progress",
+        "--out", str(out),
+    ])  # fmt: skip
+    return out
+
+
+def test_end_to_end_writes_summary_reports_and_replays(run):
+    summary = json.loads((run / "summary.json").read_text())
+    for key in ("ego_collision_rate", "avoidable_share", "standing_strike_share",
+                "non_ego_contact_share"):  # fmt: skip
+        assert set(summary[key]) == {"value", "low", "high", "n"}
+    assert "value" in summary["attackers_at_impact"] and summary["types"] and summary["families"]
+    assert summary["options"]["steps"] == STEPS and summary["options"]["workers"] == 2
+    rows = summary["per_episode"]
+    assert [row["seed"] for row in rows] == [0, 0] and len(rows) == 2
+    assert rows[0]["failures"], "the reckless planner collides on the busy highway scene"
+    lines = (run / "episodes.jsonl").read_text().splitlines()
+    assert sorted(json.loads(line)["scene"] for line in lines) == sorted(r["scene"] for r in rows)
+    for row in rows:
+        assert (row["replay"] is not None) == bool(row["failures"])
+        if row["replay"]:
+            assert load_scenario(run / row["replay"]).name == row["scene"]
+    report = (run / "report.md").read_text()
+    assert "Ego collisions by type" in report and "by road family" in report
+    assert "time to the first ego collision" in report and "gifs/" in report
+    page = (run / "report.html").read_text()
+    assert page.count("data:image/gif;base64,") == 1 and len(summary["gifs"]) == 1
+    assert summary["gifs"][0]["reproduced"]
+
+
+def test_two_workers_give_the_results_of_one(run, planner_file, scenes_dir):
+    loaded = load_planner(f"{planner_file}:reckless")
+    one = riskflow_stress(
+        loaded, 2, (0,), data=scenes_dir, steps=STEPS, workers=1, progress=False
+    )  # fmt: skip
+    two = json.loads((run / "summary.json").read_text())
+    for mine, theirs in zip(one.summary["per_episode"], two["per_episode"], strict=True):
+        assert mine["scene"] == theirs["scene"]
+        assert json.loads(json.dumps(mine["failures"])) == theirs["failures"]
+    assert one.summary["ego_collision_rate"] == two["ego_collision_rate"]
+
+
+def test_replay_puts_the_user_planner_back_bit_for_bit(run, planner_file, capsys):
+    summary = json.loads((run / "summary.json").read_text())
+    file = run / next(row["replay"] for row in summary["per_episode"] if row["replay"])
+    saved = load_replay(file)
+    assert saved.meta["planner"] == f"{planner_file}:reckless" and saved.seed == 0
+    again = replay(file, load_planner(f"{planner_file}:reckless"))
+    assert again.recurred and again.identical and again.checkpoint_matches
+    np.testing.assert_array_equal(again.analysed.record.states, saved.states)
+    main(["replay", str(file)])  # the saved planner by default
+    assert "RECURS" in capsys.readouterr().out
+    other = replay(saved, ConstantVelocityPlanner())  # a "fixed" planner: a new episode
+    assert not other.identical
+
+
+def test_planner_from_a_file(planner_file):
+    assert callable(load_planner(f"{planner_file}:reckless"))
+    stateful = load_planner(f"{planner_file}:Cautious")  # a class: instantiated
+    assert type(stateful).__name__ == "Cautious"
+    assert type(load_planner(f"{planner_file}:make_cautious")).__name__ == "Cautious"
+    assert spec_of(stateful).endswith("user_planners.py:Cautious")
+
+
+def test_planner_by_import_path_and_name(tmp_path, monkeypatch):
+    package = tmp_path / "acme_planners"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "drive.py").write_text(PLANNER_FILE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    planner = load_planner("acme_planners.drive:reckless")
+    assert planner.__module__ == "acme_planners.drive"
+    assert spec_of(planner) == "acme_planners.drive:reckless"
+    assert isinstance(load_planner("policies.planners:IDMPlanner"), IDMPlanner)
+    assert isinstance(load_planner("idm"), IDMPlanner)
+
+
+@pytest.mark.parametrize(
+    ("spec", "message"),
+    [
+        ("no_such_pkg.planners:plan", "no module named 'no_such_pkg'"),
+        ("FILE:missing", "has no attribute 'missing'"),
+        ("FILE:SPEED", "float object is not callable"),
+        ("json:dumps", "cannot be called as planner(observation, view)"),
+        ("nowhere/planner.py:plan", "no such file"),
+        ("just_a_name", "expected a built-in name"),
+    ],
+)
+def test_bad_planner_errors_name_the_argument(spec, message, planner_file, tmp_path, capsys):
+    spec = spec.replace("FILE", str(planner_file))
+    with pytest.raises(PlannerSpecError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        load_planner(spec)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--planner", spec, "--scenes", "1", "--steps", "2", "--out", str(tmp_path)])
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err
+    assert f"--planner {spec!r}" in error and message in error
+
+
+def test_compare_two_planners_paired(scenes_dir, planner_file, tmp_path, capsys):
+    main([
+        "compare", f"{planner_file}:reckless", "constant_velocity", "--data", str(scenes_dir),
+        "--scenes", "2", "--steps", str(STEPS), "--gifs", "0", "--no-progress",
+        "--out", str(tmp_path),
+    ])  # fmt: skip
+    table = json.loads((tmp_path / "compare.json").read_text())
+    assert table["episodes"] == 2 and table["b"] == "constant_velocity"
+    collisions = table["rows"][0]
+    assert collisions["outcome"] == "ego collision rate" and 0 <= collisions["p_value"] <= 1
+    assert collisions["a_only"] >= 1, "the reckless planner fails where constant velocity does not"
+    assert "McNemar" in capsys.readouterr().out
+    assert (tmp_path / "a-reckless" / "report.html").is_file()
