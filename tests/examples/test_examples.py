@@ -13,13 +13,10 @@ import numpy as np
 import pytest
 import torch
 
-from policies.harness import ClosedLoop
 from policies.learned.checkpoint import DEFAULT_NAME, build_checkpoint, save_checkpoint
 from policies.learned.config import ModelConfig
 from policies.learned.data import ActionNormalizer
 from policies.learned.generator import RiskFlowGenerator
-from riskflow_env.agents import ReplayPolicy
-from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import load_scenario
 from riskflow_env.wrappers import read_event_log
 
@@ -97,34 +94,20 @@ def test_rollout_with_the_shipped_checkpoint(tmp_path):
     assert read_event_log(tmp_path / "events.jsonl")[-1]["event"] == "episode_summary"
 
 
-def test_stress_test_saves_replayable_worst_scenes(checkpoint, tmp_path):
-    out = run("stress_test_planner.py", "--scenes", "2", "--steps", "10", "--worst", "1",
-              "--checkpoint", checkpoint, "--out", tmp_path)  # fmt: skip
-    assert "ego collision rate" in out
+def test_stress_test_writes_the_report_and_replay_files(checkpoint, tmp_path):
+    out = run("stress_test_planner.py", "--scenes", "2", "--steps", "10", "--gifs", "1",
+              "--no-progress", "--checkpoint", checkpoint, "--out", tmp_path)  # fmt: skip
+    assert "avoidable failures" in out
     result = json.loads((tmp_path / "summary.json").read_text())
-    assert result["summary"]["ego_collision_rate"]["n"] == 2 and len(result["scenes"]) == 2
-    (worst,) = result["worst"]
-    scenario = load_scenario(worst["file"])
-    steps = worst["steps"]
-    # Replay every vehicle, the ego included, from the saved reference future: the same
-    # trajectories come out (they were made by the same unicycle dynamics).
-    ego = ReplayPolicy(controlled=("ego",), mode="open_loop")
-
-    def replay_ego(observation, view):
-        return ego.act(view)["ego"]
-
-    replay_ego.reset = ego.reset
-    config = EnvConfig(episode_steps=steps)
-    with ClosedLoop(replay_ego, ReplayPolicy(mode="open_loop"), config=config) as loop:
-        record = loop.run(scenario)
-    now = scenario.current_index
-    logged = scenario.states[:, now : now + steps + 1]
-    np.testing.assert_allclose(record.states[: scenario.num_agents], logged, atol=1e-6)
-    assert record.metrics["ego_collided"] == worst["ego_collided"]
-    # ... and the documented command to watch it again runs.
-    out = run("rollout.py", "--scenario", worst["file"], "--traffic", "replay", "--video", "none",
-              "--out", tmp_path / "replay")  # fmt: skip
-    assert "closed-loop" in out
+    assert result["ego_collision_rate"]["n"] == 2 and len(result["per_episode"]) == 2
+    assert result["planner"] == "examples/stress_test_planner.py:my_planner"
+    assert (tmp_path / "report.html").is_file() and (tmp_path / "report.md").is_file()
+    for row in result["per_episode"]:
+        if row["replay"]:  # a replay file is a scenario file: the documented command runs
+            assert load_scenario(tmp_path / row["replay"]).name == row["scene"]
+            out = run("rollout.py", "--scenario", tmp_path / row["replay"], "--traffic",
+                      "replay", "--video", "none", "--out", tmp_path / "replay")  # fmt: skip
+            assert "closed-loop" in out
 
 
 def test_my_planner_returns_bounded_actions(monkeypatch):
