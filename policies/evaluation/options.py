@@ -19,19 +19,16 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import torch
 
+from policies.cli_inputs import SHIPPED, check_device, open_data
 from policies.learned.guidance_losses import TARGETS
 from policies.planners import PLANNERS
 from policies.registry import method_options, method_spec
 from riskflow_env.config import DynamicsConfig, EnvConfig
 from riskflow_env.folder_lock import check_output_folder
-from riskflow_env.scenarios import ScenarioBank, shipped_bank
-from riskflow_env.scenarios.folders import open_scenes
 from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
 SCHEMA = 1  # results.jsonl row layout version
-SHIPPED = "shipped:eval"  # the data source name of the shipped evaluation scenes
 
 
 @dataclass(frozen=True)
@@ -223,19 +220,6 @@ class RunConfig:
         )
 
 
-def open_data(data: str | None) -> ScenarioBank | ScenarioNetDataset:
-    """The scenes of ``--data``: the shipped evaluation bank (None), a folder of ``.npz``
-    scenes (loaded) or a ScenarioNet dataset folder (read scene by scene when a rollout
-    needs it: :func:`riskflow_env.scenarios.folders.open_scenes`); ValueError naming
-    ``--data`` when it is none of them."""
-    if data in (None, SHIPPED):
-        return shipped_bank("eval")
-    try:
-        return open_scenes(data)
-    except (OSError, ValueError) as err:  # missing, a file, no scenes, a malformed index
-        raise ValueError(f"--data: {err}") from err
-
-
 def scene_names(data: str | None, count: int | None = None) -> list[str]:
     """The names of the first ``count`` scenes (default: all) of ``data`` (see
     :func:`open_data`); ValueError naming ``--scenes`` when the source holds fewer, or
@@ -254,26 +238,6 @@ def scene_names(data: str | None, count: int | None = None) -> list[str]:
         if missing:
             raise ValueError(f"--data: {len(missing)} scenario file(s) missing, e.g. {missing[0]}")
     return list(scenes.names[:count])
-
-
-def check_device(device: str) -> None:
-    """ValueError naming ``--device`` unless ``device`` is a torch device this machine has."""
-    try:
-        parsed = torch.device(device)
-    except (RuntimeError, TypeError, ValueError):
-        raise ValueError(
-            f"--device: {device!r} is not a torch device (expected e.g. 'cpu', 'cuda', 'cuda:0')"
-        ) from None
-    if parsed.type == "cuda":
-        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
-        if count == 0:
-            raise ValueError(f"--device {device}: CUDA is not available on this machine")
-        if parsed.index is not None and parsed.index >= count:
-            raise ValueError(f"--device {device}: this machine has {count} CUDA device(s)")
-    elif parsed.type == "mps" and not torch.backends.mps.is_available():
-        raise ValueError(f"--device {device}: MPS is not available on this machine")
-    elif parsed.type not in ("cpu", "cuda", "mps"):
-        raise ValueError(f"--device: {device!r} is not supported (expected cpu, cuda or mps)")
 
 
 def check_options(options: EvalOptions, dt: float = DynamicsConfig().dt) -> None:

@@ -17,16 +17,15 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import torch
 from tqdm import tqdm
 
+from policies.cli_inputs import check_device, open_data
 from policies.planners import EgoPlanner
 from policies.stress.episode import EpisodeRunner, EpisodeSetup
 from policies.stress.planner_spec import load_planner
 from policies.stress.summary import Analysed
 from riskflow_env.processes import exit_with_parent
-from riskflow_env.scenarios import Scenario, shipped_bank
-from riskflow_env.scenarios.folders import open_scenes
+from riskflow_env.scenarios import Scenario
 
 
 @dataclass(frozen=True)
@@ -63,12 +62,7 @@ class StressOptions(EpisodeSetup):
         if self.data is not None:
             object.__setattr__(self, "data", Path(self.data))
         object.__setattr__(self, "out", Path(self.out))
-        try:
-            torch.device(self.device)
-        except (RuntimeError, TypeError, ValueError):
-            raise ValueError(
-                f"device: {self.device!r} is not a torch device (expected e.g. 'cpu', 'cuda:0')"
-            ) from None
+        check_device(self.device)
 
     def setup(self) -> EpisodeSetup:
         """The episode setup alone."""
@@ -102,12 +96,10 @@ class Scenes:
     def open(self) -> Sequence[Scenario]:
         if self.scenarios:
             return self.scenarios
-        if self.data is None:
-            return shipped_bank("eval")
         try:
-            return open_scenes(self.data)
-        except (OSError, ValueError) as err:  # missing, a file, no scenes, a malformed index
-            raise SceneSourceError(f"--data: {err}") from err
+            return open_data(self.data)
+        except ValueError as err:  # names --data
+            raise SceneSourceError(str(err)) from err
 
     @classmethod
     def of(cls, scenes: int | Sequence[Scenario], data: Path | None) -> Scenes:
