@@ -13,6 +13,9 @@ import pytest
 from policies.dataclass_cli import dataclass_parser
 from policies.evaluation.cli import parser as eval_parser
 from policies.evaluation.cli import report_parser
+from policies.stress.cli import compare_parser as stress_compare_parser
+from policies.stress.cli import parser as stress_parser
+from policies.stress.cli import replay_parser as stress_replay_parser
 from policies.train import parser as train_parser
 from riskflow_env.scenarios.cli import build_parser as data_parser
 
@@ -68,12 +71,18 @@ def test_script_options_have_help_and_defaults(relative, monkeypatch):
         train_parser,
         eval_parser,
         report_parser,
+        stress_parser,
+        stress_compare_parser,
+        stress_replay_parser,
     ],
     ids=[
         "riskflow-data",
         "riskflow-train",
         "riskflow-eval",
         "riskflow-eval report",
+        "riskflow-stress",
+        "riskflow-stress compare",
+        "riskflow-stress replay",
     ],
 )
 def test_console_script_options_have_help_and_defaults(build):
