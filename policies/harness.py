@@ -242,7 +242,7 @@ class ClosedLoop:
             elapsed = time.perf_counter() - start
             if cycles is None or getattr(policy, "cycles", None) != cycles:
                 cycle_times.append(elapsed)
-            guided.append(_controllable(policy, view.num_agents))
+            guided.append(controllable_now(policy, view.num_agents))
             if draw is not None:
                 draw(self.video.renderer)
             if EGO in env.agents:
@@ -253,18 +253,25 @@ class ClosedLoop:
             frames.append(_frame(base))
         record = _record(base, frames, tuple(env.events[first_event:]))
         record.metrics.update(planning_metrics(cycle_times, ego_times))
-        if guided and all(flags is not None for flags in guided):
-            record = dataclasses.replace(record, guided=np.stack([*guided, guided[-1]], axis=1))
+        record = dataclasses.replace(record, guided=guided_frames(guided))
         self.records.append(record)
         return record
 
 
-def _controllable(policy: ScenePolicy, num_agents: int) -> np.ndarray | None:
+def controllable_now(policy: ScenePolicy, num_agents: int) -> np.ndarray | None:
     """(A,) copy of the policy's ``A_c`` after ``act`` (None if it has none)."""
     controllable = getattr(policy, "controllable", None)
     if controllable is None or np.shape(controllable) != (num_agents,):
         return None
     return np.array(controllable, dtype=bool)
+
+
+def guided_frames(flags: list[np.ndarray | None]) -> np.ndarray | None:
+    """An episode's :attr:`EpisodeRecord.guided` (A, S + 1) from the S per-step
+    :func:`controllable_now` (None when the policy had no ``A_c`` at some step)."""
+    if not flags or any(step is None for step in flags):
+        return None
+    return np.stack([*flags, flags[-1]], axis=1)
 
 
 def _frame(base: RiskFlowParallelEnv) -> tuple[np.ndarray, ...]:

@@ -39,6 +39,7 @@ the per-scene path; ``ego_ms_mean`` is the scene's own.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -48,7 +49,14 @@ import torch
 
 from policies.evaluation.options import Job
 from policies.evaluation.rollout import job_policy, job_scenario, rollout_record, score, warm_up
-from policies.harness import EGO, EpisodeRecord, episode_record, planning_metrics
+from policies.harness import (
+    EGO,
+    EpisodeRecord,
+    controllable_now,
+    episode_record,
+    guided_frames,
+    planning_metrics,
+)
 from policies.pipeline.batched import BatchedAdversary
 from policies.planners import make_planner
 from policies.planners.base import EgoPlanner, as_action, reset_planner
@@ -156,6 +164,7 @@ def _run(
     steps = np.zeros(count, dtype=np.int64)
     cycle_times: list[list[float]] = [[] for _ in jobs]
     ego_times: list[list[float]] = [[] for _ in jobs]
+    guided: list[list[np.ndarray | None]] = [[] for _ in jobs]
     running = batch.state.active.any(axis=1)
     while running.any():
         start = time.perf_counter()
@@ -167,6 +176,8 @@ def _run(
             planned = np.flatnonzero(running).tolist()
         for index in planned:
             cycle_times[index].append(elapsed / len(planned))
+        for index in np.flatnonzero(running):
+            guided[index].append(controllable_now(traffic.scenes[index], views[index].num_agents))
         for index in np.flatnonzero(running & batch.state.active[:, 0]):
             start = time.perf_counter()
             action = as_action(planners[index](ego_obs[index], views[index]), "the ego planner")
@@ -201,7 +212,7 @@ def _run(
         )
         record = episode_record(final_views[index], scene_frames, tuple(recorders[index].events))
         record.metrics.update(planning_metrics(cycle_times[index], ego_times[index]))
-        episodes.append(record)
+        episodes.append(dataclasses.replace(record, guided=guided_frames(guided[index])))
     return episodes
 
 
