@@ -25,6 +25,18 @@ structure of the scene's interactions (docs/ARCHITECTURE.md):
    groups), then by distance to the ego (nearer first), then by slot index. The order is
    total, so ``A_c`` is deterministic. ``k = 0`` gives an empty set, ``k = "all"`` every
    candidate.
+
+With guidance target ``"ego"`` (stress testing an ego planner) ``A_c`` is one attacker at
+most (:func:`ego_attacker`), so that the ego meets one adversary at a time, not a swarm:
+
+* nobody attacks an ego (nearly) at rest, slower than ``MIN_ATTACK_SPEED``: a standing car
+  struck is the striker's failure, not the planner's;
+* only a vehicle ahead of or beside the ego (its centre ahead of the ego's rear bumper) may
+  attack, so that it strikes the ego's front or side, where the ego sees it and can brake
+  or swerve, never its rear;
+* the last cycle's attacker stays while it is eligible (hopping to another vehicle every
+  cycle would bend several plans toward the ego in turn); a new one is the eligible
+  candidate at the highest TTC risk with the ego, then the nearest.
 """
 
 from __future__ import annotations
@@ -36,9 +48,11 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
 from policies.learned.window_types import Window
+from riskflow_env.dynamics import SPEED
 from riskflow_env.risk import FEATURE_NAMES
 
 DEFAULT_THRESHOLD = 0.5  # risk above which a pair is an edge (TTC < 10 s with tau_max = 20 s)
+MIN_ATTACK_SPEED = 2.0  # [m/s] ego speed below which target "ego" guides no vehicle
 RISK_CHANNEL = FEATURE_NAMES.index("risk")
 NO_GROUP = -1
 
@@ -200,12 +214,47 @@ def rank_window(
     return Ranking(controllable, ranking.scores, ranking.groups, order)
 
 
+def ego_attacker(ranking: Ranking, window: Window, k: int | str, previous: int | None) -> Ranking:
+    """``A_c`` of guidance target ``"ego"``: one attacker at most (module docstring).
+
+    Args:
+        ranking: the window's ranking (:func:`rank_window`); its ``order`` holds the
+            candidates (live non-ego slots).
+        window: the window (scene frame: the ego at the origin, heading along +x).
+        k: the size of ``A_c`` asked for: 0 guides no vehicle, any other one.
+        previous: window slot of the last cycle's attacker, kept while it is eligible;
+            None: none.
+
+    Returns:
+        the ranking with ``controllable`` the attacker's slot alone, or no slot (``k = 0``,
+        the ego slower than ``MIN_ATTACK_SPEED``, or no eligible candidate).
+    """
+    current = np.asarray(window.history, dtype=np.float64)[:, -1]  # (A, 4), the ego at 0
+    candidates = ranking.order
+    if k == 0 or current[0, SPEED] < MIN_ATTACK_SPEED:
+        candidates = candidates[:0]
+    rear_bumper = -0.5 * float(window.length[0])  # [m] along the ego's heading
+    eligible = candidates[current[candidates, 0] > rear_bumper]
+    if previous is not None and previous in eligible:
+        chosen = [previous]
+    else:
+        risk = np.asarray(window.pair_features)[..., RISK_CHANNEL]
+        to_ego = np.maximum(risk[0], risk[:, 0])[eligible]  # TTC risk with the ego
+        distance = np.linalg.norm(current[eligible, :2], axis=-1)
+        chosen = eligible[np.lexsort((distance, -to_ego))][:1]  # riskiest, then nearest
+    controllable = np.zeros_like(ranking.controllable)
+    controllable[chosen] = True
+    return Ranking(controllable, ranking.scores, ranking.groups, ranking.order)
+
+
 __all__ = [
     "DEFAULT_THRESHOLD",
+    "MIN_ATTACK_SPEED",
     "NO_GROUP",
     "Ranking",
     "causal_ranking",
     "check_k",
+    "ego_attacker",
     "interaction_groups",
     "rank_window",
     "risk_graph",

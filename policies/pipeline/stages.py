@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from policies.learned.encoded_views import encode_views
-from policies.learned.guidance_losses import map_term, target_rows
+from policies.learned.guidance_losses import Target, map_term, target_rows
 from policies.learned.plan_avoidance import avoid_overlaps, guided_pairs
 from policies.learned.plan_overlap import OVERLAP_HORIZON
 from policies.learned.plan_stitching import (
@@ -45,10 +45,10 @@ from policies.learned.plan_stitching import (
     hold_at_rest,
     stitch_after,
 )
-from policies.learned.ranking import rank_window
+from policies.learned.ranking import ego_attacker, rank_window
 from policies.learned.sampler import base_velocity, decode_plans
 from policies.pipeline.plan_set import PlanSet
-from policies.pipeline.state import world_plans
+from policies.pipeline.state import PlannerState, world_plans
 
 PipelinePolicy = Any  # policies.pipeline.policy.PipelinePolicy, which runs the stages
 
@@ -63,17 +63,30 @@ def encode(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
 
 def rank(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
     """``A_c`` of each scene by the TTC causal ranking of its window (numpy, scene by
-    scene); done vehicles are never in it."""
+    scene); done vehicles are never in it. With target ``"ego"``, one attacker at most,
+    kept from the last cycle while it is eligible (:func:`~policies.learned.ranking.
+    ego_attacker`)."""
     observed = plans.observed
     controllable = np.zeros(observed.scene.agent_mask.shape, dtype=bool)
     rankings = []
-    for index, view in enumerate(plans.views):
+    attack_ego = policy.guidance.target == Target.EGO
+    for index, (view, state) in enumerate(zip(plans.views, plans.states, strict=True)):
         window, slots = observed.windows[index], observed.slots[index]
         ranking = rank_window(window, policy.k, policy.rank_threshold, view.active[slots])
+        if attack_ego:
+            ranking = ego_attacker(ranking, window, policy.k, attacker_row(state, slots))
         controllable[index, : len(slots)] = ranking.controllable
         rankings.append(ranking)
     controllable = torch.from_numpy(controllable).to(policy.device)
     return plans.replace(controllable=controllable, rankings=rankings)
+
+
+def attacker_row(state: PlannerState, slots: np.ndarray) -> int | None:
+    """The window row of the last cycle's attacker (``state.controllable``, env slots),
+    or None (no attacker, or it has no row now)."""
+    chosen = np.flatnonzero(state.controllable)
+    rows = np.flatnonzero(np.isin(slots, chosen))
+    return int(rows[0]) if rows.size else None
 
 
 def generate(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
@@ -272,6 +285,7 @@ PHASE_OF = {
 __all__ = [
     "PHASE_OF",
     "PhaseClock",
+    "attacker_row",
     "avoid",
     "decode",
     "emit",

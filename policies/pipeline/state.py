@@ -37,7 +37,8 @@ class PlannerState:
         base_plans: (A, T, 4) the unguided alternative of ``plans`` (the same rows
             outside ``A_c``).
         plan_mask: (A,) bool, the slots with a plan.
-        controllable: (A,) bool, ``A_c`` of the last cycle.
+        controllable: (A,) bool, ``A_c`` of the last cycle (target ``"ego"``: the
+            attacker, kept by the next cycle while it is eligible).
         names: the env's slot names.
         ranking: how ``A_c`` was chosen (window slot order), or None.
         noise: the cycle's noise (window slot order), or None.

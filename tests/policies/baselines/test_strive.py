@@ -33,7 +33,7 @@ def test_optimises_only_the_latent_of_a_c_and_lowers_l_adv(strive, road_view):
     assert isinstance(policy, ScenePolicy)
     assert set(policy.timings) == {*PHASES, "total"}
     moved = policy.controllable
-    assert moved.sum() == 2 and not moved[0]
+    assert moved.sum() == 1 and not moved[0]  # target "ego": one attacker
     same = policy.plan_mask & ~moved
     np.testing.assert_array_equal(policy.plans[same], policy.base_plans[same])
     assert not np.allclose(policy.plans[moved], policy.base_plans[moved])
@@ -149,10 +149,10 @@ def _guided_penetration(policy, view) -> float:
 def test_separation_term_keeps_the_guided_vehicles_apart(
     kind, strive, road_view, tiny_meanflow, tiny_normalizer
 ):
-    """STRIVE-style takes RiskFlow's L_sep: three adversaries pulled hard onto the ego
+    """STRIVE-style takes RiskFlow's L_sep: three adversaries pulled hard onto the others
     overlap each other without it (``lambda_sep=0``, the paper's objective), much less
     with it; the default is a weight of 100."""
-    options = {"k": 3, "target": "ego", "guidance_steps": 30, "step_size": 0.5}
+    options = {"k": 3, "target": "others", "guidance_steps": 30, "step_size": 0.5}
     if kind == "riskflow":
         models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer, "seed": 3}
         make = lambda **kw: RiskFlowAdversary(**models, **kw)  # noqa: E731

@@ -6,9 +6,11 @@ import numpy as np
 import pytest
 
 from policies.learned.ranking import (
+    MIN_ATTACK_SPEED,
     NO_GROUP,
     causal_ranking,
     check_k,
+    ego_attacker,
     interaction_groups,
     rank_window,
     risk_graph,
@@ -162,3 +164,50 @@ def test_rank_window_candidates_restrict_the_choice_not_the_graph():
     ranking = rank_window(window, 1, candidates=candidates)
     assert list(ranking.order) == [2, 3] and list(np.flatnonzero(ranking.controllable)) == [2]
     assert ranking.groups[1] == ranking.groups[2] != NO_GROUP
+
+
+def _ego_scene(positions, speeds, ego_risk=()):
+    """A window: the ego at the origin heading +x at ``speeds[0]``, the others at
+    ``positions`` (x, y) [m] with ``speeds``; ``ego_risk`` {slot: risk with the ego}."""
+    num = len(speeds)
+    history = np.zeros((num, 31, 4), np.float32)
+    history[1:, -1, :2] = positions
+    history[:, -1, 2] = speeds
+    features = np.zeros((num, num, 8), np.float32)
+    for slot, value in dict(ego_risk).items():
+        features[slot, 0, -1] = value
+    return _window(features, history)
+
+
+# Slots: 1 ahead in the lane, 2 beside, 3 behind in the lane, 4 behind in the next lane.
+EGO_SCENE = [(20.0, 0.0), (-1.0, 3.5), (-10.0, 0.0), (-8.0, 3.5)]
+
+
+def test_ego_attacker_is_one_vehicle_ahead_or_beside_never_behind():
+    window = _ego_scene(EGO_SCENE, [10.0] * 5, {1: 0.2, 2: 0.1, 3: 0.9, 4: 0.9})
+    ranking = rank_window(window, 5)
+    assert ranking.controllable.sum() == 4
+    attack = ego_attacker(ranking, window, 5, previous=None)
+    # 3 and 4 are riskier but behind the ego's rear bumper; 1 is the riskiest of the rest.
+    assert list(np.flatnonzero(attack.controllable)) == [1]
+    assert list(attack.order) == list(ranking.order)
+    no_risk = _ego_scene(EGO_SCENE, [10.0] * 5)
+    nearest = ego_attacker(rank_window(no_risk, 5), no_risk, 5, previous=None)
+    assert list(np.flatnonzero(nearest.controllable)) == [2]  # no risk: the nearest
+
+
+def test_ego_attacker_is_kept_while_eligible():
+    window = _ego_scene(EGO_SCENE, [10.0] * 5, {1: 0.9, 2: 0.1})
+    ranking = rank_window(window, 5)
+    kept = ego_attacker(ranking, window, 5, previous=2)
+    assert list(np.flatnonzero(kept.controllable)) == [2]  # not the riskier 1
+    dropped = ego_attacker(ranking, window, 5, previous=3)  # now behind the ego
+    assert list(np.flatnonzero(dropped.controllable)) == [1]
+
+
+def test_no_attack_on_an_ego_at_rest_or_with_k0():
+    window = _ego_scene(EGO_SCENE, [MIN_ATTACK_SPEED - 0.1] + [10.0] * 4, {1: 0.9})
+    ranking = rank_window(window, 5)
+    assert not ego_attacker(ranking, window, 5, previous=1).controllable.any()
+    moving = _ego_scene(EGO_SCENE, [10.0] * 5, {1: 0.9})
+    assert not ego_attacker(rank_window(moving, 0), moving, 0, previous=None).controllable.any()

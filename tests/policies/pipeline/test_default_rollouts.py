@@ -3,7 +3,9 @@
 ``default_rollouts.npz`` holds 2 s closed-loop rollouts (IDM ego, shipped evaluation scene
 0, seed 0, the shipped checkpoints and every default) of RiskFlow (both targets), the
 unguided generator, STRIVE-style and CTG-style, recorded before the planning cycle became
-a pipeline of stages (and equal, bit for bit, to the rollouts after it on this machine).
+a pipeline of stages (and equal, bit for bit, to the rollouts after it on this machine);
+``riskflow/ego`` re-recorded, the same way, when target ``"ego"`` became one attacker at a
+time (``policies.learned.ranking.ego_attacker``).
 A refactoring that changes an operation's order may move them by float rounding, which a
 closed loop amplifies; anything beyond 1 mm is a change of behaviour.
 
