@@ -12,7 +12,9 @@ instead of guiding the output ``u``, takes ``K_g`` steps on the ``A_c`` rows of 
 
 each a forward and backward pass of the generator head (the scene context is computed
 once). ``L_adv``, ``L_map``, their weights, targets, horizon and step rule are RiskFlow's
-(:mod:`policies.riskflow.guidance`), and so is the optional ``L_sep`` between the guided
+(:mod:`policies.riskflow.guidance`), and so is ``A_c`` (with target ``"ego"`` one
+attacker at a time, :func:`policies.learned.ranking.ego_attacker`) and the optional
+``L_sep`` between the guided
 vehicles (``lambda_sep``; the original penalises collisions between agents that are not
 the attacker and its target too), so the comparison isolates latent against
 output-space optimisation; the other vehicles keep their base plans bit for bit, and

@@ -51,7 +51,8 @@ class Target(str, Enum):
     OTHERS = "others"
     """every present vehicle outside ``A_c``, the ego included (the RiskFlow paper's)"""
     EGO = "ego"
-    """the ego only (stress-testing an ego planner)"""
+    """the ego only, by one attacker at most (stress-testing an ego planner; the attacker:
+    :func:`policies.learned.ranking.ego_attacker`)"""
 
 
 TARGETS = tuple(target.value for target in Target)  # ("others", "ego")
