@@ -20,7 +20,7 @@ from typing import Any, Literal
 import numpy as np
 
 from riskflow_env._array import Array, is_torch, namespace
-from riskflow_env.maps._validate import finite_number
+from riskflow_env.maps._validate import finite_number, number_in_range
 from riskflow_env.maps.lanes import Lane, as_query
 from riskflow_env.maps.rasterize import signed_distance
 from riskflow_env.maps.sampling import (
@@ -31,6 +31,10 @@ from riskflow_env.maps.sampling import (
 )
 
 CropLayer = Literal["drivable", "sdf"]
+RESOLUTION_RANGE = (0.01, 10.0)  # [m/px] pixel sizes a map may have
+MAX_MAP_COORDINATE = 1e7  # [m] largest |x|, |y| of the raster's corners and of lane points
+MAX_LANE_WIDTH = 50.0  # [m] widest lane
+MAX_SPEED_LIMIT = 100.0  # [m/s] highest lane speed limit
 
 
 @dataclass(frozen=True, eq=False)
@@ -42,12 +46,16 @@ class DrivableMap:
     Attributes:
         drivable: (H, W) bool, True where driving is allowed; H, W >= 2 and at least
             one True pixel.
-        resolution: pixel size [m/px], > 0.
-        origin: (2,) [m] world (x, y) of the lower-left corner of pixel [0, 0].
+        resolution: pixel size [m/px], in ``RESOLUTION_RANGE`` (0.01 to 10).
+        origin: (2,) [m] world (x, y) of the lower-left corner of pixel [0, 0]; the
+            raster's corners lie within +-``MAX_MAP_COORDINATE`` (1e7 m).
         sdf: (H, W) float32 [m] signed distance to the drivable boundary, negative
             inside; computed from ``drivable`` when None. A given one must agree in
-            sign (``sdf <= 0`` exactly where ``drivable``).
-        lanes: lane centrelines of the map, unique ids.
+            sign (``sdf <= 0`` exactly where ``drivable``) and stay within the
+            raster's size, ``(H + W) * resolution``.
+        lanes: lane centrelines of the map, unique ids; points within
+            +-``MAX_MAP_COORDINATE``, widths at most ``MAX_LANE_WIDTH`` (50 m), speed
+            limits at most ``MAX_SPEED_LIMIT`` (100 m/s).
         name: free-form label, e.g. the highway-env family.
     """
 
@@ -71,10 +79,18 @@ class DrivableMap:
             raise ValueError(f"DrivableMap.drivable needs H, W >= 2, got {drivable.shape}")
         if not drivable.any():
             raise ValueError("DrivableMap.drivable has no drivable (True) pixel")
-        resolution = finite_number("DrivableMap.resolution", self.resolution, "m/px")
+        resolution = number_in_range(
+            "DrivableMap.resolution", self.resolution, *RESOLUTION_RANGE, "m/px"
+        )
         origin = np.array(self.origin, dtype=np.float64)
         if origin.shape != (2,) or not np.all(np.isfinite(origin)):
             raise ValueError(f"DrivableMap.origin must be finite (2,) [m], got {self.origin!r}")
+        corner = origin + np.array(drivable.shape[::-1]) * resolution
+        if np.max(np.abs([origin, corner])) > MAX_MAP_COORDINATE:
+            raise ValueError(
+                f"DrivableMap: the raster spans {origin.tolist()} .. {corner.tolist()} m, beyond "
+                f"MAX_MAP_COORDINATE = +-{MAX_MAP_COORDINATE:g} m (origin, shape or resolution)"
+            )
         if self.sdf is None:
             sdf = signed_distance(drivable, resolution)
         else:
@@ -83,13 +99,15 @@ class DrivableMap:
                 raise ValueError(
                     f"DrivableMap.sdf must have drivable's shape {drivable.shape}, got {sdf.shape}"
                 )
-            if not np.all(np.isfinite(sdf)):
-                raise ValueError("DrivableMap.sdf must be finite")
+            reach = (sum(drivable.shape) + 1) * resolution
+            if not (np.all(np.isfinite(sdf)) and -reach <= sdf.min() and sdf.max() <= reach):
+                raise ValueError(f"DrivableMap.sdf must be finite and within +-{reach:g} m")
             if np.any((sdf <= 0) != drivable):
                 raise ValueError("DrivableMap.sdf must be <= 0 exactly where drivable is True")
         lanes = tuple(self.lanes)
         if not all(isinstance(lane, Lane) for lane in lanes):
             raise ValueError("DrivableMap.lanes must hold Lane objects")
+        _check_lane_ranges(lanes)
         index = {lane.lane_id: i for i, lane in enumerate(lanes)}
         if len(index) != len(lanes):
             raise ValueError("DrivableMap.lanes must have unique lane_id values")
@@ -261,3 +279,20 @@ class DrivableMap:
         if key not in self._tables:
             self._tables[key] = constant_like(base, like)
         return self._tables[key]
+
+
+def _check_lane_ranges(lanes: tuple[Lane, ...]) -> None:
+    """ValueError naming the first lane whose points, width or speed limit lie beyond
+    ``MAX_MAP_COORDINATE``, ``MAX_LANE_WIDTH`` or ``MAX_SPEED_LIMIT``."""
+    for lane in lanes:
+        if np.max(np.abs(lane.centerline)) > MAX_MAP_COORDINATE:
+            problem = f"a point beyond MAX_MAP_COORDINATE = +-{MAX_MAP_COORDINATE:g} m"
+        elif lane.width > MAX_LANE_WIDTH:
+            problem = f"width {lane.width:g} m > MAX_LANE_WIDTH = {MAX_LANE_WIDTH:g} m"
+        elif lane.speed_limit is not None and lane.speed_limit > MAX_SPEED_LIMIT:
+            problem = (
+                f"speed limit {lane.speed_limit:g} m/s > MAX_SPEED_LIMIT = {MAX_SPEED_LIMIT:g}"
+            )
+        else:
+            continue
+        raise ValueError(f"DrivableMap.lanes: lane {lane.lane_id[:100]!r} has {problem}")

@@ -48,6 +48,7 @@ from riskflow_env.scenarios._npz import (
 )
 from riskflow_env.scenarios.map_files import (
     MAP_KEYS,
+    MAP_LIMITS,
     MAP_SCHEMA,
     OPTIONAL_MAP_KEYS,
     load_map,
@@ -59,7 +60,7 @@ from riskflow_env.scenarios.map_files import (
     string_array,
     write_map_arrays,
 )
-from riskflow_env.scenarios.scenario import Scenario
+from riskflow_env.scenarios.scenario import MAX_STEPS, MAX_TRACKS, Scenario
 from riskflow_env.scenarios.sources import ScenarioBank
 
 SCHEMA = "riskflow-scenario"
@@ -81,6 +82,8 @@ _SCENE_KEYS = {
     "kinds": (("N?",), "U"),
 }
 _REF_KEYS = {"map_ref": ((), "U"), "map_hash": ((), "U")}
+# named dim -> (limit's name, value), checked from the .npy headers before anything is loaded
+_SCENE_LIMITS = {"N": ("MAX_TRACKS", MAX_TRACKS), "T": ("MAX_STEPS", MAX_STEPS)}
 
 
 def save_scenario(
@@ -140,8 +143,13 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
 
     Raises:
         FileNotFoundError: no such file (or its referenced map file is missing).
-        ScenarioFormatError: wrong schema or version, missing keys, wrong shapes or
-            dtypes, NaN/inf at valid steps, or an invalid map; the message names the file.
+        ScenarioFormatError: unexpected zip members or keys, sizes or counts over the
+            limits (checked from the zip and ``.npy`` headers before anything is
+            decompressed: :mod:`~riskflow_env.scenarios._npz`, ``MAX_TRACKS``,
+            ``MAX_STEPS``, ``MAP_LIMITS``), wrong schema or version, missing keys, wrong
+            shapes or dtypes, NaN/inf at valid steps, values out of their ranges
+            (:class:`Scenario`, :class:`~riskflow_env.maps.DrivableMap`), or an invalid
+            map; the message names the file. States at invalid steps read as 0.
             A ``.pkl`` file (a ScenarioNet pickle) is refused with a pointer to
             :func:`riskflow_env.scenarios.scenarionet.load_scenarionet`.
     """
@@ -151,18 +159,15 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
             f"{path}: load_scenario reads RiskFlow .npz scenario files; for a ScenarioNet "
             "pickle use riskflow_env.scenarios.scenarionet.load_scenarionet(path)"
         )
-    arrays = read_npz(path, SCHEMA)
+    arrays = read_npz(path, SCHEMA, _check_scene_members)
     if "map_ref" in arrays:
-        check_arrays(path, arrays, {**_SCENE_KEYS, **_REF_KEYS})
         ref = _map_ref_path(path, str(arrays["map_ref"]))
         drivable_map = load_map(ref, expected_hash=str(arrays["map_hash"]))
     else:
-        prefixed = {f"map_{key}": rule for key, rule in MAP_KEYS.items()}
-        optional = {f"map_{key}": rule for key, rule in OPTIONAL_MAP_KEYS.items()}
-        check_arrays(path, arrays, {**_SCENE_KEYS, **prefixed}, optional)
         map_arrays = {key[4:]: value for key, value in arrays.items() if key.startswith("map_")}
         drivable_map = map_from_arrays(path, map_arrays)
-    states, valid = arrays["states"].astype(np.float64), arrays["valid"]
+    valid = arrays["valid"]
+    states = np.where(valid[..., None], arrays["states"].astype(np.float64), 0.0)  # as saved
     bad = np.argwhere(valid & ~np.all(np.isfinite(states), axis=-1))
     if bad.size:
         agent, step = (int(v) for v in bad[0])
@@ -188,6 +193,18 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
         )
     except (ValueError, TypeError) as error:
         raise ScenarioFormatError(f"{path}: {error}") from None
+
+
+def _check_scene_members(path: Path, members) -> None:
+    """A scene file's keys, dtypes, shapes and counts (``MAX_TRACKS``, ``MAX_STEPS``, the
+    map's ``MAP_LIMITS``), from the ``.npy`` headers, before anything is loaded."""
+    if "map_ref" in members:
+        check_arrays(path, members, {**_SCENE_KEYS, **_REF_KEYS}, limits=_SCENE_LIMITS)
+    else:
+        prefixed = {f"map_{key}": rule for key, rule in MAP_KEYS.items()}
+        optional = {f"map_{key}": rule for key, rule in OPTIONAL_MAP_KEYS.items()}
+        limits = _SCENE_LIMITS | MAP_LIMITS
+        check_arrays(path, members, {**_SCENE_KEYS, **prefixed}, optional, limits)
 
 
 def _map_ref_path(path: Path, ref: str) -> Path:

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from riskflow_env.maps import DrivableMap, Lane
+from riskflow_env.maps.drivable_map import MAX_MAP_COORDINATE
 from riskflow_env.scenarios._npz import (
     VERSION,
     ScenarioFormatError,
@@ -48,6 +49,16 @@ MAP_KEYS = {
     "lane_successor_offsets": (("L+1",), "iu"),
 }
 OPTIONAL_MAP_KEYS = {"sdf": (("H", "W"), "f")}
+MAX_LANES = 20_000  # [-] lanes of one map (a city-scale ScenarioNet map has a few thousand)
+MAX_LANE_POINTS = 2_000_000  # [-] centreline points of all lanes of one map together
+MAX_LANE_SUCCESSORS = 200_000  # [-] successor links of all lanes of one map together
+# named dim -> (limit's name, value), checked from the .npy headers before anything is loaded
+MAP_LIMITS = {
+    "L": ("MAX_LANES", MAX_LANES),
+    "L+1": ("MAX_LANES + 1", MAX_LANES + 1),
+    "M": ("MAX_LANE_POINTS", MAX_LANE_POINTS),
+    "S": ("MAX_LANE_SUCCESSORS", MAX_LANE_SUCCESSORS),
+}
 _MAP_CACHE: OrderedDict[str, DrivableMap] = OrderedDict()
 MAP_CACHE_SIZE = 64
 
@@ -86,10 +97,14 @@ def read_map_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"map file {path} not found")
-    arrays = read_npz(path, MAP_SCHEMA)
-    arrays = {key: value for key, value in arrays.items() if key not in ("schema", "version")}
-    check_arrays(path, arrays, MAP_KEYS, OPTIONAL_MAP_KEYS)
-    return arrays
+    arrays = read_npz(path, MAP_SCHEMA, check_map_members)
+    return {key: value for key, value in arrays.items() if key not in ("schema", "version")}
+
+
+def check_map_members(path: Path, members) -> None:
+    """A map file's keys, dtypes, shapes and counts (:data:`MAP_LIMITS`), from the
+    ``.npy`` headers (:func:`~riskflow_env.scenarios._npz.check_arrays`)."""
+    check_arrays(path, members, MAP_KEYS, OPTIONAL_MAP_KEYS, MAP_LIMITS)
 
 
 def read_map(path: str | os.PathLike) -> DrivableMap:
@@ -158,7 +173,15 @@ def map_from_arrays(path: Path, arrays: dict[str, np.ndarray]) -> DrivableMap:
             ("lane_successor_offsets", succ_offsets, len(successors)),
         ):
             if off[0] != 0 or off[-1] != total or np.any(np.diff(off) < 0):
-                raise ValueError(f"'{name}' must rise from 0 to {total}, got {off.tolist()}")
+                raise ValueError(
+                    f"'{name}' must rise from 0 to {total}, got {off[0]} .. {off[-1]}"
+                    + (" (falling in between)" if np.any(np.diff(off) < 0) else "")
+                )
+        if np.any(np.abs(points) > MAX_MAP_COORDINATE):  # before any lane computes with them
+            raise ValueError(
+                f"'lane_points' holds a point beyond MAX_MAP_COORDINATE = "
+                f"+-{MAX_MAP_COORDINATE:g} m"
+            )
         lanes = tuple(
             Lane(
                 centerline=points[offsets[i] : offsets[i + 1]],
@@ -186,8 +209,13 @@ def map_from_arrays(path: Path, arrays: dict[str, np.ndarray]) -> DrivableMap:
 __all__ = [
     "MAP_CACHE_SIZE",
     "MAP_KEYS",
+    "MAP_LIMITS",
+    "MAX_LANES",
+    "MAX_LANE_POINTS",
+    "MAX_LANE_SUCCESSORS",
     "MAP_SCHEMA",
     "OPTIONAL_MAP_KEYS",
+    "check_map_members",
     "load_map",
     "map_from_arrays",
     "map_hash",

@@ -7,7 +7,6 @@ current one, then a reference future, each with a per-step validity mask.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -20,6 +19,9 @@ MAX_COORDINATE = 1e6  # [m] largest |x|, |y| of a valid track state
 MAX_SPEED = 100.0  # [m/s] largest logged speed
 MAX_HEADING = 1e4  # [rad] largest |psi| (headings are unwrapped along time)
 MAX_SIZE = 50.0  # [m] largest vehicle length or width
+MAX_TRACKS = 10_000  # [-] agents N of one scene
+MAX_STEPS = 20_000  # [-] steps T of one scene's tracks (2000 s at 10 Hz)
+DT_RANGE = (1e-3, 1.0)  # [s] track time steps a scene may have
 
 
 @dataclass(frozen=True)
@@ -30,14 +32,16 @@ class Scenario:
         map: the drivable area (with lane centrelines where the source has them).
         states: (N, T, 4) float64 tracks (x [m], y [m], v [m/s], psi [rad]); the first
             ``history_steps`` entries are the history (the last of them is the current
-            state), the rest is the reference future.
+            state), the rest is the reference future. At valid steps: positions within
+            +-``MAX_COORDINATE``, speeds in [0, ``MAX_SPEED``], headings within
+            +-``MAX_HEADING``; N <= ``MAX_TRACKS``, T <= ``MAX_STEPS``.
         valid: (N, T) bool, whether each track state was observed.
-        length: (N,) vehicle lengths [m].
-        width: (N,) vehicle widths [m].
+        length: (N,) vehicle lengths [m], in (0, ``MAX_SIZE``].
+        width: (N,) vehicle widths [m], in (0, ``MAX_SIZE``].
         ego_index: row of ``states`` that is the ego (the agent under test).
         agent_ids: (N,) names of the agents in the source data (for traceability).
         name: a short identifier of the scene (source, family, seed...).
-        dt: track time step [s].
+        dt: track time step [s], in ``DT_RANGE``.
         history_steps: number of history states, the current one included.
         kinds: (N,) agent categories (e.g. ``"car"``, ``"truck"``), or empty when unknown.
         source: where the scene comes from (e.g. ``"highway-env-idm"``, a dataset name).
@@ -66,6 +70,11 @@ class Scenario:
         num_agents, num_steps = states.shape[:2]
         if num_agents == 0:
             raise ValueError("Scenario.states holds no agent (N = 0)")
+        if num_agents > MAX_TRACKS or num_steps > MAX_STEPS:
+            raise ValueError(
+                f"Scenario.states of shape {states.shape} exceeds MAX_TRACKS = {MAX_TRACKS} "
+                f"agents or MAX_STEPS = {MAX_STEPS} steps"
+            )
         for name, shape in (
             ("valid", (num_agents, num_steps)),
             ("length", (num_agents,)),
@@ -106,17 +115,21 @@ class Scenario:
             raise ValueError(f"Scenario.states has a heading beyond +-{MAX_HEADING:g} rad")
         for name in ("length", "width"):
             size = getattr(self, name)
-            if not np.all(np.isfinite(size)) or np.any(size <= 0) or np.any(size > MAX_SIZE):
+            bad = np.flatnonzero(~((size > 0) & (size <= MAX_SIZE)))  # NaN fails both
+            if bad.size:
                 raise ValueError(
-                    f"Scenario.{name} must be finite, > 0 and <= {MAX_SIZE:g} m, got {size!r}"
+                    f"Scenario.{name} must be finite, > 0 and <= {MAX_SIZE:g} m, got "
+                    f"{size[bad[0]]!r} for agent {bad[0]} ({bad.size} agent(s) out of range)"
                 )
         dt = self.dt
         if (
             isinstance(dt, bool)
             or not isinstance(dt, (int, float, np.floating, np.integer))
-            or not (math.isfinite(dt) and dt > 0)
+            or not DT_RANGE[0] <= dt <= DT_RANGE[1]
         ):
-            raise ValueError(f"Scenario.dt must be a finite number > 0 s, got {dt!r}")
+            raise ValueError(
+                f"Scenario.dt must be a number in [{DT_RANGE[0]:g}, {DT_RANGE[1]:g}] s, got {dt!r}"
+            )
         if self.agent_ids and len(self.agent_ids) != num_agents:
             raise ValueError(
                 f"Scenario.agent_ids must name all {num_agents} agents, got {len(self.agent_ids)}"
