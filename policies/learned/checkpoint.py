@@ -42,6 +42,7 @@ from typing import Any
 
 import torch
 
+from policies.learned.checkpoint_tensors import check_finite, check_tensor_layouts
 from policies.learned.config import ModelConfig
 from policies.learned.data import ActionNormalizer
 from policies.learned.generator import CheckpointError, RiskFlowGenerator
@@ -151,9 +152,15 @@ def save_checkpoint(checkpoint: Mapping[str, Any], path: str | os.PathLike) -> P
 def load_checkpoint(path: str | os.PathLike, device: torch.device | str = "cpu") -> dict[str, Any]:
     """Read a checkpoint file (``weights_only``: no code is unpickled).
 
+    Every tensor is checked from its metadata before any value is read
+    (:func:`~policies.learned.checkpoint_tensors.check_tensor_layouts`: no expanded or
+    sparse tensors, at most ``MAX_TENSOR_BYTES`` in all), then the digest is verified and
+    the weights must be finite.
+
     Raises:
         FileNotFoundError: no file at ``path``.
-        CheckpointError: the file is not a generator checkpoint.
+        CheckpointError: the file is not a generator checkpoint, or one of the above
+            checks fails (the message names the file and the tensor).
     """
     path = Path(path)
     if not path.is_file():
@@ -161,10 +168,14 @@ def load_checkpoint(path: str | os.PathLike, device: torch.device | str = "cpu")
     try:
         checkpoint = torch.load(path, map_location=device, weights_only=True)
     except Exception as err:  # torch raises several types for corrupt or foreign files
-        raise CheckpointError(f"cannot read generator checkpoint {path}: {err}") from err
+        message = str(err)[:300]
+        raise CheckpointError(f"cannot read generator checkpoint {path}: {message}") from None
     if not isinstance(checkpoint, dict):
         raise CheckpointError(f"{path} holds a {type(checkpoint).__name__}, not a checkpoint dict")
+    check_tensor_layouts(checkpoint, str(path))
     verify_weights(checkpoint, str(path))
+    if isinstance(checkpoint.get("state_dict"), Mapping):
+        check_finite(checkpoint["state_dict"], str(path))
     return checkpoint
 
 
@@ -183,7 +194,10 @@ def verify_weights(checkpoint: Mapping[str, Any], source: str = "checkpoint") ->
             stacklevel=3,
         )
         return
-    found = weights_digest(state)
+    try:
+        found = weights_digest(state)
+    except CheckpointError as err:
+        raise CheckpointError(f"{source}: {err}") from None
     if found != expected:
         raise CheckpointError(
             f"{source}: the weights do not match the stored weights_sha256 (damaged or "
@@ -193,6 +207,14 @@ def verify_weights(checkpoint: Mapping[str, Any], source: str = "checkpoint") ->
 
 def normalizer_of(checkpoint: Mapping[str, Any]) -> ActionNormalizer:
     """The checkpoint's action statistics; :class:`CheckpointError` if missing or malformed."""
+    data = checkpoint.get("normalizer")
+    if not isinstance(data, Mapping) or any(
+        not isinstance(data.get(key), (list, tuple)) or len(data[key]) > 2
+        for key in ("mean", "std")
+    ):
+        raise CheckpointError(
+            "checkpoint 'normalizer' must hold 'mean' and 'std' lists of 2 numbers"
+        )
     try:
         return ActionNormalizer.from_dict(checkpoint["normalizer"])
     except (KeyError, TypeError, ValueError) as err:
@@ -229,7 +251,10 @@ def load_generator(
             f"{path or DEFAULT_NAME} is a {kind!r} checkpoint, not a MeanFlow generator; load "
             "it with policies.baselines.diffusion.model.load_diffusion (or load_base_generator)"
         )
-    return frozen_generator(checkpoint, config, device)
+    try:
+        return frozen_generator(checkpoint, config, device)
+    except CheckpointError as err:
+        raise CheckpointError(f"{path or DEFAULT_NAME}: {err}") from None
 
 
 def read_checkpoint(
