@@ -72,6 +72,7 @@ class DynamicsConfig:
 
 
 AGENT_GROUPS = ("all", "ego", "none")
+MAX_AGENTS = 1024  # [-] largest EnvConfig.max_agents (pairwise state grows with its square)
 MAX_RAY_DISTANCE = 1e4  # [m] farthest SDF sample of an observation ray
 
 
@@ -144,7 +145,8 @@ class EnvConfig:
     """Configuration of :class:`riskflow_env.env.RiskFlowParallelEnv`.
 
     Attributes:
-        max_agents: number of agent slots, the ego included (``possible_agents``).
+        max_agents: number of agent slots, the ego included (``possible_agents``); at
+            most ``MAX_AGENTS`` (1024).
         episode_steps: steps before truncation (100 steps of 0.1 s = 10 s).
         terminate_on_collision: which agents terminate when they collide: "all" (the
             default: both vehicles of every collision stop where they touched and stay
@@ -176,7 +178,7 @@ class EnvConfig:
     reward: RewardConfig = field(default_factory=RewardConfig)
 
     def __post_init__(self) -> None:
-        _integer("EnvConfig.max_agents", self.max_agents, 1, 100_000)
+        _integer("EnvConfig.max_agents", self.max_agents, 1, MAX_AGENTS)
         _integer("EnvConfig.episode_steps", self.episode_steps, 1, 10_000_000)
         for name in ("end_with_ego", "leave_when_log_ends", "clip_actions"):
             _require(

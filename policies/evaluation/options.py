@@ -29,6 +29,7 @@ from riskflow_env.folder_lock import check_output_folder
 from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
 SCHEMA = 1  # results.jsonl row layout version
+MAX_WORKERS = 256  # [-] largest --workers (processes or Ray CPUs)
 
 
 @dataclass(frozen=True)
@@ -68,8 +69,8 @@ class EvalOptions:
     wosac: bool = True
     """compute the WOSAC-style likelihood per rollout"""
     workers: int = 1
-    """worker processes (each with one torch thread); 1 runs in this process; with --backend
-    ray, the CPUs of the local Ray instance"""
+    """worker processes (each with one torch thread), at most 256; 1 runs in this process;
+    with --backend ray, the CPUs of the local Ray instance"""
     backend: str = "local"
     """where the rollouts run: 'local' (this process or --workers processes) or 'ray' (Ray
     tasks; needs the ray extra)"""
@@ -250,8 +251,8 @@ def check_options(options: EvalOptions, dt: float = DynamicsConfig().dt) -> None
         raise ValueError(f"--methods: repeated method in {options.methods}")
     if options.scenes is not None and options.scenes < 1:
         raise ValueError(f"--scenes must be >= 1, got {options.scenes}")
-    if options.workers < 1:
-        raise ValueError(f"--workers must be >= 1, got {options.workers}")
+    if not 1 <= options.workers <= MAX_WORKERS:
+        raise ValueError(f"--workers must be in [1, {MAX_WORKERS}], got {options.workers}")
     check_batch_scenes(options.batch_scenes, options.backend)
     check_backend(options.backend, options.address)
     if options.ego not in PLANNERS:

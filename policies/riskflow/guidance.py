@@ -66,6 +66,7 @@ OPTIMIZERS = ("gradient", "adam")
 # nearest the log and still collides more than STRIVE-style, docs/RESULTS.md section 4);
 # 0.1, the paper's step, with target "ego", where smaller steps hit the ego far less often.
 STEP_SIZES = {"others": 0.01, "ego": 0.1}
+MAX_STEPS = 1000  # [-] largest K_g (each step is a backward pass over the plans: ~ms)
 
 
 @dataclass(frozen=True)
@@ -76,7 +77,7 @@ class GuidanceConfig(ObjectiveConfig):
     ``lambda_sep``) and the optimiser's.
 
     Attributes:
-        steps: ``K_g`` guidance steps (0: the base plans).
+        steps: ``K_g`` guidance steps (0: the base plans), at most ``MAX_STEPS``.
         step_size: the Adam learning rate [normalised action units per step], or
             ``gamma`` [normalised action units per unit of gradient] for ``"gradient"``
             (e.g. 3e-3 with the default weights); None (default): ``STEP_SIZES[target]``,
@@ -118,7 +119,10 @@ class GuidanceConfig(ObjectiveConfig):
         """The objective's rules and the optimiser's."""
         steps_ok = isinstance(self.steps, int) and not isinstance(self.steps, bool)
         return super().checks() + [
-            (steps_ok and self.steps >= 0, "steps must be an int >= 0"),
+            (
+                steps_ok and 0 <= self.steps <= MAX_STEPS,
+                f"steps must be an int in [0, {MAX_STEPS}]",
+            ),
             (
                 self.step_size is None or (math.isfinite(self.step_size) and self.step_size > 0),
                 "step_size must be None or a number > 0",
