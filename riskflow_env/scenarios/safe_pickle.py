@@ -22,23 +22,23 @@ checked against the raw data and the limits below. Every failure, whatever its
 cause (``MemoryError``, ``IndexError``, ``LookupError``, ``RecursionError``...),
 is raised as one ``ValueError`` naming the file.
 
-Limits (module constants, see docs/SECURITY.md): :data:`MAX_FILE_BYTES` (file
-size), :data:`MAX_ARRAY_BYTES` (one array or byte string built by a call),
-:data:`MAX_TOTAL_BYTES` (all arrays and byte strings of one file together),
-:data:`MAX_DEPTH` (container nesting).
+Limits (module constants, see docs/SECURITY.md), each measured against the largest of
+the four nuScenes samples of ScenarioNet (4.1 MB file, 510,000 elements, 3.5 MB of
+arrays): :data:`MAX_FILE_BYTES` (file size), :data:`MAX_ARRAY_BYTES` (one array, byte
+string or set built by a call), :data:`MAX_TOTAL_BYTES` (all that the calls of one file
+allocate, charged before they allocate), :data:`MAX_ELEMENTS` (what the loaded value
+expands to: every container entry and array element, counted again wherever a shared
+container or array is referenced; about 0.12 per byte of a file without shared
+references, so a file of :data:`MAX_FILE_BYTES` fits), :data:`MAX_DEPTH` (container
+nesting). The opcode engine (:mod:`~riskflow_env.scenarios.pickle_unpickler`) bounds
+what each opcode may allocate or hash.
 """
 
 from __future__ import annotations
 
-import _compat_pickle
-import builtins
-import codecs
-import collections
 import contextlib
 import io
-import math
 import os
-import pickle
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -46,230 +46,107 @@ from typing import Any
 import numpy as np
 
 from riskflow_env.scenarios.pickle_stand_ins import (
-    FACTORY_NAMES,
-    FACTORY_TOKENS,
     NDARRAY,
     BuiltinType,
+    CheckedSet,
     DtypeSpec,
-    NdarrayRef,
     Refused,
-    check_dtype,
-    check_shape,
-    default_dict,
+    SafeArray,
 )
-
-try:  # numpy >= 2
-    from numpy._core import multiarray as _multiarray
-except ImportError:  # numpy 1.x
-    from numpy.core import multiarray as _multiarray  # type: ignore[no-redef]
+from riskflow_env.scenarios.pickle_unpickler import ALLOWED_GLOBALS, RestrictedUnpickler
+from riskflow_env.scenarios.untrusted import MAX_MESSAGE, error_text
 
 MAX_FILE_BYTES = 512 * 2**20  # [bytes] largest data pickle read
-MAX_ARRAY_BYTES = 256 * 2**20  # [bytes] largest single array / bytearray built
-MAX_TOTAL_BYTES = 1024 * 2**20  # [bytes] all arrays / bytearrays of one file
+MAX_ARRAY_BYTES = 64 * 2**20  # [bytes] largest single array / byte string / set built by a call
+MAX_TOTAL_BYTES = 256 * 2**20  # [bytes] all that the calls of one file allocate
+MAX_ELEMENTS = 2**26  # container entries + array elements, counted once per reference
 MAX_DEPTH = 64  # container nesting
 
-_NUMPY_MODULES = ("numpy.core.multiarray", "numpy._core.multiarray")
-_NUMERIC_MODULES = ("numpy.core.numeric", "numpy._core.numeric")
 
+class Budget:
+    """What one load may allocate and expand to (the module's limits, read when it is
+    made): :meth:`take` charges a call's allocation, :meth:`expand` the loaded value."""
 
-class _SafeArray(np.ndarray):
-    """Array built by ``_reconstruct``; its ``__setstate__`` validates the state."""
-
-    _budget: _Budget | None = None
-
-    def __setstate__(self, state: Any) -> None:
-        if not isinstance(state, tuple) or len(state) not in (4, 5):
-            raise Refused("bad array state")
-        if len(state) == 5:
-            if state[0] != 1:
-                raise Refused(f"unknown array state version {state[0]!r}")
-            state = state[1:]
-        shape, dtype, fortran, raw = state
-        shape = check_shape(shape)
-        dtype = check_dtype(dtype)
-        if not isinstance(fortran, bool):
-            raise Refused("bad array order flag")
-        nbytes = math.prod(shape) * dtype.itemsize
-        if self._budget is None:
-            raise Refused("array built outside an unpickler")
-        self._budget.take(nbytes, "array")
-        if not isinstance(raw, (bytes, bytearray)) or len(raw) != nbytes:
-            held = len(raw) if isinstance(raw, (bytes, bytearray)) else type(raw).__name__
-            raise Refused(f"array data holds {held} bytes, shape {shape} x {dtype} needs {nbytes}")
-        super().__setstate__((shape, dtype, fortran, bytes(raw)))
-
-
-class _Budget:
     def __init__(self) -> None:
         self.total = 0
+        self.elements = 0
+        self.array_limit, self.total_limit = MAX_ARRAY_BYTES, MAX_TOTAL_BYTES
+        self.element_limit = MAX_ELEMENTS
 
     def take(self, nbytes: int, what: str) -> None:
-        if nbytes > MAX_ARRAY_BYTES:
+        """Charge ``nbytes`` that a call is about to allocate for a ``what``."""
+        if nbytes > self.array_limit:
             raise Refused(
-                f"a {what} of {nbytes} bytes exceeds the limit MAX_ARRAY_BYTES = {MAX_ARRAY_BYTES}"
+                f"a {what} of {nbytes} bytes exceeds the limit MAX_ARRAY_BYTES = {self.array_limit}"
             )
         self.total += nbytes
-        if self.total > MAX_TOTAL_BYTES:
+        if self.total > self.total_limit:
             raise Refused(
-                f"arrays totalling over {MAX_TOTAL_BYTES} bytes exceed the limit MAX_TOTAL_BYTES"
+                f"arrays, byte strings and sets totalling over {self.total_limit} bytes exceed "
+                "the limit MAX_TOTAL_BYTES"
             )
 
-
-class RestrictedUnpickler(pickle.Unpickler):
-    """``pickle.Unpickler`` that resolves only :data:`ALLOWED_GLOBALS` (made safe).
-
-    Args:
-        file: a binary file object.
-        source: name of the data quoted in errors (e.g. the file path).
-    """
-
-    def __init__(self, file: io.BufferedIOBase, source: str = "<pickle>") -> None:
-        super().__init__(file)
-        self.source = source
-        budget = _Budget()
-        self._budget = budget
-        array_type = type("_SafeArray", (_SafeArray,), {"_budget": budget})
-
-        def reconstruct(subtype: Any, shape: Any, dtype: Any) -> np.ndarray:
-            if subtype is not NDARRAY:
-                raise Refused("numpy _reconstruct of a type other than numpy.ndarray")
-            return _multiarray._reconstruct(array_type, (0,), b"b")
-
-        def scalar(dtype: Any, data: Any = None) -> Any:
-            dtype = check_dtype(dtype)
-            if not isinstance(data, bytes) or len(data) != dtype.itemsize:
-                raise Refused("bad numpy scalar data")
-            return np.frombuffer(data, dtype=dtype)[0]
-
-        def frombuffer(buf: Any, dtype: Any, shape: Any, order: Any) -> np.ndarray:
-            dtype = check_dtype(dtype)
-            shape = check_shape(shape)
-            if isinstance(buf, pickle.PickleBuffer):
-                buf = bytes(buf.raw())
-            if not isinstance(buf, (bytes, bytearray)):
-                raise Refused("numpy _frombuffer needs bytes")
-            nbytes = math.prod(shape) * dtype.itemsize
-            budget.take(nbytes, "array")
-            if len(buf) != nbytes or order not in ("C", "F"):
-                raise Refused("numpy _frombuffer size / order mismatch")
-            return np.frombuffer(buf, dtype=dtype).reshape(shape, order=order).copy(order="K")
-
-        def sized(kind: type) -> Any:
-            def build(*args: Any) -> Any:
-                if args and isinstance(args[0], int):
-                    budget.take(int(args[0]), kind.__name__)
-                elif args and isinstance(args[0], (str, bytes, bytearray, list, tuple)):
-                    budget.take(len(args[0]), kind.__name__)
-                elif args:
-                    raise Refused(f"{kind.__name__}() of a {type(args[0]).__name__} is refused")
-                return kind(*args)
-
-            return build
-
-        def encode(obj: Any, encoding: str = "utf-8", errors: str = "strict") -> bytes:
-            if encoding not in ("latin1", "latin-1", "utf-8", "utf8", "ascii"):
-                raise Refused(f"_codecs.encode with encoding {encoding!r} is refused")
-            return codecs.encode(obj, encoding, errors)
-
-        self._globals: dict[tuple[str, str], Any] = {
-            **{("builtins", name): getattr(builtins, name) for name in _PLAIN_BUILTINS},
-            ("builtins", "bytearray"): sized(bytearray),
-            ("builtins", "bytes"): sized(bytes),
-            **{("builtins", name): token for name, token in FACTORY_TOKENS.items()},
-            ("collections", "OrderedDict"): collections.OrderedDict,
-            ("collections", "defaultdict"): default_dict,
-            ("_codecs", "encode"): encode,
-            ("numpy", "ndarray"): NDARRAY,
-            ("numpy", "dtype"): DtypeSpec,
-            **{(module, "_reconstruct"): reconstruct for module in _NUMPY_MODULES},
-            **{(module, "scalar"): scalar for module in _NUMPY_MODULES},
-            **{(module, "_frombuffer"): frombuffer for module in _NUMERIC_MODULES},
-        }
-
-    def find_class(self, module: str, name: str) -> Any:
-        """The allowed object ``module.name``; ValueError for anything else."""
-        # Python 2 names (protocols 0-2 write ``__builtin__.long`` for ``int``), mapped as
-        # pickle's own find_class does; the result is still looked up in the allowlist
-        key = _compat_pickle.NAME_MAPPING.get((module, name), (module, name))
-        key = (_compat_pickle.IMPORT_MAPPING.get(key[0], key[0]), key[1])
-        try:
-            return self._globals[key]
-        except KeyError:
-            raise ValueError(
-                f"{self.source}: refusing to unpickle disallowed global '{module}.{name}'; "
-                "data pickles may hold only builtin containers and numpy arrays"
-            ) from None
-
-    def persistent_load(self, pid: Any) -> Any:
-        """Persistent ids are refused (ValueError)."""
-        raise ValueError(f"{self.source}: refusing to unpickle a persistent id ({pid!r:.80})")
-
-
-# the builtins that pickle itself writes as globals (protocols 0-5): sets before protocol 4,
-# complex numbers. dict, list, tuple, str, int, float and bool have opcodes of their own,
-# and a file calling them could only amplify (``str`` of a shared structure is exponential).
-_PLAIN_BUILTINS = ("set", "frozenset", "complex")
-
-#: (module, name): every global a data pickle may refer to (each through a checked
-#: stand-in where the plain object could allocate without bound or address memory).
-ALLOWED_GLOBALS: frozenset[tuple[str, str]] = frozenset(
-    {("builtins", name) for name in _PLAIN_BUILTINS + ("bytearray", "bytes") + FACTORY_NAMES}
-    | {
-        ("collections", "OrderedDict"),
-        ("collections", "defaultdict"),
-        ("_codecs", "encode"),
-        ("numpy", "ndarray"),
-        ("numpy", "dtype"),
-    }
-    | {(module, name) for module in _NUMPY_MODULES for name in ("_reconstruct", "scalar")}
-    | {(module, "_frombuffer") for module in _NUMERIC_MODULES}
-)
+    def expand(self, count: int) -> None:
+        """Charge ``count`` elements that the loaded value holds (once per reference)."""
+        self.elements += count
+        if self.elements > self.element_limit:
+            raise Refused(
+                f"the data expands to over MAX_ELEMENTS = {self.element_limit} elements "
+                "(container entries and array elements, counted once per reference: "
+                "shared containers count again wherever they are referenced)"
+            )
 
 
 # exact types that hold nothing to finish: skipped without a call (most of a summary file)
 _LEAVES = frozenset({str, int, float, bool, complex, bytes, type(None)})
 
 
-def _finish(root: Any) -> Any:
-    """Plain ndarrays / dtypes in place of the stand-ins; nesting depth checked.
+def _finish(root: Any, budget: Budget) -> Any:
+    """Plain ndarrays / dtypes in place of the stand-ins; nesting depth checked; what
+    the value expands to charged to ``budget`` (:meth:`Budget.expand`).
 
-    Each container is visited once: a file that shares one list many times over (a
-    chain of ``[x, x]`` levels is a few hundred bytes for 2**60 paths) or holds a cycle
-    costs no more than its size. Plain scalars and strings are passed over in the loops
-    (a ScenarioNet summary holds millions of them)."""
+    Each container is visited once (a chain of ``[x, x]`` levels is a few hundred bytes
+    for 2**60 paths; a cycle ends at a container seen before); a container referenced
+    again is charged the count of everything below it, once per reference, without a
+    walk. Plain scalars and strings are passed over in the loops (a ScenarioNet summary
+    holds millions of them)."""
     done: dict[int, Any] = {}
+    weight: dict[int, int] = {}  # elements below a finished container, itself included
 
     def visit(obj: Any, depth: int) -> Any:
         if depth > MAX_DEPTH:
             raise Refused(f"containers nested deeper than MAX_DEPTH = {MAX_DEPTH}")
         if type(obj) in _LEAVES:
             return obj
-        if isinstance(obj, _SafeArray):
+        if isinstance(obj, SafeArray):
+            budget.expand(obj.size)
             return obj.view(np.ndarray)
         if isinstance(obj, DtypeSpec):
             return obj.dtype
         if obj is NDARRAY:
             raise Refused("a bare numpy.ndarray reference is refused")
-        if isinstance(obj, BuiltinType):
+        if isinstance(obj, (BuiltinType, CheckedSet)):
             raise Refused(f"a bare builtins.{obj.name} reference is refused")
         if not isinstance(obj, (dict, list, tuple, set, frozenset)):
             return obj
         if id(obj) in done:
+            budget.expand(weight.get(id(obj), 1))  # 1: a cycle back to an open container
             return done[id(obj)]
         if isinstance(obj, tuple) and obj.__class__ is not tuple:
             return obj
         if obj and depth >= MAX_DEPTH:  # its items lie deeper than MAX_DEPTH
             raise Refused(f"containers nested deeper than MAX_DEPTH = {MAX_DEPTH}")
+        before = budget.elements
+        budget.expand(len(obj))
         if isinstance(obj, tuple):
             done[id(obj)] = result = tuple(
                 value if type(value) in _LEAVES else visit(value, depth + 1) for value in obj
             )
+            weight[id(obj)] = budget.elements - before
             return result
         done[id(obj)] = obj  # mutable containers are fixed in place (cycles end here)
         if isinstance(obj, dict):
             for key, value in obj.items():
-                if isinstance(key, (BuiltinType, NdarrayRef)):
-                    raise Refused("a type reference as a dict key is refused")
                 if type(value) not in _LEAVES:
                     obj[key] = visit(value, depth + 1)
         elif isinstance(obj, list):
@@ -280,6 +157,7 @@ def _finish(root: Any) -> Any:
             for value in obj:
                 if type(value) not in _LEAVES:
                     visit(value, depth + 1)
+        weight[id(obj)] = budget.elements - before
         return obj
 
     return visit(root, 0)
@@ -291,22 +169,30 @@ def errors_name_the_file(source: str, what: str = "a readable data pickle") -> I
 
     ``MemoryError``, ``IndexError``, ``LookupError``, ``TypeError``, ``RecursionError``,
     ``OverflowError``... (any ``Exception``) are re-raised as ``ValueError("<source>: not
-    <what> (<type>: <message>)")``; a ``ValueError`` whose message already names
-    ``source`` passes unchanged. ``KeyboardInterrupt``, ``SystemExit`` and other
-    ``BaseException`` s that are not ``Exception`` s pass through untouched."""
+    <what> (<type>: <message>)")``, the message cut to a few hundred characters and built
+    without formatting what the file holds
+    (:func:`~riskflow_env.scenarios.untrusted.error_text`); a ``ValueError`` whose
+    message already names ``source`` passes (cut the same way). ``KeyboardInterrupt``,
+    ``SystemExit`` and other ``BaseException`` s that are not ``Exception`` s pass
+    through untouched."""
     try:
         yield
-    except ValueError as err:
-        if source in str(err):
-            raise
-        raise ValueError(f"{source}: not {what} ({err})") from None
     except Exception as err:  # MemoryError and RecursionError are Exceptions
-        raise ValueError(f"{source}: not {what} ({type(err).__name__}: {err})") from None
+        message = err.args[0] if len(err.args) == 1 else None
+        if isinstance(err, ValueError) and isinstance(message, str) and source in message:
+            if len(message) <= len(source) + MAX_MESSAGE:
+                raise
+            raise ValueError(message[: len(source) + MAX_MESSAGE] + "...") from None
+        text = error_text(err)
+        if isinstance(err, ValueError):
+            text = text.removeprefix("ValueError: ").removeprefix("Refused: ")
+        raise ValueError(f"{source}: not {what} ({text})") from None
 
 
-def _load(file: io.BufferedIOBase, source: str) -> Any:
+def _load(data: bytes, source: str) -> Any:
     with errors_name_the_file(source):
-        return _finish(RestrictedUnpickler(file, source=source).load())
+        budget = Budget()
+        return _finish(RestrictedUnpickler(io.BytesIO(data), source, budget).load(), budget)
 
 
 def load_data_pickle(path: str | Path) -> Any:
@@ -320,14 +206,7 @@ def load_data_pickle(path: str | Path) -> Any:
         ValueError: naming the file when it refers to a disallowed global, exceeds a
             limit or is not a readable pickle.
     """
-    path = Path(path)
-    size = path.stat().st_size
-    if size > MAX_FILE_BYTES:
-        raise ValueError(
-            f"{path}: {size} bytes exceeds the limit MAX_FILE_BYTES = {MAX_FILE_BYTES}"
-        )
-    with path.open("rb") as file:
-        return _load(file, str(path))
+    return _load(read_data_file(path), str(path))
 
 
 def read_data_file(path: str | Path) -> bytes:
@@ -339,12 +218,19 @@ def read_data_file(path: str | Path) -> bytes:
         ValueError: naming the file when it holds more than :data:`MAX_FILE_BYTES`.
     """
     path = Path(path)
+    parts, total = [], 0
     with path.open("rb") as file:
         size = os.fstat(file.fileno()).st_size
-        data = file.read(MAX_FILE_BYTES + 1) if size <= MAX_FILE_BYTES else b""
-    if size > MAX_FILE_BYTES or len(data) > MAX_FILE_BYTES:
+        while size <= MAX_FILE_BYTES and total <= MAX_FILE_BYTES:
+            want = size + 1 if not parts else 2**20  # the stated size, then 1 MiB reads
+            part = file.read(min(want, MAX_FILE_BYTES + 1 - total))
+            if not part:
+                break
+            parts.append(part)
+            total += len(part)
+    if size > MAX_FILE_BYTES or total > MAX_FILE_BYTES:
         raise ValueError(f"{path}: over {MAX_FILE_BYTES} bytes, the limit MAX_FILE_BYTES")
-    return data
+    return b"".join(parts)
 
 
 def loads_data_pickle(data: bytes, source: str = "<bytes>") -> Any:
@@ -353,4 +239,20 @@ def loads_data_pickle(data: bytes, source: str = "<bytes>") -> Any:
         raise ValueError(
             f"{source}: {len(data)} bytes exceeds the limit MAX_FILE_BYTES = {MAX_FILE_BYTES}"
         )
-    return _load(io.BytesIO(data), source)
+    return _load(data, source)
+
+
+__all__ = [
+    "ALLOWED_GLOBALS",
+    "MAX_ARRAY_BYTES",
+    "MAX_DEPTH",
+    "MAX_ELEMENTS",
+    "MAX_FILE_BYTES",
+    "MAX_TOTAL_BYTES",
+    "Budget",
+    "RestrictedUnpickler",
+    "errors_name_the_file",
+    "load_data_pickle",
+    "loads_data_pickle",
+    "read_data_file",
+]
