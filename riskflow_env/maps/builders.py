@@ -9,7 +9,7 @@ import shapely
 from riskflow_env.maps._validate import finite_number
 from riskflow_env.maps.drivable_map import DrivableMap
 from riskflow_env.maps.lanes import Lane
-from riskflow_env.maps.rasterize import grid_for_bounds, rasterize
+from riskflow_env.maps.rasterize import RepairBudget, grid_for_bounds, rasterize, repair_polygon
 from riskflow_env.maps.surface import road_polygons
 
 
@@ -24,7 +24,8 @@ def from_polygons(
 
     The raster covers the union's bounding box plus ``margin`` on every side. A pixel
     is drivable when its centre lies in the union or on its boundary
-    (``shapely.intersects_xy``).
+    (``shapely.intersects_xy``). Self-intersecting polygons are repaired first, within
+    the budget of :func:`~riskflow_env.maps.rasterize.repair_polygon`.
 
     Args:
         polygons: one shapely (Multi)Polygon or an iterable of them [m].
@@ -36,12 +37,14 @@ def from_polygons(
     resolution = finite_number("resolution", resolution, "m/px")
     margin = finite_number("margin", margin, "m", allow_zero=True)
     geometries = [polygons] if isinstance(polygons, shapely.Geometry) else list(polygons)
+    repairs = RepairBudget()
     for i, geometry in enumerate(geometries):
         if not isinstance(geometry, (shapely.Polygon, shapely.MultiPolygon)):
             raise ValueError(
                 f"polygons[{i}] must be a shapely Polygon or MultiPolygon, "
                 f"got {type(geometry).__name__}"
             )
+        geometries[i] = repair_polygon(geometry, f"polygons[{i}]", repairs)  # before the union
     union = shapely.union_all(geometries) if geometries else shapely.Polygon()
     if union.is_empty or union.area <= 0:
         raise ValueError("polygons must cover a non-empty area")

@@ -17,20 +17,26 @@ import shapely
 from shapely.geometry import Polygon
 
 from riskflow_env.maps.lanes import Lane
+from riskflow_env.maps.rasterize import RepairBudget, repair_polygon
 
 MITER_LIMIT = 4.0  # [-] longest corner offset of lane_polygon, in half-widths
 
 
-def road_polygons(lanes: tuple[Lane, ...], entry_apron: float = 0.0) -> list[shapely.Geometry]:
+def road_polygons(
+    lanes: tuple[Lane, ...], entry_apron: float = 0.0, repairs: RepairBudget | None = None
+) -> list[shapely.Geometry]:
     """Polygons [m] whose union is the drivable surface of ``lanes``.
 
     Args:
         lanes: the lanes; successors naming lanes outside the set are ignored.
         entry_apron: length [m], >= 0, of the stub added before each lane without
             predecessor in the set; none when 0.
+        repairs: for lanes read from a file, the budget their self-intersecting
+            surfaces are repaired within (:func:`~riskflow_env.maps.rasterize.
+            repair_polygon`); None repairs every one.
     """
     by_id = {lane.lane_id: lane for lane in lanes}
-    polygons = [lane_polygon(lane) for lane in lanes]
+    polygons = [lane_polygon(lane, repairs) for lane in lanes]
     for lane in lanes:
         for successor in lane.successors:
             if successor in by_id:
@@ -50,14 +56,15 @@ def junction_polygon(lane: Lane, successor: Lane) -> shapely.Geometry:
     return shapely.MultiPoint([end_left, end_right, start_left, start_right]).convex_hull
 
 
-def lane_polygon(lane: Lane) -> shapely.Geometry:
+def lane_polygon(lane: Lane, repairs: RepairBudget | None = None) -> shapely.Geometry:
     """Drivable surface of ``lane``: the centreline offset by +-width/2, flat ends.
 
     Each vertex moves along the bisector of its neighbouring segment normals by
     ``width/2 / cos(half turn angle)`` (a miter join, capped at ``MITER_LIMIT``
     half-widths), so straight stretches keep their exact width and sampled arcs
     keep their vertices on the offset arc. Self-intersections on the inside of very
-    tight turns are repaired with ``shapely.make_valid``.
+    tight turns are repaired with ``shapely.make_valid`` (within ``repairs`` when given:
+    a centreline drawn as a star made that take minutes).
 
     Returns:
         A shapely Polygon (or MultiPolygon after repair) [m].
@@ -79,7 +86,11 @@ def lane_polygon(lane: Lane) -> shapely.Geometry:
     polygon = Polygon(np.concatenate([left, right[::-1]]))
     if polygon.is_valid:
         return polygon
-    parts = shapely.get_parts(shapely.make_valid(polygon))
+    if repairs is None:
+        repaired = shapely.make_valid(polygon)
+    else:
+        repaired = repair_polygon(polygon, f"lane {lane.lane_id[:80]} surface", repairs)
+    parts = shapely.get_parts(repaired)
     return shapely.MultiPolygon([p for p in parts if isinstance(p, Polygon) and p.area > 0])
 
 

@@ -34,6 +34,10 @@ arrays only) and turns it into a :class:`Scenario`:
   (:mod:`~riskflow_env.scenarios.map_cache`); a whole dataset folder is read by
   :class:`~riskflow_env.scenarios.scenarionet_dataset.ScenarioNetDataset`.
 * Arrays must hold real numbers: complex values are refused, not cast.
+* Counts (tracks, steps, map features, points) are checked against
+  :mod:`~riskflow_env.scenarios.scenarionet_limits` before any array is built; ids
+  (``sdc_id``, track and lane ids, the scenario id) are str or int
+  (:func:`~riskflow_env.scenarios.untrusted.entry_id`).
 
 The tracks become arrays (stacking, time stamps, resampling, speeds, holding invalid
 steps) in :mod:`~riskflow_env.scenarios.scenarionet_tracks`; the map in
@@ -58,6 +62,7 @@ from riskflow_env.scenarios.safe_pickle import (
 )
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.scenarios.scenarionet_features import feature_bounds
+from riskflow_env.scenarios.scenarionet_limits import MAX_STEPS, check_counts, check_track_steps
 from riskflow_env.scenarios.scenarionet_map import build_map
 from riskflow_env.scenarios.scenarionet_tracks import (
     DT,
@@ -68,11 +73,11 @@ from riskflow_env.scenarios.scenarionet_tracks import (
     time_stamps,
 )
 from riskflow_env.scenarios.smoothing import smooth_tracks
+from riskflow_env.scenarios.untrusted import entry_id
 from riskflow_env.state import HISTORY_STEPS
 
 MIN_FUTURE_STEPS = 100  # reference future padded to at least this many steps (10 s)
 VEHICLE = "VEHICLE"
-MAX_STEPS = 20_000  # [0.1 s] longest recording after resampling to 10 Hz (2000 s)
 ROLLOUT_SECONDS = 10.0  # [s] closed-loop episode the cropped map must leave room for
 CROP_MARGIN_RANGE = (50.0, 200.0)  # [m] bounds on the automatic crop margin
 
@@ -191,19 +196,21 @@ def _scenario(
     for key in ("tracks", "map_features", "metadata"):
         if not isinstance(description, Mapping) or not isinstance(description.get(key), Mapping):
             raise ValueError(f"{source}: a scenario description needs a dict {key!r}")
+    check_counts(description, source)
     tracks, metadata = description["tracks"], description["metadata"]
-    ids = [
-        str(k)
+    by_id = {
+        entry_id(k, f"{source}: a VEHICLE track's id"): t
         for k, t in tracks.items()
-        if isinstance(t, Mapping) and str(t.get("type")) == VEHICLE
-    ]
-    sdc = str(metadata.get("sdc_id", ""))
-    if sdc not in ids:
+        if isinstance(t, Mapping) and isinstance(t.get("type"), str) and t["type"] == VEHICLE
+    }
+    ids = list(by_id)
+    sdc = entry_id(metadata.get("sdc_id", ""), f"{source}: metadata['sdc_id']")
+    if sdc not in by_id:
         raise ValueError(f"{source}: metadata['sdc_id'] = {sdc!r} is not a VEHICLE track")
     ids.remove(sdc)
     ids.insert(0, sdc)
-    by_id = {str(k): t for k, t in tracks.items()}
-    xy, heading, velocity, valid, size = stack_tracks([by_id[i]["state"] for i in ids], ids, source)
+    states = [by_id[i].get("state") for i in ids]
+    xy, heading, velocity, valid, size = stack_tracks(states, ids, source)
 
     times = time_stamps(metadata, xy.shape[1], source)
     span = (times[-1] - times[0]) / DT
@@ -213,6 +220,7 @@ def _scenario(
             f"at 10 Hz, over the limit MAX_STEPS = {MAX_STEPS}"
         )
     grid = np.arange(int(np.floor((times[-1] - times[0]) / DT + 1e-6)) + 1) * DT + times[0]
+    check_track_steps(len(ids), len(grid), source)
     if len(times) != len(grid) or not np.allclose(times, grid, atol=1e-6):
         xy, heading, velocity, valid = resample(times, grid, xy, heading, velocity, valid)
     speed = np.linalg.norm(velocity, axis=-1) if velocity is not None else speed_from_xy(xy, valid)
@@ -244,7 +252,8 @@ def _scenario(
     states = hold_nearest_valid(states, window_valid)
     states[..., 3] = np.unwrap(states[..., 3], axis=1)
     length, width = size[keep, 0], size[keep, 1]
-    name = str(metadata.get("scenario_id", metadata.get("id", description.get("id", ""))))
+    scenario_id = metadata.get("scenario_id", metadata.get("id", description.get("id", "")))
+    name = entry_id(scenario_id, f"{source}: the scenario id")
     all_xy = xy[valid]
     region = _crop_region(all_xy, speed[valid], crop_margin, source) if crop else None
     build = functools.partial(
@@ -271,7 +280,7 @@ def _scenario(
         length=length,
         width=width,
         ego_index=0,
-        agent_ids=tuple(np.array(ids)[keep].tolist()),
+        agent_ids=tuple(i for i, kept in zip(ids, keep.tolist(), strict=True) if kept),
         name=f"scenarionet/{name}",
         dt=DT,
         history_steps=HISTORY_STEPS,

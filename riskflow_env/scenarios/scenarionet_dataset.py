@@ -23,7 +23,11 @@ with the restricted unpickler (:mod:`~riskflow_env.scenarios.safe_pickle`).
 
 Scene names are ``"scenarionet/<scenario id>"`` from the summary (``scenario_id``, else
 ``id``), as :func:`load_scenarionet` names them, or ``"scenarionet/<file name>"`` (no
-``.pkl``) where the summary gives no id or two files give the same one.
+``.pkl``) where the summary gives no id or two files give the same one. An entry's
+metadata holds at most :data:`MAX_METADATA_KEYS` keys (a summary that shares one huge
+metadata dict among its entries would otherwise be copied once per entry), and its id is
+a str or an int (:func:`~riskflow_env.scenarios.untrusted.entry_id`); a scene file that
+cannot be read is a ``ValueError`` naming it and the summary.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ from riskflow_env.scenarios.map_cache import MapCache
 from riskflow_env.scenarios.safe_pickle import load_data_pickle
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.scenarios.scenarionet import load_scenarionet
+from riskflow_env.scenarios.untrusted import MAX_QUOTE, brief, entry_id
 
 SUMMARY_FILE = "dataset_summary.pkl"
 MAPPING_FILE = "dataset_mapping.pkl"
@@ -49,6 +54,8 @@ INDEX_FILES = (SUMMARY_FILE, MAPPING_FILE)
 #: per-track and per-step summary entries not kept in memory (most of a summary's size:
 #: about 75 KB of Python objects per nuScenes scene with them, a few KB without)
 BULKY_METADATA = ("object_summary", "ts")
+MAX_METADATA_KEYS = 1024  # keys of one entry's metadata (ScenarioNet writes 13)
+MAX_FILE_NAME = 255  # [characters] of a scenario file name (the usual file-system limit)
 
 
 def is_scenario_file(name: str) -> bool:
@@ -133,7 +140,7 @@ class ScenarioNetDataset:
             for metadata in summary.values()
         )
         self.folders = tuple(mapping[name] for name in self.files)
-        self.names = _names(self.files, self.summaries)
+        self.names = _names(self.files, self.summaries, folder / SUMMARY_FILE)
         self._loaded: OrderedDict[int, Scenario] = OrderedDict()
 
     def __len__(self) -> int:
@@ -178,7 +185,15 @@ class ScenarioNetDataset:
             raise FileNotFoundError(
                 f"{path}: listed in {self.folder / SUMMARY_FILE} but there is no such file"
             )
-        scenario = load_scenarionet(path, **self.options, map_cache=self.map_cache)
+        try:
+            scenario = load_scenarionet(path, **self.options, map_cache=self.map_cache)
+        except FileNotFoundError:
+            raise
+        except OSError as err:  # unreadable (permissions, a folder, an I/O error)
+            raise ValueError(
+                f"{path}: listed in {self.folder / SUMMARY_FILE} but cannot be read "
+                f"({err.strerror or type(err).__name__})"
+            ) from None
         if scenario.name != self.names[index]:
             scenario = replace(scenario, name=self.names[index])
         return scenario
@@ -266,12 +281,17 @@ def read_index(folder: Path) -> tuple[dict[str, Mapping], dict[str, str]]:
     for name, metadata in summary.items():
         if not _plain_file_name(name):
             raise ValueError(
-                f"{summary_path}: entry {name!r:.80} is not a scenario file name (*.pkl)"
+                f"{summary_path}: entry {brief(name)} is not a scenario file name (*.pkl)"
             )
         if not isinstance(metadata, Mapping):
             raise ValueError(
                 f"{summary_path}: the metadata of {name} must be a dict, "
                 f"got {type(metadata).__name__}"
+            )
+        if len(metadata) > MAX_METADATA_KEYS:
+            raise ValueError(
+                f"{summary_path}: the metadata of {name} holds {len(metadata)} keys, over the "
+                f"limit MAX_METADATA_KEYS = {MAX_METADATA_KEYS}"
             )
     if not mapping_path.is_file():
         return dict(summary), dict.fromkeys(summary, "")
@@ -287,7 +307,7 @@ def read_index(folder: Path) -> tuple[dict[str, Mapping], dict[str, str]]:
         where = mapping[name]
         if not isinstance(where, str) or "\x00" in where or os.path.isabs(where):
             raise ValueError(
-                f"{mapping_path}: the folder of {name} must be a relative path, got {where!r:.80}"
+                f"{mapping_path}: the folder of {name} must be a relative path, got {brief(where)}"
             )
     return dict(summary), {name: mapping[name] for name in summary}
 
@@ -295,6 +315,7 @@ def read_index(folder: Path) -> tuple[dict[str, Mapping], dict[str, str]]:
 def _plain_file_name(name: object) -> bool:
     return (
         isinstance(name, str)
+        and len(name) <= MAX_FILE_NAME
         and name.endswith(".pkl")
         and name not in INDEX_FILES
         and "\x00" not in name
@@ -303,12 +324,15 @@ def _plain_file_name(name: object) -> bool:
     )
 
 
-def _names(files: tuple[str, ...], summaries: tuple[Mapping, ...]) -> tuple[str, ...]:
-    """``scenarionet/<id>`` per file; the file stem where the id is absent or repeated."""
+def _names(files: tuple[str, ...], summaries: tuple[Mapping, ...], where: Path) -> tuple[str, ...]:
+    """``scenarionet/<id>`` per file; the file stem where the id is absent or repeated;
+    ValueError naming ``where`` (the summary) and the entry for an id too long."""
     ids = []
-    for metadata in summaries:
+    for file, metadata in zip(files, summaries, strict=True):
         found = metadata.get("scenario_id", metadata.get("id"))
-        ids.append(str(found) if isinstance(found, (str, int)) and str(found) else None)
+        if isinstance(found, (str, int)):
+            found = entry_id(found, f"{where}: entry {file[:MAX_QUOTE]}: the scenario id")
+        ids.append(found if isinstance(found, str) and found else None)
     counts: dict[str | None, int] = {}
     for scene_id in ids:
         counts[scene_id] = counts.get(scene_id, 0) + 1

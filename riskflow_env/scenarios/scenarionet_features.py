@@ -32,18 +32,34 @@ from typing import Any
 import numpy as np
 import shapely
 
+from riskflow_env.maps.rasterize import RepairBudget, repair_polygon
+from riskflow_env.scenarios.scenarionet_limits import (
+    COORDINATES,
+    MAX_FEATURE_POINTS,
+    count_numbers,
+    value_size,
+)
+
 SURFACE_TYPES = frozenset({"DRIVEWAY", "PARKING_LOT", "CARPARK_AREA"})
 NOT_CAR_LANES = frozenset({"LANE_BIKE_LANE"})
 BOUNDARY_WIDTH_RANGE = (1.0, 12.0)  # [m] full widths taken from boundary distances (Waymo)
 
 
-def real_array(value: Any, what: str) -> np.ndarray:
-    """``value`` as a float64 array.
+def real_array(
+    value: Any,
+    what: str,
+    limit: int = COORDINATES * MAX_FEATURE_POINTS,
+    limit_name: str = "MAX_FEATURE_POINTS",
+) -> np.ndarray:
+    """``value`` as a float64 array, its size checked before it is converted.
 
     Raises:
         ValueError naming ``what`` unless ``value`` holds real numbers (bool, int or
-        float): complex numbers are refused, not cast (the imaginary part would be lost).
+        float): complex numbers are refused, not cast (the imaginary part would be lost);
+        and naming ``limit_name`` when it holds more than ``limit`` numbers
+        (:func:`~riskflow_env.scenarios.scenarionet_limits.value_size`).
     """
+    value_size(value, what, limit, limit_name)
     try:
         array = np.asarray(value)
         if array.dtype.kind == "c":
@@ -70,15 +86,20 @@ def points(value: Any, what: str, min_points: int) -> np.ndarray | None:
     return array
 
 
+def kind(feature: Mapping) -> str:
+    """A feature's ``type`` when it is a string, else ``""`` (never formatted)."""
+    value = feature.get("type", "")
+    return value if isinstance(value, str) else ""
+
+
 def is_lane(feature: Mapping) -> bool:
     """Whether a feature is a lane that cars drive on (type ``LANE_*``, not a bike lane)."""
-    kind = str(feature.get("type", ""))
-    return kind.startswith("LANE") and kind not in NOT_CAR_LANES
+    return kind(feature).startswith("LANE") and kind(feature) not in NOT_CAR_LANES
 
 
 def is_surface(feature: Mapping) -> bool:
     """Whether a feature is a drivable surface polygon (:data:`SURFACE_TYPES`)."""
-    return str(feature.get("type", "")) in SURFACE_TYPES
+    return kind(feature) in SURFACE_TYPES
 
 
 def lane_width(feature: Mapping, what: str) -> float | None:
@@ -115,12 +136,15 @@ def lane_width(feature: Mapping, what: str) -> float | None:
     return float(np.median(full)) if full.size else None
 
 
-def polygon(value: Any, what: str) -> shapely.Geometry | None:
-    """Valid shapely polygon [m] from a (K, 2|3) outline, or None when it has no area."""
+def polygon(value: Any, what: str, repairs: RepairBudget | None = None) -> shapely.Geometry | None:
+    """Valid shapely polygon [m] from a (K, 2|3) outline, or None when it has no area; a
+    self-intersecting outline is repaired within the budget of
+    :func:`~riskflow_env.maps.rasterize.repair_polygon` (ValueError naming ``what``
+    beyond it)."""
     outline = points(value, what, 3)
     if outline is None:
         return None
-    shape = shapely.make_valid(shapely.Polygon(outline))
+    shape = repair_polygon(shapely.Polygon(outline), what, repairs)
     parts = [p for p in shapely.get_parts(shape) if isinstance(p, shapely.Polygon) and p.area > 0]
     if not parts:
         return None
@@ -139,6 +163,9 @@ def feature_bounds(features: Mapping[Any, Any]) -> tuple[float, float, float, fl
         for key in ("polyline", "polygon", "position"):
             value = feature.get(key)
             if value is None:
+                continue
+            size = count_numbers(value, COORDINATES * MAX_FEATURE_POINTS)  # before converting
+            if size is None or size > COORDINATES * MAX_FEATURE_POINTS:
                 continue
             array = np.asarray(value)
             if array.dtype.kind not in "fiu" or array.ndim not in (1, 2) or array.shape[-1] < 2:

@@ -23,10 +23,15 @@ build time follow the region the scenario uses, not the whole recording area.
 
 Lane width: the feature's ``width`` when it gives one, else polygon area / centreline
 length (clipped to [2, 6] m), else the median of those, else :data:`DEFAULT_LANE_WIDTH`.
-Successors come from ``exit_lanes``; files without any (nuScenes) get them from the
-geometry: lane B continues lane A when B starts within :data:`SUCCESSOR_MAX_GAP` of
-A's end with a heading change below :data:`SUCCESSOR_MAX_TURN`. A malformed feature
-raises ``ValueError`` naming the file and the feature id.
+Successors come from ``exit_lanes`` (at most ``MAX_EXIT_LANES`` per lane); files
+without any (nuScenes) get them from the geometry: lane B continues lane A when B starts
+within :data:`SUCCESSOR_MAX_GAP` of A's end with a heading change below
+:data:`SUCCESSOR_MAX_TURN`, among the ``MAX_EXIT_LANES`` starts nearest to A's end (a
+k-d tree query: linear in the number of lanes, where comparing every pair took an
+L x L matrix, 3 GB for 8,000 lanes). A malformed feature raises ``ValueError`` naming
+the file and the feature id; the counts are checked first
+(:mod:`~riskflow_env.scenarios.scenarionet_limits`), and self-intersecting polygons are
+repaired within one :class:`~riskflow_env.maps.rasterize.RepairBudget` per map.
 """
 
 from __future__ import annotations
@@ -36,10 +41,18 @@ from typing import Any
 
 import numpy as np
 import shapely
+from scipy.spatial import cKDTree
 
 from riskflow_env.dynamics import wrap_angle
 from riskflow_env.maps import DrivableMap, Lane, from_polygons, road_polygons
+from riskflow_env.maps.rasterize import RepairBudget, repair_polygon
 from riskflow_env.scenarios import scenarionet_features as feat
+from riskflow_env.scenarios.scenarionet_limits import (
+    MAX_BOUNDARY_RINGS,
+    MAX_EXIT_LANES,
+    check_raster,
+)
+from riskflow_env.scenarios.untrusted import MAX_QUOTE, brief, entry_id
 
 DEFAULT_LANE_WIDTH = 3.5  # [m] width of lanes whose file gives neither width nor polygon
 LANE_WIDTH_RANGE = (2.0, 6.0)  # [m] bounds on widths estimated from polygons
@@ -52,8 +65,39 @@ KMH, MPH = 1.0 / 3.6, 0.44704  # [m/s] per km/h and per mph
 def _speed_limit(feature: Mapping) -> float | None:
     for key, unit in (("speed_limit_kmh", KMH), ("speed_limit_mph", MPH)):
         value = feature.get(key)
-        if value is not None and np.ndim(value) == 0 and np.isfinite(value) and value > 0:
-            return float(value) * unit
+        if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
+            if np.isfinite(value) and value > 0:
+                return float(value) * unit
+    return None
+
+
+def _name(key: Any, feature: Mapping) -> str:
+    """``map feature <id> (<type>)`` for messages, in bounded length."""
+    label = key[:MAX_QUOTE] if isinstance(key, str) else brief(key)
+    return f"map feature {label} ({feat.kind(feature)[:MAX_QUOTE]})"
+
+
+def _exit_lanes(feature: Mapping, known: set[str], what: str) -> tuple[str, ...]:
+    """The ids among ``feature["exit_lanes"]`` (a list, tuple or array of str or int ids,
+    at most :data:`MAX_EXIT_LANES`) that name a lane in ``known``."""
+    value = feature.get("exit_lanes", ())
+    if isinstance(value, np.ndarray):
+        size = value.size
+    else:
+        size = len(value) if isinstance(value, (list, tuple)) else 1
+    if size > MAX_EXIT_LANES:
+        raise ValueError(f"{what} exit_lanes lists over MAX_EXIT_LANES = {MAX_EXIT_LANES} lanes")
+    if isinstance(value, np.ndarray):
+        value = value.reshape(-1).tolist()
+    elif not isinstance(value, (list, tuple)):
+        value = [value]
+    ids = (str(e) if isinstance(e, str) else _int_id(e) for e in value)
+    return tuple(i for i in ids if i in known)
+
+
+def _int_id(value: Any) -> str | None:
+    if isinstance(value, (int, np.integer)) and int(value).bit_length() <= 64:
+        return str(int(value))
     return None
 
 
@@ -91,24 +135,26 @@ def build_map(
             raise ValueError(f"region must be finite (xmin, ymin, xmax, ymax) [m], got {region}")
     reach = None if region is None else _grow(region, REGION_SLACK)
     centrelines, outlines, widths, raw, surfaces = {}, {}, {}, {}, []
+    repairs = RepairBudget()
     for key, feature in features.items():
         if not isinstance(feature, Mapping):
             continue
-        what = f"{source}: map feature {key!s} ({feature.get('type')})"
+        what = f"{source}: {_name(key, feature)}"
         if feat.is_surface(feature):
-            surface = feat.polygon(feature.get("polygon", np.zeros((0, 2))), f"{what} polygon")
+            outline = feature.get("polygon", np.zeros((0, 2)))
+            surface = feat.polygon(outline, f"{what} polygon", repairs)
             if surface is not None and feat.touches(_outline(surface), reach):
                 surfaces.append(surface)
             continue
         if not feat.is_lane(feature):
             continue
-        lane_id = str(key)
+        lane_id = entry_id(key, f"{source}: a lane's map feature id")
         line = feat.points(feature.get("polyline", np.zeros((0, 2))), f"{what} polyline", 2)
         if line is None or np.all(line == line[0]) or not feat.touches(line, reach):
             continue
         centrelines[lane_id], raw[lane_id] = line, feature
         if feature.get("polygon") is not None:
-            outline = feat.polygon(feature["polygon"], f"{what} polygon")
+            outline = feat.polygon(feature["polygon"], f"{what} polygon", repairs)
             if outline is not None:
                 outlines[lane_id] = outline
         width = feat.lane_width(feature, what)
@@ -122,10 +168,7 @@ def build_map(
     ids = list(centrelines)
     if any("exit_lanes" in raw[i] for i in ids):
         known = set(ids)
-        successors = {
-            i: tuple(str(e) for e in np.atleast_1d(raw[i].get("exit_lanes", ())) if str(e) in known)
-            for i in ids
-        }
+        successors = {i: _exit_lanes(raw[i], known, f"{source}: map feature {i}") for i in ids}
     else:
         successors = _infer_successors(ids, centrelines)
     lanes = []
@@ -141,17 +184,25 @@ def build_map(
                 )
             )
         except ValueError as err:
-            raise ValueError(f"{source}: map feature {i} ({raw[i].get('type')}): {err}") from None
+            raise ValueError(f"{source}: {_name(i, raw[i])}: {err}") from None
     lanes = tuple(lanes)
 
     polygons = list(outlines.values())
-    polygons += road_polygons(tuple(lane for lane in lanes if lane.lane_id not in outlines))
-    polygons.append(_boundary_area(features, reach))
+    polygons += road_polygons(
+        tuple(lane for lane in lanes if lane.lane_id not in outlines), repairs=repairs
+    )
+    polygons.append(_boundary_area(features, reach, repairs))
     polygons = [p for p in polygons if isinstance(p, (shapely.Polygon, shapely.MultiPolygon))]
     polygons = [p for p in polygons if p.area > 0]
     if not polygons:
         polygons = _edge_faces(features, vehicle_xy, source)
     polygons += surfaces
+    bounds = shapely.total_bounds(polygons)
+    if region is not None:  # the raster covers the drivable area inside the region
+        bounds = np.concatenate(
+            [np.maximum(bounds[:2], region[:2]), np.minimum(bounds[2:], region[2:])]
+        )
+    check_raster(bounds, resolution, margin, source)
     if region is not None:
         area = shapely.clip_by_rect(shapely.union_all(polygons), *region)
         parts = [
@@ -185,14 +236,23 @@ def _infer_successors(ids: list[str], centrelines: dict[str, np.ndarray]) -> dic
     start_heading = np.array(
         [np.arctan2(*np.diff(centrelines[i][:2], axis=0)[0][::-1]) for i in ids]
     )
-    gap = np.linalg.norm(ends[:, None] - starts[None], axis=-1)  # (L, L): from i's end to j's start
-    turn = np.abs(wrap_angle(start_heading[None] - end_heading[:, None]))
-    linked = (gap <= SUCCESSOR_MAX_GAP) & (turn <= SUCCESSOR_MAX_TURN)
-    np.fill_diagonal(linked, False)
-    return {lane: tuple(ids[j] for j in np.flatnonzero(linked[i])) for i, lane in enumerate(ids)}
+    count = min(MAX_EXIT_LANES + 1, len(ids))  # + 1: a lane may find its own start
+    reach = SUCCESSOR_MAX_GAP * (1 + 1e-9) + 1e-12  # candidates; the test below is exact
+    near = cKDTree(starts).query(ends, k=count, distance_upper_bound=reach)[1].reshape(len(ids), -1)
+    lane, other = np.nonzero(near < len(ids))  # (L, k): from lane's end to other's start
+    other = near[lane, other]
+    gap = np.linalg.norm(ends[lane] - starts[other], axis=-1)
+    turn = np.abs(wrap_angle(start_heading[other] - end_heading[lane]))
+    linked = (gap <= SUCCESSOR_MAX_GAP) & (turn <= SUCCESSOR_MAX_TURN) & (lane != other)
+    successors: dict[str, list[int]] = {i: [] for i in ids}
+    for i, j in zip(lane[linked].tolist(), other[linked].tolist(), strict=True):
+        successors[ids[i]].append(j)
+    return {key: tuple(ids[j] for j in sorted(found)) for key, found in successors.items()}
 
 
-def _boundary_area(features: Mapping[Any, Mapping], reach: tuple | None) -> shapely.Geometry:
+def _boundary_area(
+    features: Mapping[Any, Mapping], reach: tuple | None, repairs: RepairBudget
+) -> shapely.Geometry:
     """Even-odd fill of the closed road lines with ids ``boundary_<k>`` (empty if none).
 
     A ring is kept whole when its bounding box meets ``reach`` (a ring around a hole
@@ -200,14 +260,24 @@ def _boundary_area(features: Mapping[Any, Mapping], reach: tuple | None) -> shap
     area = shapely.Polygon()
     rings = []
     for key, feature in features.items():
-        if str(key).startswith("boundary_") and isinstance(feature, Mapping):
-            what = f"map feature {key} (boundary ring) polyline"
+        if isinstance(key, str) and key.startswith("boundary_") and isinstance(feature, Mapping):
+            what = f"map feature {key[:MAX_QUOTE]} (boundary ring) polyline"
             points = feat.real_array(feature.get("polyline", np.zeros((0, 2))), what)
             if points.ndim == 2 and len(points) >= 4 and np.allclose(points[0, :2], points[-1, :2]):
                 if feat.touches(points[:, :2], reach):
-                    rings.append(shapely.make_valid(shapely.Polygon(points[:, :2])))
-    for ring in sorted(rings, key=lambda ring: -ring.area):
-        area = shapely.symmetric_difference(area, ring)
+                    if len(rings) == MAX_BOUNDARY_RINGS:
+                        raise ValueError(
+                            f"{what}: over MAX_BOUNDARY_RINGS = {MAX_BOUNDARY_RINGS} boundary rings"
+                        )
+                    ring = shapely.Polygon(points[:, :2])
+                    rings.append(repair_polygon(ring, what, repairs))
+    rings = sorted(rings, key=lambda ring: -ring.area)
+    while len(rings) > 1:  # pairwise, a balanced tree: O(V log n) for n rings of V points
+        pairs = range(0, len(rings) - 1, 2)
+        rings = [shapely.symmetric_difference(rings[i], rings[i + 1]) for i in pairs] + (
+            rings[-1:] if len(rings) % 2 else []
+        )
+    area = rings[0] if rings else area
     parts = [p for p in shapely.get_parts(area) if isinstance(p, shapely.Polygon)]
     return shapely.MultiPolygon(parts) if parts else shapely.Polygon()
 
@@ -218,8 +288,9 @@ def _edge_faces(
     """Faces of the road-edge arrangement that contain logged vehicle positions."""
     lines = []
     for key, feature in features.items():
-        if isinstance(feature, Mapping) and str(feature.get("type", "")).startswith("ROAD_EDGE"):
-            points = feat.points(feature.get("polyline", np.zeros((0, 2))), f"{source}: {key}", 2)
+        if isinstance(feature, Mapping) and feat.kind(feature).startswith("ROAD_EDGE"):
+            what = f"{source}: {_name(key, feature)} polyline"
+            points = feat.points(feature.get("polyline", np.zeros((0, 2))), what, 2)
             if points is not None:
                 lines.append(shapely.LineString(points))
     if not lines:

@@ -5,8 +5,10 @@ of a description before it cuts the scenario window:
 
 * :func:`stack_tracks`: every vehicle's ``position``, ``heading``, ``velocity``,
   ``valid`` and size stacked into (N, T, ...) arrays, each field checked (a step is
-  valid only with finite position and heading); sizes are the median over the valid
-  steps (:data:`DEFAULT_SIZE` when a track gives none), the length the larger;
+  valid only with finite position and heading; N x T and each field's size against
+  :mod:`~riskflow_env.scenarios.scenarionet_limits` before it is converted); sizes are
+  the median over the valid steps (:data:`DEFAULT_SIZE` when a track gives none), the
+  length the larger;
 * :func:`time_stamps`: the recorded steps' times (``metadata["ts"]`` or
   ``sample_rate``), finite and increasing;
 * :func:`resample`: tracks on the 10 Hz grid (linear in position and velocity,
@@ -23,6 +25,8 @@ import numpy as np
 
 from riskflow_env.dynamics import wrap_angle
 from riskflow_env.scenarios.scenarionet_features import real_array
+from riskflow_env.scenarios.scenarionet_limits import MAX_STEPS, check_track_steps
+from riskflow_env.scenarios.untrusted import brief
 
 DT = 0.1  # [s] time step of scenarios
 DEFAULT_SIZE = (4.5, 2.0)  # [m] (length, width) of tracks that give none
@@ -41,15 +45,18 @@ def stack_tracks(states: list, ids: list[str], source: str) -> tuple:
             if key not in state:
                 raise ValueError(f"{source}: track {track_id!r} state has no {key!r}")
         what = f"{source}: track {track_id!r}"
-        position = real_array(state["position"], f"{what} position")
-        steps = steps if steps is not None else len(position)
+        limit = 3 * (MAX_STEPS if steps is None else steps)  # (T, 3) at most
+        position = _read(state["position"], f"{what} position", limit)
+        if steps is None:
+            steps = len(position) if position.ndim else 0
+            check_track_steps(len(ids), steps, source)
         if position.ndim != 2 or position.shape[1] < 2 or len(position) != steps:
             raise ValueError(
                 f"{source}: track {track_id!r} position must have shape ({steps}, 2 or 3), "
                 f"got {position.shape}"
             )
-        valid = real_array(state["valid"], f"{what} valid").reshape(-1) != 0
-        heading = real_array(state["heading"], f"{what} heading").reshape(-1)
+        valid = _read(state["valid"], f"{what} valid", limit).reshape(-1) != 0
+        heading = _read(state["heading"], f"{what} heading", limit).reshape(-1)
         for key, value in (("valid", valid), ("heading", heading)):
             if value.shape != (steps,):
                 raise ValueError(f"{source}: track {track_id!r} {key} must have shape ({steps},)")
@@ -58,12 +65,12 @@ def stack_tracks(states: list, ids: list[str], source: str) -> tuple:
         fields["heading"].append(heading)
         fields["valid"].append(valid)
         velocity = state.get("velocity")
-        velocity = None if velocity is None else real_array(velocity, f"{what} velocity")
+        velocity = None if velocity is None else _read(velocity, f"{what} velocity", limit)
         fields["velocity"].append(
             velocity if velocity is not None and velocity.shape == (steps, 2) else None
         )
         for column, key in enumerate(("length", "width")):
-            values = real_array(state.get(key, ()), f"{what} {key}").reshape(-1)
+            values = _read(state.get(key, ()), f"{what} {key}", limit).reshape(-1)
             values = values[valid] if values.shape == (steps,) else values
             values = values[np.isfinite(values) & (values > 0)]
             size[row, column] = np.median(values) if values.size else DEFAULT_SIZE[column]
@@ -76,16 +83,26 @@ def stack_tracks(states: list, ids: list[str], source: str) -> tuple:
     return xy, np.stack(fields["heading"]), velocity, np.stack(fields["valid"]), size
 
 
+def _read(value: object, what: str, limit: int) -> np.ndarray:
+    return real_array(value, what, limit, "MAX_STEPS")
+
+
 def time_stamps(metadata: Mapping, steps: int, source: str) -> np.ndarray:
     """(T,) [s] time stamps of the recorded steps."""
     ts = metadata.get("ts")
-    if ts is not None and np.size(ts) == steps:
-        times = real_array(ts, f"{source}: metadata['ts']").reshape(-1)
+    if isinstance(ts, np.ndarray):
+        size = ts.size
     else:
-        try:
-            rate = float(metadata.get("sample_rate", DT))
-        except (TypeError, ValueError):
-            raise ValueError(f"{source}: metadata['sample_rate'] must be a number") from None
+        size = len(ts) if isinstance(ts, (list, tuple)) else 1
+    if ts is not None and size == steps:
+        times = _read(ts, f"{source}: metadata['ts']", MAX_STEPS).reshape(-1)
+    else:
+        rate = metadata.get("sample_rate", DT)
+        if not isinstance(rate, (int, float, np.integer, np.floating)):
+            raise ValueError(
+                f"{source}: metadata['sample_rate'] must be a number, got {brief(rate)}"
+            )
+        rate = float(rate)
         if not (np.isfinite(rate) and rate > 0):
             raise ValueError(f"{source}: metadata['sample_rate'] must be positive, got {rate}")
         times = np.arange(steps) * rate
