@@ -52,7 +52,7 @@ except ImportError:  # numpy 1.x
     from numpy.core import multiarray as _multiarray  # type: ignore[no-redef]
 
 MAX_CALL_ARGS = 6  # arguments of one REDUCE call (numpy's dtype takes 3)
-SET_ENTRY_BYTES = 32  # [bytes] charged per item of a set built by a call
+SET_ENTRY_BYTES = 64  # [bytes] charged per item of a set built by a call (its hash table)
 ENCODINGS = {"latin1": 1, "latin-1": 1, "ascii": 1, "utf-8": 4, "utf8": 4}  # [bytes/char]
 
 _NUMPY_MODULES = ("numpy.core.multiarray", "numpy._core.multiarray")

@@ -74,7 +74,9 @@ def count_numbers(value: Any, limit: int) -> int | None:
             size += 1
         elif isinstance(row, np.ndarray):
             size += row.size
-        elif isinstance(row, (list, tuple)) and len(row) <= limit:
+        elif isinstance(row, (list, tuple)):
+            if len(row) > limit:
+                return limit + 1
             if not all(isinstance(number, _NUMBERS) for number in row):
                 return None
             size += len(row)
