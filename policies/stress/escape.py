@@ -57,9 +57,9 @@ class EscapeSearch:
         seed: random maneuvers' seed (same seed, same verdict).
     """
 
-    samples: int = 256
-    refine: int = 8
-    steps: int = 60
+    samples: int = 1024
+    refine: int = 32
+    steps: int = 240
     knot_interval: float = 0.5
     learning_rate: float = 0.3
     margin: float = 0.5
