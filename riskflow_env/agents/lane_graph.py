@@ -89,7 +89,9 @@ class LaneGraph:
         Listed successors are joined at their start. A lane with none whose end lies
         on another lane (within ``MERGE_MAX_OFFSET`` of its width, heading within
         ``MERGE_MAX_TURN``, 1 m or more before that lane's end) merges into it there,
-        e.g. an entry ending on the ring of a roundabout.
+        e.g. an entry ending on the ring of a roundabout. Dead ends are taken in spatial
+        order, ``MATCH_CHUNK`` at a time, against the segments within reach of them only
+        (all of them made this quadratic: 20,000 dead ends took 38 s).
         """
         lanes = drivable_map.lanes
         index = {lane.lane_id: i for i, lane in enumerate(lanes)}
@@ -98,14 +100,22 @@ class LaneGraph:
         ]
         listed = {i for i, _, _ in pairs}
         ends = np.array([i for i in range(self.num_lanes) if i not in listed], dtype=int)
+        end_points = np.array([lanes[i].centerline[-1] for i in ends]).reshape(-1, 2)
+        ends = ends[np.lexsort(np.floor(end_points / NEAR).T)]  # nearby ends share a chunk
+        reach = MERGE_MAX_OFFSET * float(self.width.max())  # farther segments never qualify
         for chunk in np.array_split(ends, max(1, ends.size // MATCH_CHUNK)):
             if not chunk.size:
                 continue
             end_xy = np.stack([lanes[i].centerline[-1] for i in chunk])
+            low, high = end_xy.min(axis=0) - reach, end_xy.max(axis=0) + reach
+            near = np.all((self.segment_high >= low) & (self.segment_low <= high), axis=1)
+            segments = np.flatnonzero(near)  # a map's dead ends against nearby segments only
+            if not segments.size:
+                continue
             distance, error, s = self._project(
-                end_xy, self.segment_heading[self.last_segment[chunk]]
+                end_xy, self.segment_heading[self.last_segment[chunk]], segments
             )
-            lane = self.segment_lane
+            lane = self.segment_lane[segments]
             distance = np.where(lane == chunk[:, None], np.inf, np.abs(distance))
             distance = np.where(np.abs(error) < MERGE_MAX_TURN, distance, np.inf)
             best = np.argmin(distance, axis=-1)
