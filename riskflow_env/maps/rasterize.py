@@ -74,32 +74,39 @@ def repair_polygon(
 
 def crossing_pairs(shape: shapely.Geometry, limit: int) -> int:
     """The number of pairs of non-adjacent ring edges of ``shape`` that touch or cross,
-    counted up to ``limit + 1`` (a vectorised all-pairs test, ``_CROSSING_ROWS`` edges
-    at a time)."""
-    starts, ends, ring = [], [], []
-    for index, polygon in enumerate(shapely.get_parts(shape)):
-        if isinstance(polygon, shapely.Polygon) and not polygon.is_empty:
-            for number, line in enumerate([polygon.exterior, *polygon.interiors]):
-                coords = np.asarray(line.coords)[:, :2]
-                starts.append(coords[:-1])
-                ends.append(coords[1:])
-                ring.append(np.full(len(coords) - 1, index * 2**20 + number))
-    if not starts:
+    counted up to ``limit + 1`` (:func:`line_crossings` of its rings)."""
+    rings = [
+        np.asarray(ring.coords)[:, :2]
+        for polygon in shapely.get_parts(shape)
+        if isinstance(polygon, shapely.Polygon) and not polygon.is_empty
+        for ring in (polygon.exterior, *polygon.interiors)
+    ]
+    return line_crossings(rings, limit, closed=True)
+
+
+def line_crossings(lines: list[np.ndarray], limit: int, closed: bool = False) -> int:
+    """The number of pairs of segments of ``lines`` ((K, 2) [m] each; rings when
+    ``closed``) that touch or cross, leaving out consecutive segments of one line, counted
+    up to ``limit + 1``: a vectorised all-pairs test, ``_CROSSING_ROWS`` segments at a
+    time, so its cost is the square of the number of segments (callers bound it)."""
+    lines = [line for line in lines if len(line) >= 2]
+    if not lines:
         return 0
-    a, b, ring = np.concatenate(starts), np.concatenate(ends), np.concatenate(ring)
+    a = np.concatenate([line[:-1] for line in lines])
+    b = np.concatenate([line[1:] for line in lines])
+    ring = np.repeat(np.arange(len(lines)), [len(line) - 1 for line in lines])
     count = len(a)
     position = np.arange(count)
-    first = np.searchsorted(ring, ring, side="left")  # rings are contiguous
+    first = np.searchsorted(ring, ring, side="left")  # lines are contiguous
     last = np.searchsorted(ring, ring, side="right") - 1
     found = 0
     for row in range(0, count, _CROSSING_ROWS):
         i = position[row : row + _CROSSING_ROWS, None]
         j = position[None, row:]  # pairs (i, j > i) only
-        adjacent = (ring[i] == ring[j]) & (
-            (np.abs(i - j) <= 1)
-            | ((i == first[i]) & (j == last[i]))
-            | ((j == first[i]) & (i == last[i]))
-        )
+        adjacent = np.abs(i - j) <= 1
+        if closed:  # a ring's first and last segments meet too
+            adjacent |= ((i == first[i]) & (j == last[i])) | ((j == first[i]) & (i == last[i]))
+        adjacent &= ring[i] == ring[j]
         pa, pb, qa, qb = a[i], b[i], a[j], b[j]
         d1, d2 = _side(pa, pb, qa), _side(pa, pb, qb)
         d3, d4 = _side(qa, qb, pa), _side(qa, qb, pb)

@@ -21,6 +21,9 @@ limit                  value       counts
 ``MAX_BOUNDARY_RINGS`` 256         ``boundary_<k>`` rings (the sample: 29)
 ``MAX_MAP_PIXELS``     8,000,000   pixels of the map raster (the sample, whole
                                    map: 1,332 x 1,244 = 1.7 M at 0.5 m/px)
+``MAX_EDGE_SEGMENTS``  4,096       road-edge segments, and ``MAX_EDGE_CROSSINGS``
+                                   16,384 crossings among them, of a map without
+                                   lanes or polygons (built from its road edges)
 =====================  ==========  ===========================================
 
 At these limits a file loads in under 5 s and 500 MB (measured: 1,000,000 track-steps
@@ -53,6 +56,8 @@ MAX_MAP_POINTS = 1_000_000  # points of all polylines and polygons of one descri
 MAX_EXIT_LANES = 64  # successors one lane may list
 MAX_BOUNDARY_RINGS = 256  # closed boundary_<k> rings filled even-odd into the drivable area
 MAX_MAP_PIXELS = 8_000_000  # pixels of the map raster (H x W)
+MAX_EDGE_SEGMENTS = 4096  # road-edge segments a map without lanes is built from
+MAX_EDGE_CROSSINGS = 16_384  # crossings among them (their arrangement grows as these)
 COORDINATES = 3  # numbers per point counted against the point limits (x, y, z)
 
 _NUMBERS = (int, float, bool, np.number, np.bool_)
@@ -158,6 +163,8 @@ def check_raster(bounds: Any, resolution: float, margin: float, source: str) -> 
 __all__ = [
     "COORDINATES",
     "MAX_BOUNDARY_RINGS",
+    "MAX_EDGE_CROSSINGS",
+    "MAX_EDGE_SEGMENTS",
     "MAX_MAP_PIXELS",
     "MAX_EXIT_LANES",
     "MAX_FEATURE_POINTS",

@@ -327,6 +327,23 @@ def test_scenarionet_map_area_refused(tmp_path):
     _refused(_run(path, "load_scenarionet"), "far.pkl", "MAX_MAP_PIXELS")
 
 
+def test_road_edge_grid_refused(tmp_path):
+    """A map without lanes is built from the faces of its road edges: 1,000 x 1,000 crossing
+    edges took 16 s and 1.2 GB before failing (MAX_EDGE_SEGMENTS, MAX_EDGE_CROSSINGS)."""
+    description = _description()
+    edges = {}
+    for i in range(1000):
+        y, x = -50 + 0.1 * i, -50 + 0.2 * i
+        edges[f"h{i}"] = {"type": "ROAD_EDGE_BOUNDARY", "polyline": np.array([[-60, y], [160, y]])}
+        edges[f"v{i}"] = {"type": "ROAD_EDGE_BOUNDARY", "polyline": np.array([[x, -60], [x, 60]])}
+    description["map_features"] = edges
+    path = _scene(tmp_path, "edges.pkl", description)
+    _refused(_run(path, "load_scenarionet"), "edges.pkl", "MAX_EDGE_SEGMENTS")
+    few = dict(list(edges.items())[:200])  # 100 x 100: 10,000 crossings, read
+    path = _scene(tmp_path, "few_edges.pkl", {**description, "map_features": few})
+    _loaded(_run(path, "load_scenarionet"))
+
+
 def test_8000_lanes_without_successors_load(tmp_path):
     """A 262 KB file of lanes without ``exit_lanes`` built an L x L matrix (3 GB)."""
     rng = np.random.default_rng(0)
