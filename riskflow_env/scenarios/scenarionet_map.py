@@ -52,6 +52,7 @@ from riskflow_env.scenarios.scenarionet_limits import (
     MAX_EDGE_CROSSINGS,
     MAX_EDGE_SEGMENTS,
     MAX_EXIT_LANES,
+    check_overlaps,
     check_raster,
 )
 from riskflow_env.scenarios.untrusted import MAX_QUOTE, brief, entry_id
@@ -205,6 +206,7 @@ def build_map(
             [np.maximum(bounds[:2], region[:2]), np.minimum(bounds[2:], region[2:])]
         )
     check_raster(bounds, resolution, margin, source)
+    check_overlaps(polygons, source)
     if region is not None:
         area = shapely.clip_by_rect(shapely.union_all(polygons), *region)
         parts = [

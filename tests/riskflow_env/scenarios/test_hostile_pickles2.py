@@ -327,6 +327,18 @@ def test_scenarionet_map_area_refused(tmp_path):
     _refused(_run(path, "load_scenarionet"), "far.pkl", "MAX_MAP_PIXELS")
 
 
+def test_crossing_lanes_refused_before_their_union(tmp_path):
+    """300 x 300 thin lanes crossing as a grid: their union took 10 s and 490 MB (1,000 x
+    1,000: minutes): refused from their overlapping pairs (MAX_OVERLAPS)."""
+    lanes, width = {}, np.array([0.05, 0.05])
+    for i in range(300):
+        y, x = -50 + i / 3, -50 + 2 * i / 3
+        lanes[f"h{i}"] = _lane([[-60, y], [160, y]], width=width)
+        lanes[f"v{i}"] = _lane([[x, -60], [x, 60]], width=width)
+    path = _scene(tmp_path, "grid.pkl", _description(features=lanes))
+    _refused(_run(path, "load_scenarionet"), "grid.pkl", "MAX_OVERLAPS")
+
+
 def test_road_edge_grid_refused(tmp_path):
     """A map without lanes is built from the faces of its road edges: 1,000 x 1,000 crossing
     edges took 16 s and 1.2 GB before failing (MAX_EDGE_SEGMENTS, MAX_EDGE_CROSSINGS)."""
@@ -345,12 +357,16 @@ def test_road_edge_grid_refused(tmp_path):
 
 
 def test_8000_lanes_without_successors_load(tmp_path):
-    """A 262 KB file of lanes without ``exit_lanes`` built an L x L matrix (3 GB)."""
-    rng = np.random.default_rng(0)
-    starts = rng.uniform([-40, -40], [140, 40], (8000, 2))
-    lanes = {f"l{i}": _lane([s, s + [3.0, 0.0]]) for i, s in enumerate(starts)}
+    """A 262 KB file of lanes without ``exit_lanes`` built an L x L matrix (3 GB): 8,000
+    lanes on a 100 x 80 grid (the whole map, 500 x 320 m) load."""
+    x, y = np.meshgrid(np.arange(100) * 5.0 - 50, np.arange(80) * 4.0 - 160)
+    starts = np.stack([x.ravel(), y.ravel()], axis=1)
+    width = np.array([2.0, 2.0])
+    lanes = {f"l{i}": _lane([s, s + [3.0, 0.0]], width=width) for i, s in enumerate(starts)}
     path = _scene(tmp_path, "lanes.pkl", _description(features=lanes))
-    _loaded(_run(path, "load_scenarionet", tail=".map.lanes"))
+    assert path.stat().st_size < 2**20
+    outcome = _run(path, "load_scenarionet", ", crop=False", tail=".map.lanes")
+    _loaded(outcome)
 
 
 def test_type_and_id_repr_bombs_are_not_formatted(tmp_path):
