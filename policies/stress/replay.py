@@ -3,10 +3,11 @@
 A replay file (``failures/<scene>-seed<k>.npz``) is a scenario file
 (:func:`~riskflow_env.scenarios.save_scenario`, map SDF included, so that it loads bit for
 bit; :func:`~riskflow_env.scenarios.load_scenario` and ``examples/rollout.py --scenario``
-read it) with three more members: ``stress`` (JSON: the adversary seed, the
+read it) with three more members (``extra_`` members, which scenario loaders check and
+ignore): ``extra_stress`` (UTF-8 JSON: the adversary seed, the
 :class:`~policies.stress.episode.EpisodeSetup`, the generator file's hash, the planner
 spec, the episode's metrics and its failures with their witness trajectories) and the
-executed ``stress_states`` / ``stress_in_scene`` of the failed episode.
+executed ``extra_stress_states`` / ``extra_stress_in_scene`` of the failed episode.
 
 **Replay re-runs the episode closed loop**: the scene from its start, the adversary with
 the same seed and options (the adversary is deterministic per seed), the planner given now
@@ -132,9 +133,10 @@ def save_replay(
     try:
         save_scenario(record.scenario, temporary, include_sdf=True)
         extra = {
-            "stress": np.array(json.dumps(meta)),
-            "stress_states": record.states,
-            "stress_in_scene": record.in_scene,
+            # UTF-8 bytes, not a str array: scenario files cap their strings at 1,024 chars
+            "extra_stress": np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
+            "extra_stress_states": record.states,
+            "extra_stress_in_scene": record.in_scene,
         }
         with zipfile.ZipFile(temporary, "a", compression=zipfile.ZIP_DEFLATED) as archive:
             for key, value in extra.items():
@@ -165,13 +167,13 @@ def load_replay(path: str | os.PathLike) -> Replay:
         raise FileNotFoundError(f"replay file {str(path)!r} not found")
     scenario = load_scenario(path)
     with np.load(path, allow_pickle=False) as data:
-        if "stress" not in data.files:
+        if "extra_stress" not in data.files:
             raise ValueError(
-                f"{path} is a scenario file without a stress-test failure (no 'stress' "
+                f"{path} is a scenario file without a stress-test failure (no 'extra_stress' "
                 "member): replay files are the failures/*.npz of a riskflow-stress run"
             )
-        meta = json.loads(str(data["stress"]))
-        states, in_scene = data["stress_states"], data["stress_in_scene"]
+        meta = json.loads(data["extra_stress"].tobytes().decode())
+        states, in_scene = data["extra_stress_states"], data["extra_stress_in_scene"]
     if meta.get("format") != FORMAT or meta.get("version") != VERSION:
         raise ValueError(
             f"{path}: format {meta.get('format')!r} version {meta.get('version')!r}, "

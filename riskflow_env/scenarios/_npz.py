@@ -27,6 +27,7 @@ MAX_FILE_ARRAY_BYTES = 512 * 2**20  # [bytes] all arrays of one scenario / map f
 MAX_MEMBERS = 64  # [-] members of one archive (a scene with an inline map has 33 at most)
 MAX_DIRECTORY_BYTES = 64 * 2**10  # [bytes] the zip's central directory (about 100 per member)
 MAX_DIMS = 4  # [-] dimensions of one array
+EXTRA_PREFIX = "extra_"  # members an application adds (header-checked, then ignored)
 MAX_STRING_CHARS = 1024  # [chars] longest string of a str array (names, ids, paths)
 _MAX_HEADER_BYTES = 10_016  # [bytes] largest .npy header numpy reads (magic and length included)
 _DTYPE_KINDS = "biufU"  # bool, int, uint, float, str: what the formats store
@@ -245,10 +246,14 @@ def check_arrays(
     """Every key of ``spec`` (and of ``optional`` when present) has a consistent shape
     (named dims agree across keys; ``N?`` is N or 0; a named dim is at most the value of
     its ``limits`` entry, ``(constant name, value)``) and an allowed dtype kind; any other
-    key but ``schema`` and ``version`` is refused. ``arrays`` may be arrays or
-    :class:`Member` declarations."""
+    key but ``schema``, ``version`` and the ``EXTRA_PREFIX`` members is refused.
+    ``arrays`` may be arrays or :class:`Member` declarations."""
     rules = {**spec, **(optional or {})}
-    unexpected = sorted(set(arrays) - set(rules) - {"schema", "version"})
+    unexpected = sorted(
+        key
+        for key in set(arrays) - set(rules) - {"schema", "version"}
+        if not key.startswith(EXTRA_PREFIX)
+    )
     if unexpected:
         raise ScenarioFormatError(
             f"{path}: unexpected key(s) {_short(unexpected)} (expected {sorted(rules)})"
