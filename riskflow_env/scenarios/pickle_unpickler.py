@@ -83,14 +83,8 @@ class RestrictedUnpickler(pickle._Unpickler):
             loader's limits, :mod:`~riskflow_env.scenarios.safe_pickle`).
     """
 
-    def __init__(
-        self, file: io.BufferedIOBase, source: str = "<pickle>", budget: Any = None
-    ) -> None:
+    def __init__(self, file: io.BufferedIOBase, source: str, budget: Any) -> None:
         super().__init__(file)
-        if budget is None:
-            from riskflow_env.scenarios.safe_pickle import Budget
-
-            budget = Budget()
         self.source = source
         self._budget = budget
         array_type = type("SafeArray", (SafeArray,), {"_budget": budget})
