@@ -115,8 +115,12 @@ def _run(argv: list[str]) -> None:
     except SceneSourceError as err:
         usage.error(str(err))
     print(result.headline)
-    print(f"wrote {result.out}/report.html, report.md, summary.json; {len(result.replays)} "
-          f"replay file(s) in {result.out}/failures/")  # fmt: skip
+    replays = (
+        f"{len(result.replays)} replay file(s) in {result.out}/failures/"
+        if result.replays
+        else "no failure, no replay file"
+    )
+    print(f"wrote {result.out}/report.html, report.md, summary.json; {replays}")
 
 
 def _compare(argv: list[str]) -> None:

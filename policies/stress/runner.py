@@ -52,10 +52,10 @@ class StressOptions(EpisodeSetup):
         for name, low in (("scenes", 1), ("workers", 1), ("gifs", 0)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
+                raise ValueError(f"--{name} must be an int >= {low}, got {value!r}")
         seeds = tuple(self.seeds)
         if not seeds or any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in seeds):
-            raise ValueError(f"seeds must be one or more ints >= 0, got {self.seeds!r}")
+            raise ValueError(f"--seeds must be one or more ints >= 0, got {list(self.seeds)}")
         if len(set(seeds)) != len(seeds):
             raise ValueError(f"seeds must be distinct, got {self.seeds!r}")
         object.__setattr__(self, "seeds", seeds)
