@@ -28,7 +28,6 @@ a record's ego collisions (type, avoidability, the attacker's kinematics).
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -37,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from policies.planners.base import EgoPlanner, as_action, reset_planner
-from policies.statistics import mean_interval, wilson_interval
+from policies.statistics import mean_summary, rate
 from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import YAW
 from riskflow_env.env import RiskFlowParallelEnv
@@ -381,10 +380,7 @@ def summarize(records: list[EpisodeRecord], confidence: float = 0.95) -> dict[st
         ("collision_rate", "collisions"),
         ("ego_offroad_rate", "ego_offroad"),
     ):
-        hits = sum(bool(m[flag]) for m in metrics)
-        low, high = wilson_interval(hits, len(metrics), confidence)
-        value = hits / len(metrics) if metrics else math.nan
-        summary[name] = _entry(value, low, high, len(metrics))
+        summary[name] = rate(sum(bool(m[flag]) for m in metrics), len(metrics), confidence)
     for name in (
         "time_to_first_ego_collision",
         "min_distance_to_ego",
@@ -394,18 +390,3 @@ def summarize(records: list[EpisodeRecord], confidence: float = 0.95) -> dict[st
     ):
         summary[name] = mean_summary([m[name] for m in metrics], confidence)
     return summary
-
-
-def mean_summary(values: list[float | None], confidence: float = 0.95) -> dict[str, Any]:
-    """The mean of the finite ``values`` (None and NaN left out) with its bootstrap
-    interval, as an entry of :func:`summarize` (None where undefined)."""
-    finite = [value for value in values if value is not None and np.isfinite(value)]
-    low, high = mean_interval(finite, confidence)
-    mean = float(np.mean(finite)) if finite else math.nan
-    return _entry(mean, low, high, len(finite))
-
-
-def _entry(value: float, low: float, high: float, count: int) -> dict[str, Any]:
-    """A JSON-ready summary entry: NaN becomes None."""
-    clean = [None if math.isnan(x) else x for x in (value, low, high)]
-    return dict(zip(("value", "low", "high"), clean, strict=True)) | {"n": count}

@@ -1,6 +1,8 @@
 """Confidence intervals and tests of the reports: one home for the statistics.
 
 * :func:`wilson_interval`: a rate (collisions per episode) with its Wilson score interval;
+  :func:`rate` the same as a report entry ``{"value", "low", "high", "n"}``;
+* :func:`mean_summary`: a mean with its bootstrap interval, as such an entry;
 * :func:`mean_interval`: a mean (time to collision, distance) with a seeded percentile
   bootstrap interval;
 * :func:`paired_difference`: two policies on the same episodes: the difference of their
@@ -25,6 +27,15 @@ def wilson_interval(successes: int, trials: int, confidence: float = 0.95) -> tu
     return float(interval.low), float(interval.high)
 
 
+def rate(hits: int, trials: int, confidence: float = 0.95) -> dict[str, Any]:
+    """``{"value", "low", "high", "n"}`` of a rate with its Wilson interval (None when
+    there is no trial)."""
+    if trials == 0:
+        return {"value": None, "low": None, "high": None, "n": 0}
+    low, high = wilson_interval(hits, trials, confidence)
+    return {"value": hits / trials, "low": low, "high": high, "n": trials}
+
+
 def mean_interval(
     values: list[float], confidence: float = 0.95, resamples: int = 2000
 ) -> tuple[float, float]:
@@ -37,6 +48,21 @@ def mean_interval(
     means = values[draws].mean(axis=1)
     low, high = np.quantile(means, [0.5 - confidence / 2, 0.5 + confidence / 2])
     return float(low), float(high)
+
+
+def mean_summary(values: list[float | None], confidence: float = 0.95) -> dict[str, Any]:
+    """The mean of the finite ``values`` (None and NaN left out) with its bootstrap
+    interval, as an entry of :func:`summarize` (None where undefined)."""
+    finite = [value for value in values if value is not None and np.isfinite(value)]
+    low, high = mean_interval(finite, confidence)
+    mean = float(np.mean(finite)) if finite else math.nan
+    return _entry(mean, low, high, len(finite))
+
+
+def _entry(value: float, low: float, high: float, count: int) -> dict[str, Any]:
+    """A JSON-ready summary entry: NaN becomes None."""
+    clean = [None if math.isnan(x) else x for x in (value, low, high)]
+    return dict(zip(("value", "low", "high"), clean, strict=True)) | {"n": count}
 
 
 def paired_difference(counts: dict[str, int], confidence: float = 0.95) -> dict[str, Any]:

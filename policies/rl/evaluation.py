@@ -21,9 +21,9 @@ import torch
 from policies.harness import ClosedLoop, EpisodeRecord, summarize
 from policies.rl.adversary import ScenePolicyConfig, make_traffic
 from policies.rl.envs import EgoInterface
-from policies.statistics import mean_interval
+from policies.statistics import mean_interval, rate
 from policies.stress.failures import analyse
-from policies.stress.summary import progress, rate
+from policies.stress.summary import progress
 from riskflow_env.config import DynamicsConfig, EnvConfig
 from riskflow_env.scenarios import Scenario
 from riskflow_env.view import SceneView

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from policies.harness import EGO, EpisodeRecord, mean_summary
-from policies.statistics import wilson_interval
+from policies.statistics import rate
 from policies.stress.failures import FAILURE_TYPES, Failure
 
 
@@ -65,15 +65,6 @@ def episode_outcome(record: EpisodeRecord, failures: tuple[Failure, ...]) -> dic
         "non_ego_contacts": list(non_ego_contacts(record)),
         "progress": progress(record),
     }
-
-
-def rate(hits: int, trials: int, confidence: float = 0.95) -> dict[str, Any]:
-    """``{"value", "low", "high", "n"}`` of a rate with its Wilson interval (None when
-    there is no trial)."""
-    if trials == 0:
-        return {"value": None, "low": None, "high": None, "n": 0}
-    low, high = wilson_interval(hits, trials, confidence)
-    return {"value": hits / trials, "low": low, "high": high, "n": trials}
 
 
 def non_ego_contacts(record: EpisodeRecord) -> tuple[int, int]:
