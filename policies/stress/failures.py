@@ -274,33 +274,39 @@ def guided_nearby(record: EpisodeRecord, step: int, ego_size: np.ndarray) -> int
 def kinematic_p99(states: np.ndarray, dt: float) -> dict[str, float]:
     """p99 of |acceleration|, |jerk| and |yaw rate| of one vehicle's states (S, 4)
     (0 where there are too few steps to difference)."""
-    accel = np.diff(states[:, SPEED]) / dt
-    jerk = np.diff(accel) / dt
-    yaw_rate = np.diff(np.unwrap(states[:, YAW])) / dt
-    return {
-        name: float(np.percentile(np.abs(values), 99)) if values.size else 0.0
-        for name, values in (("accel", accel), ("jerk", jerk), ("yaw_rate", yaw_rate))
-    }
+    rates = _rates(states[None], np.ones((1, len(states)), dtype=bool), dt)
+    return {name: _p99(values) for name, values in rates.items()}
 
 
 def kinematic_bounds(scenarios, source: str = "") -> KinematicBounds:
     """p99 of |acceleration|, |jerk| and |yaw rate| over the valid reference futures of
     ``scenarios`` (runs of consecutive valid steps), the bounds attackers are held to."""
-    values: dict[str, list[np.ndarray]] = {"accel": [], "jerk": [], "yaw_rate": []}
+    parts: dict[str, list[np.ndarray]] = {"accel": [], "jerk": [], "yaw_rate": []}
     for scenario in scenarios:
-        dt, future = scenario.dt, slice(scenario.current_index, None)
-        states, valid = scenario.states[:, future], scenario.valid[:, future]
-        speed, yaw = states[..., SPEED], np.unwrap(states[..., YAW], axis=1)
-        accel = np.diff(speed, axis=1) / dt
-        ok_accel = valid[:, 1:] & valid[:, :-1]
-        values["accel"].append(accel[ok_accel])
-        values["yaw_rate"].append((np.diff(yaw, axis=1) / dt)[ok_accel])
-        values["jerk"].append((np.diff(accel, axis=1) / dt)[ok_accel[:, 1:] & ok_accel[:, :-1]])
-    p99 = {
-        name: float(np.percentile(np.abs(np.concatenate(parts)), 99))
-        for name, parts in values.items()
-    }
+        future = slice(scenario.current_index, None)
+        rates = _rates(scenario.states[:, future], scenario.valid[:, future], scenario.dt)
+        for name, values in rates.items():
+            parts[name].append(values)
+    p99 = {name: _p99(np.concatenate(values)) for name, values in parts.items()}
     return KinematicBounds(**p99, source=source)
+
+
+def _rates(states: np.ndarray, valid: np.ndarray, dt: float) -> dict[str, np.ndarray]:
+    """Acceleration, jerk and yaw rate of tracks (N, S, 4) by finite differences, where
+    every step they difference is ``valid`` (N, S): flat arrays."""
+    accel = np.diff(states[..., SPEED], axis=1) / dt
+    yaw_rate = np.diff(np.unwrap(states[..., YAW], axis=1), axis=1) / dt
+    both = valid[:, 1:] & valid[:, :-1]
+    return {
+        "accel": accel[both],
+        "jerk": (np.diff(accel, axis=1) / dt)[both[:, 1:] & both[:, :-1]],
+        "yaw_rate": yaw_rate[both],
+    }
+
+
+def _p99(values: np.ndarray) -> float:
+    """p99 of |values| (0 for none)."""
+    return float(np.percentile(np.abs(values), 99)) if values.size else 0.0
 
 
 def _velocity(state: np.ndarray) -> np.ndarray:
