@@ -10,7 +10,7 @@ The ``--method`` adversary (default ``riskflow``, built by
 * **one at a time**: B policy copies each planning its own scene (``plan``, the
   one-scene path).
 
-Both run the method's stages (docs/ARCHITECTURE.md; ``riskflow``: window and encoder, TTC
+Both run the method's stages (docs/explanation/architecture.md; ``riskflow``: window and encoder, TTC
 ranking, MeanFlow pass, stitching, avoidance steps, the guidance steps on the top-``--k``
 vehicles, emit, holding at rest) on the same views. Reported per B:
 planning calls per second, scenes planned per second and the ratio of the batched

@@ -89,7 +89,7 @@ class Options:
     avoidable; needs RiskFlow nominal traffic)"""
     trust_model: bool = False
     """load the --runs PPO models although SB3 model files are pickles that can run code
-    (required with --runs; only for files you trust, docs/SECURITY.md)"""
+    (required with --runs; only for files you trust, docs/reference/security.md)"""
     combine: str = ""
     """comma-separated results.json files of earlier runs: merge them (no new episodes)"""
 
@@ -101,7 +101,7 @@ class Options:
         if self.runs and not self.trust_model:
             raise ValueError(
                 "--runs loads stable-baselines3 model files, which are pickles that can run "
-                "arbitrary code: add --trust-model if you trust them (docs/SECURITY.md)"
+                "arbitrary code: add --trust-model if you trust them (docs/reference/security.md)"
             )
         if self.scenes < 1 or self.episodes_per_run < 1:
             raise ValueError("--scenes and --episodes-per-run must be >= 1")

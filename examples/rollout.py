@@ -9,7 +9,7 @@ The ego follows its lane with IDM (``policies.planners.IDMPlanner``); every othe
 is driven by ``RiskFlowAdversary`` (the shipped checkpoint unless ``--checkpoint``): one
 generator pass plans 5 s for every vehicle, the top-K critical ones (``A_c``) are guided
 toward risky interactions, and it re-plans every ``--planning-interval`` seconds. The
-adversary runs with its defaults, the realistic base of docs/REALISM.md (20 avoidance
+adversary runs with its defaults, the realistic base of docs/explanation/realism.md (20 avoidance
 steps pull the base plans apart and onto the road, parked cars within 4 m of rest keep
 standing, new plans blended into the executed ones first) with the map term weighted 20
 (the guided vehicles keep to the road while they attack); ``--avoid-steps 0

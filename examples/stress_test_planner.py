@@ -21,7 +21,7 @@ the worst failures), ``summary.json``, ``episodes.jsonl`` and a replay file per 
     riskflow-stress replay outputs/stress/failures/<scene>-seed0.npz \\
         --planner examples/stress_test_planner.py:my_planner
 
-docs/STRESS.md explains the outputs.
+docs/tutorials/stress-test.md explains the outputs.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
     python examples/train_ego_ppo.py --seed 0 --vec-env dummy --out runs/ego_maneuver/seed0
     python examples/train_ego_ppo.py --help
 
-Results, budget and the commands of the documented runs: docs/RL.md.
+Results, budget and the commands of the documented runs: docs/tutorials/rl-ego.md.
 
 The ego drives ``RiskFlowEgo-v0`` (:class:`~policies.rl.envs.EgoTrainingEnv`); the RiskFlow
 adversary drives every other vehicle, with a curriculum that ramps ``k`` and the guidance
@@ -11,7 +11,7 @@ weight ``lambda_adv`` (and optionally switches the target) over the first
 ``ramp_fraction`` of training (:mod:`policies.rl.curriculum`). Episodes come from the
 shipped *training* bank; evaluate on the evaluation bank with ``examples/evaluate_ego.py``.
 
-The defaults are the recipe that learns within the budget of docs/RL.md: every 0.2 s
+The defaults are the recipe that learns within the budget of docs/tutorials/rl-ego.md: every 0.2 s
 (``--action-repeat 2``) the policy chooses one of 15 fixed maneuvers (brake / hold /
 accelerate, each straight, as a lane change or as a turn to either side;
 ``--maneuver-actions``), added to lane keeping (``--base-planner lane``), and it sees,
@@ -30,10 +30,10 @@ cheaper way out of a crash than the crash itself (both end the episode).
 The adversary plans on the CPU; that is the cost of a step. Training uses a cheaper one
 than the evaluation's (``guidance_steps`` 10 and a re-plan every 1.0 s instead of 30 and
 0.5 s): measured on the shared 2-core CPU, one env steps at about 230 steps/s with it
-against about 60 steps/s with the default (docs/RL.md).
+against about 60 steps/s with the default (docs/tutorials/rl-ego.md).
 
 Writes to ``--out``: ``options.json``; ``initial_model.zip`` (the untrained policy, the
-baseline of docs/RL.md) and ``final_model.zip``, each with its ``*_vecnormalize.pkl``
+baseline of docs/tutorials/rl-ego.md) and ``final_model.zip``, each with its ``*_vecnormalize.pkl``
 observation statistics; ``checkpoints/`` every ``--checkpoint-every`` steps;
 ``progress.csv`` (SB3's CSV log: returns, losses, ``rollout/ego_collision_rate``,
 ``curriculum/*``) and TensorBoard event files with ``--tensorboard``.

@@ -1,4 +1,4 @@
-"""Scene policies that drive the non-ego vehicles (docs/ARCHITECTURE.md).
+"""Scene policies that drive the non-ego vehicles (docs/explanation/architecture.md).
 
 The scene policies are importable from here, loaded on first use (``import policies``
 stays light):

@@ -3,7 +3,7 @@
 :class:`ScenePolicy` lives beside :class:`~riskflow_env.view.SceneView` in
 :mod:`riskflow_env.view`, and the helpers every policy uses (:func:`controlled_mask`,
 :func:`actions_dict`) in :mod:`riskflow_env.agents.base`: the env drives its traffic
-through them without importing ``policies`` (docs/ARCHITECTURE.md).
+through them without importing ``policies`` (docs/explanation/architecture.md).
 """
 
 from __future__ import annotations

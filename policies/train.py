@@ -23,7 +23,7 @@ The loop (batches, Adam, clipping, EMA, validation, checkpoints, ``--resume``) i
   the data's 7.2; ADE 1.58 against 1.51 m).
 * ``--generator diffusion``: the DDPM denoiser of the CTG / CTG++ / CCDiff-style
   baselines (:class:`~policies.baselines.diffusion.train.DiffusionObjective`; same
-  network, data, EMA and validation; docs/BASELINES.md).
+  network, data, EMA and validation; docs/how-to/baselines.md).
 """
 
 from __future__ import annotations

@@ -33,7 +33,7 @@ def _integer(name: str, value: int, minimum: int, maximum: int = 1_000_000) -> N
 
 @dataclass(frozen=True)
 class DynamicsConfig:
-    """Unicycle model bounds and time step (docs/ARCHITECTURE.md).
+    """Unicycle model bounds and time step (docs/explanation/architecture.md).
 
     Attributes:
         dt: integration step [s].

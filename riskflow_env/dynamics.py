@@ -4,7 +4,7 @@ One implementation, written against the array API, serves numpy arrays (the env,
 float32 or float64) and torch tensors (policies: differentiable, any device).
 
 State ``(..., 4)`` = ``(x [m], y [m], v [m/s], psi [rad])``; action ``(..., 2)`` =
-``(accel [m/s^2], yaw_rate [rad/s])``. Semi-implicit scheme (docs/ARCHITECTURE.md),
+``(accel [m/s^2], yaw_rate [rad/s])``. Semi-implicit scheme (docs/explanation/architecture.md),
 applied in this order, with the heading *before* the step in the position update::
 
     x   += cos(psi) * (v + 0.5 * a * dt) * dt

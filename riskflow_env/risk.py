@@ -1,6 +1,6 @@
 """Time-to-collision (TTC) risk and pairwise interaction features ``e_ij``.
 
-Implements docs/ARCHITECTURE.md (the RiskFlow paper's TTC risk weighting). Everything
+Implements docs/explanation/architecture.md (the RiskFlow paper's TTC risk weighting). Everything
 is a pure function written once against the array API, so the same code serves numpy
 (env observations) and torch (policy encoder features, differentiable). All ordered
 pairs ``(i, j)`` are computed at once by broadcasting; any leading dims (time, batch)

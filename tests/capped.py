@@ -1,6 +1,6 @@
 """Run one loader call in a child process under an address-space cap and a timeout.
 
-The hostile-input tests (docs/RELIABILITY.md) feed small generated files to the loaders;
+The hostile-input tests (docs/reference/reliability.md) feed small generated files to the loaders;
 each call runs in its own Python process whose address space is capped
 (``resource.setrlimit(RLIMIT_AS)``), so a file that would allocate gigabytes fails that
 process, not the test run, and the outcome (the exception's type and message, the seconds

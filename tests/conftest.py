@@ -5,7 +5,7 @@ Tiers (markers registered in pyproject.toml). Every test gets exactly one of ``u
 no test file has to list its own:
 
 1. a tier marker the test's file gives it (``pytestmark`` or a decorator) is kept: the
-   reliability tests (docs/RELIABILITY.md) are marked where they are written;
+   reliability tests (docs/reference/reliability.md) are marked where they are written;
 2. ``docs``: tests/test_docs.py (every README / docs snippet, run in a subprocess);
 3. ``integration``: tests that build envs and policies and run closed loops, or run the
    programs as a user does: every test under ``INTEGRATION_PATHS``, every test that uses a

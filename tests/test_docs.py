@@ -45,7 +45,7 @@ from tests.riskflow_env.scenarios.scenarionet_datasets import write_dataset
 from tests.samples import SCENARIONET_DIR
 
 ROOT = Path(__file__).resolve().parents[1]
-DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 SAMPLE_DIR = SCENARIONET_DIR
 SAMPLE_DATASET = "sd_nuscenes_mini"  # the samples as a ScenarioNet dataset folder
 TIMEOUT = 600  # [s] per block
@@ -136,7 +136,7 @@ SLOW: dict[tuple[str, str], str] = {
     ("README.md", "python examples/train_ego_ppo.py"): "PPO training and evaluation, about 50 s",
     # 9 PPO training / evaluation processes (each loads stable-baselines3 and plays its
     # evaluation episodes against the adversary): about 110 s even at 64 timesteps.
-    ("docs/RL.md", "python examples/train_ego_ppo.py"): "PPO training and evaluation, about 110 s",
+    ("docs/tutorials/rl-ego.md", "python examples/train_ego_ppo.py"): "PPO training and evaluation, about 110 s",
 }
 
 

@@ -9,7 +9,7 @@ import pytest
 
 from tests.capped import run_capped
 
-pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+pytestmark = pytest.mark.reliability  # docs/reference/reliability.md
 
 EVAL = "from policies.evaluation.cli import main\n"
 

@@ -1,4 +1,4 @@
-"""The layers point one way (docs/ARCHITECTURE.md): ``riskflow_env`` imports nothing from
+"""The layers point one way (docs/explanation/architecture.md): ``riskflow_env`` imports nothing from
 ``policies``, and no module imports another that imports it back."""
 
 from __future__ import annotations

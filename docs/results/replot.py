@@ -3,7 +3,7 @@
     python docs/results/replot.py docs/results/ksweep docs/results/horizon docs/results/ablation
 
 ``riskflow-eval report`` needs the per-rollout KDD samples, which are not committed
-(docs/RESULTS.md); the metric tables of ``report.md`` hold every value these plots show
+(docs/explanation/results.md); the metric tables of ``report.md`` hold every value these plots show
 (rounded to 3 decimals). ``speed.png`` and ``report.md`` are left as they are.
 """
 

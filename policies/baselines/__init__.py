@@ -3,7 +3,7 @@ STRIVE-style latent optimisation.
 
 The guided-diffusion baselines (CTG-, CTG++-, CCDiff-style) are in
 :mod:`policies.baselines.diffusion`; the rule-based references (IDM traffic, log replay,
-constant velocity) ship with the env in :mod:`riskflow_env.agents`. docs/BASELINES.md
+constant velocity) ship with the env in :mod:`riskflow_env.agents`. docs/how-to/baselines.md
 maps each baseline to its original.
 """
 

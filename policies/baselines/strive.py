@@ -18,7 +18,7 @@ attacker at a time, :func:`policies.learned.ranking.ego_attacker`) and the optio
 vehicles (``lambda_sep``; the original penalises collisions between agents that are not
 the attacker and its target too), so the comparison isolates latent against
 output-space optimisation; the other vehicles keep their base plans bit for bit, and
-``k = 0`` is the unguided generator exactly. docs/BASELINES.md ("STRIVE-style") maps each
+``k = 0`` is the unguided generator exactly. docs/how-to/baselines.md ("STRIVE-style") maps each
 part to the original, says what is simplified and why, and gives the measured effect and
 cost.
 """
@@ -53,7 +53,7 @@ from riskflow_env._array import attach_gradient
 
 DEFAULT_LAMBDA_PRIOR = 1.0  # weight of ||eps_c||^2 / 2 [per unit of normalised noise^2]
 # Adam's learning rate on the latent [normalised noise units per step]: STRIVE-style's best
-# of 0.03 / 0.1 / 0.3 at every K (docs/RESULTS.md section 4), for either target (RiskFlow's
+# of 0.03 / 0.1 / 0.3 at every K (docs/explanation/results.md section 4), for either target (RiskFlow's
 # default follows the target: policies.riskflow.guidance.STEP_SIZES)
 DEFAULT_STEP_SIZE = 0.1
 
@@ -143,7 +143,7 @@ class StriveAdversary(GeneratorPolicy):
             ``eps`` as ``RiskFlowAdversary`` with the same seed), or as keywords.
         lambda_prior: weight of the latent prior ``||eps_c||^2 / 2``, >= 0.
         step_size: Adam's learning rate [normalised noise units per step] (default 0.1,
-            this method's best, docs/RESULTS.md section 4), or ``gamma`` of plain steps.
+            this method's best, docs/explanation/results.md section 4), or ``gamma`` of plain steps.
         guidance_steps: ``K_g`` latent optimisation steps per cycle.
         optimizer: ``"adam"`` (``torch.optim.Adam`` on the latent, STRIVE's) or
             ``"gradient"`` (plain steps).

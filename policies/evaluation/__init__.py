@@ -1,4 +1,4 @@
-"""Closed-loop evaluation harness: ``riskflow-eval`` (docs/EVALUATION.md, docs/METRICS.md).
+"""Closed-loop evaluation harness: ``riskflow-eval`` (docs/tutorials/reproduce.md, docs/reference/metrics.md).
 
 ==================  ==============================================================
 module              concept

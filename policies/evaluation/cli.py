@@ -1,4 +1,4 @@
-"""``riskflow-eval``: closed-loop evaluation of the adversaries and baselines (docs/EVALUATION.md).
+"""``riskflow-eval``: closed-loop evaluation of the adversaries and baselines (docs/tutorials/reproduce.md).
 
 ::
 

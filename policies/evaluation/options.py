@@ -81,7 +81,7 @@ class EvalOptions:
     """torch device of the learned methods"""
     batch_scenes: int = 1
     """rollouts stepped as one batch: up to N scenes of one method, K and interval at once,
-    the learned adversaries planning them in one call (docs/EVALUATION.md); 1: one rollout
+    the learned adversaries planning them in one call (docs/tutorials/reproduce.md); 1: one rollout
     at a time"""
     out: str = "outputs/eval"
     """output directory (results.jsonl, samples/, report.md, plots)"""

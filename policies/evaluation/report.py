@@ -239,7 +239,7 @@ def write_report(out: str | Path, plots: bool = True) -> Path:
         "the non-ego vehicles. WOSAC: mean per-rollout metametric (one rollout per scene "
         "and seed). TTFC: mean time [s] of the first collision (any / the ego's) over "
         "the rollouts that have one. CS, RS: min-max normalised across the scenario "
-        "generators of each table (docs/METRICS.md; 'ref.': reference traffic, outside "
+        "generators of each table (docs/reference/metrics.md; 'ref.': reference traffic, outside "
         f"the normalisation); CS normalises {_SAFETY_NAMES[tables[0].safety_metric]}. "
         "Compare them only within a table.",
     ]  # fmt: skip

@@ -1,7 +1,7 @@
 """What every learned adversary shares (RiskFlow, STRIVE-style, the diffusion baselines).
 
 * model input: :mod:`~policies.learned.window_types` (``Window``, ``WindowBatch``:
-  a scene as the model sees it, docs/WINDOWS.md), :mod:`~policies.learned.windows`
+  a scene as the model sees it, docs/how-to/windows.md), :mod:`~policies.learned.windows`
   (building them), :mod:`~policies.learned.data`, :mod:`~policies.learned.batches`,
   :mod:`~policies.learned.data_cache`, :mod:`~policies.learned.synthetic`;
 * the network: :mod:`~policies.learned.config`, :mod:`~policies.learned.encoder`
@@ -21,6 +21,6 @@
   :mod:`~policies.learned.plan_penalties` (collision / off-road penalties of plans).
 
 The planning cycle that strings these together is :mod:`policies.pipeline`. Nothing here
-imports :mod:`policies.riskflow` or :mod:`policies.baselines` (docs/ARCHITECTURE.md);
+imports :mod:`policies.riskflow` or :mod:`policies.baselines` (docs/explanation/architecture.md);
 import the submodules directly.
 """

@@ -1,6 +1,6 @@
 """Training batches: the train / validation split, cached windows, seeded batch order.
 
-Windows come from ``WindowDataset`` (``docs/WINDOWS.md``), cached as ``.npz`` under the
+Windows come from ``WindowDataset`` (``docs/how-to/windows.md``), cached as ``.npz`` under the
 scene folder's ``cache/`` (the user cache for the shipped bank: ``data_cache``). The
 batch order of an epoch is a pure function of (seed, epoch), so a resumed run sees the
 same batches as an uninterrupted one; batches are drawn from pools sorted by agent count,

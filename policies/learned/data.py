@@ -1,6 +1,6 @@
 """Scene-centric training windows as a torch ``Dataset``, batching, action normalisation.
 
-Windows follow docs/WINDOWS.md and are built by
+Windows follow docs/how-to/windows.md and are built by
 :func:`policies.learned.windows.window_from_scenario`, once, when the dataset is
 made; they are packed into a few flat arrays (agents of all windows end to end), so
 ``__getitem__`` only slices. ``cache_path`` keeps the packed arrays in an ``.npz`` file,

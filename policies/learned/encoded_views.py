@@ -26,7 +26,7 @@ class EncodedView:
     """One cycle's observation of the scene (:meth:`EncodedViews.view`).
 
     Attributes:
-        window: the :class:`Window` (``docs/WINDOWS.md``; ego frame, ego in slot 0; no
+        window: the :class:`Window` (``docs/how-to/windows.md``; ego frame, ego in slot 0; no
             future fields).
         slots: (A_w,) env slot of each window row.
         batch: the collated window (batch of one, no padding) on the policy's device.
@@ -53,7 +53,7 @@ class EncodedViews:
     """One planning call's observation of B scenes (:func:`encode_views`).
 
     Attributes:
-        windows: the B :class:`Window` objects (``docs/WINDOWS.md``; ego frame, ego in
+        windows: the B :class:`Window` objects (``docs/how-to/windows.md``; ego frame, ego in
             slot 0; no future fields).
         slots: B arrays (A_b,): env slot of each window row of each scene.
         batch: the collated windows (agents padded to A = max A_b) on the policy's device.

@@ -1,6 +1,6 @@
 """Scene encoder: per-agent context ``C_i`` from histories, pair features and map crops.
 
-RiskFlow (docs/GENERATOR.md): each agent's history is embedded in the agent's own
+RiskFlow (docs/how-to/train-generator.md): each agent's history is embedded in the agent's own
 current frame, cut into tokens of ``history_patch`` steps, and passed through
 alternating *temporal* attention (over one agent's tokens) and *social* attention
 (over agents, at each token) layers; social attention gets an additive bias
@@ -14,7 +14,7 @@ with ``h_i`` the history embedding at the current token. The encoder does not de
 on the flow variables ``(z, t, r)``, so the MeanFlow objective runs it once, outside
 its JVP (``meanflow.py``).
 
-Input: a :class:`~policies.learned.window_types.WindowBatch` (``docs/WINDOWS.md``):
+Input: a :class:`~policies.learned.window_types.WindowBatch` (``docs/how-to/windows.md``):
 tensors with a leading batch axis ``B`` and a padded agent axis ``A``.
 """
 
@@ -56,7 +56,7 @@ def check_batch(batch: WindowBatch, config: ModelConfig) -> tuple[int, int]:
         ValueError: naming a field whose shape is not the one ``config`` expects.
     """
     if not isinstance(batch, WindowBatch):
-        raise TypeError(f"the encoder takes a WindowBatch (docs/WINDOWS.md), got {type(batch)}")
+        raise TypeError(f"the encoder takes a WindowBatch (docs/how-to/windows.md), got {type(batch)}")
     sizes = {"B": batch.batch_size, "A": batch.num_agents}
     for name, spec in ENCODER_FIELDS.items():
         expected = tuple(
@@ -174,7 +174,7 @@ class SceneEncoder(nn.Module):
         return x, valid.reshape(batch_size, agents, tokens, patch).any(dim=-1)
 
     def forward(self, batch: WindowBatch) -> SceneContext:
-        """Encode a batch of windows (``docs/WINDOWS.md``; the future fields are ignored).
+        """Encode a batch of windows (``docs/how-to/windows.md``; the future fields are ignored).
 
         Every per-agent layer runs on the real agents only (``packing.py``); the social
         attention scores of each scene use the padded agent axis.

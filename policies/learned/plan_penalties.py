@@ -12,7 +12,7 @@ the data's smoothness:
   not overlap in the reference at that step;
 * :func:`offroad_penalty`: ``relu(sdf + w / 2 - allowance)^2`` [m^2] at each planned
   centre, read bilinearly from the agent's own map crop (``map_crops`` channel 1: the
-  SDF [m], negative on the road; ``docs/WINDOWS.md``), where ``w / 2`` asks for the
+  SDF [m], negative on the road; ``docs/how-to/windows.md``), where ``w / 2`` asks for the
   whole width on the road and ``allowance = relu(sdf_ref + w / 2)`` forgives what the
   reference itself does. Steps that leave the crop (48 m at 1 m/px: about the first
   2 s at highway speed) get no term;

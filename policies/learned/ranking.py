@@ -3,7 +3,7 @@
 RiskFlow (Lan et al. 2026, "RiskFlow: Fast and Faithful Safety-Critical Traffic Scenario
 Generation") guides only the top-K *critical* agents, found, as in CCDiff (Lin et al.
 2025, "Causal Composition Diffusion Model for Closed-loop Traffic Generation"), from the
-structure of the scene's interactions (docs/ARCHITECTURE.md):
+structure of the scene's interactions (docs/explanation/architecture.md):
 
 1. **Risk graph.** The pairwise TTC risk ``r_ij`` (``riskflow_env.risk``, in [0, 1]; 0 for
    pairs beyond 50 m) is symmetrised, ``w_ij = max(r_ij, r_ji)`` (TTC is measured in
@@ -187,7 +187,7 @@ def rank_window(
     threshold: float = DEFAULT_THRESHOLD,
     candidates: np.ndarray | None = None,
 ) -> Ranking:
-    """:func:`causal_ranking` of one window (docs/WINDOWS.md; slot 0 is the ego).
+    """:func:`causal_ranking` of one window (docs/how-to/windows.md; slot 0 is the ego).
 
     Uses the ``risk`` channel of ``pair_features`` (already masked beyond 50 m), the
     ``agent_mask`` and the current positions of ``history`` for the distance tie-break.

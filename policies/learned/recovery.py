@@ -2,7 +2,7 @@
 
 A generator trained only on logged windows never sees itself slightly off course, so in
 closed loop, where each plan starts from the small error of the one before, the errors
-add up (docs/REALISM.md: the off-road share grows from 0.8% of agent-steps in the first
+add up (docs/explanation/realism.md: the off-road share grows from 0.8% of agent-steps in the first
 2 s to 29% in the last 2 s). ChauffeurNet (Bansal, Krizhevsky & Ogale, "ChauffeurNet:
 Learning to Drive by Imitating the Best and Synthesizing the Worst", RSS 2019, section
 4.1) synthesises perturbed trajectories whose history drifts off the log and whose

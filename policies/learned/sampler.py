@@ -2,7 +2,7 @@
 
 MeanFlow (Geng et al. 2025) samples with one evaluation of the average velocity over
 the whole interval: ``z_1 = z_0 + (1 - 0) u(z_0, 0, 1)``, ``z_0 = eps`` (noise at t = 0,
-data at t = 1; docs/GENERATOR.md). One forward pass serves every agent of every
+data at t = 1; docs/how-to/train-generator.md). One forward pass serves every agent of every
 scene in the batch (and, with ``num_samples``, every sample).
 """
 
@@ -22,7 +22,7 @@ from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout
 def base_velocity(model: RiskFlowGenerator, eps: Tensor, scene: SceneContext) -> Tensor:
     """``u0 = u_theta(eps, 0, 1; C)``: the one-step residual, normalised (differentiable).
 
-    Output-space guidance (docs/GENERATOR.md) starts from it; ``eps + u0`` is the plan.
+    Output-space guidance (docs/how-to/train-generator.md) starts from it; ``eps + u0`` is the plan.
 
     Args:
         model: the generator.
@@ -89,7 +89,7 @@ def sample(
     Args:
         model: the generator.
         scene_or_batch: a :class:`SceneContext` (``model.encode(batch)``) or a batch
-            of windows (``docs/WINDOWS.md``; future fields not needed).
+            of windows (``docs/how-to/windows.md``; future fields not needed).
         eps: noise ``(B, A, T, 2)``, or ``(B, N, A, T, 2)`` with ``num_samples = N``;
             None draws it from ``generator``. A fixed ``eps`` gives the same plans.
         normalizer: action normalisation (``denormalize``).

@@ -1,7 +1,7 @@
 """Random but dynamically consistent window batches, for tests and benchmarks.
 
 :func:`synthetic_batch` makes a :class:`~policies.learned.window_types.WindowBatch`
-(``docs/WINDOWS.md``, future fields included)
+(``docs/how-to/windows.md``, future fields included)
 without any data or map: vehicles on a straight three-lane road, driven by smooth
 random actions through ``riskflow_env.dynamics.rollout``, so ``rollout(current
 state, actions)`` reproduces ``future`` exactly (no bound is reached). Some scenes

@@ -1,7 +1,7 @@
 """The training loop every generator kind shares; the objective is an argument.
 
 :func:`fit` runs ``options.steps`` optimiser steps on batches of windows
-(``docs/WINDOWS.md``): the :class:`Objective`'s loss (MeanFlow's in
+(``docs/how-to/windows.md``): the :class:`Objective`'s loss (MeanFlow's in
 ``policies.riskflow.meanflow``, the DDPM's in ``policies.baselines.diffusion.train``),
 Adam, gradient-norm clipping and the EMA of the weights (``ema.EMA``), which is what is
 validated and saved. Validation (``validation.evaluate``) samples the objective's

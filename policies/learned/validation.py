@@ -1,6 +1,6 @@
 """Validation of a generator on held-out windows: ADE/FDE, minADE over K samples, smoothness.
 
-For every batch of windows (``docs/WINDOWS.md``, future fields included) :func:`evaluate`
+For every batch of windows (``docs/how-to/windows.md``, future fields included) :func:`evaluate`
 measures, over every agent with at least one valid future step:
 
 * ``ade`` / ``fde`` [m]: one-step samples (``sampler.sample`` with one ``eps`` per plan);

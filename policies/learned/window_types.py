@@ -1,7 +1,7 @@
 """The model's input as types: one :class:`Window`, a collated :class:`WindowBatch`.
 
 A :class:`Window` is one scene at one current step, in the scene frame (the ego's pose
-at the current step), as numpy arrays (docs/WINDOWS.md); it holds exactly its ``A``
+at the current step), as numpy arrays (docs/how-to/windows.md); it holds exactly its ``A``
 selected agents. :func:`collate_windows` stacks windows into a :class:`WindowBatch` of
 torch tensors with a leading batch axis ``B``, padding the agent axis to the largest
 ``A`` of the batch (padded slots are 0 / False, ``agent_index`` -1, so every mask is
@@ -94,7 +94,7 @@ class _WindowFields:
 
 @dataclass(frozen=True, eq=False)
 class Window(_WindowFields):
-    """One scene at one current step (docs/WINDOWS.md); slot 0 is the ego.
+    """One scene at one current step (docs/how-to/windows.md); slot 0 is the ego.
 
     Frame: positions and headings in the scene frame (the ego's pose at the current
     step, ego at the origin heading along +x); headings wrapped to (-pi, pi]. States at
@@ -227,7 +227,7 @@ class WindowBatch(_WindowFields):
     def require_future(self, what: str) -> None:
         """Raise ValueError naming ``what`` if the future fields are not set."""
         if not self.has_future:
-            raise ValueError(f"{what} needs a batch with the future fields (docs/WINDOWS.md)")
+            raise ValueError(f"{what} needs a batch with the future fields (docs/how-to/windows.md)")
 
 
 def collate_windows(windows: Sequence[Window]) -> WindowBatch:

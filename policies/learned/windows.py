@@ -1,4 +1,4 @@
-"""Training windows: one scene at one current step, in the ego's frame (docs/WINDOWS.md).
+"""Training windows: one scene at one current step, in the ego's frame (docs/how-to/windows.md).
 
 :func:`build_window` is the one function that turns agent tracks into the
 :class:`~policies.learned.window_types.Window` of the RiskFlow model. Two entry points share it:
@@ -94,7 +94,7 @@ def build_window(
     config: WindowConfig,
     with_future: bool = True,
 ) -> Window:
-    """The :class:`Window` of docs/WINDOWS.md for the agents ``rows`` at ``current_index``.
+    """The :class:`Window` of docs/how-to/windows.md for the agents ``rows`` at ``current_index``.
 
     Steps outside ``[0, T)`` are invalid; invalid states and actions are 0.
 
@@ -239,7 +239,7 @@ def window_from_scenario(
         config: window options; default :class:`WindowConfig`.
 
     Returns:
-        the window (docs/WINDOWS.md) with the future fields; ``agent_index`` holds
+        the window (docs/how-to/windows.md) with the future fields; ``agent_index`` holds
         scenario rows.
     """
     config = config or WindowConfig()

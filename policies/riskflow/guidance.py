@@ -24,7 +24,7 @@ default), keeps the guided vehicles of a scene apart from each other, so that th
 converge on one target as a swarm: ``L_sep`` is the summed squared penetration depth of
 every pair of guided boxes over the guidance horizon (the avoidance steps' objective,
 :func:`~policies.learned.plan_overlap.overlap_gradient`).
-The paper's objective has no such term (``lambda_sep=0``). docs/GENERATOR.md ("Output-space
+The paper's objective has no such term (``lambda_sep=0``). docs/how-to/train-generator.md ("Output-space
 guidance") has the terms, the sign convention and why the steps are Adam steps.
 """
 
@@ -63,7 +63,7 @@ from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout, rollout
 
 OPTIMIZERS = ("gradient", "adam")
 # The default Adam step per target: 0.01 with the paper's target (it keeps the guided traffic
-# nearest the log and still collides more than STRIVE-style, docs/RESULTS.md section 4);
+# nearest the log and still collides more than STRIVE-style, docs/explanation/results.md section 4);
 # 0.1, the paper's step, with target "ego", where smaller steps hit the ego far less often.
 STEP_SIZES = {"others": 0.01, "ego": 0.1}
 MAX_STEPS = 1000  # [-] largest K_g (each step is a backward pass over the plans: ~ms)

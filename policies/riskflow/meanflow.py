@@ -1,6 +1,6 @@
 """The MeanFlow objective in action space, with RiskFlow's trajectory-space loss.
 
-Notation (docs/GENERATOR.md; noise at t = 0, data at t = 1), per agent plan:
+Notation (docs/how-to/train-generator.md; noise at t = 0, data at t = 1), per agent plan:
 
 * ``a*``: normalised ground-truth actions ``(B, A, T, 2)``; ``eps ~ N(0, I)`` alike;
 * ``z_t = (1 - t) eps + t a*`` and ``v = a* - eps`` (the conditional velocity);
@@ -121,7 +121,7 @@ def meanflow_loss(
 
     Args:
         model: the generator.
-        batch: training windows (``docs/WINDOWS.md``), with the future fields.
+        batch: training windows (``docs/how-to/windows.md``), with the future fields.
         normalizer: action normalisation (``normalize`` / ``denormalize``).
         eps: ``(B, A, T, 2)`` standard normal noise.
         t: ``(B,)`` or ``(B, A)`` start times in [0, 1] (``time_sampler.TimeSampler``).

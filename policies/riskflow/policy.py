@@ -1,10 +1,10 @@
-"""``RiskFlowAdversary``: the closed-loop RiskFlow scene policy (docs/ARCHITECTURE.md).
+"""``RiskFlowAdversary``: the closed-loop RiskFlow scene policy (docs/explanation/architecture.md).
 
 It drives every non-ego vehicle. Every planning cycle (``planning_interval``, 0.5 s =
 5 steps by default) it re-plans from the current :class:`~riskflow_env.view.SceneView`
 (receding horizon, as in RiskFlow, Lan et al. 2026):
 
-1. ``encode``: one window (ego frame; docs/WINDOWS.md) and one encoder pass;
+1. ``encode``: one window (ego frame; docs/how-to/windows.md) and one encoder pass;
 2. ``rank``: TTC causal ranking -> the controllable set ``A_c``
    (:mod:`policies.learned.ranking`; from the window's current states, so it comes first:
    the avoidance steps need it); with ``target="ego"`` one attacker at a time, ahead of or

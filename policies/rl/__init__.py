@@ -21,7 +21,7 @@
   parameter sharing, and the reward of learned adversaries.
 
 Examples: ``examples/train_ego_ppo.py``, ``examples/evaluate_ego.py``,
-``examples/train_adversaries_marl.py``; results in ``docs/RL.md``.
+``examples/train_adversaries_marl.py``; results in ``docs/tutorials/rl-ego.md``.
 """
 
 from __future__ import annotations

@@ -118,7 +118,7 @@ def load_ppo_planner(
     file, so loading them runs any code they contain. Load only files you (or someone
     you trust) wrote, and say so with ``trusted=True`` (``--trust-model`` in
     ``examples/evaluate_ego.py``); without it this raises :class:`UntrustedModelError`
-    before reading anything (docs/SECURITY.md).
+    before reading anything (docs/reference/security.md).
 
     the ``VecNormalize`` statistics are read from the same name with ``_vecnormalize.pkl``
     in place of ``.zip`` (checkpoints: ``ppo_N_steps.zip`` -> ``ppo_vecnormalize_N_steps.pkl``)
@@ -134,7 +134,7 @@ def load_ppo_planner(
         raise UntrustedModelError(
             f"{path}: a stable-baselines3 model (and its _vecnormalize.pkl) is a pickle that "
             "can run arbitrary code when loaded; pass trusted=True (examples: --trust-model) "
-            "only for files you trust (docs/SECURITY.md)"
+            "only for files you trust (docs/reference/security.md)"
         )
     model = PPO.load(path, device="cpu")
     stem = path.name.removesuffix(".zip")

@@ -1,4 +1,4 @@
-"""``riskflow-stress``: stress-test your planner against the RiskFlow adversary (docs/STRESS.md).
+"""``riskflow-stress``: stress-test your planner against the RiskFlow adversary (docs/tutorials/stress-test.md).
 
 ::
 

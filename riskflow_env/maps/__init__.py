@@ -1,4 +1,4 @@
-"""Drivable-area maps: raster + signed distance field + lane centrelines (docs/ARCHITECTURE.md).
+"""Drivable-area maps: raster + signed distance field + lane centrelines (docs/explanation/architecture.md).
 
 Public names:
 

@@ -1,6 +1,6 @@
 """DrivableMap: a boolean drivable-area raster, its signed distance field, and lanes.
 
-Conventions (docs/ARCHITECTURE.md):
+Conventions (docs/explanation/architecture.md):
 
 * World frame in metres; ``origin`` is the world (x, y) of the lower-left corner of
   pixel [0, 0]; row ``i`` covers y in [oy + i*res, oy + (i+1)*res), column ``j``

@@ -1,8 +1,8 @@
-"""Evaluation metrics (docs/METRICS.md): pure numpy functions over rollout records.
+"""Evaluation metrics (docs/reference/metrics.md): pure numpy functions over rollout records.
 
 A :class:`RolloutRecord` holds one rollout's simulated tracks, its logged reference,
 masks, sizes, the map and the ego slot (``RolloutRecord.from_scenario`` builds one from
-an env episode). Definitions with formulas: ``docs/METRICS.md``.
+an env episode). Definitions with formulas: ``docs/reference/metrics.md``.
 
 ==============  =======================================  ==============================
 metric          per rollout                              over rollouts

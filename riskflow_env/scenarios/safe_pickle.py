@@ -22,7 +22,7 @@ checked against the raw data and the limits below. Every failure, whatever its
 cause (``MemoryError``, ``IndexError``, ``LookupError``, ``RecursionError``...),
 is raised as one ``ValueError`` naming the file.
 
-Limits (module constants, see docs/SECURITY.md), each measured against the largest of
+Limits (module constants, see docs/reference/security.md), each measured against the largest of
 the four nuScenes samples of ScenarioNet (4.1 MB file, 510,000 elements, 3.5 MB of
 arrays): :data:`MAX_FILE_BYTES` (file size), :data:`MAX_ARRAY_BYTES` (one array, byte
 string or set built by a call), :data:`MAX_TOTAL_BYTES` (all that the calls of one file

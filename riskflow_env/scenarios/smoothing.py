@@ -18,7 +18,7 @@ unchanged.
 |longitudinal acceleration|, |lateral acceleration| and |jerk| (the KDD features), to
 compare raw and filtered logs. On the four nuScenes v1.0-mini samples, over the steps of
 moving vehicles (> 1 m/s), p95 |a_lon| falls from 6.0-11.0 to 2.1-3.6 m/s^2 and p95
-|jerk| from 117-182 to 4.7-8.8 m/s^3 (docs/REAL_DATA.md); positions move by at most
+|jerk| from 117-182 to 4.7-8.8 m/s^3 (docs/tutorials/real-data.md); positions move by at most
 centimetres at the 95th percentile.
 """
 

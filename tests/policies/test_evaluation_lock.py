@@ -14,7 +14,7 @@ import pytest
 from policies.evaluation import EvalOptions, ResultsLocked, ResultsStore, prepare
 from policies.evaluation.cli import main
 
-pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+pytestmark = pytest.mark.reliability  # docs/reference/reliability.md
 
 TINY = EvalOptions(methods=("idm",), scenes=1, duration=1.0, report=False)
 

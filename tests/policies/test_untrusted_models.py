@@ -4,7 +4,7 @@ import pytest
 
 from policies.rl.evaluation import UntrustedModelError, load_ppo_planner
 
-pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+pytestmark = pytest.mark.reliability  # docs/reference/reliability.md
 
 
 def test_ppo_model_needs_trusted(tmp_path):

@@ -8,7 +8,7 @@ import pytest
 
 from riskflow_env.folder_lock import LOCK_NAME, FolderLock, FolderLocked
 
-pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+pytestmark = pytest.mark.reliability  # docs/reference/reliability.md
 
 
 def test_second_lock_is_refused_until_the_first_is_released(tmp_path):

@@ -12,7 +12,7 @@ from riskflow_env.config import DynamicsConfig, EnvConfig, ObservationConfig
 from riskflow_env.scenarios import ScenarioFormatError, load_scenario, save_scenario
 from riskflow_env.wrappers import EgoEnv
 
-pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+pytestmark = pytest.mark.reliability  # docs/reference/reliability.md
 
 _spec = importlib.util.spec_from_file_location(
     "_io_tests", Path(__file__).parent / "scenarios" / "test_io.py"

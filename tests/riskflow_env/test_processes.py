@@ -14,7 +14,7 @@ import pytest
 
 pytestmark = [
     pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc"),
-    pytest.mark.reliability,  # docs/RELIABILITY.md
+    pytest.mark.reliability,  # docs/reference/reliability.md
 ]
 
 # the parent starts one child, prints its pid, then waits to be killed

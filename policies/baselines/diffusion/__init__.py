@@ -1,4 +1,4 @@
-"""Guided-diffusion baselines: CTG-, CTG++- and CCDiff-style adversaries (docs/BASELINES.md).
+"""Guided-diffusion baselines: CTG-, CTG++- and CCDiff-style adversaries (docs/how-to/baselines.md).
 
 One action-space DDPM (RiskFlow's encoder and head as the denoiser, ``model.py``;
 schedule and DDIM in ``schedule.py``; trained by ``riskflow-train --generator

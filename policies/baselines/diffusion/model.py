@@ -185,7 +185,7 @@ def load_diffusion(
         path,
         DEFAULT_NAME,
         "diffusion",
-        "`riskflow-train --generator diffusion` (docs/BASELINES.md)",
+        "`riskflow-train --generator diffusion` (docs/how-to/baselines.md)",
     )
     diffusion = DiffusionConfig.from_train_config(checkpoint.get("train_config"))
     network, normalizer, metadata = frozen_generator(checkpoint, config, device)

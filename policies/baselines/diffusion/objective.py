@@ -50,7 +50,7 @@ def diffusion_loss(
 
     Args:
         denoiser: the denoiser (its network is what is trained).
-        batch: training windows (``docs/WINDOWS.md``) with the future fields.
+        batch: training windows (``docs/how-to/windows.md``) with the future fields.
         normalizer: action normalisation.
         eps: ``(B, A, T, 2)`` standard normal noise.
         k: ``(B,)`` int levels in ``[0, K)`` (:func:`draw_levels`).

@@ -24,7 +24,7 @@ gets the plans it gets alone, to float rounding.
 All the cycle's noise (chain start and every transition; kept in ``noise``, shape
 ``(levels + 1, A_window, T, 2)``) is drawn from the seeded generator, so the same seed
 gives the same rollout; ``k = 0`` gives the unguided
-diffusion generator. Method mapping and simplifications: ``docs/BASELINES.md``.
+diffusion generator. Method mapping and simplifications: ``docs/how-to/baselines.md``.
 """
 
 from __future__ import annotations

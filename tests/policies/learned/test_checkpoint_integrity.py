@@ -16,7 +16,7 @@ from policies.learned.checkpoint import (
 )
 from policies.learned.generator import CheckpointError
 
-pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+pytestmark = pytest.mark.reliability  # docs/reference/reliability.md
 
 SHIPPED = "policies/checkpoints/riskflow_default.pt"
 DIFFUSION = "policies/checkpoints/diffusion_default.pt"

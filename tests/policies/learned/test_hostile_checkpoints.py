@@ -16,7 +16,7 @@ import torch
 from policies.learned.checkpoint import save_checkpoint
 from tests.capped import Outcome, run_capped
 
-pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+pytestmark = pytest.mark.reliability  # docs/reference/reliability.md
 
 SHIPPED = Path("policies/checkpoints/riskflow_default.pt")
 SETUP = "from policies.learned.checkpoint import load_generator"

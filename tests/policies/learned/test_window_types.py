@@ -20,7 +20,7 @@ from policies.learned.window_types import (
 
 
 def make_window(num_agents: int, with_future: bool = True, seed: int = 0) -> Window:
-    """A window of random values with the shapes of docs/WINDOWS.md (H=3, F=4, S=5)."""
+    """A window of random values with the shapes of docs/how-to/windows.md (H=3, F=4, S=5)."""
     rng = np.random.default_rng(seed)
     a = num_agents
     future = {}

@@ -1,4 +1,4 @@
-"""Training windows (docs/WINDOWS.md): shapes, scene frame, actions, selection, live view."""
+"""Training windows (docs/how-to/windows.md): shapes, scene frame, actions, selection, live view."""
 
 from __future__ import annotations
 

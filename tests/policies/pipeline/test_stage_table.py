@@ -1,4 +1,4 @@
-"""docs/ARCHITECTURE.md's table of the methods' stage lists is each method's real list."""
+"""docs/explanation/architecture.md's table of the methods' stage lists is each method's real list."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from policies.registry import build_policy
 
 pytestmark = pytest.mark.integration
 
-DOC = Path(__file__).resolve().parents[3] / "docs" / "ARCHITECTURE.md"
+DOC = Path(__file__).resolve().parents[3] / "docs" / "explanation" / "architecture.md"
 ROW = re.compile(r"^\| (`[^|]+`) \| `[^|]+` \| ([^|]+) \|$")
 
 

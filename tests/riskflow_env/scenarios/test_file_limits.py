@@ -14,7 +14,7 @@ from riskflow_env.scenarios.io import load_map, load_scenario
 from riskflow_env.scenarios.safe_pickle import loads_data_pickle
 from riskflow_env.scenarios.scenarionet import load_scenarionet
 
-pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+pytestmark = pytest.mark.reliability  # docs/reference/reliability.md
 
 _spec = importlib.util.spec_from_file_location(
     "_scenarionet_tests", Path(__file__).with_name("test_scenarionet.py")

@@ -18,7 +18,7 @@ from riskflow_env.scenarios._npz import write_npz
 from riskflow_env.scenarios.io import ASSETS, load_scenario, save_scenario
 from tests.capped import Outcome, run_capped
 
-pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+pytestmark = pytest.mark.reliability  # docs/reference/reliability.md
 
 SETUP = "from riskflow_env.scenarios.io import load_map, load_scenario"
 SCENE = sorted((ASSETS / "eval").glob("*.npz"))[0]

@@ -14,7 +14,7 @@ import pytest
 from riskflow_env.scenarios import safe_pickle
 from riskflow_env.scenarios.safe_pickle import load_data_pickle, loads_data_pickle
 
-pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+pytestmark = pytest.mark.reliability  # docs/reference/reliability.md
 
 
 def i8(value):

@@ -20,7 +20,7 @@ import shapely
 
 from tests.capped import Outcome, run_capped
 
-pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+pytestmark = pytest.mark.reliability  # docs/reference/reliability.md
 
 SETUP = (
     "from riskflow_env.scenarios.safe_pickle import load_data_pickle\n"

@@ -8,7 +8,7 @@ from riskflow_env.wrappers import EventLogWrapper, read_event_log
 from riskflow_env.wrappers.event_log import EventRecorder
 from tests.riskflow_env.hand_made_scenes import make_env
 
-pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+pytestmark = pytest.mark.reliability  # docs/reference/reliability.md
 
 VEHICLES = [(0.0, 0.0, 0.0, 0.0), (3.0, 0.0, 0.0, 0.0)]
 

@@ -12,7 +12,7 @@ import pytest
 from riskflow_env.wrappers import EventLogWrapper, read_event_log
 from tests.riskflow_env.hand_made_scenes import make_env
 
-pytestmark = pytest.mark.reliability  # docs/RELIABILITY.md
+pytestmark = pytest.mark.reliability  # docs/reference/reliability.md
 
 VEHICLES = [(0.0, 0.0, 0.0, 0.0), (3.0, 0.0, 0.0, 0.0)]
 
