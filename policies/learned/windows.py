@@ -51,7 +51,7 @@ class WindowConfig:
         future_steps: reference future states after the current one [steps].
         crop_size: side of the agent-centred map crops [px].
         crop_resolution: crop pixel size [m/px].
-        sdf_clip: the SDF crop layer is clipped to [-sdf_clip, sdf_clip] [m].
+        sdf_clip: the SDF crop layer is clipped to ``[-sdf_clip, sdf_clip]`` [m].
         max_agents: window slots at most, the ego included.
         max_distance: agents farther than this from the ego at the current step are left
             out [m]; 150 m is beyond what a vehicle closing at 30 m/s covers in the 5.2 s plan.
