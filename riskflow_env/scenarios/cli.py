@@ -5,6 +5,7 @@
     riskflow-data generate --families highway merge roundabout --scenes 300 \\
         --out data/train --seed 0 --workers 8 --split train
     riskflow-data info data/train
+    riskflow-data export data/train/00000-highway.npz --format scenarionet --out exported
 
 ``--stop-share P`` makes each recorded vehicle stop once in its lane with probability P
 (queues behind it, lane changes around it; :class:`~riskflow_env.scenarios.recording.DriverConfig`).
@@ -19,6 +20,10 @@ skipped. One run writes a bank at a time (``OUT/writer.lock``). Workers end as s
 the parent does (``kill -9`` included), so nothing writes into ``OUT`` once the command
 is gone. ``OUT/riskflow-data.json`` records the settings; resuming with different ones
 is refused. Scenes per minute are printed at the end.
+
+``export`` writes scene files (RiskFlow ``.npz``, replay files' starting scenes, ScenarioNet
+``.pkl``) in other tools' formats (:mod:`riskflow_env.scenarios.exchange`) as
+``OUT/<file stem>.<suffix>``.
 """
 
 from __future__ import annotations
@@ -237,7 +242,7 @@ def share(text: str) -> float:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The ``riskflow-data`` parser (subcommands ``generate`` and ``info``)."""
+    """The ``riskflow-data`` parser (subcommands ``generate``, ``info`` and ``export``)."""
     formatter = argparse.ArgumentDefaultsHelpFormatter
     parser = argparse.ArgumentParser(
         prog="riskflow-data", description=__doc__.split("\n")[0], formatter_class=formatter
@@ -266,6 +271,15 @@ def build_parser() -> argparse.ArgumentParser:
         "info", help="count the scenes of a bank per family", formatter_class=formatter
     )
     show.add_argument("directory", type=Path, help="folder of the bank")
+    from riskflow_env.scenarios.exchange import FORMATS
+
+    out = commands.add_parser(
+        "export", help="write scene files in other tools' formats", formatter_class=formatter
+    )
+    out.add_argument("files", type=Path, nargs="+", help="scene files (.npz, ScenarioNet .pkl)")
+    out.add_argument("--format", nargs="+", choices=FORMATS, required=True, dest="formats",
+                     help="formats to write (docs/how-to/exchange.md)")  # fmt: skip
+    out.add_argument("--out", type=Path, required=True, help="folder of the exported files")
     return parser
 
 
@@ -275,6 +289,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.command == "info":
         info(args.directory)
+        return 0
+    if args.command == "export":
+        from riskflow_env.scenarios.exchange import export_files
+
+        try:
+            written = export_files(args.files, tuple(dict.fromkeys(args.formats)), args.out)
+        except (OSError, ValueError) as err:
+            parser.error(f"files: {err}")
+        print(f"riskflow-data: wrote {len(written)} file(s) into {args.out}")
         return 0
     try:
         check_output_folder(args.out, "--out")

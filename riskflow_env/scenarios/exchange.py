@@ -1,0 +1,81 @@
+"""Scenarios in and out of other tools' formats (docs/how-to/exchange.md).
+
+* :func:`export_scenario` writes a :class:`~riskflow_env.scenarios.Scenario` as a
+  ScenarioNet / MetaDrive pickle (:mod:`~riskflow_env.scenarios.scenarionet_export`).
+  A rollout is exported as the scenario of its executed states
+  (``EpisodeRecord.to_scenario()``: every vehicle's history, then what it did).
+* :func:`read_scene` reads one scene file of any kind the package reads (``riskflow-data
+  export`` takes them).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+from riskflow_env.scenarios.scenario import Scenario
+
+FORMATS = ("scenarionet",)
+SUFFIXES = {"scenarionet": ".pkl"}
+
+
+def export_scenario(scenario: Scenario, path: str | os.PathLike, format: str) -> list[Path]:
+    """Write ``scenario`` to ``path`` in ``format`` (one of :data:`FORMATS`).
+
+    Args:
+        scenario: the scene, or a rollout's executed scenario.
+        path: the file to write; its suffix is replaced by the format's
+            (:data:`SUFFIXES`).
+        format: ``"scenarionet"``.
+
+    Returns:
+        The files written.
+    """
+    if format not in FORMATS:
+        raise ValueError(f"format must be one of {FORMATS}, got {format!r}")
+    if not isinstance(scenario, Scenario):
+        raise TypeError(f"scenario must be a Scenario, got {type(scenario).__name__}")
+    path = Path(path).with_suffix(SUFFIXES[format])
+    from riskflow_env.scenarios.scenarionet_export import save_scenarionet
+
+    return [save_scenarionet(scenario, path)]
+
+
+def read_scene(path: str | os.PathLike) -> Scenario:
+    """The scene of ``path``: a RiskFlow ``.npz`` scene (or replay) file or a ScenarioNet
+    ``.pkl``.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: naming the file, for another suffix or a malformed file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such scene file {str(path)!r}")
+    if path.suffix == ".npz":
+        from riskflow_env.scenarios.io import load_scenario
+
+        return load_scenario(path)
+    if path.suffix == ".pkl":
+        from riskflow_env.scenarios.scenarionet import load_scenarionet
+
+        return load_scenarionet(path)
+    raise ValueError(f"{path}: expected a .npz scene file or a ScenarioNet .pkl")
+
+
+def export_files(
+    files: Sequence[str | os.PathLike], formats: Sequence[str], out: str | os.PathLike
+) -> list[Path]:
+    """Write every scene file of ``files`` (:func:`read_scene`) in every format of
+    ``formats`` as ``out/<file stem>.<suffix>`` (``riskflow-data export``); returns the
+    files written."""
+    written = []
+    for path in files:
+        scenario = read_scene(path)
+        for fmt in formats:
+            written += export_scenario(scenario, Path(out) / Path(path).stem, fmt)
+    return written
+
+
+__all__ = ["FORMATS", "SUFFIXES", "export_files", "export_scenario", "read_scene"]
