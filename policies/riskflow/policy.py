@@ -182,6 +182,7 @@ class GeneratorPolicy(PipelinePolicy):
 
 class RiskFlowAdversary(GeneratorPolicy):
     """RiskFlow adversary for every non-ego vehicle (module docstring).
+
     Args:
         config: the options every learned adversary shares
             (:class:`~policies.learned.adversary_config.AdversaryConfig`: ``k``,
