@@ -28,3 +28,22 @@ def require_samples() -> list[Path]:
     if os.environ.get("CI"):
         pytest.fail(f"{MISSING}. CI is set: the samples are required there", pytrace=False)
     pytest.skip(MISSING)
+
+
+COMMONROAD_DIR = Path(
+    os.environ.get("RISKFLOW_COMMONROAD_DIR", ROOT / "../shared/data/commonroad")
+).resolve()
+COMMONROAD = sorted(COMMONROAD_DIR.glob("*.xml")) if COMMONROAD_DIR.is_dir() else []
+COMMONROAD_MISSING = (
+    f"no CommonRoad scenarios (*.xml) in {COMMONROAD_DIR}: the NGSIM samples are not shipped;"
+    " set RISKFLOW_COMMONROAD_DIR to their folder"
+)
+
+
+def require_commonroad() -> list[Path]:
+    """The CommonRoad sample files; skip without them, fail under CI (``CI`` set)."""
+    if COMMONROAD:
+        return COMMONROAD
+    if os.environ.get("CI"):
+        pytest.fail(f"{COMMONROAD_MISSING}. CI is set: they are required there", pytrace=False)
+    pytest.skip(COMMONROAD_MISSING)

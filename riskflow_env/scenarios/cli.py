@@ -22,7 +22,7 @@ is gone. ``OUT/riskflow-data.json`` records the settings; resuming with differen
 is refused. Scenes per minute are printed at the end.
 
 ``export`` writes scene files (RiskFlow ``.npz``, replay files' starting scenes, ScenarioNet
-``.pkl``) in other tools' formats (:mod:`riskflow_env.scenarios.exchange`) as
+``.pkl``, CommonRoad ``.xml``) in other tools' formats (:mod:`riskflow_env.scenarios.exchange`) as
 ``OUT/<file stem>.<suffix>``.
 """
 
@@ -276,7 +276,9 @@ def build_parser() -> argparse.ArgumentParser:
     out = commands.add_parser(
         "export", help="write scene files in other tools' formats", formatter_class=formatter
     )
-    out.add_argument("files", type=Path, nargs="+", help="scene files (.npz, ScenarioNet .pkl)")
+    out.add_argument(
+        "files", type=Path, nargs="+", help="scene files (.npz, ScenarioNet .pkl, CommonRoad .xml)"
+    )
     out.add_argument("--format", nargs="+", choices=FORMATS, required=True, dest="formats",
                      help="formats to write (docs/how-to/exchange.md)")  # fmt: skip
     out.add_argument("--out", type=Path, required=True, help="folder of the exported files")

@@ -5,7 +5,8 @@
   A rollout is exported as the scenario of its executed states
   (``EpisodeRecord.to_scenario()``: every vehicle's history, then what it did).
 * :func:`read_scene` reads one scene file of any kind the package reads (``riskflow-data
-  export`` takes them).
+  export`` takes them); CommonRoad scenarios are read by
+  :mod:`~riskflow_env.scenarios.commonroad_import`.
 """
 
 from __future__ import annotations
@@ -43,8 +44,8 @@ def export_scenario(scenario: Scenario, path: str | os.PathLike, format: str) ->
 
 
 def read_scene(path: str | os.PathLike) -> Scenario:
-    """The scene of ``path``: a RiskFlow ``.npz`` scene (or replay) file or a ScenarioNet
-    ``.pkl``.
+    """The scene of ``path``: a RiskFlow ``.npz`` scene (or replay) file, a ScenarioNet
+    ``.pkl`` or a CommonRoad ``.xml``.
 
     Raises:
         FileNotFoundError: no such file.
@@ -61,7 +62,11 @@ def read_scene(path: str | os.PathLike) -> Scenario:
         from riskflow_env.scenarios.scenarionet import load_scenarionet
 
         return load_scenarionet(path)
-    raise ValueError(f"{path}: expected a .npz scene file or a ScenarioNet .pkl")
+    if path.suffix == ".xml":
+        from riskflow_env.scenarios.commonroad_import import load_commonroad
+
+        return load_commonroad(path)
+    raise ValueError(f"{path}: expected a .npz scene file, a ScenarioNet .pkl or a CommonRoad .xml")
 
 
 def export_files(

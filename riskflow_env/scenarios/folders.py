@@ -5,7 +5,9 @@
   :class:`~riskflow_env.scenarios.scenarionet_dataset.ScenarioNetDataset`, which reads a
   scene when it is drawn;
 * a folder of RiskFlow ``.npz`` scene files (``riskflow-data generate``): a
-  :class:`~riskflow_env.scenarios.sources.ScenarioBank` with every scene loaded.
+  :class:`~riskflow_env.scenarios.sources.ScenarioBank` with every scene loaded;
+* a folder of CommonRoad ``.xml`` scenarios and no ``.npz``: a ScenarioBank of them
+  (:func:`~riskflow_env.scenarios.commonroad_import.load_commonroad`, ``[interop]`` extra).
 
 ``parallel_env(scenarios=folder)`` and ``riskflow-eval --data`` open their folder with
 :func:`open_scenes`; ``riskflow-train --data`` with :func:`scene_files` (it reads the
@@ -17,6 +19,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from riskflow_env.scenarios.commonroad_import import is_commonroad_file, load_commonroad
 from riskflow_env.scenarios.io import load_bank, require_scenarios
 from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset, is_scenarionet_folder
 from riskflow_env.scenarios.sources import ScenarioBank
@@ -32,7 +35,18 @@ def open_scenes(folder: str | os.PathLike) -> ScenarioBank | ScenarioNetDataset:
     """
     if is_scenarionet_folder(folder):
         return ScenarioNetDataset(folder)
+    commonroad = commonroad_files(folder)
+    if commonroad:
+        return ScenarioBank([load_commonroad(path) for path in commonroad])
     return load_bank(folder)
+
+
+def commonroad_files(folder: str | os.PathLike) -> list[Path]:
+    """The CommonRoad ``.xml`` files of ``folder`` when it holds no ``.npz`` scene, else []."""
+    folder = Path(folder)
+    if not folder.is_dir() or any(folder.glob("*.npz")):
+        return []
+    return [path for path in sorted(folder.glob("*.xml")) if is_commonroad_file(path)]
 
 
 def scene_files(folder: str | os.PathLike) -> list[Path] | ScenarioNetDataset:
