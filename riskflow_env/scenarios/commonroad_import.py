@@ -22,13 +22,14 @@ scene this package drives:
   rest of the recording, padded with invalid steps to ``min_future_steps``.
 
 Static obstacles, traffic signs and lights, and the goal region are not used.
-``commonroad-io`` pins protobuf 3.20: with a newer protobuf (tensorboard's), set
-``PROTOCOL_BUFFERS_PYTHON_IMPLEMENTATION=python`` before anything imports protobuf.
+``commonroad-io`` pins protobuf 3.20; with a newer protobuf (tensorboard's, ray's) it
+loads with protobuf's pure-Python parser (:func:`commonroad_io`).
 """
 
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -48,14 +49,21 @@ VEHICLE_TYPES = frozenset(
 )
 MIN_FUTURE_STEPS = 100  # [steps of 0.1 s] one default episode
 INSTALL = (
-    "pip install 'riskflow-env[interop]' (with a protobuf newer than 3.20, also set "
-    "PROTOCOL_BUFFERS_PYTHON_IMPLEMENTATION=python)"
+    "pip install 'riskflow-env[interop]' (with a protobuf newer than 3.20 imported first, "
+    "set PROTOCOL_BUFFERS_PYTHON_IMPLEMENTATION=python)"
 )
 
 
 def commonroad_io() -> Any:
     """The ``commonroad`` package; ImportError saying how to install it when it is missing
-    or does not import (a protobuf it was not generated for)."""
+    or does not import.
+
+    commonroad-io's generated protobuf modules load with protobuf 3.20 or with a newer
+    protobuf's pure-Python parser: when nothing has imported protobuf yet,
+    ``PROTOCOL_BUFFERS_PYTHON_IMPLEMENTATION`` is set to ``python`` (unless set already).
+    """
+    if "google.protobuf" not in sys.modules:
+        os.environ.setdefault("PROTOCOL_BUFFERS_PYTHON_IMPLEMENTATION", "python")
     try:
         import commonroad
         from commonroad.common import file_reader, file_writer  # noqa: F401
