@@ -36,6 +36,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
+from riskflow_env.cli_errors import add_debug_flag
+
 T = TypeVar("T")
 
 
@@ -68,10 +70,15 @@ class Recipes:
 
 
 def dataclass_parser(
-    cls: type, prog: str, description: str = "", recipes: Recipes | None = None
+    cls: type,
+    prog: str,
+    description: str = "",
+    recipes: Recipes | None = None,
+    debug: bool = False,
 ) -> argparse.ArgumentParser:
     """An ``ArgumentParser`` with one option per field of the dataclass ``cls`` (and
-    ``--recipe`` with ``recipes``)."""
+    ``--recipe`` with ``recipes``; ``--debug`` with ``debug``: see
+    :mod:`riskflow_env.cli_errors`)."""
     parser = argparse.ArgumentParser(
         prog=prog, description=description, formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
@@ -101,6 +108,8 @@ def dataclass_parser(
             help=f"start from a recipe's values: a shipped recipe's name{shipped} or a .json "
             "file; the options given on the command line override them",
         )
+    if debug:
+        add_debug_flag(parser)
     return parser
 
 
@@ -163,14 +172,17 @@ def parse_dataclass(
     prog: str | None = None,
     description: str = "",
     recipes: Recipes | None = None,
+    debug: bool = False,
 ) -> T:
     """Parse ``argv`` (``sys.argv[1:]`` if None) into an instance of the dataclass ``cls``
-    (with ``recipes``, a ``--recipe``'s values replace the defaults)."""
-    parser = dataclass_parser(cls, prog or cls.__name__, description, recipes)
+    (with ``recipes``, a ``--recipe``'s values replace the defaults; with ``debug``,
+    ``--debug`` is accepted and left to the command's error guard)."""
+    parser = dataclass_parser(cls, prog or cls.__name__, description, recipes, debug)
     argv = sys.argv[1:] if argv is None else list(argv)
     if recipes is not None:
         _apply_recipe(parser, cls, argv, recipes)
     values = vars(parser.parse_args(argv))
+    values.pop("debug", None)  # read by the command's error guard (riskflow_env.cli_errors)
     if recipes is not None:
         del values["recipe"]
     try:

@@ -41,6 +41,7 @@ from policies.learned.trainer import CHECKPOINT, GENERATOR, METRICS_LOG, fit
 from policies.recipes import read_recipe, shipped_recipes
 from policies.riskflow.meanflow import MeanFlowObjective
 from policies.riskflow.time_sampler import TimeSampler
+from riskflow_env.cli_errors import user_errors
 
 GENERATORS = ("meanflow", "diffusion")
 PROG = "riskflow-train"
@@ -110,18 +111,21 @@ def _recipes() -> Recipes:
 
 def parser() -> argparse.ArgumentParser:
     """The ``riskflow-train`` command line (``--help``)."""
-    return dataclass_parser(TrainOptions, PROG, __doc__.split("\n")[0], _recipes())
+    return dataclass_parser(TrainOptions, PROG, __doc__.split("\n")[0], _recipes(), debug=True)
 
 
 def parse_options(argv: Sequence[str] | None = None) -> TrainOptions:
     """``riskflow-train``'s options from ``argv`` (``sys.argv[1:]`` if None): a
     ``--recipe``'s values, then the options given (a usage error names what is wrong)."""
-    return parse_dataclass(TrainOptions, argv, PROG, __doc__.split("\n")[0], _recipes())
+    return parse_dataclass(TrainOptions, argv, PROG, __doc__.split("\n")[0], _recipes(), debug=True)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``riskflow-train`` console script."""
-    train(parse_options(argv))
+    argv = sys.argv[1:] if argv is None else list(argv)
+    options = parse_options(argv)
+    with user_errors(PROG, debug="--debug" in argv):
+        train(options)
     return 0
 
 

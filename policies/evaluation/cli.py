@@ -1,4 +1,5 @@
-"""``riskflow-eval``: closed-loop evaluation of the adversaries and baselines (docs/tutorials/reproduce.md).
+"""``riskflow-eval``: closed-loop evaluation of the adversaries and baselines
+(docs/tutorials/reproduce.md).
 
 ::
 
@@ -9,7 +10,8 @@
 
 The options are :class:`~policies.evaluation.options.EvalOptions` (one flag per field,
 its docstring as help; tuple fields take several values). Bad arguments exit with a
-usage error naming the argument.
+usage error naming the argument; a bad file met while running exits with one line
+(``--debug`` shows the traceback).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from collections.abc import Sequence
 from policies.dataclass_cli import dataclass_parser
 from policies.evaluation.options import EvalOptions
 from policies.registry import method_list
+from riskflow_env.cli_errors import add_debug_flag, user_errors
 
 PROG = "riskflow-eval"
 
@@ -31,7 +34,7 @@ def parser() -> argparse.ArgumentParser:
         "Closed-loop evaluation; 'riskflow-eval report --out DIR' writes the report of a "
         "results folder."
     )
-    parser = dataclass_parser(EvalOptions, PROG, description)
+    parser = dataclass_parser(EvalOptions, PROG, description, debug=True)
     parser.add_argument("--list", action="store_true", help="list the methods and exit")
     return parser
 
@@ -43,6 +46,7 @@ def report_parser() -> argparse.ArgumentParser:
     )
     report.add_argument("--out", required=True, help="results folder of a riskflow-eval run")
     report.add_argument("--no-plots", action="store_true", help="tables only")
+    add_debug_flag(report)
     return report
 
 
@@ -54,13 +58,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     if argv[:1] == ["report"]:
         report = report_parser()
         args = report.parse_args(argv[1:])
-        try:
+        with user_errors(report.prog, args.debug):
             print(f"wrote {write_report(args.out, plots=not args.no_plots)}")
-        except FileNotFoundError as err:
-            report.error(str(err))
         return
     run_parser = parser()
     args = vars(run_parser.parse_args(argv))
+    debug = args.pop("debug")
     if args.pop("list"):
         print(method_list())
         return
@@ -71,13 +74,14 @@ def main(argv: Sequence[str] | None = None) -> None:
         prepared = prepare(options)
     except ValueError as err:
         run_parser.error(str(err))
-    summary = run_evaluation(options, prepared=prepared)
-    print(
-        f"{summary['ran']} rollouts run in {summary['wall_s']:.1f} s "
-        f"({summary['skipped']} of {summary['planned']} were already in {options.out})"
-    )
-    if options.report:
-        print(f"wrote {write_report(options.out)}")
+    with user_errors(PROG, debug):
+        summary = run_evaluation(options, prepared=prepared)
+        print(
+            f"{summary['ran']} rollouts run in {summary['wall_s']:.1f} s "
+            f"({summary['skipped']} of {summary['planned']} were already in {options.out})"
+        )
+        if options.report:
+            print(f"wrote {write_report(options.out)}")
 
 
 if __name__ == "__main__":

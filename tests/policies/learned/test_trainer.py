@@ -109,12 +109,19 @@ def test_resume_gives_the_uninterrupted_result(
     torch.testing.assert_close(a["training"]["rng"]["noise"], b["training"]["rng"]["noise"])
 
 
-def test_resume_with_another_architecture_names_the_mismatch(banks, tmp_path, tiny_config):
+def test_resume_with_another_architecture_names_the_mismatch(
+    banks, tmp_path, tiny_config, capsys
+):
     out = tmp_path / "run"
     train_main(tiny_args(banks, out, tiny_config, steps=1))
     wider = dataclasses.replace(tiny_config, head_dim=64)
-    with pytest.raises(CheckpointError, match="head_dim"):
+    with pytest.raises(SystemExit) as exit_info:  # one line, no traceback
         train_main(tiny_args(banks, out, wider, "--resume"))
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err
+    assert "riskflow-train: error: " in error and "head_dim" in error
+    with pytest.raises(CheckpointError, match="head_dim"):
+        train_main(tiny_args(banks, out, wider, "--resume", "--debug"))
     with pytest.raises(SystemExit, match="--resume: no checkpoint"):
         train_main(tiny_args(banks, tmp_path / "empty", tiny_config, "--resume"))
 

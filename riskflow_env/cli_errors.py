@@ -1,0 +1,54 @@
+"""One line per user error at every command line, the traceback only with ``--debug``.
+
+A user error is a bad file or folder (``OSError``: missing, unreadable, not a directory) or
+a value the code refuses (``ValueError``, which :class:`ScenarioFormatError` and the
+argument checks raise, naming the file or the argument and what was expected). The
+console scripts (``riskflow-data``, ``riskflow-eval``, ``riskflow-stress``,
+``riskflow-train``) run their work inside :func:`user_errors`, which prints such an error
+as ``<prog>: error: <message>`` on stderr and exits with status 2, as argparse does for a
+bad flag. ``--debug`` (declared by :func:`add_debug_flag`) re-raises it instead, with its
+traceback. Any other exception is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from riskflow_env.scenarios.untrusted import error_text
+
+USER_ERRORS = (OSError, ValueError)
+MAX_LINE = 1000  # [characters] of an error message printed
+
+
+def add_debug_flag(parser: argparse.ArgumentParser) -> None:
+    """Declare ``--debug`` on ``parser``."""
+    parser.add_argument(
+        "--debug",
+        action="store_true",
+        help="show the Python traceback of an error instead of one line",
+    )
+
+
+def message(error: BaseException) -> str:
+    """The one-line text of ``error``: its message (no longer than ``MAX_LINE``), prefixed
+    with its type for an ``OSError`` (``FileNotFoundError: ...`` says what went wrong)."""
+    text = error_text(error, limit=MAX_LINE)
+    if not isinstance(error, OSError):
+        text = text.split(": ", 1)[-1]
+    return " ".join(text.split())  # one line
+
+
+@contextmanager
+def user_errors(prog: str, debug: bool = False) -> Iterator[None]:
+    """Run the body; a user error (``USER_ERRORS``) becomes one line on stderr and exit
+    status 2, or propagates with its traceback when ``debug``."""
+    try:
+        yield
+    except USER_ERRORS as error:
+        if debug:
+            raise
+        print(f"{prog}: error: {message(error)} (--debug shows the traceback)", file=sys.stderr)
+        raise SystemExit(2) from None

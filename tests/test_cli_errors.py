@@ -1,0 +1,44 @@
+"""A user error at a command line is one line on stderr and exit status 2; ``--debug``
+shows the traceback instead (riskflow_env.cli_errors)."""
+
+from __future__ import annotations
+
+import pytest
+
+from policies.evaluation.cli import main as eval_main
+from riskflow_env.cli_errors import message, user_errors
+from riskflow_env.scenarios._npz import ScenarioFormatError
+
+
+def test_a_user_error_is_one_line_and_status_2(capsys):
+    with pytest.raises(SystemExit) as exit_info, user_errors("prog"):
+        raise ScenarioFormatError("bank/s0.npz: not a readable .npz file\n(no zip record)")
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1
+    assert error.startswith("prog: error: bank/s0.npz: not a readable .npz file (no zip record)")
+    assert "--debug" in error
+
+
+def test_debug_keeps_the_traceback_and_bugs_always_do():
+    with pytest.raises(FileNotFoundError), user_errors("prog", debug=True):
+        raise FileNotFoundError(2, "No such file or directory", "runs/x")
+    with pytest.raises(KeyError), user_errors("prog"):
+        raise KeyError("a bug, not a user error")
+
+
+def test_messages_are_bounded_and_name_the_os_error():
+    assert message(FileNotFoundError(2, "No such file", "a.npz")).startswith("FileNotFoundError")
+    assert len(message(ValueError("x" * 10**6))) < 1100
+
+
+def test_riskflow_eval_report_on_a_missing_folder(tmp_path, capsys):
+    missing = tmp_path / "nothing"
+    with pytest.raises(SystemExit) as exit_info:
+        eval_main(["report", "--out", str(missing)])
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err
+    assert error.startswith("riskflow-eval report: error: ") and str(missing) in error
+    assert "Traceback" not in error
+    with pytest.raises(FileNotFoundError):
+        eval_main(["report", "--out", str(missing), "--debug"])
