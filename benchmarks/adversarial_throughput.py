@@ -10,9 +10,9 @@ The ``--method`` adversary (default ``riskflow``, built by
 * **one at a time**: B policy copies each planning its own scene (``plan``, the
   one-scene path).
 
-Both run the method's stages (docs/explanation/architecture.md; ``riskflow``: window and encoder, TTC
-ranking, MeanFlow pass, stitching, avoidance steps, the guidance steps on the top-``--k``
-vehicles, emit, holding at rest) on the same views. Reported per B:
+Both run the method's stages (docs/explanation/architecture.md; ``riskflow``: window and
+encoder, TTC ranking, MeanFlow pass, stitching, avoidance steps, the guidance steps on the
+top-``--k`` vehicles, emit, holding at rest) on the same views. Reported per B:
 planning calls per second, scenes planned per second and the ratio of the batched
 scenes/s to the loop's. Rounds are interleaved (batched, then loop, per B) and the best
 round of each is reported (the least disturbed one on a shared machine).

@@ -1,5 +1,5 @@
-"""The layers point one way (docs/explanation/architecture.md): ``riskflow_env`` imports nothing from
-``policies``, and no module imports another that imports it back."""
+"""The layers point one way (docs/explanation/architecture.md): ``riskflow_env`` imports
+nothing from ``policies``, and no module imports another that imports it back."""
 
 from __future__ import annotations
 

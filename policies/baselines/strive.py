@@ -53,8 +53,8 @@ from riskflow_env._array import attach_gradient
 
 DEFAULT_LAMBDA_PRIOR = 1.0  # weight of ||eps_c||^2 / 2 [per unit of normalised noise^2]
 # Adam's learning rate on the latent [normalised noise units per step]: STRIVE-style's best
-# of 0.03 / 0.1 / 0.3 at every K (docs/explanation/results.md section 4), for either target (RiskFlow's
-# default follows the target: policies.riskflow.guidance.STEP_SIZES)
+# of 0.03 / 0.1 / 0.3 at every K (docs/explanation/results.md section 4), for either target
+# (RiskFlow's default follows the target: policies.riskflow.guidance.STEP_SIZES)
 DEFAULT_STEP_SIZE = 0.1
 
 

@@ -1,4 +1,5 @@
-"""Closed-loop evaluation harness: ``riskflow-eval`` (docs/tutorials/reproduce.md, docs/reference/metrics.md).
+"""Closed-loop evaluation harness: ``riskflow-eval`` (docs/tutorials/reproduce.md,
+docs/reference/metrics.md).
 
 ==================  ==============================================================
 module              concept

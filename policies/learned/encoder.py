@@ -56,7 +56,9 @@ def check_batch(batch: WindowBatch, config: ModelConfig) -> tuple[int, int]:
         ValueError: naming a field whose shape is not the one ``config`` expects.
     """
     if not isinstance(batch, WindowBatch):
-        raise TypeError(f"the encoder takes a WindowBatch (docs/how-to/windows.md), got {type(batch)}")
+        raise TypeError(
+            f"the encoder takes a WindowBatch (docs/how-to/windows.md), got {type(batch)}"
+        )
     sizes = {"B": batch.batch_size, "A": batch.num_agents}
     for name, spec in ENCODER_FIELDS.items():
         expected = tuple(

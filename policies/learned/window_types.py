@@ -227,7 +227,9 @@ class WindowBatch(_WindowFields):
     def require_future(self, what: str) -> None:
         """Raise ValueError naming ``what`` if the future fields are not set."""
         if not self.has_future:
-            raise ValueError(f"{what} needs a batch with the future fields (docs/how-to/windows.md)")
+            raise ValueError(
+                f"{what} needs a batch with the future fields (docs/how-to/windows.md)"
+            )
 
 
 def collate_windows(windows: Sequence[Window]) -> WindowBatch:

@@ -11,5 +11,6 @@
 
 A method is a ``PipelinePolicy`` with its list of stages: RiskFlow
 (:mod:`policies.riskflow.policy`), the unguided generator and STRIVE-style
-(:mod:`policies.baselines`), the guided diffusion baselines. docs/explanation/architecture.md draws it.
+(:mod:`policies.baselines`), the guided diffusion baselines.
+docs/explanation/architecture.md draws it.
 """

@@ -1,4 +1,5 @@
-"""``riskflow-stress``: stress-test your planner against the RiskFlow adversary (docs/tutorials/stress-test.md).
+"""``riskflow-stress``: stress-test your planner against the RiskFlow adversary
+(docs/tutorials/stress-test.md).
 
 ::
 

@@ -1,4 +1,5 @@
-"""Drivable-area maps: raster + signed distance field + lane centrelines (docs/explanation/architecture.md).
+"""Drivable-area maps: raster + signed distance field + lane centrelines
+(docs/explanation/architecture.md).
 
 Public names:
 

@@ -62,9 +62,10 @@ def _assert_close(expected, actual, where: str) -> None:
     """Numbers to a closed-loop tolerance, everything else equal, the same keys.
 
     The two paths differ by float rounding in each planning call (a map stack, padded
-    network batches: equal to 1e-5 per call, tests/policies/pipeline/test_batched.py); 30 closed-loop steps amplify it to about 5e-4 m with the
-    shipped checkpoint here, and by other amounts on other machines, hence 1e-3 on the
-    rows and 1e-2 m on the sample arrays. Counts and outcomes must be equal."""
+    network batches: equal to 1e-5 per call, tests/policies/pipeline/test_batched.py); 30
+    closed-loop steps amplify it to about 5e-4 m with the shipped checkpoint here, and by
+    other amounts on other machines, hence 1e-3 on the rows and 1e-2 m on the sample
+    arrays. Counts and outcomes must be equal."""
     if isinstance(expected, dict):
         assert list(expected) == list(actual), where
         for key in expected:

@@ -39,7 +39,8 @@ def _step_loop(state, actions, config=CONFIG):
 
 
 def _reference(state, actions, config=CONFIG):
-    """Independent sequential integration of docs/explanation/architecture.md, clamping every step."""
+    """Independent sequential integration of docs/explanation/architecture.md, clamping every
+    step."""
     x, y, v, psi = np.asarray(state).tolist()
     out = []
     for a, omega in np.asarray(actions).tolist():

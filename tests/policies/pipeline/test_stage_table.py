@@ -1,4 +1,5 @@
-"""docs/explanation/architecture.md's table of the methods' stage lists is each method's real list."""
+"""docs/explanation/architecture.md's table of the methods' stage lists is each method's real
+list."""
 
 from __future__ import annotations
 
