@@ -14,7 +14,8 @@ docs/*.md runs, in a scratch folder, in a subprocess.
   block's own values, themselves rewritten, still apply where they come after). Only
   sizes change; every other option, method list and file path stays as documented.
 * The scratch folder links the repository's ``examples/``, ``benchmarks/``, ``docs/``,
-  ``tests/`` and ``pyproject.toml`` and has an empty ``policies/checkpoints/``, so
+  ``tests/``, ``pyproject.toml``, ``mkdocs.yml`` and ``CHANGELOG.md`` and has an empty
+  ``policies/checkpoints/``, so
   commands that write (``--out runs/...``, ``cp ... policies/checkpoints/...``) write
   into the scratch folder, never into the repository or the installed package.
 * ``INSTEAD`` lists the commands that are not run as such, each with what runs instead.
@@ -49,7 +50,7 @@ DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 SAMPLE_DIR = SCENARIONET_DIR
 SAMPLE_DATASET = "sd_nuscenes_mini"  # the samples as a ScenarioNet dataset folder
 TIMEOUT = 600  # [s] per block
-LINKED = ("examples", "benchmarks", "docs", "tests", "pyproject.toml")
+LINKED = ("examples", "benchmarks", "docs", "tests", "pyproject.toml", "mkdocs.yml", "CHANGELOG.md")
 
 # Size option -> its smallest value. A callable gets the documented values (a list of
 # strings) and returns the replacement; lists ("--k 2 3 4 5 10 all", "--seeds 0,1,2")
@@ -123,6 +124,7 @@ INSTEAD: dict[str, str] = {
     # Installing needs the network and would change the environment running this test;
     # the test checks that what the command installs is installed.
     'pip install torch==2.13.0 -e ".[dev,rl]"': "python -m pip show riskflow-env",
+    'pip install -e ".[docs]"': "python -m pip show mkdocs-material mkdocstrings-python",
     # The suite itself, which contains this test: collected, not run again.
     "python -m pytest": "python -m pytest --collect-only -q -p no:cacheprovider",
 }
@@ -136,7 +138,9 @@ SLOW: dict[tuple[str, str], str] = {
     ("README.md", "python examples/train_ego_ppo.py"): "PPO training and evaluation, about 50 s",
     # 9 PPO training / evaluation processes (each loads stable-baselines3 and plays its
     # evaluation episodes against the adversary): about 110 s even at 64 timesteps.
-    ("docs/tutorials/rl-ego.md", "python examples/train_ego_ppo.py"): "PPO training and evaluation, about 110 s",
+    ("docs/tutorials/rl-ego.md", "python examples/train_ego_ppo.py"): (
+        "PPO training and evaluation, about 110 s"
+    ),
 }
 
 
