@@ -133,16 +133,7 @@ def highway_env_lanes(family: str, max_length: float = 600.0, seed: int = 0) -> 
     lane changes (roundabout exits, the exit ramp) and U-turns at the edge of the
     intersection map.
     """
-    family = road_family(family)
-    import gymnasium
-    import highway_env  # noqa: F401  (registers the envs)
-
-    env = gymnasium.make(ENV_IDS[family]).unwrapped
-    try:
-        env.reset(seed=seed)
-        network = env.road.network
-    finally:
-        env.close()
+    network = highway_env_network(family, seed)
     lanes = []
     for start, ends in network.graph.items():
         for end, road in ends.items():
@@ -159,6 +150,21 @@ def highway_env_lanes(family: str, max_length: float = 600.0, seed: int = 0) -> 
                     )
                 )
     return tuple(lanes)
+
+
+def highway_env_network(family: str, seed: int = 0):
+    """The highway-env ``RoadNetwork`` of ``family`` (its env reset with ``seed``); lane
+    ``graph[start][end][index]`` is the :class:`Lane` ``"start->end#index"``."""
+    family = road_family(family)
+    import gymnasium
+    import highway_env  # noqa: F401  (registers the envs)
+
+    env = gymnasium.make(ENV_IDS[family]).unwrapped
+    try:
+        env.reset(seed=seed)
+        return env.road.network
+    finally:
+        env.close()
 
 
 def _sample(lane, length: float) -> np.ndarray:

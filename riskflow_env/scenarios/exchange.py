@@ -1,7 +1,9 @@
 """Scenarios in and out of other tools' formats (docs/how-to/exchange.md).
 
 * :func:`export_scenario` writes a :class:`~riskflow_env.scenarios.Scenario` as a
-  ScenarioNet / MetaDrive pickle (:mod:`~riskflow_env.scenarios.scenarionet_export`).
+  ScenarioNet / MetaDrive pickle (:mod:`~riskflow_env.scenarios.scenarionet_export`) or
+  as ASAM OpenSCENARIO with an OpenDRIVE road
+  (:mod:`~riskflow_env.scenarios.openscenario_export`).
   A rollout is exported as the scenario of its executed states
   (``EpisodeRecord.to_scenario()``: every vehicle's history, then what it did).
 * :func:`read_scene` reads one scene file of any kind the package reads (``riskflow-data
@@ -11,14 +13,15 @@
 
 from __future__ import annotations
 
+import importlib
 import os
 from collections.abc import Sequence
 from pathlib import Path
 
 from riskflow_env.scenarios.scenario import Scenario
 
-FORMATS = ("scenarionet",)
-SUFFIXES = {"scenarionet": ".pkl"}
+FORMATS = ("scenarionet", "openscenario")
+SUFFIXES = {"scenarionet": ".pkl", "openscenario": ".xosc"}
 
 
 def export_scenario(scenario: Scenario, path: str | os.PathLike, format: str) -> list[Path]:
@@ -28,7 +31,10 @@ def export_scenario(scenario: Scenario, path: str | os.PathLike, format: str) ->
         scenario: the scene, or a rollout's executed scenario.
         path: the file to write; its suffix is replaced by the format's
             (:data:`SUFFIXES`).
-        format: ``"scenarionet"``.
+        format: ``"scenarionet"`` (:mod:`~riskflow_env.scenarios.scenarionet_export`) or
+            ``"openscenario"`` (``.xosc``, with an OpenDRIVE ``.xodr`` beside it for a
+            highway-env map: :mod:`~riskflow_env.scenarios.openscenario_export`; the
+            ``[interop]`` extra).
 
     Returns:
         The files written.
@@ -38,9 +44,24 @@ def export_scenario(scenario: Scenario, path: str | os.PathLike, format: str) ->
     if not isinstance(scenario, Scenario):
         raise TypeError(f"scenario must be a Scenario, got {type(scenario).__name__}")
     path = Path(path).with_suffix(SUFFIXES[format])
+    if format == "openscenario":
+        _require("scenariogeneration", "OpenSCENARIO / OpenDRIVE files")
+        from riskflow_env.scenarios.openscenario_export import save_openscenario
+
+        return save_openscenario(scenario, path)
     from riskflow_env.scenarios.scenarionet_export import save_scenarionet
 
     return [save_scenarionet(scenario, path)]
+
+
+def _require(module: str, what: str) -> None:
+    """ImportError saying how to install ``module`` when it does not import."""
+    try:
+        importlib.import_module(module)
+    except ImportError as err:
+        raise ImportError(
+            f"{what} need {module}: pip install 'riskflow-env[interop]' ({err})"
+        ) from None
 
 
 def read_scene(path: str | os.PathLike) -> Scenario:
