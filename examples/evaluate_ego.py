@@ -3,6 +3,11 @@ velocity and random actions (and, with ``--oracle``, the MPC reading the adversa
 
     python examples/evaluate_ego.py --runs runs/ego_ppo/seed0,runs/ego_ppo/seed1,runs/ego_ppo/seed2
 
+``--runs`` takes training run folders (``train_ego_ppo.py --out``; an interrupted run
+without ``final_model.zip`` is evaluated at its latest checkpoint, which is printed) or
+model files, with or without ``.zip`` (``RUN/checkpoints/ppo_N_steps``). A path that is
+not one of those is one line naming ``--runs`` (or ``--model``) and what was expected.
+
 Every ego drives the same scenes of the shipped *evaluation* bank (the PPO egos trained
 on the training bank) under two kinds of traffic: the RiskFlow adversary at its defaults
 (K=5, 30 guidance steps, re-plan every 0.5 s, target ``others``) and nominal traffic (the
@@ -26,6 +31,7 @@ episodes (:mod:`policies.rl.paired`) and the runs' training curves
 from __future__ import annotations
 
 import json
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,6 +44,7 @@ from policies.rl.envs import interface_options
 from policies.rl.evaluation import RandomPlanner, evaluate, load_ppo_planner, summarize_ego
 from policies.rl.paired import PAIRED_OUTCOMES, paired_counts
 from policies.rl.report import markdown_table, paired_table, plot_summaries, plot_training
+from policies.rl.runs import INITIAL, RunError, RunModel, check_model_file, find_model, read_options
 from policies.statistics import wilson_interval
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
@@ -57,11 +64,13 @@ class Options:
     """Options of evaluate_ego.py."""
 
     runs: str = ""
-    """comma-separated training output folders (train_ego_ppo.py --out); empty: baselines only"""
+    """comma-separated training run folders (train_ego_ppo.py --out) or model files (with or
+    without .zip); empty: baselines only"""
     label: str = "ppo"
     """name of the PPO rows ('<label>' trained, '<label>-initial' untrained)"""
     model: str = "final_model"
-    """model of each run to evaluate as 'ppo' (e.g. checkpoints/ppo_80000_steps)"""
+    """model of each run folder to evaluate as 'ppo', with or without .zip (e.g.
+    checkpoints/ppo_80000_steps); final_model of an interrupted run: its latest checkpoint"""
     out: Path = Path("outputs/evaluate_ego")
     """output folder"""
     split: str = "eval"
@@ -110,13 +119,40 @@ class Options:
 def run_options(run: Path) -> tuple[int, dict]:
     """Training seed of a run folder and the options its policy needs at evaluation (base
     planner, action repeat, maneuver features and actions), from its options.json."""
-    options = json.loads((run / "options.json").read_text())
+    options = read_options(run)
     return int(options["seed"]), interface_options(options)
 
 
-def ppo_factory(path: str, policy: dict):
+def ppo_factory(path: Path, policy: dict):
     """``factory(seed)`` of the PPO planner saved at ``path`` (deterministic actions)."""
-    return lambda seed: load_ppo_planner(path, True, **policy, trusted=True)
+    return lambda seed: load_ppo_planner(str(path), True, **policy, trusted=True)
+
+
+def find_runs(options: Options) -> list[tuple[RunModel, Path]]:
+    """(trained model and its run, untrained model) of every ``--runs`` entry, each loaded
+    once to check it; a RunError naming the entry when one is not what it should be."""
+    found = []
+    for entry in [r for r in options.runs.split(",") if r]:
+        chosen = find_model(entry, options.model)
+        if chosen.note:
+            print(chosen.note)
+        initial = chosen.run / f"{INITIAL}.zip"
+        if not initial.is_file():
+            raise RunError(f"--runs {entry}: no {initial} (the untrained policy of the run)")
+        _, policy = run_options(chosen.run)
+        for path in (chosen.model, initial):
+            try:
+                check_model_file(path, "--runs")
+                ppo_factory(path, policy)(0)
+            except RunError:
+                raise
+            except Exception as error:  # whatever SB3 raises on a broken or foreign file
+                raise RunError(
+                    f"--runs {entry}: cannot load {path} as this run's policy "
+                    f"({type(error).__name__}: {error})"
+                ) from None
+        found.append((chosen, initial))
+    return found
 
 
 RATES = ("ego_collision_rate", "ego_offroad_rate", "ego_failure_rate")
@@ -132,7 +168,7 @@ def load_results(paths: str) -> tuple[dict, dict, list]:
     """
     summaries, per_run, paired = {}, {}, []
     for path in [Path(p) for p in paths.split(",") if p]:
-        content = json.loads(path.read_text())
+        content = read_results(path)
         paired.extend(content.get("paired", []))
         for target, rows in ((summaries, content["summary"]), (per_run, content["per_run"])):
             for row in rows:
@@ -140,6 +176,19 @@ def load_results(paths: str) -> tuple[dict, dict, list]:
                 key = row.pop("planner"), row.pop("traffic")
                 target[key] = pool(target[key], row) if key in target else row
     return summaries, per_run, paired
+
+
+def read_results(path: Path) -> dict:
+    """An earlier ``results.json``, or a RunError naming ``--combine`` and the file."""
+    if not path.is_file():
+        raise RunError(f"--combine {path}: no such file (an evaluate_ego.py results.json)")
+    try:
+        content = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise RunError(f"--combine {path}: not valid JSON ({error})") from None
+    if not isinstance(content, dict) or not {"summary", "per_run"} <= set(content):
+        raise RunError(f"--combine {path}: not an evaluate_ego.py results.json")
+    return content
 
 
 def pool(first: dict, second: dict) -> dict:
@@ -165,8 +214,14 @@ def pool(first: dict, second: dict) -> dict:
 
 def main(argv: list[str] | None = None) -> None:
     options = parse_dataclass(Options, argv, prog="evaluate_ego.py", description=__doc__)
-    if options.combine:
-        summaries, per_run, paired = load_results(options.combine)
+    try:
+        runs = find_runs(options)
+        combined = load_results(options.combine) if options.combine else None
+    except RunError as error:
+        print(f"evaluate_ego.py: error: {error}", file=sys.stderr)
+        sys.exit(2)
+    if combined is not None:
+        summaries, per_run, paired = combined
         adversarial_label = ScenePolicyConfig(stage=AdversaryStage(k=options.k)).label
         write_report(summaries, per_run, paired, adversarial_label, options.out)
         return
@@ -187,7 +242,6 @@ def main(argv: list[str] | None = None) -> None:
         )
     )
     traffics = (adversarial, nominal)
-    runs = [Path(r) for r in options.runs.split(",") if r]
     baselines = dict(BASELINES) if options.baselines else {}
     if options.oracle:
         baselines["oracle"] = lambda seed: OraclePlanner()
@@ -205,15 +259,12 @@ def main(argv: list[str] | None = None) -> None:
         bar.update()
 
     results, per_run, paired = {}, {}, []
-    for run in runs:
-        seed, policy = run_options(run)
+    for chosen, initial in runs:
+        seed, policy = run_options(chosen.run)
         seeds = [seed * 100 + i for i in range(options.episodes_per_run)]
         planners = {
-            name: ppo_factory(str(run / f"{stem}.zip"), policy)
-            for name, stem in (
-                (options.label, options.model),
-                (f"{options.label}-initial", "initial_model"),
-            )
+            options.label: ppo_factory(chosen.model, policy),
+            f"{options.label}-initial": ppo_factory(initial, policy),
         }
         records = evaluate(planners, traffics, scenes, seeds, config, progress=advance)
         for (name, traffic), episodes in records.items():
@@ -231,7 +282,7 @@ def main(argv: list[str] | None = None) -> None:
 
     summaries = {key: summarize_ego(episodes) for key, episodes in results.items()}
     write_report(summaries, per_run, paired, adversarial.label, options.out)
-    curves = {f"seed {run_options(Path(r))[0]}": r for r in options.runs.split(",") if r}
+    curves = {f"seed {run_options(chosen.run)[0]}": chosen.run for chosen, _ in runs}
     if curves:
         plot_training(curves, options.out / "training.png")
         print(f"written: {options.out / 'training.png'}")

@@ -32,22 +32,29 @@ than the evaluation's (``guidance_steps`` 10 and a re-plan every 1.0 s instead o
 0.5 s): measured on the shared 2-core CPU, one env steps at about 230 steps/s with it
 against about 60 steps/s with the default (docs/tutorials/rl-ego.md).
 
-Writes to ``--out``: ``options.json``; ``initial_model.zip`` (the untrained policy, the
-baseline of docs/tutorials/rl-ego.md) and ``final_model.zip``, each with its ``*_vecnormalize.pkl``
-observation statistics; ``checkpoints/`` every ``--checkpoint-every`` steps;
-``progress.csv`` (SB3's CSV log: returns, losses, ``rollout/ego_collision_rate``,
-``curriculum/*``) and TensorBoard event files with ``--tensorboard``.
+Writes to ``--out`` (:mod:`policies.rl.runs`): ``options.json``; ``initial_model.zip``
+(the untrained policy) and ``final_model.zip``, each with its ``*_vecnormalize.pkl``
+observation statistics; ``checkpoints/`` every ``--checkpoint-every`` decisions and at
+the end; ``progress.csv`` (SB3's CSV log: returns, losses, ``rollout/ego_collision_rate``,
+``curriculum/*``), ``training.png`` (the curves) and TensorBoard files with ``--tensorboard``.
+
+Ctrl-C or SIGTERM saves a checkpoint as of the last update and exits with one line (status
+130 / 143); ``--resume RUN`` goes on from a run's latest checkpoint, bit for bit from the
+checkpoint except for the episodes in flight, which start afresh
+(:mod:`policies.rl.checkpoints`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import signal
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 from stable_baselines3 import PPO
-from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
+from stable_baselines3.common.callbacks import CallbackList
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.utils import set_random_seed
 from stable_baselines3.common.vec_env import (
@@ -58,19 +65,29 @@ from stable_baselines3.common.vec_env import (
     VecNormalize,
 )
 
-from policies.dataclass_cli import parse_dataclass
 from policies.evaluation.options import check_device
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
+from policies.rl.checkpoints import (
+    RunCheckpoints,
+    StopSignals,
+    keep_progress_rows,
+    restore_progress_rows,
+    resume,
+    save_model,
+)
 from policies.rl.curriculum import CurriculumCallback, LinearCurriculum, OutcomeCallback
 from policies.rl.envs import EgoEnvConfig, interface_options, make_env
 from policies.rl.features import MANEUVER_SETS
 from policies.rl.progress import StepProgressBar
+from policies.rl.report import plot_training
+from policies.rl.runs import Checkpoint, checkpoint_files, latest_checkpoint, parse_resumable
 from policies.rl.sb3_shards import ShardedEgoVecEnv
 from policies.rl.sb3_vec_env import sb3_ego_vec_env
 from policies.rl.vector_env import build_vector_env
 from riskflow_env.config import EnvConfig, RewardConfig
 
 VEC_ENVS = ("subproc", "dummy", "batched")
+RESUMABLE = ("total_timesteps", "checkpoint_every")  # what --resume lets change
 
 
 @dataclass(frozen=True)
@@ -161,7 +178,11 @@ class Options:
     normalize: bool = True
     """normalise observations and rewards (VecNormalize; stats saved with each model)"""
     checkpoint_every: int = 20_000
-    """save a checkpoint every N env steps (0: none)"""
+    """save a resumable checkpoint every N decisions, at the first update after each multiple
+    (0: none; the end of training and Ctrl-C / SIGTERM always save one)"""
+    resume: Path | None = None
+    """continue the run in this folder from its latest checkpoint, with its options.json
+    (only --total-timesteps and --checkpoint-every may change)"""
     tensorboard: bool = False
     """also write TensorBoard event files to <out>/tb"""
     device: str = "cpu"
@@ -193,6 +214,8 @@ class Options:
             raise ValueError(
                 f"--maneuver-set must be one of {MANEUVER_SETS}, got {self.maneuver_set!r}"
             )
+        if self.checkpoint_every < 0:
+            raise ValueError(f"--checkpoint-every must be >= 0, got {self.checkpoint_every}")
 
 
 def env_config(options: Options) -> EgoEnvConfig:
@@ -221,36 +244,23 @@ def env_config(options: Options) -> EgoEnvConfig:
     )
 
 
-def save(model: PPO, path: Path) -> None:
-    """``path.zip`` and, with VecNormalize, ``path_vecnormalize.pkl``."""
-    model.save(path)
-    normalize = model.get_vec_normalize_env()
-    if normalize is not None:
-        normalize.save(str(path.with_name(path.name + "_vecnormalize.pkl")))
-
-
-def train(options: Options) -> Path:
-    """Train; returns the final model's path."""
-    out = options.out
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "options.json").write_text(json.dumps(dataclasses.asdict(options), default=str))
-    set_random_seed(options.seed)
-
-    config = env_config(options)
-    env: VecEnv
+def build_vec_env(options: Options, config: EgoEnvConfig) -> VecEnv:
+    """The training envs of ``options.vec_env`` (VecNormalize is added by the caller)."""
     if options.vec_env == "batched" and options.shards > 1:  # the same scenes, per core
-        env = VecMonitor(
+        return VecMonitor(
             ShardedEgoVecEnv(config, options.num_envs, options.shards, seed=options.seed)
         )
-    elif options.vec_env == "batched":  # scene b is make_env's rank b, stepped together
-        env = sb3_ego_vec_env(build_vector_env(config, options.num_envs, options.seed))
-    else:
-        factories = [make_env(config, rank, options.seed) for rank in range(options.num_envs)]
-        env = (SubprocVecEnv if options.vec_env == "subproc" else DummyVecEnv)(factories)
+    if options.vec_env == "batched":  # scene b is make_env's rank b, stepped together
+        return sb3_ego_vec_env(build_vector_env(config, options.num_envs, options.seed))
+    factories = [make_env(config, rank, options.seed) for rank in range(options.num_envs)]
+    return (SubprocVecEnv if options.vec_env == "subproc" else DummyVecEnv)(factories)
+
+
+def new_model(options: Options, env: VecEnv) -> PPO:
+    """An untrained PPO of the options."""
     if options.normalize:
         env = VecNormalize(env, norm_obs=True, norm_reward=True, clip_obs=10.0)
-
-    model = PPO(
+    return PPO(
         "MlpPolicy",
         env,
         n_steps=options.n_steps,
@@ -265,38 +275,102 @@ def train(options: Options) -> Path:
         device="cpu",
         verbose=0,
     )
+
+
+def resumed_model(options: Options, env: VecEnv, checkpoint: Checkpoint) -> PPO:
+    """The PPO of ``checkpoint`` on ``env`` (policies.rl.checkpoints.resume)."""
+    if checkpoint.stats is not None:
+        env = VecNormalize.load(str(checkpoint.stats), env)
+    model = PPO.load(checkpoint.model, env=env, device="cpu")
+    resume(model, checkpoint, options.seed)
+    return model
+
+
+class TrainingInterrupted(Exception):
+    """SIGINT or SIGTERM stopped training; ``checkpoint`` holds where it stopped."""
+
+    def __init__(self, checkpoint: Path, signum: int) -> None:
+        super().__init__(checkpoint, signum)
+        self.checkpoint, self.signum = checkpoint, signum
+
+
+def train(options: Options) -> Path:
+    """Train (or, with ``--resume``, go on training); returns the final model's path.
+    Raises :class:`TrainingInterrupted` after saving a checkpoint on SIGINT / SIGTERM."""
+    out = options.out
+    checkpoint = latest_checkpoint(out) if options.resume is not None else None
+    if checkpoint is not None and checkpoint.decisions >= options.total_timesteps:
+        print(f"{out} has trained {checkpoint.decisions} decisions (raise --total-timesteps)")
+        return out / "final_model.zip"
+    if options.resume is not None and checkpoint is None:
+        print(f"{out} has no checkpoint yet: training from the start")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "options.json").write_text(json.dumps(dataclasses.asdict(options), default=str))
+    set_random_seed(options.seed)
+    config = env_config(options)
+    env = build_vec_env(options, config)
     formats = ["csv", "stdout"] + (["tensorboard"] if options.tensorboard else [])
-    model.set_logger(configure(str(out), formats))
-    save(model, out / "initial_model")
+    if checkpoint is None:
+        model = new_model(options, env)
+        model.set_logger(configure(str(out), formats))
+        save_model(model, out / "initial_model")
+    else:
+        model = resumed_model(options, env, checkpoint)
+        kept = keep_progress_rows(out / "progress.csv", checkpoint.decisions)
+        model.set_logger(configure(str(out), formats))
+        restore_progress_rows(model.logger, kept)
+        print(f"resuming {out} at {checkpoint.decisions} decisions ({checkpoint.model.name})")
 
     curriculum = LinearCurriculum(
         start=config.traffic.stage,
         end=AdversaryStage(options.k_end, options.lambda_adv_end, options.target_end),
         ramp_fraction=options.ramp_fraction,
     )
-    callbacks = [
-        CurriculumCallback(curriculum, options.total_timesteps),
-        OutcomeCallback(),
-        StepProgressBar(options.total_timesteps, "PPO ego"),
-    ]
-    if options.checkpoint_every > 0:
-        callbacks.append(
-            CheckpointCallback(
-                max(options.checkpoint_every // options.num_envs, 1),
-                str(out / "checkpoints"),
-                name_prefix="ppo",
-                save_vecnormalize=options.normalize,
-            )
-        )
-    model.learn(options.total_timesteps, callback=CallbackList(callbacks))
-    save(model, out / "final_model")
-    env.close()
+    with StopSignals() as stop:
+        checkpoints = RunCheckpoints(out / "checkpoints", options.checkpoint_every, stop)
+        callbacks = [
+            CurriculumCallback(curriculum, options.total_timesteps),
+            OutcomeCallback(),
+            StepProgressBar(options.total_timesteps, "PPO ego"),
+            checkpoints,
+        ]
+        remaining = options.total_timesteps - model.num_timesteps
+        model.learn(remaining, callback=CallbackList(callbacks), reset_num_timesteps=False)
+        if stop.received is None:
+            save_model(model, out / "final_model")
+        env.close()
+    plot_training({f"seed {options.seed}": out}, out / "training.png")
+    if stop.received is not None:
+        raise TrainingInterrupted(checkpoints_of(checkpoints), stop.received)
     return out / "final_model.zip"
 
 
+def checkpoints_of(callback: RunCheckpoints) -> Path:
+    """The checkpoint the stop wrote (or the last one before it)."""
+    return checkpoint_files(callback.folder, callback.saved or 0)[0]
+
+
+def parse(argv: list[str] | None) -> Options:
+    """The options; with ``--resume RUN``, the run's own (only ``--total-timesteps`` and
+    ``--checkpoint-every`` may change), or a usage error naming what is wrong."""
+    return parse_resumable(Options, argv, "train_ego_ppo.py", __doc__, RESUMABLE)
+
+
 def main(argv: list[str] | None = None) -> None:
-    options = parse_dataclass(Options, argv, prog="train_ego_ppo.py", description=__doc__)
-    path = train(options)
+    options = parse(argv)
+    try:
+        path = train(options)
+    except TrainingInterrupted as stop:
+        name = signal.Signals(stop.signum).name
+        print(
+            f"train_ego_ppo.py: stopped by {name}; checkpoint {stop.checkpoint}; continue with: "
+            f"python examples/train_ego_ppo.py --resume {options.out}",
+            file=sys.stderr,
+        )
+        sys.exit(128 + stop.signum)
+    except KeyboardInterrupt:
+        print("train_ego_ppo.py: interrupted before training started", file=sys.stderr)
+        sys.exit(128 + signal.SIGINT)
     print(f"final model: {path}")
 
 

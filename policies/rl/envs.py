@@ -297,6 +297,9 @@ def make_env(config: EgoEnvConfig, rank: int, seed: int) -> Callable[[], gymnasi
         import torch
         from stable_baselines3.common.monitor import Monitor
 
+        from policies.rl.checkpoints import ignore_interrupts_in_worker
+
+        ignore_interrupts_in_worker()  # Ctrl-C: the main process saves, then stops us
         torch.set_num_threads(1)  # one core per worker; the adversary plans on one thread
         return Monitor(build_env(config, seed=seed * 1000 + rank))
 

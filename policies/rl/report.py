@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 from collections import Counter
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 METRIC_LABELS = {
@@ -136,16 +137,16 @@ def plot_training(
     runs: Mapping[str, str | os.PathLike], path: str | os.PathLike, window: int = 8
 ) -> None:
     """Training curves of ``train_ego_ppo.py`` runs: the share of training episodes that
-    ended in an ego collision and in an off-road excursion (the callbacks' per-rollout
-    rates, moving average over ``window`` rollouts) against the env decisions.
+    ended in an ego collision and in an off-road excursion against the env decisions.
+    Every rollout's rate is a dot; the line is their trailing mean over the last ``window``
+    rollouts (fewer at the start), so a short run shows what it has. A run
+    without a ``progress.csv`` or without a finished episode yet is named on the panel.
 
     Args:
         runs: label -> run folder (with ``progress.csv``).
         path: the image (PNG/SVG/PDF by extension).
-        window: rollouts averaged per point.
+        window: rollouts averaged per point of the line.
     """
-    import csv
-
     import matplotlib
 
     matplotlib.use("Agg")
@@ -157,22 +158,41 @@ def plot_training(
         "ego off-road": "rollout/ego_offroad_rate",
     }
     figure, axes = plt.subplots(1, len(columns), figsize=(5.0 * len(columns), 3.4), squeeze=False)
-    kernel = np.ones(window) / window
-    for label, run in runs.items():
-        with open(os.path.join(run, "progress.csv"), newline="") as file:
-            rows = [row for row in csv.DictReader(file) if row.get(columns["ego collision"])]
+    empty = []
+    for index, (label, run) in enumerate(runs.items()):
+        rows = _progress_rows(Path(run) / "progress.csv", columns["ego collision"])
+        if not rows:
+            empty.append(label)
+            continue
         steps = np.array([float(row["time/total_timesteps"]) for row in rows])
-        for axis, (title, column) in zip(axes[0], columns.items(), strict=True):
+        color = plt.get_cmap("tab10")(index % 10)
+        for axis, column in zip(axes[0], columns.values(), strict=True):
             rate = np.array([float(row[column]) for row in rows])
-            if len(rate) >= window:
-                rate, shown = np.convolve(rate, kernel, "valid"), steps[window - 1 :]
-            else:
-                shown = steps
-            axis.plot(shown, rate, label=label)
-            axis.set_title(f"{title} (share of training episodes)")
-            axis.set_xlabel("policy decisions")
-            axis.grid(alpha=0.3)
-    axes[0][0].legend(fontsize="small")
+            smooth = [rate[max(0, i + 1 - window) : i + 1].mean() for i in range(len(rate))]
+            axis.plot(steps, rate, ".", color=color, alpha=0.35, markersize=4)
+            axis.plot(steps, smooth, "-o" if len(rate) == 1 else "-", color=color,
+                      label=f"{label} ({len(rate)} rollouts)", markersize=4)  # fmt: skip
+    for axis, title in zip(axes[0], columns, strict=True):
+        axis.set_title(f"{title} (share of training episodes)")
+        axis.set_xlabel("policy decisions")
+        axis.set_ylim(-0.03, 1.03)
+        axis.set_xlim(left=0)
+        axis.grid(alpha=0.3)
+    if empty:
+        axes[0][0].text(0.5, 0.5, "no finished training episode yet:\n" + ", ".join(empty),
+                        ha="center", va="center", transform=axes[0][0].transAxes)  # fmt: skip
+    if len(empty) < len(runs):
+        axes[0][0].legend(fontsize="small")
     figure.tight_layout()
     figure.savefig(path, dpi=120)
     plt.close(figure)
+
+
+def _progress_rows(path: Path, column: str) -> list[dict[str, str]]:
+    """The rows of an SB3 ``progress.csv`` with a value in ``column`` ([] without the file)."""
+    import csv
+
+    if not path.is_file():
+        return []
+    with open(path, newline="", encoding="utf-8") as file:
+        return [row for row in csv.DictReader(file) if row.get(column)]

@@ -22,6 +22,7 @@ A worker that fails raises a ``RuntimeError`` with its traceback in the main pro
 from __future__ import annotations
 
 import multiprocessing
+import signal
 import traceback
 from collections.abc import Callable, Sequence
 from functools import partial
@@ -49,7 +50,9 @@ def _build_shard(config: EgoEnvConfig, num_envs: int, seed: int) -> VecEnv:
 
 def _serve(remote: Connection, factory: CloudpickleWrapper) -> None:
     """A worker's loop: build the shard, answer ``(command, data)`` messages with
-    ``("ok", result)`` or ``("error", traceback)``, until ``close``."""
+    ``("ok", result)`` or ``("error", traceback)``, until ``close``. Ignores SIGINT: on
+    Ctrl-C the main process saves, then closes the workers."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     venv: VecEnv | None = None
     while True:
         try:

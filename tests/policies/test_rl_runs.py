@@ -1,0 +1,226 @@
+"""Training tools that behave (issue 55): Ctrl-C / SIGTERM save a checkpoint and exit with
+one line, ``--resume`` goes on from it (bit for bit from the checkpoint), an interrupted run
+evaluates, and every wrong path given to the scripts is one line naming the argument.
+
+Needs the ``rl`` extra; tiny budgets, a 2-guidance-step adversary, no timing assertions
+(the tests wait for files, not for durations).
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import zipfile
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip(
+    "stable_baselines3", reason="stable-baselines3 is not installed (pip install -e '.[rl]')"
+)
+
+from policies.rl.runs import RunError, find_model  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+TINY = ("--n-steps", "32", "--batch-size", "64", "--n-epochs", "1", "--num-envs", "2",
+        "--scenes", "3", "--episode-steps", "20", "--guidance-steps", "2",
+        "--checkpoint-every", "64", "--seed", "3")  # fmt: skip
+
+
+def script(name: str, *args: str | Path) -> list[str]:
+    return [sys.executable, str(ROOT / "examples" / name), *map(str, args)]
+
+
+def run(name: str, *args: str | Path) -> subprocess.CompletedProcess:
+    done = subprocess.run(
+        script(name, *args), capture_output=True, text=True, cwd=ROOT, timeout=300
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done
+
+
+def interrupt(out: Path, signum: int, vec_env: str) -> subprocess.CompletedProcess:
+    """Start a long training, wait for its first checkpoint after the start, send ``signum``
+    (SIGINT to the whole process group, as a terminal's Ctrl-C does; SIGTERM to the main
+    process, as ``kill`` does) and return the finished process."""
+    command = script("train_ego_ppo.py", *TINY, "--total-timesteps", "100000",
+                     "--vec-env", vec_env, "--out", out)  # fmt: skip
+    process = subprocess.Popen(
+        command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 240
+        while not (out / "checkpoints" / "ppo_64_steps.zip").is_file():
+            assert process.poll() is None, process.communicate()[1][-3000:]
+            assert time.monotonic() < deadline, "no checkpoint within 240 s"
+            time.sleep(0.5)
+        if signum == signal.SIGINT:
+            os.killpg(process.pid, signum)
+        else:
+            process.send_signal(signum)
+        stdout, stderr = process.communicate(timeout=240)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    return subprocess.CompletedProcess(command, process.returncode, stdout, stderr)
+
+
+def decisions_logged(run_dir: Path) -> list[int]:
+    with open(run_dir / "progress.csv", newline="") as file:
+        return [int(float(row["time/total_timesteps"])) for row in csv.DictReader(file)]
+
+
+def test_ctrl_c_saves_a_checkpoint_evaluates_and_resumes(tmp_path):
+    """Ctrl-C (SIGINT to the group, subprocess workers included) -> one line, status 130, a
+    checkpoint; the interrupted run evaluates at that checkpoint; --resume finishes it."""
+    out = tmp_path / "run"
+    done = interrupt(out, signal.SIGINT, "subproc")
+    assert done.returncode == 128 + signal.SIGINT, done.stderr[-3000:]
+    assert "Traceback" not in done.stderr
+    last = done.stderr.strip().splitlines()[-1]
+    assert last.startswith("train_ego_ppo.py: stopped by SIGINT; checkpoint ")
+    assert f"--resume {out}" in last
+    saved = Path(last.split("checkpoint ")[1].split(";")[0])
+    assert saved.is_file() and not (out / "final_model.zip").exists()
+    stopped_at = int(saved.name.removeprefix("ppo_").removesuffix("_steps.zip"))
+    assert stopped_at >= 64 and stopped_at % 64 == 0  # an update boundary
+    assert (out / "training.png").stat().st_size > 0
+
+    evaluated = run(
+        "evaluate_ego.py", "--runs", out, "--trust-model", "--no-baselines", "--scenes", "1",
+        "--seeds", "0", "--episode-steps", "5", "--guidance-steps", "2", "--out", tmp_path / "eval",
+    )  # fmt: skip
+    assert f"latest checkpoint, checkpoints/{saved.name}" in evaluated.stdout
+    assert (tmp_path / "eval" / "results.md").is_file()
+
+    total = stopped_at + 64
+    resumed = run("train_ego_ppo.py", "--resume", out, "--total-timesteps", str(total))
+    assert f"resuming {out} at {stopped_at} decisions" in resumed.stdout
+    assert (out / "final_model.zip").is_file()
+    logged = decisions_logged(out)
+    assert logged == sorted(logged) and logged[-1] == total  # the kept rows, then the new ones
+    with zipfile.ZipFile(out / "final_model.zip") as archive:
+        assert json.loads(archive.read("data"))["num_timesteps"] == total
+
+
+def test_sigterm_saves_a_checkpoint_with_one_line(tmp_path):
+    done = interrupt(tmp_path / "run", signal.SIGTERM, "dummy")
+    assert done.returncode == 128 + signal.SIGTERM, done.stderr[-3000:]
+    assert "Traceback" not in done.stderr
+    assert done.stderr.strip().splitlines()[-1].startswith("train_ego_ppo.py: stopped by SIGTERM")
+
+
+def test_resume_from_one_checkpoint_is_bit_for_bit(tmp_path):
+    """Two resumes of the same checkpoint train the same weights (the episodes in flight
+    are not saved, so neither is the uninterrupted run: policies.rl.checkpoints)."""
+    import shutil
+
+    import torch
+    from stable_baselines3 import PPO
+
+    first = tmp_path / "first"
+    run("train_ego_ppo.py", *TINY, "--total-timesteps", "64", "--vec-env", "dummy", "--out", first)
+    second = tmp_path / "second"
+    shutil.copytree(first, second)
+    for folder in (first, second):
+        run("train_ego_ppo.py", "--resume", folder, "--total-timesteps", "192")
+    weights = [PPO.load(f / "final_model.zip").policy.state_dict() for f in (first, second)]
+    assert weights[0].keys() == weights[1].keys()
+    assert all(torch.equal(weights[0][key], weights[1][key]) for key in weights[0])
+    before = PPO.load(first / "checkpoints" / "ppo_64_steps.zip").policy.state_dict()
+    assert not all(torch.equal(before[key], weights[0][key]) for key in before)  # it trained
+
+
+def test_resume_refuses_changed_options_and_bad_paths(tmp_path):
+    missing = subprocess.run(script("train_ego_ppo.py", "--resume", tmp_path / "nope"),
+                             capture_output=True, text=True, cwd=ROOT, timeout=120)  # fmt: skip
+    assert missing.returncode == 2
+    assert (
+        missing.stderr.strip()
+        == f"train_ego_ppo.py: error: --resume {tmp_path / 'nope'}: no such run folder"
+    )
+    run_dir = fake_run(tmp_path / "run")
+    changed = subprocess.run(script("train_ego_ppo.py", "--resume", run_dir, "--n-steps", "7"),
+                             capture_output=True, text=True, cwd=ROOT, timeout=120)  # fmt: skip
+    assert changed.returncode == 2 and "--n-steps 7 (the run's: 512)" in changed.stderr
+
+
+def fake_run(folder: Path, model: bytes = b"not a pickle") -> Path:
+    """A run folder with options.json and model files whose 'data' member is ``model``."""
+    folder.mkdir(parents=True)
+    (folder / "options.json").write_text(json.dumps({"seed": 0, "n_steps": 512}))
+    for name in ("initial_model.zip", "final_model.zip"):
+        with zipfile.ZipFile(folder / name, "w") as archive:
+            archive.writestr("data", model)
+    return folder
+
+
+def evaluate_main():
+    """``examples/evaluate_ego.py``'s ``main``, imported in this process (as ``evaluate_ego``)."""
+    if "evaluate_ego" not in sys.modules:
+        path = ROOT / "examples" / "evaluate_ego.py"
+        spec = importlib.util.spec_from_file_location("evaluate_ego", path)
+        sys.modules["evaluate_ego"] = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(sys.modules["evaluate_ego"])
+    return sys.modules["evaluate_ego"].main
+
+
+def test_find_model_takes_folders_and_files_with_or_without_zip(tmp_path):
+    run_dir = fake_run(tmp_path / "run")
+    assert find_model(run_dir).model == run_dir / "final_model.zip"
+    for entry in (run_dir / "final_model", run_dir / "final_model.zip"):
+        found = find_model(entry)
+        assert found.model == run_dir / "final_model.zip" and found.run == run_dir
+    assert find_model(run_dir, "initial_model.zip").model == run_dir / "initial_model.zip"
+    (run_dir / "final_model.zip").unlink()
+    (run_dir / "checkpoints").mkdir()
+    for steps in (64, 128):
+        (run_dir / "checkpoints" / f"ppo_{steps}_steps.zip").write_bytes(
+            (run_dir / "initial_model.zip").read_bytes()
+        )
+    found = find_model(run_dir)  # interrupted: the latest checkpoint, said so
+    assert found.model.name == "ppo_128_steps.zip" and "ppo_128_steps.zip" in found.note
+    assert find_model(run_dir / "checkpoints" / "ppo_64_steps").run == run_dir
+    with pytest.raises(RunError, match="--model checkpoints/ppo_9_steps: .* does not exist"):
+        find_model(run_dir, "checkpoints/ppo_9_steps")
+
+
+@pytest.mark.parametrize(
+    ("make", "args", "message"),
+    [
+        (None, ["--runs", "{tmp}/nope"], "--runs {tmp}/nope: no such run folder or model file"),
+        (None, ["--runs", "{tmp}"], "--runs {tmp}: not a training run folder (no options.json"),
+        ("run", ["--runs", "{tmp}/run", "--model", "ppo_9"],
+         "--model ppo_9: {tmp}/run/ppo_9.zip does not exist"),
+        ("run", ["--runs", "{tmp}/run/options.json"],
+         "--runs {tmp}/run/options.json: not a stable-baselines3 model file (not a zip file)"),
+        ("run", ["--runs", "{tmp}/run/final_model.zip"],
+         "--runs {tmp}/run/final_model.zip: cannot load"),
+        ("loose", ["--runs", "{tmp}/loose.zip"], "no options.json beside the model"),
+        (None, ["--combine", "{tmp}/results.json"], "--combine {tmp}/results.json: no such file"),
+    ],
+)  # fmt: skip
+def test_every_wrong_path_is_one_line_naming_the_argument(tmp_path, capsys, make, args, message):
+    if make == "run":
+        fake_run(tmp_path / "run")
+    elif make == "loose":
+        with zipfile.ZipFile(tmp_path / "loose.zip", "w") as archive:
+            archive.writestr("data", b"{}")
+    argv = [arg.format(tmp=tmp_path) for arg in args] + [
+        "--trust-model",
+        "--out",
+        str(tmp_path / "out"),
+    ]
+    with pytest.raises(SystemExit) as exit_info:
+        evaluate_main()(argv)
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("evaluate_ego.py: error: ")
+    assert message.format(tmp=tmp_path) in err
