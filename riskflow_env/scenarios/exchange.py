@@ -3,7 +3,8 @@
 * :func:`export_scenario` writes a :class:`~riskflow_env.scenarios.Scenario` as a
   ScenarioNet / MetaDrive pickle (:mod:`~riskflow_env.scenarios.scenarionet_export`) or
   as ASAM OpenSCENARIO with an OpenDRIVE road
-  (:mod:`~riskflow_env.scenarios.openscenario_export`).
+  (:mod:`~riskflow_env.scenarios.openscenario_export`) or as CommonRoad XML
+  (:mod:`~riskflow_env.scenarios.commonroad_export`).
   A rollout is exported as the scenario of its executed states
   (``EpisodeRecord.to_scenario()``: every vehicle's history, then what it did).
 * :func:`read_scene` reads one scene file of any kind the package reads (``riskflow-data
@@ -20,8 +21,8 @@ from pathlib import Path
 
 from riskflow_env.scenarios.scenario import Scenario
 
-FORMATS = ("scenarionet", "openscenario")
-SUFFIXES = {"scenarionet": ".pkl", "openscenario": ".xosc"}
+FORMATS = ("scenarionet", "openscenario", "commonroad")
+SUFFIXES = {"scenarionet": ".pkl", "openscenario": ".xosc", "commonroad": ".xml"}
 
 
 def export_scenario(scenario: Scenario, path: str | os.PathLike, format: str) -> list[Path]:
@@ -34,7 +35,8 @@ def export_scenario(scenario: Scenario, path: str | os.PathLike, format: str) ->
         format: ``"scenarionet"`` (:mod:`~riskflow_env.scenarios.scenarionet_export`) or
             ``"openscenario"`` (``.xosc``, with an OpenDRIVE ``.xodr`` beside it for a
             highway-env map: :mod:`~riskflow_env.scenarios.openscenario_export`; the
-            ``[interop]`` extra).
+            ``[interop]`` extra) or ``"commonroad"`` (``.xml``:
+            :mod:`~riskflow_env.scenarios.commonroad_export`, the ``[interop]`` extra).
 
     Returns:
         The files written.
@@ -44,6 +46,10 @@ def export_scenario(scenario: Scenario, path: str | os.PathLike, format: str) ->
     if not isinstance(scenario, Scenario):
         raise TypeError(f"scenario must be a Scenario, got {type(scenario).__name__}")
     path = Path(path).with_suffix(SUFFIXES[format])
+    if format == "commonroad":
+        from riskflow_env.scenarios.commonroad_export import save_commonroad
+
+        return [save_commonroad(scenario, path)]
     if format == "openscenario":
         _require("scenariogeneration", "OpenSCENARIO / OpenDRIVE files")
         from riskflow_env.scenarios.openscenario_export import save_openscenario
