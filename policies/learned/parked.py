@@ -2,11 +2,12 @@
 
 Recorded highway-env traffic has hardly any vehicle that stands still for a whole
 window, so a generator trained on it has not learned that a parked car stays parked:
-on the nuScenes samples the shipped generator kept only 56% of the vehicles that stand
-still in the log within 2 m of their spot (docs/explanation/realism.md). With sampled actions a
-standing car also creeps: noise in its acceleration is clipped at zero speed on the
-way down and not on the way up. :func:`add_parked` adds such cars to a scene, so that
-recovery copies (``RecoveryConfig.parked``) show them.
+on the nuScenes samples a generator trained without parked cars kept only 56% of the
+vehicles that stand still in the log within 2 m of their spot (docs/explanation/realism.md
+has what the shipped one keeps). With sampled actions a standing car also creeps: noise
+in its acceleration is clipped at zero speed on the way down and not on the way up.
+:func:`add_parked` adds such cars to a scene, so that recovery copies
+(``RecoveryConfig.parked``) show them.
 
 A parked car is put beside the road next to a point of some vehicle's logged track
 (a random agent and step, a random side): the first offset along the normal of that

@@ -2,11 +2,12 @@
 
 A generator trained only on logged windows never sees itself slightly off course, so in
 closed loop, where each plan starts from the small error of the one before, the errors
-add up (docs/explanation/realism.md: the off-road share grows from 0.8% of agent-steps in the first
-2 s to 29% in the last 2 s). ChauffeurNet (Bansal, Krizhevsky & Ogale, "ChauffeurNet:
-Learning to Drive by Imitating the Best and Synthesizing the Worst", RSS 2019, section
-4.1) synthesises perturbed trajectories whose history drifts off the log and whose
-future returns to it; training on them teaches recovery.
+add up (a generator trained on logs alone left the road in 0.8% of its agent-steps in the
+first 2 s of a 10 s closed loop and in 29% in the last 2 s; docs/explanation/realism.md).
+ChauffeurNet (Bansal, Krizhevsky & Ogale, "ChauffeurNet: Learning to Drive by Imitating
+the Best and Synthesizing the Worst", RSS 2019, section 4.1) synthesises perturbed
+trajectories whose history drifts off the log and whose future returns to it; training on
+them teaches recovery.
 
 Here a perturbed agent turns away from its log and back: its heading gets a smooth bump
 ``b(t) = A sin(2 pi tau) + c1 (1 - cos(2 pi tau)) + c2 sin(4 pi tau)``, ``tau = (t - t0)
