@@ -6,6 +6,7 @@
     riskflow-stress --planner my_planner.py:plan --scenes 20 --seeds 0 1 2 --workers 2 \\
         --out outputs/stress                      # report.md, report.html, failures/*.npz
     riskflow-stress replay outputs/stress/failures/<scene>-seed0.npz --planner my_planner.py:plan
+    riskflow-stress --export scenarionet,openscenario,commonroad ...   # failures in other formats
     riskflow-stress compare idm sampling_mpc --scenes 20 --out outputs/compare
 
 ``--planner`` takes a built-in name (idm, sampling_mpc, constant_velocity, lane_keeping),
@@ -22,6 +23,7 @@ import dataclasses
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from policies.dataclass_cli import dataclass_parser
@@ -39,6 +41,43 @@ class RunOptions(StressOptions):
     """the planner under test: a built-in name (idm, sampling_mpc, constant_velocity,
     lane_keeping), package.module:object or path/to/file.py:object (a planner callable
     (observation, view) -> action, or a class or factory called with no argument)"""
+    export: tuple[str, ...] = ()
+    """also write every saved failure (the executed episode) beside its replay file in
+    these formats: scenarionet, openscenario, commonroad, comma- or space-separated
+    (docs/how-to/exchange.md; the last two need the interop extra)"""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        object.__setattr__(self, "export", export_formats(self.export))
+
+
+def export_formats(values: Sequence[str]) -> tuple[str, ...]:
+    """The formats of ``--export`` values (comma- or space-separated), each checked
+    (:func:`riskflow_env.scenarios.exchange.require_format`); ValueError naming --export."""
+    from riskflow_env.scenarios.exchange import require_format
+
+    formats = tuple(dict.fromkeys(f for value in values for f in value.split(",") if f))
+    for fmt in formats:
+        try:
+            require_format(fmt)
+        except (ImportError, ValueError) as err:
+            raise ValueError(f"--export: {err}") from None
+    return formats
+
+
+def export_failures(result: Any, formats: Sequence[str]) -> list[Path]:
+    """Write the executed episode of every replay file of ``result`` (a
+    :class:`~policies.stress.stress_test.StressResult`) in ``formats`` beside it; returns
+    the files written."""
+    from riskflow_env.scenarios.exchange import export_scenario
+
+    written = []
+    for episode in result.episodes:
+        if episode.replay is not None:
+            executed = episode.analysed.record.to_scenario()
+            for fmt in formats:
+                written += export_scenario(executed, episode.replay, fmt)
+    return written
 
 
 def parser() -> argparse.ArgumentParser:
@@ -108,6 +147,10 @@ def _run(argv: list[str]) -> None:
     usage = parser()
     values = vars(usage.parse_args(argv))
     planner = values.pop("planner")
+    try:
+        formats = export_formats(values.pop("export"))
+    except ValueError as err:
+        usage.error(str(err))
     options = _options(StressOptions, values, usage)
     try:
         result = riskflow_stress(planner, options.scenes, options.seeds, **stress_kwargs(options))
@@ -122,6 +165,9 @@ def _run(argv: list[str]) -> None:
         else "no failure, no replay file"
     )
     print(f"wrote {result.out}/report.html, report.md, summary.json; {replays}")
+    if formats and result.replays:
+        exported = export_failures(result, formats)
+        print(f"exported {len(exported)} file(s) ({', '.join(formats)}) beside the replay files")
 
 
 def _compare(argv: list[str]) -> None:

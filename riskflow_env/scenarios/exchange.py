@@ -41,8 +41,7 @@ def export_scenario(scenario: Scenario, path: str | os.PathLike, format: str) ->
     Returns:
         The files written.
     """
-    if format not in FORMATS:
-        raise ValueError(f"format must be one of {FORMATS}, got {format!r}")
+    require_format(format)
     if not isinstance(scenario, Scenario):
         raise TypeError(f"scenario must be a Scenario, got {type(scenario).__name__}")
     path = Path(path).with_suffix(SUFFIXES[format])
@@ -51,13 +50,25 @@ def export_scenario(scenario: Scenario, path: str | os.PathLike, format: str) ->
 
         return [save_commonroad(scenario, path)]
     if format == "openscenario":
-        _require("scenariogeneration", "OpenSCENARIO / OpenDRIVE files")
         from riskflow_env.scenarios.openscenario_export import save_openscenario
 
         return save_openscenario(scenario, path)
     from riskflow_env.scenarios.scenarionet_export import save_scenarionet
 
     return [save_scenarionet(scenario, path)]
+
+
+def require_format(format: str) -> None:
+    """ValueError unless ``format`` is one of :data:`FORMATS`; ImportError saying how to
+    install what it needs when a library of the ``[interop]`` extra is missing."""
+    if format not in FORMATS:
+        raise ValueError(f"format must be one of {FORMATS}, got {format!r}")
+    if format == "commonroad":
+        from riskflow_env.scenarios.commonroad_import import commonroad_io
+
+        commonroad_io()
+    elif format == "openscenario":
+        _require("scenariogeneration", "OpenSCENARIO / OpenDRIVE files")
 
 
 def _require(module: str, what: str) -> None:
@@ -110,4 +121,11 @@ def export_files(
     return written
 
 
-__all__ = ["FORMATS", "SUFFIXES", "export_files", "export_scenario", "read_scene"]
+__all__ = [
+    "FORMATS",
+    "SUFFIXES",
+    "export_files",
+    "export_scenario",
+    "read_scene",
+    "require_format",
+]
