@@ -19,7 +19,8 @@ docs/*.md runs, in a scratch folder, in a subprocess.
   commands that write (``--out runs/...``, ``cp ... policies/checkpoints/...``) write
   into the scratch folder, never into the repository or the installed package.
 * ``INSTEAD`` lists the commands that are not run as such, each with what runs instead.
-* A block that needs an optional library (``OPTIONAL``: Ray / RLlib, TorchRL), a Python
+* A block that needs an optional library (``OPTIONAL``: Ray / RLlib, TorchRL, the interop
+  writers), a Python
   block by importing it, a bash block by an option (``OPTIONAL_FLAGS``), is marked
   ``extras`` and skipped, with the extra to install as the reason, where the library
   is missing (``.ci/run`` runs them in its second environment).
@@ -151,7 +152,13 @@ def slow(path: Path, code: str) -> bool:
 
 
 # Optional libraries: module -> the extra that installs it (the first match names the extra).
-OPTIONAL: dict[str, str] = {"ray.rllib": "rllib", "ray": "ray", "torchrl": "torchrl"}
+OPTIONAL: dict[str, str] = {
+    "ray.rllib": "rllib",
+    "ray": "ray",
+    "torchrl": "torchrl",
+    "scenariogeneration": "interop",
+    "commonroad": "interop",
+}
 
 
 # Shell options that need an optional library: option -> its top-level module.
