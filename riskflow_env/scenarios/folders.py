@@ -31,13 +31,17 @@ def open_scenes(folder: str | os.PathLike) -> ScenarioBank | ScenarioNetDataset:
 
     Raises:
         FileNotFoundError, NotADirectoryError: no such folder, a file, or no scenes in it.
-        ValueError: naming the file, for a malformed index or scene file.
+        ValueError: naming the file, for a malformed index or scene file; naming the folder,
+            for CommonRoad scenarios without commonroad-io.
     """
     if is_scenarionet_folder(folder):
         return ScenarioNetDataset(folder)
     commonroad = commonroad_files(folder)
     if commonroad:
-        return ScenarioBank([load_commonroad(path) for path in commonroad])
+        try:
+            return ScenarioBank([load_commonroad(path) for path in commonroad])
+        except ImportError as err:  # a user error here: say which folder needs the extra
+            raise ValueError(f"{folder} holds CommonRoad scenarios: {err}") from None
     return load_bank(folder)
 
 
