@@ -21,7 +21,7 @@ standard deviation STD (normalised action units; 3e-7 is about the rounding by w
 batched generator pass differs from a one-scene pass) added to the MeanFlow generator's
 base residual ``u0`` at every planning cycle. Its rows differ from the per-scene rows as
 much as rounding alone can make a closed-loop rollout differ, so the batched rows'
-differences can be read against it (README, "Batched rollouts"). MeanFlow methods only,
+differences can be read against it (docs/explanation/speed.md). MeanFlow methods only,
 in one process (``--workers 1``).
 
     python benchmarks/eval_batched.py [--scenes 100] [--batch 100] [--duration 10]

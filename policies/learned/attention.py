@@ -3,7 +3,7 @@
 Forward-mode AD (``torch.func.jvp``, used by the MeanFlow objective) has no rule for
 the fused ``scaled_dot_product_attention`` kernels, so attention is spelled out here.
 There is no dropout anywhere in the generator: a JVP must see the same function as
-its primal (docs/how-to/train-generator.md), and dropout would draw different masks.
+its primal (docs/explanation/method.md), and dropout would draw different masks.
 
 Masking convention: ``mask[..., i, j]`` is True where query ``i`` may attend to key
 ``j``. A query whose row is entirely False (a padded agent, a history token with no

@@ -243,7 +243,7 @@ def load_generator(
         CheckpointError: the file does not fit the model (names the mismatch).
     """
     checkpoint = read_checkpoint(
-        path, DEFAULT_NAME, "generator", "`riskflow-train` (README: Generator training)"
+        path, DEFAULT_NAME, "generator", "`riskflow-train` (docs/how-to/train-generator.md)"
     )
     kind = checkpoint_kind(checkpoint)
     if kind != "meanflow":

@@ -1,7 +1,7 @@
 """Exponential moving average of a model's weights (the weights that are evaluated and shipped).
 
 After every optimiser step ``theta_ema <- decay * theta_ema + (1 - decay) * theta``;
-with ``decay = 0.995`` (docs/how-to/train-generator.md) the average spans about
+with ``decay = 0.995`` (docs/explanation/method.md) the average spans about
 ``1 / (1 - decay) = 200`` steps. Buffers are copied, not averaged.
 """
 

@@ -1,6 +1,6 @@
 """Scene encoder: per-agent context ``C_i`` from histories, pair features and map crops.
 
-RiskFlow (docs/how-to/train-generator.md): each agent's history is embedded in the agent's own
+RiskFlow (docs/explanation/method.md): each agent's history is embedded in the agent's own
 current frame, cut into tokens of ``history_patch`` steps, and passed through
 alternating *temporal* attention (over one agent's tokens) and *social* attention
 (over agents, at each token) layers; social attention gets an additive bias

@@ -3,7 +3,7 @@
 MeanFlow (Geng et al. 2025, "Mean Flows for One-step Generative Modeling") learns the
 *average* velocity ``u(z_t, t, r) = 1 / (r - t) * int_t^r v(z_s, s) ds`` of the flow
 from noise (t = 0) to data (t = 1), so one step ``a = eps + u_theta(eps, 0, 1; C)``
-samples a plan (this project's convention, docs/how-to/train-generator.md). RiskFlow applies it
+samples a plan (this project's convention, docs/explanation/method.md). RiskFlow applies it
 in action space: ``z`` is a normalised (accel, yaw rate) sequence of every agent.
 
 The head cuts each agent's plan into tokens of ``plan_patch`` steps and runs

@@ -67,7 +67,7 @@ class ObjectiveConfig:
         lambda_adv: weight of ``L_adv`` [1/m]; > 0 is adversarial (RiskFlow's convention).
         lambda_map: weight of ``L_map`` [1/m^2], >= 0. The default 20 keeps the guided
             vehicles' footprints on the road (<= 2% of their steps off it, attacking the
-            ego, where 1 left 6%; docs/how-to/train-generator.md).
+            ego, where 1 left 6%; docs/explanation/method.md).
         horizon: ``T_g`` plan steps of ``L_adv``; None: the whole plan.
         target: a :class:`Target` value, ``"others"`` (paper) or ``"ego"`` (stress testing).
         map_margin: footprint samples closer than this to the road edge are penalised [m].

@@ -1,7 +1,7 @@
 """Map encoder: a small CNN over each agent's rotated, agent-centred map crop.
 
 Gives the map embedding ``m_i`` of the RiskFlow context ``C_i = f(h_i, m_i, e_i.)``
-(docs/how-to/train-generator.md). The crops come from ``policies.learned.windows``
+(docs/explanation/method.md). The crops come from ``policies.learned.windows``
 (``map_crops``: drivable share and SDF [m] clipped to +-10 m, 48 x 48 px at 1 m/px).
 """
 

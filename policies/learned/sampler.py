@@ -2,7 +2,7 @@
 
 MeanFlow (Geng et al. 2025) samples with one evaluation of the average velocity over
 the whole interval: ``z_1 = z_0 + (1 - 0) u(z_0, 0, 1)``, ``z_0 = eps`` (noise at t = 0,
-data at t = 1; docs/how-to/train-generator.md). One forward pass serves every agent of every
+data at t = 1; docs/explanation/method.md). One forward pass serves every agent of every
 scene in the batch (and, with ``num_samples``, every sample).
 """
 
@@ -22,7 +22,7 @@ from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout
 def base_velocity(model: RiskFlowGenerator, eps: Tensor, scene: SceneContext) -> Tensor:
     """``u0 = u_theta(eps, 0, 1; C)``: the one-step residual, normalised (differentiable).
 
-    Output-space guidance (docs/how-to/train-generator.md) starts from it; ``eps + u0`` is the plan.
+    Output-space guidance (docs/explanation/method.md) starts from it; ``eps + u0`` is the plan.
 
     Args:
         model: the generator.

@@ -98,7 +98,7 @@ class LoopOptions:
     """stop cleanly and save after this many minutes of this run (0: no limit)"""
     stop_step: int = 0
     """end the run at this step (0: at --steps), on --steps' learning-rate schedule: repeats
-    a run that its time budget stopped, on any machine (README: Generator training)"""
+    a run that its time budget stopped, on any machine (docs/how-to/train-generator.md)"""
 
     def rules(self) -> dict[str, bool]:
         """``{rule: holds}`` of the option checks (subclasses add theirs)."""

@@ -4,7 +4,7 @@ A reconstruction ``a_hat`` of the normalised action plan is de-normalised, rolle
 through ``riskflow_env.dynamics.rollout`` from every agent's current state and compared
 with the reference future positions (optionally headings), plus the optional collision
 and off-road penalties of :mod:`policies.learned.plan_penalties` (RiskFlow paper,
-trajectory-space reconstruction; docs/how-to/train-generator.md).
+trajectory-space reconstruction; docs/explanation/method.md).
 """
 
 from __future__ import annotations

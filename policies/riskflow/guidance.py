@@ -24,7 +24,7 @@ default), keeps the guided vehicles of a scene apart from each other, so that th
 converge on one target as a swarm: ``L_sep`` is the summed squared penetration depth of
 every pair of guided boxes over the guidance horizon (the avoidance steps' objective,
 :func:`~policies.learned.plan_overlap.overlap_gradient`).
-The paper's objective has no such term (``lambda_sep=0``). docs/how-to/train-generator.md
+The paper's objective has no such term (``lambda_sep=0``). docs/explanation/method.md
 ("Output-space guidance") has the terms, the sign convention and why the steps are Adam steps.
 """
 

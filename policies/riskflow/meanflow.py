@@ -1,6 +1,6 @@
 """The MeanFlow objective in action space, with RiskFlow's trajectory-space loss.
 
-Notation (docs/how-to/train-generator.md; noise at t = 0, data at t = 1), per agent plan:
+Notation (docs/explanation/method.md; noise at t = 0, data at t = 1), per agent plan:
 
 * ``a*``: normalised ground-truth actions ``(B, A, T, 2)``; ``eps ~ N(0, I)`` alike;
 * ``z_t = (1 - t) eps + t a*`` and ``v = a* - eps`` (the conditional velocity);

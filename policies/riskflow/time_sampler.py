@@ -6,7 +6,7 @@ logit-normal distribution, ``sigmoid(N(mean, std^2))`` with ``(mean, std) = (-0.
 flow-matching samples (``u(z, t, t) = v(z, t)``), which anchor the instantaneous
 velocity. In this project's convention noise is at ``t = 0`` and data at ``t = 1``,
 so the sorted pair is ``t <= r`` (MeanFlow's own code, with data at 0, has ``r <= t``).
-RiskFlow uses ``r = t`` with probability 0.2 (docs/how-to/train-generator.md).
+RiskFlow uses ``r = t`` with probability 0.2 (docs/explanation/method.md).
 
 The sampler calls the model at one pair only, ``(t, r) = (0, 1)`` (one step from pure
 noise), which the logit-normal draws almost never come near (about 1% of pairs have

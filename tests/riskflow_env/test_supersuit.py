@@ -1,7 +1,7 @@
 """SuperSuit vector envs over ``riskflow_v0`` (the ``rl`` extra).
 
-What SuperSuit needs from the default env (README, "Use with RLlib / TorchRL / SuperSuit /
-SB3 / Ray"; ``FixedRosterEnv`` lifts the first two, tests/riskflow_env/wrappers/test_vector.py):
+What SuperSuit needs from the default env (docs/how-to/interop.md;
+``FixedRosterEnv`` lifts the first two, tests/riskflow_env/wrappers/test_vector.py):
 
 * identical observation and action spaces for every agent: they are;
 * ``pettingzoo_env_to_vec_env_v1`` alone: an observation for every slot at every step,
