@@ -8,6 +8,7 @@ import pytest
 from policies.evaluation.cli import main as eval_main
 from riskflow_env.cli_errors import message, user_errors
 from riskflow_env.scenarios._npz import ScenarioFormatError
+from riskflow_env.scenarios.cli import main as data_main
 
 
 def test_a_user_error_is_one_line_and_status_2(capsys):
@@ -42,3 +43,16 @@ def test_riskflow_eval_report_on_a_missing_folder(tmp_path, capsys):
     assert "Traceback" not in error
     with pytest.raises(FileNotFoundError):
         eval_main(["report", "--out", str(missing), "--debug"])
+
+
+def test_riskflow_data_info_on_a_broken_bank(tmp_path, capsys):
+    bank = tmp_path / "bank"
+    bank.mkdir()
+    (bank / "s0.npz").write_bytes(b"not a zip file")
+    with pytest.raises(SystemExit) as exit_info:
+        data_main(["info", str(bank)])
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err
+    assert error.startswith("riskflow-data info: error: ") and "s0.npz" in error
+    with pytest.raises(ScenarioFormatError):
+        data_main(["info", str(bank), "--debug"])

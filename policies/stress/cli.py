@@ -28,6 +28,7 @@ from typing import Any
 
 from policies.dataclass_cli import dataclass_parser
 from policies.stress.runner import StressOptions
+from riskflow_env.cli_errors import add_debug_flag, user_errors
 
 PROG = "riskflow-stress"
 FORMS = "a built-in name, package.module:object or path/to/file.py:object, as --planner"
@@ -86,12 +87,14 @@ def parser() -> argparse.ArgumentParser:
         "Stress-test a planner against the RiskFlow adversary; 'riskflow-stress replay FILE' "
         "puts it back into a saved failure, 'riskflow-stress compare A B' pairs two planners."
     )
-    return dataclass_parser(RunOptions, PROG, description)
+    return dataclass_parser(RunOptions, PROG, description, debug=True)
 
 
 def compare_parser() -> argparse.ArgumentParser:
     """The parser of ``riskflow-stress compare A B`` (the run's options but the planner)."""
-    compare = dataclass_parser(StressOptions, f"{PROG} compare", "Two planners, paired.")
+    compare = dataclass_parser(
+        StressOptions, f"{PROG} compare", "Two planners, paired.", debug=True
+    )
     compare.add_argument("a", help=f"planner A: {FORMS}")
     compare.add_argument("b", help="planner B, in the same forms")
     return compare
@@ -112,6 +115,7 @@ def replay_parser() -> argparse.ArgumentParser:
         help=f"the planner to put back: {FORMS} of a run; default: the planner that failed",
     )
     replay.add_argument("--video", default=None, help="write the episode as a .gif or .mp4")
+    add_debug_flag(replay)
     return replay
 
 
@@ -146,18 +150,22 @@ def _run(argv: list[str]) -> None:
 
     usage = parser()
     values = vars(usage.parse_args(argv))
+    debug = values.pop("debug")
     planner = values.pop("planner")
     try:
         formats = export_formats(values.pop("export"))
     except ValueError as err:
         usage.error(str(err))
     options = _options(StressOptions, values, usage)
-    try:
-        result = riskflow_stress(planner, options.scenes, options.seeds, **stress_kwargs(options))
-    except PlannerSpecError as err:
-        usage.error(err.named("--planner"))
-    except SceneSourceError as err:
-        usage.error(str(err))
+    with user_errors(PROG, debug):  # the usage errors below first
+        try:
+            result = riskflow_stress(
+                planner, options.scenes, options.seeds, **stress_kwargs(options)
+            )
+        except PlannerSpecError as err:
+            usage.error(err.named("--planner"))
+        except SceneSourceError as err:
+            usage.error(str(err))
     print(result.headline)
     replays = (
         f"{len(result.replays)} replay file(s) in {result.out}/failures/"
@@ -177,14 +185,15 @@ def _compare(argv: list[str]) -> None:
 
     usage = compare_parser()
     values = vars(usage.parse_args(argv))
-    a, b = values.pop("a"), values.pop("b")
+    a, b, debug = values.pop("a"), values.pop("b"), values.pop("debug")
     options = _options(StressOptions, values, usage)
-    try:
-        table = compare(a, b, options.scenes, options.seeds, **stress_kwargs(options))
-    except PlannerSpecError as err:
-        usage.error(err.named("a" if err.spec == a else "b"))
-    except SceneSourceError as err:
-        usage.error(str(err))
+    with user_errors(usage.prog, debug):  # the usage errors below first
+        try:
+            table = compare(a, b, options.scenes, options.seeds, **stress_kwargs(options))
+        except PlannerSpecError as err:
+            usage.error(err.named("a" if err.spec == a else "b"))
+        except SceneSourceError as err:
+            usage.error(str(err))
     print(markdown(table))
     print(f"wrote {options.out}/compare.md, compare.json and both runs' reports")
 
@@ -205,7 +214,8 @@ def _replay(argv: list[str]) -> None:
     except PlannerSpecError as err:
         hint = "" if args.planner else " (the saved planner; give --planner)"
         usage.error(err.named("--planner") + hint)
-    result = replay(saved, planner, video=args.video)
+    with user_errors(usage.prog, args.debug):
+        result = replay(saved, planner, video=args.video)
     print(result.describe())
     if args.video:
         print(f"wrote {args.video}")

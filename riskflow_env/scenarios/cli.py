@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from riskflow_env.cli_errors import add_debug_flag, user_errors
 from riskflow_env.folder_lock import FolderLock, FolderLocked, check_output_folder
 from riskflow_env.maps import FAMILIES
 from riskflow_env.processes import exit_with_parent
@@ -267,10 +268,12 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--stop-share", type=share, default=0.0,
                      help="probability per vehicle that it stops once in its lane (a "
                      "breakdown, a drop-off): queues, vehicles passing standing ones")  # fmt: skip
+    add_debug_flag(gen)
     show = commands.add_parser(
         "info", help="count the scenes of a bank per family", formatter_class=formatter
     )
     show.add_argument("directory", type=Path, help="folder of the bank")
+    add_debug_flag(show)
     from riskflow_env.scenarios.exchange import FORMATS
 
     out = commands.add_parser(
@@ -290,7 +293,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command == "info":
-        info(args.directory)
+        with user_errors(f"{parser.prog} info", args.debug):
+            info(args.directory)
         return 0
     if args.command == "export":
         from riskflow_env.scenarios.exchange import export_files
@@ -315,7 +319,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         future_steps=args.future_steps,
         stop_share=args.stop_share,
     )
-    generate(options)
+    with user_errors(f"{parser.prog} generate", args.debug):
+        generate(options)
     return 0
 
 
