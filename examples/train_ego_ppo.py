@@ -69,7 +69,6 @@ from policies.evaluation.options import check_device
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.checkpoints import (
     RunCheckpoints,
-    StopSignals,
     keep_progress_rows,
     restore_progress_rows,
     resume,
@@ -83,6 +82,7 @@ from policies.rl.report import plot_training
 from policies.rl.runs import Checkpoint, checkpoint_files, latest_checkpoint, parse_resumable
 from policies.rl.sb3_shards import ShardedEgoVecEnv
 from policies.rl.sb3_vec_env import sb3_ego_vec_env
+from policies.rl.signals import StopSignals
 from policies.rl.vector_env import build_vector_env
 from riskflow_env.config import EnvConfig, RewardConfig
 

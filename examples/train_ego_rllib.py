@@ -7,7 +7,11 @@ on the shipped scenes, handed to RLlib as ``ParallelPettingZooEnv`` (no wrapper 
 own); the adversary (``--k`` guided vehicles, ``--guidance-steps`` per plan) drives every
 other vehicle. ``--num-env-runners N`` samples in N Ray actors; ``--address`` joins a Ray
 cluster. Prints, per iteration, the env steps sampled, env steps per second and the mean
-episode return; writes ``<out>/checkpoint`` and ``<out>/progress.json``.
+episode return; writes ``<out>/checkpoint`` and ``<out>/progress.json`` every
+``--checkpoint-every`` iterations (5), at the end and on Ctrl-C / SIGTERM (one line, status
+130 / 143); ``--resume`` goes on from them up to ``--iterations``:
+
+    python examples/train_ego_rllib.py --iterations 40 --resume --out runs/ego_rllib
 """
 
 from __future__ import annotations

@@ -3,7 +3,8 @@
 ``parallel_env(...)`` builds the PettingZoo ``ParallelEnv`` (``riskflow_v0``); ``env(...)``
 the AEC view of the same env. See :mod:`riskflow_env.env` for agents, spaces and options.
 ``gymnasium.make("RiskFlowEgo-v0")`` is the ego's single-agent Gymnasium view
-(:class:`riskflow_env.wrappers.EgoEnv`).
+(:class:`riskflow_env.wrappers.EgoEnv`); ``gymnasium.make_vec("RiskFlowEgo-v0",
+num_envs=N)`` is N of them stepped as one batch (``policies.rl.EgoVectorEnv``).
 """
 
 from __future__ import annotations
@@ -23,7 +24,13 @@ except PackageNotFoundError:  # running from a source tree that is not installed
 
 
 if "RiskFlowEgo-v0" not in gymnasium.registry:
-    gymnasium.register(id="RiskFlowEgo-v0", entry_point="riskflow_env.wrappers.ego_env:EgoEnv")
+    # The vector entry point lives in the sibling package ``policies`` (the batched
+    # adversary is a policy); gymnasium imports it only when make_vec asks for it.
+    gymnasium.register(
+        id="RiskFlowEgo-v0",
+        entry_point="riskflow_env.wrappers.ego_env:EgoEnv",
+        vector_entry_point="policies.rl.vector_env:ego_vector_entry_point",
+    )
 
 
 def parallel_env(*, max_cycles: int | None = None, **kwargs) -> RiskFlowParallelEnv:

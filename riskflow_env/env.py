@@ -13,7 +13,9 @@ Agents              ``ego``, ``agent_1`` ... ``agent_{max_agents-1}`` (``possibl
 Action space        ``Box([accel_min, -yaw_rate_max], [accel_max, yaw_rate_max])``:
                     (acceleration [m/s^2], yaw rate [rad/s]), default
                     [-8, 5] x [-1, 1]; identical for every agent
-Observation space   ``Box(-inf, inf, (D,), float32)``, identical for every agent;
+Observation space   ``Box(low, high, (D,), float32)``, identical for every agent,
+                    bounded where a physical bound holds
+                    (:func:`~riskflow_env.observations.observation_bounds`);
                     D = 142 by default (layout in :mod:`riskflow_env.observations`)
 State space         ``Box(-inf, inf, (9 * max_agents,), float32)``: per slot
                     (present, active, x - x_ego, y - y_ego, v, cos psi, sin psi,
@@ -63,7 +65,7 @@ from riskflow_env.action_input import ActionInput
 from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import YAW
 from riskflow_env.maps import DrivableMap
-from riskflow_env.observations import observation_size
+from riskflow_env.observations import observation_bounds
 from riskflow_env.rewards import REWARD_TERMS
 from riskflow_env.scenarios import Scenario, ScenarioSource, as_source, shipped_bank
 from riskflow_env.state import SceneState
@@ -109,9 +111,9 @@ class RiskFlowParallelEnv(ParallelEnv):
         dynamics = self.config.dynamics
         self._action_low = np.array([dynamics.accel_min, -dynamics.yaw_rate_max])
         self._action_high = np.array([dynamics.accel_max, dynamics.yaw_rate_max])
-        size = observation_size(self.config.observation)
+        low, high = observation_bounds(self.config.observation, dynamics)
         self.observation_spaces = {
-            agent: gymnasium.spaces.Box(-np.inf, np.inf, (size,), np.float32)
+            agent: gymnasium.spaces.Box(low, high, dtype=np.float32)
             for agent in self.possible_agents
         }
         self.action_spaces = {

@@ -24,12 +24,12 @@ import functools
 import numpy as np
 
 from riskflow_env._array import Array, namespace
-from riskflow_env.config import ObservationConfig
+from riskflow_env.config import DynamicsConfig, ObservationConfig
 from riskflow_env.dynamics import YAW
 from riskflow_env.geometry import from_frame
 from riskflow_env.maps import DrivableMap
 from riskflow_env.maps.sampling import constant_like
-from riskflow_env.risk import NUM_PAIR_FEATURES
+from riskflow_env.risk import MAX_INTERACTION_DISTANCE, NUM_PAIR_FEATURES
 from riskflow_env.state import SceneState
 
 OWN_FEATURES = ("speed", "accel", "yaw_rate", "length", "width", "sdf")
@@ -40,6 +40,40 @@ def observation_size(config: ObservationConfig) -> int:
     """Length of one agent's observation vector."""
     neighbor = config.num_neighbors * (NUM_PAIR_FEATURES + NEIGHBOR_FEATURES)
     return len(OWN_FEATURES) + neighbor + config.ray_directions * len(config.ray_distances)
+
+
+def observation_bounds(
+    config: ObservationConfig, dynamics: DynamicsConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high) float32 of every entry where a physical bound holds (the dynamics'
+    action bounds for the last action, 0 for speeds, sizes and the normalised distance,
+    the 50 m interaction range for a neighbour's dx and dy, [-1, 1] for cosines and sines,
+    [0, 1] for the TTC risk weight and the presence flag); +-inf elsewhere (SDF values,
+    relative velocities)."""
+    inf = np.inf
+    own = [
+        (0.0, inf),
+        (dynamics.accel_min, dynamics.accel_max),
+        (-dynamics.yaw_rate_max, dynamics.yaw_rate_max),
+        (0.0, inf),
+        (0.0, inf),
+        (-inf, inf),
+    ]
+    reach = MAX_INTERACTION_DISTANCE
+    pair = [
+        (-reach, reach),
+        (-reach, reach),
+        (-1.0, 1.0),
+        (-1.0, 1.0),
+        (-inf, inf),
+        (-inf, inf),
+        (0.0, inf),
+        (0.0, 1.0),
+    ]
+    neighbor = pair + [(0.0, inf), (0.0, inf), (0.0, 1.0)]
+    rays = [(-inf, inf)] * (config.ray_directions * len(config.ray_distances))
+    bounds = np.array(own + neighbor * config.num_neighbors + rays, dtype=np.float32)
+    return bounds[:, 0].copy(), bounds[:, 1].copy()
 
 
 def ray_offsets(config: ObservationConfig) -> np.ndarray:

@@ -26,7 +26,6 @@ import base64
 import json
 import pickle
 import random
-import signal
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +34,7 @@ import torch
 from stable_baselines3.common.callbacks import BaseCallback
 
 from policies.rl.runs import Checkpoint, checkpoint_files
+from policies.rl.signals import StopSignals
 
 
 def save_model(model: Any, path: Path) -> None:
@@ -66,43 +66,6 @@ def set_rng_state(state: dict[str, Any]) -> None:
     np.random.set_state(numpy_state)  # noqa: NPY002 - the generator SB3 seeds
     raw = np.frombuffer(base64.b64decode(state["torch"]), dtype=np.uint8).copy()
     torch.set_rng_state(torch.from_numpy(raw))
-
-
-class StopSignals:
-    """Within ``with StopSignals() as stop:``, SIGINT (Ctrl-C) and SIGTERM set
-    ``stop.received`` (the signal's number) instead of raising or killing: the training
-    loop polls it and stops at the next step. A second signal raises ``KeyboardInterrupt``
-    (the user insists). The previous handlers come back on exit."""
-
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-    def __init__(self) -> None:
-        self.received: int | None = None
-        self._previous: dict[int, Any] = {}
-
-    def _handle(self, signum: int, frame: Any) -> None:
-        if self.received is not None:
-            raise KeyboardInterrupt
-        self.received = signum
-
-    def __enter__(self) -> StopSignals:
-        for signum in self.SIGNALS:
-            self._previous[signum] = signal.signal(signum, self._handle)
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        for signum, handler in self._previous.items():
-            signal.signal(signum, handler)
-
-
-def ignore_interrupts_in_worker() -> None:
-    """In a worker process (SubprocVecEnv, shards), ignore SIGINT: Ctrl-C reaches every
-    process of the terminal's group, and the main process stops the workers itself after
-    saving. Does nothing in the main process."""
-    import multiprocessing
-
-    if multiprocessing.parent_process() is not None:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 class RunCheckpoints(BaseCallback):

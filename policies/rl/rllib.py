@@ -5,12 +5,17 @@ creator wraps a PettingZoo ``ParallelEnv`` with fixed agents (every agent live u
 episode ends for all) in RLlib's own ``ParallelPettingZooEnv``: no wrapper of our own.
 ``num_env_runners`` = 0 samples in the driver; N > 0 samples in N Ray actors (each a copy
 of the env, one CPU), on the local Ray instance or the cluster given to ``ray.init``.
+The algorithm is saved to ``<out>/checkpoint`` every ``checkpoint_every`` iterations, at
+the end and on Ctrl-C / SIGTERM; ``resume`` restores it (RLlib's ``restore_from_path``:
+weights, optimiser, counters) and goes on; the episodes in flight start afresh.
 Needs the ``rllib`` extra.
 """
 
 from __future__ import annotations
 
 import json
+import signal
+import sys
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -18,6 +23,10 @@ from pathlib import Path
 from typing import Any
 
 from tqdm import tqdm
+
+from policies.rl.signals import StopSignals
+
+CHECKPOINT = "checkpoint"  # <out>/checkpoint: the algorithm (RLlib's save_to_path)
 
 
 @dataclass(frozen=True)
@@ -44,6 +53,11 @@ class RLlibOptions:
     """PPO epochs per iteration"""
     out: Path = Path("runs/rllib")
     """output folder (checkpoint, progress.json)"""
+    checkpoint_every: int = 5
+    """write <out>/checkpoint and <out>/progress.json every N iterations (0: only at the end
+    and on Ctrl-C / SIGTERM, which always write them)"""
+    resume: bool = False
+    """continue the run in --out from its checkpoint and progress.json, up to --iterations"""
 
     def __post_init__(self) -> None:
         for name in ("iterations", "episode_steps", "train_batch", "minibatch", "epochs"):
@@ -53,6 +67,10 @@ class RLlibOptions:
             raise ValueError("--num-env-runners must be >= 0")
         if self.minibatch > self.train_batch:
             raise ValueError("--minibatch must be <= --train-batch")
+        if self.checkpoint_every < 0:
+            raise ValueError("--checkpoint-every must be >= 0")
+        if self.resume and not (Path(self.out) / CHECKPOINT).is_dir():
+            raise ValueError(f"--resume: no checkpoint in {Path(self.out) / CHECKPOINT}")
 
 
 def ego_vs_riskflow_env(env_config: Mapping[str, Any]):
@@ -136,42 +154,72 @@ def build_ppo(
 
 
 def train(algorithm, options: RLlibOptions) -> list[dict[str, float]]:
-    """``algorithm`` trained (:func:`_iterations`), then stopped, also on an error."""
-    try:
-        return _iterations(algorithm, options)
-    finally:
-        algorithm.stop()
+    """``algorithm`` trained (:func:`_iterations`), then stopped, also on an error. On
+    SIGINT / SIGTERM it saves after the iteration under way and exits with one line
+    (status 130 / 143)."""
+    with StopSignals() as stop:
+        try:
+            history = _iterations(algorithm, options, stop)
+        finally:
+            algorithm.stop()
+    if stop.received is not None:
+        name = signal.Signals(stop.received).name
+        print(
+            f"stopped by {name} after iteration {len(history)}; checkpoint "
+            f"{options.out / CHECKPOINT}; continue with --resume --out {options.out}",
+            file=sys.stderr,
+        )
+        sys.exit(128 + stop.received)
+    return history
 
 
-def _iterations(algorithm, options: RLlibOptions) -> list[dict[str, float]]:
-    """Run ``options.iterations`` PPO iterations; per iteration: env steps sampled so far,
-    wall time [s], env steps per second of the whole iteration (sampling and learning)
-    and the mean episode return, printed and written to ``<out>/progress.json``, with a
-    checkpoint in ``<out>/checkpoint``."""
+def _iterations(algorithm, options: RLlibOptions, stop: StopSignals) -> list[dict[str, float]]:
+    """Run PPO iterations up to ``options.iterations`` (with ``resume``, from the saved
+    ones on); per iteration: env steps sampled so far, wall time [s], env steps per second
+    of the whole iteration (sampling and learning) and the mean episode return, printed
+    and written to ``<out>/progress.json`` with the algorithm in ``<out>/checkpoint``
+    every ``checkpoint_every`` iterations, at the end and on a stop signal."""
+    out = options.out
     history: list[dict[str, float]] = []
-    steps_before = 0.0
-    for iteration in tqdm(range(options.iterations), desc="PPO iterations", unit="it"):
+    if options.resume:
+        algorithm.restore_from_path(str((out / CHECKPOINT).resolve()))
+        history = json.loads((out / "progress.json").read_text())
+        print(f"resuming {out} after iteration {len(history)}")
+    steps_before = history[-1]["env_steps"] if history else 0.0
+    saved = len(history)
+    for iteration in tqdm(range(len(history), options.iterations), desc="PPO iterations",
+                          unit="it", initial=len(history), total=options.iterations):  # fmt: skip
         start = time.perf_counter()
         result = algorithm.train()
         wall = time.perf_counter() - start
         runners = result["env_runners"]
         steps = float(runners["num_env_steps_sampled_lifetime"])
-        history.append(
-            {
-                "iteration": iteration + 1,
-                "env_steps": steps,
-                "wall_s": wall,
-                "env_steps_per_s": (steps - steps_before) / wall,
-                "episode_return_mean": float(runners.get("episode_return_mean", float("nan"))),
-            }
-        )
-        steps_before = steps
-    options.out.mkdir(parents=True, exist_ok=True)
-    algorithm.save_to_path(str((options.out / "checkpoint").resolve()))
-    (options.out / "progress.json").write_text(json.dumps(history, indent=1))
-    for row in history:
+        row = {
+            "iteration": iteration + 1,
+            "env_steps": steps,
+            "wall_s": wall,
+            "env_steps_per_s": (steps - steps_before) / wall,
+            "episode_return_mean": float(runners.get("episode_return_mean", float("nan"))),
+        }
+        history.append(row)
         print(
             f"iteration {row['iteration']}: {row['env_steps']:.0f} env steps, "
             f"{row['env_steps_per_s']:.0f} env steps/s, return {row['episode_return_mean']:.2f}"
         )
+        steps_before = steps
+        every = options.checkpoint_every
+        if stop.received is not None or (every and (iteration + 1) % every == 0):
+            _save(algorithm, out, history)
+            saved = len(history)
+        if stop.received is not None:
+            break
+    if saved != len(history) or not (out / CHECKPOINT).is_dir():
+        _save(algorithm, out, history)
     return history
+
+
+def _save(algorithm, out: Path, history: list[dict[str, float]]) -> None:
+    """The algorithm in ``<out>/checkpoint`` and the rows so far in ``<out>/progress.json``."""
+    out.mkdir(parents=True, exist_ok=True)
+    algorithm.save_to_path(str((out / CHECKPOINT).resolve()))
+    (out / "progress.json").write_text(json.dumps(history, indent=1))

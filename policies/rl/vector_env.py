@@ -34,7 +34,10 @@ Autoreset           ``AutoresetMode.SAME_STEP`` (default): a scene whose ego ter
 Infos               per key an (N,) array and its mask ``_key``: ``reward_terms``,
                     ``collided``, ``collided_with``, ``offroad_fraction``, ``sdf_depth``;
                     the episode outcome ``ego_collision`` / ``ego_offroad`` in
-                    ``final_info``
+                    ``final_info``; with maneuver actions ``action_mask`` (N, M) bool
+                    (:meth:`~policies.rl.envs.EgoInterface.action_mask`)
+Gymnasium           ``gymnasium.make_vec("RiskFlowEgo-v0", num_envs=N)`` builds one
+                    (:func:`ego_vector_entry_point`: the single env's spaces)
 ==================  ==============================================================
 
 Scene ``b`` with seed ``s + b`` follows the episode of ``EgoTrainingEnv`` reset with seed
@@ -144,7 +147,8 @@ class EgoVectorEnv(VectorEnv):
             super().reset(seed=int(seed))
         self._env_obs = None
         self._autoreset = np.zeros(self.num_envs, dtype=bool)
-        return self._reset_scenes(list(range(self.num_envs)), seeds, options, {})
+        observations, infos = self._reset_scenes(list(range(self.num_envs)), seeds, options, {})
+        return observations, self._with_masks(infos)
 
     def step(
         self, actions: Any
@@ -212,7 +216,7 @@ class EgoVectorEnv(VectorEnv):
                 reset, [None] * len(reset), {}, infos, observations
             )
         infos.update(extra)
-        return observations, rewards, terminated, truncated, infos
+        return observations, rewards, terminated, truncated, self._with_masks(infos)
 
     def set_adversary_stage(self, stage: AdversaryStage) -> None:
         """Set k, guidance weight and target of every scene's RiskFlow adversary."""
@@ -225,6 +229,16 @@ class EgoVectorEnv(VectorEnv):
             env.close()
 
     # ------------------------------------------------------------ internals
+    def _with_masks(self, infos: dict[str, Any]) -> dict[str, Any]:
+        """``infos`` with ``action_mask`` (N, M) bool and its mask, for maneuver actions:
+        each scene's :meth:`~policies.rl.envs.EgoInterface.action_mask` for the
+        observation returned."""
+        if not self._discrete:
+            return infos
+        masks = [i.action_mask(view) for i, view in zip(self.interfaces, self._views, strict=True)]
+        mask_of = np.ones(self.num_envs, dtype=bool)
+        return {**infos, "action_mask": np.stack(masks), "_action_mask": mask_of}
+
     def _reset_scenes(
         self,
         indices: list[int],
@@ -285,7 +299,7 @@ class EgoVectorEnv(VectorEnv):
         if array.shape != (self.num_envs, 2) or array.dtype.kind not in "fiu":
             raise ValueError(
                 f"actions must be a numeric array of shape (num_envs, 2) = ({self.num_envs}, "
-                f"2), normalised (u_accel, u_yaw); got shape {array.shape} dtype {array.dtype}"
+                f"2); got shape {array.shape} dtype {array.dtype}"
             )
         array = array.astype(np.float64)
         if not np.isfinite(array).all():
@@ -300,7 +314,8 @@ class EgoVectorEnv(VectorEnv):
     ) -> np.ndarray:
         """(N, 2) the ego's env actions (accel [m/s^2], yaw rate [rad/s])."""
         if not self._per_scene:  # the whole batch at once
-            return scale_action(actions, self.config.dynamics)
+            normalized = self.interfaces[0].normalize_actions
+            return scale_action(actions, self.config.dynamics) if normalized else actions
         return np.stack(
             [
                 interface.env_action(action, observation, view, substep)
@@ -334,3 +349,26 @@ def build_vector_env(config: EgoEnvConfig, num_envs: int, seed: int = 0) -> EgoV
         policy=make_traffic(config.traffic, seed=seed),
         **interface_options(config),
     )
+
+
+def ego_vector_entry_point(
+    num_envs: int,
+    config: EnvConfig | None = None,
+    scenarios: ScenarioSource | Sequence[Scenario] | Scenario | None = None,
+    policy: ScenePolicy | None = None,
+    render_mode: str | None = None,
+    **interface: Any,
+) -> EgoVectorEnv:
+    """``RiskFlowEgo-v0``'s vector entry point: ``gymnasium.make_vec("RiskFlowEgo-v0",
+    num_envs=N, vectorization_mode="vector_entry_point", **kwargs)`` is N scenes of
+    ``gymnasium.make("RiskFlowEgo-v0", **kwargs)`` as one :class:`EgoVectorEnv`, with the
+    single env's spaces (the env's observation; its (accel [m/s^2], yaw rate [rad/s])
+    actions, ``normalize_actions=False``) unless ``**interface`` (:class:`EgoVectorEnv`'s)
+    asks for another; ``render_mode`` must be None (the vector env does not render)."""
+    if render_mode is not None:
+        raise ValueError(
+            f"render_mode must be None for the vector env, got {render_mode!r}: render one "
+            "scene with gymnasium.make('RiskFlowEgo-v0', render_mode=...)"
+        )
+    interface.setdefault("normalize_actions", False)
+    return EgoVectorEnv(num_envs, config, scenarios, policy, **interface)

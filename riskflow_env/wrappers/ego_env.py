@@ -5,7 +5,9 @@ everyone else (``RiskFlowEgo-v0``).
 Import              ``gymnasium.make("RiskFlowEgo-v0", **kwargs)`` or
                     ``riskflow_env.wrappers.EgoEnv(...)``
 Observation space   the ego's observation space of the parallel env:
-                    ``Box(-inf, inf, (D,), float32)``, D = 142 by default
+                    ``Box(low, high, (D,), float32)``, D = 142 by default,
+                    bounded where a physical bound holds (speed, last action,
+                    neighbour offsets, angles, risk, presence; not SDF values)
 Action space        the ego's action space: ``Box([accel_min, -yaw_rate_max],
                     [accel_max, yaw_rate_max])`` (acceleration [m/s^2], yaw rate
                     [rad/s]), default [-8, 5] x [-1, 1]

@@ -1,0 +1,49 @@
+"""A clean stop on Ctrl-C / SIGTERM for the training scripts (no dependency).
+
+``with StopSignals() as stop:`` turns SIGINT and SIGTERM into a flag the training loop
+polls (``stop.received``), so that it can save a checkpoint and exit with one line instead
+of a traceback; :func:`ignore_interrupts_in_worker` keeps worker processes, which a
+terminal's Ctrl-C reaches too, alive until the main process closes them.
+"""
+
+from __future__ import annotations
+
+import signal
+from typing import Any
+
+
+class StopSignals:
+    """Within ``with StopSignals() as stop:``, SIGINT (Ctrl-C) and SIGTERM set
+    ``stop.received`` (the signal's number) instead of raising or killing: the training
+    loop polls it and stops at the next step. A second signal raises ``KeyboardInterrupt``
+    (the user insists). The previous handlers come back on exit."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.received: int | None = None
+        self._previous: dict[int, Any] = {}
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.received is not None:
+            raise KeyboardInterrupt
+        self.received = signum
+
+    def __enter__(self) -> StopSignals:
+        for signum in self.SIGNALS:
+            self._previous[signum] = signal.signal(signum, self._handle)
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+
+
+def ignore_interrupts_in_worker() -> None:
+    """In a worker process (SubprocVecEnv, shards), ignore SIGINT: Ctrl-C reaches every
+    process of the terminal's group, and the main process stops the workers itself after
+    saving. Does nothing in the main process."""
+    import multiprocessing
+
+    if multiprocessing.parent_process() is not None:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
