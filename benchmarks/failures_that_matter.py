@@ -49,6 +49,7 @@ ROWS = (  # (label, summary key, scale, unit)
     ("standing strikes", "standing_strike_share", 100, "%"),
     ("guided within 5 m", "attackers_at_impact", 1, ""),
     ("attacker plausible", "plausible_share", 100, "%"),
+    ("into a wreck", "wreck_share", 100, "%"),
     ("non-ego in contact", "non_ego_contact_share", 100, "%"),
     ("ego progress [m]", "progress", 1, ""),
 )

@@ -22,7 +22,11 @@ have avoided it, and whether the vehicle that struck it drove like a human.
   the impact leaves no time: not avoidable, no search.
 * **attacker plausibility**: the colliding vehicle's p99 |acceleration|, |jerk| and |yaw
   rate| over the attack (from its first guided step, or the last ``REACTION_TIME``
-  before the impact if it was never guided) against :data:`HUMAN_BOUNDS`.
+  before the impact if it was never guided) against :data:`HUMAN_BOUNDS`, up to its
+  first contact with any vehicle: a vehicle in contact is frozen by the env, a stop that
+  is the env's rule, not driving.
+* **wreck**: the other vehicle had already collided with a third one before the impact
+  (the ego ran into, or was hit by, a wreck).
 """
 
 from __future__ import annotations
@@ -90,6 +94,7 @@ class Failure:
         searched: the search ran (False: no reaction time before the impact).
         attacker_p99: p99 {"accel", "jerk", "yaw_rate"} of the attacker over the attack.
         plausible: ``attacker_p99`` within :data:`HUMAN_BOUNDS`, all three.
+        wreck: the attacker had collided with another vehicle before the impact.
         escape: the search's result (its ``states`` are the witness when avoidable).
     """
 
@@ -110,6 +115,7 @@ class Failure:
     searched: bool
     attacker_p99: dict[str, float] = field(default_factory=dict)
     plausible: bool = True
+    wreck: bool = False
     escape: Escape | None = None
 
     def to_dict(self) -> dict[str, Any]:
@@ -166,11 +172,10 @@ def _failure(record, step, other, dynamics, search, bounds) -> Failure:
             obstacles(record, reaction, step + round(AFTER_COLLISION / dt)),
             record.scenario.map, dynamics, search,
         )  # fmt: skip
-    window = slice(
-        attack_step if attack_step is not None else max(0, step - round(REACTION_TIME / dt)),
-        step + 1,
-    )
-    p99 = kinematic_p99(states[other, window], dt)
+    contact = first_contact(record, record.agent_names[other], step)
+    end = min(step, contact) + 1  # driving, not the freeze that follows a contact
+    start = attack_step if attack_step is not None else step - round(REACTION_TIME / dt)
+    p99 = kinematic_p99(states[other, min(max(0, start), end - 1) : end], dt)
     return Failure(
         scenario=record.scenario.name,
         step=step,
@@ -189,8 +194,20 @@ def _failure(record, step, other, dynamics, search, bounds) -> Failure:
         searched=escape is not None,
         attacker_p99=p99,
         plausible=all(p99[name] <= getattr(bounds, name) for name in p99),
+        wreck=contact < step,
         escape=escape,
     )
+
+
+def first_contact(record: EpisodeRecord, name: str, step: int) -> int:
+    """The first step, up to ``step``, at which vehicle ``name`` began a contact with any
+    vehicle (``step`` when none began before it)."""
+    steps = [
+        int(event["step"])
+        for event in record.events
+        if event["event"] == "collision_start" and name in event["agents"]
+    ]
+    return min([step, *steps])
 
 
 def reaction_step(attack_step: int | None, dt: float) -> int:

@@ -27,6 +27,7 @@ RATES = (
     ("avoidable_share", "ego collisions shown avoidable", "%"),
     ("standing_strike_share", "ego collisions with the ego standing", "%"),
     ("plausible_share", "attacker within the human p99 bounds", "%"),
+    ("wreck_share", "ego collisions with a vehicle already in a collision", "%"),
     ("non_ego_contact_share", "non-ego vehicles in a collision without the ego", "%"),
     ("ego_offroad_rate", "ego off the road (episodes)", "%"),
     ("attackers_at_impact", "guided vehicles within 5 m of the ego at impact", ""),

@@ -12,6 +12,8 @@ carry Wilson 95% intervals, means a bootstrap interval (:mod:`policies.statistic
 ``avoidable_share``        ego collisions shown avoidable
 ``standing_strike_share``  ego collisions with the ego standing (below 0.5 m/s)
 ``plausible_share``        ego collisions whose attacker stayed within the human bounds
+``wreck_share``            ego collisions with a vehicle that had already collided with
+                           another (a wreck in the ego's way, or pushed into it)
 ``attackers_at_impact``    mean guided vehicles within 5 m of the ego at impact
 ``non_ego_contact_share``  non-ego vehicles in a collision that does not involve the ego
 ``progress``               mean distance the ego drove [m] (the counter-metric: a
@@ -97,7 +99,7 @@ def stress_summary(
     contacts = np.array([outcome["non_ego_contacts"] for outcome in outcomes]).reshape(-1, 2)
 
     def share(flag: str) -> dict[str, Any]:
-        return rate(sum(bool(f[flag]) for f in failures), len(failures), confidence)
+        return rate(sum(bool(f.get(flag)) for f in failures), len(failures), confidence)
 
     summary = {
         "episodes": len(outcomes),
@@ -107,6 +109,7 @@ def stress_summary(
         "avoidable_share": share("avoidable"),
         "standing_strike_share": share("standing_ego"),
         "plausible_share": share("plausible"),
+        "wreck_share": share("wreck"),
         "attackers_at_impact": mean_summary([f["guided_nearby"] for f in failures], confidence),
         "non_ego_contact_share": rate(
             int(contacts[:, 0].sum()), int(contacts[:, 1].sum()), confidence

@@ -76,7 +76,7 @@ def test_struck_from_behind_at_speed_is_avoidable_and_the_witness_keeps_clear():
     record = closed_loop([(0.0, 0.0, 8.0, 0.0), (-20.0, 0.0, 18.0, 0.0)], road)
     (failure,) = analyse(record)
     assert failure.type == "struck_from_behind" and not failure.standing_ego
-    assert failure.attacker == "agent_1" and failure.reaction_time == 0.0
+    assert failure.attacker == "agent_1" and failure.reaction_time == 0.0 and not failure.wreck
     assert failure.avoidable and failure.escape.clearance >= CLEARANCE
     # the witness, rolled out step by step by the env's dynamics, keeps clear and on road
     dynamics = DynamicsConfig()
@@ -124,6 +124,21 @@ def test_an_attack_without_reaction_time_is_not_avoidable():
     assert failure.reaction_time == pytest.approx(2.2)
     assert failure.time < failure.reaction_time
     assert not failure.searched and not failure.avoidable
+
+
+def test_the_ego_running_into_a_wreck_is_flagged_and_the_freeze_is_not_driving():
+    """The vehicle ahead of the ego strikes a standing car at 2.0 s and the env freezes
+    both; the ego strikes the wreck at 2.6 s. The wreck's stop is the env's contact rule,
+    not its driving: its p99 is measured up to its first contact."""
+    road = shapely.box(-60.0, -6.0, 120.0, 6.0)
+    vehicles = [(0.0, 0.0, 12.0, 0.0), (8.0, 0.0, 14.0, 0.0), (40.5, 0.0, 0.0, 0.0)]
+    record = closed_loop(vehicles, road)
+    (failure,) = analyse(record, search=EscapeSearch(samples=64, refine=4, steps=30))
+    assert failure.attacker == "agent_1" and failure.type == "striking_from_behind"
+    assert failure.wreck and failure.attacker_speed == 0.0
+    assert failure.plausible and failure.attacker_p99["accel"] < 0.1
+    summary = stress_summary([Analysed(record, (failure,))])
+    assert summary["wreck_share"]["value"] == 1.0
 
 
 def test_human_bounds_are_the_training_banks_p99():
