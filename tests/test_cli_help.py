@@ -26,11 +26,14 @@ SCRIPTS = sorted(
     for path in (ROOT / folder).glob("*.py") if str(path.relative_to(ROOT)) not in HELPERS
 )  # fmt: skip
 NEEDS_RL = ("examples/train_ego_ppo.py", "examples/train_adversaries_marl.py")
+NEEDS_TORCHRL = ("examples/train_ego_torchrl.py",)
 
 
 def _script_parser(relative: str, monkeypatch) -> argparse.ArgumentParser:
     if relative in NEEDS_RL:
         pytest.importorskip("stable_baselines3", reason="the rl extra is not installed")
+    if relative in NEEDS_TORCHRL:
+        pytest.importorskip("torchrl", reason="the torchrl extra is not installed")
     path = ROOT / relative
     spec = importlib.util.spec_from_file_location(f"cli_help_{path.stem}", path)
     module = importlib.util.module_from_spec(spec)
