@@ -39,7 +39,7 @@ from tqdm import tqdm
 
 from policies.dataclass_cli import parse_dataclass
 from policies.planners import OraclePlanner, make_planner
-from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
+from policies.rl.adversary import TARGETS, AdversaryStage, ScenePolicyConfig
 from policies.rl.envs import interface_options
 from policies.rl.evaluation import RandomPlanner, evaluate, load_ppo_planner, summarize_ego
 from policies.rl.paired import PAIRED_OUTCOMES, paired_counts
@@ -85,6 +85,12 @@ class Options:
     """nominal traffic: 'generator' (unguided, K=0) or 'idm'"""
     k: int = 5
     """K of the adversarial traffic"""
+    target: str = "others"
+    """guidance target of the adversarial traffic: 'others' (the paper's) or 'ego' (rows
+    'riskflow K=5 ego')"""
+    paired: bool = False
+    """evaluate every PPO run on the baselines' --seeds too (each seed x --episodes-per-run
+    ignored), so that every ego drives the same (scene, adversary seed) episodes"""
     guidance_steps: int = 30
     """K_g of the adversarial traffic"""
     planning_interval: float = 0.5
@@ -112,6 +118,8 @@ class Options:
                 "--runs loads stable-baselines3 model files, which are pickles that can run "
                 "arbitrary code: add --trust-model if you trust them (docs/reference/security.md)"
             )
+        if self.target not in TARGETS:
+            raise ValueError(f"--target must be one of {TARGETS}, got {self.target!r}")
         if self.scenes < 1 or self.episodes_per_run < 1:
             raise ValueError("--scenes and --episodes-per-run must be >= 1")
 
@@ -222,7 +230,8 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(2)
     if combined is not None:
         summaries, per_run, paired = combined
-        adversarial_label = ScenePolicyConfig(stage=AdversaryStage(k=options.k)).label
+        stage = AdversaryStage(k=options.k, target=options.target)
+        adversarial_label = ScenePolicyConfig(stage=stage).label
         write_report(summaries, per_run, paired, adversarial_label, options.out)
         return
     bank = shipped_bank(options.split)
@@ -230,7 +239,7 @@ def main(argv: list[str] | None = None) -> None:
     scenes = [bank[round(i * len(bank) / count)] for i in range(count)]
     config = EnvConfig(episode_steps=options.episode_steps)
     adversarial = ScenePolicyConfig(
-        stage=AdversaryStage(k=options.k),
+        stage=AdversaryStage(k=options.k, target=options.target),
         guidance_steps=options.guidance_steps,
         planning_interval=options.planning_interval,
     )
@@ -246,10 +255,11 @@ def main(argv: list[str] | None = None) -> None:
     if options.oracle:
         baselines["oracle"] = lambda seed: OraclePlanner()
     baseline_seeds = [int(s) for s in options.seeds.split(",") if s]
+    run_episodes = len(baseline_seeds) if options.paired else options.episodes_per_run
     episodes = (
         len(traffics)
         * count
-        * (len(runs) * 2 * options.episodes_per_run + len(baselines) * len(baseline_seeds))
+        * (len(runs) * 2 * run_episodes + len(baselines) * len(baseline_seeds))
     )
     bar = tqdm(total=episodes, desc="episodes", unit="episode")
 
@@ -262,6 +272,7 @@ def main(argv: list[str] | None = None) -> None:
     for chosen, initial in runs:
         seed, policy = run_options(chosen.run)
         seeds = [seed * 100 + i for i in range(options.episodes_per_run)]
+        seeds = baseline_seeds if options.paired else seeds
         planners = {
             options.label: ppo_factory(chosen.model, policy),
             f"{options.label}-initial": ppo_factory(initial, policy),

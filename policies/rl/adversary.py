@@ -80,8 +80,11 @@ class ScenePolicyConfig:
 
     @property
     def label(self) -> str:
-        """Short name for tables: ``riskflow K=5``, ``riskflow K=0``, ``idm``."""
-        return "idm" if self.kind == "idm" else f"riskflow K={self.stage.k}"
+        """Short name for tables: ``riskflow K=5``, ``riskflow K=0``, ``idm``; ``riskflow K=5
+        ego`` for the target ``ego``."""
+        if self.kind == "idm":
+            return "idm"
+        return f"riskflow K={self.stage.k}" + (" ego" if self.stage.target == "ego" else "")
 
 
 def make_traffic(config: ScenePolicyConfig, seed: int = 0, generator=None, normalizer=None):
