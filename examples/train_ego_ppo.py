@@ -79,7 +79,13 @@ from policies.rl.envs import EgoEnvConfig, interface_options, make_env
 from policies.rl.features import MANEUVER_SETS
 from policies.rl.progress import StepProgressBar
 from policies.rl.report import plot_training
-from policies.rl.runs import Checkpoint, checkpoint_files, latest_checkpoint, parse_resumable
+from policies.rl.runs import (
+    Checkpoint,
+    RunError,
+    checkpoint_files,
+    latest_checkpoint,
+    parse_resumable,
+)
 from policies.rl.sb3_shards import ShardedEgoVecEnv
 from policies.rl.sb3_vec_env import sb3_ego_vec_env
 from policies.rl.signals import StopSignals
@@ -281,7 +287,12 @@ def resumed_model(options: Options, env: VecEnv, checkpoint: Checkpoint) -> PPO:
     """The PPO of ``checkpoint`` on ``env`` (policies.rl.checkpoints.resume)."""
     if checkpoint.stats is not None:
         env = VecNormalize.load(str(checkpoint.stats), env)
-    model = PPO.load(checkpoint.model, env=env, device="cpu")
+    try:
+        model = PPO.load(checkpoint.model, env=env, device="cpu")
+    except ValueError as error:  # SB3: the saved spaces differ from the env's
+        raise RunError(
+            f"--resume {options.out}: {checkpoint.model} does not fit ({error})"
+        ) from None
     resume(model, checkpoint, options.seed)
     return model
 
@@ -368,6 +379,9 @@ def main(argv: list[str] | None = None) -> None:
             file=sys.stderr,
         )
         sys.exit(128 + stop.signum)
+    except RunError as error:
+        print(f"train_ego_ppo.py: error: {error}", file=sys.stderr)
+        sys.exit(2)
     except KeyboardInterrupt:
         print("train_ego_ppo.py: interrupted before training started", file=sys.stderr)
         sys.exit(128 + signal.SIGINT)

@@ -162,7 +162,10 @@ OPTIONAL: dict[str, str] = {
 
 
 # Shell options that need an optional library: option -> its top-level module.
-OPTIONAL_FLAGS: dict[str, str] = {"--backend ray": "ray"}
+OPTIONAL_FLAGS: dict[str, str] = {
+    "--backend ray": "ray",
+    "examples/train_ego_torchrl.py": "torchrl",  # the whole script needs it
+}
 
 
 def optional_imports(code: str, language: str = "python") -> list[str]:
