@@ -15,24 +15,14 @@ from policies.stress import load_planner, load_replay, replay, riskflow_stress
 from policies.stress.cli import main
 from policies.stress.planner_spec import PlannerSpecError, spec_of
 from riskflow_env.scenarios import load_scenario, save_scenario, shipped_bank
+from tests.policies.stress.planner_sources import RECKLESS
 
 pytestmark = pytest.mark.integration
 
-# A user's planner file: ``reckless`` steers into the nearest vehicle (a failure within a
-# few steps on a busy scene); ``Cautious`` is a class with state that ``reset`` clears.
-PLANNER_FILE = textwrap.dedent(
+# A user's planner file: ``reckless`` (``planner_sources.RECKLESS``) and ``Cautious``, a class
+# with state that ``reset`` clears.
+PLANNER_FILE = RECKLESS + textwrap.dedent(
     """
-    import numpy as np
-
-    def reckless(observation, view):
-        others = observation[6:94].reshape(8, 11)
-        present = others[:, 10] > 0
-        if not present.any():
-            return np.array([2.0, 0.0])
-        distance = np.where(present, np.hypot(others[:, 0], others[:, 1]), np.inf)
-        dx, dy = others[np.argmin(distance), :2]
-        return np.array([3.0, np.clip(2.0 * np.arctan2(dy, dx), -1.0, 1.0)])
-
     class Cautious:
         def reset(self, view):
             self.calls = 0

@@ -4,7 +4,6 @@ its replay file in the formats asked for; a bad format is a usage error naming -
 from __future__ import annotations
 
 import importlib.util
-import textwrap
 
 import numpy as np
 import pytest
@@ -13,23 +12,10 @@ from policies.stress import load_replay
 from policies.stress.cli import main
 from riskflow_env.scenarios import save_scenario, shipped_bank
 from riskflow_env.scenarios.scenarionet import load_scenarionet
+from tests.policies.stress.planner_sources import RECKLESS
 
 pytestmark = pytest.mark.integration
 
-RECKLESS = textwrap.dedent(
-    """
-    import numpy as np
-
-    def reckless(observation, view):
-        others = observation[6:94].reshape(8, 11)
-        present = others[:, 10] > 0
-        if not present.any():
-            return np.array([2.0, 0.0])
-        distance = np.where(present, np.hypot(others[:, 0], others[:, 1]), np.inf)
-        dx, dy = others[np.argmin(distance), :2]
-        return np.array([3.0, np.clip(2.0 * np.arctan2(dy, dx), -1.0, 1.0)])
-    """
-)  # steers into the nearest vehicle: a failure within a few steps on a busy scene
 INTEROP = all(importlib.util.find_spec(m) for m in ("scenariogeneration", "commonroad"))
 
 
