@@ -51,6 +51,7 @@ from riskflow_env.scenarios.map_files import (
     MAP_LIMITS,
     MAP_SCHEMA,
     OPTIONAL_MAP_KEYS,
+    check_sdf_budget,
     load_map,
     map_from_arrays,
     map_hash,
@@ -205,6 +206,7 @@ def _check_scene_members(path: Path, members) -> None:
         optional = {f"map_{key}": rule for key, rule in OPTIONAL_MAP_KEYS.items()}
         limits = _SCENE_LIMITS | MAP_LIMITS
         check_arrays(path, members, {**_SCENE_KEYS, **prefixed}, optional, limits)
+        check_sdf_budget(path, members, prefix="map_")
 
 
 def _map_ref_path(path: Path, ref: str) -> Path:

@@ -4,7 +4,8 @@ A map (inline in a scene file with the ``map_`` prefix,
 :mod:`~riskflow_env.scenarios.io`, or alone in a ``schema="riskflow-map"`` file):
 ``drivable`` (H, W) bool, ``resolution`` () [m/px], ``origin`` (2,) [m], ``name``,
 ``sdf`` (H, W) float32 [m] only when saved with ``include_sdf`` (else recomputed on
-load, a few milliseconds), and the lanes: ``lane_points`` (M, 2) [m] (all centrelines
+load: 0.2 s of CPU and about 40 bytes a pixel, so a raster without it holds at most
+:data:`MAX_SDF_PIXELS`, checked from the headers), and the lanes: ``lane_points`` (M, 2) [m] (all centrelines
 concatenated), ``lane_offsets`` (L + 1,) (lane i is ``lane_points[off[i]:off[i+1]]``),
 ``lane_widths`` (L,) [m], ``lane_ids`` (L,), ``lane_speed_limits`` (L,) [m/s] (NaN for
 none), ``lane_successors`` (S,) and ``lane_successor_offsets`` (L + 1,).
@@ -52,6 +53,7 @@ OPTIONAL_MAP_KEYS = {"sdf": (("H", "W"), "f")}
 MAX_LANES = 20_000  # [-] lanes of one map (a city-scale ScenarioNet map has a few thousand)
 MAX_LANE_POINTS = 2_000_000  # [-] centreline points of all lanes of one map together
 MAX_LANE_SUCCESSORS = 200_000  # [-] successor links of all lanes of one map together
+MAX_SDF_PIXELS = 8_000_000  # [-] H * W of a raster stored without its SDF (computed on load)
 # named dim -> (limit's name, value), checked from the .npy headers before anything is loaded
 MAP_LIMITS = {
     "L": ("MAX_LANES", MAX_LANES),
@@ -105,6 +107,19 @@ def check_map_members(path: Path, members) -> None:
     """A map file's keys, dtypes, shapes and counts (:data:`MAP_LIMITS`), from the
     ``.npy`` headers (:func:`~riskflow_env.scenarios._npz.check_arrays`)."""
     check_arrays(path, members, MAP_KEYS, OPTIONAL_MAP_KEYS, MAP_LIMITS)
+    check_sdf_budget(path, members)
+
+
+def check_sdf_budget(path: Path, members, prefix: str = "") -> None:
+    """ScenarioFormatError naming ``path`` when the raster ``<prefix>drivable`` has more
+    than :data:`MAX_SDF_PIXELS` pixels and no ``<prefix>sdf`` member (its signed distance
+    field would be computed on load: about 40 bytes and 0.2 us of CPU a pixel)."""
+    height, width = members[f"{prefix}drivable"].shape
+    if f"{prefix}sdf" not in members and height * width > MAX_SDF_PIXELS:
+        raise ScenarioFormatError(
+            f"{path}: a {height} x {width} px map without its SDF exceeds MAX_SDF_PIXELS = "
+            f"{MAX_SDF_PIXELS} (the SDF would be computed on load); store it (include_sdf=True)"
+        )
 
 
 def read_map(path: str | os.PathLike) -> DrivableMap:
@@ -213,9 +228,11 @@ __all__ = [
     "MAX_LANES",
     "MAX_LANE_POINTS",
     "MAX_LANE_SUCCESSORS",
+    "MAX_SDF_PIXELS",
     "MAP_SCHEMA",
     "OPTIONAL_MAP_KEYS",
     "check_map_members",
+    "check_sdf_budget",
     "load_map",
     "map_from_arrays",
     "map_hash",

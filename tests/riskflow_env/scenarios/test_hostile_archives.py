@@ -265,3 +265,45 @@ for _ in range(20):
 """
     outcome = run_capped(SETUP, call)
     assert outcome.error is None, outcome
+
+
+def _map_with_raster(tmp_path: Path, name: str, side: int, sdf: bool = False) -> Path:
+    """A shipped map's lanes over a ``side`` x ``side`` raster, drivable in one band."""
+    drivable = np.zeros((side, side), dtype=bool)
+    drivable[side // 2 - 20 : side // 2 + 20] = True
+    arrays = _arrays(MAP) | {"drivable": drivable}
+    if sdf:  # any SDF that agrees in sign: compresses as well as the raster
+        arrays["sdf"] = np.where(drivable, -0.25, 0.25).astype(np.float32)
+    else:
+        arrays.pop("sdf", None)
+    path = tmp_path / name
+    write_npz(path, arrays)
+    return path
+
+
+def test_large_raster_without_its_sdf_refused_from_the_header(tmp_path):
+    """A 7,071 x 7,071 raster without an SDF (a 60 KB file) took about 45 s and 2.1 GB
+    to load (its SDF computed): refused from the header, as a scene's inline map too."""
+    path = _map_with_raster(tmp_path, "nosdf.npz", 7071)
+    assert path.stat().st_size < 2**20
+    _refused(_load(path, "load_map"), path, "MAX_SDF_PIXELS", "include_sdf=True")
+    arrays = _inline_scene(tmp_path)
+    arrays["map_drivable"] = np.zeros((7071, 7071), dtype=bool)
+    arrays.pop("map_sdf", None)
+    scene = tmp_path / "nosdf_scene.npz"
+    write_npz(scene, arrays)
+    _refused(_load(scene), scene, "MAX_SDF_PIXELS")
+
+
+def test_rasters_within_the_sdf_budget_or_with_their_sdf_load(tmp_path):
+    """At MAX_SDF_PIXELS the SDF is computed within the bounds; a larger raster that
+    stores its SDF loads without computing one."""
+    within = _map_with_raster(tmp_path, "within.npz", 2828)  # 7.997 M px
+    _loaded(_load(within, "load_map"))
+    stored = _map_with_raster(tmp_path, "stored.npz", 5000, sdf=True)
+    _loaded(_load(stored, "load_map"))
+
+
+def _loaded(outcome: Outcome) -> None:
+    assert outcome.error is None, outcome
+    assert_bounded(outcome)
