@@ -17,7 +17,7 @@ import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-from riskflow_env.scenarios.untrusted import error_text
+from riskflow_env.untrusted import error_text
 
 USER_ERRORS = (OSError, ValueError)
 MAX_LINE = 1000  # [characters] of an error message printed

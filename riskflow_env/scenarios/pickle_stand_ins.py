@@ -18,7 +18,7 @@ the real objects it names where those could allocate without bound or address me
   :func:`check_key` every dict key and set item.
 
 Messages quote what a file holds only through
-:func:`~riskflow_env.scenarios.untrusted.brief` (bounded time and length).
+:func:`~riskflow_env.untrusted.brief` (bounded time and length).
 
 Every refusal raises :class:`Refused`, which the loader re-raises naming the file.
 """
@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from riskflow_env.scenarios.untrusted import brief
+from riskflow_env.untrusted import brief
 
 MAX_DIMS = 8  # array dimensions
 ARRAY_KINDS = frozenset("biufcSU")  # bool, ints, floats, complex, bytes, str

@@ -44,7 +44,7 @@ from riskflow_env.scenarios.pickle_stand_ins import (
     check_shape,
     default_dict,
 )
-from riskflow_env.scenarios.untrusted import MAX_QUOTE, brief
+from riskflow_env.untrusted import MAX_QUOTE, brief
 
 try:  # numpy >= 2
     from numpy._core import multiarray as _multiarray

@@ -54,7 +54,7 @@ from riskflow_env.scenarios.pickle_stand_ins import (
     SafeArray,
 )
 from riskflow_env.scenarios.pickle_unpickler import ALLOWED_GLOBALS, RestrictedUnpickler
-from riskflow_env.scenarios.untrusted import MAX_MESSAGE, error_text
+from riskflow_env.untrusted import MAX_MESSAGE, error_text
 
 MAX_FILE_BYTES = 512 * 2**20  # [bytes] largest data pickle read
 MAX_ARRAY_BYTES = 64 * 2**20  # [bytes] largest single array / byte string / set built by a call
@@ -171,7 +171,7 @@ def errors_name_the_file(source: str, what: str = "a readable data pickle") -> I
     ``OverflowError``... (any ``Exception``) are re-raised as ``ValueError("<source>: not
     <what> (<type>: <message>)")``, the message cut to a few hundred characters and built
     without formatting what the file holds
-    (:func:`~riskflow_env.scenarios.untrusted.error_text`); a ``ValueError`` whose
+    (:func:`~riskflow_env.untrusted.error_text`); a ``ValueError`` whose
     message already names ``source`` passes (cut the same way). ``KeyboardInterrupt``,
     ``SystemExit`` and other ``BaseException`` s that are not ``Exception`` s pass
     through untouched."""

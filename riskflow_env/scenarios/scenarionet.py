@@ -37,7 +37,7 @@ arrays only) and turns it into a :class:`Scenario`:
 * Counts (tracks, steps, map features, points) are checked against
   :mod:`~riskflow_env.scenarios.scenarionet_limits` before any array is built; ids
   (``sdc_id``, track and lane ids, the scenario id) are str or int
-  (:func:`~riskflow_env.scenarios.untrusted.entry_id`).
+  (:func:`~riskflow_env.untrusted.entry_id`).
 
 The tracks become arrays (stacking, time stamps, resampling, speeds, holding invalid
 steps) in :mod:`~riskflow_env.scenarios.scenarionet_tracks`; the map in
@@ -73,8 +73,8 @@ from riskflow_env.scenarios.scenarionet_tracks import (
     time_stamps,
 )
 from riskflow_env.scenarios.smoothing import smooth_tracks
-from riskflow_env.scenarios.untrusted import entry_id
 from riskflow_env.state import HISTORY_STEPS
+from riskflow_env.untrusted import entry_id
 
 MIN_FUTURE_STEPS = 100  # reference future padded to at least this many steps (10 s)
 VEHICLE = "VEHICLE"

@@ -26,7 +26,7 @@ Scene names are ``"scenarionet/<scenario id>"`` from the summary (``scenario_id`
 ``.pkl``) where the summary gives no id or two files give the same one. An entry's
 metadata holds at most :data:`MAX_METADATA_KEYS` keys (a summary that shares one huge
 metadata dict among its entries would otherwise be copied once per entry), and its id is
-a str or an int (:func:`~riskflow_env.scenarios.untrusted.entry_id`); a scene file that
+a str or an int (:func:`~riskflow_env.untrusted.entry_id`); a scene file that
 cannot be read is a ``ValueError`` naming it and the summary.
 """
 
@@ -46,7 +46,7 @@ from riskflow_env.scenarios.map_cache import MapCache
 from riskflow_env.scenarios.safe_pickle import load_data_pickle
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.scenarios.scenarionet import load_scenarionet
-from riskflow_env.scenarios.untrusted import MAX_QUOTE, brief, entry_id
+from riskflow_env.untrusted import MAX_QUOTE, brief, entry_id
 
 SUMMARY_FILE = "dataset_summary.pkl"
 MAPPING_FILE = "dataset_mapping.pkl"

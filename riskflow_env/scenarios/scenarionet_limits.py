@@ -24,8 +24,13 @@ limit                  value       counts
 ``MAX_EDGE_SEGMENTS``  4,096       road-edge segments, and ``MAX_EDGE_CROSSINGS``
                                    16,384 crossings among them, of a map without
                                    lanes or polygons (built from its road edges)
+``MAX_LANE_LINKS``     20,000      successor links of all lanes, listed or inferred
+                                   (the sample: 476; each one adds a junction patch)
 ``MAX_OVERLAPS``       25,000      pairs of drivable-area polygons that meet before
                                    their union (the sample, whole map: 1,999)
+``MAX_OVERLAP_WORK``   16.8 M      vertices of the pairs of polygons whose boxes meet,
+                                   each pair tested exactly for MAX_OVERLAPS (the
+                                   sample, whole map: 1.8 M)
 =====================  ==========  ===========================================
 
 At these limits a file loads in under 5 s and 500 MB (measured: 1,000,000 track-steps
@@ -48,7 +53,7 @@ from typing import Any
 import numpy as np
 import shapely
 
-from riskflow_env.scenarios.untrusted import brief
+from riskflow_env.untrusted import brief
 
 MAX_STEPS = 20_000  # [0.1 s] recorded steps, and steps after resampling to 10 Hz (2000 s)
 MAX_TRACKS = 10_000  # tracks of one description, every type
@@ -61,8 +66,10 @@ MAX_BOUNDARY_RINGS = 256  # closed boundary_<k> rings filled even-odd into the d
 MAX_MAP_PIXELS = 8_000_000  # pixels of the map raster (H x W)
 MAX_EDGE_SEGMENTS = 4096  # road-edge segments a map without lanes is built from
 MAX_EDGE_CROSSINGS = 16_384  # crossings among them (their arrangement grows as these)
+MAX_LANE_LINKS = 20_000  # successor links of all lanes (listed or inferred) of one map
 MAX_OVERLAPS = 25_000  # pairs of drivable-area polygons that meet (their union grows as these)
-_OVERLAP_ROWS = 256  # polygons queried at once (bounds the pairs held)
+MAX_OVERLAP_WORK = 2**24  # vertices of the pairs of polygons whose boxes meet (tested exactly)
+_OVERLAP_ROWS = 32  # polygons queried at once (bounds the pairs held)
 COORDINATES = 3  # numbers per point counted against the point limits (x, y, z)
 
 _NUMBERS = (int, float, bool, np.number, np.bool_)
@@ -151,16 +158,40 @@ def check_track_steps(tracks: int, steps: int, source: str) -> None:
         )
 
 
+def check_lane_links(links: int, source: str) -> None:
+    """ValueError naming ``source`` when the lanes hold more than :data:`MAX_LANE_LINKS`
+    successor links (thousands of lanes that end where as many others start link to 64
+    each: 160,000 junction patches took minutes)."""
+    if links > MAX_LANE_LINKS:
+        raise ValueError(
+            f"{source}: the lanes hold {links} successor links, over MAX_LANE_LINKS = "
+            f"{MAX_LANE_LINKS}"
+        )
+
+
 def check_overlaps(polygons: list, source: str) -> None:
     """ValueError naming ``source`` when more than :data:`MAX_OVERLAPS` pairs of
     ``polygons`` (shapely geometries) meet: their union's cost grows as its crossings (a
-    grid of 300 x 300 thin lanes: 10 s, 490 MB; 1,000 x 1,000: minutes). Counted with an
-    STRtree, ``_OVERLAP_ROWS`` polygons at a time, stopping past the limit."""
-    tree = shapely.STRtree(polygons)
-    found = 0
+    grid of 300 x 300 thin lanes: 10 s, 490 MB; 1,000 x 1,000: minutes). The pairs whose
+    boxes meet come from an STRtree, ``_OVERLAP_ROWS`` polygons at a time; their vertices
+    count against :data:`MAX_OVERLAP_WORK` before they are tested exactly (polygons piled
+    on one spot made every pair a candidate), stopping past either limit."""
+    geometries = np.empty(len(polygons), dtype=object)
+    geometries[:] = polygons
+    tree = shapely.STRtree(geometries)
+    vertices = shapely.get_num_coordinates(geometries)
+    found = work = 0
     for row in range(0, len(polygons), _OVERLAP_ROWS):
-        query, other = tree.query(polygons[row : row + _OVERLAP_ROWS], predicate="intersects")
-        found += int(np.count_nonzero(query + row < other))
+        query, other = tree.query(geometries[row : row + _OVERLAP_ROWS])
+        later = query + row < other
+        query, other = query[later] + row, other[later]
+        work += int(np.sum(vertices[query]) + np.sum(vertices[other]))
+        if work > MAX_OVERLAP_WORK:
+            raise ValueError(
+                f"{source}: the lane and surface polygons whose boxes meet hold over "
+                f"MAX_OVERLAP_WORK = {MAX_OVERLAP_WORK} vertices (pairs x vertices)"
+            )
+        found += int(np.count_nonzero(shapely.intersects(geometries[query], geometries[other])))
         if found > MAX_OVERLAPS:
             raise ValueError(
                 f"{source}: over MAX_OVERLAPS = {MAX_OVERLAPS} pairs of lane and surface "
@@ -190,6 +221,8 @@ __all__ = [
     "MAX_MAP_PIXELS",
     "MAX_OVERLAPS",
     "MAX_EXIT_LANES",
+    "MAX_LANE_LINKS",
+    "MAX_OVERLAP_WORK",
     "MAX_FEATURE_POINTS",
     "MAX_MAP_FEATURES",
     "MAX_MAP_POINTS",
@@ -197,6 +230,7 @@ __all__ = [
     "MAX_TRACKS",
     "MAX_TRACK_STEPS",
     "check_counts",
+    "check_lane_links",
     "check_overlaps",
     "check_raster",
     "check_track_steps",

@@ -52,10 +52,11 @@ from riskflow_env.scenarios.scenarionet_limits import (
     MAX_EDGE_CROSSINGS,
     MAX_EDGE_SEGMENTS,
     MAX_EXIT_LANES,
+    check_lane_links,
     check_overlaps,
     check_raster,
 )
-from riskflow_env.scenarios.untrusted import MAX_QUOTE, brief, entry_id
+from riskflow_env.untrusted import MAX_QUOTE, brief, entry_id
 
 DEFAULT_LANE_WIDTH = 3.5  # [m] width of lanes whose file gives neither width nor polygon
 LANE_WIDTH_RANGE = (2.0, 6.0)  # [m] bounds on widths estimated from polygons
@@ -174,6 +175,7 @@ def build_map(
         successors = {i: _exit_lanes(raw[i], known, f"{source}: map feature {i}") for i in ids}
     else:
         successors = _infer_successors(ids, centrelines)
+    check_lane_links(sum(len(found) for found in successors.values()), source)
     lanes = []
     for i in ids:
         try:

@@ -26,7 +26,7 @@ import numpy as np
 from riskflow_env.dynamics import wrap_angle
 from riskflow_env.scenarios.scenarionet_features import real_array
 from riskflow_env.scenarios.scenarionet_limits import MAX_STEPS, check_track_steps
-from riskflow_env.scenarios.untrusted import brief
+from riskflow_env.untrusted import brief
 
 DT = 0.1  # [s] time step of scenarios
 DEFAULT_SIZE = (4.5, 2.0)  # [m] (length, width) of tracks that give none
