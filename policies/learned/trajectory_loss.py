@@ -128,3 +128,20 @@ def trajectory_loss(
             "fde": (final * has_last).sum() / has_last.sum().clamp(min=1),
         } | {name: value.detach() for name, value in penalties.items()}
     return loss, metrics
+
+
+def action_mse(x: Tensor, target: Tensor, batch: WindowBatch, scene: SceneContext) -> Tensor:
+    """Mean of ``|x - target|^2`` (summed over the action channels) over the valid actions
+    of the scene's agents: the objectives' action-space error.
+
+    Args:
+        x: ``(B, A, T, 2)`` normalised actions (or noise), e.g. a reconstruction ``a_hat``.
+        target: like ``x``, e.g. ``a*`` (:func:`target_actions`).
+        batch: windows with ``actions_valid (B, A, T)``.
+        scene: the encoder output (its ``agent_mask (B, A)``).
+
+    Returns:
+        A scalar; 0 when nothing is valid.
+    """
+    weight = (batch.actions_valid.bool() & scene.agent_mask[..., None]).to(x.dtype)
+    return (((x - target) ** 2).sum(dim=-1) * weight).sum() / weight.sum().clamp(min=1.0)

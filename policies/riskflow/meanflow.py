@@ -43,6 +43,7 @@ from policies.learned.generator import RiskFlowGenerator
 from policies.learned.trajectory_loss import (
     POSITION_ONLY,
     LossWeights,
+    action_mse,
     target_actions,
     trajectory_loss,
 )
@@ -192,12 +193,10 @@ def _loss(
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """Trajectory loss (with its penalties) plus ``weights.action * action_mse``."""
     loss, metrics = trajectory_loss(a_hat, batch, scene, normalizer, weights, dynamics)
-    weight = (batch.actions_valid.bool() & scene.agent_mask[..., None]).to(a_hat.dtype)
-    squared = ((a_hat - a_star) ** 2).sum(dim=-1)
-    action_mse = (squared * weight).sum() / weight.sum().clamp(min=1.0)
+    action_error = action_mse(a_hat, a_star, batch, scene)
     if weights.action:
-        loss = loss + weights.action * action_mse
-    metrics["action_mse"] = action_mse.detach()
+        loss = loss + weights.action * action_error
+    metrics["action_mse"] = action_error.detach()
     metrics["loss"] = loss.detach()
     return loss, metrics
 

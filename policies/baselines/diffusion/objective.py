@@ -22,7 +22,12 @@ from torch import Tensor
 
 from policies.baselines.diffusion.model import DiffusionDenoiser
 from policies.learned.data import Normalizer
-from policies.learned.trajectory_loss import LossWeights, target_actions, trajectory_loss
+from policies.learned.trajectory_loss import (
+    LossWeights,
+    action_mse,
+    target_actions,
+    trajectory_loss,
+)
 from policies.learned.window_types import WindowBatch
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG
@@ -76,20 +81,18 @@ def diffusion_loss(
     a_star = target_actions(batch, normalizer)
     x_k = denoiser.schedule.q_sample(a_star, k, eps)
     x0_hat, eps_hat = denoiser(x_k, k, scene)
-    weight = (batch.actions_valid.bool() & scene.agent_mask[..., None]).to(x0_hat.dtype)
-    count = weight.sum().clamp(min=1.0)
-    action_mse = (((x0_hat - a_star) ** 2).sum(dim=-1) * weight).sum() / count
-    eps_mse = (((eps_hat - eps) ** 2).sum(dim=-1) * weight).sum() / count
+    action_error = action_mse(x0_hat, a_star, batch, scene)
+    eps_mse = action_mse(eps_hat, eps, batch, scene)
     if denoiser.diffusion.prediction != "epsilon":
         loss, metrics = trajectory_loss(x0_hat, batch, scene, normalizer, weights, dynamics)
-        loss = loss + weights.action * action_mse
+        loss = loss + weights.action * action_error
     else:
         with torch.no_grad():
             _, metrics = trajectory_loss(x0_hat, batch, scene, normalizer, dynamics=dynamics)
         loss = eps_mse
     metrics |= {
         "loss": loss.detach(),
-        "action_mse": action_mse.detach(),
+        "action_mse": action_error.detach(),
         "eps_mse": eps_mse.detach(),
     }
     return loss, metrics
