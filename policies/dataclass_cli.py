@@ -131,6 +131,17 @@ def field_values(cls: type, values: Mapping[str, Any]) -> dict[str, Any]:
     return {name: _typed(hints[name], value, name) for name, value in values.items()}
 
 
+def from_fields(cls: type[T], source: Any, *, suffix: str = "", **given: Any) -> T:
+    """The dataclass ``cls`` with each field read from ``source``'s attribute of the same
+    name plus ``suffix`` (e.g. options -> a config), but the fields in ``given``.
+
+    Raises:
+        AttributeError: ``source`` lacks an attribute a field asks for.
+    """
+    names = [field.name for field in dataclasses.fields(cls) if field.name not in given]
+    return cls(**{name: getattr(source, name + suffix) for name in names}, **given)
+
+
 _KINDS = {
     bool: "true or false",
     int: "an int",

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from policies.cli_inputs import SHIPPED, check_device, open_data
+from policies.dataclass_cli import from_fields
 from policies.learned.guidance_losses import TARGETS
 from policies.planners import PLANNERS
 from policies.registry import method_options, method_spec
@@ -185,17 +186,8 @@ class RunConfig:
 
     @classmethod
     def from_options(cls, options: EvalOptions) -> RunConfig:
-        """The run settings of ``options``."""
-        return cls(
-            data=options.data or SHIPPED,
-            ego=options.ego,
-            target=options.target,
-            duration=options.duration,
-            stop_at_ego_collision=options.stop_at_ego_collision,
-            wosac=options.wosac,
-            device=options.device,
-            leave_when_log_ends=options.leave_when_log_ends,
-        )
+        """The run settings of ``options`` (its fields of the same names)."""
+        return from_fields(cls, options, data=options.data or SHIPPED)
 
     def as_json(self) -> dict[str, Any]:
         """``config.json``: the settings every row of the results file shares."""

@@ -9,12 +9,13 @@ trajectory-space reconstruction; docs/explanation/method.md).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 from torch import Tensor
 
+from policies.dataclass_cli import from_fields
 from policies.learned.data import Normalizer
 from policies.learned.encoder import SceneContext
 from policies.learned.plan_penalties import jerk_penalty, offroad_penalty, overlap_penalty
@@ -53,7 +54,7 @@ class LossWeights:
     def from_options(cls, options: Any) -> LossWeights:
         """The weights that ``riskflow-train``'s options give (``heading_weight`` for
         ``heading``, and so on)."""
-        return cls(**{term.name: getattr(options, f"{term.name}_weight") for term in fields(cls)})
+        return from_fields(cls, options, suffix="_weight")
 
 
 POSITION_ONLY = LossWeights()  # the position error alone
