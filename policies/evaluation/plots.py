@@ -1,6 +1,7 @@
 """The report's PNG plots (matplotlib, Agg backend).
 
-* ``cs_rs_T<interval>.png``: CS against RS, one panel per K (each table's own CS / RS),
+* ``cs_rs_T<interval>.png`` (``cs_rs.png`` for methods without a planning interval: rule-based
+  traffic, replay): CS against RS, one panel per K (each table's own CS / RS),
   three panels a row; methods on (nearly) the same point are drawn side by side
   (:func:`spread`) so that none hides another;
 * ``realism_vs_horizon_K<k>.png``: raw realism metrics (ORR, ADE, FDE, KDD, WOSAC)
@@ -57,7 +58,8 @@ def write_metric_plots(tables: list[Table], out: Path) -> list[Path]:
     files = []
     for interval in dict.fromkeys(table.interval for table in tables):
         group = [t for t in tables if t.interval == interval]
-        files.append(_cs_rs(group, colors, out / f"cs_rs_T{_name(interval)}.png"))
+        suffix = "" if interval is None else f"_T{_name(interval)}"
+        files.append(_cs_rs(group, colors, out / f"cs_rs{suffix}.png"))
     for k in dict.fromkeys(table.k for table in tables):
         group = [t for t in tables if t.k == k]
         if len(group) > 1:  # a line over the planning intervals needs several of them
