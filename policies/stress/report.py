@@ -71,7 +71,7 @@ def tables(summary: dict[str, Any]) -> list[Table]:
             episode["scene"],
             str(episode["seed"]),
             f"{f['time']:.1f}",
-            f["type"],
+            f["type"] + (", a wreck" if f.get("wreck") else ""),
             f["attacker"],
             f"{f['relative_speed']:.1f}",
             f"{f['ego_speed']:.1f}",
