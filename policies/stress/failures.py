@@ -21,10 +21,10 @@ have avoided it, and whether the vehicle that struck it drove like a human.
   than ``REACTION_TIME`` in, or when it was never guided). A reaction point at or after
   the impact leaves no time: not avoidable, no search.
 * **attacker plausibility**: the colliding vehicle's p99 |acceleration|, |jerk| and |yaw
-  rate| over the attack (from its first guided step, or the last ``REACTION_TIME``
-  before the impact if it was never guided) against :data:`HUMAN_BOUNDS`, up to its
-  first contact with any vehicle: a vehicle in contact is frozen by the env, a stop that
-  is the env's rule, not driving.
+  rate| up to its first contact with any vehicle (a vehicle in contact is frozen by the
+  env, a stop that is the env's rule, not driving), from its first guided step or the
+  last ``REACTION_TIME`` before that contact, whichever is earlier, against
+  :data:`HUMAN_BOUNDS`.
 * **wreck**: the other vehicle had already collided with a third one before the impact
   (the ego ran into, or was hit by, a wreck).
 """
@@ -174,8 +174,9 @@ def _failure(record, step, other, dynamics, search, bounds) -> Failure:
         )  # fmt: skip
     contact = first_contact(record, record.agent_names[other], step)
     end = min(step, contact) + 1  # driving, not the freeze that follows a contact
-    start = attack_step if attack_step is not None else step - round(REACTION_TIME / dt)
-    p99 = kinematic_p99(states[other, min(max(0, start), end - 1) : end], dt)
+    last_second = end - 1 - round(REACTION_TIME / dt)
+    start = last_second if attack_step is None else min(attack_step, last_second)
+    p99 = kinematic_p99(states[other, max(0, start) : end], dt)
     return Failure(
         scenario=record.scenario.name,
         step=step,

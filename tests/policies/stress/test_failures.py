@@ -18,6 +18,7 @@ from policies.stress import (
     collision_type,
     kinematic_bounds,
 )
+from policies.stress.failures import kinematic_p99
 from policies.stress.summary import Analysed, stress_summary
 from riskflow_env.agents.replay import ReplayPolicy
 from riskflow_env.config import DynamicsConfig, EnvConfig
@@ -27,6 +28,7 @@ from riskflow_env.scenarios import shipped_bank
 from tests.riskflow_env.hand_made_scenes import make_scenario
 
 SIZE = np.array([[4.5, 2.0], [4.5, 2.0]])
+SMALL = EscapeSearch(samples=64, refine=4, steps=30)  # a small search budget
 DT = 0.1
 
 
@@ -133,12 +135,19 @@ def test_the_ego_running_into_a_wreck_is_flagged_and_the_freeze_is_not_driving()
     road = shapely.box(-60.0, -6.0, 120.0, 6.0)
     vehicles = [(0.0, 0.0, 12.0, 0.0), (8.0, 0.0, 14.0, 0.0), (40.5, 0.0, 0.0, 0.0)]
     record = closed_loop(vehicles, road)
-    (failure,) = analyse(record, search=EscapeSearch(samples=64, refine=4, steps=30))
+    (failure,) = analyse(record, search=SMALL)
     assert failure.attacker == "agent_1" and failure.type == "striking_from_behind"
     assert failure.wreck and failure.attacker_speed == 0.0
     assert failure.plausible and failure.attacker_p99["accel"] < 0.1
     summary = stress_summary([Analysed(record, (failure,))])
     assert summary["wreck_share"]["value"] == 1.0
+    # guided only after its contact: still measured over the last second before it
+    guided = np.zeros(record.in_scene.shape, dtype=bool)
+    guided[1, 25:] = True
+    (late,) = analyse(type(record)(**{**record.__dict__, "guided": guided}), search=SMALL)
+    contact = next(e["step"] for e in record.events if e["event"] == "collision_start")
+    expected = kinematic_p99(record.states[1, contact - 10 : contact + 1], record.dt)
+    assert late.attacker_p99 == expected and late.attack_start == pytest.approx(2.5)
 
 
 def test_human_bounds_are_the_training_banks_p99():
