@@ -41,7 +41,7 @@ from policies.learned.trainer import CHECKPOINT, GENERATOR, METRICS_LOG, fit
 from policies.recipes import read_recipe, shipped_recipes
 from policies.riskflow.meanflow import MeanFlowObjective
 from policies.riskflow.time_sampler import TimeSampler
-from riskflow_env.cli_errors import user_errors
+from riskflow_env.cli_errors import debug_requested, user_errors
 
 GENERATORS = ("meanflow", "diffusion")
 PROG = "riskflow-train"
@@ -124,7 +124,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``riskflow-train`` console script."""
     argv = sys.argv[1:] if argv is None else list(argv)
     options = parse_options(argv)
-    with user_errors(PROG, debug="--debug" in argv):
+    with user_errors(PROG, debug_requested(argv)):
         train(options)
     return 0
 

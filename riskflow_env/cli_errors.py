@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 
 from riskflow_env.untrusted import error_text
@@ -30,6 +30,14 @@ def add_debug_flag(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="show the Python traceback of an error instead of one line",
     )
+
+
+def debug_requested(argv: Sequence[str]) -> bool:
+    """Whether ``argv`` asks for ``--debug`` (argparse's abbreviations included), for a
+    command whose parser does not hand the flag back."""
+    flag = argparse.ArgumentParser(add_help=False)
+    add_debug_flag(flag)
+    return flag.parse_known_args(list(argv))[0].debug
 
 
 def message(error: BaseException) -> str:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from policies.evaluation.cli import main as eval_main
-from riskflow_env.cli_errors import message, user_errors
+from riskflow_env.cli_errors import debug_requested, message, user_errors
 from riskflow_env.scenarios._npz import ScenarioFormatError
 from riskflow_env.scenarios.cli import main as data_main
 
@@ -56,3 +56,8 @@ def test_riskflow_data_info_on_a_broken_bank(tmp_path, capsys):
     assert error.startswith("riskflow-data info: error: ") and "s0.npz" in error
     with pytest.raises(ScenarioFormatError):
         data_main(["info", str(bank), "--debug"])
+
+
+def test_debug_is_recognised_as_argparse_reads_it():
+    assert debug_requested(["--data", "d", "--deb"]) and debug_requested(["--debug"])
+    assert not debug_requested(["--data", "d", "--steps", "2"])

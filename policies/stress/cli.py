@@ -174,7 +174,8 @@ def _run(argv: list[str]) -> None:
     )
     print(f"wrote {result.out}/report.html, report.md, summary.json; {replays}")
     if formats and result.replays:
-        exported = export_failures(result, formats)
+        with user_errors(PROG, debug):
+            exported = export_failures(result, formats)
         print(f"exported {len(exported)} file(s) ({', '.join(formats)}) beside the replay files")
 
 

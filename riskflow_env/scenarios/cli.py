@@ -285,6 +285,7 @@ def build_parser() -> argparse.ArgumentParser:
     out.add_argument("--format", nargs="+", choices=FORMATS, required=True, dest="formats",
                      help="formats to write (docs/how-to/exchange.md)")  # fmt: skip
     out.add_argument("--out", type=Path, required=True, help="folder of the exported files")
+    add_debug_flag(out)
     return parser
 
 
@@ -297,12 +298,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             info(args.directory)
         return 0
     if args.command == "export":
-        from riskflow_env.scenarios.exchange import export_files
+        from riskflow_env.scenarios.exchange import export_files, require_format
 
-        try:
-            written = export_files(args.files, tuple(dict.fromkeys(args.formats)), args.out)
-        except (OSError, ValueError) as err:
-            parser.error(f"files: {err}")
+        formats = tuple(dict.fromkeys(args.formats))
+        for fmt in formats:
+            try:
+                require_format(fmt)
+            except ImportError as err:
+                parser.error(f"--format {fmt}: {err}")
+        with user_errors(f"{parser.prog} export", args.debug):
+            written = export_files(args.files, formats, args.out)
         print(f"riskflow-data: wrote {len(written)} file(s) into {args.out}")
         return 0
     try:

@@ -30,8 +30,9 @@ def export_scenario(scenario: Scenario, path: str | os.PathLike, format: str) ->
 
     Args:
         scenario: the scene, or a rollout's executed scenario.
-        path: the file to write; its suffix is replaced by the format's
-            (:data:`SUFFIXES`).
+        path: the file to write; the format's suffix (:data:`SUFFIXES`) replaces a
+            scene file's suffix (``.npz``, ``.pkl``, ``.xml``, ``.xosc``) and is added to
+            any other name (``scene-0061.v1`` -> ``scene-0061.v1.pkl``).
         format: ``"scenarionet"`` (:mod:`~riskflow_env.scenarios.scenarionet_export`) or
             ``"openscenario"`` (``.xosc``, with an OpenDRIVE ``.xodr`` beside it for a
             highway-env map: :mod:`~riskflow_env.scenarios.openscenario_export`; the
@@ -44,7 +45,7 @@ def export_scenario(scenario: Scenario, path: str | os.PathLike, format: str) ->
     require_format(format)
     if not isinstance(scenario, Scenario):
         raise TypeError(f"scenario must be a Scenario, got {type(scenario).__name__}")
-    path = Path(path).with_suffix(SUFFIXES[format])
+    path = output_path(path, format)
     if format == "commonroad":
         from riskflow_env.scenarios.commonroad_export import save_commonroad
 
@@ -56,6 +57,17 @@ def export_scenario(scenario: Scenario, path: str | os.PathLike, format: str) ->
     from riskflow_env.scenarios.scenarionet_export import save_scenarionet
 
     return [save_scenarionet(scenario, path)]
+
+
+SCENE_SUFFIXES = (".npz", ".pkl", ".xml", ".xosc")
+
+
+def output_path(path: str | os.PathLike, format: str) -> Path:
+    """``path`` with ``format``'s suffix (:func:`export_scenario`'s rule)."""
+    path = Path(path)
+    if path.suffix in SCENE_SUFFIXES:
+        return path.with_suffix(SUFFIXES[format])
+    return path.with_name(path.name + SUFFIXES[format])
 
 
 def require_format(format: str) -> None:
@@ -112,12 +124,26 @@ def export_files(
 ) -> list[Path]:
     """Write every scene file of ``files`` (:func:`read_scene`) in every format of
     ``formats`` as ``out/<file stem>.<suffix>`` (``riskflow-data export``); returns the
-    files written."""
+    files written.
+
+    Raises:
+        ValueError: two inputs would write the same file, or an output would overwrite
+            an input (both named).
+    """
+    inputs = {Path(path).resolve(): Path(path) for path in files}
+    targets: dict[Path, Path] = {}
+    for path in files:
+        for fmt in formats:
+            target = output_path(Path(out) / Path(path).name, fmt).resolve()
+            if target in inputs:
+                raise ValueError(f"{path}: its {fmt} export would overwrite {inputs[target]}")
+            if targets.setdefault(target, Path(path)) != Path(path):
+                raise ValueError(f"{targets[target]} and {path} would both be exported as {target}")
     written = []
     for path in files:
         scenario = read_scene(path)
         for fmt in formats:
-            written += export_scenario(scenario, Path(out) / Path(path).stem, fmt)
+            written += export_scenario(scenario, Path(out) / Path(path).name, fmt)
     return written
 
 

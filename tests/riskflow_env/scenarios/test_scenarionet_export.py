@@ -168,4 +168,27 @@ def test_riskflow_data_export_writes_every_file(tmp_path, capsys):
     assert back.num_agents == shipped_bank("eval")[1].num_agents
     with pytest.raises(SystemExit):
         main(["export", str(tmp_path / "none.npz"), "--format", "scenarionet", "--out", "x"])
-    assert "files: no such scene file" in capsys.readouterr().err
+    assert "error: FileNotFoundError: no such scene file" in capsys.readouterr().err
+
+
+def test_export_names_keep_dotted_stems_and_never_overwrite_an_input(tmp_path):
+    from riskflow_env.scenarios.exchange import export_files, output_path
+
+    assert output_path("out/sd_v1.0-mini_scene-0061", "scenarionet").name == (
+        "sd_v1.0-mini_scene-0061.pkl"
+    )
+    assert output_path("failures/a-seed0.npz", "commonroad").name == "a-seed0.xml"
+    scenes = [tmp_path / "sd_v1.0-a.npz", tmp_path / "sd_v1.0-b.npz"]
+    for path, scene in zip(scenes, shipped_bank("eval")[:2], strict=True):
+        save_scenario(scene, path)
+    written = export_files(scenes, ("scenarionet",), tmp_path / "out")
+    assert sorted(p.name for p in written) == ["sd_v1.0-a.pkl", "sd_v1.0-b.pkl"]
+    pickled = tmp_path / "scene.pkl"
+    written[0].rename(pickled)
+    with pytest.raises(ValueError, match="would overwrite"):
+        export_files([pickled], ("scenarionet",), tmp_path)
+    (tmp_path / "other").mkdir()
+    twin = tmp_path / "other" / "sd_v1.0-a.npz"
+    save_scenario(shipped_bank("eval")[0], twin)
+    with pytest.raises(ValueError, match="would both be exported"):
+        export_files([scenes[0], twin], ("scenarionet",), tmp_path / "out")
