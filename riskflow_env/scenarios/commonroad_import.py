@@ -39,8 +39,11 @@ import shapely
 from riskflow_env.maps import Lane, from_polygons
 from riskflow_env.maps.rasterize import RepairBudget, repair_polygon
 from riskflow_env.scenarios.scenario import Scenario
+from riskflow_env.scenarios.scenarionet_limits import MAX_STEPS, MAX_TRACK_STEPS, MAX_TRACKS
 from riskflow_env.scenarios.scenarionet_tracks import DT, hold_nearest_valid, resample
 from riskflow_env.state import HISTORY_STEPS
+
+MIN_DT, MAX_DT = 0.01, 1.0  # [s] time steps a recorded CommonRoad scenario may have
 
 EGO_SIZE = (4.508, 1.610)  # [m] CommonRoad vehicle type 2 (BMW 320i), length and width
 NOT_FOR_CARS = frozenset({"sidewalk", "crosswalk", "bicycleLane"})
@@ -128,7 +131,9 @@ def load_commonroad(
         states = [obstacle.initial_state, *(trajectory.state_list if trajectory else [])]
         rows.append((str(obstacle.obstacle_id), kind, _size(obstacle, path), states))
     now = int(problem.initial_state.time_step)
-    states, valid = _tracks([row[3] for row in rows], now, float(scenario.dt), min_future_steps)
+    tracks = [row[3] for row in rows]
+    _check_tracks(tracks, float(scenario.dt), path)
+    states, valid = _tracks(tracks, now, float(scenario.dt), min_future_steps)
     size = np.array([row[2] for row in rows], dtype=np.float64)
     name = str(scenario.scenario_id)
     return Scenario(
@@ -189,6 +194,23 @@ def _size(obstacle: Any, path: Path) -> tuple[float, float]:
         f"{path}: obstacle {obstacle.obstacle_id} has a {type(shape).__name__} shape; "
         "expected a Rectangle or a Circle"
     )
+
+
+def _check_tracks(tracks: list[list[Any]], dt: float, path: Path) -> None:
+    """ValueError naming ``path`` before any array is built when the time step or the
+    tracks exceed what a recorded scene needs (the ScenarioNet reader's limits:
+    ``MAX_TRACKS``, ``MAX_STEPS`` and ``MAX_TRACK_STEPS`` at 10 Hz)."""
+    if not (np.isfinite(dt) and MIN_DT <= dt <= MAX_DT):
+        raise ValueError(f"{path}: the time step dt = {dt:.6g} s, expected {MIN_DT} to {MAX_DT} s")
+    if len(tracks) > MAX_TRACKS:
+        raise ValueError(f"{path}: {len(tracks)} vehicles, over MAX_TRACKS = {MAX_TRACKS}")
+    steps = [int(state.time_step) for track in tracks for state in track]
+    span = (max(steps) - min(steps) + 1) * max(1.0, dt / DT)  # steps recorded and at 10 Hz
+    if span > MAX_STEPS or span * len(tracks) > MAX_TRACK_STEPS:
+        raise ValueError(
+            f"{path}: {len(tracks)} vehicles over {span:.0f} steps, over MAX_STEPS = "
+            f"{MAX_STEPS} or MAX_TRACK_STEPS = {MAX_TRACK_STEPS}"
+        )
 
 
 def _tracks(

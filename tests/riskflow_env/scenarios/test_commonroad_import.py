@@ -84,3 +84,19 @@ def test_bad_files_are_named(tmp_path):
     bad.write_text("<commonRoad><nonsense/></commonRoad>")
     with pytest.raises(ValueError, match="bad.xml"):
         load_commonroad(bad)
+
+
+def test_time_steps_beyond_a_recorded_scene_are_refused_before_any_array(tmp_path):
+    """A state at time step 10**9 (or a time step of 1 ms) would allocate gigabytes of
+    tracks: refused naming the file and the limit."""
+    source = next(path for path in require_commonroad() if "Peach" in path.name)
+    text = source.read_text()
+    far = tmp_path / "far.xml"
+    far.write_text(text.replace("<exact>2</exact>", "<exact>1000000000</exact>", 1))
+    with pytest.raises(ValueError, match="MAX_STEPS") as error:
+        load_commonroad(far)
+    assert str(far) in str(error.value)
+    fine = tmp_path / "fine.xml"
+    fine.write_text(text.replace('timeStepSize="0.1"', 'timeStepSize="0.001"', 1))
+    with pytest.raises(ValueError, match="time step dt"):
+        load_commonroad(fine)
