@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 import pickle
 import random
 from pathlib import Path
@@ -125,12 +126,24 @@ class RunCheckpoints(BaseCallback):
         decisions = learner["decisions"]
         model_path, stats_path, state_path = checkpoint_files(self.folder, decisions)
         self.folder.mkdir(parents=True, exist_ok=True)
-        self.model.save(model_path)
+        # The model file, found by its name, comes last and appears whole (written aside,
+        # then renamed): a save cut short by a second signal leaves no checkpoint that
+        # lacks its statistics or state.
         if learner["stats"] is not None:
-            stats_path.write_bytes(learner["stats"])
+            _write_atomic(stats_path, learner["stats"])
         state = {"decisions": decisions, "rng": learner["rng"]}
-        state_path.write_text(json.dumps(state), encoding="utf-8")
+        _write_atomic(state_path, json.dumps(state).encode("utf-8"))
+        aside = model_path.with_name(f".{model_path.stem}.partial.zip")  # not a checkpoint name
+        self.model.save(aside)
+        os.replace(aside, model_path)
         self.saved, self.next_due = decisions, self._after(decisions)
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a file beside it, renamed into place."""
+    aside = path.with_name(f".{path.name}.partial")
+    aside.write_bytes(data)
+    os.replace(aside, path)
 
 
 def resume(model: Any, checkpoint: Checkpoint, seed: int) -> None:

@@ -89,6 +89,7 @@ def test_ctrl_c_saves_a_checkpoint_evaluates_and_resumes(tmp_path):
     assert f"--resume {out}" in last
     saved = Path(last.split("checkpoint ")[1].split(";")[0])
     assert saved.is_file() and not (out / "final_model.zip").exists()
+    assert not list(saved.parent.glob(".*partial*"))  # every file renamed into place
     stopped_at = int(saved.name.removeprefix("ppo_").removesuffix("_steps.zip"))
     assert stopped_at >= 64 and stopped_at % 64 == 0  # an update boundary
     assert (out / "training.png").stat().st_size > 0
