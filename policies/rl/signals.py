@@ -3,7 +3,7 @@
 ``with StopSignals() as stop:`` turns SIGINT and SIGTERM into a flag the training loop
 polls (``stop.received``), so that it can save a checkpoint and exit with one line instead
 of a traceback; :func:`ignore_interrupts_in_worker` keeps worker processes, which a
-terminal's Ctrl-C reaches too, alive until the main process closes them.
+terminal's Ctrl-C or a job's SIGTERM reaches too, alive until the main process closes them.
 """
 
 from __future__ import annotations
@@ -40,10 +40,13 @@ class StopSignals:
 
 
 def ignore_interrupts_in_worker() -> None:
-    """In a worker process (SubprocVecEnv, shards), ignore SIGINT: Ctrl-C reaches every
-    process of the terminal's group, and the main process stops the workers itself after
-    saving. Does nothing in the main process."""
+    """In a worker process (SubprocVecEnv, shards), ignore SIGINT and SIGTERM: Ctrl-C
+    reaches every process of the terminal's group, and a scheduler's SIGTERM
+    (``kill -- -PGID``, Slurm's ``scancel``) every process of the job; the main process
+    stops the workers itself after saving (a worker whose parent is gone ends on its
+    closed pipe). Does nothing in the main process."""
     import multiprocessing
 
     if multiprocessing.parent_process() is not None:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        for signum in StopSignals.SIGNALS:
+            signal.signal(signum, signal.SIG_IGN)
