@@ -14,46 +14,20 @@ import numpy as np
 import pytest
 import shapely
 
-from tests.riskflow_env.scenarios.hostile_files import loaded, refused, run, write
+from tests.riskflow_env.scenarios.hostile_files import (
+    lane_feature,
+    loaded,
+    refused,
+    run,
+    scene_description,
+    scene_file,
+    vehicle_track,
+)
 
 pytestmark = pytest.mark.reliability  # docs/reference/reliability.md
 
 
 # -- ScenarioNet scenarios -----------------------------------------------------------------
-
-
-def _track(steps: int = 91, x: float = 0.0, y: float = 0.0) -> dict:
-    t = np.arange(steps) * 0.1
-    state = {
-        "position": np.stack([x + 10 * t, np.full(steps, y), np.zeros(steps)], axis=1),
-        "heading": np.zeros(steps),
-        "velocity": np.tile([10.0, 0.0], (steps, 1)),
-        "valid": np.ones(steps, dtype=bool),
-        "length": np.full((steps, 1), 4.5),
-        "width": np.full((steps, 1), 2.0),
-    }
-    return {"type": "VEHICLE", "state": state}
-
-
-def _lane(points: np.ndarray, **extra: object) -> dict:
-    return {"type": "LANE_SURFACE_STREET", "polyline": np.asarray(points, float), **extra}
-
-
-def _description(tracks: dict | None = None, features: dict | None = None, **metadata) -> dict:
-    """A valid scene: the SDC drives 90 m along one straight lane."""
-    tracks = {"ego": _track()} if tracks is None else tracks
-    road = {"road": _lane([[-50.0, 0.0], [150.0, 0.0]], width=np.array([3.5, 3.5]))}
-    meta = {"sdc_id": "ego", "sample_rate": 0.1, "scenario_id": "hostile", **metadata}
-    return {
-        "id": "hostile",
-        "tracks": tracks,
-        "map_features": {**road, **(features or {})},
-        "metadata": meta,
-    }
-
-
-def _scene(tmp_path: Path, name: str, description: dict) -> Path:
-    return write(tmp_path, name, pickle.dumps(description, protocol=4))
 
 
 def _star(vertices: int, radius: float = 40.0, centre: float = 50.0) -> np.ndarray:
@@ -67,7 +41,7 @@ SHORT = [[10.0, 1.0], [90.0, 1.0]]
 
 
 def test_valid_scene_loads(tmp_path):
-    loaded(run(_scene(tmp_path, "valid.pkl", _description()), "load_scenarionet"))
+    loaded(run(scene_file(tmp_path, "valid.pkl", scene_description()), "load_scenarionet"))
 
 
 @pytest.mark.parametrize(
@@ -76,57 +50,61 @@ def test_valid_scene_loads(tmp_path):
         # one track shared 20,000 times (1,000,000 x 91 steps made 5.6 GB and 102 s)
         (
             "tracks",
-            _description(dict.fromkeys(["ego"] + [f"v{i}" for i in range(20_000)], _track())),
+            scene_description(
+                dict.fromkeys(["ego"] + [f"v{i}" for i in range(20_000)], vehicle_track())
+            ),
             "MAX_TRACKS",
         ),
         (
             "track_steps",
-            _description(dict.fromkeys(["ego"] + [f"v{i}" for i in range(9000)], _track(200))),
+            scene_description(
+                dict.fromkeys(["ego"] + [f"v{i}" for i in range(9000)], vehicle_track(200))
+            ),
             "MAX_TRACK_STEPS",
         ),
         # one 50,000-point polyline shared by 2,000 lanes (4.0 GB): past what the pickle
         # may expand to; one of 1,600 points: past the map's points
         (
             "polylines",
-            _description(
+            scene_description(
                 features=dict.fromkeys(
-                    (f"l{i}" for i in range(2000)), _lane(np.zeros((50_000, 2)) + [0, 1])
+                    (f"l{i}" for i in range(2000)), lane_feature(np.zeros((50_000, 2)) + [0, 1])
                 )
             ),
             "MAX_ELEMENTS",
         ),
         (
             "polylines_1600",
-            _description(
+            scene_description(
                 features=dict.fromkeys(
-                    (f"l{i}" for i in range(2000)), _lane(np.zeros((1600, 2)) + [0, 1])
+                    (f"l{i}" for i in range(2000)), lane_feature(np.zeros((1600, 2)) + [0, 1])
                 )
             ),
             "MAX_MAP_POINTS",
         ),
         (
             "feature_points",
-            _description(features={"big": _lane(np.zeros((50_000, 2)))}),
+            scene_description(features={"big": lane_feature(np.zeros((50_000, 2)))}),
             "MAX_FEATURE_POINTS",
         ),
         (
             "exit_lanes",
-            _description(features={"l": _lane(SHORT, exit_lanes=["x"] * 10**5)}),
+            scene_description(features={"l": lane_feature(SHORT, exit_lanes=["x"] * 10**5)}),
             "MAX_EXIT_LANES",
         ),
         (
             "star_polygon",
-            _description(features={"s": _lane(SHORT, polygon=_star(501))}),
+            scene_description(features={"s": lane_feature(SHORT, polygon=_star(501))}),
             "MAX_REPAIR_CROSSINGS",
         ),
         (
             "star_centreline",
-            _description(features={"s": _lane(_star(101)[:-1])}),
+            scene_description(features={"s": lane_feature(_star(101)[:-1])}),
             "MAX_REPAIR_CROSSINGS",
         ),
         (
             "rings",
-            _description(
+            scene_description(
                 features={
                     f"boundary_{i}": {
                         "type": "ROAD_LINE_SOLID_SINGLE_WHITE",
@@ -137,22 +115,23 @@ def test_valid_scene_loads(tmp_path):
             ),
             "MAX_BOUNDARY_RINGS",
         ),
-        ("sdc_id_digits", _description(sdc_id=10**5000), "metadata['sdc_id'] must be an id"),
-        ("ts_rows", _description(ts=[[0.0] * 100_000] * 91), "MAX_STEPS"),
+        ("sdc_id_digits", scene_description(sdc_id=10**5000), "metadata['sdc_id'] must be an id"),
+        ("ts_rows", scene_description(ts=[[0.0] * 100_000] * 91), "MAX_STEPS"),
     ],
 )
 def test_scenarionet_counts_refused_before_building(tmp_path, name, description, fragment):
-    path = _scene(tmp_path, f"{name}.pkl", description)
+    path = scene_file(tmp_path, f"{name}.pkl", description)
     refused(run(path, "load_scenarionet"), f"{name}.pkl", fragment)
 
 
 def test_scenarionet_map_area_refused(tmp_path):
     """Vehicles 5 km apart: the cropped map would be 10,000 x 10,000 px (MAX_MAP_PIXELS)."""
-    far = _track(x=5000.0, y=5000.0)
-    description = _description(
-        {"ego": _track(), "far": far}, {"far": _lane([[4950.0, 5000.0], [5150.0, 5000.0]])}
+    far = vehicle_track(x=5000.0, y=5000.0)
+    description = scene_description(
+        {"ego": vehicle_track(), "far": far},
+        {"far": lane_feature([[4950.0, 5000.0], [5150.0, 5000.0]])},
     )
-    path = _scene(tmp_path, "far.pkl", description)
+    path = scene_file(tmp_path, "far.pkl", description)
     refused(run(path, "load_scenarionet"), "far.pkl", "MAX_MAP_PIXELS")
 
 
@@ -162,26 +141,26 @@ def test_crossing_lanes_refused_before_their_union(tmp_path):
     lanes, width = {}, np.array([0.05, 0.05])
     for i in range(300):
         y, x = -50 + i / 3, -50 + 2 * i / 3
-        lanes[f"h{i}"] = _lane([[-60, y], [160, y]], width=width)
-        lanes[f"v{i}"] = _lane([[x, -60], [x, 60]], width=width)
-    path = _scene(tmp_path, "grid.pkl", _description(features=lanes))
+        lanes[f"h{i}"] = lane_feature([[-60, y], [160, y]], width=width)
+        lanes[f"v{i}"] = lane_feature([[x, -60], [x, 60]], width=width)
+    path = scene_file(tmp_path, "grid.pkl", scene_description(features=lanes))
     refused(run(path, "load_scenarionet"), "grid.pkl", "MAX_OVERLAPS")
 
 
 def test_road_edge_grid_refused(tmp_path):
     """A map without lanes is built from the faces of its road edges: 1,000 x 1,000 crossing
     edges took 16 s and 1.2 GB before failing (MAX_EDGE_SEGMENTS, MAX_EDGE_CROSSINGS)."""
-    description = _description()
+    description = scene_description()
     edges = {}
     for i in range(1000):
         y, x = -50 + 0.1 * i, -50 + 0.2 * i
         edges[f"h{i}"] = {"type": "ROAD_EDGE_BOUNDARY", "polyline": np.array([[-60, y], [160, y]])}
         edges[f"v{i}"] = {"type": "ROAD_EDGE_BOUNDARY", "polyline": np.array([[x, -60], [x, 60]])}
     description["map_features"] = edges
-    path = _scene(tmp_path, "edges.pkl", description)
+    path = scene_file(tmp_path, "edges.pkl", description)
     refused(run(path, "load_scenarionet"), "edges.pkl", "MAX_EDGE_SEGMENTS")
     few = dict(list(edges.items())[:200])  # 100 x 100: 10,000 crossings, read
-    path = _scene(tmp_path, "few_edges.pkl", {**description, "map_features": few})
+    path = scene_file(tmp_path, "few_edges.pkl", {**description, "map_features": few})
     loaded(run(path, "load_scenarionet"))
 
 
@@ -191,8 +170,8 @@ def test_8000_lanes_without_successors_load(tmp_path):
     x, y = np.meshgrid(np.arange(100) * 5.0 - 50, np.arange(80) * 4.0 - 160)
     starts = np.stack([x.ravel(), y.ravel()], axis=1)
     width = np.array([2.0, 2.0])
-    lanes = {f"l{i}": _lane([s, s + [3.0, 0.0]], width=width) for i, s in enumerate(starts)}
-    path = _scene(tmp_path, "lanes.pkl", _description(features=lanes))
+    lanes = {f"l{i}": lane_feature([s, s + [3.0, 0.0]], width=width) for i, s in enumerate(starts)}
+    path = scene_file(tmp_path, "lanes.pkl", scene_description(features=lanes))
     assert path.stat().st_size < 2**20
     outcome = run(path, "load_scenarionet", ", crop=False", tail=".map.lanes")
     loaded(outcome)
@@ -204,8 +183,10 @@ def test_type_and_id_repr_bombs_are_not_formatted(tmp_path):
     nest: list = []
     for _ in range(23):
         nest = [nest, nest]
-    tracks = {"ego": _track(), "odd": {"type": nest, "state": {}}}
-    path = _scene(tmp_path, "types.pkl", _description(tracks, {"odd": {"type": nest}}, sdc_id=nest))
+    tracks = {"ego": vehicle_track(), "odd": {"type": nest, "state": {}}}
+    path = scene_file(
+        tmp_path, "types.pkl", scene_description(tracks, {"odd": {"type": nest}}, sdc_id=nest)
+    )
     refused(run(path, "load_scenarionet"), "types.pkl", "got a list of 2 items")
 
 
@@ -246,7 +227,7 @@ def test_unreadable_listed_file_names_it(tmp_path, monkeypatch):
     file and the summary that lists it."""
     from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
-    data = pickle.dumps(_description(), protocol=4)
+    data = pickle.dumps(scene_description(), protocol=4)
     folder = _dataset(tmp_path / "data", {"sd_a.pkl": {}}, {"sd_a.pkl": data})
     real_open = Path.open
 
