@@ -88,7 +88,7 @@ from policies.rl.runs import (
 )
 from policies.rl.sb3_shards import ShardedEgoVecEnv
 from policies.rl.sb3_vec_env import sb3_ego_vec_env
-from policies.rl.signals import StopSignals
+from policies.rl.signals import StopSignals, exit_stopped
 from policies.rl.vector_env import build_vector_env
 from riskflow_env.config import EnvConfig, RewardConfig
 
@@ -372,13 +372,11 @@ def main(argv: list[str] | None = None) -> None:
     try:
         path = train(options)
     except TrainingInterrupted as stop:
-        name = signal.Signals(stop.signum).name
-        print(
-            f"train_ego_ppo.py: stopped by {name}; checkpoint {stop.checkpoint}; continue with: "
-            f"python examples/train_ego_ppo.py --resume {options.out}",
-            file=sys.stderr,
+        exit_stopped(
+            stop.signum,
+            f"train_ego_ppo.py: stopped by {{name}}; checkpoint {stop.checkpoint}; continue "
+            f"with: python examples/train_ego_ppo.py --resume {options.out}",
         )
-        sys.exit(128 + stop.signum)
     except RunError as error:
         print(f"train_ego_ppo.py: error: {error}", file=sys.stderr)
         sys.exit(2)

@@ -22,8 +22,6 @@ start afresh).
 from __future__ import annotations
 
 import json
-import signal
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,7 +39,7 @@ from torchrl.objectives.value import GAE
 from policies.dataclass_cli import parse_dataclass
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.envs import EgoEnvConfig, build_env
-from policies.rl.signals import StopSignals
+from policies.rl.signals import StopSignals, exit_stopped
 from riskflow_env.config import EnvConfig
 
 
@@ -219,10 +217,11 @@ def train(options: Options) -> list[dict]:
     collector.shutdown()
     save(options.out, modules, optimiser, history)
     if stop.received is not None:
-        name = signal.Signals(stop.received).name
-        print(f"train_ego_torchrl.py: stopped by {name} after iteration {len(history)}; "
-              f"continue with --resume --out {options.out}", file=sys.stderr)  # fmt: skip
-        sys.exit(128 + stop.received)
+        exit_stopped(
+            stop.received,
+            f"train_ego_torchrl.py: stopped by {{name}} after iteration {len(history)}; "
+            f"continue with --resume --out {options.out}",
+        )
     return history
 
 

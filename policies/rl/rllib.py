@@ -14,8 +14,6 @@ Needs the ``rllib`` extra.
 from __future__ import annotations
 
 import json
-import signal
-import sys
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -24,7 +22,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from policies.rl.signals import StopSignals
+from policies.rl.signals import StopSignals, exit_stopped
 
 CHECKPOINT = "checkpoint"  # <out>/checkpoint: the algorithm (RLlib's save_to_path)
 
@@ -163,13 +161,11 @@ def train(algorithm, options: RLlibOptions) -> list[dict[str, float]]:
         finally:
             algorithm.stop()
     if stop.received is not None:
-        name = signal.Signals(stop.received).name
-        print(
-            f"stopped by {name} after iteration {len(history)}; checkpoint "
+        exit_stopped(
+            stop.received,
+            f"stopped by {{name}} after iteration {len(history)}; checkpoint "
             f"{options.out / CHECKPOINT}; continue with --resume --out {options.out}",
-            file=sys.stderr,
         )
-        sys.exit(128 + stop.received)
     return history
 
 

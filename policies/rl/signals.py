@@ -9,7 +9,8 @@ terminal's Ctrl-C or a job's SIGTERM reaches too, alive until the main process c
 from __future__ import annotations
 
 import signal
-from typing import Any
+import sys
+from typing import Any, NoReturn
 
 
 class StopSignals:
@@ -37,6 +38,14 @@ class StopSignals:
     def __exit__(self, *exc: Any) -> None:
         for signum, handler in self._previous.items():
             signal.signal(signum, handler)
+
+
+def exit_stopped(signum: int, message: str) -> NoReturn:
+    """Print ``message`` with ``{name}`` replaced by the signal's name (``SIGINT``) on
+    stderr and exit with the shell's status for that signal, ``128 + signum`` (130 for
+    Ctrl-C, 143 for SIGTERM)."""
+    print(message.format(name=signal.Signals(signum).name), file=sys.stderr)
+    sys.exit(128 + signum)
 
 
 def ignore_interrupts_in_worker() -> None:
