@@ -6,6 +6,10 @@
     riskflow-data generate --out data/val --scenes 140 --split eval --seed 1
     riskflow-train --data data/train --val-data data/val --out runs/riskflow --lr 5e-4
     riskflow-train --recipe riskflow-default  # the shipped checkpoint's run (README)
+    torchrun --standalone --nproc_per_node 2 --no-python riskflow-train --recipe ...
+
+Under ``torchrun`` it trains data-parallel: ``--batch-size`` is the global batch, split
+across the processes (:mod:`policies.learned.distributed`; docs/how-to/train-generator.md).
 
 ``--recipe NAME_OR_PATH`` starts from a recipe file's values (:mod:`policies.recipes`:
 one per shipped checkpoint); the options given beside it override them.

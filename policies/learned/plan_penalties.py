@@ -33,6 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from policies.learned.distributed import masked_mean
 from policies.learned.window_types import WindowBatch
 from riskflow_env.dynamics import ACCEL, YAW, X, Y
 from riskflow_env.geometry import separation, to_frame
@@ -81,7 +82,7 @@ def overlap_penalty(trajectory: Tensor, batch: WindowBatch, valid: Tensor) -> Te
         apart = pair_separation(batch.future, length, width) > 0.0
         pairs = pairs & apart  # the reference does not overlap
     depth = torch.relu(-pair_separation(trajectory, length, width)) * pairs
-    return (depth**2).sum() / valid.sum().clamp(min=1)
+    return masked_mean((depth**2).sum(), valid.sum())
 
 
 def offroad_penalty(
@@ -133,7 +134,7 @@ def offroad_penalty(
         allowance = torch.relu(reference + half_width)
     planned, inside = sdf_at(trajectory)
     excess = torch.relu(planned + half_width - allowance) * (valid & inside)
-    return (excess**2).sum() / valid.sum().clamp(min=1)
+    return masked_mean((excess**2).sum(), valid.sum())
 
 
 def jerk_penalty(actions: Tensor, valid: Tensor, dt: float) -> Tensor:
@@ -150,4 +151,4 @@ def jerk_penalty(actions: Tensor, valid: Tensor, dt: float) -> Tensor:
     """
     jerk = (actions[..., 1:, ACCEL] - actions[..., :-1, ACCEL]).abs() / dt
     both = valid[..., 1:] & valid[..., :-1]
-    return (jerk * both).sum() / both.sum().clamp(min=1)
+    return masked_mean((jerk * both).sum(), both.sum())

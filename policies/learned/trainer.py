@@ -17,13 +17,16 @@ the CPU); ``OUT/generator.pt`` is the same without the training state, the file 
 ship; ``OUT/metrics.jsonl`` logs training and validation metrics. Windows are cached
 in ``DATA/cache/`` and the action statistics in ``DATA/norm_stats.json``; for the shipped
 bank (or a read-only ``DATA``) both go to the user cache (``policies.learned.data_cache``).
-``riskflow-train`` (:mod:`policies.train`) is the command line over it.
+``riskflow-train`` (:mod:`policies.train`) is the command line over it. Started by
+``torchrun``, it trains on every process, each on its share of every batch, and only rank 0
+validates and writes (:mod:`policies.learned.distributed`).
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 import time
 import warnings
@@ -45,10 +48,27 @@ from policies.learned.checkpoint import (
 )
 from policies.learned.checkpoint import save_checkpoint as write
 from policies.learned.config import ModelConfig
-from policies.learned.data import ActionNormalizer, compute_action_stats
-from policies.learned.data import load_or_compute_stats as action_stats
+from policies.learned.data import ActionNormalizer
+from policies.learned.distributed import (
+    Ranks,
+    Shard,
+    any_process,
+    average_gradients,
+    average_values,
+    broadcast_parameters,
+    global_means,
+    main_first,
+    process_device,
+    process_group,
+)
 from policies.learned.ema import EMA
 from policies.learned.generator import RiskFlowGenerator
+from policies.learned.run_state import (
+    initial_normalizer,
+    plain_options,
+    rng_state,
+    set_rng_state,
+)
 from policies.learned.train_options import LoopOptions, learning_rate, model_config
 from policies.learned.trajectory_loss import LossWeights
 from policies.learned.validation import evaluate
@@ -74,38 +94,16 @@ class Objective(Protocol):
         eps: Tensor,
         generator: torch.Generator,
         weights: LossWeights,
+        shard: Shard,
     ) -> tuple[Tensor, dict[str, Tensor]]:
         """One step's loss and metrics from the noise ``eps`` (the batch's action shape);
-        further draws (times, levels) come from ``generator``."""
+        further draws (times, levels) come from ``generator``, one per window of the
+        global batch, of which ``batch`` holds the rows ``shard`` (all on one process)."""
         ...
 
     def sampler(self, model: RiskFlowGenerator) -> Any:
         """``model`` as the one-call sampler that validation draws plans from."""
         ...
-
-
-def _plain(options: LoopOptions) -> dict[str, Any]:
-    def plain(value: Any) -> Any:
-        if isinstance(value, tuple):
-            return [plain(item) for item in value]
-        return str(value) if isinstance(value, Path) else value
-
-    return {key: plain(value) for key, value in vars(options).items()}
-
-
-def _rng_state(noise: torch.Generator) -> dict[str, Any]:
-    _, key, position, has_gauss, gauss = np.random.get_state()  # noqa: NPY002
-    numpy = {"key": torch.from_numpy(key.astype(np.int64)), "pos": int(position)}
-    numpy |= {"has_gauss": int(has_gauss), "gauss": float(gauss)}
-    return {"noise": noise.get_state(), "torch": torch.get_rng_state(), "numpy": numpy}
-
-
-def _set_rng_state(noise: torch.Generator, state: dict[str, Any]) -> None:
-    noise.set_state(state["noise"].cpu())
-    torch.set_rng_state(state["torch"].cpu())
-    numpy = state["numpy"]
-    key = numpy["key"].cpu().numpy().astype(np.uint32)
-    np.random.set_state(("MT19937", key, numpy["pos"], numpy["has_gauss"], numpy["gauss"]))  # noqa: NPY002
 
 
 def _initial(
@@ -129,12 +127,25 @@ def _initial(
 
 def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
     """Train with ``objective`` (or, with ``options.resume``, continue); returns the last
-    metrics logged."""
+    metrics logged (on every process of a ``torchrun`` launch: ``distributed``)."""
+    with process_group(options.device) as ranks:
+        return _fit(options, objective, ranks)
+
+
+def _fit(options: LoopOptions, objective: Objective, ranks: Ranks) -> dict[str, Any]:
+    try:
+        device = process_device(options.device, ranks)
+    except ValueError as err:
+        raise SystemExit(f"riskflow-train: {err}") from None
+    if options.batch_size < ranks.world:
+        raise SystemExit(
+            f"riskflow-train: --batch-size {options.batch_size} < {ranks.world} processes"
+        )
     torch.manual_seed(options.seed)
     np.random.seed(options.seed)  # noqa: NPY002 (not used by training; seeded for callers)
     if options.threads > 0:
         torch.set_num_threads(options.threads)
-    device, out = options.device, Path(options.out)
+    out = Path(options.out)
     if options.resume and not (out / CHECKPOINT).is_file():
         raise SystemExit(f"riskflow-train: --resume: no checkpoint at {out / CHECKPOINT}")
     start = None if options.resume or options.init is None else _initial(options, objective)
@@ -155,7 +166,9 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
     try:
         splits = (options.data, options.val_data, options.val_fraction, options.stride)
         window = default_window_config(config)  # the crops the model reads
-        train_set, val_set = load_splits(*splits, recovery=options.recovery(), window=window)
+        with main_first(ranks):  # rank 0 writes the window caches, the others read them
+            train_set, val_set = load_splits(*splits, recovery=options.recovery(), window=window)
+            normalizer = initial_normalizer(options, state, start, train_set)
     except ValueError as err:
         raise SystemExit(f"riskflow-train: {err}") from None
     model = RiskFlowGenerator(config).to(device)
@@ -174,17 +187,9 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
         ema.model.load_state_dict(RiskFlowGenerator.from_checkpoint(state, config).state_dict())
         model.load_checkpoint_state(state["training"]["raw_state_dict"])
         optimizer.load_state_dict(state["training"]["optimizer"])
-        _set_rng_state(noise, state["training"]["rng"])
-        normalizer: ActionNormalizer = normalizer_of(state)
+        set_rng_state(noise, state["training"]["rng"])
         step, elapsed, metrics = state["step"], state["training"]["elapsed_s"], state["metrics"]
-    elif start is not None:
-        normalizer = start[1]
-    else:
-        normalizer = (  # cached beside one folder's scenes; several: computed (fast)
-            action_stats(options.data[0], train_set)
-            if len(options.data) == 1
-            else compute_action_stats(train_set)
-        )
+    broadcast_parameters(model, ranks)  # the same start everywhere, whatever the machine
     agents = train_set.agent_counts()
     per_epoch = len(agents) // options.batch_size
     if per_epoch == 0:
@@ -211,25 +216,31 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
         training = {
             "raw_state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
             "optimizer": optimizer.state_dict(),
-            "rng": _rng_state(noise),
+            "rng": rng_state(noise),
             "elapsed_s": elapsed,
         }
-        config = _plain(options) | {"generator": objective.kind}
+        config = plain_options(options) | {"generator": objective.kind}
+        if ranks.world > 1:
+            config["processes"] = ranks.world
         common = {"step": step, "train_config": config, "metrics": metrics}
         write(
             build_checkpoint(ema.model, normalizer, training=training, **common), out / CHECKPOINT
         )
         write(build_checkpoint(ema.model, normalizer, **common), out / GENERATOR)
 
-    out.mkdir(parents=True, exist_ok=True)
+    if ranks.main:
+        out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     budget = 60.0 * options.time_budget_min if options.time_budget_min > 0 else math.inf
     end = options.stop_step or options.steps  # --stop-step: early, on --steps' schedule
     interval = 0.5 if sys.stderr.isatty() else 30.0  # [s]: a log file gets few lines
-    bar = tqdm(total=end, desc="riskflow-train", initial=step, unit="step", mininterval=interval)
+    bar = tqdm(
+        total=end, desc="riskflow-train", initial=step, unit="step", mininterval=interval,
+        disable=not ranks.main,
+    )  # fmt: skip
     sums: dict[str, list[float]] = {}
     epoch, batches = -1, np.zeros((0, options.batch_size), dtype=np.int64)
-    with (out / METRICS_LOG).open("a") as log:
+    with (out / METRICS_LOG).open("a") if ranks.main else open(os.devnull, "w") as log:
         while step < end:
             tick = time.perf_counter()
             if step // per_epoch != epoch:
@@ -237,14 +248,20 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
                 batches = batch_order(
                     agents, options.batch_size, options.bucket, options.seed, epoch
                 )
-            batch = collated(train_set, batches[step % per_epoch], device)
-            eps = torch.randn(batch.actions.shape, generator=noise, device=device)
-            loss, values = objective.loss(model, batch, normalizer, eps, noise, weights)
+            rows = batches[step % per_epoch]  # the global batch; this process's shard
+            shard = ranks.shard(len(rows))
+            batch = collated(train_set, shard.rows(rows), device)
+            shape = (len(rows), int(agents[rows].max()), *batch.actions.shape[2:])
+            eps = torch.randn(shape, generator=noise, device=device)  # the global batch's
+            eps = shard.rows(eps)[:, : batch.actions.shape[1]]
+            with global_means(ranks):
+                loss, values = objective.loss(model, batch, normalizer, eps, noise, weights, shard)
             values["lr"] = learning_rate(options, step)
             for group in optimizer.param_groups:
                 group["lr"] = values["lr"]
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
+            average_gradients(model.parameters(), ranks)
             values["grad_norm"] = torch.nn.utils.clip_grad_norm_(
                 model.parameters(), options.grad_clip
             )
@@ -254,22 +271,22 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
             seconds = time.perf_counter() - tick
             elapsed += seconds
             values["samples_per_s"] = options.batch_size / seconds
-            for key, value in values.items():
-                sums.setdefault(key, []).append(float(value))
+            for key, value in average_values(values, ranks).items():
+                sums.setdefault(key, []).append(value)
             bar.update()
             bar.set_postfix(  # shown at the bar's next refresh (mininterval), not now
                 loss=f"{float(values['loss']):.3f}",
                 samples_s=f"{values['samples_per_s']:.1f}",
                 refresh=False,
             )
-            over_budget = time.perf_counter() - started > budget
+            over_budget = any_process(time.perf_counter() - started > budget, ranks)
             done = step >= end or over_budget
             logged = step % options.log_every == 0 or step % options.eval_every == 0 or done
             if logged:
                 metrics = {f"train_{k}": sum(v) / len(v) for k, v in sums.items()}
                 metrics |= {"step": step, "epoch": epoch, "elapsed_s": elapsed}
                 sums = {}
-            if step % options.eval_every == 0 or done:
+            if ranks.main and (step % options.eval_every == 0 or done):
                 metrics |= validate()
                 bar.write(json.dumps({k: round(v, 4) for k, v in metrics.items()}))
                 save()
@@ -277,7 +294,8 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
                 log.write(json.dumps(metrics) + "\n")
                 log.flush()
             if over_budget:
-                bar.write(f"riskflow-train: time budget reached at step {step}; saved")
+                if ranks.main:
+                    bar.write(f"riskflow-train: time budget reached at step {step}; saved")
                 break
     bar.close()
     return metrics

@@ -17,6 +17,7 @@ from torch import Tensor
 
 from policies.dataclass_cli import from_fields
 from policies.learned.data import Normalizer
+from policies.learned.distributed import masked_mean
 from policies.learned.encoder import SceneContext
 from policies.learned.plan_penalties import jerk_penalty, offroad_penalty, overlap_penalty
 from policies.learned.window_types import WindowBatch
@@ -101,11 +102,11 @@ def trajectory_loss(
     future = batch.future
     mask = batch.future_valid.bool() & scene.agent_mask[..., None]
     weight = mask.to(a_hat.dtype)
-    count = weight.sum().clamp(min=1.0)
+    count = weight.sum()
     squared = ((trajectory[..., :2] - future[..., :2]) ** 2).sum(dim=-1)  # (B, A, T) [m^2]
     heading = wrap_angle(trajectory[..., 3] - future[..., 3]) ** 2
-    position_mse = (squared * weight).sum() / count
-    heading_mse = (heading * weight).sum() / count
+    position_mse = masked_mean((squared * weight).sum(), count)
+    heading_mse = masked_mean((heading * weight).sum(), count)
     loss = position_mse + weights.heading * heading_mse
     penalties = {}
     if weights.collision:
@@ -125,8 +126,8 @@ def trajectory_loss(
         metrics = {
             "position_mse": position_mse.detach(),
             "heading_mse": heading_mse.detach(),
-            "ade": (distance * weight).sum() / count,
-            "fde": (final * has_last).sum() / has_last.sum().clamp(min=1),
+            "ade": masked_mean((distance * weight).sum(), count),
+            "fde": masked_mean((final * has_last).sum(), has_last.sum()),
         } | {name: value.detach() for name, value in penalties.items()}
     return loss, metrics
 
@@ -145,4 +146,4 @@ def action_mse(x: Tensor, target: Tensor, batch: WindowBatch, scene: SceneContex
         A scalar; 0 when nothing is valid.
     """
     weight = (batch.actions_valid.bool() & scene.agent_mask[..., None]).to(x.dtype)
-    return (((x - target) ** 2).sum(dim=-1) * weight).sum() / weight.sum().clamp(min=1.0)
+    return masked_mean((((x - target) ** 2).sum(dim=-1) * weight).sum(), weight.sum())

@@ -38,6 +38,7 @@ import torch
 from torch import Tensor
 
 from policies.learned.data import Normalizer
+from policies.learned.distributed import Shard
 from policies.learned.encoder import SceneContext
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.trajectory_loss import (
@@ -250,9 +251,12 @@ class MeanFlowObjective:
         eps: Tensor,
         generator: torch.Generator,
         weights: LossWeights,
+        shard: Shard,
     ) -> tuple[Tensor, dict[str, Tensor]]:
-        """One step's loss and metrics (``weights`` as :func:`meanflow_loss`)."""
-        t, r = self.times(eps.shape[0], generator=generator, device=eps.device)
+        """One step's loss and metrics (``weights`` as :func:`meanflow_loss`); ``(t, r)``
+        are drawn for ``shard``'s whole global batch and its rows taken."""
+        t, r = self.times(shard.total, generator=generator, device=eps.device)
+        t, r = shard.rows(t), shard.rows(r)
         if self.flow_matching:
             return flow_matching_loss(model, batch, normalizer, eps, t, weights)
         return meanflow_loss(model, batch, normalizer, eps, t, r, weights=weights)

@@ -28,6 +28,7 @@ from policies.baselines.diffusion.model import DiffusionConfig, DiffusionDenoise
 from policies.baselines.diffusion.objective import diffusion_loss, draw_levels
 from policies.baselines.diffusion.sampling import OneCallSampler
 from policies.learned.data import Normalizer
+from policies.learned.distributed import Shard
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.trajectory_loss import LossWeights
 from policies.learned.window_types import WindowBatch
@@ -69,9 +70,12 @@ class DiffusionObjective:
         eps: Tensor,
         generator: torch.Generator,
         weights: LossWeights,
+        shard: Shard,
     ) -> tuple[Tensor, dict[str, Tensor]]:
-        """One step's loss and metrics (``weights`` as :func:`diffusion_loss`)."""
-        k = draw_levels(eps.shape[0], self.diffusion.num_steps, generator, eps.device)
+        """One step's loss and metrics (``weights`` as :func:`diffusion_loss`); the levels
+        are drawn for ``shard``'s whole global batch and its rows taken."""
+        k = draw_levels(shard.total, self.diffusion.num_steps, generator, eps.device)
+        k = shard.rows(k)
         return diffusion_loss(self.denoiser(model), batch, normalizer, eps, k, weights)
 
     def sampler(self, model: RiskFlowGenerator) -> OneCallSampler:
