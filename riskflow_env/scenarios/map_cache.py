@@ -43,6 +43,7 @@ _PACKAGE = Path(__file__).resolve().parents[1]
 BUILDER_MODULES = (
     "scenarios/scenarionet_map.py",
     "scenarios/scenarionet_features.py",
+    "scenarios/logged_surface.py",
     "maps/builders.py",
     "maps/rasterize.py",
     "maps/surface.py",

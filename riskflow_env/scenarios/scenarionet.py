@@ -27,7 +27,10 @@ arrays only) and turns it into a :class:`Scenario`:
   lane widths and surfaces, lane centrelines with successors and speed limits), cropped
   to the box of the logged vehicle positions plus a margin that leaves room for a 10 s
   rollout (``crop``, ``crop_margin``). Logged positions beyond the extent of the map
-  features are invalid steps (the map knows nothing there). Traffic lights are not used.
+  features are invalid steps (the map knows nothing there). The ground under the logged
+  vehicles is drivable even where the map data does not draw it
+  (:mod:`~riskflow_env.scenarios.logged_surface`: nuScenes car parks). Traffic lights
+  are not used.
 * ``smooth=True``: the tracks are replaced by their Savitzky-Golay kinematic reference
   filtering (:mod:`~riskflow_env.scenarios.smoothing`).
 * ``map_cache``: the built map is kept on disk, keyed by the file's content hash
@@ -53,6 +56,7 @@ from typing import Any
 
 import numpy as np
 
+from riskflow_env.scenarios.logged_surface import logged_boxes
 from riskflow_env.scenarios.map_cache import MapCache, file_digest
 from riskflow_env.scenarios.safe_pickle import (
     errors_name_the_file,
@@ -92,6 +96,7 @@ def load_scenarionet(
     crop_margin: float | None = None,
     smooth: bool = False,
     map_cache: MapCache | None = None,
+    logged_ground: bool = True,
 ) -> Scenario:
     """Load one ScenarioNet / MetaDrive scenario-description pickle as a :class:`Scenario`.
 
@@ -116,6 +121,10 @@ def load_scenarionet(
             map settings (:class:`~riskflow_env.scenarios.map_cache.MapCache`), and read
             it back instead of building it when the same file is loaded again; None
             builds the map every time.
+        logged_ground: make the ground under the logged vehicles drivable where the map
+            data does not draw it (:mod:`~riskflow_env.scenarios.logged_surface`); False
+            keeps the map data's drivable area alone (to check how well it covers the
+            logged vehicles).
 
     Returns:
         A Scenario named ``"scenarionet/<scenario id>"`` with ``dt`` 0.1 s.
@@ -146,6 +155,7 @@ def load_scenarionet(
         smooth=smooth,
         map_cache=map_cache,
         file_digest=digest,
+        logged_ground=logged_ground,
     )
 
 
@@ -161,6 +171,7 @@ def scenario_from_description(
     smooth: bool = False,
     map_cache: MapCache | None = None,
     file_digest: str | None = None,
+    logged_ground: bool = True,
 ) -> Scenario:
     """:func:`load_scenarionet` for an already loaded description dict (every failure a
     ``ValueError`` naming ``source``); the map goes through ``map_cache`` when both it
@@ -178,6 +189,7 @@ def scenario_from_description(
             crop_margin,
             smooth,
             cache,
+            logged_ground,
         )
 
 
@@ -192,6 +204,7 @@ def _scenario(
     crop_margin: float | None,
     smooth: bool,
     cache: tuple[MapCache, str] | None,
+    logged_ground: bool,
 ) -> Scenario:
     for key in ("tracks", "map_features", "metadata"):
         if not isinstance(description, Mapping) or not isinstance(description.get(key), Mapping):
@@ -265,12 +278,18 @@ def _scenario(
         all_xy,
         source,
         region=region,
+        logged=logged_boxes(xy, heading, valid, size[:, 0], size[:, 1]) if logged_ground else None,
     )
     if cache is None:
         drivable_map = build()
     else:
         map_cache, digest = cache
-        settings = {"resolution": float(resolution), "margin": float(margin), "region": region}
+        settings = {
+            "resolution": float(resolution),
+            "margin": float(margin),
+            "region": region,
+            "logged_ground": bool(logged_ground),
+        }
         key = map_cache.key(digest, name=f"scenarionet/{name}", **settings)
         drivable_map = map_cache.get_or_build(key, build)
     return Scenario(

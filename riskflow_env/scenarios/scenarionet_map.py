@@ -15,7 +15,9 @@ order of preference:
 
 plus, in every case, the drivable surfaces that are not lanes (driveways, parking:
 :data:`~riskflow_env.scenarios.scenarionet_features.SURFACE_TYPES`). Those count as
-drivable area only: the lane graph (``DrivableMap.lanes``) holds lanes alone.
+drivable area only: the lane graph (``DrivableMap.lanes``) holds lanes alone. Last,
+the ground the logged vehicles stand and drive on, where the map data does not draw it
+(:mod:`~riskflow_env.scenarios.logged_surface`: the nuScenes car parks).
 
 Cropping: with ``region`` (xmin, ymin, xmax, ymax) [m], only the features that reach
 into it are read and the drivable area is clipped to it, so the raster's size and the
@@ -47,6 +49,7 @@ from riskflow_env.dynamics import wrap_angle
 from riskflow_env.maps import DrivableMap, Lane, from_polygons, road_polygons
 from riskflow_env.maps.rasterize import RepairBudget, line_crossings, repair_polygon
 from riskflow_env.scenarios import scenarionet_features as feat
+from riskflow_env.scenarios.logged_surface import LoggedBoxes, missing_ground
 from riskflow_env.scenarios.scenarionet_limits import (
     MAX_BOUNDARY_RINGS,
     MAX_EDGE_CROSSINGS,
@@ -113,6 +116,7 @@ def build_map(
     vehicle_xy: np.ndarray | None = None,
     source: str = "<map_features>",
     region: tuple[float, float, float, float] | None = None,
+    logged: LoggedBoxes | None = None,
 ) -> DrivableMap:
     """DrivableMap with lanes from a ScenarioNet ``map_features`` dict.
 
@@ -125,6 +129,9 @@ def build_map(
             fallback to pick the faces that are road.
         source: name of the data quoted in errors (the file).
         region: (xmin, ymin, xmax, ymax) [m] to crop the map to, or None for all of it.
+        logged: the logged vehicle boxes
+            (:func:`~riskflow_env.scenarios.logged_surface.logged_boxes`); those the map
+            data does not cover are drivable too. None adds nothing.
     """
     if not isinstance(features, Mapping):
         raise ValueError(f"{source}: map_features must be a dict, got {type(features).__name__}")
@@ -209,8 +216,13 @@ def build_map(
         )
     check_raster(bounds, resolution, margin, source)
     check_overlaps(polygons, source)
+    drawn = shapely.union_all(polygons)
+    extra = None if logged is None else missing_ground(logged, drawn)
+    if extra is not None:  # within the map features' extent: grows the raster by metres
+        drawn = shapely.union_all([drawn, extra])
+        polygons = [drawn]
     if region is not None:
-        area = shapely.clip_by_rect(shapely.union_all(polygons), *region)
+        area = shapely.clip_by_rect(drawn, *region)
         parts = [
             p for p in shapely.get_parts(area) if isinstance(p, shapely.Polygon) and p.area > 0
         ]
