@@ -24,6 +24,12 @@ non-ego ones):
 * ``still_kept``: of the vehicles that stand still in the log (logged positions within
   0.5 m), the share the simulation keeps within 2 m of their log
   (:func:`~riskflow_env.metrics.standstill_drift`; NaN without such vehicles);
+* the counter-metrics of safety (:func:`~riskflow_env.metrics.progress`):
+  ``progress_median`` (per vehicle that moves in the log, the path driven over the path
+  logged), ``stalled`` (the share of those below half of it), ``turned`` (of the
+  vehicles parked in the log, the share turned over 20 degrees in place) and
+  ``edge_hard`` (of the vehicle-steps heading for the map's border, the share braking
+  or turning over 3 m/s^2; ``log_edge_hard``: the log's on the same slots);
 * ``wosac`` (mean per-rollout metametric), ``kdd``, ``ade`` / ``fde`` [m], ``wall_s``
   (rollouts and metrics, summed over this row's rollouts).
 
@@ -63,11 +69,13 @@ from riskflow_env.metrics import (
     jerk_steps,
     kinematic_samples,
     method_metrics,
+    progress,
     rollout_metrics,
     standstill_drift,
     wosac_scene,
 )
-from riskflow_env.scenarios import Scenario, load_bank, shipped_bank
+from riskflow_env.scenarios import Scenario, shipped_bank
+from riskflow_env.scenarios.folders import open_scenes
 
 GENERATOR = "bits"  # the unguided generator as it ships
 BASELINES = ("idm", "replay")
@@ -83,6 +91,11 @@ COLUMNS = (  # (key, header, format)
     ("jerk_replan_p95", "p95 jerk re-plan", "{:.2f}"),
     ("jerk_within_p95", "p95 jerk within", "{:.2f}"),
     ("still_kept", "still within 2 m", "{:.3f}"),
+    ("progress_median", "progress (median)", "{:.2f}"),
+    ("stalled", "stalled", "{:.3f}"),
+    ("turned", "parked turned", "{:.3f}"),
+    ("edge_hard", "hard at edge", "{:.3f}"),
+    ("log_edge_hard", "log hard at edge", "{:.3f}"),
     ("wosac", "WOSAC", "{:.3f}"),
     ("kdd", "KDD", "{:.3f}"),
     ("ade", "ADE", "{:.2f}"),
@@ -103,7 +116,8 @@ class Options:
     baselines: tuple[str, ...] = BASELINES
     """reference methods of riskflow-eval measured in the same run"""
     bank: str | None = None
-    """scenario directory; default: the shipped evaluation bank"""
+    """scene folder (a bank of .npz scenes or a ScenarioNet dataset); default: the
+    shipped evaluation bank"""
     scenes: int = 14
     """number of scenes, spread evenly over the road families"""
     full: bool = False
@@ -177,6 +191,7 @@ def measure(item: RealismJob) -> dict[str, Any]:
     involved = collision_involvement(hit.pairs, record.ego_index) & record.evaluated
     jerk, step = jerk_steps(record)
     still, drift = standstill_drift(record)
+    moving = progress(record)
     return {
         "label": item.label,
         "metrics": rollout_metrics(record),
@@ -185,6 +200,7 @@ def measure(item: RealismJob) -> dict[str, Any]:
         "nonego_collision": bool(involved.any()),
         "still": int(still.sum()),
         "still_kept": int((drift[still] <= STILL_RADIUS).sum()),
+        "progress": moving.ratio[moving.mover],
         "samples": kinematic_samples(record),
         "jerk": jerk,
         "step": step,
@@ -209,6 +225,7 @@ def summarise(label: str, results: list[dict[str, Any]]) -> dict[str, Any]:
     phase = np.where(step > 0, step % period, -1)  # step 0 follows the log: no re-plan
     vehicles = sum(r["vehicles"] for r in results)
     still, nan = sum(r["still"] for r in results), float("nan")
+    ratios = np.concatenate([r["progress"] for r in results])
     return {
         "label": label,
         "rollouts": len(results),
@@ -220,6 +237,11 @@ def summarise(label: str, results: list[dict[str, Any]]) -> dict[str, Any]:
         "orr": agg["orr"],
         "orr_fp": agg["orr_footprint"],
         "still_kept": sum(r["still_kept"] for r in results) / still if still else nan,
+        "progress_median": float(np.median(ratios)) if ratios.size else nan,
+        "stalled": agg["stalled_share"],
+        "turned": agg["turned_share"],
+        "edge_hard": agg["edge_hard_share"],
+        "log_edge_hard": agg["log_edge_hard_share"],
         "jerk_p95": _p95(pooled["jerk"]),
         "lat_p95": _p95(pooled["lateral_acceleration"]),
         "jerk_replan_p95": _p95(jerk[phase == 0]),
@@ -307,7 +329,7 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     """Run the benchmark, print the table; returns the rows."""
     args = parse_args(argv)
     start = time.perf_counter()
-    bank = shipped_bank("eval") if args.bank is None else load_bank(args.bank)
+    bank = shipped_bank("eval") if args.bank is None else open_scenes(args.bank)
     scenes = [bank[i] for i in range(len(bank))]
     picked = list(range(len(scenes))) if args.full else pick_scenes(scenes, args.scenes)
     if args.bank is None:

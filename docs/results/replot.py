@@ -16,6 +16,7 @@ from pathlib import Path
 from policies.evaluation.plots import write_metric_plots
 from policies.evaluation.report import METRIC_COLUMNS, Table
 
+KEYS = {name: key for key, name in METRIC_COLUMNS}
 HEADING = re.compile(r"^## K=(\S+), T=(\S+?)(?: s)? \((\d+) scenes")
 
 
@@ -28,12 +29,15 @@ def tables_from_report(path: Path) -> list[Table]:
             continue
         k, interval, scenes = match.groups()
         metrics = {}
+        header = [cell.strip() for cell in lines[number + 2].strip("|").split("|")][2:]
+        keys = [KEYS.get(name) for name in header]  # a report's columns, old or new
         for row in lines[number + 4 :]:
             if not row.startswith("|"):
                 break
             cells = [cell.strip() for cell in row.strip("|").split("|")]
             values = [float("nan") if c in ("n/a", "ref.") else float(c) for c in cells[2:]]
-            metrics[cells[0]] = dict(zip((key for key, _ in METRIC_COLUMNS), values, strict=True))
+            found = {key: v for key, v in zip(keys, values, strict=True) if key is not None}
+            metrics[cells[0]] = {key: found.get(key, float("nan")) for key in KEYS.values()}
         k_value = None if k == "-" else k if k == "all" else int(k)
         tables.append(Table(k_value, None if interval == "-" else float(interval), int(scenes),
                             metrics, {}))  # fmt: skip

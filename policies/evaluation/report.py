@@ -30,7 +30,7 @@ from policies.evaluation.rollout import HISTORY
 from policies.evaluation.table import Table
 from policies.registry import METHODS
 from riskflow_env.config import DynamicsConfig
-from riskflow_env.metrics import method_metrics, safety_realism_scores
+from riskflow_env.metrics import ROLLOUT_KEYS, method_metrics, safety_realism_scores
 
 REFERENCE_METHOD = "riskflow"  # timing ratios are to this label when present
 METRIC_COLUMNS = (
@@ -45,6 +45,10 @@ METRIC_COLUMNS = (
     ("fde", "FDE [m]"),
     ("kdd", "KDD"),
     ("wosac", "WOSAC"),
+    ("progress", "progress"),
+    ("stalled_share", "stalled"),
+    ("turned_share", "parked turned"),
+    ("edge_hard_share", "hard at edge"),
     ("cs", "CS"),
     ("rs", "RS"),
 )
@@ -115,7 +119,7 @@ def build_tables(store: ResultsStore) -> list[Table]:
 
 
 def _method_metrics(store: ResultsStore, rows: list[dict]) -> dict[str, float]:
-    numeric = [{key: _nan(row[key]) for key in _ROLLOUT_KEYS} for row in rows]
+    numeric = [{key: _nan(row.get(key)) for key in ROLLOUT_KEYS} for row in rows]
     out = method_metrics(numeric, [store.samples(row) for row in rows])
     scores = [row["wosac"]["metametric"] for row in rows if row.get("wosac")]
     out["wosac"] = float(np.mean([_nan(s) for s in scores])) if scores else float("nan")
@@ -142,12 +146,6 @@ def _mean_first_time(steps: list[float]) -> float:
         return math.nan
     times = [(step - HISTORY) * DynamicsConfig().dt for step in steps if step >= 0]
     return float(np.mean(times)) if times else math.nan
-
-
-_ROLLOUT_KEYS = (
-    "collision", "ego_collision", "first_collision_step", "offroad_centroid_steps",
-    "offroad_footprint_steps", "agent_steps", "ade", "fde", "displacement_agents",
-)  # fmt: skip
 
 
 def _timing(rows: list[dict]) -> dict[str, float]:

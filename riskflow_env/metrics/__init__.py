@@ -12,6 +12,8 @@ ORR             :func:`offroad` (centroid, footprint)    :func:`offroad_rates`
                 (:func:`offroad_counts` from flags)
 ADE, FDE        :func:`displacement_errors`              :func:`displacement_means`
 still drift     :func:`standstill_drift` (log-parked)    --
+progress,       :func:`progress` (log-movers, parked     pooled in
+stalls          cars turned in place, map's edge)        :func:`aggregate_rollout_metrics`
 KDD             :func:`kinematic_samples`                :func:`kdd`
 CS, RS          --                                       :func:`safety_realism_scores`
 WOSAC realism   --                                       :func:`wosac_scene` (N rollouts
@@ -19,7 +21,7 @@ WOSAC realism   --                                       :func:`wosac_scene` (N 
 ==============  =======================================  ==============================
 
 :func:`rollout_metrics` / :func:`aggregate_rollout_metrics` / :func:`method_metrics`
-carry SCR, ORR, ADE and FDE through flat per-rollout rows (for a results file).
+carry SCR, ORR, ADE, FDE and progress through flat per-rollout rows (for a results file).
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from riskflow_env.metrics.kinematics import (
     kdd_over_records,
     kinematic_samples,
 )
+from riskflow_env.metrics.progress import ProgressResult, progress
 from riskflow_env.metrics.rollout import NO_EGO, RolloutRecord
 from riskflow_env.metrics.safety import (
     CollisionResult,
@@ -68,6 +71,7 @@ __all__ = [
     "FeatureConfig",
     "KinematicSamples",
     "OffroadResult",
+    "ProgressResult",
     "RolloutRecord",
     "aggregate_rollout_metrics",
     "collision_involvement",
@@ -84,6 +88,7 @@ __all__ = [
     "offroad",
     "offroad_counts",
     "offroad_rates",
+    "progress",
     "rollout_metrics",
     "standstill_drift",
     "safety_realism_scores",

@@ -17,6 +17,7 @@ from collections.abc import Mapping, Sequence
 
 from riskflow_env.metrics.displacement import displacement_errors
 from riskflow_env.metrics.kinematics import KinematicSamples, kdd
+from riskflow_env.metrics.progress import progress
 from riskflow_env.metrics.rollout import RolloutRecord
 from riskflow_env.metrics.safety import OffroadResult, collisions, offroad
 
@@ -31,6 +32,16 @@ ROLLOUT_KEYS = (
     "ade",  # mean ADE over the rollout's agents [m] (NaN if none)
     "fde",  # mean FDE over the rollout's agents [m] (NaN if none)
     "displacement_agents",  # agents with an ADE / FDE
+    "movers",  # vehicles that move in the log (progress, riskflow_env.metrics.progress)
+    "stalled",  # of them, those with progress below STALL_PROGRESS
+    "driven_m",  # path the simulation drives, summed over the movers [m]
+    "logged_m",  # path the log drives on the same steps, summed over the movers [m]
+    "parked",  # vehicles that stand still in the log
+    "turned_in_place",  # of them, those the simulation turns in place
+    "edge_steps",  # simulated vehicle-steps near the border of the map
+    "edge_hard_steps",  # of them, those over HARD_ACCELERATION
+    "log_edge_steps",  # the same two counts of the log
+    "log_edge_hard_steps",
 )
 
 
@@ -49,6 +60,7 @@ def rollout_metrics(record: RolloutRecord, tolerance: float = 0.0) -> dict[str, 
     else:
         centroid = footprint = steps = 0
     errors = displacement_errors(record)
+    moving = progress(record)
     return {
         "collision": float(hit.collided),
         "ego_collision": float(hit.ego_collided),
@@ -60,6 +72,16 @@ def rollout_metrics(record: RolloutRecord, tolerance: float = 0.0) -> dict[str, 
         "ade": errors.mean_ade,
         "fde": errors.mean_fde,
         "displacement_agents": float(errors.num_agents),
+        "movers": float(moving.mover.sum()),
+        "stalled": float(moving.stalled.sum()),
+        "driven_m": float(moving.driven[moving.mover].sum()),
+        "logged_m": float(moving.logged[moving.mover].sum()),
+        "parked": float(moving.parked.sum()),
+        "turned_in_place": float(moving.turned.sum()),
+        "edge_steps": float(moving.edge_steps[0]),
+        "edge_hard_steps": float(moving.edge_hard[0]),
+        "log_edge_steps": float(moving.edge_steps[1]),
+        "log_edge_hard_steps": float(moving.edge_hard[1]),
     }
 
 
@@ -69,13 +91,17 @@ def aggregate_rollout_metrics(rows: Sequence[Mapping[str, float]]) -> dict[str, 
     Returns:
         ``scr`` and ``ego_collision_rate`` (shares of rollouts), ``orr`` (centroid) and
         ``orr_footprint`` (pooled agent-steps), ``ade`` and ``fde`` [m] (pooled agents),
-        ``num_rollouts``. NaN where nothing is counted.
+        ``progress`` (path driven over path logged, pooled over the log-movers),
+        ``stalled_share`` (of the log-movers), ``turned_share`` (of the log-parked),
+        ``edge_hard_share`` and ``log_edge_hard_share`` (of the vehicle-steps near the
+        map's border, simulated and logged), ``num_rollouts``. NaN where nothing is
+        counted (or where a row predates a key).
     """
     nan = float("nan")
     count = len(rows)
 
     def total(key: str) -> float:
-        return sum(float(row[key]) for row in rows)
+        return sum(float(row.get(key, nan)) for row in rows)
 
     steps, agents = total("agent_steps"), total("displacement_agents")
     road = OffroadResult(  # pooled agent-steps (the counts are whole numbers)
@@ -92,6 +118,9 @@ def aggregate_rollout_metrics(rows: Sequence[Mapping[str, float]]) -> dict[str, 
         )
         return weighted / agents if agents else nan
 
+    def share(part: str, whole: str) -> float:
+        return total(part) / total(whole) if total(whole) else nan
+
     return {
         "scr": total("collision") / count if count else nan,
         "ego_collision_rate": total("ego_collision") / count if count else nan,
@@ -99,6 +128,11 @@ def aggregate_rollout_metrics(rows: Sequence[Mapping[str, float]]) -> dict[str, 
         "orr_footprint": road.footprint_rate,
         "ade": pooled_mean("ade"),
         "fde": pooled_mean("fde"),
+        "progress": share("driven_m", "logged_m"),
+        "stalled_share": share("stalled", "movers"),
+        "turned_share": share("turned_in_place", "parked"),
+        "edge_hard_share": share("edge_hard_steps", "edge_steps"),
+        "log_edge_hard_share": share("log_edge_hard_steps", "log_edge_steps"),
         "num_rollouts": float(count),
     }
 
