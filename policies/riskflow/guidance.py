@@ -21,8 +21,10 @@ present agent outside ``A_c``, or the ego only), ``L_map`` the decayed squared d
 the footprint samples off the drivable area; ``lambda_adv > 0`` is more adversarial (the
 paper's "-50" is ``+50`` here). A third term, ``lambda_sep * L_sep`` (weight 100 by
 default), keeps the guided vehicles of a scene apart from each other, so that they do not
-converge on one target as a swarm: ``L_sep`` is the summed squared penetration depth of
-every pair of guided boxes over the guidance horizon (the avoidance steps' objective,
+converge on one target as a swarm, and with target ``"ego"`` keeps the attacker clear of
+the vehicles that keep their unguided plans (held fixed), so that it does not strike a
+third vehicle on its way to the ego: ``L_sep`` is the summed squared penetration depth of
+those pairs of boxes over the guidance horizon (the avoidance steps' objective,
 :func:`~policies.learned.plan_overlap.overlap_gradient`).
 The paper's objective has no such term (``lambda_sep=0``). docs/explanation/method.md
 ("Output-space guidance") has the terms, the sign convention and why the steps are Adam steps.
@@ -154,7 +156,9 @@ class _Objective:
     ``scene`` holds the rows of one scene, or of B scenes flattened to ``B * A`` rows
     (``frame`` (B, 3), the map a ``MapStack`` or shared); ``rows`` (C,) index them;
     ``target_xy`` is (J, T, 2), shared, or (C, J, T, 2) per row with ``target_valid``
-    (C, J); ``scene_of_row`` (C,) the scene of each row (None: one scene).
+    (C, J); ``scene_of_row`` (C,) the scene of each row (None: one scene);
+    ``bystanders`` ``(O,)`` agents whose fixed plans the rows keep clear of and their
+    scenes (``L_sep``; None: none).
     """
 
     def __init__(
@@ -167,6 +171,7 @@ class _Objective:
         dynamics: DynamicsConfig,
         target_valid: Tensor | None = None,
         scene_of_row: Tensor | None = None,
+        bystanders: tuple[Tensor, Tensor] | None = None,
     ) -> None:
         zero = torch.zeros_like(scene.eps[:1, :1])
         self.std = normalizer.denormalize(zero + 1.0) - normalizer.denormalize(zero)
@@ -176,7 +181,7 @@ class _Objective:
         self.horizon, self.dynamics = config.horizon, dynamics
         self.map_term = map_term(scene, rows, scene.eps.shape[1], config, scene_of_row)
         self.lambda_sep = config.lambda_sep
-        self.separation = separation_term(scene, rows, config, scene_of_row)
+        self.separation = separation_term(scene, rows, config, scene_of_row, *(bystanders or ()))
 
     def bounds(self) -> tuple[Tensor, Tensor]:
         """(C, T, 2) lower and upper bounds of ``u_c`` that keep the actions inside the
@@ -295,7 +300,7 @@ def _guide_scenes(
     flat = flatten_scenes(scene)
     objective = _Objective(
         flat, rows, guided.target_xy, normalizer, config, dynamics, guided.target_valid,
-        scene_of_row,
+        scene_of_row, (guided.bystanders, guided.scene_of_bystander),
     )  # fmt: skip
 
     def per_scene(adv: Tensor, off_road: Tensor) -> Tensor:  # (C,) x 2 -> (B, 2)

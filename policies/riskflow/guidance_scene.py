@@ -73,12 +73,17 @@ class GuidedRows:
     """The ``A_c`` rows of B scenes, as the batched guidance loops (RiskFlow's,
     STRIVE-style's) take them: ``rows`` (C,) index the flattened ``B * A`` agents,
     ``scene_of_row`` (C,) their scenes, ``target_xy`` (C, A, T, 2) the base plans of each
-    row's scene (detached) and ``target_valid`` (C, A) which of them are the row's targets."""
+    row's scene (detached) and ``target_valid`` (C, A) which of them are the row's targets;
+    ``bystanders`` (O,) index the flattened agents that are present but neither the ego nor
+    guided nor a target (target ``"ego"``: the vehicles that keep their unguided plans;
+    none with ``"others"``), ``scene_of_bystander`` (O,) their scenes."""
 
     rows: Tensor
     scene_of_row: Tensor
     target_xy: Tensor
     target_valid: Tensor
+    bystanders: Tensor
+    scene_of_bystander: Tensor
 
     def per_scene(self, values: Tensor, num_scenes: int) -> Tensor:
         """(C, K) values of the rows summed per scene: (B, K)."""
@@ -87,7 +92,8 @@ class GuidedRows:
 
 def guided_rows(scene: GuidanceScene, controllable: Tensor, target: str) -> GuidedRows:
     """The :class:`GuidedRows` of B scenes: ``controllable`` (B, A) among the present
-    agents, the ego never; targets by :func:`target_rows` (``"others"`` or ``"ego"``)."""
+    agents, the ego never; targets by :func:`target_rows` (``"others"`` or ``"ego"``);
+    the bystanders, the present agents left (none with ``"others"``)."""
     present = scene.agent_mask.bool()
     mask = controllable.bool() & present
     mask[:, scene.ego] = False
@@ -95,7 +101,12 @@ def guided_rows(scene: GuidanceScene, controllable: Tensor, target: str) -> Guid
     rows = torch.nonzero(mask.reshape(-1)).flatten()  # flat (scene, agent) indices
     scene_of_row = torch.div(rows, mask.shape[1], rounding_mode="floor")
     target_xy = scene.base_trajectories[..., :2].detach()[scene_of_row]
-    return GuidedRows(rows, scene_of_row, target_xy, targets[scene_of_row])
+    standby = present & ~mask & ~targets  # the ego is a target with either target
+    bystanders = torch.nonzero(standby.reshape(-1)).flatten()
+    scene_of_bystander = torch.div(bystanders, mask.shape[1], rounding_mode="floor")
+    return GuidedRows(
+        rows, scene_of_row, target_xy, targets[scene_of_row], bystanders, scene_of_bystander
+    )
 
 
 def flatten_scenes(scene: GuidanceScene) -> GuidanceScene:

@@ -91,6 +91,26 @@ def test_separation_term_keeps_the_guided_vehicles_apart():
     assert adversarial[0] < adversarial[1] < 0.9 * float(result.losses[0, 0])
 
 
+def test_attacker_of_the_ego_drives_around_a_parked_car_not_through_it():
+    """Target ``"ego"``: the attacker's way to the ego crosses a car parked half across
+    the lane line, which keeps its plan (a bystander). Without ``L_sep`` the guided plan
+    runs into the parked car; with it the plan clears it and still closes on the ego."""
+    scene = make_scene([[30.0, 0.0, 10.0, 0.0], [0.0, 3.5, 15.0, -0.05], [20.0, 1.5, 0.0, 0.0]])
+    penetration, adversarial = [], []
+    for weight in (0.0, GuidanceConfig.lambda_sep):
+        result = guide(
+            scene, mask_of(3, [1]), NORMALIZER, GuidanceConfig(target="ego", lambda_sep=weight)
+        )
+        assert torch.equal(result.trajectories[2], scene.base_trajectories[2])
+        gaps = pair_separation(
+            result.trajectories[None, [1, 2]], scene.length[None, [1, 2]], scene.width[None, [1, 2]]
+        )[0, 0, 1]
+        penetration.append(float(torch.relu(-gaps).square().sum()))
+        adversarial.append(float(result.losses[-1, 0]))
+    assert penetration[0] > 1.0 and penetration[1] == 0.0
+    assert adversarial[1] < 0.85 * float(result.losses[0, 0])
+
+
 def test_sign_convention_negative_weight_pushes_apart():
     scene = make_scene(HIGHWAY)
     push = guide(scene, mask_of(6, [1]), NORMALIZER, GuidanceConfig(lambda_adv=-50.0))
