@@ -22,8 +22,11 @@ class LoopOptions:
 
     data: tuple[Path, ...]
     """training scenes: a folder written by `riskflow-data generate`, or a ScenarioNet dataset
-    folder (dataset_summary.pkl; scenes read one at a time when the windows are cut); several
-    folders train on all their scenes together (then --val-data is needed)"""
+    folder (recorded scenes, read one at a time with their tracks smoothed when the windows
+    are cut); several folders train on all their scenes together (then --val-data is needed)"""
+    data_weights: tuple[float, ...] = ()
+    """one per --data folder: its share of each epoch's windows is its weight over their sum
+    (none: each folder's share of the windows)"""
     out: Path = Path("runs/riskflow")
     """output folder: checkpoint.pt (resumable), generator.pt (to ship), metrics.jsonl"""
     val_data: Path | None = None
@@ -115,6 +118,13 @@ class LoopOptions:
             "0 < --val-fraction < 1": 0 < self.val_fraction < 1,
             "--data: one folder, or several with --val-data": len(self.data) == 1
             or (len(self.data) > 1 and self.val_data is not None),
+            "--data-weights: none, or one finite weight > 0 per --data folder (several)": not (
+                self.data_weights
+            )
+            or (
+                len(self.data_weights) == len(self.data) > 1
+                and all(math.isfinite(w) and w > 0 for w in self.data_weights)
+            ),
             "--recovery-copies, --recovery-parked >= 0": self.recovery_copies >= 0
             and self.recovery_parked >= 0,
             "--recovery-offset >= 0": math.isfinite(self.recovery_offset)
@@ -145,6 +155,7 @@ class LoopOptions:
         if isinstance(self.data, (str, os.PathLike)):  # one folder, e.g. from Python
             object.__setattr__(self, "data", (Path(self.data),))
         object.__setattr__(self, "data", tuple(Path(folder) for folder in self.data))
+        object.__setattr__(self, "data_weights", tuple(map(float, self.data_weights)))
         broken = [rule for rule, holds in self.rules().items() if not holds]
         if broken:
             raise ValueError(f"riskflow-train needs {'; '.join(broken)}")

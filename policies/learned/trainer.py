@@ -39,7 +39,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from policies.learned.adversary_config import default_window_config
-from policies.learned.batches import batch_order, collated, load_splits
+from policies.learned.batches import FolderShares, batch_order, collated, load_splits
 from policies.learned.checkpoint import (
     build_checkpoint,
     checkpoint_kind,
@@ -169,6 +169,8 @@ def _fit(options: LoopOptions, objective: Objective, ranks: Ranks) -> dict[str, 
         with main_first(ranks):  # rank 0 writes the window caches, the others read them
             train_set, val_set = load_splits(*splits, recovery=options.recovery(), window=window)
             normalizer = initial_normalizer(options, state, start, train_set)
+        weights = options.data_weights  # (): every folder its share of the windows
+        shares = FolderShares.of(train_set, options.data, weights) if weights else None
     except ValueError as err:
         raise SystemExit(f"riskflow-train: {err}") from None
     model = RiskFlowGenerator(config).to(device)
@@ -246,7 +248,7 @@ def _fit(options: LoopOptions, objective: Objective, ranks: Ranks) -> dict[str, 
             if step // per_epoch != epoch:
                 epoch = step // per_epoch
                 batches = batch_order(
-                    agents, options.batch_size, options.bucket, options.seed, epoch
+                    agents, options.batch_size, options.bucket, options.seed, epoch, shares
                 )
             rows = batches[step % per_epoch]  # the global batch; this process's shard
             shard = ranks.shard(len(rows))
