@@ -9,7 +9,7 @@ import shapely
 from riskflow_env.maps._validate import finite_number
 from riskflow_env.maps.drivable_map import DrivableMap
 from riskflow_env.maps.lanes import Lane
-from riskflow_env.maps.rasterize import RepairBudget, grid_for_bounds, rasterize, repair_polygon
+from riskflow_env.maps.rasterize import RepairBudget, fill_polygons, grid_for_bounds, repair_polygon
 from riskflow_env.maps.surface import road_polygons
 
 
@@ -22,10 +22,11 @@ def from_polygons(
 ) -> DrivableMap:
     """Map whose drivable area is the union of ``polygons``.
 
-    The raster covers the union's bounding box plus ``margin`` on every side. A pixel
-    is drivable when its centre lies in the union or on its boundary
-    (``shapely.intersects_xy``). Self-intersecting polygons are repaired first, within
-    the budget of :func:`~riskflow_env.maps.rasterize.repair_polygon`.
+    The raster covers the polygons' bounding box plus ``margin`` on every side. A pixel
+    is drivable when its centre lies in one of the polygons
+    (:func:`~riskflow_env.maps.rasterize.fill_polygons`: no union is computed).
+    Self-intersecting polygons are repaired first, within the budget of
+    :func:`~riskflow_env.maps.rasterize.repair_polygon`.
 
     Args:
         polygons: one shapely (Multi)Polygon or an iterable of them [m].
@@ -44,12 +45,11 @@ def from_polygons(
                 f"polygons[{i}] must be a shapely Polygon or MultiPolygon, "
                 f"got {type(geometry).__name__}"
             )
-        geometries[i] = repair_polygon(geometry, f"polygons[{i}]", repairs)  # before the union
-    union = shapely.union_all(geometries) if geometries else shapely.Polygon()
-    if union.is_empty or union.area <= 0:
+        geometries[i] = repair_polygon(geometry, f"polygons[{i}]", repairs)
+    if not geometries or not sum(g.area for g in geometries) > 0:
         raise ValueError("polygons must cover a non-empty area")
-    origin, shape = grid_for_bounds(union.bounds, resolution, margin)
-    drivable = rasterize(union, origin, shape, resolution)
+    origin, shape = grid_for_bounds(shapely.total_bounds(geometries), resolution, margin)
+    drivable = fill_polygons(geometries, origin, shape, resolution)
     if not drivable.any():
         raise ValueError(
             f"polygons are thinner than the resolution {resolution} m/px: no pixel centre is inside"

@@ -5,7 +5,8 @@ the world (x, y) of the lower-left corner of pixel [0, 0]; row ``i`` covers
 y in [oy + i*res, oy + (i+1)*res) and column ``j`` covers x in
 [ox + j*res, ox + (j+1)*res). A pixel is sampled at its centre.
 
-Budgets: a raster holds at most :data:`MAX_PIXELS` pixels (the area), and an invalid
+Budgets: a raster holds at most :data:`MAX_PIXELS` pixels (the area), a polygon fill
+takes at most :data:`MAX_FILL_CROSSINGS` crossings of edges with pixel rows, and an invalid
 (self-intersecting) polygon is repaired (``shapely.make_valid``) only within
 :class:`RepairBudget`: GEOS's repair time grows faster than the square of the number of
 crossing edges (a 101-vertex star, 2,500 crossings: 6.5 s; 201 vertices: 65 s; 501
@@ -20,6 +21,7 @@ lane surfaces a map, of at most 149 vertices and 15 crossings: 190 of the
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import shapely
@@ -30,7 +32,9 @@ MAX_REPAIR_VERTICES = 1024  # vertices of one invalid polygon that may be repair
 MAX_REPAIR_CROSSINGS = 64  # crossing pairs of edges of one polygon that may be repaired
 MAX_REPAIRS = 1024  # repairs of one budget (one map): 1 + its crossings each
 MAX_REPAIR_PAIRS = 2**24  # pairs of edges one budget may test for crossings (~3 s)
+MAX_FILL_CROSSINGS = 2**25  # crossings of polygon edges with pixel rows one fill may take
 _CROSSING_ROWS = 64  # edges compared with all others at once (bounds the arrays)
+_FILL_CHUNK = 2**20  # crossings computed at once by a fill (about 80 MB of arrays)
 
 
 class RepairBudget:
@@ -167,67 +171,94 @@ def pixel_centres(origin: np.ndarray, shape: tuple[int, int], resolution: float)
 
 
 def rasterize(
-    geometry: shapely.Geometry, origin: np.ndarray, shape: tuple[int, int], resolution: float
+    geometry: shapely.Geometry | Sequence[shapely.Geometry],
+    origin: np.ndarray,
+    shape: tuple[int, int],
+    resolution: float,
 ) -> np.ndarray:
-    """Boolean raster of the pixels whose centre lies in ``geometry``.
+    """Boolean raster of the pixels whose centre lies in ``geometry`` (one geometry or
+    several: their union).
 
-    Polygons are filled by scanlines (:func:`fill_rings`): an even-odd fill of all
-    their rings, which is their union when they do not overlap (a shapely union
-    never does; an invalid geometry is repaired first). A pixel centre exactly on a
-    left or lower edge counts as inside, one on a right or upper edge as outside.
-    Other geometries go through
-    ``shapely.intersects_xy`` (boundary points inside).
+    Polygons are filled by scanlines (:func:`fill_polygons`, no union is computed); an
+    invalid polygon is repaired first (:func:`repair_polygon`). A pixel centre exactly on
+    a left or lower edge counts as inside, one on a right or upper edge as outside.
+    Other geometries go through ``shapely.intersects_xy`` (boundary points inside).
 
     Returns:
         (H, W) bool.
     """
-    parts = shapely.get_parts(geometry)
+    geometries = [geometry] if isinstance(geometry, shapely.Geometry) else list(geometry)
+    parts = shapely.get_parts(geometries) if geometries else []
     if len(parts) and all(isinstance(p, shapely.Polygon) for p in parts):
-        if not shapely.is_valid(geometry):  # e.g. overlapping parts: even-odd needs a union
-            budget = RepairBudget()
-            geometry = shapely.union_all(
-                [repair_polygon(part, f"polygon part {k}", budget) for k, part in enumerate(parts)]
-            )
-        return fill_rings(geometry, origin, shape, resolution)
+        budget = RepairBudget()
+        parts = [repair_polygon(part, f"polygon part {k}", budget) for k, part in enumerate(parts)]
+        return fill_polygons(parts, origin, shape, resolution)
     x, y = pixel_centres(origin, shape, resolution)
-    shapely.prepare(geometry)
-    return np.asarray(shapely.intersects_xy(geometry, x, y), dtype=bool)
+    union = shapely.GeometryCollection(geometries)
+    shapely.prepare(union)
+    return np.asarray(shapely.intersects_xy(union, x, y), dtype=bool)
 
 
-def fill_rings(
-    geometry: shapely.Geometry, origin: np.ndarray, shape: tuple[int, int], resolution: float
+def fill_polygons(
+    polygons: Sequence[shapely.Geometry],
+    origin: np.ndarray,
+    shape: tuple[int, int],
+    resolution: float,
 ) -> np.ndarray:
-    """(H, W) bool even-odd scanline fill of every ring of a (Multi)Polygon.
+    """(H, W) bool: the pixels whose centre lies in the union of ``polygons`` (valid
+    Polygons or MultiPolygons, overlapping or not), by a nonzero-winding scanline fill.
 
-    For each pixel row, the crossings of the row's centre line with the ring edges are
-    found at once for all edges (an edge spans the rows whose centre v satisfies
+    Every ring is taken counter-clockwise for an exterior and clockwise for a hole
+    (from its signed area), so the winding number of a point is the number of polygons
+    holding it. For each pixel row the crossings of the row's centre line with all edges
+    are found at once (an edge spans the rows whose centre v satisfies
     ``min(v0, v1) <= v < max(v0, v1)``, so a shared vertex counts once); each crossing
-    toggles the pixels whose centre lies at or right of it, and an exclusive-or scan
-    along the row gives the inside. Cost: the number of crossings plus H * W.
+    adds its edge's direction (+1 up, -1 down) at the first pixel whose centre lies at
+    or right of it, and a running sum along the row gives the winding number. No union
+    is computed, so the cost is the number of crossings plus H * W whatever the polygons'
+    overlaps (a union grows as the crossings of their outlines); more than
+    :data:`MAX_FILL_CROSSINGS` crossings raise ``ValueError``.
     """
     height, width = shape
-    rings = []
-    for polygon in shapely.get_parts(geometry):
+    rings, turn = [], []
+    for polygon in shapely.get_parts(np.asarray(polygons, dtype=object)):
         if isinstance(polygon, shapely.Polygon) and not polygon.is_empty:
             rings += [polygon.exterior, *polygon.interiors]
-    inside = np.zeros((height, width + 1), dtype=bool)
+            turn += [1.0] + [-1.0] * len(polygon.interiors)
+    winding = np.zeros((height, width + 1), dtype=np.int32)
     if not rings:
-        return inside[:, :width]
+        return winding[:, :width] != 0
     coords = [np.asarray(ring.coords)[:, :2] for ring in rings]
+    area = np.array([_signed_area(c) for c in coords])
     start = (np.concatenate([c[:-1] for c in coords]) - origin) / resolution - 0.5
     end = (np.concatenate([c[1:] for c in coords]) - origin) / resolution - 0.5
+    ring_sign = np.repeat(np.where(np.array(turn) * area >= 0, 1, -1), [len(c) - 1 for c in coords])
+    sign = np.where(end[:, 1] > start[:, 1], 1, -1) * ring_sign
     low = np.clip(np.ceil(np.minimum(start[:, 1], end[:, 1])), 0, height).astype(np.int64)
     high = np.clip(np.ceil(np.maximum(start[:, 1], end[:, 1])), 0, height).astype(np.int64)
     count = np.maximum(high - low, 0)
-    edge = np.repeat(np.arange(len(count)), count)
-    first = np.cumsum(count) - count
-    row = low[edge] + np.arange(len(edge)) - first[edge]
-    (u0, v0), (u1, v1) = start[edge].T, end[edge].T
-    u = u0 + (row - v0) / (v1 - v0) * (u1 - u0)  # v1 != v0 on every spanned row
-    col = np.clip(np.ceil(u), 0, width).astype(np.int64)
-    flat, hits = np.unique(row * (width + 1) + col, return_counts=True)
-    inside.reshape(-1)[flat[hits % 2 == 1]] = True
-    return np.logical_xor.accumulate(inside, axis=1)[:, :width]
+    total = int(count.sum())
+    if total > MAX_FILL_CROSSINGS:
+        raise ValueError(
+            f"the polygons' edges cross {total} pixel rows, over MAX_FILL_CROSSINGS = "
+            f"{MAX_FILL_CROSSINGS} (use a coarser resolution or fewer, simpler polygons)"
+        )
+    groups = np.cumsum(count) // _FILL_CHUNK  # edges of about _FILL_CHUNK crossings at once
+    for edges in np.split(np.arange(len(count)), np.flatnonzero(np.diff(groups)) + 1):
+        spans = count[edges]
+        edge = np.repeat(edges, spans)
+        row = np.repeat(low[edges] - (np.cumsum(spans) - spans), spans) + np.arange(len(edge))
+        (u0, v0), (u1, v1) = start[edge].T, end[edge].T
+        u = u0 + (row - v0) / (v1 - v0) * (u1 - u0)  # v1 != v0 on every spanned row
+        col = np.clip(np.ceil(u), 0, width).astype(np.int64)
+        np.add.at(winding.reshape(-1), row * (width + 1) + col, sign[edge].astype(np.int32))
+    return np.cumsum(winding, axis=1, dtype=np.int32)[:, :width] != 0
+
+
+def _signed_area(ring: np.ndarray) -> float:
+    """Shoelace area of a closed ring (K, 2): positive when counter-clockwise."""
+    x, y = ring[:, 0], ring[:, 1]
+    return 0.5 * float(np.sum(x[:-1] * y[1:] - x[1:] * y[:-1]))
 
 
 def signed_distance(drivable: np.ndarray, resolution: float) -> np.ndarray:

@@ -6,9 +6,10 @@ cars stand "off road" at the first step and the off-road detector fires on a log
 replay. The ground under the logged vehicles is drivable by the evidence of the log
 itself: :func:`~riskflow_env.scenarios.scenarionet_map.build_map` adds the logged boxes
 of every vehicle track (:func:`logged_boxes`) that the lanes and surfaces of the map
-data do not cover, each grown by :data:`GROW` (:func:`missing_ground`). Where the map
-data has parking areas (``PARKING_LOT``, ``CARPARK_AREA``, ``DRIVEWAY``), those are
-drawn; where it covers every logged box, the map is exactly the map data's. What lies
+data do not cover, each grown by :data:`GROW` (:func:`missing_ground`), and the map is
+built again with them. Where the map data has parking areas (``PARKING_LOT``,
+``CARPARK_AREA``, ``DRIVEWAY``), those are drawn; where it covers every logged box, the
+map is exactly the map data's. What lies
 beside the logged vehicles (a car park's empty bays and aisles, the kerb past a parked
 car) stays off road.
 
@@ -16,8 +17,8 @@ Boxes: one per valid step of a track, thinned along the track to one every
 :data:`SPACING` of travel or :data:`TURN` of heading change (a parked car is one box; a
 moving one a box about every metre, and consecutive boxes of a car overlap, so their
 union covers the path swept between them). More than :data:`MAX_BOXES` boxes (a long
-recording with many tracks) are thinned further by a stride, which keeps the union's
-cost bounded at a coarser coverage.
+recording with many tracks) are thinned further by a stride, which keeps the cost
+bounded at a coarser coverage.
 """
 
 from __future__ import annotations
@@ -28,12 +29,13 @@ import numpy as np
 import shapely
 
 from riskflow_env.dynamics import wrap_angle
-from riskflow_env.geometry import box_corners
+from riskflow_env.geometry import box_corners, footprint_points
+from riskflow_env.maps import DrivableMap
 
 SPACING = 1.0  # [m] travel between kept boxes of one track
 TURN = 0.2  # [rad] heading change between kept boxes of one track
 GROW = 0.5  # [m] added around each box: annotation noise and half a raster pixel
-MAX_BOXES = 50_000  # boxes in one union (about 2 s of shapely)
+MAX_BOXES = 50_000  # boxes tested and drawn at most
 
 
 class LoggedBoxes(NamedTuple):
@@ -67,15 +69,15 @@ def logged_boxes(
     return LoggedBoxes(xy[rows, steps], heading[rows, steps], length[rows], width[rows])
 
 
-def missing_ground(boxes: LoggedBoxes, drawn: shapely.Geometry) -> shapely.Geometry | None:
-    """The union of the ``boxes``, each grown by :data:`GROW`, that the map data's
-    drivable area ``drawn`` does not cover; None when it covers them all (the map is
-    then exactly the map data's). A box whose grown outline leaves ``drawn`` is added:
-    a corner closer to the edge than half a pixel may read as off road on the raster."""
-    grown = boxes.polygons(GROW)
-    shapely.prepare(drawn)
-    outside = ~shapely.covers(drawn, grown)
-    return shapely.union_all(grown[outside]) if outside.any() else None
+def missing_ground(boxes: LoggedBoxes, drawn: DrivableMap) -> np.ndarray:
+    """(M,) shapely Polygons: the ``boxes``, each grown by :data:`GROW`, that stand
+    partly off the drivable area of ``drawn`` (the map of the map data alone): a sample
+    of the grown footprint (:func:`~riskflow_env.geometry.footprint_points`) where its
+    signed distance is positive. Empty when the map data covers them all."""
+    grown = footprint_points(boxes.xy, boxes.heading, boxes.length + 2 * GROW,
+                             boxes.width + 2 * GROW)  # fmt: skip
+    outside = ~np.all(drawn.is_drivable(grown), axis=-1)
+    return boxes.polygons(GROW)[outside]
 
 
 def box_steps(xy: np.ndarray, heading: np.ndarray, valid: np.ndarray) -> tuple:

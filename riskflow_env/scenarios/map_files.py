@@ -5,10 +5,11 @@ A map (inline in a scene file with the ``map_`` prefix,
 ``drivable`` (H, W) bool, ``resolution`` () [m/px], ``origin`` (2,) [m], ``name``,
 ``sdf`` (H, W) float32 [m] only when saved with ``include_sdf`` (else recomputed on
 load: 0.2 s of CPU and about 40 bytes a pixel, so a raster without it holds at most
-:data:`MAX_SDF_PIXELS`, checked from the headers), and the lanes: ``lane_points`` (M, 2) [m] (all centrelines
-concatenated), ``lane_offsets`` (L + 1,) (lane i is ``lane_points[off[i]:off[i+1]]``),
-``lane_widths`` (L,) [m], ``lane_ids`` (L,), ``lane_speed_limits`` (L,) [m/s] (NaN for
-none), ``lane_successors`` (S,) and ``lane_successor_offsets`` (L + 1,).
+:data:`MAX_SDF_PIXELS`, checked from the headers), and the lanes: ``lane_points``
+(M, 2) [m] (all centrelines concatenated), ``lane_offsets`` (L + 1,) (lane i is
+``lane_points[off[i]:off[i+1]]``), ``lane_widths`` (L,) [m], ``lane_ids`` (L,),
+``lane_speed_limits`` (L,) [m/s] (NaN for none), ``lane_successors`` (S,) and
+``lane_successor_offsets`` (L + 1,).
 
 :func:`map_hash` names a map by its content (16 hex digits of a SHA-256 of its arrays);
 :func:`load_map` keeps one in-memory copy per hash (the last :data:`MAP_CACHE_SIZE`),

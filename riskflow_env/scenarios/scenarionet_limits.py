@@ -14,9 +14,9 @@ limit                  value       counts
 ``MAX_STEPS``          20,000      recorded steps, and steps at 10 Hz (2,000 s)
 ``MAX_TRACKS``         10,000      tracks of every type
 ``MAX_TRACK_STEPS``    1,000,000   vehicle tracks x steps (recorded or at 10 Hz)
-``MAX_MAP_FEATURES``   50,000      map features of every type
-``MAX_FEATURE_POINTS`` 100,000     points of one polyline, polygon or width
-``MAX_MAP_POINTS``     2,000,000   points of all polylines and polygons
+``MAX_MAP_FEATURES``   20,000      map features of every type
+``MAX_FEATURE_POINTS`` 20,000      points of one polyline, polygon or width
+``MAX_MAP_POINTS``     1,000,000   points of all polylines and polygons
 ``MAX_EXIT_LANES``     64          successors listed by one lane
 ``MAX_BOUNDARY_RINGS`` 256         ``boundary_<k>`` rings (the sample: 29)
 ``MAX_MAP_PIXELS``     8,000,000   pixels of the map raster (the sample, whole
@@ -26,12 +26,12 @@ limit                  value       counts
                                    lanes or polygons (built from its road edges)
 ``MAX_LANE_LINKS``     20,000      successor links of all lanes, listed or inferred
                                    (the sample: 476; each one adds a junction patch)
-``MAX_OVERLAPS``       25,000      pairs of drivable-area polygons that meet before
-                                   their union (the sample, whole map: 1,999)
-``MAX_OVERLAP_WORK``   16.8 M      vertices of the pairs of polygons whose boxes meet,
-                                   each pair tested exactly for MAX_OVERLAPS (the
-                                   sample, whole map: 1.8 M)
 =====================  ==========  ===========================================
+
+The drivable polygons are never unioned (a union's cost grows as the crossings of their
+outlines: 20 crossing combs took 12-49 s): the raster is filled from their outlines,
+within :data:`~riskflow_env.maps.rasterize.MAX_FILL_CROSSINGS` crossings of edges with
+pixel rows (the samples: 12,000-31,000).
 
 At these limits a file loads in under 5 s and 500 MB (measured: 1,000,000 track-steps
 1.5 s, 254 MB; 1,000,000 map points in 49 lanes 2.4 s, 450 MB; 19,990 lanes 2.9 s;
@@ -51,7 +51,6 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
-import shapely
 
 from riskflow_env.untrusted import brief
 
@@ -67,9 +66,6 @@ MAX_MAP_PIXELS = 8_000_000  # pixels of the map raster (H x W)
 MAX_EDGE_SEGMENTS = 4096  # road-edge segments a map without lanes is built from
 MAX_EDGE_CROSSINGS = 16_384  # crossings among them (their arrangement grows as these)
 MAX_LANE_LINKS = 20_000  # successor links of all lanes (listed or inferred) of one map
-MAX_OVERLAPS = 25_000  # pairs of drivable-area polygons that meet (their union grows as these)
-MAX_OVERLAP_WORK = 2**24  # vertices of the pairs of polygons whose boxes meet (tested exactly)
-_OVERLAP_ROWS = 32  # polygons queried at once (bounds the pairs held)
 COORDINATES = 3  # numbers per point counted against the point limits (x, y, z)
 
 _NUMBERS = (int, float, bool, np.number, np.bool_)
@@ -169,36 +165,6 @@ def check_lane_links(links: int, source: str) -> None:
         )
 
 
-def check_overlaps(polygons: list, source: str) -> None:
-    """ValueError naming ``source`` when more than :data:`MAX_OVERLAPS` pairs of
-    ``polygons`` (shapely geometries) meet: their union's cost grows as its crossings (a
-    grid of 300 x 300 thin lanes: 10 s, 490 MB; 1,000 x 1,000: minutes). The pairs whose
-    boxes meet come from an STRtree, ``_OVERLAP_ROWS`` polygons at a time; their vertices
-    count against :data:`MAX_OVERLAP_WORK` before they are tested exactly (polygons piled
-    on one spot made every pair a candidate), stopping past either limit."""
-    geometries = np.empty(len(polygons), dtype=object)
-    geometries[:] = polygons
-    tree = shapely.STRtree(geometries)
-    vertices = shapely.get_num_coordinates(geometries)
-    found = work = 0
-    for row in range(0, len(polygons), _OVERLAP_ROWS):
-        query, other = tree.query(geometries[row : row + _OVERLAP_ROWS])
-        later = query + row < other
-        query, other = query[later] + row, other[later]
-        work += int(np.sum(vertices[query]) + np.sum(vertices[other]))
-        if work > MAX_OVERLAP_WORK:
-            raise ValueError(
-                f"{source}: the lane and surface polygons whose boxes meet hold over "
-                f"MAX_OVERLAP_WORK = {MAX_OVERLAP_WORK} vertices (pairs x vertices)"
-            )
-        found += int(np.count_nonzero(shapely.intersects(geometries[query], geometries[other])))
-        if found > MAX_OVERLAPS:
-            raise ValueError(
-                f"{source}: over MAX_OVERLAPS = {MAX_OVERLAPS} pairs of lane and surface "
-                "polygons meet (their union would grow as their crossings)"
-            )
-
-
 def check_raster(bounds: Any, resolution: float, margin: float, source: str) -> None:
     """ValueError naming ``source`` when a raster of ``bounds`` (xmin, ymin, xmax, ymax)
     [m] plus ``margin`` [m] at ``resolution`` [m/px] exceeds :data:`MAX_MAP_PIXELS` (a bad
@@ -219,10 +185,8 @@ __all__ = [
     "MAX_EDGE_CROSSINGS",
     "MAX_EDGE_SEGMENTS",
     "MAX_MAP_PIXELS",
-    "MAX_OVERLAPS",
     "MAX_EXIT_LANES",
     "MAX_LANE_LINKS",
-    "MAX_OVERLAP_WORK",
     "MAX_FEATURE_POINTS",
     "MAX_MAP_FEATURES",
     "MAX_MAP_POINTS",
@@ -231,7 +195,6 @@ __all__ = [
     "MAX_TRACK_STEPS",
     "check_counts",
     "check_lane_links",
-    "check_overlaps",
     "check_raster",
     "check_track_steps",
     "count_numbers",

@@ -38,6 +38,7 @@ repaired within one :class:`~riskflow_env.maps.rasterize.RepairBudget` per map.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from typing import Any
 
@@ -56,7 +57,6 @@ from riskflow_env.scenarios.scenarionet_limits import (
     MAX_EDGE_SEGMENTS,
     MAX_EXIT_LANES,
     check_lane_links,
-    check_overlaps,
     check_raster,
 )
 from riskflow_env.untrusted import MAX_QUOTE, brief, entry_id
@@ -209,27 +209,23 @@ def build_map(
     if not polygons:
         polygons = _edge_faces(features, vehicle_xy, source)
     polygons += surfaces
-    bounds = shapely.total_bounds(polygons)
     if region is not None:  # the raster covers the drivable area inside the region
-        bounds = np.concatenate(
-            [np.maximum(bounds[:2], region[:2]), np.minimum(bounds[2:], region[2:])]
-        )
-    check_raster(bounds, resolution, margin, source)
-    check_overlaps(polygons, source)
-    drawn = shapely.union_all(polygons)
-    extra = None if logged is None else missing_ground(logged, drawn)
-    if extra is not None:  # within the map features' extent: grows the raster by metres
-        drawn = shapely.union_all([drawn, extra])
-        polygons = [drawn]
-    if region is not None:
-        area = shapely.clip_by_rect(drawn, *region)
-        parts = [
-            p for p in shapely.get_parts(area) if isinstance(p, shapely.Polygon) and p.area > 0
+        clipped = shapely.clip_by_rect(np.asarray(polygons, dtype=object), *region)
+        polygons = [
+            p for p in shapely.get_parts(clipped) if isinstance(p, shapely.Polygon) and p.area > 0
         ]
-        if not parts:
+        if not polygons:
             raise ValueError(f"{source}: no drivable area inside the region {region} [m]")
-        polygons = [shapely.MultiPolygon(parts)]
-    return from_polygons(polygons, resolution=resolution, margin=margin, lanes=lanes, name=name)
+    check_raster(shapely.total_bounds(polygons), resolution, margin, source)
+    build = functools.partial(
+        from_polygons, resolution=resolution, margin=margin, lanes=lanes, name=name
+    )
+    drawn = build(polygons)
+    missing = [] if logged is None else missing_ground(logged, drawn)
+    if not len(missing):
+        return drawn
+    check_raster(shapely.total_bounds([*polygons, *missing]), resolution, margin, source)
+    return build([*polygons, *missing])
 
 
 def _grow(region: tuple[float, float, float, float], by: float) -> tuple:
