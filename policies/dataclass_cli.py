@@ -1,7 +1,8 @@
 """Command lines generated from a frozen options dataclass (CleanRL style, no extra dependency).
 
 Each field becomes ``--field-name``; its type (``int``, ``float``, ``str``, ``Path``,
-``X | None``) parses the value, ``tuple[X, ...]`` fields take several values, ``bool``
+``X | None``) parses the value, ``tuple[X, ...]`` fields take several values (given
+once or repeated: ``--data A B`` and ``--data A --data B`` are the same), ``bool``
 fields become ``--x / --no-x``, fields without a default are required, a field's
 ``metadata={"flag": "--other"}`` renames its flag, and the help text is the field's
 attribute docstring (the string literal written under it), followed by the default::
@@ -93,7 +94,7 @@ def dataclass_parser(
         if hint is bool:
             kwargs["action"] = argparse.BooleanOptionalAction
         elif typing.get_origin(hint) is tuple:
-            kwargs.update(nargs="+", type=typing.get_args(hint)[0])
+            kwargs.update(nargs="+", type=typing.get_args(hint)[0], action=_Several)
         else:  # X or X | None
             kwargs["type"] = next(
                 a for a in typing.get_args(hint) or (hint,) if a is not type(None)
@@ -111,6 +112,20 @@ def dataclass_parser(
     if debug:
         add_debug_flag(parser)
     return parser
+
+
+class _Several(argparse.Action):
+    """A ``tuple`` field's values: the first use on a command line replaces the default
+    (or the recipe's value), a repeated use adds to it."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:  # noqa: ANN001
+        given = namespace.__dict__.setdefault(_GIVEN, set())
+        before = list(getattr(namespace, self.dest)) if self.dest in given else []
+        setattr(namespace, self.dest, before + list(values))
+        given.add(self.dest)
+
+
+_GIVEN = "_tuple_fields_given"  # namespace attribute of _Several, dropped after parsing
 
 
 def field_values(cls: type, values: Mapping[str, Any]) -> dict[str, Any]:
@@ -194,6 +209,7 @@ def parse_dataclass(
         _apply_recipe(parser, cls, argv, recipes)
     values = vars(parser.parse_args(argv))
     values.pop("debug", None)  # read by the command's error guard (riskflow_env.cli_errors)
+    values.pop(_GIVEN, None)
     if recipes is not None:
         del values["recipe"]
     try:

@@ -71,6 +71,12 @@ def test_options_given_beside_a_recipe_override_it():
     assert later.steps == 9600  # wherever --recipe stands
 
 
+def test_a_repeated_tuple_option_adds_to_itself_and_replaces_the_recipe():
+    repeated = parse_options(["--recipe", "riskflow-default", "--data", "a", "--data", "b"])
+    once = parse_options(["--recipe", "riskflow-default", "--data", "a", "b"])
+    assert repeated.data == once.data == (Path("a"), Path("b"))
+
+
 def test_a_recipe_file_by_path_gives_the_required_options(tmp_path):
     path = tmp_path / "mine.json"
     path.write_text(json.dumps({"options": {"data": ["a", "b"], "val_data": "v", "init": None}}))
