@@ -119,13 +119,10 @@ class _Several(argparse.Action):
     (or the recipe's value), a repeated use adds to it."""
 
     def __call__(self, parser, namespace, values, option_string=None) -> None:  # noqa: ANN001
-        given = namespace.__dict__.setdefault(_GIVEN, set())
-        before = list(getattr(namespace, self.dest)) if self.dest in given else []
+        repeated = getattr(self, "parsing", None) is namespace  # this parse has used it
+        before = list(getattr(namespace, self.dest)) if repeated else []
         setattr(namespace, self.dest, before + list(values))
-        given.add(self.dest)
-
-
-_GIVEN = "_tuple_fields_given"  # namespace attribute of _Several, dropped after parsing
+        self.parsing = namespace
 
 
 def field_values(cls: type, values: Mapping[str, Any]) -> dict[str, Any]:
@@ -209,7 +206,6 @@ def parse_dataclass(
         _apply_recipe(parser, cls, argv, recipes)
     values = vars(parser.parse_args(argv))
     values.pop("debug", None)  # read by the command's error guard (riskflow_env.cli_errors)
-    values.pop(_GIVEN, None)
     if recipes is not None:
         del values["recipe"]
     try:
