@@ -14,17 +14,24 @@ import pytest
 os.environ.setdefault("PROTOCOL_BUFFERS_PYTHON_IMPLEMENTATION", "python")
 
 
-def require(*modules: str) -> None:
-    """Skip the calling module unless every module of ``modules`` imports."""
+def import_error(*modules: str) -> str | None:
+    """Why one of ``modules`` does not import, or None when they all do."""
     for module in modules:
         try:
             importlib.import_module(module)
         except Exception as err:  # protobuf's TypeError is not an ImportError
-            pytest.skip(
-                f"{module} does not import ({type(err).__name__}: {str(err)[:200]}): "
-                "pip install -e '.[interop]' (docs/how-to/exchange.md)",
-                allow_module_level=True,
-            )
+            return f"{module} does not import ({type(err).__name__}: {str(err)[:200]})"
+    return None
+
+
+def require(*modules: str) -> None:
+    """Skip the calling module unless every module of ``modules`` imports."""
+    error = import_error(*modules)
+    if error is not None:
+        pytest.skip(
+            f"{error}: pip install -e '.[interop]' (docs/how-to/exchange.md)",
+            allow_module_level=True,
+        )
 
 
 def asam_issues(path) -> list[tuple[str, str, str]]:
