@@ -14,9 +14,9 @@ each a forward and backward pass of the generator head (the scene context is com
 once). ``L_adv``, ``L_map``, their weights, targets, horizon and step rule are RiskFlow's
 (:mod:`policies.riskflow.guidance`), and so is ``A_c`` (with target ``"ego"`` one
 attacker at a time, :func:`policies.learned.ranking.ego_attacker`) and the optional
-``L_sep`` between the guided
-vehicles (``lambda_sep``; the original penalises collisions between agents that are not
-the attacker and its target too), so the comparison isolates latent against
+``L_sep`` between the guided vehicles, and with target ``"ego"`` between the attacker and
+the bystanders' fixed plans (``lambda_sep``; the original penalises collisions between
+agents that are not the attacker and its target too), so the comparison isolates latent against
 output-space optimisation; the other vehicles keep their base plans bit for bit, and
 ``k = 0`` is the unguided generator exactly. docs/how-to/baselines.md ("STRIVE-style") maps each
 part to the original, says what is simplified and why, and gives the measured effect and
@@ -224,7 +224,9 @@ class _LatentObjective:
         flat = flatten_scenes(scene)
         self.eps, self.state, self.agent_mask = flat.eps, flat.state[rows], flat.agent_mask[rows]
         self.map_term = map_term(flat, rows, scene.eps.shape[2], config, guided.scene_of_row)
-        self.separation = separation_term(flat, rows, config, guided.scene_of_row)
+        self.separation = separation_term(
+            flat, rows, config, guided.scene_of_row, guided.bystanders, guided.scene_of_bystander
+        )
 
     def __call__(self, eps_c: Tensor) -> tuple[tuple[Tensor, Tensor, Tensor], Tensor]:
         """``((u_c, actions_c, trajectories_c), terms)``, ``terms`` (C, 4): each row's

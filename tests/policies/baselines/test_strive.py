@@ -166,3 +166,26 @@ def test_separation_term_keeps_the_guided_vehicles_apart(
     assert _guided_penetration(without, view) > 0.1
     assert _guided_penetration(with_term, view) < 0.5 * _guided_penetration(without, view)
     np.testing.assert_array_equal(default.plans, hundred.plans)
+
+
+def test_with_target_ego_the_separation_term_takes_the_bystanders(
+    strive, road_view, monkeypatch
+):
+    """As RiskFlow's: with target ``ego`` the attacker keeps clear of the vehicles that keep
+    their unguided plans (never the ego); with ``others`` there are none."""
+    from policies.baselines import strive as module
+
+    calls = []
+    real = module.separation_term
+
+    def spy(scene, rows, config, scene_of_row=None, bystanders=None, scene_of_bystander=None):
+        calls.append((rows.clone(), None if bystanders is None else bystanders.clone()))
+        return real(scene, rows, config, scene_of_row, bystanders, scene_of_bystander)
+
+    monkeypatch.setattr(module, "separation_term", spy)
+    planned(strive(target="ego"), road_view)
+    rows, bystanders = calls[-1]
+    assert rows.numel() == 1 and bystanders is not None and bystanders.numel() > 0
+    assert not set(bystanders.tolist()) & set(rows.tolist())
+    planned(strive(target="others"), road_view)
+    assert calls[-1][1] is None or calls[-1][1].numel() == 0
