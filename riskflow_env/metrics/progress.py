@@ -7,8 +7,8 @@ simulation and the log are valid (the mask of ADE, :func:`position_errors`):
 * **progress**: the path length the simulation drives (sum of ``||xy_t - xy_{t-1}||``
   over consecutive masked steps) over the path length of the log on the same steps,
   for the vehicles that move in the log (a logged path over :data:`MOVER_DISTANCE`);
-* **stalled**: a log-mover whose progress is below :data:`STALL_PROGRESS` (a queue that
-  stands still with nothing in front of it);
+* **stalled**: a log-mover whose progress is below :data:`STALL_PROGRESS`, whatever holds
+  it (nothing here looks at what stands in front);
 * **turned in place**: a vehicle that stands still in the log
   (:func:`~riskflow_env.metrics.displacement.standstill_drift`) and that the
   simulation turns by more than :data:`TURN_IN_PLACE` from its logged heading while
