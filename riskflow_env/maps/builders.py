@@ -23,7 +23,8 @@ def from_polygons(
     """Map whose drivable area is the union of ``polygons``.
 
     The raster covers the polygons' bounding box plus ``margin`` on every side. A pixel
-    is drivable when its centre lies in one of the polygons
+    is drivable when its centre lies in one of the polygons, a centre exactly on a left or
+    lower edge counting as inside and one on a right or upper edge as outside
     (:func:`~riskflow_env.maps.rasterize.fill_polygons`: no union is computed).
     Self-intersecting polygons are repaired first, within the budget of
     :func:`~riskflow_env.maps.rasterize.repair_polygon`.

@@ -34,7 +34,7 @@ MAX_REPAIRS = 1024  # repairs of one budget (one map): 1 + its crossings each
 MAX_REPAIR_PAIRS = 2**24  # pairs of edges one budget may test for crossings (~3 s)
 MAX_FILL_CROSSINGS = 2**25  # crossings of polygon edges with pixel rows one fill may take
 _CROSSING_ROWS = 64  # edges compared with all others at once (bounds the arrays)
-_FILL_CHUNK = 2**20  # crossings computed at once by a fill (about 80 MB of arrays)
+_FILL_CHUNK = 2**20  # crossings computed at once by a fill (80-160 MB of arrays)
 
 
 class RepairBudget:
@@ -181,8 +181,9 @@ def rasterize(
 
     Polygons are filled by scanlines (:func:`fill_polygons`, no union is computed); an
     invalid polygon is repaired first (:func:`repair_polygon`). A pixel centre exactly on
-    a left or lower edge counts as inside, one on a right or upper edge as outside.
-    Other geometries go through ``shapely.intersects_xy`` (boundary points inside).
+    a left or lower edge counts as inside, one on a right or upper edge as outside. Any
+    other geometry among them sends them all through ``shapely.intersects_xy``, where a
+    centre on the boundary counts as inside.
 
     Returns:
         (H, W) bool.
@@ -240,14 +241,23 @@ def fill_polygons(
     total = int(count.sum())
     if total > MAX_FILL_CROSSINGS:
         raise ValueError(
-            f"the polygons' edges cross {total} pixel rows, over MAX_FILL_CROSSINGS = "
+            f"polygons: their edges cross {total} pixel rows, over MAX_FILL_CROSSINGS = "
             f"{MAX_FILL_CROSSINGS} (use a coarser resolution or fewer, simpler polygons)"
         )
-    groups = np.cumsum(count) // _FILL_CHUNK  # edges of about _FILL_CHUNK crossings at once
-    for edges in np.split(np.arange(len(count)), np.flatnonzero(np.diff(groups)) + 1):
-        spans = count[edges]
-        edge = np.repeat(edges, spans)
-        row = np.repeat(low[edges] - (np.cumsum(spans) - spans), spans) + np.arange(len(edge))
+    # pieces of at most _FILL_CHUNK rows of one edge, in groups of about _FILL_CHUNK
+    # crossings (at most twice that): a group's arrays stay under ~160 MB, whatever an edge spans
+    pieces = np.maximum(-(-count // _FILL_CHUNK), 1)
+    piece_edge = np.repeat(np.arange(len(count)), pieces)
+    first = np.repeat(np.cumsum(pieces) - pieces, pieces)
+    piece_low = low[piece_edge] + (np.arange(len(piece_edge)) - first) * _FILL_CHUNK
+    piece_rows = np.clip(high[piece_edge] - piece_low, 0, _FILL_CHUNK)
+    groups = (np.cumsum(piece_rows) - 1) // _FILL_CHUNK
+    for chosen in np.split(np.arange(len(piece_rows)), np.flatnonzero(np.diff(groups)) + 1):
+        spans = piece_rows[chosen]
+        edge = np.repeat(piece_edge[chosen], spans)
+        row = np.repeat(piece_low[chosen] - (np.cumsum(spans) - spans), spans) + np.arange(
+            len(edge)
+        )
         (u0, v0), (u1, v1) = start[edge].T, end[edge].T
         u = u0 + (row - v0) / (v1 - v0) * (u1 - u0)  # v1 != v0 on every spanned row
         col = np.clip(np.ceil(u), 0, width).astype(np.int64)

@@ -70,3 +70,17 @@ def test_fill_refuses_more_crossings_than_its_budget(monkeypatch):
     origin, shape = grid_for_bounds(square.bounds, 0.5, 1.0)
     with pytest.raises(ValueError, match="MAX_FILL_CROSSINGS"):
         fill_polygons([square], origin, shape, 0.5)
+
+
+def test_the_fill_is_the_same_in_small_pieces(monkeypatch):
+    """Edges cut into pieces of a few rows, in groups of a few crossings: the same raster."""
+    from riskflow_env.maps import rasterize as module
+
+    rng = np.random.default_rng(4)
+    parts = [shapely.Point(rng.uniform(0, 40, 2)).buffer(rng.uniform(2, 9)) for _ in range(6)]
+    parts.append(shapely.box(0.3, 0.3, 1.3, 45.3))  # a tall thin one: long edges
+    origin, shape = grid_for_bounds(shapely.total_bounds(parts), 0.5, 1.0)
+    whole = fill_polygons(parts, origin, shape, 0.5)
+    monkeypatch.setattr(module, "_FILL_CHUNK", 7)
+    np.testing.assert_array_equal(fill_polygons(parts, origin, shape, 0.5), whole)
+    np.testing.assert_array_equal(whole, _reference(shapely.union_all(parts), origin, shape, 0.5))
