@@ -23,7 +23,8 @@ class LoopOptions:
     data: tuple[Path, ...]
     """training scenes: a folder written by `riskflow-data generate`, or a ScenarioNet dataset
     folder (recorded scenes, read one at a time with their tracks smoothed when the windows
-    are cut); several folders train on all their scenes together (then --val-data is needed)"""
+    are cut); several folders (--data A B, or --data repeated) train on all their scenes
+    together (then --val-data is needed)"""
     data_weights: tuple[float, ...] = ()
     """one per --data folder: its share of each epoch's windows is its weight over their sum
     (none: each folder's share of the windows)"""
@@ -116,9 +117,12 @@ class LoopOptions:
             "--grad-clip > 0": self.grad_clip > 0,
             "0 <= --ema-decay < 1": 0 <= self.ema_decay < 1,
             "0 < --val-fraction < 1": 0 < self.val_fraction < 1,
-            "--data: one folder, or several with --val-data": len(self.data) == 1
+            f"--val-data with several --data folders (got {len(self.data)} and no --val-data)"
+            if len(self.data) > 1
+            else "--data: at least one folder": len(self.data) == 1
             or (len(self.data) > 1 and self.val_data is not None),
-            "--data-weights: none, or one finite weight > 0 per --data folder (several)": not (
+            "--data-weights: none, or one finite weight > 0 per --data folder when there are "
+            f"several (got {len(self.data_weights)} weights for {len(self.data)} folders)": not (
                 self.data_weights
             )
             or (

@@ -202,7 +202,7 @@ def test_several_data_folders_need_a_validation_folder(banks, tmp_path, tiny_con
     args[args.index("--data") + 1 : args.index("--val-data") + 2] = [str(banks[0])] * 2
     with pytest.raises(SystemExit):
         train_main(args)
-    assert "--data: one folder, or several with --val-data" in capsys.readouterr().err
+    assert "--val-data with several --data folders (got 2" in capsys.readouterr().err
     with pytest.raises(ValueError, match="--val-data"):
         load_splits([banks[0], banks[0]], None, 0.1, 16)
 
