@@ -59,15 +59,14 @@ ROWS = (  # (label, summary key, scale, unit)
 class Options:
     """Options of ``failures_that_matter.py``."""
 
-    planners: str = "oracle,sampling_mpc,idm,constant_velocity"
-    """ego planners, comma-separated, best expected first: oracle or names of
-    policies.planners.PLANNERS"""
+    planners: tuple[str, ...] = ("oracle", "sampling_mpc", "idm", "constant_velocity")
+    """ego planners, best expected first: oracle or names of policies.planners.PLANNERS"""
     scenes: int = 100
     """first N scenes of the shipped evaluation bank (or of --data)"""
     data: Path | None = None
     """a ScenarioNet or .npz scene folder instead of the shipped bank"""
-    seeds: str = "0"
-    """adversary noise seeds, comma-separated"""
+    seeds: tuple[int, ...] = (0,)
+    """adversary noise seeds"""
     k: int = 5
     """size of the controllable set"""
     target: str = "ego"
@@ -81,15 +80,6 @@ class Options:
     fresh: bool = False
     """start the results file over"""
 
-    @property
-    def planner_names(self) -> list[str]:
-        """``planners`` as a list."""
-        return [name.strip() for name in self.planners.split(",") if name.strip()]
-
-    @property
-    def seed_values(self) -> list[int]:
-        """``seeds`` as a list of ints."""
-        return [int(seed) for seed in self.seeds.split(",") if seed.strip()]
 
 
 def scenes(options: Options) -> list:
@@ -131,9 +121,9 @@ def main(options: Options) -> dict[str, Any]:
     bank = scenes(options)
     jobs = [
         (planner, index, seed)
-        for planner in options.planner_names
+        for planner in list(options.planners)
         for index in range(len(bank))
-        for seed in options.seed_values
+        for seed in list(options.seeds)
         if (planner, index, seed) not in done
     ]
     with options.out.open("a") as results:
@@ -148,8 +138,8 @@ def main(options: Options) -> dict[str, Any]:
 
 def report(done: dict, options: Options) -> dict[str, Any]:
     """Print the table and the paired differences; returns the summaries."""
-    planners = options.planner_names
-    keys = [(index, seed) for index in range(options.scenes) for seed in options.seed_values]
+    planners = list(options.planners)
+    keys = [(index, seed) for index in range(options.scenes) for seed in list(options.seeds)]
     rows = {p: [done[(p, *key)] for key in keys if (p, *key) in done] for p in planners}
     summaries = {planner: stress_summary(rows[planner]) for planner in planners}
     print(f"RiskFlow K={options.k} target={options.target}, {len(keys)} episodes per planner")

@@ -9,7 +9,7 @@ def test_a_tiny_run_prints_the_table_and_a_rerun_resumes(tmp_path, capsys):
     bench = load_benchmark("failures_that_matter")
     out = tmp_path / "results.jsonl"
     options = bench.Options(
-        planners="idm,constant_velocity", scenes=1, seeds="0,1", steps=20, out=out
+        planners=("idm", "constant_velocity"), scenes=1, seeds=(0, 1), steps=20, out=out
     )
     summaries = bench.main(options)
     assert list(summaries) == ["idm", "constant_velocity"]
