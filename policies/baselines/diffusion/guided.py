@@ -36,6 +36,11 @@ denoiser passes. ``anchor=False``: one chain, the cost of unguided sampling (plu
 guidance); the others are denoised jointly with the guided rows (they react to them,
 as in CTG++'s scene-level sampling), ``L_adv``'s targets are their current clean
 estimates ``x0_hat`` at each level, and there are no separate base plans.
+
+``L_sep`` is RiskFlow's: between the guided rows, and, anchored with target ``"ego"``,
+between the attacker and the bystanders (the present vehicles neither guided nor a
+target), whose base plans are fixed; unanchored, the bystanders' plans move with the chain
+and only the guided rows are kept apart.
 """
 
 from __future__ import annotations
@@ -166,7 +171,9 @@ class _Objective:
     gradient is its own scene's), ``L_adv`` and ``L_map`` summed per scene, (B,) each
     (``L_sep`` enters ``L`` through its gradient only; its value is not recorded)."""
 
-    def __init__(self, geometry, rows, scene_of_row, normalizer, config, dynamics, steps):
+    def __init__(
+        self, geometry, rows, scene_of_row, normalizer, config, dynamics, steps, bystanders=None
+    ):
         flat = dataclasses.replace(
             geometry, **{name: getattr(geometry, name).flatten(0, 1) for name in PER_AGENT}
         )
@@ -174,7 +181,11 @@ class _Objective:
         self.num_scenes = geometry.state.shape[0]
         self.normalizer, self.config, self.dynamics = normalizer, config, dynamics
         self.map_term = map_term(flat, rows, steps, config, scene_of_row)
-        self.separation = separation_term(flat, rows, config, scene_of_row)
+        if bystanders is None:  # the guided rows among themselves
+            self.separation = separation_term(flat, rows, config, scene_of_row)
+        else:  # (indices, their scenes, the (B, A, T, 4) base plans they keep)
+            fixed = _Boxes(flat.length, flat.width, bystanders[2].flatten(0, 1))
+            self.separation = separation_term(fixed, rows, config, scene_of_row, *bystanders[:2])
 
     def __call__(self, x_c: Tensor, target_xy: Tensor, target_valid: Tensor):
         trajectories = rollout(self.state, self.normalizer.denormalize(x_c), self.dynamics)
@@ -197,6 +208,15 @@ class _Objective:
 
     def _per_scene(self, values: Tensor) -> Tensor:
         return sum_per_scene(values.detach(), self.scene_of_row, self.num_scenes)
+
+
+@dataclass(frozen=True)
+class _Boxes:
+    """What :func:`separation_term` reads of a scene: (N,) sizes and (N, T, 4) fixed plans."""
+
+    length: Tensor
+    width: Tensor
+    base_trajectories: Tensor
 
 
 def _step(grad: Tensor, step_size: float) -> Tensor:
@@ -248,7 +268,8 @@ def guided_sample(
     mask[:, geometry.ego] = False
     rows = torch.nonzero(mask.flatten()).flatten()  # flat (scene, agent) indices
     scene_of_row = torch.div(rows, mask.shape[1], rounding_mode="floor")
-    target_valid = target_rows(present, mask, geometry.ego, config.target)[scene_of_row]
+    targets = target_rows(present, mask, geometry.ego, config.target)  # (B, A)
+    target_valid = targets[scene_of_row]
 
     def plans(x0: Tensor) -> tuple[Tensor, Tensor]:
         actions, trajectories = decode_plans(
@@ -281,8 +302,14 @@ def guided_sample(
         return shaped(
             GuidedPlans(base_actions, base_trajectories, base_actions, base_trajectories, empty)
         )
+    bystanders = None
+    if path is not None:  # anchored: the others keep their base plans (module docstring)
+        standby = torch.nonzero((present & ~mask & ~targets).flatten()).flatten()
+        if standby.numel():
+            of_scene = torch.div(standby, mask.shape[1], rounding_mode="floor")
+            bystanders = (standby, of_scene, base_trajectories)
     objective = _Objective(
-        geometry, rows, scene_of_row, normalizer, config, dynamics, noise.shape[-2]
+        geometry, rows, scene_of_row, normalizer, config, dynamics, noise.shape[-2], bystanders
     )
     history, x = [], noise[0]
 

@@ -258,3 +258,30 @@ def test_guidance_config_is_checked():
         DiffusionGuidanceConfig(lambda_sep=-1.0)
     with pytest.raises(ValueError, match="prediction"):
         DiffusionConfig(prediction="velocity")
+
+
+def test_with_target_ego_the_attacker_keeps_clear_of_a_parked_bystander():
+    """Anchored, target ``ego``: the bystanders' base plans are fixed and ``L_sep`` keeps
+    the attacker off them as RiskFlow's does (a car parked on the attacker's way to the
+    ego); without the term the attacker drives through it."""
+    denoiser, scene, geometry = scene_problem(agents=3)
+    ego, attacker, parked = [30, 0, 8, 0], [0, 0, 14, 0], [14, 0.5, 0, 0]
+    geometry = dataclasses.replace(
+        geometry, state=torch.tensor([ego, attacker, parked], dtype=torch.float32),
+        length=torch.full((3,), 4.5), width=torch.full((3,), 1.8),
+        standing=torch.tensor([False, False, True]),
+    )  # fmt: skip
+    levels = denoiser.schedule.levels(8)
+    controllable = torch.tensor([False, True, False])
+    penetration = []
+    for weight in (0.0, 20.0):
+        noise = chain_noise((1, 3, 52, 2), levels, torch.Generator().manual_seed(7))
+        config = DiffusionGuidanceConfig(target="ego", step_size=0.3, lambda_sep=weight)
+        result = guided_sample(
+            denoiser, scene, noise, levels, geometry, controllable, NORMALIZER, config
+        )
+        gaps = pair_separation(
+            result.trajectories[None, 1:], geometry.length[None, 1:], geometry.width[None, 1:]
+        )[0, 0, 1]
+        penetration.append(float(torch.relu(-gaps).square().sum()))
+    assert penetration[0] > 1.0 and penetration[1] < 0.5 * penetration[0], penetration
