@@ -81,7 +81,6 @@ class Options:
     """start the results file over"""
 
 
-
 def scenes(options: Options) -> list:
     """The scenes to run."""
     source = shipped_bank("eval") if options.data is None else open_scenes(options.data)

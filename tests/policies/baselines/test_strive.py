@@ -168,9 +168,7 @@ def test_separation_term_keeps_the_guided_vehicles_apart(
     np.testing.assert_array_equal(default.plans, hundred.plans)
 
 
-def test_with_target_ego_the_separation_term_takes_the_bystanders(
-    strive, road_view, monkeypatch
-):
+def test_with_target_ego_the_separation_term_takes_the_bystanders(strive, road_view, monkeypatch):
     """As RiskFlow's: with target ``ego`` the attacker keeps clear of the vehicles that keep
     their unguided plans (never the ego); with ``others`` there are none."""
     from policies.baselines import strive as module

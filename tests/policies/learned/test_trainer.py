@@ -109,9 +109,7 @@ def test_resume_gives_the_uninterrupted_result(
     torch.testing.assert_close(a["training"]["rng"]["noise"], b["training"]["rng"]["noise"])
 
 
-def test_resume_with_another_architecture_names_the_mismatch(
-    banks, tmp_path, tiny_config, capsys
-):
+def test_resume_with_another_architecture_names_the_mismatch(banks, tmp_path, tiny_config, capsys):
     out = tmp_path / "run"
     train_main(tiny_args(banks, out, tiny_config, steps=1))
     wider = dataclasses.replace(tiny_config, head_dim=64)
