@@ -171,33 +171,26 @@ def pixel_centres(origin: np.ndarray, shape: tuple[int, int], resolution: float)
 
 
 def rasterize(
-    geometry: shapely.Geometry | Sequence[shapely.Geometry],
-    origin: np.ndarray,
-    shape: tuple[int, int],
-    resolution: float,
+    geometry: shapely.Geometry, origin: np.ndarray, shape: tuple[int, int], resolution: float
 ) -> np.ndarray:
-    """Boolean raster of the pixels whose centre lies in ``geometry`` (one geometry or
-    several: their union).
+    """Boolean raster of the pixels whose centre lies in ``geometry``.
 
     Polygons are filled by scanlines (:func:`fill_polygons`, no union is computed); an
-    invalid polygon is repaired first (:func:`repair_polygon`). A pixel centre exactly on
-    a left or lower edge counts as inside, one on a right or upper edge as outside. Any
-    other geometry among them sends them all through ``shapely.intersects_xy``, where a
-    centre on the boundary counts as inside.
+    invalid part is repaired first (:func:`repair_polygon`). A pixel centre exactly on a
+    left or lower edge counts as inside, one on a right or upper edge as outside. Other
+    geometries go through ``shapely.intersects_xy`` (boundary points inside).
 
     Returns:
         (H, W) bool.
     """
-    geometries = [geometry] if isinstance(geometry, shapely.Geometry) else list(geometry)
-    parts = shapely.get_parts(geometries) if geometries else []
+    parts = shapely.get_parts(geometry)
     if len(parts) and all(isinstance(p, shapely.Polygon) for p in parts):
         budget = RepairBudget()
         parts = [repair_polygon(part, f"polygon part {k}", budget) for k, part in enumerate(parts)]
         return fill_polygons(parts, origin, shape, resolution)
     x, y = pixel_centres(origin, shape, resolution)
-    union = shapely.GeometryCollection(geometries)
-    shapely.prepare(union)
-    return np.asarray(shapely.intersects_xy(union, x, y), dtype=bool)
+    shapely.prepare(geometry)
+    return np.asarray(shapely.intersects_xy(geometry, x, y), dtype=bool)
 
 
 def fill_polygons(
@@ -210,7 +203,7 @@ def fill_polygons(
     Polygons or MultiPolygons, overlapping or not), by a nonzero-winding scanline fill.
 
     Every ring is taken counter-clockwise for an exterior and clockwise for a hole
-    (from its signed area), so the winding number of a point is the number of polygons
+    (``shapely.is_ccw``), so the winding number of a point is the number of polygons
     holding it. For each pixel row the crossings of the row's centre line with all edges
     are found at once (an edge spans the rows whose centre v satisfies
     ``min(v0, v1) <= v < max(v0, v1)``, so a shared vertex counts once); each crossing
@@ -221,19 +214,19 @@ def fill_polygons(
     :data:`MAX_FILL_CROSSINGS` crossings raise ``ValueError``.
     """
     height, width = shape
-    rings, turn = [], []
+    rings, exterior = [], []
     for polygon in shapely.get_parts(np.asarray(polygons, dtype=object)):
         if isinstance(polygon, shapely.Polygon) and not polygon.is_empty:
             rings += [polygon.exterior, *polygon.interiors]
-            turn += [1.0] + [-1.0] * len(polygon.interiors)
+            exterior += [True] + [False] * len(polygon.interiors)
     winding = np.zeros((height, width + 1), dtype=np.int32)
     if not rings:
         return winding[:, :width] != 0
     coords = [np.asarray(ring.coords)[:, :2] for ring in rings]
-    area = np.array([_signed_area(c) for c in coords])
     start = (np.concatenate([c[:-1] for c in coords]) - origin) / resolution - 0.5
     end = (np.concatenate([c[1:] for c in coords]) - origin) / resolution - 0.5
-    ring_sign = np.repeat(np.where(np.array(turn) * area >= 0, 1, -1), [len(c) - 1 for c in coords])
+    upright = shapely.is_ccw(np.asarray(rings, dtype=object)) == np.array(exterior)
+    ring_sign = np.repeat(np.where(upright, 1, -1), [len(c) - 1 for c in coords])
     sign = np.where(end[:, 1] > start[:, 1], 1, -1) * ring_sign
     low = np.clip(np.ceil(np.minimum(start[:, 1], end[:, 1])), 0, height).astype(np.int64)
     high = np.clip(np.ceil(np.maximum(start[:, 1], end[:, 1])), 0, height).astype(np.int64)
@@ -263,12 +256,6 @@ def fill_polygons(
         col = np.clip(np.ceil(u), 0, width).astype(np.int64)
         np.add.at(winding.reshape(-1), row * (width + 1) + col, sign[edge].astype(np.int32))
     return np.cumsum(winding, axis=1, dtype=np.int32)[:, :width] != 0
-
-
-def _signed_area(ring: np.ndarray) -> float:
-    """Shoelace area of a closed ring (K, 2): positive when counter-clockwise."""
-    x, y = ring[:, 0], ring[:, 1]
-    return 0.5 * float(np.sum(x[:-1] * y[1:] - x[1:] * y[:-1]))
 
 
 def signed_distance(drivable: np.ndarray, resolution: float) -> np.ndarray:
