@@ -38,6 +38,7 @@ __all__ = [
     "adversarial_loss",
     "adversarial_rows",
     "adversarial_value_and_gradient",
+    "bystander_rows",
     "map_loss",
     "map_term",
     "sum_per_scene",
@@ -129,6 +130,15 @@ def target_rows(present: Tensor, controllable: Tensor, ego: int, target: str) ->
         targets[..., ego] = True
         return targets
     return present.bool() & ~controllable.bool()
+
+
+def bystander_rows(present: Tensor, guided: Tensor, targets: Tensor) -> tuple[Tensor, Tensor]:
+    """The bystanders of B scenes, the present agents neither guided nor a target (with
+    target ``"ego"``, the vehicles that keep their unguided plans; none with ``"others"``):
+    their flat indices into the ``B * A`` agents and the scene of each, (O,) both, from
+    (B, A) bool ``present``, ``guided`` and ``targets``."""
+    flat = torch.nonzero((present & ~guided & ~targets).reshape(-1)).flatten()
+    return flat, torch.div(flat, present.shape[-1], rounding_mode="floor")
 
 
 def sum_per_scene(values: Tensor, scene_of_row: Tensor, num_scenes: int) -> Tensor:

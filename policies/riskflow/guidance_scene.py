@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from policies.learned.guidance_losses import sum_per_scene, target_rows
+from policies.learned.guidance_losses import bystander_rows, sum_per_scene, target_rows
 from riskflow_env.maps import DrivableMap
 
 
@@ -101,9 +101,7 @@ def guided_rows(scene: GuidanceScene, controllable: Tensor, target: str) -> Guid
     rows = torch.nonzero(mask.reshape(-1)).flatten()  # flat (scene, agent) indices
     scene_of_row = torch.div(rows, mask.shape[1], rounding_mode="floor")
     target_xy = scene.base_trajectories[..., :2].detach()[scene_of_row]
-    standby = present & ~mask & ~targets  # the ego is a target with either target
-    bystanders = torch.nonzero(standby.reshape(-1)).flatten()
-    scene_of_bystander = torch.div(bystanders, mask.shape[1], rounding_mode="floor")
+    bystanders, scene_of_bystander = bystander_rows(present, mask, targets)
     return GuidedRows(
         rows, scene_of_row, target_xy, targets[scene_of_row], bystanders, scene_of_bystander
     )

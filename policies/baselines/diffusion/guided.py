@@ -64,6 +64,7 @@ from policies.learned.encoder import SceneContext
 from policies.learned.guidance_losses import (
     ObjectiveConfig,
     adversarial_rows,
+    bystander_rows,
     map_term,
     sum_per_scene,
     target_rows,
@@ -304,9 +305,8 @@ def guided_sample(
         )
     bystanders = None
     if path is not None:  # anchored: the others keep their base plans (module docstring)
-        standby = torch.nonzero((present & ~mask & ~targets).flatten()).flatten()
+        standby, of_scene = bystander_rows(present, mask, targets)
         if standby.numel():
-            of_scene = torch.div(standby, mask.shape[1], rounding_mode="floor")
             bystanders = (standby, of_scene, base_trajectories)
     objective = _Objective(
         geometry, rows, scene_of_row, normalizer, config, dynamics, noise.shape[-2], bystanders
