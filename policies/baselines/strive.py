@@ -241,7 +241,9 @@ class _LatentObjective:
         )
         xy = trajectories[..., :2]
         guidance = policy.guidance
-        adv, d_xy = adversarial_rows(xy, self.target_xy, guidance.horizon, self.target_valid)
+        adv, d_xy = adversarial_rows(
+            xy, self.target_xy, guidance.resolved_horizon, self.target_valid
+        )
         adv = attach_gradient(adv, xy, d_xy, axis=(-2, -1))
         if self.map_term is None:
             off_road = adv * 0.0

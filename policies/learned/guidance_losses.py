@@ -31,6 +31,7 @@ from riskflow_env.geometry import footprint_points
 from riskflow_env.maps import DrivableMap, MapStack
 
 __all__ = [
+    "HORIZONS",
     "ObjectiveConfig",
     "TARGETS",
     "Target",
@@ -57,6 +58,15 @@ class Target(str, Enum):
 
 
 TARGETS = tuple(target.value for target in Target)  # ("others", "ego")
+HORIZONS = {"others": None, "ego": 30}
+"""[steps] the default ``T_g`` of ``L_adv`` and ``L_sep`` per target: the whole plan with
+``"others"`` (the paper's), 3 s with ``"ego"``. Attacking the ego over the whole 5 s plan,
+the mean distance pulls the plan's tail toward where the ego will be long after the
+attacker could reach it: the steps bend the heading of the whole plan, the tail leaves
+the road, and the map term's gradient then outweighs the attack for the rest of the
+steps (Adam's momentum carries it). Over 3 s the IDM ego is hit in 11 of 40 episodes
+against 6.5 of 40 over the whole plan (the first 40 shipped evaluation scenes, seeds 0
+and 1; 2 s: 10.5)."""
 
 
 @dataclass(frozen=True)
@@ -69,7 +79,8 @@ class ObjectiveConfig:
         lambda_map: weight of ``L_map`` [1/m^2], >= 0. The default 20 keeps the guided
             vehicles' footprints on the road (<= 2% of their steps off it, attacking the
             ego, where 1 left 6%; docs/explanation/method.md).
-        horizon: ``T_g`` plan steps of ``L_adv``; None: the whole plan.
+        horizon: ``T_g`` plan steps of ``L_adv`` and ``L_sep``; None: the target's
+            default (``HORIZONS``: the whole plan with ``"others"``, 3 s with ``"ego"``).
         target: a :class:`Target` value, ``"others"`` (paper) or ``"ego"`` (stress testing).
         map_margin: footprint samples closer than this to the road edge are penalised [m].
         map_decay: ``w_t = map_decay ** t`` of ``L_map``, in (0, 1].
@@ -86,6 +97,13 @@ class ObjectiveConfig:
     map_margin: float = 0.2
     map_decay: float = 0.98
     lambda_sep: float = 100.0
+
+    @property
+    def resolved_horizon(self) -> int | None:
+        """``T_g`` in use: ``horizon``, or the target's default when it is None (so a copy
+        with another ``target``, e.g. a curriculum's, takes that target's); None: the
+        whole plan."""
+        return HORIZONS[self.target] if self.horizon is None else self.horizon
 
     def checks(self) -> list[tuple[bool, str]]:
         """``(holds, message)`` of every option rule (subclasses add theirs)."""

@@ -178,7 +178,7 @@ class _Objective:
         self.offset = normalizer.denormalize(scene.eps[rows])  # a = offset + std * u_c
         self.state = scene.state[rows]
         self.target_xy, self.target_valid = target_xy, target_valid
-        self.horizon, self.dynamics = config.horizon, dynamics
+        self.horizon, self.dynamics = config.resolved_horizon, dynamics
         self.map_term = map_term(scene, rows, scene.eps.shape[1], config, scene_of_row)
         self.lambda_sep = config.lambda_sep
         self.separation = separation_term(scene, rows, config, scene_of_row, *(bystanders or ()))

@@ -192,8 +192,8 @@ def test_separation_term_keeps_the_guided_vehicles_apart(gradient):
     for weight in (0.0, 20.0):
         noise = chain_noise((1, 4, 52, 2), levels, torch.Generator().manual_seed(7))
         config = DiffusionGuidanceConfig(
-            gradient=gradient, target="ego", step_size=0.3, lambda_sep=weight
-        )
+            gradient=gradient, target="ego", step_size=0.3, lambda_sep=weight, horizon=52
+        )  # over the whole plan, as RiskFlow's test
         result = guided_sample(
             denoiser, scene, noise, levels, geometry, controllable, NORMALIZER, config
         )

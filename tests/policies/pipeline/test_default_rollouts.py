@@ -5,8 +5,9 @@
 unguided generator, STRIVE-style and CTG-style, recorded before the planning cycle became
 a pipeline of stages (and equal, bit for bit, to the rollouts after it on this machine);
 ``riskflow/ego`` re-recorded, the same way, when target ``"ego"`` became one attacker at a
-time (``policies.learned.ranking.ego_attacker``), and again when its separation term began
-to keep the attacker clear of the bystanders (``policies.learned.separation_term``).
+time (``policies.learned.ranking.ego_attacker``), again when its separation term began
+to keep the attacker clear of the bystanders (``policies.learned.separation_term``), and
+when its guidance horizon became 3 s (``policies.learned.guidance_losses.HORIZONS``).
 A refactoring that changes an operation's order may move them by float rounding, which a
 closed loop amplifies; anything beyond 1 mm is a change of behaviour.
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from policies.learned.guidance_losses import HORIZONS
 from policies.learned.plan_penalties import pair_separation
 from policies.learned.sampler import base_velocity, sample
 from policies.learned.synthetic import synthetic_batch
@@ -24,6 +25,7 @@ from riskflow_env.maps import Lane, MapStack, from_lanes
 from tests.policies.riskflow.guidance_scenes import (
     HIGHWAY,
     NORMALIZER,
+    STEPS,
     make_scene,
     mask_of,
 )
@@ -53,9 +55,11 @@ def test_ego_and_absent_agents_are_never_guided():
 def test_lowers_adversarial_loss_and_keeps_map_loss_bounded(target, optimizer, lambda_sep):
     scene = make_scene(HIGHWAY)
     step_size = 5e-3 if optimizer == "gradient" else 0.1
+    # over the whole plan (the default with "ego" is 3 s: test_horizon_defaults_per_target)
     config = GuidanceConfig(
-        target=target, optimizer=optimizer, step_size=step_size, lambda_sep=lambda_sep
-    )
+        target=target, optimizer=optimizer, step_size=step_size, lambda_sep=lambda_sep,
+        horizon=STEPS,
+    )  # fmt: skip
     result = guide(scene, mask_of(6, [1, 2, 3]), NORMALIZER, config)
     (adv_before, map_before), (adv_after, map_after) = result.losses[0], result.losses[-1]
     assert result.losses.shape == (config.steps + 1, 2)
@@ -80,7 +84,7 @@ def test_separation_term_keeps_the_guided_vehicles_apart():
     rows = [1, 2]
     penetration, adversarial = [], []
     for weight in (0.0, 20.0):
-        config = GuidanceConfig(target="ego", lambda_sep=weight)
+        config = GuidanceConfig(target="ego", lambda_sep=weight, horizon=STEPS)
         result = guide(scene, mask_of(4, rows), NORMALIZER, config)
         gaps = pair_separation(
             result.trajectories[None, rows], scene.length[None, rows], scene.width[None, rows]
@@ -109,6 +113,22 @@ def test_attacker_of_the_ego_drives_around_a_parked_car_not_through_it():
         adversarial.append(float(result.losses[-1, 0]))
     assert penetration[0] > 1.0 and penetration[1] == 0.0
     assert adversarial[1] < 0.85 * float(result.losses[0, 0])
+
+
+def test_horizon_defaults_per_target():
+    """``T_g``: the whole plan with "others", 3 s with "ego" (``HORIZONS``); a given
+    horizon wins; a copy with another target (a curriculum's) takes that target's."""
+    assert GuidanceConfig().resolved_horizon is None
+    assert GuidanceConfig(target="ego").resolved_horizon == HORIZONS["ego"] == 30
+    assert GuidanceConfig(target="ego", horizon=12).resolved_horizon == 12
+    assert dataclasses.replace(GuidanceConfig(), target="ego").resolved_horizon == 30
+    # the objective scores L_adv over the resolved horizon only (a car catching up: its
+    # distance to the ego changes over the plan)
+    scene = make_scene([[0.0, 0.0, 15.0, 0.0], [-20.0, 3.5, 20.0, 0.0]])
+    result = guide(scene, mask_of(2, [1]), NORMALIZER, GuidanceConfig(target="ego", steps=0))
+    xy, ego_xy = scene.base_trajectories[[1], :, :2], scene.base_trajectories[[0], :, :2]
+    assert torch.allclose(result.losses[0, 0], adversarial_loss(xy, ego_xy, horizon=30))
+    assert not torch.allclose(result.losses[0, 0], adversarial_loss(xy, ego_xy))
 
 
 def test_sign_convention_negative_weight_pushes_apart():
