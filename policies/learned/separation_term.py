@@ -106,6 +106,4 @@ def separation_term(
             scene.width[bystanders],
             scene_of_bystander,
         )
-    return Separation(
-        scene.length[rows], scene.width[rows], same, config.resolved_horizon, fixed
-    )
+    return Separation(scene.length[rows], scene.width[rows], same, config.resolved_horizon, fixed)

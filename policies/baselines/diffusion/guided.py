@@ -192,9 +192,7 @@ class _Objective:
         trajectories = rollout(self.state, self.normalizer.denormalize(x_c), self.dynamics)
         xy = trajectories[..., :2]
         config = self.config
-        adv_rows, gradient = adversarial_rows(
-            xy, target_xy, config.resolved_horizon, target_valid
-        )
+        adv_rows, gradient = adversarial_rows(xy, target_xy, config.resolved_horizon, target_valid)
         adv = attach_gradient(adv_rows.sum(), xy, gradient, axis=None)
         if self.map_term is None:
             off_rows, off_road = torch.zeros_like(adv_rows), adv * 0.0
