@@ -13,6 +13,13 @@ Two tables:
 2. **Batched stepping** (:mod:`riskflow_env.batched`): B scenes x A agents per call
    (scenes share one highway map), with and without observations; agent-steps per second.
 
+Each riskflow figure is measured on both step paths in the same run (``--paths``): the
+compiled one (:mod:`riskflow_env.compiled`, numba; numpy float64 only, the other
+backends and dtypes run the reference on both) and the array-API reference
+(``RISKFLOW_COMPILED=0``). The compiled path's one-off start-up (numba import, kernel
+compilation into a fresh cache, and loading them from it) is measured in subprocesses and
+printed first (``--no-startup`` skips it).
+
 Rates are the best of ``--rounds`` interleaved rounds of ``--seconds`` each (the machine
 may be shared; the best round is the least disturbed one).
 
@@ -23,8 +30,13 @@ may be shared; the best round is the least disturbed one).
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import gymnasium
@@ -34,7 +46,7 @@ from tqdm import tqdm
 
 import riskflow_env
 from policies.dataclass_cli import parse_dataclass
-from riskflow_env import batched
+from riskflow_env import batched, compiled
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import HighwayTrafficSource, TrafficConfig, place_traffic
 
@@ -65,6 +77,10 @@ class Options:
     dtype: str = "float64"
     """float dtype of the batched rows: 'float64' (the env's) or 'float32' (about 1.5-2x
     the agent-steps/s on a CPU; states differ from float64 by ~1e-4 m after 50 steps)"""
+    paths: tuple[str, ...] = ("compiled", "reference")
+    """step paths measured: 'compiled' (riskflow_env.compiled, numba) and 'reference'"""
+    startup: bool = True
+    """measure the compiled path's one-off start-up in subprocesses (cold and cached)"""
 
 
 def _parse(argv: list[str] | None = None) -> Options:
@@ -77,7 +93,55 @@ def _parse(argv: list[str] | None = None) -> Options:
         raise SystemExit(f"--dtype must be 'float64' or 'float32', got {options.dtype!r}")
     if options.backend == "numpy" and options.device != "cpu":
         raise SystemExit(f"--device {options.device} needs --backend torch")
+    if not options.paths or set(options.paths) - {"compiled", "reference"}:
+        raise SystemExit(f"--paths must name 'compiled' and/or 'reference', got {options.paths}")
     return options
+
+
+@contextmanager
+def step_path(path: str) -> Iterator[None]:
+    """Run the riskflow steps inside on ``path`` ('compiled' or 'reference')."""
+    before = os.environ.get(compiled.SWITCH)
+    os.environ[compiled.SWITCH] = "1" if path == "compiled" else "0"
+    try:
+        yield
+    finally:
+        if before is None:
+            del os.environ[compiled.SWITCH]
+        else:
+            os.environ[compiled.SWITCH] = before
+
+
+_STARTUP = """
+import time
+from riskflow_env import batched, compiled
+from riskflow_env.config import EnvConfig
+from riskflow_env.scenarios import shipped_bank
+scenario = shipped_bank("eval")[0]
+state = batched.reset_batch([scenario], 8)
+start = time.perf_counter()
+assert compiled.enabled()
+imported = loaded = time.perf_counter()
+batched.step_batch(state, state.last_action, scenario.map, EnvConfig(max_agents=8))
+print(imported - start, time.perf_counter() - loaded)
+"""
+
+
+def startup_seconds() -> dict[str, float]:
+    """The compiled path's one-off costs [s], each in a fresh process: importing numba and
+    the kernels, the first step with an empty kernel cache (compilation) and with the
+    cache that run filled (loading)."""
+    with tempfile.TemporaryDirectory() as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache, compiled.SWITCH: "1"}
+        runs = []
+        for _ in range(2):  # cold, then cached
+            out = subprocess.run(
+                [sys.executable, "-c", _STARTUP], env=env, capture_output=True, text=True
+            )
+            if out.returncode:
+                raise RuntimeError(f"start-up measurement failed:\n{out.stderr[-2000:]}")
+            runs.append([float(value) for value in out.stdout.split()[-2:]])
+    return {"import": runs[1][0], "compile": runs[0][1], "load": runs[1][1]}
 
 
 def converter(options: Options) -> Callable:
@@ -187,9 +251,10 @@ def batched_run(
 
     def run(seconds: float) -> tuple[int, float]:
         nonlocal state
-        count, start = 0, time.perf_counter()
-        while time.perf_counter() - start < seconds:
+        count, steps, start = 0, 0, time.perf_counter()
+        while not steps or time.perf_counter() - start < seconds:  # one step at least
             count += int(state.active.sum())
+            steps += 1
             state, _ = batched.step_batch(state, actions, drivable_map, config, observations)
         return count, time.perf_counter() - start
 
@@ -197,48 +262,88 @@ def batched_run(
 
 
 def main(argv: list[str] | None = None) -> dict[str, list[dict]]:
-    """Print the tables; returns their rows: ``api`` (vehicles, highway, riskflow
-    [vehicle-steps/s]) and ``batched`` (agents, scenes, observations, rate [agent-steps/s])."""
+    """Print the tables; returns their rows: ``api`` (vehicles, path, highway, riskflow
+    [vehicle-steps/s]), ``batched`` (agents, scenes, observations, path, rate
+    [agent-steps/s]) and ``startup`` ([s], empty with --no-startup)."""
     options = _parse(argv)
+    paths = options.paths
+    if compiled.kernels() is None and "compiled" in paths:
+        print("numba is not installed: the 'compiled' rows run the reference")
     api_rows = len(options.vehicles) if options.api else 0
     rows = api_rows + 2 * len(options.batch_agents) * len(options.batch_scenes)
     bar = tqdm(total=rows, desc="benchmark rows", unit="row", leave=False)  # on stderr
     write = bar.write  # a table line on stdout, above the bar
-    results: dict[str, list[dict]] = {"api": [], "batched": []}
+    results: dict[str, list[dict]] = {"api": [], "batched": [], "startup": []}
+    if options.startup and "compiled" in paths and compiled.kernels() is not None:
+        seconds = startup_seconds()
+        results["startup"].append(seconds)
+        write(
+            "Compiled path start-up, once per process (fresh processes): numba import "
+            f"{seconds['import']:.2f} s; first step {seconds['compile']:.2f} s with an empty "
+            f"kernel cache (compilation, once per machine), {seconds['load']:.2f} s cached\n"
+        )
+    if "compiled" in paths:  # load (or compile) the kernels before anything is timed
+        with step_path("compiled"):
+            rate(batched_run(4, 2, True), 0.0)
     if options.api:
         write("PettingZoo API (full observations for every agent) vs highway-env, dt = 0.1 s")
         write(
-            "| vehicles | highway-env vehicle-steps/s | riskflow env steps/s "
+            "| vehicles | step path | highway-env vehicle-steps/s | riskflow env steps/s "
             "| riskflow agent-steps/s | ratio |"
         )
-        write("| ---: | ---: | ---: | ---: | ---: |")
+        write("| ---: | :--- | ---: | ---: | ---: | ---: |")
     for vehicles in options.vehicles if options.api else ():
-        runs = {"highway": highway_env_run(vehicles), "riskflow": riskflow_run(vehicles)}
+        runs = {"highway": highway_env_run(vehicles)}
+        runs.update({path: riskflow_run(vehicles) for path in paths})
         best = dict.fromkeys(runs, 0.0)
         for _ in range(options.rounds):
             for name, run in runs.items():
-                best[name] = max(best[name], rate(run, options.seconds))
-        env_steps = best["riskflow"] * runs["riskflow"].steps_per_agent_step
-        write(
-            f"| {vehicles} | {best['highway']:,.0f} | {env_steps:,.0f} "
-            f"| {best['riskflow']:,.0f} | {best['riskflow'] / best['highway']:.1f}x |"
-        )
-        results["api"].append({"vehicles": vehicles, **best})
+                with step_path(name):
+                    best[name] = max(best[name], rate(run, options.seconds))
+        for path in paths:
+            env_steps = best[path] * runs[path].steps_per_agent_step
+            write(
+                f"| {vehicles} | {path} | {best['highway']:,.0f} | {env_steps:,.0f} "
+                f"| {best[path]:,.0f} | {best[path] / best['highway']:.1f}x |"
+            )
+            results["api"].append(
+                {
+                    "vehicles": vehicles,
+                    "path": path,
+                    "highway": best["highway"],
+                    "riskflow": best[path],
+                }
+            )
         bar.update()
 
     where = options.backend + (f" on {options.device}" if options.backend == "torch" else "")
     write(f"\nBatched stepping (riskflow_env.batched, {where} {options.dtype}, one map per batch)")
-    write("| agents A | scenes B | observations | agent-steps/s |")
-    write("| ---: | ---: | :---: | ---: |")
+    if options.backend != "numpy" or options.dtype != "float64":
+        write("(the compiled path takes numpy float64 only: every path runs the reference here)")
+    columns = " | ".join(f"{path} agent-steps/s" for path in paths)
+    write(f"| agents A | scenes B | observations | {columns} |")
+    write("| ---: | ---: | :---: |" + " ---: |" * len(paths))
     for agents in options.batch_agents:
         for scenes in options.batch_scenes:
             for observations in (True, False):
                 run = batched_run(agents, scenes, observations, converter(options))
-                best = max(rate(run, options.seconds) for _ in range(options.rounds))
-                write(f"| {agents} | {scenes} | {'yes' if observations else 'no'} | {best:,.0f} |")
-                results["batched"].append(
-                    {"agents": agents, "scenes": scenes, "observations": observations, "rate": best}
-                )
+                best = dict.fromkeys(paths, 0.0)
+                for _ in range(options.rounds):
+                    for path in paths:
+                        with step_path(path):
+                            best[path] = max(best[path], rate(run, options.seconds))
+                cells = " | ".join(f"{best[path]:,.0f}" for path in paths)
+                write(f"| {agents} | {scenes} | {'yes' if observations else 'no'} | {cells} |")
+                for path in paths:
+                    results["batched"].append(
+                        {
+                            "agents": agents,
+                            "scenes": scenes,
+                            "observations": observations,
+                            "path": path,
+                            "rate": best[path],
+                        }
+                    )
                 bar.update()
     bar.close()
     return results

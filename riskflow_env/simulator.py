@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from riskflow_env import dynamics
+from riskflow_env import compiled, dynamics
 from riskflow_env._array import Array, asarray_like, namespace
 from riskflow_env.config import DynamicsConfig, EnvConfig
 from riskflow_env.dynamics import SPEED, STATE_DIM, YAW
@@ -143,6 +143,8 @@ def advance(
         new: (..., A, 4) the states ``dt`` later.
         applied: (..., A, 2) the actions applied (clipped; zeros for inactive slots).
     """
+    if compiled.accepts_advance(current, present, active, actions):
+        return compiled.advance(current, present, active, actions, config)
     xp = namespace(current, actions)
     live = active[..., None]
     applied = xp.where(live, dynamics.clip_actions(actions, config), 0.0)
@@ -203,7 +205,12 @@ def evaluate(
         drivable_map: the map.
         config: observation, reward and dynamics settings.
         observations: compute the observations (skip them for pure simulation).
+
+    numpy float64 scenes run compiled where numba is installed
+    (:mod:`riskflow_env.compiled`; equal to this reference to float rounding).
     """
+    if compiled.accepts_evaluate(state, drivable_map):
+        return Evaluation(*compiled.evaluate(state, drivable_map, config, observations))
     current = state.current
     xp = namespace(current)
     if observations:

@@ -125,6 +125,7 @@ INSTEAD: dict[str, str] = {
     # Installing needs the network and would change the environment running this test;
     # the test checks that what the command installs is installed.
     'pip install torch==2.13.0 -e ".[dev,rl]"': "python -m pip show riskflow-env",
+    'pip install torch==2.13.0 -e ".[dev,rl,fast]"': "python -m pip show riskflow-env numba",
     'pip install -e ".[docs]"': "python -m pip show mkdocs-material mkdocstrings-python",
     # The suite itself, which contains this test: collected, not run again.
     "python -m pytest": "python -m pytest --collect-only -q -p no:cacheprovider",
