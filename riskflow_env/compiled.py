@@ -20,6 +20,7 @@ very first run on a machine compiles them, several seconds).
 from __future__ import annotations
 
 import functools
+import math
 import os
 from types import ModuleType
 from typing import Any
@@ -107,8 +108,10 @@ def accepts_evaluate(state: Any, lookup: Any) -> bool:
 
 def evaluate(state: Any, lookup: Any, config: EnvConfig, observations: bool) -> tuple:
     """:func:`riskflow_env.simulator.evaluate`, compiled: the fields of its
-    ``Evaluation`` (pair features, pair mask, events, observations, reward terms,
-    reward), leading dims as ``state``'s."""
+    ``Evaluation`` but the pair features (pair mask, events, observations, reward terms,
+    reward), leading dims as ``state``'s. The kernel keeps each scene's pair features
+    only while it builds that scene's observations: writing every pair of a large batch
+    to memory, which no caller of the env reads, would cost more than the rest."""
     current = state.current
     lead, agents = current.shape[:-2], current.shape[-2]
     scenes = int(np.prod(lead, dtype=np.int64))
@@ -128,7 +131,7 @@ def evaluate(state: Any, lookup: Any, config: EnvConfig, observations: bool) -> 
         config.observation.num_neighbors,
         observations,
     )
-    mask, features, collisions, fraction, depth, centroid, rows, terms, reward = out
+    mask, collisions, fraction, depth, centroid, rows, terms, reward = out
     pairs = (*lead, agents, agents)
     events = FrameEvents(
         collisions=collisions.reshape(pairs),
@@ -137,29 +140,36 @@ def evaluate(state: Any, lookup: Any, config: EnvConfig, observations: bool) -> 
         centroid_offroad=centroid.reshape(*lead, agents),
     )
     per_term = {name: terms[k].reshape(*lead, agents) for k, name in enumerate(REWARD_TERMS)}
-    if observations:
-        features = features.reshape(*pairs, features.shape[-1])
-        rows = rows.reshape(*lead, agents, rows.shape[-1])
-    else:
-        features = rows = None
-    return features, mask.reshape(pairs), events, rows, per_term, reward.reshape(*lead, agents)
+    rows = rows.reshape(*lead, agents, rows.shape[-1]) if observations else None
+    return mask.reshape(pairs), events, rows, per_term, reward.reshape(*lead, agents)
 
 
 def _map_tables(lookup: Any, lead: tuple, scenes: int) -> tuple:
     """The SDF rasters end to end, their (height, width, offset) and (origin_x, origin_y,
-    resolution) rows, and the map row of each of the ``scenes`` flattened scenes."""
+    resolution, exact 1 / resolution or 0) rows, and the map row of each of the
+    ``scenes`` flattened scenes."""
     if isinstance(lookup, DrivableMap):
         height, width = lookup.shape
         grid_int = np.array([[height, width, 0]], dtype=np.int64)
         origin_x, origin_y = lookup._origin
-        grid_float = np.array([[origin_x, origin_y, lookup.resolution]])
+        resolution = lookup.resolution
+        scale = 1.0 / resolution if math.frexp(resolution)[0] == 0.5 else 0.0
+        grid_float = np.array([[origin_x, origin_y, resolution, scale]])
         return lookup.sdf.reshape(-1), grid_int, grid_float, np.zeros(scenes, dtype=np.int64)
     flat, grid = lookup._grid(np.zeros((0, 2)))  # (C,) per row of the selection
     height, width, origin_x, origin_y, resolution, offset = grid
     grid_int = np.stack([height, width, offset], axis=-1).astype(np.int64)
-    grid_float = np.stack([origin_x, origin_y, resolution], axis=-1).astype(np.float64)
+    scale = _exact_inverse(resolution)
+    grid_float = np.stack([origin_x, origin_y, resolution, scale], axis=-1).astype(np.float64)
     inner = scenes // len(grid_int)  # scenes within each row (leading dims after the first)
     return flat, grid_int, grid_float, np.repeat(np.arange(len(grid_int)), inner)
+
+
+def _exact_inverse(resolution: np.ndarray) -> np.ndarray:
+    """1 / resolution where resolution is a power of two (multiplying by it then equals
+    dividing, bit for bit), else 0."""
+    mantissa = np.frexp(resolution)[0]
+    return np.where(mantissa == 0.5, 1.0 / resolution, 0.0)
 
 
 @functools.lru_cache(maxsize=16)

@@ -15,7 +15,9 @@ The env (:mod:`riskflow_env.env`) is a thin stateful shell over these;
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -176,9 +178,9 @@ class Evaluation:
     """Everything the env reports about one state (leading dims ``(..., A)``).
 
     Attributes:
-        pair_features: (..., A, A, 8) from :func:`riskflow_env.risk.pairwise_features`,
-            or None when the observations were not requested (only the risk channel is
-            computed then, for the rewards).
+        features: :attr:`pair_features`, or a function of no argument that computes
+            them (the compiled step, whose observations need only each agent's nearest
+            pairs: computed on first access).
         pair_mask: (..., A, A) bool, observed pairs.
         events: collisions and off-road flags.
         observations: (..., A, D) float32, or None when not requested.
@@ -186,12 +188,19 @@ class Evaluation:
         reward: (..., A) the sum of the terms.
     """
 
-    pair_features: Array | None
+    features: Array | Callable[[], Array] | None
     pair_mask: Array
     events: FrameEvents
     observations: Array | None
     reward_terms: dict[str, Array]
     reward: Array
+
+    @cached_property
+    def pair_features(self) -> Array | None:
+        """(..., A, A, 8) from :func:`riskflow_env.risk.pairwise_features`, or None when
+        the observations were not requested (only the risk channel is computed then, for
+        the rewards)."""
+        return self.features() if callable(self.features) else self.features
 
 
 def evaluate(
@@ -210,7 +219,14 @@ def evaluate(
     (:mod:`riskflow_env.compiled`; equal to this reference to float rounding).
     """
     if compiled.accepts_evaluate(state, drivable_map):
-        return Evaluation(*compiled.evaluate(state, drivable_map, config, observations))
+        features = None
+        if observations:
+
+            def features() -> Array:
+                current, present = state.current, state.present
+                return pairwise_features(current, state.length, state.width, present)[0]
+
+        return Evaluation(features, *compiled.evaluate(state, drivable_map, config, observations))
     current = state.current
     xp = namespace(current)
     if observations:
