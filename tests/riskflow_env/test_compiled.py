@@ -51,6 +51,7 @@ def random_state(rng, lead: tuple, agents: int, spread: float = 30.0) -> SceneSt
 
 def both_paths(monkeypatch, run):
     """``run()`` on the compiled path, then on the reference."""
+    monkeypatch.setenv(compiled.SWITCH, "1")
     fast = run()
     monkeypatch.setenv(compiled.SWITCH, "0")
     slow = run()
@@ -200,6 +201,7 @@ def test_env_rollouts_agree_and_repeat(monkeypatch):
             frames.append((observations, rewards, terminated, truncated))
         return frames, env.scene.history
 
+    monkeypatch.delenv(compiled.SWITCH, raising=False)  # the default
     first, again = rollout(), rollout()
     np.testing.assert_array_equal(first[1], again[1])
     for one, other in zip(first[0][1:], again[0][1:], strict=True):
@@ -232,7 +234,7 @@ def test_the_switch_and_the_fallbacks(monkeypatch):
 
     monkeypatch.setenv(compiled.SWITCH, "0")
     assert not compiled.enabled() and step().dtype == np.float32
-    monkeypatch.delenv(compiled.SWITCH)
+    monkeypatch.setenv(compiled.SWITCH, "1")
     monkeypatch.setattr(compiled, "kernels", lambda: None)  # as without numba
     assert not compiled.enabled() and step().dtype == np.float32
     monkeypatch.undo()
@@ -244,7 +246,8 @@ def test_the_switch_and_the_fallbacks(monkeypatch):
 
 
 @needs_numba
-def test_numba_runs_by_default():
+def test_numba_runs_by_default(monkeypatch):
+    monkeypatch.delenv(compiled.SWITCH, raising=False)
     assert compiled.enabled()
     state = random_state(np.random.default_rng(1), (), 4)
     assert compiled.accepts_evaluate(state, ROAD)
