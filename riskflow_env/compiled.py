@@ -22,6 +22,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import weakref
 from types import ModuleType
 from typing import Any
 
@@ -114,7 +115,7 @@ def evaluate(state: Any, lookup: Any, config: EnvConfig, observations: bool) -> 
     to memory, which no caller of the env reads, would cost more than the rest."""
     current = state.current
     lead, agents = current.shape[:-2], current.shape[-2]
-    scenes = int(np.prod(lead, dtype=np.int64))
+    scenes = math.prod(lead)
     flat, grid_int, grid_float, scene_map = _map_tables(lookup, lead, scenes)
     out = kernels().evaluate_scenes(
         np.ascontiguousarray(current).reshape(scenes, agents, 4),
@@ -149,20 +150,39 @@ def _map_tables(lookup: Any, lead: tuple, scenes: int) -> tuple:
     resolution, exact 1 / resolution or 0) rows, and the map row of each of the
     ``scenes`` flattened scenes."""
     if isinstance(lookup, DrivableMap):
-        height, width = lookup.shape
-        grid_int = np.array([[height, width, 0]], dtype=np.int64)
-        origin_x, origin_y = lookup._origin
-        resolution = lookup.resolution
-        scale = 1.0 / resolution if math.frexp(resolution)[0] == 0.5 else 0.0
-        grid_float = np.array([[origin_x, origin_y, resolution, scale]])
-        return lookup.sdf.reshape(-1), grid_int, grid_float, np.zeros(scenes, dtype=np.int64)
+        return (*_single_map_tables(lookup), np.zeros(scenes, dtype=np.int64))
     flat, grid = lookup._grid(np.zeros((0, 2)))  # (C,) per row of the selection
+    flat = flat.view()
+    flat.flags.writeable = False  # as a DrivableMap's raster: one compiled signature
     height, width, origin_x, origin_y, resolution, offset = grid
     grid_int = np.stack([height, width, offset], axis=-1).astype(np.int64)
     scale = _exact_inverse(resolution)
     grid_float = np.stack([origin_x, origin_y, resolution, scale], axis=-1).astype(np.float64)
     inner = scenes // len(grid_int)  # scenes within each row (leading dims after the first)
     return flat, grid_int, grid_float, np.repeat(np.arange(len(grid_int)), inner)
+
+
+_MAP_TABLES: dict[int, tuple] = {}  # id(map) -> (weak reference to it, its tables)
+
+
+def _single_map_tables(drivable_map: DrivableMap) -> tuple:
+    """:func:`_map_tables` of one map but the scene rows, kept while the map lives (a map
+    is immutable; rebuilding them cost a tenth of a one-scene step)."""
+    entry = _MAP_TABLES.get(id(drivable_map))
+    if entry is None or entry[0]() is not drivable_map:
+        if len(_MAP_TABLES) >= 64:
+            _MAP_TABLES.clear()
+        height, width = drivable_map.shape
+        origin_x, origin_y = drivable_map._origin
+        resolution = drivable_map.resolution
+        scale = 1.0 / resolution if math.frexp(resolution)[0] == 0.5 else 0.0
+        tables = (
+            drivable_map.sdf.reshape(-1),
+            np.array([[height, width, 0]], dtype=np.int64),
+            np.array([[origin_x, origin_y, resolution, scale]]),
+        )
+        entry = _MAP_TABLES[id(drivable_map)] = (weakref.ref(drivable_map), tables)
+    return entry[1]
 
 
 def _exact_inverse(resolution: np.ndarray) -> np.ndarray:
