@@ -9,12 +9,13 @@ the rewards of a whole batch, run as two compiled loops over scenes, agents and 
 arrays. The array-API functions stay the reference, and the path of torch tensors,
 float32 arrays and custom map lookups. The kernels repeat the reference's
 floating-point operations in its order, so both paths agree to float rounding (bit for
-bit where the C library's ``sin`` and ``cos`` are numpy's, as on x86-64 Linux).
+bit where the C library's ``sin`` and ``cos`` are numpy's, as on the x86-64 Linux VM of
+docs/explanation/speed.md).
 
 Switch: the environment variable ``RISKFLOW_COMPILED=0`` turns the compiled path off
 (read at every step); without numba the reference runs. The first step of a process
-imports numba and loads the kernels from numba's on-disk cache (about a second; the
-very first run on a machine compiles them, several seconds).
+imports numba and loads the kernels from numba's on-disk cache (about 0.25 s); the first
+run on a machine, or after the kernels change, compiles them (about 7 s).
 """
 
 from __future__ import annotations
