@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, partial
 from typing import Any
 
 import numpy as np
@@ -144,6 +144,9 @@ def advance(
     Returns:
         new: (..., A, 4) the states ``dt`` later.
         applied: (..., A, 2) the actions applied (clipped; zeros for inactive slots).
+
+    numpy float64 states run compiled where numba is installed
+    (:mod:`riskflow_env.compiled`; equal to this reference to float rounding).
     """
     if compiled.accepts_advance(current, present, active, actions):
         return compiled.advance(current, present, active, actions, config)
@@ -203,6 +206,11 @@ class Evaluation:
         return self.features() if callable(self.features) else self.features
 
 
+def _pair_features(state: Any) -> Array:
+    """:func:`riskflow_env.risk.pairwise_features` of ``state``'s present vehicles."""
+    return pairwise_features(state.current, state.length, state.width, state.present)[0]
+
+
 def evaluate(
     state: Any, drivable_map: DrivableMap, config: EnvConfig, observations: bool = True
 ) -> Evaluation:
@@ -219,13 +227,7 @@ def evaluate(
     (:mod:`riskflow_env.compiled`; equal to this reference to float rounding).
     """
     if compiled.accepts_evaluate(state, drivable_map):
-        features = None
-        if observations:
-
-            def features() -> Array:
-                current, present = state.current, state.present
-                return pairwise_features(current, state.length, state.width, present)[0]
-
+        features = partial(_pair_features, state) if observations else None
         return Evaluation(features, *compiled.evaluate(state, drivable_map, config, observations))
     current = state.current
     xp = namespace(current)
