@@ -23,6 +23,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import warnings
 import weakref
 from types import ModuleType
 from typing import Any
@@ -41,10 +42,22 @@ SWITCH = "RISKFLOW_COMPILED"  # environment variable; "0" turns the compiled pat
 
 @functools.cache
 def kernels() -> ModuleType | None:
-    """The kernel module, or None where numba cannot be imported."""
+    """The kernel module, or None where numba cannot be imported or finds no writable
+    cache directory (the package's ``__pycache__``, the user's cache, ``NUMBA_CACHE_DIR``;
+    a warning says so, and the reference runs)."""
     try:
         from riskflow_env import compiled_kernels
     except ImportError:
+        return None
+    except RuntimeError as error:  # numba's cache=True with no writable directory
+        if "cannot cache" not in str(error):
+            raise
+        warnings.warn(
+            f"riskflow_env.compiled is off: {error}. Set NUMBA_CACHE_DIR to a writable "
+            "directory to run the compiled step; the array-API reference runs.",
+            RuntimeWarning,
+            stacklevel=2,
+        )
         return None
     return compiled_kernels
 

@@ -4,6 +4,10 @@ fallback."""
 
 from __future__ import annotations
 
+import hashlib
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 import shapely
@@ -252,3 +256,44 @@ def test_numba_runs_by_default(monkeypatch):
     state = random_state(np.random.default_rng(1), (), 4)
     assert compiled.accepts_evaluate(state, ROAD)
     assert not compiled.accepts_evaluate(state, object())
+
+
+@needs_numba
+def test_the_kernel_cache_sees_the_pair_kernels():
+    """numba's cache of evaluate_scenes checks only compiled_kernels.py's source; the pair
+    kernels it calls from compiled_pairs.py are in that source through PAIRS_DIGEST."""
+    from riskflow_env import compiled_kernels, compiled_pairs
+
+    source = Path(compiled_pairs.__file__).read_bytes().replace(b"\r\n", b"\n")
+    digest = hashlib.sha256(source).hexdigest()
+    assert digest == compiled_kernels.PAIRS_DIGEST, (
+        f"compiled_pairs.py changed: set compiled_kernels.PAIRS_DIGEST = {digest!r}"
+    )
+
+
+@needs_numba
+def test_no_writable_cache_directory(monkeypatch):
+    """Where numba finds no writable cache directory (a read-only install, no writable
+    home), a warning names NUMBA_CACHE_DIR and the reference runs."""
+    caching = pytest.importorskip("numba.core.caching")
+    if not hasattr(caching, "_CacheLocator"):
+        pytest.skip("numba's cache locators changed")
+
+    def read_only(locator):
+        raise PermissionError("read-only")
+
+    monkeypatch.setattr(caching._CacheLocator, "ensure_cache_path", read_only)
+    for name in ("riskflow_env.compiled_kernels", "riskflow_env.compiled_pairs"):
+        monkeypatch.delitem(sys.modules, name, raising=False)
+        monkeypatch.delattr(riskflow_env, name.split(".")[1], raising=False)
+    monkeypatch.setenv(compiled.SWITCH, "1")
+    compiled.kernels.cache_clear()
+    try:
+        with pytest.warns(RuntimeWarning, match="NUMBA_CACHE_DIR"):
+            assert not compiled.enabled()
+        state = random_state(np.random.default_rng(2), (), 4)
+        assert simulator.evaluate(state, ROAD, CONFIG).observations.dtype == np.float32
+    finally:
+        monkeypatch.undo()
+        compiled.kernels.cache_clear()
+    assert compiled.enabled()
