@@ -11,7 +11,10 @@ Only what the reference masks out is skipped (the features of pairs beyond the
 interaction range, the separating-axis test of pairs whose bounding circles are apart).
 
 Importing this module imports numba (ImportError without it); ``cache=True`` keeps the
-machine code on disk, so only the first run on a machine compiles.
+machine code on disk, so only the first run on a machine compiles. numba reuses that
+code while this file's source is unchanged, even where a kernel it calls from another
+file has changed: :data:`PAIRS_DIGEST` puts :mod:`~riskflow_env.compiled_pairs`'s
+source into this file's (a test checks it is current).
 """
 
 from __future__ import annotations
@@ -38,6 +41,9 @@ NUM_TERMS = 5  # reward terms in riskflow_env.rewards.REWARD_TERMS order
 # target_speed [m/s], speed, collision, offroad, risk, comfort, then accel_min,
 # accel_max [m/s^2] and yaw_rate_max [rad/s] (the comfort term's scales)
 _jit = numba.njit(cache=True, nogil=True)
+# SHA-256 of compiled_pairs.py: editing that file must edit this one, or numba's cache
+# keeps the old pair kernels inside evaluate_scenes.
+PAIRS_DIGEST = "b90e1f90a6b66397655b28d61a503b7956e448f092d07dcd6b297693ff972071"
 
 
 @_jit
