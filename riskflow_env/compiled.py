@@ -72,12 +72,14 @@ def _float64(*arrays: Any) -> bool:
 
 
 def accepts_advance(current: Any, present: Any, active: Any, actions: Any) -> bool:
-    """:func:`advance` applies: numpy float64 states and actions of matching shape."""
+    """:func:`advance` applies: numpy float64 states and actions, bool masks, of matching
+    shapes."""
     return (
         _float64(current, actions)
         and tuple(actions.shape) == (*current.shape[:-1], 2)
         and type(present) is np.ndarray
         and type(active) is np.ndarray
+        and present.dtype == active.dtype == np.bool_
         and present.shape == active.shape == current.shape[:-1]
         and enabled()
     )
@@ -104,7 +106,8 @@ def advance(
 
 def accepts_evaluate(state: Any, lookup: Any) -> bool:
     """:func:`evaluate` applies: numpy float64 arrays and a :class:`DrivableMap` (or a
-    :class:`MapStack` selection with a map per scene of a batch)."""
+    :class:`MapStack` selection with a map per scene of a batch); a subclass of
+    :class:`DrivableMap` may look up its SDF otherwise, so it takes the reference."""
     current = state.current
     if not (
         _float64(current, state.length, state.width, state.last_action)
@@ -116,7 +119,7 @@ def accepts_evaluate(state: Any, lookup: Any) -> bool:
         index = lookup.index
         if type(index) is not np.ndarray or current.ndim < 3 or len(index) != len(current):
             return False
-    elif not isinstance(lookup, DrivableMap):
+    elif type(lookup) is not DrivableMap:
         return False
     return enabled()
 

@@ -257,6 +257,15 @@ def test_numba_runs_by_default(monkeypatch):
     assert compiled.accepts_evaluate(state, ROAD)
     assert not compiled.accepts_evaluate(state, object())
 
+    class OtherLookup(type(ROAD)):  # may look its SDF up otherwise: the reference
+        pass
+
+    other = OtherLookup(ROAD.drivable, ROAD.resolution, ROAD.origin, ROAD.sdf)
+    assert not compiled.accepts_evaluate(state, other)
+    current, present, actions = state.current, state.present, np.zeros((4, 2))
+    assert compiled.accepts_advance(current, present, present, actions)
+    assert not compiled.accepts_advance(current, present, present.astype(int), actions)
+
 
 @needs_numba
 def test_the_kernel_cache_sees_the_pair_kernels():
