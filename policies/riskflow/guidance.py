@@ -42,8 +42,10 @@ from torch import Tensor
 from policies.learned.adam import Adam
 from policies.learned.data import Normalizer
 from policies.learned.guidance_losses import (
+    ATTACK_ACCEL,
     TARGETS,
     ObjectiveConfig,
+    Target,
     adversarial_loss,
     adversarial_rows,
     adversarial_value_and_gradient,
@@ -182,13 +184,17 @@ class _Objective:
         self.map_term = map_term(scene, rows, scene.eps.shape[1], config, scene_of_row)
         self.lambda_sep = config.lambda_sep
         self.separation = separation_term(scene, rows, config, scene_of_row, *(bystanders or ()))
+        self.accel_limit = ATTACK_ACCEL if config.target == Target.EGO else math.inf
 
     def bounds(self) -> tuple[Tensor, Tensor]:
         """(C, T, 2) lower and upper bounds of ``u_c`` that keep the actions inside the
-        dynamics' accel and yaw-rate bounds."""
+        dynamics' accel and yaw-rate bounds (and, attacking the ego, the acceleration
+        within ``ATTACK_ACCEL``)."""
         dyn = self.dynamics
-        low = self.offset.new_tensor([dyn.accel_min, -dyn.yaw_rate_max])
-        high = self.offset.new_tensor([dyn.accel_max, dyn.yaw_rate_max])
+        accel_min = max(dyn.accel_min, -self.accel_limit)
+        accel_max = min(dyn.accel_max, self.accel_limit)
+        low = self.offset.new_tensor([accel_min, -dyn.yaw_rate_max])
+        high = self.offset.new_tensor([accel_max, dyn.yaw_rate_max])
         return (low - self.offset) / self.std, (high - self.offset) / self.std
 
     def actions(self, u_c: Tensor) -> Tensor:

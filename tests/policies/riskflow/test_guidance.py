@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from policies.learned.guidance_losses import HORIZONS
+from policies.learned.guidance_losses import ATTACK_ACCEL, HORIZONS
 from policies.learned.plan_penalties import pair_separation
 from policies.learned.sampler import base_velocity, sample
 from policies.learned.synthetic import synthetic_batch
@@ -20,6 +20,7 @@ from policies.riskflow.guidance import (
     guide,
     plans_from_velocity,
 )
+from policies.stress.failures import HUMAN_BOUNDS
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
 from riskflow_env.maps import Lane, MapStack, from_lanes
 from tests.policies.riskflow.guidance_scenes import (
@@ -129,6 +130,22 @@ def test_horizon_defaults_per_target():
     xy, ego_xy = scene.base_trajectories[[1], :, :2], scene.base_trajectories[[0], :, :2]
     assert torch.allclose(result.losses[0, 0], adversarial_loss(xy, ego_xy, horizon=30))
     assert not torch.allclose(result.losses[0, 0], adversarial_loss(xy, ego_xy))
+
+
+def test_attacker_of_the_ego_brakes_within_the_human_bound():
+    """A car ahead of a slower ego closes on it by braking: attacking the ego it brakes at
+    ``ATTACK_ACCEL`` at most (the failure analysis's human bound); with the paper's
+    target the dynamics' bound (8 m/s^2) is the limit."""
+    assert ATTACK_ACCEL == HUMAN_BOUNDS.accel
+    scene = make_scene([[0.0, 0.0, 8.0, 0.0], [25.0, 0.0, 20.0, 0.0]])
+    braking = {}
+    for target in ("ego", "others"):
+        config = GuidanceConfig(target=target, step_size=0.3, steps=60)
+        result = guide(scene, mask_of(2, [1]), NORMALIZER, config)
+        assert result.losses[-1, 0] < 0.9 * result.losses[0, 0]
+        braking[target] = -float(result.actions[1, :, 0].min())
+    assert braking["ego"] == pytest.approx(ATTACK_ACCEL)
+    assert braking["others"] == pytest.approx(-DEFAULT_CONFIG.accel_min)
 
 
 def test_sign_convention_negative_weight_pushes_apart():
