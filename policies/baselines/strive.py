@@ -45,10 +45,11 @@ from policies.riskflow.guidance import (
     GuidanceScene,
     GuidedRows,
     flatten_scenes,
+    guidance_scene,
     guided_rows,
     plans_from_velocity,
 )
-from policies.riskflow.policy import PHASES, GeneratorPolicy, guidance_scene
+from policies.riskflow.policy import PHASES, GeneratorPolicy
 from riskflow_env._array import attach_gradient
 
 DEFAULT_LAMBDA_PRIOR = 1.0  # weight of ||eps_c||^2 / 2 [per unit of normalised noise^2]

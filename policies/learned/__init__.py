@@ -12,7 +12,6 @@
 * sampling and validation of a one-call generator: :mod:`~policies.learned.sampler`,
   :mod:`~policies.learned.validation`, :mod:`~policies.learned.ema`;
 * the adversary's loop: :mod:`~policies.learned.adversary_config` (the shared options),
-  :mod:`~policies.learned.encoded_views` (a call's windows, encoded once),
   :mod:`~policies.learned.plan_stitching` (re-plans blended into the executed plan),
   :mod:`~policies.learned.plan_avoidance` (the avoidance steps),
   :mod:`~policies.pipeline.batched` (B scenes, one planning call),

@@ -186,8 +186,12 @@ def rank_window(
     k: int | str,
     threshold: float = DEFAULT_THRESHOLD,
     candidates: np.ndarray | None = None,
+    *,
+    attack_ego: bool = False,
+    attacker: int | None = None,
 ) -> Ranking:
-    """:func:`causal_ranking` of one window (docs/how-to/windows.md; slot 0 is the ego).
+    """:func:`causal_ranking` of one window (docs/how-to/windows.md; slot 0 is the ego);
+    with ``attack_ego``, narrowed to one attacker (:func:`ego_attacker`).
 
     Uses the ``risk`` channel of ``pair_features`` (already masked beyond 50 m), the
     ``agent_mask`` and the current positions of ``history`` for the distance tie-break.
@@ -199,7 +203,13 @@ def rank_window(
         threshold: edge threshold.
         candidates: optional (A,) bool, agents that may be chosen (e.g. the live ones);
             every agent of the window still takes part in the risk graph.
+        attack_ego: guidance target ``"ego"``: ``A_c`` is one attacker at most.
+        attacker: with ``attack_ego``, the window slot of the last cycle's attacker, kept
+            while it is eligible; None: none.
     """
+    if attack_ego:
+        ranking = rank_window(window, k, threshold, candidates)
+        return ego_attacker(ranking, window, k, attacker)
     risk = np.asarray(window.pair_features)[..., RISK_CHANNEL]
     current = np.asarray(window.history)[:, -1, :2]
     distance = np.linalg.norm(current - current[0], axis=-1)

@@ -24,11 +24,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from policies.learned.window_types import Window
+from policies.learned.window_types import Window, WindowBatch, collate_windows
 from riskflow_env import dynamics
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import SPEED, YAW
@@ -38,6 +40,9 @@ from riskflow_env.risk import MAX_INTERACTION_DISTANCE, pairwise_features
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.simulator import select_agents
 from riskflow_env.view import SceneView
+
+if TYPE_CHECKING:
+    import torch
 
 CROP_LAYERS = ("drivable", "sdf")
 
@@ -304,3 +309,12 @@ def window_from_view(view: SceneView, config: WindowConfig | None = None) -> Win
         config,
         with_future=False,
     )
+
+
+def cut_windows(
+    views: Sequence[SceneView], config: WindowConfig, device: torch.device | str = "cpu"
+) -> tuple[list[Window], WindowBatch]:
+    """The window of each of B scenes (:func:`window_from_view`, numpy, scene by scene) and
+    their collated batch (agents padded to the largest scene and masked) on ``device``."""
+    windows = [window_from_view(view, config) for view in views]
+    return windows, collate_windows(windows).to(device)

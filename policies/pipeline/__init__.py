@@ -5,9 +5,10 @@
 * :mod:`~policies.pipeline.plan_set`: ``PlanSet``, the typed plans the stages of one cycle
   hand each other (B scenes, torch, ego frame);
 * :mod:`~policies.pipeline.stages`: the shared stages (encode, rank, generate, stitch,
-  decode, avoid, stand, emit, hold, restitch);
+  decode, avoid, stand, emit, hold, restitch) and ``plan_scenes``, which runs a policy's
+  stages once for B scenes;
 * :mod:`~policies.pipeline.policy`: ``PipelinePolicy`` (schedule, plan buffer, seeding,
-  many scenes per cycle) and ``plan_scenes``.
+  spawned copies for many scenes).
 
 A method is a ``PipelinePolicy`` with its list of stages: RiskFlow
 (:mod:`policies.riskflow.policy`), the unguided generator and STRIVE-style

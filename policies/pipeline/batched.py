@@ -4,7 +4,7 @@ A :class:`~policies.pipeline.policy.PipelinePolicy` plans one scene per call. To
 drive many scenes (a vectorised env, an evaluation over many scenes) the adversary holds
 one copy per scene (:meth:`PipelinePolicy.spawn`: the model and options shared, the
 planner state its own) and plans every scene that is due
-in **one call** (:func:`~policies.pipeline.policy.plan_scenes`): for
+in **one call** (:func:`~policies.pipeline.stages.plan_scenes`): for
 ``RiskFlowAdversary`` (and the unguided generator) one encoder pass, one generator pass
 and one guidance loop over all those scenes' controllable rows, agents padded per scene
 and masked. Scenes re-plan on their own schedules: a scene reset at another step, or
@@ -33,7 +33,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from policies.pipeline.policy import PipelinePolicy, plan_scenes
+from policies.pipeline.policy import PipelinePolicy
+from policies.pipeline.stages import plan_scenes
 from riskflow_env.view import SceneView
 
 

@@ -15,13 +15,48 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+import torch
 from torch import Tensor
 
-from policies.learned.encoded_views import EncodedViews
+from policies.learned.encoder import SceneContext
 from policies.learned.ranking import Ranking
+from policies.learned.window_types import Window, WindowBatch
 from policies.pipeline.state import PlannerState
 from riskflow_env.maps import DrivableMap, MapStack
 from riskflow_env.view import SceneView
+
+
+@dataclass(frozen=True)
+class EncodedViews:
+    """What the ``encode`` stage observed of B scenes.
+
+    Attributes:
+        windows: the B :class:`Window` objects (``docs/how-to/windows.md``; ego frame, ego in
+            slot 0; no future fields).
+        slots: B arrays (A_b,): env slot of each window row of each scene.
+        batch: the collated windows (agents padded to A = max A_b) on the policy's device.
+        scene: the encoder's :class:`SceneContext` of ``batch`` (no gradients), (B, A, ...).
+        frames: (B, 3) world pose of each scene frame: its ego's (x [m], y [m], psi [rad]).
+        clock: ``time.perf_counter()`` after the encoder (start of the next phase).
+    """
+
+    windows: list[Window]
+    slots: list[np.ndarray]
+    batch: WindowBatch
+    scene: SceneContext
+    frames: np.ndarray
+    clock: float
+
+    @property
+    def counts(self) -> list[int]:
+        """Agents A_b of each scene's window."""
+        return [len(slots) for slots in self.slots]
+
+    def frame_tensor(self) -> torch.Tensor:
+        """(B, 3) ``frames`` as a tensor of the context's dtype and device (for ``L_map``)."""
+        state = self.scene.state
+        return torch.as_tensor(self.frames, dtype=state.dtype, device=state.device)
 
 
 @dataclass(frozen=True)
@@ -73,4 +108,4 @@ class PlanSet:
         return dataclasses.replace(self, **changes)
 
 
-__all__ = ["PlanSet"]
+__all__ = ["EncodedViews", "PlanSet"]

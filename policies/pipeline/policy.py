@@ -11,10 +11,10 @@ stages of its planning cycle (:mod:`policies.pipeline.stages`):
 * **seeding**: the noise of cycle ``c`` of episode ``e`` (``reset`` count from 0) comes
   from a ``torch.Generator`` seeded with ``(seed, e, c)``, so the same seed gives the
   same closed-loop rollout, bit for bit, on one machine (same device and thread count);
-* **many scenes**: :func:`plan_scenes` plans B scenes in one cycle, each scene a copy of
-  the policy (:meth:`PipelinePolicy.spawn`: the model and options shared, the state its
-  own); ``plan(view)`` is its case B = 1. Each scene's plans are those of planning it
-  alone, to float rounding (padded batches run other kernels).
+* **many scenes**: :func:`~policies.pipeline.stages.plan_scenes` plans B scenes in one
+  cycle, each scene a copy of the policy (:meth:`PipelinePolicy.spawn`: the model and
+  options shared, the state its own); ``plan(view)`` is its case B = 1. Each scene's
+  plans are those of planning it alone, to float rounding (padded batches run other kernels).
   :class:`~policies.pipeline.batched.BatchedAdversary` drives B scenes with it;
 * **threads**: torch CPU threads while planning (restored after); timings per phase;
 * **render overlays** of the plans (``draw``).
@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import copy
 import math
-import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -36,12 +35,12 @@ import torch
 
 from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.encoder import SceneContext
-from policies.learned.packing import exact_scene_widths
 from policies.learned.plan_stitching import resolve_stitch_steps
 from policies.learned.window_types import WindowBatch
 from policies.learned.windows import WindowConfig
 from policies.pipeline import stages as stage_functions
 from policies.pipeline.plan_set import PlanSet
+from policies.pipeline.stages import plan_scenes
 from policies.pipeline.state import PlannerState
 from riskflow_env.agents.base import actions_dict, controlled_mask
 from riskflow_env.maps import DrivableMap, MapStack
@@ -168,7 +167,7 @@ class PipelinePolicy:
     def spawn(self, seed: int | None = None) -> PipelinePolicy:
         """A copy for another scene: the same model and options (shared, not copied), its
         own state (``seed``; None: this policy's). Copies plan together in
-        :func:`plan_scenes`; call ``reset`` on the copy first."""
+        :func:`~policies.pipeline.stages.plan_scenes`; call ``reset`` on the copy first."""
         other = copy.copy(self)
         other.state = PlannerState(seed=self.state.seed)
         if seed is not None:
@@ -177,7 +176,8 @@ class PipelinePolicy:
 
     def plan(self, view: SceneView) -> np.ndarray:
         """Run one planning cycle now (``act`` calls it on schedule); the plan buffer
-        restarts at ``view.step``. The one-scene case of :func:`plan_scenes`.
+        restarts at ``view.step``. The one-scene case of
+        :func:`~policies.pipeline.stages.plan_scenes`.
 
         Returns:
             ``plans``: (A, T, 4) world-frame states (x, y [m], v [m/s], psi [rad]) after
@@ -239,59 +239,6 @@ class PipelinePolicy:
             stack = MapStack(unique)
             self._maps["stack"] = stack
         return stack
-
-
-def plan_scenes(scenes: Sequence[PipelinePolicy], views: Sequence[SceneView]) -> None:
-    """One planning cycle for B scenes: ``scenes[b]`` plans ``views[b]`` now.
-
-    ``scenes`` are copies of one policy (:meth:`PipelinePolicy.spawn`, or the policy
-    itself); ``scenes[0]`` runs the stages once for all of them, and each gets its new
-    state, its buffer restarting at its ``view.step``. Every scene's ``timings`` are the
-    cycle's: its phases (run once for all scenes) and its ``"total"``.
-
-    Raises:
-        ValueError: ``scenes`` and ``views`` differ in length or are empty, or the scenes
-            are not distinct copies of one policy.
-        RuntimeError: a scene was not ``reset``.
-    """
-    scenes, views = list(scenes), list(views)
-    if not scenes or len(scenes) != len(views):
-        raise ValueError(
-            f"scenes and views must be non-empty and of equal length, got {len(scenes)} "
-            f"scenes and {len(views)} views"
-        )
-    planner = scenes[0]
-    for scene in scenes:
-        if type(scene) is not type(planner) or scene._maps is not planner._maps:
-            raise ValueError("scenes must be copies of one policy (PipelinePolicy.spawn)")
-        if scene.state.episode < 0:
-            raise RuntimeError("call reset(view) before plan(view)")
-    if len({id(scene) for scene in scenes}) != len(scenes):
-        raise ValueError("scenes must be distinct policy copies (one per scene)")
-    previous_threads = torch.get_num_threads()
-    if planner.threads is not None:
-        torch.set_num_threads(planner.threads)
-    try:
-        start = time.perf_counter()
-        planner.clock = stage_functions.PhaseClock(planner.device)
-        states = [scene.state for scene in scenes]
-        plans = PlanSet(views=views, states=states, drivable_map=planner.map_of(views))
-        for stage in planner.stages:
-            begin = time.perf_counter()
-            with exact_scene_widths():  # a scene's network outputs are those it gets alone
-                plans = stage(planner, plans)
-            phase = stage_functions.PHASE_OF.get(stage, getattr(stage, "phase", None))
-            if phase is not None:
-                planner.clock.tick(phase, begin)
-        total = time.perf_counter() - start
-    finally:
-        if planner.threads is not None:
-            torch.set_num_threads(previous_threads)
-    timings = dict(planner.clock.timings, total=total)
-    for scene, view, state in zip(scenes, views, plans.new_states, strict=True):
-        scene.state = state.replace(
-            timings=dict(timings), plan_step=view.step, cycles=state.cycles + 1
-        )
 
 
 __all__ = ["BASE_COLOR", "GUIDED_COLOR", "PipelinePolicy", "Stage", "plan_scenes"]

@@ -2,7 +2,7 @@
 
 A stage is a function ``stage(policy, plans) -> plans`` over one :class:`PlanSet` of B
 scenes; ``policy`` supplies the model and the options. A method is its list of stages
-(:mod:`policies.pipeline.policy` runs them in order)::
+(:func:`plan_scenes`, below, runs them in order for B scenes)::
 
     RiskFlow       encode rank generate stitch avoid stand guide emit hold restitch
     unguided       encode      generate stitch avoid stand       emit hold restitch
@@ -18,7 +18,7 @@ scenes; ``policy`` supplies the model and the options. A method is its list of s
 * ``avoid``: the avoidance steps (:mod:`policies.learned.plan_avoidance`);
 * ``stand``: done vehicles stand still (the env keeps them at speed 0);
 * ``guide``: the method's own (RiskFlow: output-space guidance of the ``A_c`` rows,
-  :func:`policies.riskflow.policy.guide`);
+  :func:`policies.riskflow.guidance.guide_outputs`);
 * ``emit``: the plans into each scene's new planner state, world frame, numpy;
 * ``hold``: vehicles at rest keep their brake on; ``restitch``: the rows not blended first
   (the guided ones, or all of them) blended into the executed plans
@@ -28,14 +28,15 @@ scenes; ``policy`` supplies the model and the options. A method is its list of s
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 import torch
 
-from policies.learned.encoded_views import encode_views
 from policies.learned.guidance_losses import Target, map_term, target_rows
+from policies.learned.packing import exact_scene_widths
 from policies.learned.plan_avoidance import avoid_overlaps, guided_pairs
 from policies.learned.plan_overlap import OVERLAP_HORIZON
 from policies.learned.plan_stitching import (
@@ -45,19 +46,29 @@ from policies.learned.plan_stitching import (
     hold_at_rest,
     stitch_after,
 )
-from policies.learned.ranking import ego_attacker, rank_window
+from policies.learned.ranking import rank_window
 from policies.learned.sampler import base_velocity, decode_plans
-from policies.pipeline.plan_set import PlanSet
-from policies.pipeline.state import PlannerState, world_plans
+from policies.learned.windows import cut_windows, scene_to_world
+from policies.pipeline.plan_set import EncodedViews, PlanSet
+from policies.pipeline.state import PlannerState
+from riskflow_env.view import SceneView
 
 PipelinePolicy = Any  # policies.pipeline.policy.PipelinePolicy, which runs the stages
 
 
 def encode(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
-    """Windows of every scene, collated (agents padded), one encoder pass."""
-    observed = encode_views(
-        plans.views, policy.window_config, policy.device, policy.encoder, policy.clock.tick
-    )
+    """Windows of every scene (numpy, scene by scene), collated (agents padded), one
+    encoder pass; phases ``"window"`` and ``"encoder"``."""
+    start = time.perf_counter()
+    views = plans.views
+    windows, batch = cut_windows(views, policy.window_config, policy.device)
+    clock = policy.clock.tick("window", start)
+    with torch.no_grad():
+        scene = policy.encoder(batch)
+    clock = policy.clock.tick("encoder", clock)
+    frames = np.array([[v.current[0, 0], v.current[0, 1], v.current[0, 3]] for v in views])
+    slots = [window.agent_index for window in windows]
+    observed = EncodedViews(windows, slots, batch, scene, frames, clock)
     return plans.replace(observed=observed)
 
 
@@ -72,9 +83,10 @@ def rank(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
     attack_ego = policy.guidance.target == Target.EGO
     for index, (view, state) in enumerate(zip(plans.views, plans.states, strict=True)):
         window, slots = observed.windows[index], observed.slots[index]
-        ranking = rank_window(window, policy.k, policy.rank_threshold, view.active[slots])
-        if attack_ego:
-            ranking = ego_attacker(ranking, window, policy.k, attacker_row(state, slots))
+        ranking = rank_window(
+            window, policy.k, policy.rank_threshold, view.active[slots],
+            attack_ego=attack_ego, attacker=attacker_row(state, slots) if attack_ego else None,
+        )  # fmt: skip
         controllable[index, : len(slots)] = ranking.controllable
         rankings.append(ranking)
     controllable = torch.from_numpy(controllable).to(policy.device)
@@ -239,6 +251,14 @@ def emit(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
     return plans.replace(new_states=new_states)
 
 
+def world_plans(plans: np.ndarray, slots: np.ndarray, num: int, frame: np.ndarray) -> np.ndarray:
+    """(num, T, 4) world-frame states from scene-frame ``plans`` (A_w, T, 4) of the env
+    ``slots``; NaN rows for the other slots."""
+    out = np.full((num, plans.shape[1], 4), np.nan)
+    out[slots] = scene_to_world(plans, frame)
+    return out
+
+
 def hold(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
     """Vehicles at rest whose new plan hardly moves them keep their brake on."""
     for state, view in zip(plans.new_states, plans.views, strict=True):
@@ -282,6 +302,59 @@ PHASE_OF = {
 }
 
 
+def plan_scenes(scenes: Sequence[PipelinePolicy], views: Sequence[SceneView]) -> None:
+    """One planning cycle for B scenes: ``scenes[b]`` plans ``views[b]`` now.
+
+    ``scenes`` are copies of one policy (:meth:`PipelinePolicy.spawn`, or the policy
+    itself); ``scenes[0]`` runs the stages once for all of them, and each gets its new
+    state, its buffer restarting at its ``view.step``. Every scene's ``timings`` are the
+    cycle's: its phases (run once for all scenes) and its ``"total"``.
+
+    Raises:
+        ValueError: ``scenes`` and ``views`` differ in length or are empty, or the scenes
+            are not distinct copies of one policy.
+        RuntimeError: a scene was not ``reset``.
+    """
+    scenes, views = list(scenes), list(views)
+    if not scenes or len(scenes) != len(views):
+        raise ValueError(
+            f"scenes and views must be non-empty and of equal length, got {len(scenes)} "
+            f"scenes and {len(views)} views"
+        )
+    planner = scenes[0]
+    for scene in scenes:
+        if type(scene) is not type(planner) or scene._maps is not planner._maps:
+            raise ValueError("scenes must be copies of one policy (PipelinePolicy.spawn)")
+        if scene.state.episode < 0:
+            raise RuntimeError("call reset(view) before plan(view)")
+    if len({id(scene) for scene in scenes}) != len(scenes):
+        raise ValueError("scenes must be distinct policy copies (one per scene)")
+    previous_threads = torch.get_num_threads()
+    if planner.threads is not None:
+        torch.set_num_threads(planner.threads)
+    try:
+        start = time.perf_counter()
+        planner.clock = PhaseClock(planner.device)
+        states = [scene.state for scene in scenes]
+        plans = PlanSet(views=views, states=states, drivable_map=planner.map_of(views))
+        for stage in planner.stages:
+            begin = time.perf_counter()
+            with exact_scene_widths():  # a scene's network outputs are those it gets alone
+                plans = stage(planner, plans)
+            phase = PHASE_OF.get(stage, getattr(stage, "phase", None))
+            if phase is not None:
+                planner.clock.tick(phase, begin)
+        total = time.perf_counter() - start
+    finally:
+        if planner.threads is not None:
+            torch.set_num_threads(previous_threads)
+    timings = dict(planner.clock.timings, total=total)
+    for scene, view, state in zip(scenes, views, plans.new_states, strict=True):
+        scene.state = state.replace(
+            timings=dict(timings), plan_step=view.step, cycles=state.cycles + 1
+        )
+
+
 __all__ = [
     "PHASE_OF",
     "PhaseClock",
@@ -292,9 +365,11 @@ __all__ = [
     "encode",
     "generate",
     "hold",
+    "plan_scenes",
     "rank",
     "restitch",
     "stand",
     "stand_still",
     "stitch",
+    "world_plans",
 ]

@@ -17,7 +17,6 @@ import numpy as np
 import torch
 
 from policies.learned.ranking import Ranking
-from policies.learned.windows import scene_to_world
 
 
 @dataclass
@@ -83,12 +82,4 @@ class PlannerState:
         return dataclasses.replace(self, **changes)
 
 
-def world_plans(plans: np.ndarray, slots: np.ndarray, num: int, frame: np.ndarray) -> np.ndarray:
-    """(num, T, 4) world-frame states from scene-frame ``plans`` (A_w, T, 4) of the env
-    ``slots``; NaN rows for the other slots."""
-    out = np.full((num, plans.shape[1], 4), np.nan)
-    out[slots] = scene_to_world(plans, frame)
-    return out
-
-
-__all__ = ["PlannerState", "world_plans"]
+__all__ = ["PlannerState"]

@@ -35,6 +35,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -44,95 +45,28 @@ from policies.learned.data import Normalizer
 from policies.learned.guidance_losses import (
     ATTACK_ACCEL,
     TARGETS,
-    ObjectiveConfig,
     Target,
     adversarial_loss,
     adversarial_rows,
     adversarial_value_and_gradient,
+    bystander_rows,
     map_loss,
     map_term,
+    sum_per_scene,
+    target_rows,
 )
 from policies.learned.sampler import decode_plans
 from policies.learned.separation_term import Separation, separation_term
+from policies.pipeline.plan_set import PlanSet
 from policies.riskflow.guidance_scene import (
-    PER_AGENT,
+    OPTIMIZERS,
+    STEP_SIZES,
+    GuidanceConfig,
     GuidanceResult,
     GuidanceScene,
-    GuidedRows,
-    flatten_scenes,
-    guided_rows,
 )
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout, rollout_with_vjp
-
-OPTIMIZERS = ("gradient", "adam")
-# The default Adam step per target: 0.01 with the paper's target (it keeps the guided traffic
-# nearest the log and still collides more than STRIVE-style, docs/explanation/results.md section 4);
-# 0.1, the paper's step, with target "ego", where smaller steps hit the ego far less often.
-STEP_SIZES = {"others": 0.01, "ego": 0.1}
-MAX_STEPS = 1000  # [-] largest K_g (each step is a backward pass over the plans: ~ms)
-
-
-@dataclass(frozen=True)
-class GuidanceConfig(ObjectiveConfig):
-    """Options of output-space guidance: the shared objective's
-    (:class:`~policies.learned.guidance_losses.ObjectiveConfig`: ``lambda_adv``,
-    ``lambda_map``, ``horizon``, ``target``, ``map_margin``, ``map_decay``,
-    ``lambda_sep``) and the optimiser's.
-
-    Attributes:
-        steps: ``K_g`` guidance steps (0: the base plans), at most ``MAX_STEPS``.
-        step_size: the Adam learning rate [normalised action units per step], or
-            ``gamma`` [normalised action units per unit of gradient] for ``"gradient"``
-            (e.g. 3e-3 with the default weights); None (default): ``STEP_SIZES[target]``,
-            0.01 with target ``"others"`` and the paper's 0.1 with ``"ego"``.
-        optimizer: ``"adam"`` (the default, :mod:`policies.learned.adam`) or
-            ``"gradient"`` (plain steps, the paper's).
-    """
-
-    steps: int = 30
-    step_size: float | None = None
-    optimizer: str = "adam"
-
-    @classmethod
-    def of(
-        cls,
-        config,
-        steps: int,
-        step_size: float | None,
-        optimizer: str,
-        lambda_sep: float,
-    ) -> GuidanceConfig:
-        """The guidance of an adversary: the objective of its shared options ``config``
-        (:meth:`~policies.learned.adversary_config.AdversaryConfig.objective`) and these."""
-        return cls(
-            steps=steps,
-            step_size=step_size,
-            optimizer=optimizer,
-            lambda_sep=lambda_sep,
-            **config.objective(),
-        )
-
-    @property
-    def resolved_step_size(self) -> float:
-        """The step in use: ``step_size``, or the target's default when it is None (so a
-        copy with another ``target``, e.g. a curriculum's, takes that target's)."""
-        return STEP_SIZES[self.target] if self.step_size is None else self.step_size
-
-    def checks(self) -> list[tuple[bool, str]]:
-        """The objective's rules and the optimiser's."""
-        steps_ok = isinstance(self.steps, int) and not isinstance(self.steps, bool)
-        return super().checks() + [
-            (
-                steps_ok and 0 <= self.steps <= MAX_STEPS,
-                f"steps must be an int in [0, {MAX_STEPS}]",
-            ),
-            (
-                self.step_size is None or (math.isfinite(self.step_size) and self.step_size > 0),
-                "step_size must be None or a number > 0",
-            ),
-            (self.optimizer in OPTIMIZERS, f"optimizer must be one of {OPTIMIZERS}"),
-        ]
 
 
 def plans_from_velocity(
@@ -150,6 +84,58 @@ def plans_from_velocity(
     ``agent_mask (..., A)``; returns ``(..., A, T, 2)`` and ``(..., A, T, 4)``.
     """
     return decode_plans(eps + u, state, agent_mask, normalizer, dynamics)
+
+
+PER_AGENT = (  # the per-agent fields of a GuidanceScene (a leading B axis when batched)
+    "eps", "u0", "state", "length", "width", "agent_mask", "base_actions", "base_trajectories",
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class GuidedRows:
+    """The ``A_c`` rows of B scenes, as the batched guidance loops (RiskFlow's,
+    STRIVE-style's) take them: ``rows`` (C,) index the flattened ``B * A`` agents,
+    ``scene_of_row`` (C,) their scenes, ``target_xy`` (C, A, T, 2) the base plans of each
+    row's scene (detached) and ``target_valid`` (C, A) which of them are the row's targets;
+    ``bystanders`` (O,) index the flattened agents that are present but neither the ego nor
+    guided nor a target (target ``"ego"``: the vehicles that keep their unguided plans;
+    none with ``"others"``), ``scene_of_bystander`` (O,) their scenes."""
+
+    rows: Tensor
+    scene_of_row: Tensor
+    target_xy: Tensor
+    target_valid: Tensor
+    bystanders: Tensor
+    scene_of_bystander: Tensor
+
+    def per_scene(self, values: Tensor, num_scenes: int) -> Tensor:
+        """(C, K) values of the rows summed per scene: (B, K)."""
+        return sum_per_scene(values, self.scene_of_row, num_scenes)
+
+
+def guided_rows(scene: GuidanceScene, controllable: Tensor, target: str) -> GuidedRows:
+    """The :class:`GuidedRows` of B scenes: ``controllable`` (B, A) among the present
+    agents, the ego never; targets by :func:`target_rows` (``"others"`` or ``"ego"``);
+    the bystanders, the present agents left (none with ``"others"``)."""
+    present = scene.agent_mask.bool()
+    mask = controllable.bool() & present
+    mask[:, scene.ego] = False
+    targets = target_rows(present, mask, scene.ego, target)  # (B, A)
+    rows = torch.nonzero(mask.reshape(-1)).flatten()  # flat (scene, agent) indices
+    scene_of_row = torch.div(rows, mask.shape[1], rounding_mode="floor")
+    target_xy = scene.base_trajectories[..., :2].detach()[scene_of_row]
+    bystanders, scene_of_bystander = bystander_rows(present, mask, targets)
+    return GuidedRows(
+        rows, scene_of_row, target_xy, targets[scene_of_row], bystanders, scene_of_bystander
+    )
+
+
+def flatten_scenes(scene: GuidanceScene) -> GuidanceScene:
+    """B scenes' per-agent tensors flattened to ``B * A`` rows (scene after scene); the
+    map and the frames (B, 3) stay per scene (rows find theirs by ``scene_of_row``)."""
+    return dataclasses.replace(
+        scene, **{name: getattr(scene, name).flatten(0, 1) for name in PER_AGENT}
+    )
 
 
 class _Objective:
@@ -347,6 +333,39 @@ def _guide_scenes(
     )
 
 
+def guidance_scene(plans: PlanSet) -> GuidanceScene:
+    """What the guidance of the ``A_c`` rows works on: the base plans and the scenes."""
+    observed = plans.observed
+    return GuidanceScene(
+        eps=plans.eps,
+        u0=plans.u,
+        state=observed.scene.state,
+        length=observed.batch.length,
+        width=observed.batch.width,
+        agent_mask=observed.scene.agent_mask,
+        base_actions=plans.base_actions,
+        base_trajectories=plans.base_trajectories,
+        drivable_map=plans.drivable_map,
+        frame=observed.frame_tensor(),
+    )
+
+
+def guide_outputs(policy: Any, plans: PlanSet) -> PlanSet:
+    """The ``guide`` stage of :class:`~policies.riskflow.policy.RiskFlowAdversary`:
+    output-space guidance (:func:`guide`) of the ``A_c`` rows of every scene, one loop
+    for all."""
+    result = guide(
+        guidance_scene(plans), plans.controllable, policy.normalizer, policy.guidance,
+        policy.dynamics,
+    )  # fmt: skip
+    return plans.replace(
+        u=result.u, actions=result.actions, trajectories=result.trajectories, losses=result.losses
+    )
+
+
+guide_outputs.phase = "guidance"
+
+
 __all__ = [
     "OPTIMIZERS",
     "STEP_SIZES",
@@ -361,6 +380,10 @@ __all__ = [
     "flatten_scenes",
     "guide",
     "guided_rows",
+    "guidance_scene",
+    "guide_outputs",
+    "PER_AGENT",
+    "GuidanceConfig",
     "map_loss",
     "plans_from_velocity",
 ]

@@ -48,7 +48,7 @@ targets are left to guidance), and vehicles at rest whose new plan moves them le
 RiskFlow on the raw generator (``riskflow-eval --methods riskflow-raw``), to report the
 model's own traffic next to the rule layer's.
 
-Many scenes: :func:`~policies.pipeline.policy.plan_scenes` plans B scenes in one cycle
+Many scenes: :func:`~policies.pipeline.stages.plan_scenes` plans B scenes in one cycle
 (``BatchedAdversary``; ``plan`` is B = 1): the windows are cut and ranked scene by scene
 (numpy, a loop over scenes), everything else runs once for all of them, agents padded to
 the largest scene and masked; scene ``b`` draws its noise from its own stream.
@@ -65,49 +65,14 @@ from policies.learned.adversary_config import AdversaryConfig, default_window_co
 from policies.learned.data import Normalizer
 from policies.learned.generator import RiskFlowGenerator
 from policies.pipeline import stages
-from policies.pipeline.plan_set import PlanSet
 from policies.pipeline.policy import BASE_COLOR, GUIDED_COLOR, PipelinePolicy, Stage
 from policies.riskflow.base_generator import resolve_avoid_steps, resolve_generator
-from policies.riskflow.guidance import GuidanceConfig
-from policies.riskflow.guidance import guide as output_space_guidance
-from policies.riskflow.guidance_scene import GuidanceScene
+from policies.riskflow.guidance import GuidanceConfig, guide_outputs
 
 if TYPE_CHECKING:
     from policies.baselines.diffusion.sampling import OneCallSampler
 
 PHASES = ("window", "encoder", "generator", "ranking", "guidance")
-
-
-def guidance_scene(plans: PlanSet) -> GuidanceScene:
-    """What the guidance of the ``A_c`` rows works on: the base plans and the scenes."""
-    observed = plans.observed
-    return GuidanceScene(
-        eps=plans.eps,
-        u0=plans.u,
-        state=observed.scene.state,
-        length=observed.batch.length,
-        width=observed.batch.width,
-        agent_mask=observed.scene.agent_mask,
-        base_actions=plans.base_actions,
-        base_trajectories=plans.base_trajectories,
-        drivable_map=plans.drivable_map,
-        frame=observed.frame_tensor(),
-    )
-
-
-def guide(policy: RiskFlowAdversary, plans: PlanSet) -> PlanSet:
-    """The ``guide`` stage: output-space guidance of the ``A_c`` rows of every scene, one
-    loop for all (:func:`policies.riskflow.guidance.guide`)."""
-    result = output_space_guidance(
-        guidance_scene(plans), plans.controllable, policy.normalizer, policy.guidance,
-        policy.dynamics,
-    )  # fmt: skip
-    return plans.replace(
-        u=result.u, actions=result.actions, trajectories=result.trajectories, losses=result.losses
-    )
-
-
-guide.phase = "guidance"
 
 
 def generator_stages(avoid_steps: int, hold_distance: float, guide: Stage | None) -> tuple:
@@ -235,7 +200,7 @@ class RiskFlowAdversary(GeneratorPolicy):
         config = AdversaryConfig.resolve(config, options, type(self).__name__)
         guidance = GuidanceConfig.of(config, guidance_steps, step_size, optimizer, lambda_sep)
         super().__init__(
-            config, guidance, guide, generator, normalizer, checkpoint, sampling_steps,
+            config, guidance, guide_outputs, generator, normalizer, checkpoint, sampling_steps,
             avoid_steps, avoid_step_size,
         )  # fmt: skip
 
@@ -247,6 +212,4 @@ __all__ = [
     "GeneratorPolicy",
     "RiskFlowAdversary",
     "generator_stages",
-    "guidance_scene",
-    "guide",
 ]

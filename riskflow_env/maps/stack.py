@@ -1,6 +1,6 @@
 """``MapStack``: the signed distance fields of several maps, looked up in one call.
 
-Planning B scenes at once (``policies.pipeline.policy.plan_scenes``) evaluates the
+Planning B scenes at once (``policies.pipeline.stages.plan_scenes``) evaluates the
 map term of every scene's controllable vehicles in one batched lookup, although each
 scene has its own :class:`~riskflow_env.maps.DrivableMap` (own raster size, origin and
 resolution). The stack keeps the maps' SDF rasters end to end in one flat table, with

@@ -9,8 +9,7 @@ import torch
 
 from policies.learned.plan_penalties import pair_separation
 from policies.learned.separation_term import separation_term
-from policies.riskflow.guidance import GuidanceConfig
-from policies.riskflow.guidance_scene import PER_AGENT, guided_rows
+from policies.riskflow.guidance import PER_AGENT, GuidanceConfig, guided_rows
 from tests.policies.riskflow.guidance_scenes import make_scene, mask_of
 
 EGO_TARGET = GuidanceConfig(target="ego")

@@ -10,7 +10,7 @@ import riskflow_env
 from policies.baselines.diffusion.policy import DiffusionAdversary
 from policies.baselines.strive import StriveAdversary
 from policies.pipeline.batched import BatchedAdversary
-from policies.pipeline.policy import plan_scenes
+from policies.pipeline.stages import plan_scenes
 from policies.riskflow.policy import RiskFlowAdversary
 from riskflow_env.config import EnvConfig
 from tests.policies.straight_scenes import make_scenario
