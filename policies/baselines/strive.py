@@ -37,8 +37,8 @@ from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.data import Normalizer
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.guidance_losses import adversarial_rows, map_term
+from policies.learned.plan_overlap import separation_term
 from policies.learned.sampler import base_velocity
-from policies.learned.separation_term import separation_term
 from policies.pipeline.plan_set import PlanSet
 from policies.riskflow.guidance import (
     GuidanceConfig,

@@ -2,7 +2,7 @@
 
 * ``L_adv`` (:func:`adversarial_loss`): pulls controllable agents toward their targets.
 * ``L_map`` (:func:`map_loss`, :class:`MapTerm`): keeps their footprints on the road.
-* ``L_sep`` (:mod:`policies.learned.separation_term`): keeps the guided vehicles of a
+* ``L_sep`` (:mod:`policies.learned.plan_overlap`): keeps the guided vehicles of a
   scene apart from each other (not in the RiskFlow paper's objective; ``lambda_sep = 0``
   drops it).
 

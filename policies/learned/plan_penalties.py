@@ -34,32 +34,12 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from policies.learned.distributed import masked_mean
+from policies.learned.plan_overlap import pair_separation
 from policies.learned.window_types import WindowBatch
 from riskflow_env.dynamics import ACCEL, YAW, X, Y
-from riskflow_env.geometry import separation, to_frame
+from riskflow_env.geometry import to_frame
 
 SDF_CHANNEL = 1  # policies.learned.windows.CROP_LAYERS = ("drivable", "sdf")
-
-
-def pair_separation(states: Tensor, length: Tensor, width: Tensor) -> Tensor:
-    """Signed SAT separation [m] of every ordered pair of boxes at every step.
-
-    Args:
-        states: ``(..., A, T, 4)`` states (x, y, v, psi).
-        length, width: ``(..., A)`` [m], broadcastable against ``states[..., 0, 0]``'s
-            leading axes.
-
-    Returns:
-        ``(..., A, A, T)``: ``[..., i, j, t]`` of boxes i and j at step t (negative:
-        penetration depth).
-    """
-    xy, yaw = states[..., [X, Y]], states[..., YAW]
-    length, width = length[..., None], width[..., None]  # (..., A, 1): every step
-    return separation(
-        xy[..., :, None, :, :], yaw[..., :, None, :], length[..., :, None, :],
-        width[..., :, None, :], xy[..., None, :, :, :], yaw[..., None, :, :],
-        length[..., None, :, :], width[..., None, :, :],
-    )  # fmt: skip
 
 
 def overlap_penalty(trajectory: Tensor, batch: WindowBatch, valid: Tensor) -> Tensor:

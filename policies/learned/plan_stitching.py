@@ -40,16 +40,20 @@ touch their neighbours in rows of parked cars. A plan that moves the vehicle by 
 ``hold_distance`` (a start from a queue) runs as it is. At 4 m, 97% of the real samples'
 parked cars stay within 2 m.
 
-The ``hold`` and ``restitch`` stages of :mod:`policies.pipeline.stages` call
-:func:`hold_at_rest` and :func:`stitch_after` on every scene that planned.
+The ``stitch``, ``hold`` and ``restitch`` stages of :mod:`policies.pipeline.stages` call
+:func:`blend_first` (all scenes at once), :func:`hold_at_rest` and :func:`stitch_after`
+(each scene that planned).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import torch
 
+from policies.learned.data import Normalizer
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import SPEED, inverse, rollout
 from riskflow_env.view import SceneView
@@ -123,6 +127,50 @@ def continuation(
     live = state.plan_mask[slots] & view.active[slots]
     share = np.where(live[:, None], blend_share(n)[None], 0.0)
     return old, share
+
+
+def blend_first(
+    states: Sequence[PlannerState],
+    views: Sequence[SceneView],
+    slots: Sequence[np.ndarray],
+    eps: torch.Tensor,
+    u0: torch.Tensor,
+    normalizer: Normalizer,
+    stitch_steps: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Blending first (module docstring), for B scenes planned together: each new base plan
+    ``denorm(eps + u0)`` blended into the :func:`continuation` of the plan its scene is
+    executing.
+
+    Args:
+        states, views: each scene's planner state (before this cycle) and view.
+        slots: each scene's env slot of every window row.
+        eps, u0: ``(B, A, T, 2)`` the noise and the base residual (normalised).
+        normalizer: the actions' normalisation.
+        stitch_steps: the blend's length.
+
+    Returns:
+        ``(u, gain)``: ``(B, A, T, 2)`` the residual whose plans start with the blend, and
+        ``(B, A, T, 1)`` the share of an avoidance correction that reaches each step (the
+        corrections are blended over ``CORRECTION_STITCH_STEPS``).
+    """
+    old, share = torch.zeros_like(u0), torch.zeros_like(u0[..., :1])
+    for index, (state, view) in enumerate(zip(states, views, strict=True)):
+        blend = continuation(state, view, slots[index], u0.shape[2], stitch_steps)
+        if blend is not None:
+            previous, weight = (torch.as_tensor(x, dtype=u0.dtype) for x in blend)
+            rows, steps = slice(0, len(slots[index])), weight.shape[1]
+            old[index, rows, :steps] = previous.to(u0.device)
+            share[index, rows, :steps, 0] = weight.to(u0.device)
+    with torch.no_grad():
+        actions = normalizer.denormalize(eps + u0)
+        blended = normalizer.normalize(share * old + (1 - share) * actions) - eps
+    steps = min(CORRECTION_STITCH_STEPS, share.shape[2])
+    gain = torch.ones_like(share)
+    gain[:, :, :steps] -= torch.where(
+        share[:, :, :steps] > 0, share.new_tensor(blend_share(steps))[:, None], 0.0
+    )
+    return blended, gain
 
 
 def stitch_after(

@@ -34,7 +34,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from policies.pipeline.policy import PipelinePolicy
-from policies.pipeline.stages import plan_scenes
+from policies.pipeline.stages import plan_scenes, prepare_maps
 from riskflow_env.view import SceneView
 
 
@@ -151,7 +151,7 @@ class BatchedAdversary:
             raise ValueError(f"scenes must not repeat an index, got {scenes}")
         planner = self.scenes[indices[0]]
         if len({id(view.map) for view in views}) > 1:
-            planner.prepare_maps([view.map for view in views])
+            prepare_maps(planner, [view.map for view in views])
         plan_scenes([self.scenes[i] for i in indices], [views[i] for i in indices])
         self.last_planned = tuple(indices)
 

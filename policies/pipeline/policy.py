@@ -43,7 +43,7 @@ from policies.pipeline.plan_set import PlanSet
 from policies.pipeline.stages import plan_scenes
 from policies.pipeline.state import PlannerState
 from riskflow_env.agents.base import actions_dict, controlled_mask
-from riskflow_env.maps import DrivableMap, MapStack
+from riskflow_env.maps import MapStack
 from riskflow_env.view import SceneView
 
 BASE_COLOR = (70, 200, 235)  # overlay of the unguided plans
@@ -146,10 +146,13 @@ class PipelinePolicy:
 
     def emit(self, view: SceneView) -> dict[str, np.ndarray]:
         """The actions of the stored plans at ``view.step`` (no re-planning)."""
-        return actions_dict(view, controlled_mask(view, "others"), self.emit_array(view))
+        controlled = controlled_mask(view, "others")
+        return actions_dict(view, controlled, self.emit_array(view, controlled))
 
-    def emit_array(self, view: SceneView) -> np.ndarray:
-        """(A, 2) :meth:`emit` as one array per slot; zeros for the slots it does not drive."""
+    def emit_array(self, view: SceneView, controlled: np.ndarray | None = None) -> np.ndarray:
+        """(A, 2) :meth:`emit` as one array per slot; zeros for the slots it does not drive
+        (``controlled``: the view's non-ego live slots, ``controlled_mask(view, "others")``,
+        computed when None)."""
         state = self.state
         if state.plan_step is None:
             raise RuntimeError("no plans yet: call act(view) (or plan(view)) first")
@@ -160,7 +163,9 @@ class PipelinePolicy:
                 f"{state.plan_step}, {state.plan_actions.shape[1]} steps)"
             )
         actions = np.zeros((view.num_agents, 2))
-        drive = state.plan_mask & controlled_mask(view, "others")
+        if controlled is None:
+            controlled = controlled_mask(view, "others")
+        drive = state.plan_mask & controlled
         actions[drive] = state.plan_actions[drive, elapsed]
         return actions
 
@@ -218,27 +223,6 @@ class PipelinePolicy:
             highlight=tuple(int(i) for i in np.flatnonzero(state.controllable)),
             label="guided plans (A_c, haloed)",
         )  # fmt: skip
-
-    # ----------------------------------------------------------------- maps
-    def map_of(self, views: Sequence[SceneView]) -> DrivableMap | MapStack:
-        """The scenes' maps for one lookup: their shared map, or a :class:`MapStack` in
-        scene order, kept (shared with spawned copies) while it holds every map asked for."""
-        maps = [view.map for view in views]
-        if all(m is maps[0] for m in maps):
-            return maps[0]
-        stack = self._maps.get("stack")
-        if stack is None or not all(id(m) in stack.positions for m in maps):
-            stack = self.prepare_maps(maps)
-        return stack.view([stack.positions[id(m)] for m in maps])
-
-    def prepare_maps(self, maps: Sequence[DrivableMap]) -> MapStack:
-        """Stack ``maps`` (distinct ones, in order) for :meth:`map_of`."""
-        unique = list({id(m): m for m in maps}.values())
-        stack = self._maps.get("stack")
-        if stack is None or [id(m) for m in stack.maps] != [id(m) for m in unique]:
-            stack = MapStack(unique)
-            self._maps["stack"] = stack
-        return stack
 
 
 __all__ = ["BASE_COLOR", "GUIDED_COLOR", "PipelinePolicy", "Stage", "plan_scenes"]

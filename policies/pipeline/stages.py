@@ -39,18 +39,13 @@ from policies.learned.guidance_losses import Target, map_term, target_rows
 from policies.learned.packing import exact_scene_widths
 from policies.learned.plan_avoidance import avoid_overlaps, guided_pairs
 from policies.learned.plan_overlap import OVERLAP_HORIZON
-from policies.learned.plan_stitching import (
-    CORRECTION_STITCH_STEPS,
-    blend_share,
-    continuation,
-    hold_at_rest,
-    stitch_after,
-)
+from policies.learned.plan_stitching import blend_first, hold_at_rest, stitch_after
 from policies.learned.ranking import rank_window
 from policies.learned.sampler import base_velocity, decode_plans
 from policies.learned.windows import cut_windows, scene_to_world
 from policies.pipeline.plan_set import EncodedViews, PlanSet
 from policies.pipeline.state import PlannerState
+from riskflow_env.maps import DrivableMap, MapStack
 from riskflow_env.view import SceneView
 
 PipelinePolicy = Any  # policies.pipeline.policy.PipelinePolicy, which runs the stages
@@ -123,27 +118,14 @@ def generate(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
 
 
 def stitch(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
-    """Blend each new base plan into the plan being executed (blending first): ``u`` of
-    plans whose first actions are the blend, and the gain of the avoidance steps'
-    corrections, blended over ``CORRECTION_STITCH_STEPS``."""
-    eps, u0, slots = plans.eps, plans.u, plans.observed.slots
-    old, share = torch.zeros_like(u0), torch.zeros_like(u0[..., :1])
-    for index, (state, view) in enumerate(zip(plans.states, plans.views, strict=True)):
-        blend = continuation(state, view, slots[index], u0.shape[2], policy.stitch_steps)
-        if blend is not None:
-            previous, weight = (torch.as_tensor(x, dtype=u0.dtype) for x in blend)
-            rows, steps = slice(0, len(slots[index])), weight.shape[1]
-            old[index, rows, :steps] = previous.to(u0.device)
-            share[index, rows, :steps, 0] = weight.to(u0.device)
-    with torch.no_grad():
-        actions = policy.normalizer.denormalize(eps + u0)
-        blended = policy.normalizer.normalize(share * old + (1 - share) * actions) - eps
-    steps = min(CORRECTION_STITCH_STEPS, share.shape[2])
-    gain = torch.ones_like(share)
-    gain[:, :, :steps] -= torch.where(
-        share[:, :, :steps] > 0, share.new_tensor(blend_share(steps))[:, None], 0.0
-    )
-    return plans.replace(u=blended, gain=gain)
+    """Blend each new base plan into the plan being executed (blending first,
+    :func:`~policies.learned.plan_stitching.blend_first`): ``u`` of plans whose first
+    actions are the blend, and the gain of the avoidance steps' corrections."""
+    u, gain = blend_first(
+        plans.states, plans.views, plans.observed.slots, plans.eps, plans.u,
+        policy.normalizer, policy.stitch_steps,
+    )  # fmt: skip
+    return plans.replace(u=u, gain=gain)
 
 
 def decode(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
@@ -302,6 +284,30 @@ PHASE_OF = {
 }
 
 
+def scene_maps(policy: PipelinePolicy, views: Sequence[SceneView]) -> DrivableMap | MapStack:
+    """The scenes' maps for one lookup: their shared map, or a :class:`MapStack` in scene
+    order, kept (shared with the policy's spawned copies) while it holds every map asked
+    for."""
+    maps = [view.map for view in views]
+    if all(m is maps[0] for m in maps):
+        return maps[0]
+    stack = policy._maps.get("stack")
+    if stack is None or not all(id(m) in stack.positions for m in maps):
+        stack = prepare_maps(policy, maps)
+    return stack.view([stack.positions[id(m)] for m in maps])
+
+
+def prepare_maps(policy: PipelinePolicy, maps: Sequence[DrivableMap]) -> MapStack:
+    """Stack ``maps`` (distinct ones, in order) for :func:`scene_maps` of ``policy`` and its
+    spawned copies."""
+    unique = list({id(m): m for m in maps}.values())
+    stack = policy._maps.get("stack")
+    if stack is None or [id(m) for m in stack.maps] != [id(m) for m in unique]:
+        stack = MapStack(unique)
+        policy._maps["stack"] = stack
+    return stack
+
+
 def plan_scenes(scenes: Sequence[PipelinePolicy], views: Sequence[SceneView]) -> None:
     """One planning cycle for B scenes: ``scenes[b]`` plans ``views[b]`` now.
 
@@ -336,7 +342,7 @@ def plan_scenes(scenes: Sequence[PipelinePolicy], views: Sequence[SceneView]) ->
         start = time.perf_counter()
         planner.clock = PhaseClock(planner.device)
         states = [scene.state for scene in scenes]
-        plans = PlanSet(views=views, states=states, drivable_map=planner.map_of(views))
+        plans = PlanSet(views=views, states=states, drivable_map=scene_maps(planner, views))
         for stage in planner.stages:
             begin = time.perf_counter()
             with exact_scene_widths():  # a scene's network outputs are those it gets alone
@@ -366,6 +372,8 @@ __all__ = [
     "generate",
     "hold",
     "plan_scenes",
+    "prepare_maps",
+    "scene_maps",
     "rank",
     "restitch",
     "stand",

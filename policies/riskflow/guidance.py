@@ -55,8 +55,8 @@ from policies.learned.guidance_losses import (
     sum_per_scene,
     target_rows,
 )
+from policies.learned.plan_overlap import Separation, separation_term
 from policies.learned.sampler import decode_plans
-from policies.learned.separation_term import Separation, separation_term
 from policies.pipeline.plan_set import PlanSet
 from policies.riskflow.guidance_scene import (
     OPTIMIZERS,

@@ -69,8 +69,8 @@ from policies.learned.guidance_losses import (
     sum_per_scene,
     target_rows,
 )
+from policies.learned.plan_overlap import separation_term
 from policies.learned.sampler import decode_plans
-from policies.learned.separation_term import separation_term
 from policies.pipeline.stages import stand_still
 from riskflow_env._array import attach_gradient
 from riskflow_env.config import DynamicsConfig

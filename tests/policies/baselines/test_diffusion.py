@@ -23,7 +23,7 @@ from policies.learned.config import ModelConfig
 from policies.learned.data import ActionNormalizer
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.guidance_losses import adversarial_loss
-from policies.learned.plan_penalties import pair_separation
+from policies.learned.plan_overlap import pair_separation
 from policies.learned.sampler import decode_plans, sample
 from policies.learned.synthetic import synthetic_batch
 from policies.learned.validation import evaluate

@@ -11,8 +11,7 @@ from policies.baselines.diffusion.sampling import OneCallSampler
 from policies.baselines.nominal import NominalGenerator
 from policies.learned.data import ActionNormalizer
 from policies.learned.plan_avoidance import avoid_overlaps, guided_pairs
-from policies.learned.plan_overlap import overlap_scores
-from policies.learned.plan_penalties import pair_separation
+from policies.learned.plan_overlap import overlap_scores, pair_separation
 from policies.riskflow.guidance import plans_from_velocity
 from policies.riskflow.policy import RiskFlowAdversary
 from riskflow_env.config import DynamicsConfig

@@ -29,7 +29,7 @@ def sizes(count: int) -> tuple[torch.Tensor, torch.Tensor]:
 def test_overlap_score_tests_only_pairs_that_can_touch_and_equals_every_pair():
     """Skipping pairs whose centres stay farther apart than their half-diagonals changes
     neither the score nor its gradient: the dense sum over every pair, to float rounding."""
-    from policies.learned.plan_penalties import pair_separation
+    from policies.learned.plan_overlap import pair_separation
 
     g = torch.Generator().manual_seed(3)
     num_scenes, samples, agents, steps = 2, 3, 14, 20
@@ -62,7 +62,7 @@ def test_the_closed_form_overlap_gradient_is_autograds():
     """``overlap_gradient`` (no autograd graph) against autograd through
     ``overlap_scores``, on joint plans with many overlaps; ``closest`` is the smallest
     separation among the pairs tested, and a slack tests more pairs."""
-    from policies.learned.plan_penalties import pair_separation
+    from policies.learned.plan_overlap import pair_separation
 
     g = torch.Generator().manual_seed(5)
     num_scenes, samples, agents, steps = 2, 2, 9, 12

@@ -7,8 +7,7 @@ import dataclasses
 
 import torch
 
-from policies.learned.plan_penalties import pair_separation
-from policies.learned.separation_term import separation_term
+from policies.learned.plan_overlap import pair_separation, separation_term
 from policies.riskflow.guidance import PER_AGENT, GuidanceConfig, guided_rows
 from tests.policies.riskflow.guidance_scenes import make_scene, mask_of
 

@@ -6,7 +6,7 @@ unguided generator, STRIVE-style and CTG-style, recorded before the planning cyc
 a pipeline of stages (and equal, bit for bit, to the rollouts after it on this machine);
 ``riskflow/ego`` re-recorded, the same way, when target ``"ego"`` became one attacker at a
 time (``policies.learned.ranking.ego_attacker``), again when its separation term began
-to keep the attacker clear of the bystanders (``policies.learned.separation_term``), and
+to keep the attacker clear of the bystanders (``policies.learned.plan_overlap``), and
 when its guidance horizon became 3 s and its braking was bounded by the human p99
 (``policies.learned.guidance_losses.HORIZONS``, ``ATTACK_ACCEL``).
 A refactoring that changes an operation's order may move them by float rounding, which a

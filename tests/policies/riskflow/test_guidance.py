@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from policies.learned.guidance_losses import ATTACK_ACCEL, HORIZONS
-from policies.learned.plan_penalties import pair_separation
+from policies.learned.plan_overlap import pair_separation
 from policies.learned.sampler import base_velocity, sample
 from policies.learned.synthetic import synthetic_batch
 from policies.riskflow.guidance import (
