@@ -31,7 +31,7 @@ from riskflow_env.geometry import footprint_points
 from riskflow_env.maps import DrivableMap, MapStack
 
 __all__ = [
-    "ATTACK_ACCEL",
+    "HUMAN_ACCEL",
     "HORIZONS",
     "ObjectiveConfig",
     "TARGETS",
@@ -59,12 +59,13 @@ class Target(str, Enum):
 
 
 TARGETS = tuple(target.value for target in Target)  # ("others", "ego")
-ATTACK_ACCEL = 6.0
-"""[m/s^2] with target ``"ego"``, output-space guidance keeps the attacker's acceleration
-and braking within this: the p99 |acceleration| of the data the shipped generator learned
-from (``policies.stress.failures.HUMAN_BOUNDS``, the bound the failure analysis holds
-attackers to). The dynamics allow braking at 8 m/s^2, and brake-checks in front of the
-ego at 6.2-6.8 m/s^2 made attackers implausible."""
+HUMAN_ACCEL = 6.0
+"""[m/s^2] the p99 |acceleration| of the data the shipped generator learned from
+(``policies.stress.failures.HUMAN_BOUNDS``, the bound the failure analysis holds attackers
+to); the dynamics allow braking at 8 m/s^2. With target ``"ego"``, output-space guidance
+keeps the attacker's acceleration and braking within it (brake-checks in front of the
+ego at 6.2-6.8 m/s^2 made attackers implausible); the avoidance steps' braking fallback
+brakes at most this hard (:func:`policies.learned.plan_avoidance.brake_to_clear`)."""
 HORIZONS = {"others": None, "ego": 30}
 """[steps] the default ``T_g`` of ``L_adv`` and ``L_sep`` per target: the whole plan with
 ``"others"`` (the paper's), 3 s with ``"ego"``. Attacking the ego over the whole 5 s plan,

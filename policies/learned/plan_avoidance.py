@@ -54,6 +54,19 @@ pairs, and without ``L_adv`` (``lambda_adv = 0``) guidance pulls no pair togethe
 every pair is corrected. ``steps = 0`` leaves the plans as they are; the MeanFlow
 adversaries take ``DEFAULT_AVOID_STEPS`` (20) by default (20 steps leave half the
 overlaps and centre off-road steps of 10).
+
+**Braking fallback** (:func:`brake_to_clear`). The gradient of the penetration depth
+points along the SAT axis of least overlap, which for a car closing on one ahead of it
+but offset in its lane is sideways: the steps steer it past, the map term steers it back
+onto the road, and the plan keeps running into the car ahead, cycle after cycle (an
+unguided car struck a standing ego at 7.8 m/s that way, its plans overlapping the ego by
+0.7-0.9 m for 2.5 s). After the steps, a variable whose plan still overlaps a scored
+pair's box that is ahead of it at the first overlapping step brakes at the constant rate
+that stops it ``BRAKE_MARGIN`` short of its last clear position (at most ``HUMAN_ACCEL``,
+6 m/s^2, reached from its first action at ``BRAKE_JERK``), keeping its yaw rates: what a
+driver does behind a car that is not getting out of the way. The guided vehicles do not
+brake so: their plans are guidance's, whose separation term keeps them clear of the
+others.
 """
 
 from __future__ import annotations
@@ -65,14 +78,26 @@ from torch import Tensor
 
 from policies.learned.adam import Adam
 from policies.learned.data import Normalizer
-from policies.learned.guidance_losses import MapTerm
-from policies.learned.plan_overlap import OVERLAP_HORIZON, overlap_gradient, scored_pairs
+from policies.learned.guidance_losses import HUMAN_ACCEL, MapTerm
+from policies.learned.plan_overlap import (
+    OVERLAP_HORIZON,
+    overlap_gradient,
+    pair_boxes,
+    scored_pairs,
+    touching_pairs,
+)
 from policies.learned.plan_stitching import REST_SPEED
 from policies.learned.sampler import decode_plans
 from riskflow_env.config import DynamicsConfig
-from riskflow_env.dynamics import SPEED, rollout_with_vjp
+from riskflow_env.dynamics import SPEED, rollout, rollout_with_vjp
+from riskflow_env.geometry import separation
 
 DEFAULT_AVOID_STEPS = 20  # avoidance steps of the MeanFlow adversaries by default
+BRAKE_MARGIN = 0.5
+BRAKE_JERK = 20.0
+"""[m/s^3] the braking fallback reaches its rate from the plan's first action at this
+jerk (within the p99 of the data, 27.8 m/s^3, ``policies.stress.failures.HUMAN_BOUNDS``)"""
+"""[m] a braking vehicle stops this far short of its last clear position (:func:`brake_to_clear`)"""
 STOP_MARGIN = 0.25
 """[m] the loop stops once no pair overlaps, every footprint is on the road and the
 closest pair is this far apart (module docstring)"""
@@ -95,6 +120,8 @@ def avoid_overlaps(
     horizon: int = OVERLAP_HORIZON,
     gain: Tensor | None = None,
     exempt: Tensor | None = None,
+    brake: bool = True,
+    guided: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Avoidance steps on the base plans of B scenes (module docstring).
 
@@ -118,6 +145,11 @@ def avoid_overlaps(
         exempt: ``(B, A, A)`` bool, pairs whose overlap is not corrected, or None (every
             pair is). The guided adversaries leave out the pairs that guidance decides:
             a controllable vehicle and one of its targets (:func:`guided_pairs`).
+        brake: after the steps, the variables whose plan still runs into a box ahead of
+            them brake to stop short of it (:func:`brake_to_clear`; with ``steps > 0``).
+        guided: ``(B, A)`` bool, the rows that guidance will bend (``A_c``), which do not
+            brake (their plans are guidance's, and its separation term keeps them clear of
+            the others), or None.
 
     Returns:
         ``(u, actions, trajectories)``: ``(B, A, T, 2)``, ``(B, A, T, 2)``, ``(B, A, T, 4)``.
@@ -139,6 +171,7 @@ def avoid_overlaps(
             pairs = pairs & (variable[:, :, None] | variable[:, None, :])
             if exempt is not None:
                 pairs = pairs & ~exempt
+            scored = (pairs, length, width)  # the loop narrows them to the scenes still going
             zero = torch.zeros_like(eps[0, 0, :1])  # (1, 2)
             scale = normalizer.denormalize(zero + 1.0) - normalizer.denormalize(zero)  # da/du
             moving = (eps + u0)[..., :horizon, :].flatten(0, 1)[rows]  # (V, H, 2)
@@ -195,12 +228,108 @@ def avoid_overlaps(
             else:
                 u_rows[rows, :horizon] += share * delta
     actions, trajectories = decode_plans(eps + u, state, agent_mask, normalizer, dynamics)
+    if brake and steps > 0 and rows.numel() > 0:
+        with torch.no_grad():
+            may_brake = variable if guided is None else variable & ~guided.bool()
+            braked = brake_to_clear(actions, trajectories, state, *scored, may_brake, dynamics)
+            if braked.numel() > 0:  # their residual, as everywhere: denorm(eps + u) = actions
+                flat = (eps.flatten(0, 1)[braked], actions.flatten(0, 1)[braked])
+                u.view(-1, *u.shape[2:])[braked] = normalizer.normalize(flat[1]) - flat[0]
     return u, actions, trajectories
+
+
+def brake_to_clear(
+    actions: Tensor,
+    trajectories: Tensor,
+    state: Tensor,
+    pairs: Tensor,
+    length: Tensor,
+    width: Tensor,
+    variable: Tensor,
+    dynamics: DynamicsConfig,
+    margin: float = BRAKE_MARGIN,
+) -> Tensor:
+    """In place: the variables whose plan still runs into a box ahead of them brake to
+    stop short of it (module docstring).
+
+    Over the plans' first ``H`` steps (``pairs``' horizon: the steps of ``trajectories``
+    scored, up to ``OVERLAP_HORIZON``), a variable brakes when one of its ``pairs``
+    overlaps and the other box's centre is ahead of it (along its heading) at the first
+    overlapping step: from its plan's first action, its acceleration falls at
+    ``BRAKE_JERK`` to a constant braking rate ``D`` and stays at most ``-D``, ``D`` the
+    gentlest rate that stops it within ``d``, the distance its plan travels before that
+    step less ``margin``, and at most ``HUMAN_ACCEL`` (a driver's hard braking; the
+    dynamics allow more). The yaw rates are kept, and the row is rolled out again.
+
+    Args:
+        actions, trajectories: ``(B, A, T, 2)``, ``(B, A, T, 4)`` the plans.
+        state: ``(B, A, 4)`` current states; ``length``, ``width`` ``(B, A)`` [m].
+        pairs: ``(B, A, A)`` bool, the pairs the avoidance steps scored.
+        variable: ``(B, A)`` bool, the rows that may brake.
+        dynamics: the bounds and the rollout's time step.
+        margin: [m] kept to the last clear position.
+
+    Returns:
+        ``(R,)`` the flat ``B * A`` indices of the rows that brake.
+    """
+    num_scenes, num_agents = variable.shape
+    horizon = min(OVERLAP_HORIZON, trajectories.shape[2])
+    near = trajectories[:, None, :, :horizon]  # (B, 1, A, H, 4): one joint plan per scene
+    b, m, i, j = touching_pairs(near, length, width, pairs)
+    gap = separation(*pair_boxes(near, length, width, b, m, i, j))  # (P, H)
+    overlap = gap < 0
+    hit = overlap.any(dim=-1)
+    first = torch.argmax(overlap.to(torch.int8), dim=-1)  # (P,) first overlapping step
+    stop_before = torch.full(
+        (num_scenes * num_agents,), horizon, dtype=torch.long, device=variable.device
+    )
+    for me, other in ((i, j), (j, i)):
+        own, theirs = near[b, 0, me, first], near[b, 0, other, first]  # (P, 4)
+        heading = torch.stack([torch.cos(own[:, 3]), torch.sin(own[:, 3])], dim=-1)
+        ahead = ((theirs[:, :2] - own[:, :2]) * heading).sum(dim=-1) > 0
+        brake = hit & ahead & variable[b, me]
+        stop_before = stop_before.scatter_reduce(
+            0, (b * num_agents + me)[brake], first[brake], reduce="amin"
+        )
+    rows = torch.nonzero(stop_before < horizon).flatten()
+    if rows.numel() == 0:
+        return rows
+    now = state.flatten(0, 1)[rows]
+    xy = torch.cat([now[:, None, :2], trajectories.flatten(0, 1)[rows, :, :2]], dim=1)
+    steps = torch.linalg.vector_norm(xy[:, 1:] - xy[:, :-1], dim=-1)  # (R, T)
+    travelled = torch.cat([steps[:, :1] * 0, steps.cumsum(dim=1)], dim=1)  # after k steps
+    clear = travelled.gather(1, stop_before[rows, None])[:, 0] - margin
+    speed = now[:, SPEED]
+    braked = actions.flatten(0, 1)[rows]
+    braked[..., 0] = torch.minimum(braked[..., 0], _braking(braked[..., 0], speed, clear, dynamics))
+    flat = num_scenes * num_agents
+    actions.view(flat, *actions.shape[2:])[rows] = braked
+    trajectories.view(flat, *trajectories.shape[2:])[rows] = rollout(now, braked, dynamics)
+    return rows
 
 
 def _rows(share: Tensor | float, index: Tensor) -> Tensor | float:
     """The rows ``index`` of a per-row ``share``, or the scalar share itself."""
     return share[index] if isinstance(share, Tensor) else share
+
+
+def _braking(accel: Tensor, speed: Tensor, clear: Tensor, dynamics: DynamicsConfig) -> Tensor:
+    """``(R, T)`` the braking profile of :func:`brake_to_clear`: from the plan's first
+    acceleration down at ``BRAKE_JERK`` to ``-D``, ``D`` the gentlest rate on a 0.05 m/s^2
+    grid up to ``HUMAN_ACCEL`` whose stop (the rollout's speed bound at 0, trapezoidal
+    steps) lies within ``clear`` [m]; the strongest where none does. ``accel`` ``(R, T)``
+    the plans' accelerations, ``speed`` ``(R,)`` the current speeds."""
+    strongest = min(-dynamics.accel_min, HUMAN_ACCEL)
+    rates = torch.arange(0.0, strongest + 1e-9, 0.05, dtype=accel.dtype, device=accel.device)
+    steps = torch.arange(accel.shape[1], dtype=accel.dtype, device=accel.device)
+    ramp = accel[:, :1] - BRAKE_JERK * dynamics.dt * steps  # (R, T)
+    profile = torch.minimum(accel[:, None], torch.maximum(ramp[:, None], -rates[:, None]))
+    speeds = torch.clamp(speed[:, None, None] + dynamics.dt * profile.cumsum(dim=-1), min=0)
+    before = torch.cat([speed[:, None, None].expand(-1, rates.numel(), 1), speeds[..., :-1]], -1)
+    travel = (0.5 * (before + speeds) * dynamics.dt).sum(dim=-1)  # (R, G) [m]
+    stops = travel <= clear[:, None]
+    pick = torch.where(stops.any(dim=1), torch.argmax(stops.to(torch.int8), dim=1), -1)
+    return torch.maximum(ramp, -rates[pick][:, None])
 
 
 def guided_pairs(controllable: Tensor, targets: Tensor) -> Tensor:
@@ -211,4 +340,12 @@ def guided_pairs(controllable: Tensor, targets: Tensor) -> Tensor:
     return pairs | pairs.transpose(1, 2)
 
 
-__all__ = ["DEFAULT_AVOID_STEPS", "STOP_MARGIN", "avoid_overlaps", "guided_pairs"]
+__all__ = [
+    "BRAKE_JERK",
+    "BRAKE_MARGIN",
+    "DEFAULT_AVOID_STEPS",
+    "STOP_MARGIN",
+    "avoid_overlaps",
+    "brake_to_clear",
+    "guided_pairs",
+]

@@ -73,8 +73,8 @@ def overlap_scores(
     num_scenes, num_samples = trajectories.shape[:2]
     if pairs is None:
         pairs = scored_pairs(length, width, agent_mask, now)
-    b, m, i, j = _touching(trajectories, length, width, pairs)
-    depth = torch.relu(-separation(*_boxes(trajectories, length, width, b, m, i, j)))  # (P, T)
+    b, m, i, j = touching_pairs(trajectories, length, width, pairs)
+    depth = torch.relu(-separation(*pair_boxes(trajectories, length, width, b, m, i, j)))  # (P, T)
     per_pair = (depth**2).sum(dim=-1)
     scores = trajectories.new_zeros(num_scenes * num_samples)
     return scores.index_add(0, b * num_samples + m, per_pair).reshape(num_scenes, num_samples)
@@ -99,14 +99,14 @@ def overlap_gradient(
         wherever no pair overlaps, and ``(B, M)`` the smallest separation [m] of the
         pairs tested in each joint plan (``inf`` where none is).
     """
-    b, m, i, j = _touching(trajectories, length, width, pairs, slack)
+    b, m, i, j = touching_pairs(trajectories, length, width, pairs, slack)
     gradient = torch.zeros_like(trajectories)
     num_scenes, num_samples, num_agents = trajectories.shape[:3]
     closest = trajectories.new_full((num_scenes * num_samples,), float("inf"))
     if b.numel() == 0:
         return gradient, closest.reshape(num_scenes, num_samples)
     gap, d_xy, d_yaw_i, d_yaw_j = separation_gradient(
-        *_boxes(trajectories, length, width, b, m, i, j)
+        *pair_boxes(trajectories, length, width, b, m, i, j)
     )
     weight = 2.0 * torch.clamp(gap, max=0.0)  # d relu(-gap)^2 / d gap, (P, T)
     d_xy = weight[..., None] * d_xy
@@ -229,7 +229,7 @@ def separation_term(
     return Separation(scene.length[rows], scene.width[rows], same, config.resolved_horizon, fixed)
 
 
-def _touching(
+def touching_pairs(
     trajectories: Tensor, length: Tensor, width: Tensor, pairs: Tensor, slack: float = 0.0
 ) -> tuple[Tensor, ...]:
     """``(b, m, i, j)``: the scored pairs of each joint plan whose boxes can touch (their
@@ -245,7 +245,9 @@ def _touching(
     return b[pair], m, i[pair], j[pair]
 
 
-def _boxes(trajectories: Tensor, length: Tensor, width: Tensor, b, m, i, j) -> tuple[Tensor, ...]:
+def pair_boxes(
+    trajectories: Tensor, length: Tensor, width: Tensor, b, m, i, j
+) -> tuple[Tensor, ...]:
     """The boxes of pairs ``(b, m, i, j)`` as :func:`~riskflow_env.geometry.separation`
     takes them: ``(P, T, 2)``, ``(P, T)``, ``(P, 1)``, ``(P, 1)`` for i, then for j."""
     xy, yaw = trajectories[..., :2], trajectories[..., 3]
@@ -261,7 +263,9 @@ __all__ = [
     "Separation",
     "overlap_gradient",
     "overlap_scores",
+    "pair_boxes",
     "pair_separation",
     "scored_pairs",
     "separation_term",
+    "touching_pairs",
 ]

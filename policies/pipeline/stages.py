@@ -163,6 +163,7 @@ def avoid(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
             plans.eps, plans.u, scene.state, batch.length, batch.width, scene.agent_mask,
             map_term_of, policy.normalizer, policy.dynamics, steps=policy.avoid_steps,
             step_size=policy.avoid_step_size, gain=plans.gain, exempt=exempt,
+            guided=controllable,
         )  # fmt: skip
     return plans.replace(u=u0, base_actions=actions, base_trajectories=trajectories)
 

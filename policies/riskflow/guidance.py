@@ -43,7 +43,7 @@ from torch import Tensor
 from policies.learned.adam import Adam
 from policies.learned.data import Normalizer
 from policies.learned.guidance_losses import (
-    ATTACK_ACCEL,
+    HUMAN_ACCEL,
     TARGETS,
     Target,
     adversarial_loss,
@@ -170,12 +170,12 @@ class _Objective:
         self.map_term = map_term(scene, rows, scene.eps.shape[1], config, scene_of_row)
         self.lambda_sep = config.lambda_sep
         self.separation = separation_term(scene, rows, config, scene_of_row, *(bystanders or ()))
-        self.accel_limit = ATTACK_ACCEL if config.target == Target.EGO else math.inf
+        self.accel_limit = HUMAN_ACCEL if config.target == Target.EGO else math.inf
 
     def bounds(self) -> tuple[Tensor, Tensor]:
         """(C, T, 2) lower and upper bounds of ``u_c`` that keep the actions inside the
         dynamics' accel and yaw-rate bounds (and, attacking the ego, the acceleration
-        within ``ATTACK_ACCEL``)."""
+        within ``HUMAN_ACCEL``)."""
         dyn = self.dynamics
         accel_min = max(dyn.accel_min, -self.accel_limit)
         accel_max = min(dyn.accel_max, self.accel_limit)

@@ -92,8 +92,9 @@ def test_closed_form_steps_agree_with_autograd():
     mask[0, 3] = True
     eps = 0.3 * torch.randn(eps.shape, generator=torch.Generator().manual_seed(0)).double()
     u, _, _ = avoid_overlaps(
-        eps, u0, state, length, width, mask, None, NORMALIZER, DYNAMICS, steps=12, step_size=0.1
-    )
+        eps, u0, state, length, width, mask, None, NORMALIZER, DYNAMICS, steps=12,
+        step_size=0.1, brake=False,
+    )  # fmt: skip
     expected = _autograd_steps(eps, u0, state, length, width, mask, 12, 0.1)
     assert not torch.equal(u, u0)
     torch.testing.assert_close(u, expected, rtol=1e-9, atol=1e-9)
@@ -111,14 +112,15 @@ def test_a_gain_blends_the_correction():
     gain[:, 2, :3] = 0.0
     u, _, _ = avoid_overlaps(
         eps, u0, state, length, width, mask, None, NORMALIZER, DYNAMICS, steps=12,
-        step_size=0.1, gain=gain,
+        step_size=0.1, gain=gain, brake=False,
     )  # fmt: skip
     expected = _autograd_steps(eps, u0, state, length, width, mask, 12, 0.1, gain)
     torch.testing.assert_close(u, expected, rtol=1e-9, atol=1e-9)
     assert torch.equal(u[:, 2, :3], u0[:, 2, :3]) and not torch.equal(u[:, 2], u0[:, 2])
     ungained, _, _ = avoid_overlaps(
-        eps, u0, state, length, width, mask, None, NORMALIZER, DYNAMICS, steps=12, step_size=0.1
-    )
+        eps, u0, state, length, width, mask, None, NORMALIZER, DYNAMICS, steps=12,
+        step_size=0.1, brake=False,
+    )  # fmt: skip
     # the first steps move less than without the gain
     assert (u - u0)[:, 1, 0].abs().sum() < (ungained - u0)[:, 1, 0].abs().sum()
 

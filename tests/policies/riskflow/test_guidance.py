@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from policies.learned.guidance_losses import ATTACK_ACCEL, HORIZONS
+from policies.learned.guidance_losses import HORIZONS, HUMAN_ACCEL
 from policies.learned.plan_overlap import pair_separation
 from policies.learned.sampler import base_velocity, sample
 from policies.learned.synthetic import synthetic_batch
@@ -134,9 +134,9 @@ def test_horizon_defaults_per_target():
 
 def test_attacker_of_the_ego_brakes_within_the_human_bound():
     """A car ahead of a slower ego closes on it by braking: attacking the ego it brakes at
-    ``ATTACK_ACCEL`` at most (the failure analysis's human bound); with the paper's
+    ``HUMAN_ACCEL`` at most (the failure analysis's human bound); with the paper's
     target the dynamics' bound (8 m/s^2) is the limit."""
-    assert ATTACK_ACCEL == HUMAN_BOUNDS.accel
+    assert HUMAN_ACCEL == HUMAN_BOUNDS.accel
     scene = make_scene([[0.0, 0.0, 8.0, 0.0], [25.0, 0.0, 20.0, 0.0]])
     braking = {}
     for target in ("ego", "others"):
@@ -144,7 +144,7 @@ def test_attacker_of_the_ego_brakes_within_the_human_bound():
         result = guide(scene, mask_of(2, [1]), NORMALIZER, config)
         assert result.losses[-1, 0] < 0.9 * result.losses[0, 0]
         braking[target] = -float(result.actions[1, :, 0].min())
-    assert braking["ego"] == pytest.approx(ATTACK_ACCEL)
+    assert braking["ego"] == pytest.approx(HUMAN_ACCEL)
     assert braking["others"] == pytest.approx(-DEFAULT_CONFIG.accel_min)
 
 
