@@ -165,3 +165,11 @@ def test_the_rl_evaluation_reports_the_avoidable_failure_rate():
     summary = summarize_ego([avoidable, clear])
     assert summary["avoidable_failure_rate"]["value"] == 0.5
     assert summary["ego_collision_rate"]["value"] == 0.5
+
+
+def test_a_bound_held_exactly_is_within_it():
+    """Finite differences read a vehicle braking at exactly the bound a hair over it."""
+    exact = {"accel": 6.000000000000004, "jerk": 20.0, "yaw_rate": 0.3}
+    assert HUMAN_BOUNDS.admit(exact)
+    assert not HUMAN_BOUNDS.admit(exact | {"accel": 6.001})
+    assert not HUMAN_BOUNDS.admit(exact | {"jerk": 28.0})
