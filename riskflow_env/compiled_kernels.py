@@ -101,10 +101,11 @@ def _sdf(flat, grid, x, y):
     gc, gr = 1.0 - fc, 1.0 - fr
     top = v00 * gc + v01 * fc
     bottom = v10 * gc + v11 * fc
+    value = top * gr + bottom * fr
     off_c, off_r = col - col_c, row - row_c
-    if off_c == 0.0 and off_r == 0.0:  # on the raster: the distance term is 0
-        return top * gr + bottom * fr + 0.0
-    return top * gr + bottom * fr + math.sqrt(off_c * off_c + off_r * off_r) * resolution
+    if value > 0.0 and (off_c != 0.0 or off_r != 0.0):  # off-road beyond the raster
+        return value + math.sqrt(off_c * off_c + off_r * off_r) * resolution
+    return value + 0.0
 
 
 @_jit

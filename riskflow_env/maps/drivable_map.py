@@ -6,7 +6,12 @@ Conventions (docs/explanation/architecture.md):
   pixel [0, 0]; row ``i`` covers y in [oy + i*res, oy + (i+1)*res), column ``j``
   covers x in [ox + j*res, ox + (j+1)*res). Rows follow +y, columns follow +x.
 * ``sdf`` [m] is negative inside the drivable area, positive outside, zero on the
-  boundary; beyond the raster everything is off-road.
+  boundary. Beyond the raster its border pixels continue outward (the lookups clamp
+  onto them): a road that crosses the border goes on straight, with the border pixel's
+  SDF, so vehicles can drive off the map where its roads leave it; off-road ground stays
+  off-road, its SDF growing with the distance out of the raster
+  (:func:`~riskflow_env.maps.sampling.bilinear`). The builders run the roads that leave
+  the map to the border (:func:`~riskflow_env.maps.builders.from_lanes`).
 * Lookups (``sdf_at``, ``is_drivable``, ``crop``) take numpy arrays or torch tensors
   (any device, differentiable wrt the query) through one implementation; the torch
   copy of each raster is made once per (device, dtype) and kept on the map.
@@ -156,8 +161,9 @@ class DrivableMap:
     def sdf_at(self, xy: Array) -> Array:
         """Signed distance [m] at world points, bilinear over pixel centres.
 
-        Beyond the outermost pixel centres the value is the nearest border value plus
-        the distance to it, so it keeps growing away from the map.
+        Beyond the outermost pixel centres the border continues outward: the value is
+        the nearest border pixel's on a road that crosses the border, and off the road
+        that value plus the distance to it (:func:`~riskflow_env.maps.sampling.bilinear`).
 
         Args:
             xy: (..., 2) [m], numpy or torch (differentiable wrt ``xy``).
@@ -204,8 +210,8 @@ class DrivableMap:
             yaw: (N,) [rad] agent headings, same backend as ``xy``.
             size: crop side [px], >= 1.
             resolution: crop pixel size [m/px]; the map's when None.
-            layer: "drivable" gives the drivable fraction in [0, 1] (0 beyond the
-                raster); "sdf" gives the signed distance [m].
+            layer: "drivable" gives the drivable fraction in [0, 1], beyond the raster
+                its border pixel's; "sdf" gives the signed distance [m] (:meth:`sdf_at`).
 
         Returns:
             (N, size, size) in ``xy``'s backend, dtype and device.
@@ -270,8 +276,8 @@ class DrivableMap:
         if name not in self._tables:
             if name == "sdf":
                 self._tables[name] = self.sdf
-            else:  # drivable as float with a one-pixel off-road ring
-                self._tables[name] = np.pad(self.drivable.astype(np.float32), 1)
+            else:  # drivable as float with a one-pixel ring repeating the border pixels
+                self._tables[name] = np.pad(self.drivable.astype(np.float32), 1, mode="edge")
         base = self._tables[name]
         if not is_torch(like):
             return base

@@ -264,8 +264,11 @@ def signed_distance(drivable: np.ndarray, resolution: float) -> np.ndarray:
     Negative inside the drivable area, positive outside. Both sides come from
     ``scipy.ndimage.distance_transform_edt`` (distance between pixel centres); the
     boundary lies half a pixel beyond the last pixel of a side, so each side's
-    distance is reduced by 0.5 px. Everything beyond the raster counts as not
-    drivable (the raster is padded with one non-drivable pixel first).
+    distance is reduced by 0.5 px. The ground beyond the raster is its border pixels
+    continued outward (as the map's lookups read it), which puts no boundary nearer to
+    any pixel than the raster's own: a road crossing the border has no edge there. An
+    all-drivable raster has no boundary at all; its distances are the raster's size,
+    ``H + W`` px.
 
     Args:
         drivable: (H, W) bool, at least one True pixel.
@@ -274,11 +277,9 @@ def signed_distance(drivable: np.ndarray, resolution: float) -> np.ndarray:
     Returns:
         (H, W) float32 [m]; |value| >= resolution / 2 everywhere.
     """
-    padded = np.pad(drivable, 1, constant_values=False)
-    inside = ndimage.distance_transform_edt(padded)[1:-1, 1:-1]
     if np.all(drivable):
-        outside = np.zeros(drivable.shape)
-    else:
-        outside = ndimage.distance_transform_edt(~drivable)
+        return np.full(drivable.shape, -sum(drivable.shape) * resolution, dtype=np.float32)
+    inside = ndimage.distance_transform_edt(drivable)
+    outside = ndimage.distance_transform_edt(~drivable)
     sdf = np.where(drivable, -(inside - 0.5), outside - 0.5) * resolution
     return sdf.astype(np.float32)

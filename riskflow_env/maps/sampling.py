@@ -30,9 +30,11 @@ def bilinear(
         xy: (..., 2) [m] world points (differentiable in torch).
         origin: (x, y) [m] lower-left corner of pixel [0, 0].
         resolution: pixel size [m/px].
-        extend: beyond the outermost pixel centres the query is clamped onto them;
-            with ``extend`` the distance [m] from the clamped point to the query is
-            added (right for a signed distance field: it keeps growing outside).
+        extend: beyond the outermost pixel centres the query is clamped onto them (the
+            border pixels continue outward); with ``extend`` (a signed distance field)
+            the distance [m] from the clamped point to the query is added where the
+            clamped value is positive: off-road ground beyond the border keeps growing
+            away from the road, a road that crosses the border goes on straight.
 
     Returns:
         (...) interpolated values. A torch ``xy`` that requires grad gets the values
@@ -132,6 +134,7 @@ def interpolate_flat(
         # safe_norm's guard is for autograd only; a query without it takes the plain root
         squared = off_c * off_c + off_r * off_r
         distance = safe_norm(xp, off_c, off_r) if requires_grad(xy) else xp.sqrt(squared)
+        distance = xp.where(value > 0, distance, xp.zeros_like(distance))
         value = value + distance * resolution
     if not with_gradient:
         return value, None
@@ -142,10 +145,13 @@ def interpolate_flat(
     d_col = ((v01 - v00) * gr + (v11 - v10) * fr) * (inside_c / resolution)
     d_row = (bottom - top) * (inside_r / resolution)
     if extend:  # d(|q - clamp(q)| * resolution) / dxy: the unit vector off the raster
-        # on the raster both offsets are 0 and so is the distance: 0 / 1 adds nothing
-        distance = xp.where(distance > 0, distance, xp.ones_like(distance))
-        d_col = d_col + off_c / distance
-        d_row = d_row + off_r / distance
+        # on the raster, or where the value is not positive, the distance is 0 (so are
+        # the offsets on the raster; beyond it the distance is 0 only for a value <= 0)
+        grow = distance > 0
+        distance = xp.where(grow, distance, xp.ones_like(distance))
+        zero = xp.zeros_like(distance)
+        d_col = d_col + xp.where(grow, off_c / distance, zero)
+        d_row = d_row + xp.where(grow, off_r / distance, zero)
     return value, xp.stack([d_col, d_row], axis=-1)
 
 

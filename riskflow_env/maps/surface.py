@@ -1,4 +1,5 @@
-"""Drivable surface of a set of lanes: lane polygons, junction patches and entry aprons.
+"""Drivable surface of a set of lanes: lane polygons, junction patches, entry aprons and
+the open ends where roads leave the map.
 
 * Lane polygon: the centreline offset by +-width/2 along its normals, flat ends
   (not a round-capped buffer, which would bulge past lane ends).
@@ -8,6 +9,10 @@
   that would otherwise put vehicles driving through the junction off-road.
 * Entry apron: a straight stub of the lane's width before the start of every lane
   that has no predecessor, for vehicles spawned at s = 0 of an entry lane.
+* Open ends (:func:`open_ends`): straight stubs that continue every lane without
+  successor beyond its end and every lane without predecessor before its start (and
+  its apron), for the map builders to draw where they run off the raster: there the
+  road leaves the map, and the lookups continue it beyond the border.
 """
 
 from __future__ import annotations
@@ -42,11 +47,26 @@ def road_polygons(
             if successor in by_id:
                 polygons.append(junction_polygon(lane, by_id[successor]))
     if entry_apron > 0:
-        has_predecessor = {succ for lane in lanes for succ in lane.successors}
-        for lane in lanes:
-            if lane.lane_id not in has_predecessor:
-                polygons.append(lane_polygon(_entry_stub(lane, entry_apron)))
+        for lane in _entries(lanes):
+            polygons.append(lane_polygon(_stub(lane, 0.0, -entry_apron, 0.0)))
     return [p for p in polygons if p.area > 0]
+
+
+def open_ends(
+    lanes: tuple[Lane, ...], length: float, entry_apron: float = 0.0
+) -> list[shapely.Geometry]:
+    """Straight stubs [m] of the lanes' widths where the road network ends: ``length`` [m]
+    (> 0) beyond the end of each lane without successor in the set, along its final
+    heading, and before the entry apron of ``entry_apron`` [m] (:func:`road_polygons`) of
+    each lane without predecessor, along its initial heading."""
+    by_id = {lane.lane_id: lane for lane in lanes}
+    stubs = [
+        _stub(lane, lane.length, 0.0, length)
+        for lane in lanes
+        if not any(successor in by_id for successor in lane.successors)
+    ]
+    stubs += [_stub(lane, 0.0, -entry_apron - length, -entry_apron) for lane in _entries(lanes)]
+    return [lane_polygon(stub) for stub in stubs]
 
 
 def junction_polygon(lane: Lane, successor: Lane) -> shapely.Geometry:
@@ -101,8 +121,15 @@ def _edge(lane: Lane, s: float) -> tuple[np.ndarray, np.ndarray]:
     return xy + left, xy - left
 
 
-def _entry_stub(lane: Lane, length: float) -> Lane:
-    """Straight lane of ``length`` [m] ending where ``lane`` starts, along its heading."""
-    xy, heading = lane.position(np.array(0.0))
-    back = xy - length * np.array([np.cos(heading), np.sin(heading)])
-    return Lane(np.stack([back, xy]), lane.width, f"{lane.lane_id}/entry")
+def _entries(lanes: tuple[Lane, ...]) -> list[Lane]:
+    """The lanes no lane names as a successor."""
+    has_predecessor = {succ for lane in lanes for succ in lane.successors}
+    return [lane for lane in lanes if lane.lane_id not in has_predecessor]
+
+
+def _stub(lane: Lane, s: float, start: float, end: float) -> Lane:
+    """Straight lane of ``lane``'s width along its heading at arclength ``s`` [m], from
+    ``start`` to ``end`` [m] ahead of that point (negative: behind it)."""
+    xy, heading = lane.position(np.array(s))
+    direction = np.array([np.cos(heading), np.sin(heading)])
+    return Lane(np.stack([xy + start * direction, xy + end * direction]), lane.width, "stub")

@@ -16,8 +16,7 @@ simulation and the log are valid (the mask of ADE, :func:`position_errors`):
   "moved > 2 m" metric does not see it);
 * **hard at the map's edge**: of the vehicle-steps heading for the border of the map's
   raster less than :data:`EDGE_REACH` ahead (along the heading: roads leave the map
-  there, and the drivable area ends at most the map's margin, 5 m by default, inside
-  that border), the share with
+  there, running through its margin to the border and on beyond it), the share with
   |longitudinal| or |lateral acceleration| over :data:`HARD_ACCELERATION`
   (:func:`~riskflow_env.metrics.kinematics.kinematic_series`): vehicles that reach the
   end of the map should leave or keep going, not brake and turn. The log's share on the

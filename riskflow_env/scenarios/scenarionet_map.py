@@ -21,7 +21,10 @@ the ground the logged vehicles stand and drive on, where the map data does not d
 
 Cropping: with ``region`` (xmin, ymin, xmax, ymax) [m], only the features that reach
 into it are read and the drivable area is clipped to it, so the raster's size and the
-build time follow the region the scenario uses, not the whole recording area.
+build time follow the region the scenario uses, not the whole recording area. The roads
+that cross the region's edge run on through the raster's margin to its border
+(``continuations`` of :func:`~riskflow_env.maps.from_polygons`), beyond which the map
+continues them: traffic can drive out of the cropped map.
 
 Lane width: the feature's ``width`` when it gives one, else polygon area / centreline
 length (clipped to [2, 6] m), else the median of those, else :data:`DEFAULT_LANE_WIDTH`.
@@ -209,16 +212,21 @@ def build_map(
     if not polygons:
         polygons = _edge_faces(features, vehicle_xy, source)
     polygons += surfaces
+    beyond = []
     if region is not None:  # the raster covers the drivable area inside the region
-        clipped = shapely.clip_by_rect(np.asarray(polygons, dtype=object), *region)
-        polygons = [
-            p for p in shapely.get_parts(clipped) if isinstance(p, shapely.Polygon) and p.area > 0
-        ]
+        polygons, beyond = (
+            _clip(polygons, box) for box in (region, _grow(region, margin + 2 * resolution))
+        )
         if not polygons:
             raise ValueError(f"{source}: no drivable area inside the region {region} [m]")
     check_raster(shapely.total_bounds(polygons), resolution, margin, source)
     build = functools.partial(
-        from_polygons, resolution=resolution, margin=margin, lanes=lanes, name=name
+        from_polygons,
+        resolution=resolution,
+        margin=margin,
+        lanes=lanes,
+        name=name,
+        continuations=beyond,
     )
     drawn = build(polygons)
     missing = [] if logged is None else missing_ground(logged, drawn)
@@ -226,6 +234,12 @@ def build_map(
         return drawn
     check_raster(shapely.total_bounds([*polygons, *missing]), resolution, margin, source)
     return build([*polygons, *missing])
+
+
+def _clip(polygons: list, box: tuple[float, float, float, float]) -> list[shapely.Polygon]:
+    """The parts of ``polygons`` inside ``box`` (xmin, ymin, xmax, ymax) [m] with an area."""
+    clipped = shapely.clip_by_rect(np.asarray(polygons, dtype=object), *box)
+    return [p for p in shapely.get_parts(clipped) if isinstance(p, shapely.Polygon) and p.area > 0]
 
 
 def _grow(region: tuple[float, float, float, float], by: float) -> tuple:

@@ -21,8 +21,10 @@ from riskflow_env.maps import MapStack, from_polygons
 from riskflow_env.state import SceneState
 
 needs_numba = pytest.mark.skipif(compiled.kernels() is None, reason="numba is not installed")
-ROAD = from_polygons(
-    [shapely.box(-40.0, -8.0, 60.0, 8.0), shapely.box(10.0, -40.0, 22.0, 40.0)], resolution=0.5
+ROAD = from_polygons(  # the road along x leaves the map on the right (x = 65)
+    [shapely.box(-40.0, -8.0, 60.0, 8.0), shapely.box(10.0, -40.0, 22.0, 40.0)],
+    resolution=0.5,
+    continuations=[shapely.box(60.0, -8.0, 80.0, 8.0)],
 )
 SMALL_ROAD = from_polygons([shapely.box(-20.0, -5.0, 20.0, 5.0)], resolution=0.25, margin=2.0)
 CONFIG = EnvConfig(max_agents=8, terminate_on_offroad="all")
@@ -31,7 +33,8 @@ EPS = 1e-9  # [m] events are compared where the separation / SDF is farther than
 
 def random_state(rng, lead: tuple, agents: int, spread: float = 30.0) -> SceneState:
     """Vehicles in clusters (so that some touch), some off the road or beyond the raster
-    (the map spans about [-45, 65] x [-45, 45] m), random speeds, headings and masks."""
+    (the map spans about [-45, 65] x [-45, 45] m, its road along x going on past x = 65),
+    random speeds, headings and masks."""
     shape = (*lead, agents)
     centres = rng.uniform(-spread, spread, (*lead, 1, 2))
     xy = centres + rng.normal(0.0, 4.0, (*shape, 2))
@@ -145,6 +148,7 @@ def test_touching_boxes_and_map_edges(monkeypatch):
             [59.0, 7.5, 3.0, 0.3],  # on the road edge
             [150.0, 120.0, 3.0, 1.0],  # far beyond the raster
             [-43.0, -44.0, 3.0, -2.0],  # near the raster corner
+            [120.0, 2.0, 3.0, 0.1],  # on the road, 55 m past the raster's end
         ]
     )
     agents = len(current)
@@ -168,6 +172,7 @@ def test_touching_boxes_and_map_edges(monkeypatch):
         np.testing.assert_allclose(fast.observations, slow.observations, rtol=1e-6, atol=1e-6)
         np.testing.assert_array_equal(fast.events.offroad, slow.events.offroad)
         assert fast.events.offroad[5] and fast.events.sdf_depth[5] > 50.0
+        assert not fast.events.offroad[7] and fast.events.sdf_depth[7] < -3.0
 
 
 @needs_numba

@@ -79,12 +79,6 @@ def test_sdf_keeps_growing_off_the_raster(rect_map: DrivableMap) -> None:
     assert not rect_map.is_drivable(points[off]).any()
 
 
-def test_raster_touching_its_border_is_closed_by_the_border() -> None:
-    full = DrivableMap(np.ones((4, 6), dtype=bool), resolution=1.0, origin=np.zeros(2))
-    np.testing.assert_allclose(full.sdf[:, 0], -0.5)  # half a pixel to the raster edge
-    assert full.sdf_at(np.array([-1.0, 2.0])) > 0
-
-
 def test_numpy_and_torch_agree(rect_map: DrivableMap) -> None:
     rng = np.random.default_rng(2)
     points = rng.uniform([-12.0, -12.0], [32.0, 22.0], size=(7, 50, 2))
@@ -186,9 +180,11 @@ def test_nearest_lane_and_lane_by_id() -> None:
     np.testing.assert_allclose(lateral, [0.5, -1.0, np.hypot(10.0, 1.0)])
     index_t, s_t, _ = road.nearest_lane(torch.tensor([[10.0, 0.5]]))
     assert index_t.tolist() == [0] and s_t.tolist() == [10.0]
-    # flat ends: the road stops at x = 0 and x = 50, it does not bulge round
-    assert road.is_drivable(np.array([[0.25, -1.9], [49.75, 5.9]])).all()
-    assert not road.is_drivable(np.array([[-0.75, 0.0], [50.75, 4.0]])).any()
+    # the ends lie on the map's edge: the road leaves it there, going on at its width
+    assert road.is_drivable(
+        np.array([[0.25, -1.9], [49.75, 5.9], [-0.75, 0.0], [50.75, 4.0]])
+    ).all()
+    assert not road.is_drivable(np.array([[-0.75, -2.25], [50.75, 6.25]])).any()
     assert "two lanes" in repr(road)
 
 

@@ -141,7 +141,10 @@ def test_map_is_cropped_to_the_vehicles_region():
     points = np.array([[-50.0, -1.75], [IN_LOT[0], IN_LOT[1]], [95.0, 1.75], [95.0, 5.0]])
     np.testing.assert_array_equal(cropped.is_drivable(points), [True, True, True, False])
     np.testing.assert_array_equal(full.is_drivable(points), [True, True, True, False])
-    assert not cropped.is_drivable(np.array([130.0, -1.75]))  # road beyond the region
+    # the road crosses the region's edge: it runs on through the margin and beyond
+    # the raster, so traffic can drive out of the map; the ground beside it stays off-road
+    assert cropped.is_drivable(np.array([[xmax - 1.0, -1.75], [130.0, -1.75]])).all()
+    assert not cropped.is_drivable(np.array([130.0, 5.0]))
     assert xy[:, 1].max() <= ymax
 
 
