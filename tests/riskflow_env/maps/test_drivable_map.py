@@ -10,6 +10,7 @@ import shapely
 import torch
 
 from riskflow_env.maps import DrivableMap, Lane, from_lanes, from_polygons
+from tests.riskflow_env.maps.sdf_checks import numeric_sdf_gradient
 
 RES = 0.5  # [m/px]
 WIDTH, HEIGHT = 20.0, 10.0  # [m] rectangle road [0, 20] x [0, 10]
@@ -97,14 +98,7 @@ def test_torch_gradient_matches_finite_differences(rect_map: DrivableMap) -> Non
     points = rng.uniform([-12.0, -12.0], [32.0, 22.0], size=(200, 2))
     xy = torch.tensor(points, requires_grad=True)
     rect_map.sdf_at(xy).sum().backward()
-    step = 1e-6  # [m], far below a pixel: bilinear is linear within a cell
-    numeric = np.stack(
-        [
-            (rect_map.sdf_at(points + step * e) - rect_map.sdf_at(points - step * e)) / (2 * step)
-            for e in np.eye(2)
-        ],
-        axis=-1,
-    )
+    numeric = numeric_sdf_gradient(rect_map, points)
     np.testing.assert_allclose(xy.grad.numpy(), numeric, atol=1e-5)
     assert torch.isfinite(xy.grad).all()
 
@@ -256,14 +250,7 @@ def test_sdf_with_gradient_matches_finite_differences_numpy_and_torch(
     points = rng.uniform([-12.0, -12.0], [32.0, 22.0], size=(300, 2))
     value, gradient = rect_map.sdf_with_gradient(points)
     np.testing.assert_array_equal(value, rect_map.sdf_at(points))
-    step = 1e-6  # [m]
-    numeric = np.stack(
-        [
-            (rect_map.sdf_at(points + step * e) - rect_map.sdf_at(points - step * e)) / (2 * step)
-            for e in np.eye(2)
-        ],
-        axis=-1,
-    )
+    numeric = numeric_sdf_gradient(rect_map, points)
     np.testing.assert_allclose(gradient, numeric, atol=1e-5)
     value_t, gradient_t = rect_map.sdf_with_gradient(torch.as_tensor(points))
     # numpy and torch evaluate the bilinear lookup with their own kernels: float64 values of

@@ -11,6 +11,7 @@ import torch
 
 from riskflow_env.maps import DrivableMap, Lane, MapStack, from_lanes, from_polygons
 from riskflow_env.maps.rasterize import signed_distance
+from tests.riskflow_env.maps.sdf_checks import numeric_sdf_gradient
 
 RES = 0.5  # [m/px]
 HALF_ROAD = 4.0  # [m] the road is y in [-4, 4]
@@ -58,14 +59,7 @@ def test_gradient_beyond_the_border(crossing: DrivableMap) -> None:
     np.testing.assert_allclose(gradient[:3, 0], 0.0)
     np.testing.assert_allclose(gradient[:3, 1], [1.0, -1.0, 1.0])
     np.testing.assert_allclose(gradient[3:], [[-1.0, 1.0], [1.0, -1.0]])
-    step = 1e-6  # [m]
-    numeric = np.stack(
-        [
-            (crossing.sdf_at(points + step * e) - crossing.sdf_at(points - step * e)) / (2 * step)
-            for e in np.eye(2)
-        ],
-        axis=-1,
-    )
+    numeric = numeric_sdf_gradient(crossing, points)
     np.testing.assert_allclose(gradient, numeric, atol=1e-5)
     xy = torch.tensor(points, requires_grad=True)
     (grad,) = torch.autograd.grad(crossing.sdf_at(xy).sum(), xy)
