@@ -1,8 +1,7 @@
-"""What guidance takes and returns for one scene or a batch of B scenes: the scene's base
-plans and geometry (:class:`GuidanceScene`), the guided plans (:class:`GuidanceResult`)
-and the ``A_c`` rows of B scenes as the batched loops of RiskFlow
-(:mod:`policies.riskflow.guidance`) and STRIVE-style (:mod:`policies.baselines.strive`)
-take them (:class:`GuidedRows`, :func:`guided_rows`, :func:`flatten_scenes`)."""
+"""What output-space guidance (:mod:`policies.riskflow.guidance`) takes and returns, for
+one scene or a batch of B scenes: the scene's base plans and geometry
+(:class:`GuidanceScene`), its options (:class:`GuidanceConfig`) and the guided plans
+(:class:`GuidanceResult`)."""
 
 from __future__ import annotations
 
