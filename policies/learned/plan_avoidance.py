@@ -297,7 +297,7 @@ def brake_to_clear(
     now = state.flatten(0, 1)[rows]
     xy = torch.cat([now[:, None, :2], trajectories.flatten(0, 1)[rows, :, :2]], dim=1)
     steps = torch.linalg.vector_norm(xy[:, 1:] - xy[:, :-1], dim=-1)  # (R, T)
-    travelled = torch.cat([steps[:, :1] * 0, steps.cumsum(dim=1)], dim=1)  # after k steps
+    travelled = torch.cat([steps.new_zeros(steps.shape[0], 1), steps.cumsum(dim=1)], dim=1)
     clear = travelled.gather(1, stop_before[rows, None])[:, 0] - margin
     speed = now[:, SPEED]
     braked = actions.flatten(0, 1)[rows]
@@ -318,7 +318,8 @@ def _braking(accel: Tensor, speed: Tensor, clear: Tensor, dynamics: DynamicsConf
     acceleration down at ``BRAKE_JERK`` to ``-D``, ``D`` the gentlest rate on a 0.05 m/s^2
     grid up to ``HUMAN_ACCEL`` whose stop (the rollout's speed bound at 0, trapezoidal
     steps) lies within ``clear`` [m]; the strongest where none does. ``accel`` ``(R, T)``
-    the plans' accelerations, ``speed`` ``(R,)`` the current speeds."""
+    the plans' accelerations, ``speed`` ``(R,)`` the current speeds. A 1-D estimate that
+    picks the rate; the braked plan itself is rolled out by ``dynamics.rollout``."""
     strongest = min(-dynamics.accel_min, HUMAN_ACCEL)
     rates = torch.arange(0.0, strongest + 1e-9, 0.05, dtype=accel.dtype, device=accel.device)
     steps = torch.arange(accel.shape[1], dtype=accel.dtype, device=accel.device)
