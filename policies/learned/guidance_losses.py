@@ -32,6 +32,8 @@ from riskflow_env.maps import DrivableMap, MapStack
 
 __all__ = [
     "HUMAN_ACCEL",
+    "KEEP_MOVING",
+    "LAMBDA_KEEP_MOVING",
     "HORIZONS",
     "ObjectiveConfig",
     "TARGETS",
@@ -66,6 +68,18 @@ to); the dynamics allow braking at 8 m/s^2. With target ``"ego"``, output-space 
 keeps the attacker's acceleration and braking within it (brake-checks in front of the
 ego at 6.2-6.8 m/s^2 made attackers implausible); the avoidance steps' braking fallback
 brakes at most this hard (:func:`policies.learned.plan_avoidance.brake_to_clear`)."""
+KEEP_MOVING = 4.0
+"""[m/s] with target ``"ego"``, the attacker keeps moving: over the guidance horizon its
+guided plan's speed stays at ``min(its speed now, KEEP_MOVING)`` or above, by the penalty
+``LAMBDA_KEEP_MOVING * sum_t relu(floor - v_t)^2`` (:func:`keep_moving_gradient`). An
+attacker free to brake to a standstill in front of the ego brake-checked it to a stop and
+then stood in the lane for the rest of the episode: the IDM ego, stopped behind it, could
+be attacked no more (13 of its 21 standing episodes in 80 ended behind the former attacker
+at 0 m/s). Keeping it moving took the strikes on a standing ego from 3 to 0 and the IDM
+ego's progress from 37 to 43 m at the same hit rate (docs/explanation/results.md,
+section 6)."""
+LAMBDA_KEEP_MOVING = 10.0
+"""[1/(m/s)^2] the weight of the attacker's speed floor (:data:`KEEP_MOVING`)."""
 HORIZONS = {"others": None, "ego": 30}
 """[steps] the default ``T_g`` of ``L_adv`` and ``L_sep`` per target: the whole plan with
 ``"others"`` (the paper's), 3 s with ``"ego"``. Attacking the ego over the whole 5 s plan,
@@ -164,6 +178,16 @@ def bystander_rows(present: Tensor, guided: Tensor, targets: Tensor) -> tuple[Te
     (B, A) bool ``present``, ``guided`` and ``targets``."""
     flat = torch.nonzero((present & ~guided & ~targets).reshape(-1)).flatten()
     return flat, torch.div(flat, present.shape[-1], rounding_mode="floor")
+
+
+def keep_moving_gradient(speed: Tensor, floor: Tensor, horizon: int | None) -> Tensor:
+    """``d/dv`` (C, T) of ``LAMBDA_KEEP_MOVING * sum_{t < horizon} relu(floor - v_t)^2``,
+    the attacker's speed floor (:data:`KEEP_MOVING`), from (C, T) planned speeds [m/s] and
+    (C,) floors [m/s]; 0 beyond ``horizon`` (None: the whole plan)."""
+    short = torch.relu(floor[:, None] - speed)
+    if horizon is not None:
+        short[:, horizon:] = 0.0
+    return (-2.0 * LAMBDA_KEEP_MOVING) * short
 
 
 def sum_per_scene(values: Tensor, scene_of_row: Tensor, num_scenes: int) -> Tensor:

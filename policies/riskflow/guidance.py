@@ -26,7 +26,10 @@ the vehicles that keep their unguided plans (held fixed), so that it does not st
 third vehicle on its way to the ego: ``L_sep`` is the summed squared penetration depth of
 those pairs of boxes over the guidance horizon (the avoidance steps' objective,
 :func:`~policies.learned.plan_overlap.overlap_gradient`).
-The paper's objective has no such term (``lambda_sep=0``). docs/explanation/method.md
+The paper's objective has no such term (``lambda_sep=0``). With target ``"ego"`` the
+attacker also keeps moving: its planned speed over the horizon is held at ``min(its speed
+now, 4 m/s)`` or above by a squared penalty (:data:`~policies.learned.guidance_losses.KEEP_MOVING`),
+and its acceleration within the human bound (``HUMAN_ACCEL``). docs/explanation/method.md
 ("Output-space guidance") has the terms, the sign convention and why the steps are Adam steps.
 """
 
@@ -44,12 +47,14 @@ from policies.learned.adam import Adam
 from policies.learned.data import Normalizer
 from policies.learned.guidance_losses import (
     HUMAN_ACCEL,
+    KEEP_MOVING,
     TARGETS,
     Target,
     adversarial_loss,
     adversarial_rows,
     adversarial_value_and_gradient,
     bystander_rows,
+    keep_moving_gradient,
     map_loss,
     map_term,
     sum_per_scene,
@@ -66,7 +71,13 @@ from policies.riskflow.guidance_scene import (
     GuidanceScene,
 )
 from riskflow_env.config import DynamicsConfig
-from riskflow_env.dynamics import DEFAULT_CONFIG, clip_actions, rollout, rollout_with_vjp
+from riskflow_env.dynamics import (
+    DEFAULT_CONFIG,
+    SPEED,
+    clip_actions,
+    rollout,
+    rollout_with_vjp,
+)
 
 
 def plans_from_velocity(
@@ -170,7 +181,10 @@ class _Objective:
         self.map_term = map_term(scene, rows, scene.eps.shape[1], config, scene_of_row)
         self.lambda_sep = config.lambda_sep
         self.separation = separation_term(scene, rows, config, scene_of_row, *(bystanders or ()))
-        self.accel_limit = HUMAN_ACCEL if config.target == Target.EGO else math.inf
+        attack_ego = config.target == Target.EGO
+        self.accel_limit = HUMAN_ACCEL if attack_ego else math.inf
+        # attacking the ego, the attacker keeps moving (guidance_losses.KEEP_MOVING)
+        self.floor = self.state[:, SPEED].clamp(max=KEEP_MOVING) if attack_ego else None
 
     def bounds(self) -> tuple[Tensor, Tensor]:
         """(C, T, 2) lower and upper bounds of ``u_c`` that keep the actions inside the
@@ -200,8 +214,9 @@ class _Objective:
         return trajectories, adv, self.map_term.rows(trajectories)
 
     def gradient(self, u_c: Tensor, lambda_adv: float, lambda_map: float) -> tuple[Tensor, ...]:
-        """``grad_u L`` (C, T, 2) of ``L = lambda_adv * L_adv + lambda_map * L_map``,
-        and (C,) ``L_adv`` [m] and ``L_map`` [m^2] of each row.
+        """``grad_u L`` (C, T, 2) of ``L = lambda_adv * L_adv + lambda_map * L_map``
+        (plus ``lambda_sep * L_sep`` and, attacking the ego, the speed floor), and (C,)
+        ``L_adv`` [m] and ``L_map`` [m^2] of each row.
 
         No autograd: the losses give their value and their gradient with respect to the
         trajectories in closed form (``adversarial_rows``, ``MapTerm.rows_and_gradient``),
@@ -225,6 +240,10 @@ class _Objective:
             d_trajectories.add_(d_map, alpha=lambda_map)
         if self.separation is not None:
             d_trajectories.add_(self.separation.gradient(trajectories), alpha=self.lambda_sep)
+        if self.floor is not None:
+            d_trajectories[..., SPEED] += keep_moving_gradient(
+                trajectories[..., SPEED], self.floor, self.horizon
+            )
         return vjp(d_trajectories) * self.std, adv, off_road
 
 

@@ -14,13 +14,15 @@ from policies.evaluation import EvalOptions, ResultsStore, plan_jobs, run_evalua
 from policies.evaluation import batched as batched_module
 from policies.evaluation.batched import group_jobs
 from policies.evaluation.cli import main
+from policies.learned import guidance_losses
 
 # 7 shipped scenes, 5 s episodes ending at the ego's first collision: with K=5 guidance
 # toward the ego, scene 5's episode ends early while scenes 3 and 4 of its group run to 50
 # steps, and groups of 3 leave scene 6 alone in a group of one. This test checks the batched
 # machinery, so it runs RiskFlow where the closed loop amplifies rounding least: on the raw
-# generator, without L_sep and with lambda_map = 1. The avoidance steps, L_sep (a max over
-# the separating axes, whose gradient switches axis at ties) and the default map weight
+# generator, without L_sep, with lambda_map = 1 and without the attacker's speed floor
+# (LAMBDA_KEEP_MOVING = 0, below). The avoidance steps, L_sep (a max over the separating
+# axes, whose gradient switches axis at ties), the floor's hinge and the default map weight
 # each amplify the batched path's float rounding past these tolerances within 3 s (plans
 # with the shipped defaults are checked cycle by cycle in tests/policies/pipeline/).
 RUN = EvalOptions(
@@ -46,6 +48,13 @@ def _run(tmp_path_factory, name: str, batch: int) -> dict[str, dict]:
     summary = run_evaluation(replace(RUN, out=str(out), batch_scenes=batch), progress=False)
     assert summary["ran"] == 14
     return out
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _no_speed_floor():
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(guidance_losses, "LAMBDA_KEEP_MOVING", 0.0)
+        yield
 
 
 @pytest.fixture(scope="module")

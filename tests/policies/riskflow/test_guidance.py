@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from policies.learned.guidance_losses import HORIZONS, HUMAN_ACCEL
+import policies.learned.guidance_losses as guidance_losses
+from policies.learned.guidance_losses import HORIZONS, HUMAN_ACCEL, KEEP_MOVING
 from policies.learned.plan_overlap import pair_separation
 from policies.learned.sampler import base_velocity, sample
 from policies.learned.synthetic import synthetic_batch
@@ -146,6 +147,37 @@ def test_attacker_of_the_ego_brakes_within_the_human_bound():
         braking[target] = -float(result.actions[1, :, 0].min())
     assert braking["ego"] == pytest.approx(HUMAN_ACCEL)
     assert braking["others"] == pytest.approx(-DEFAULT_CONFIG.accel_min)
+
+
+def test_attacker_of_the_ego_keeps_moving(monkeypatch):
+    """A car ahead of a slow ego closes on it by braking: attacking the ego it keeps
+    moving near ``KEEP_MOVING`` over the guidance horizon (a soft floor), where without
+    the floor it brakes to a standstill in the lane."""
+    scene = make_scene([[0.0, 0.0, 3.0, 0.0], [12.0, 0.0, 10.0, 0.0]])
+    config = GuidanceConfig(target="ego", step_size=0.3, steps=60)
+    horizon = config.resolved_horizon
+
+    def slowest() -> float:
+        result = guide(scene, mask_of(2, [1]), NORMALIZER, config)
+        assert result.losses[-1, 0] < 0.8 * result.losses[0, 0]  # it still attacks
+        return float(result.trajectories[1, :horizon, 2].min())
+
+    assert slowest() > 0.9 * KEEP_MOVING
+    monkeypatch.setattr(guidance_losses, "LAMBDA_KEEP_MOVING", 0.0)
+    assert slowest() < 0.1
+
+
+def test_keep_moving_gradient_is_the_penalty_slope():
+    """``keep_moving_gradient`` is the derivative of ``LAMBDA_KEEP_MOVING * sum_t
+    relu(floor - v_t)^2`` over the horizon (autograd), 0 above the floor and beyond it."""
+    speed = torch.tensor([[5.0, 3.0, 1.0, 0.0], [2.0, 2.5, 6.0, 1.0]], requires_grad=True)
+    floor = torch.tensor([4.0, 2.0])
+    horizon = 3
+    penalty = torch.relu(floor[:, None] - speed)[:, :horizon].square().sum()
+    (expected,) = torch.autograd.grad(guidance_losses.LAMBDA_KEEP_MOVING * penalty, speed)
+    got = guidance_losses.keep_moving_gradient(speed.detach(), floor, horizon)
+    assert torch.allclose(got, expected)
+    assert got[0, 0] == 0 and got[0, 3] == 0 and got[1, :3].eq(0).all()
 
 
 def test_sign_convention_negative_weight_pushes_apart():
