@@ -26,6 +26,7 @@ from policies.learned.adversarial_term import (
     adversarial_rows,
     adversarial_value_and_gradient,
 )
+from policies.learned.ranking import MIN_ATTACK_SPEED
 from riskflow_env._array import attach_gradient, requires_grad
 from riskflow_env.geometry import footprint_points
 from riskflow_env.maps import DrivableMap, MapStack
@@ -68,16 +69,17 @@ to); the dynamics allow braking at 8 m/s^2. With target ``"ego"``, output-space 
 keeps the attacker's acceleration and braking within it (brake-checks in front of the
 ego at 6.2-6.8 m/s^2 made attackers implausible); the avoidance steps' braking fallback
 brakes at most this hard (:func:`policies.learned.plan_avoidance.brake_to_clear`)."""
-KEEP_MOVING = 4.0
+KEEP_MOVING = MIN_ATTACK_SPEED
 """[m/s] with target ``"ego"``, the attacker keeps moving: over the guidance horizon its
 guided plan's speed stays at ``min(its speed now, KEEP_MOVING)`` or above, by the penalty
 ``LAMBDA_KEEP_MOVING * sum_t relu(floor - v_t)^2`` (:func:`keep_moving_gradient`). An
 attacker free to brake to a standstill in front of the ego brake-checked it to a stop and
-then stood in the lane for the rest of the episode: the IDM ego, stopped behind it, could
-be attacked no more (13 of its 21 standing episodes in 80 ended behind the former attacker
-at 0 m/s). Keeping it moving took the strikes on a standing ego from 3 to 0 and the IDM
-ego's progress from 37 to 43 m at the same hit rate (docs/explanation/results.md,
-section 6)."""
+then stood in the lane for the rest of the episode, where the ego, stopped behind it, could
+be attacked no more (13 of the IDM ego's 21 standing episodes in 40 scenes ended behind the
+former attacker at 0 m/s). The floor is the slowest ego that may be attacked
+(``policies.learned.ranking.MIN_ATTACK_SPEED``, 2 m/s): an attacker may brake as hard as a
+human (``HUMAN_ACCEL``) down to the slowest it could still attack, not stop in the lane.
+What it changes: docs/explanation/results.md, section 6."""
 LAMBDA_KEEP_MOVING = 10.0
 """[1/(m/s)^2] the weight of the attacker's speed floor (:data:`KEEP_MOVING`)."""
 HORIZONS = {"others": None, "ego": 30}

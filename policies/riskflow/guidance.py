@@ -28,7 +28,7 @@ those pairs of boxes over the guidance horizon (the avoidance steps' objective,
 :func:`~policies.learned.plan_overlap.overlap_gradient`).
 The paper's objective has no such term (``lambda_sep=0``). With target ``"ego"`` the
 attacker also keeps moving: its planned speed over the horizon is held at ``min(its speed
-now, 4 m/s)`` or above by a squared penalty (:data:`~policies.learned.guidance_losses.KEEP_MOVING`),
+now, 2 m/s)`` or above by a squared penalty (:data:`~policies.learned.guidance_losses.KEEP_MOVING`),
 and its acceleration within the human bound (``HUMAN_ACCEL``). docs/explanation/method.md
 ("Output-space guidance") has the terms, the sign convention and why the steps are Adam steps.
 """

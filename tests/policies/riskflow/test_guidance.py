@@ -162,7 +162,7 @@ def test_attacker_of_the_ego_keeps_moving(monkeypatch):
         assert result.losses[-1, 0] < 0.8 * result.losses[0, 0]  # it still attacks
         return float(result.trajectories[1, :horizon, 2].min())
 
-    assert slowest() > 0.9 * KEEP_MOVING
+    assert slowest() > 0.75 * KEEP_MOVING  # a soft floor: 1.8 m/s here
     monkeypatch.setattr(guidance_losses, "LAMBDA_KEEP_MOVING", 0.0)
     assert slowest() < 0.1
 
