@@ -132,13 +132,14 @@ def main(options: Options) -> dict[str, Any]:
             results.write(json.dumps(row) + "\n")
             results.flush()
             done[(planner, index, seed)] = row
-    return report(done, options)
+    return report(done, options, len(bank))
 
 
-def report(done: dict, options: Options) -> dict[str, Any]:
-    """Print the table and the paired differences; returns the summaries."""
+def report(done: dict, options: Options, num_scenes: int) -> dict[str, Any]:
+    """Print the table and the paired differences of the first ``num_scenes`` scenes (fewer
+    than ``options.scenes`` where the folder has fewer); returns the summaries."""
     planners = list(options.planners)
-    keys = [(index, seed) for index in range(options.scenes) for seed in list(options.seeds)]
+    keys = [(index, seed) for index in range(num_scenes) for seed in list(options.seeds)]
     rows = {p: [done[(p, *key)] for key in keys if (p, *key) in done] for p in planners}
     summaries = {planner: stress_summary(rows[planner]) for planner in planners}
     print(f"RiskFlow K={options.k} target={options.target}, {len(keys)} episodes per planner")

@@ -20,3 +20,17 @@ def test_a_tiny_run_prints_the_table_and_a_rerun_resumes(tmp_path, capsys):
     assert len(lines) == 4
     bench.main(options)  # everything is done: nothing runs again
     assert out.read_text().splitlines() == lines
+
+
+def test_a_folder_with_fewer_scenes_than_asked_counts_the_scenes_it_has(
+    tmp_path, capsys, monkeypatch
+):
+    bench = load_benchmark("failures_that_matter")
+    one_scene = bench.scenes(bench.Options(scenes=1))
+    monkeypatch.setattr(bench, "scenes", lambda options: one_scene)
+    out = tmp_path / "results.jsonl"
+    options = bench.Options(
+        planners=("constant_velocity",), scenes=100, seeds=(0, 1), steps=10, out=out
+    )
+    assert bench.main(options)["constant_velocity"]["episodes"] == 2
+    assert "2 episodes per planner" in capsys.readouterr().out
