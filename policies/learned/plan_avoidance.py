@@ -98,6 +98,8 @@ BRAKE_JERK = 20.0
 """[m/s^3] the braking fallback reaches its rate from the plan's first action at this
 jerk (within the p99 of the data, 27.8 m/s^3, ``policies.stress.failures.HUMAN_BOUNDS``)"""
 """[m] a braking vehicle stops this far short of its last clear position (:func:`brake_to_clear`)"""
+EGO_STANDS_BELOW = 2.0
+"""[m/s] an ego slower than this is assumed to stay where it is (:func:`avoid_overlaps`)"""
 STOP_MARGIN = 0.25
 """[m] the loop stops once no pair overlaps, every footprint is on the road and the
 closest pair is this far apart (module docstring)"""
@@ -166,6 +168,7 @@ def avoid_overlaps(
                 dynamics,
             )  # fmt: skip
             obstacles = joint  # (B, A, H, 4)
+            _assume_slow_ego_stands(obstacles, state, ego)
             # the pairs that can change: scored, with at least one variable
             pairs = scored_pairs(length, width, agent_mask, state)
             pairs = pairs & (variable[:, :, None] | variable[:, None, :])
@@ -231,11 +234,27 @@ def avoid_overlaps(
     if brake and steps > 0 and rows.numel() > 0:
         with torch.no_grad():
             may_brake = variable if guided is None else variable & ~guided.bool()
+            predicted = trajectories[:, ego].clone()
+            _assume_slow_ego_stands(trajectories, state, ego)
             braked = brake_to_clear(actions, trajectories, state, *scored, may_brake, dynamics)
+            trajectories[:, ego] = predicted
             if braked.numel() > 0:  # their residual, as everywhere: denorm(eps + u) = actions
                 flat = (eps.flatten(0, 1)[braked], actions.flatten(0, 1)[braked])
                 u.view(-1, *u.shape[2:])[braked] = normalizer.normalize(flat[1]) - flat[0]
     return u, actions, trajectories
+
+
+def _assume_slow_ego_stands(trajectories: Tensor, state: Tensor, ego: int) -> None:
+    """In place: in the scenes whose ego is slower than ``EGO_STANDS_BELOW``, the ego's row
+    of ``(B, A, H, 4)`` plans stands at its current pose (speed 0). The adversary does not
+    know what the ego will do; its row is the generator's guess, and a follower that trusts
+    a guess that the ego drives off runs into an ego that stays."""
+    slow = state[:, ego, SPEED] < EGO_STANDS_BELOW  # (B,)
+    if bool(slow.any()):
+        standing = state[:, ego].clone()
+        standing[:, SPEED] = 0.0
+        rows = trajectories[:, ego]
+        rows[slow] = standing[slow, None].expand_as(rows[slow])
 
 
 def brake_to_clear(

@@ -11,6 +11,7 @@ from policies.learned.guidance_losses import HUMAN_ACCEL
 from policies.learned.plan_avoidance import (
     BRAKE_JERK,
     BRAKE_MARGIN,
+    EGO_STANDS_BELOW,
     avoid_overlaps,
     brake_to_clear,
 )
@@ -126,3 +127,38 @@ def test_the_avoidance_steps_return_the_braked_plans_and_their_residual():
     _, _, unbraked = avoid_overlaps(*args, steps=5, step_size=0.05, guided=guided)
     _, _, stepped = avoid_overlaps(*args, steps=5, step_size=0.05, brake=False)
     assert torch.equal(unbraked, stepped)
+
+
+def _follower_behind_the_ego(ego_speed: float):
+    """A car at 15 m/s 30 m behind the ego; the ego's predicted plan (its row: the
+    generator's guess) accelerates away at 3 m/s^2; a third car far away."""
+    state = torch.tensor(
+        [[[30.0, 0.0, ego_speed, 0.0], [0.0, 0.0, 15.0, 0.0], [0.0, 60.0, 10.0, 0.0]]],
+        dtype=torch.float64,
+    )
+    eps = torch.zeros(1, 3, STEPS, 2, dtype=torch.float64)
+    eps[0, 0, :, 0] = 3.0
+    length = torch.full((1, 3), 4.5, dtype=torch.float64)
+    width = torch.full((1, 3), 1.8, dtype=torch.float64)
+    mask = torch.ones(1, 3, dtype=torch.bool)
+    return eps, state, length, width, mask
+
+
+def test_a_follower_keeps_clear_of_a_slow_ego_where_it_stands():
+    """The ego's row is a guess: behind an ego slower than ``EGO_STANDS_BELOW`` the
+    follower keeps clear of the ego's current box, as if it stayed; the ego's returned row
+    is still the guess. Behind a faster ego it trusts the guess."""
+    for ego_speed, brakes in ((1.0, True), (EGO_STANDS_BELOW + 0.5, False)):
+        eps, state, length, width, mask = _follower_behind_the_ego(ego_speed)
+        args = (eps, torch.zeros_like(eps), state, length, width, mask, None, NORMALIZER)
+        _, actions, trajectories = avoid_overlaps(*args, DYNAMICS, steps=5, step_size=0.05)
+        zero = torch.zeros_like(eps)
+        predicted = plans_from_velocity(eps, zero, state, mask, NORMALIZER, DYNAMICS)[1]
+        assert torch.equal(trajectories[0, 0], predicted[0, 0])
+        standing = state[:, None, 0].clone()
+        standing[..., 2] = 0.0
+        follower = trajectories[:, 1:2]
+        pair = torch.cat([standing[:, :, None].expand_as(follower), follower], dim=1)
+        gaps = pair_separation(pair, length[:, :2], width[:, :2])[0, 0, 1]
+        assert (float(gaps.min()) > 0.0) == brakes
+        assert bool((actions[0, 1, :, 0] < 0).any()) == brakes
