@@ -71,13 +71,7 @@ from policies.riskflow.guidance_scene import (
     GuidanceScene,
 )
 from riskflow_env.config import DynamicsConfig
-from riskflow_env.dynamics import (
-    DEFAULT_CONFIG,
-    SPEED,
-    clip_actions,
-    rollout,
-    rollout_with_vjp,
-)
+from riskflow_env.dynamics import DEFAULT_CONFIG, SPEED, clip_actions, rollout, rollout_with_vjp
 
 
 def plans_from_velocity(
@@ -402,7 +396,6 @@ __all__ = [
     "guidance_scene",
     "guide_outputs",
     "PER_AGENT",
-    "GuidanceConfig",
     "map_loss",
     "plans_from_velocity",
 ]
