@@ -38,7 +38,7 @@ from policies.learned.data import Normalizer
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.guidance_losses import adversarial_rows, map_term
 from policies.learned.plan_overlap import separation_term
-from policies.learned.sampler import base_velocity
+from policies.learned.sampler import base_velocity, decode_plans
 from policies.pipeline.plan_set import PlanSet
 from policies.riskflow.guidance import (
     GuidanceConfig,
@@ -47,7 +47,6 @@ from policies.riskflow.guidance import (
     flatten_scenes,
     guidance_scene,
     guided_rows,
-    plans_from_velocity,
 )
 from policies.riskflow.policy import PHASES, GeneratorPolicy
 from riskflow_env._array import attach_gradient
@@ -237,8 +236,8 @@ class _LatentObjective:
         policy, rows = self.policy, self.rows
         eps = self.eps.index_put((rows,), eps_c).reshape(self.shape)  # the others keep theirs
         u_c = base_velocity(policy.model, eps, self.context).flatten(0, 1)[rows]
-        actions, trajectories = plans_from_velocity(
-            eps_c, u_c, self.state, self.agent_mask, policy.normalizer, policy.dynamics
+        actions, trajectories = decode_plans(
+            eps_c + u_c, self.state, self.agent_mask, policy.normalizer, policy.dynamics
         )
         xy = trajectories[..., :2]
         guidance = policy.guidance

@@ -61,7 +61,6 @@ from policies.learned.guidance_losses import (
     target_rows,
 )
 from policies.learned.plan_overlap import Separation, separation_term
-from policies.learned.sampler import decode_plans
 from policies.pipeline.plan_set import PlanSet
 from policies.riskflow.guidance_scene import (
     OPTIMIZERS,
@@ -72,24 +71,6 @@ from policies.riskflow.guidance_scene import (
 )
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import DEFAULT_CONFIG, SPEED, clip_actions, rollout, rollout_with_vjp
-
-
-def plans_from_velocity(
-    eps: Tensor,
-    u: Tensor,
-    state: Tensor,
-    agent_mask: Tensor,
-    normalizer: Normalizer,
-    dynamics: DynamicsConfig = DEFAULT_CONFIG,
-) -> tuple[Tensor, Tensor]:
-    """Actions ``clip(denorm(eps + u))`` (0 for absent agents) and their rollout.
-
-    The same operations as :func:`policies.learned.sampler.sample`, so ``u = u0`` gives
-    the unguided plans exactly. Shapes: ``(..., A, T, 2)``, ``state (..., A, 4)``,
-    ``agent_mask (..., A)``; returns ``(..., A, T, 2)`` and ``(..., A, T, 4)``.
-    """
-    return decode_plans(eps + u, state, agent_mask, normalizer, dynamics)
-
 
 PER_AGENT = (  # the per-agent fields of a GuidanceScene (a leading B axis when batched)
     "eps", "u0", "state", "length", "width", "agent_mask", "base_actions", "base_trajectories",
@@ -397,5 +378,4 @@ __all__ = [
     "guide_outputs",
     "PER_AGENT",
     "map_loss",
-    "plans_from_velocity",
 ]

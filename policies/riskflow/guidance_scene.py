@@ -26,7 +26,7 @@ class GuidanceScene:
         length: (A,) [m].
         width: (A,) [m].
         agent_mask: (A,) bool agents present (False on padding).
-        base_actions: (A, T, 2) :func:`plans_from_velocity` of ``u0``.
+        base_actions: (A, T, 2) :func:`~policies.learned.sampler.decode_plans` of ``eps + u0``.
         base_trajectories: (A, T, 4) their rollout.
         drivable_map: the scene's map (world frame); for B scenes a
             :class:`~riskflow_env.maps.MapStack` of their maps in scene order, or one map

@@ -16,7 +16,7 @@ from policies.learned.plan_avoidance import (
     brake_to_clear,
 )
 from policies.learned.plan_overlap import pair_separation, scored_pairs
-from policies.riskflow.guidance import plans_from_velocity
+from policies.learned.sampler import decode_plans
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import rollout
 
@@ -117,7 +117,7 @@ def test_the_avoidance_steps_return_the_braked_plans_and_their_residual():
     args = (eps, torch.zeros_like(eps), state, length, width, mask, None, NORMALIZER, DYNAMICS)
     u, actions, trajectories = avoid_overlaps(*args, steps=5, step_size=0.05)
     assert float(pair_separation(trajectories, length, width)[0, 1, 2].min()) > 0.0
-    decoded = plans_from_velocity(eps, u, state, mask, NORMALIZER, DYNAMICS)
+    decoded = decode_plans(eps + u, state, mask, NORMALIZER, DYNAMICS)
     torch.testing.assert_close(decoded[0], actions)
     torch.testing.assert_close(decoded[1], trajectories)
     _, _, raw = avoid_overlaps(*args, steps=0, step_size=0.05)
@@ -153,7 +153,7 @@ def test_a_follower_keeps_clear_of_a_slow_ego_where_it_stands():
         args = (eps, torch.zeros_like(eps), state, length, width, mask, None, NORMALIZER)
         _, actions, trajectories = avoid_overlaps(*args, DYNAMICS, steps=5, step_size=0.05)
         zero = torch.zeros_like(eps)
-        predicted = plans_from_velocity(eps, zero, state, mask, NORMALIZER, DYNAMICS)[1]
+        predicted = decode_plans(eps + zero, state, mask, NORMALIZER, DYNAMICS)[1]
         assert torch.equal(trajectories[0, 0], predicted[0, 0])
         standing = state[:, None, 0].clone()
         standing[..., 2] = 0.0

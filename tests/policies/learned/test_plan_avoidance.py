@@ -12,7 +12,7 @@ from policies.baselines.nominal import NominalGenerator
 from policies.learned.data import ActionNormalizer
 from policies.learned.plan_avoidance import avoid_overlaps, guided_pairs
 from policies.learned.plan_overlap import overlap_scores, pair_separation
-from policies.riskflow.guidance import plans_from_velocity
+from policies.learned.sampler import decode_plans
 from policies.riskflow.policy import RiskFlowAdversary
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import rollout_with_vjp
@@ -49,7 +49,7 @@ def _overlap(trajectories, length, width, mask, state):
 
 def test_steps_pull_the_boxes_apart():
     eps, u0, state, length, width, mask = _scene()
-    _, trajectories = plans_from_velocity(eps, u0, state, mask, NORMALIZER, DYNAMICS)
+    _, trajectories = decode_plans(eps + u0, state, mask, NORMALIZER, DYNAMICS)
     before = _overlap(trajectories, length, width, mask, state)
     u, actions, after_plans = avoid_overlaps(
         eps, u0, state, length, width, mask, None, NORMALIZER, DYNAMICS, steps=30, step_size=0.2
@@ -59,7 +59,7 @@ def test_steps_pull_the_boxes_apart():
     assert torch.equal(u[:, 0], u0[:, 0]) and torch.equal(u[:, 3], u0[:, 3])  # ego, absent
     assert not torch.equal(u[:, 1], u0[:, 1]) and not torch.equal(u[:, 2], u0[:, 2])
     # the returned plans are the decoded u, as everywhere else
-    expected = plans_from_velocity(eps, u, state, mask, NORMALIZER, DYNAMICS)
+    expected = decode_plans(eps + u, state, mask, NORMALIZER, DYNAMICS)
     assert torch.equal(actions, expected[0]) and torch.equal(after_plans, expected[1])
 
 
@@ -72,8 +72,8 @@ def _autograd_steps(eps, u0, state, length, width, mask, steps, step_size, gain=
     delta = torch.zeros_like(u0, requires_grad=True)
     optimizer = torch.optim.Adam([delta], lr=step_size)
     for _ in range(steps):
-        _, trajectories = plans_from_velocity(
-            eps, u0 + gain * delta * variable[..., None, None], state, mask, NORMALIZER, DYNAMICS
+        _, trajectories = decode_plans(
+            eps + (u0 + gain * delta * variable[..., None, None]), state, mask, NORMALIZER, DYNAMICS
         )
         scored = trajectories[:, None, :, :30]
         loss = overlap_scores(scored, length, width, mask, state).sum()
@@ -130,7 +130,7 @@ def test_zero_steps_change_nothing():
     u, actions, trajectories = avoid_overlaps(
         eps, u0, state, length, width, mask, None, NORMALIZER, DYNAMICS, steps=0, step_size=0.2
     )
-    expected = plans_from_velocity(eps, u0, state, mask, NORMALIZER, DYNAMICS)
+    expected = decode_plans(eps + u0, state, mask, NORMALIZER, DYNAMICS)
     assert torch.equal(u, u0) and torch.equal(actions, expected[0])
     assert torch.equal(trajectories, expected[1])
 

@@ -7,7 +7,8 @@ import numpy as np
 import torch
 
 from policies.learned.data import ActionNormalizer
-from policies.riskflow.guidance import GuidanceScene, plans_from_velocity
+from policies.learned.sampler import decode_plans
+from policies.riskflow.guidance import GuidanceScene
 from riskflow_env.maps import Lane, from_lanes
 
 NORMALIZER = ActionNormalizer(mean=(0.0, 0.0), std=(1.0, 0.1))
@@ -22,7 +23,7 @@ def make_scene(state: list[list[float]], frame=(0.0, 0.0, 0.0), seed: int = 0) -
     eps = torch.randn(num, STEPS, 2, generator=torch.Generator().manual_seed(seed))
     u0 = NORMALIZER.normalize(torch.zeros(num, STEPS, 2)) - eps  # keep speed and heading
     mask = torch.ones(num, dtype=torch.bool)
-    actions, trajectories = plans_from_velocity(eps, u0, state, mask, NORMALIZER)
+    actions, trajectories = decode_plans(eps + u0, state, mask, NORMALIZER)
     return GuidanceScene(
         eps=eps,
         u0=u0,

@@ -12,14 +12,13 @@ import torch
 import policies.learned.guidance_losses as guidance_losses
 from policies.learned.guidance_losses import HORIZONS, HUMAN_ACCEL, KEEP_MOVING
 from policies.learned.plan_overlap import pair_separation
-from policies.learned.sampler import base_velocity, sample
+from policies.learned.sampler import base_velocity, decode_plans, sample
 from policies.learned.synthetic import synthetic_batch
 from policies.riskflow.guidance import (
     GuidanceConfig,
     GuidanceScene,
     adversarial_loss,
     guide,
-    plans_from_velocity,
 )
 from policies.stress.failures import HUMAN_BOUNDS
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
@@ -223,9 +222,7 @@ def test_base_plans_are_the_samplers(make_model, tiny_config):
     with torch.no_grad():
         scene = model.encode(batch)
         u0 = base_velocity(model, eps, scene)
-        actions, trajectories = plans_from_velocity(
-            eps, u0, scene.state, scene.agent_mask, NORMALIZER
-        )
+        actions, trajectories = decode_plans(eps + u0, scene.state, scene.agent_mask, NORMALIZER)
         expected_actions, expected_trajectories = sample(model, scene, eps, NORMALIZER)
     assert torch.equal(actions, expected_actions)
     assert torch.equal(trajectories, expected_trajectories)

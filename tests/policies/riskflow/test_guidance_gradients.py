@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from policies.learned.guidance_losses import MapTerm
+from policies.learned.sampler import decode_plans
 from policies.riskflow import guidance
 from policies.riskflow.guidance import (
     GuidanceConfig,
@@ -17,7 +18,6 @@ from policies.riskflow.guidance import (
     adversarial_value_and_gradient,
     guide,
     map_loss,
-    plans_from_velocity,
 )
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
 from tests.policies.riskflow.guidance_scenes import (
@@ -166,9 +166,7 @@ def _stopping_scene() -> GuidanceScene:
     accel = torch.zeros(len(state), STEPS, 2)
     accel[3, :30, 0] = -2.0
     u0 = NORMALIZER.normalize(accel) - scene.eps
-    actions, trajectories = plans_from_velocity(
-        scene.eps, u0, scene.state, scene.agent_mask, NORMALIZER
-    )
+    actions, trajectories = decode_plans(scene.eps + u0, scene.state, scene.agent_mask, NORMALIZER)
     assert bool((trajectories[3, :, 2] == 0).any())
     return dataclasses.replace(scene, u0=u0, base_actions=actions, base_trajectories=trajectories)
 
