@@ -18,7 +18,16 @@ carry Wilson 95% intervals, means a bootstrap interval (:mod:`policies.statistic
 ``non_ego_contact_share``  non-ego vehicles in a collision that does not involve the ego
 ``progress``               mean distance the ego drove [m] (the counter-metric: a
                            planner that stands still is rarely to blame)
+``attacked_rate``          episodes in which a vehicle was guided toward the ego at some
+                           step: the episodes that tested the planner at all (target
+                           ``"ego"``; with ``"others"``, guided toward any vehicle)
+``slow_ego_share``         mean share of the ego's steps slower than ``MIN_ATTACK_SPEED``
+                           (2 m/s), where no vehicle attacks it (a standing ego is spared)
 =========================  ==============================================================
+
+The last two say how much of the run exercised the planner: an ego that stands in a queue
+for most of an episode is neither attacked nor to blame, and a low ``attacked_rate`` makes
+a low failure rate weak evidence.
 
 ``types`` counts the ego collisions of each :data:`~policies.stress.failures.FAILURE_TYPES`
 (with how many were avoidable), ``families`` the ego collision rate per road family.
@@ -34,8 +43,10 @@ from typing import Any
 import numpy as np
 
 from policies.harness import EGO, EpisodeRecord, mean_summary
+from policies.learned.ranking import MIN_ATTACK_SPEED
 from policies.statistics import rate
 from policies.stress.failures import FAILURE_TYPES, Failure
+from riskflow_env.dynamics import SPEED
 
 
 @dataclass(frozen=True)
@@ -53,7 +64,10 @@ class Analysed:
 def episode_outcome(record: EpisodeRecord, failures: tuple[Failure, ...]) -> dict[str, Any]:
     """What the summary needs of an episode, JSON-ready (a line of a results file):
     ``scenario``, ``family``, ``steps``, ``failures`` (:meth:`Failure.to_dict` without the
-    witness), ``non_ego_contacts`` [in contact, present] and ``progress`` [m]."""
+    witness), ``non_ego_contacts`` [in contact, present], ``progress`` [m],
+    ``attacked_steps`` (steps in which a vehicle was guided; None for a policy without a
+    controllable set) and ``slow_ego_steps`` (steps with the ego slower than
+    ``MIN_ATTACK_SPEED``)."""
     rows = []
     for failure in failures:
         row = failure.to_dict()
@@ -66,7 +80,17 @@ def episode_outcome(record: EpisodeRecord, failures: tuple[Failure, ...]) -> dic
         "failures": rows,
         "non_ego_contacts": list(non_ego_contacts(record)),
         "progress": progress(record),
+        "attacked_steps": attacked_steps(record),
+        "slow_ego_steps": int((record.states[0, :-1, SPEED] < MIN_ATTACK_SPEED).sum()),
     }
+
+
+def attacked_steps(record: EpisodeRecord) -> int | None:
+    """Steps in which a vehicle other than the ego was in the controllable set (None: the
+    scene policy has none)."""
+    if record.guided is None:
+        return None
+    return int(record.guided[1:, :-1].any(axis=0).sum())
 
 
 def non_ego_contacts(record: EpisodeRecord) -> tuple[int, int]:
@@ -116,6 +140,15 @@ def stress_summary(
         ),
         "progress": mean_summary([o["progress"] for o in outcomes], confidence),
     }
+    # coverage; results files written before these fields existed lack them
+    covered = [o for o in outcomes if o.get("attacked_steps") is not None]
+    summary["attacked_rate"] = rate(
+        sum(o["attacked_steps"] > 0 for o in covered), len(covered), confidence
+    )
+    timed = [o for o in outcomes if "slow_ego_steps" in o and o["steps"] > 0]
+    summary["slow_ego_share"] = mean_summary(
+        [o["slow_ego_steps"] / o["steps"] for o in timed], confidence
+    )
     kinds = Counter(f["type"] for f in failures)
     saved = Counter(f["type"] for f in failures if f["avoidable"])
     summary["types"] = {
@@ -150,6 +183,7 @@ def headline(summary: dict[str, Any]) -> str:
 
 __all__ = [
     "Analysed",
+    "attacked_steps",
     "episode_outcome",
     "headline",
     "non_ego_contacts",

@@ -4,6 +4,8 @@ rest) that is not called avoidable."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import shapely
@@ -173,3 +175,28 @@ def test_a_bound_held_exactly_is_within_it():
     assert HUMAN_BOUNDS.admit(exact)
     assert not HUMAN_BOUNDS.admit(exact | {"accel": 6.001})
     assert not HUMAN_BOUNDS.admit(exact | {"jerk": 28.0})
+
+
+def test_coverage_counts_the_attacked_episodes_and_the_slow_ego_steps():
+    road = shapely.box(-60.0, -6.0, 120.0, 6.0)
+    # the ego stands for the whole episode; another car drives by in the next lane
+    record = closed_loop([(0.0, 0.0, 0.0, 0.0), (-30.0, 3.5, 10.0, 0.0)], road, steps=20)
+    assert record.guided is None  # replay traffic has no controllable set
+    outcome = Analysed(record, ()).outcome()
+    assert outcome["attacked_steps"] is None and outcome["slow_ego_steps"] == 20
+    guided = np.zeros(record.states.shape[:2], dtype=bool)
+    guided[1, 5:12] = True  # guided for 7 steps
+    attacked = dataclasses.replace(record, guided=guided)
+    assert Analysed(attacked, ()).outcome()["attacked_steps"] == 7
+    summary = stress_summary([Analysed(attacked, ()), Analysed(record, ())])
+    # the replay episode has no controllable set: it is left out of the attacked rate
+    assert summary["attacked_rate"]["value"] == 1.0 and summary["attacked_rate"]["n"] == 1
+    assert summary["slow_ego_share"]["value"] == 1.0 and summary["slow_ego_share"]["n"] == 2
+    unguided = dataclasses.replace(record, guided=np.zeros_like(guided))
+    summary = stress_summary([Analysed(attacked, ()), Analysed(unguided, ())])
+    assert summary["attacked_rate"]["value"] == 0.5
+    # results files written before the coverage fields existed still summarise
+    old = dict(Analysed(record, ()).outcome())
+    del old["attacked_steps"], old["slow_ego_steps"]
+    summary = stress_summary([old])
+    assert summary["attacked_rate"]["n"] == 0 and summary["slow_ego_share"]["n"] == 0
