@@ -6,9 +6,11 @@ scenes (or the scenes of ``--data``, a ScenarioNet or ``.npz`` folder) for every
 ``--seeds``, analyses every ego collision (:mod:`policies.stress.failures`) and prints
 one row per planner: the avoidable-failure rate (the headline), the ego collision rate,
 the share of ego collisions shown avoidable, strikes on a standing ego, guided vehicles
-within 5 m at impact, attackers within the human p99 bounds, non-ego vehicles in contact
-and the ego's progress (the counter-metric). Below it, paired differences of the
-avoidable-failure rate between consecutive planners (same scenes, same seeds: McNemar,
+within 5 m at impact, attackers within the human p99 bounds, non-ego vehicles in contact,
+the ego's progress (the counter-metric), and the coverage: the episodes with an attacker
+and the share of the ego's steps below 2 m/s, where no attack starts. Below it, paired
+differences of the avoidable-failure rate between consecutive planners (same scenes, same
+seeds: McNemar,
 :func:`policies.statistics.paired_difference`)::
 
     python benchmarks/failures_that_matter.py --scenes 100 --seeds 0 1 2
@@ -158,6 +160,10 @@ def report(done: dict, options: Options, num_scenes: int) -> dict[str, Any]:
                 text += f" [{scale * entry['low']:.0f},{scale * entry['high']:.0f}]"
             cells.append(text)
         print(f"{label:22s}" + "".join(f"{cell:>24s}" for cell in cells))
+    for planner in planners:  # results files written before the coverage fields lack them
+        covered = summaries[planner]["attacked_rate"]["n"]
+        if covered < len(rows[planner]):
+            print(f"  {planner}: coverage over {covered} of {len(rows[planner])} episodes")
     flips = [sum(r.get("longer_search_flips", 0) for r in rows[p]) for p in planners]
     if options.longer_search:
         print(f"{'longer search flips':22s}" + "".join(f"{f:>24d}" for f in flips))

@@ -32,8 +32,8 @@ RATES = (
     ("ego_offroad_rate", "ego off the road (episodes)", "%"),
     ("attackers_at_impact", "guided vehicles within 5 m of the ego at impact", ""),
     ("progress", "distance the ego drove [m]", ""),
-    ("attacked_rate", "episodes in which a vehicle attacked the ego", "%"),
-    ("slow_ego_share", "share of the ego's steps below 2 m/s (not attacked)", "%"),
+    ("attacked_rate", "episodes with a guided vehicle (target ego: an attacker)", "%"),
+    ("slow_ego_share", "share of the ego's steps below 2 m/s (no new attack)", "%"),
     ("time_to_first_ego_collision", "time to the first ego collision [s]", ""),
     ("attack_to_impact", "time from the attack's start to the impact [s]", ""),
 )

@@ -223,6 +223,7 @@ class _Writer:
     def row(self, episode: Episode) -> dict[str, Any]:
         """The JSON row of an episode."""
         record, failures = episode.analysed.record, episode.analysed.failures
+        outcome = episode.analysed.outcome()
         replay = episode.replay
         if replay is not None and self.folder is not None:
             replay = replay.relative_to(self.folder)
@@ -236,6 +237,8 @@ class _Writer:
             "failures": [f.to_dict() for f in failures],
             "replay": None if replay is None else replay.as_posix(),
             "metrics": record.metrics,
+            "attacked_steps": outcome["attacked_steps"],
+            "slow_ego_steps": outcome["slow_ego_steps"],
         }
 
     def draw_worst(

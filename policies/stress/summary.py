@@ -18,16 +18,17 @@ carry Wilson 95% intervals, means a bootstrap interval (:mod:`policies.statistic
 ``non_ego_contact_share``  non-ego vehicles in a collision that does not involve the ego
 ``progress``               mean distance the ego drove [m] (the counter-metric: a
                            planner that stands still is rarely to blame)
-``attacked_rate``          episodes in which a vehicle was guided toward the ego at some
-                           step: the episodes that tested the planner at all (target
-                           ``"ego"``; with ``"others"``, guided toward any vehicle)
+``attacked_rate``          episodes in which a vehicle was guided at some step: with
+                           target ``"ego"``, the episodes that put the planner under
+                           attack (with ``"others"``, guided toward any vehicle)
 ``slow_ego_share``         mean share of the ego's steps slower than ``MIN_ATTACK_SPEED``
-                           (2 m/s), where no vehicle attacks it (a standing ego is spared)
+                           (2 m/s): at a re-plan, the adversary guides no vehicle toward
+                           an ego that slow (a standing ego is spared)
 =========================  ==============================================================
 
-The last two say how much of the run exercised the planner: an ego that stands in a queue
-for most of an episode is neither attacked nor to blame, and a low ``attacked_rate`` makes
-a low failure rate weak evidence.
+The last two say how much of the run put the planner under attack: an ego that stands in
+a queue for most of an episode is hardly attacked and rarely to blame, and a low
+``attacked_rate`` makes a low failure rate weak evidence.
 
 ``types`` counts the ego collisions of each :data:`~policies.stress.failures.FAILURE_TYPES`
 (with how many were avoidable), ``families`` the ego collision rate per road family.

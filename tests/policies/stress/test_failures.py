@@ -186,6 +186,7 @@ def test_coverage_counts_the_attacked_episodes_and_the_slow_ego_steps():
     assert outcome["attacked_steps"] is None and outcome["slow_ego_steps"] == 20
     guided = np.zeros(record.states.shape[:2], dtype=bool)
     guided[1, 5:12] = True  # guided for 7 steps
+    guided[1, -1] = True  # the last column repeats the one before: not a step of its own
     attacked = dataclasses.replace(record, guided=guided)
     assert Analysed(attacked, ()).outcome()["attacked_steps"] == 7
     summary = stress_summary([Analysed(attacked, ()), Analysed(record, ())])
