@@ -99,6 +99,9 @@ class Options:
     """episode length [steps of 0.1 s]"""
     baselines: bool = True
     """also evaluate the IDM, lane-keeping, sampling-MPC, constant-velocity and random egos"""
+    planners: str = ""
+    """comma-separated baselines to evaluate, of idm, lane_keeping, sampling_mpc,
+    constant_velocity, random (e.g. 'sampling_mpc'); empty: all of them"""
     oracle: bool = False
     """also evaluate the oracle (sampling MPC that reads the adversary's plans: what is
     avoidable; needs RiskFlow nominal traffic)"""
@@ -120,8 +123,18 @@ class Options:
             )
         if self.target not in TARGETS:
             raise ValueError(f"--target must be one of {TARGETS}, got {self.target!r}")
+        unknown = sorted(set(self.planner_names()) - set(BASELINES))
+        if unknown:
+            raise ValueError(
+                f"--planners: unknown baseline(s) {unknown}; expected names of {list(BASELINES)}"
+            )
         if self.scenes < 1 or self.episodes_per_run < 1:
             raise ValueError("--scenes and --episodes-per-run must be >= 1")
+
+    def planner_names(self) -> list[str]:
+        """The baselines of ``--planners`` (empty: every one of ``BASELINES``)."""
+        names = [name.strip() for name in self.planners.split(",") if name.strip()]
+        return names or list(BASELINES)
 
 
 def run_options(run: Path) -> tuple[int, dict]:
@@ -251,7 +264,8 @@ def main(argv: list[str] | None = None) -> None:
         )
     )
     traffics = (adversarial, nominal)
-    baselines = dict(BASELINES) if options.baselines else {}
+    baselines = {name: BASELINES[name] for name in options.planner_names()}
+    baselines = baselines if options.baselines else {}
     if options.oracle:
         baselines["oracle"] = lambda seed: OraclePlanner()
     baseline_seeds = [int(s) for s in options.seeds.split(",") if s]

@@ -225,3 +225,17 @@ def test_every_wrong_path_is_one_line_naming_the_argument(tmp_path, capsys, make
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and err.startswith("evaluate_ego.py: error: ")
     assert message.format(tmp=tmp_path) in err
+
+
+def test_planners_picks_the_baselines(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        evaluate_main()(["--planners", "mpc"])
+    assert exit_info.value.code == 2
+    assert "--planners: unknown baseline(s) ['mpc']" in capsys.readouterr().err
+    out = tmp_path / "out"
+    evaluate_main()(
+        ["--planners", "lane_keeping", "--nominal", "idm", "--scenes", "1", "--seeds", "0",
+         "--episode-steps", "5", "--guidance-steps", "2", "--out", str(out)]
+    )  # fmt: skip
+    rows = json.loads((out / "results.json").read_text())["summary"]
+    assert {row["planner"] for row in rows} == {"lane_keeping"} and len(rows) == 2
