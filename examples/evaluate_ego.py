@@ -264,8 +264,8 @@ def main(argv: list[str] | None = None) -> None:
         )
     )
     traffics = (adversarial, nominal)
-    baselines = {name: BASELINES[name] for name in options.planner_names()}
-    baselines = baselines if options.baselines else {}
+    names = options.planner_names() if options.baselines else []
+    baselines = {name: BASELINES[name] for name in names}
     if options.oracle:
         baselines["oracle"] = lambda seed: OraclePlanner()
     baseline_seeds = [int(s) for s in options.seeds.split(",") if s]

@@ -44,7 +44,7 @@ from policies.stress.planner_spec import spec_of
 from policies.stress.replay import rerun, save_replay
 from policies.stress.report import write_reports
 from policies.stress.runner import Episode, Scenes, StressOptions, resolve_planner, run_jobs
-from policies.stress.summary import headline, stress_summary
+from policies.stress.summary import attacked_steps, headline, slow_ego_steps, stress_summary
 from riskflow_env.scenarios import Scenario
 
 
@@ -223,7 +223,6 @@ class _Writer:
     def row(self, episode: Episode) -> dict[str, Any]:
         """The JSON row of an episode."""
         record, failures = episode.analysed.record, episode.analysed.failures
-        outcome = episode.analysed.outcome()
         replay = episode.replay
         if replay is not None and self.folder is not None:
             replay = replay.relative_to(self.folder)
@@ -237,8 +236,8 @@ class _Writer:
             "failures": [f.to_dict() for f in failures],
             "replay": None if replay is None else replay.as_posix(),
             "metrics": record.metrics,
-            "attacked_steps": outcome["attacked_steps"],
-            "slow_ego_steps": outcome["slow_ego_steps"],
+            "attacked_steps": attacked_steps(record),
+            "slow_ego_steps": slow_ego_steps(record),
         }
 
     def draw_worst(

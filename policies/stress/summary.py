@@ -82,7 +82,7 @@ def episode_outcome(record: EpisodeRecord, failures: tuple[Failure, ...]) -> dic
         "non_ego_contacts": list(non_ego_contacts(record)),
         "progress": progress(record),
         "attacked_steps": attacked_steps(record),
-        "slow_ego_steps": int((record.states[0, :-1, SPEED] < MIN_ATTACK_SPEED).sum()),
+        "slow_ego_steps": slow_ego_steps(record),
     }
 
 
@@ -92,6 +92,12 @@ def attacked_steps(record: EpisodeRecord) -> int | None:
     if record.guided is None:
         return None
     return int(record.guided[1:, :-1].any(axis=0).sum())
+
+
+def slow_ego_steps(record: EpisodeRecord) -> int:
+    """Steps in which the ego was slower than ``MIN_ATTACK_SPEED`` (its speed when the step's
+    action was chosen)."""
+    return int((record.states[0, :-1, SPEED] < MIN_ATTACK_SPEED).sum())
 
 
 def non_ego_contacts(record: EpisodeRecord) -> tuple[int, int]:
@@ -185,6 +191,7 @@ def headline(summary: dict[str, Any]) -> str:
 __all__ = [
     "Analysed",
     "attacked_steps",
+    "slow_ego_steps",
     "episode_outcome",
     "headline",
     "non_ego_contacts",
