@@ -180,9 +180,13 @@ def _bounded_speed_vjp(cotangent: Array, saved: tuple, config: DynamicsConfig) -
     below, below_max, above, above_max, both = saved
     xp = namespace(cotangent, below)
     lower_on, upper_on = below_max >= 0, above_max >= 0
+    free = config.dt * _reverse_cumsum(cotangent, axis=-1)  # speed = v0 + dt * cumsum(a)
+    # Each row by its own bounds: a row that no bound touches keeps the free path's
+    # rounding whatever the rows batched with it do.
+    touched = xp.any(lower_on | upper_on, axis=-1)
+    if not bool(xp.any(touched)):
+        return free
     upper_reached = bool(xp.any(upper_on))
-    if not upper_reached and not bool(xp.any(lower_on)):
-        return config.dt * _reverse_cumsum(cotangent, axis=-1)  # speed = v0 + dt * cumsum(a)
     steps = xp.arange(below.shape[-1], device=device(below))
     first = xp.where(lower_on, _argcummax(below, below_max, steps) + 1, 0)  # (..., T)
     jacobian = xp.astype(_windows(first, steps, steps), cotangent.dtype)  # lower / dt
@@ -192,7 +196,8 @@ def _bounded_speed_vjp(cotangent: Array, saved: tuple, config: DynamicsConfig) -
         jacobian = jacobian - xp.astype(back & upper_on[..., None], cotangent.dtype)
     inside = (both >= config.speed_min) & (both <= config.speed_max)  # the final clip
     cotangent = xp.where(inside, cotangent, 0.0)
-    return config.dt * xp.sum(cotangent[..., :, None] * jacobian, axis=-2)
+    bounded = config.dt * xp.sum(cotangent[..., :, None] * jacobian, axis=-2)
+    return xp.where(touched[..., None], bounded, free)
 
 
 def _shift_in(first: Array, seq: Array) -> Array:

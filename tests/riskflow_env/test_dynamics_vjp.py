@@ -155,3 +155,22 @@ def test_float32_vjp_matches_float64_to_rounding():
     )
     assert single.dtype == torch.float32
     np.testing.assert_allclose(single.numpy(), exact, rtol=0, atol=1e-4 * abs(exact).max())
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_each_row_gets_the_vjp_it_gets_alone(dtype):
+    """A row's gradient does not depend on the rows batched with it: a row that no speed
+    bound touches gets the same bits whether or not another row brakes to a stop (batched
+    planning equals planning each scene alone)."""
+    rng = np.random.default_rng(3)
+    state = torch.tensor(_state(rng, rng.uniform(10, 20, AGENTS)), dtype=dtype)
+    actions = torch.tensor(_actions(rng, rng.uniform(-1, 1)), dtype=dtype)
+    state[-1, SPEED] = 1.0
+    actions[-1, :, 0] = -3.0  # the last row stops within the horizon: the lower bound
+    cotangent = torch.tensor(rng.normal(size=(AGENTS, STEPS, 4)), dtype=dtype)
+    together = rollout_vjp(state, actions, cotangent, CONFIG)
+    for row in range(AGENTS):
+        alone = rollout_vjp(
+            state[row : row + 1], actions[row : row + 1], cotangent[row : row + 1], CONFIG
+        )
+        assert torch.equal(together[row : row + 1], alone)

@@ -4,9 +4,13 @@ scenes of different sizes, ten planning cycles, the same views for both (the sce
 by the one-scene policies' actions).
 
 The network outputs of a scene in a batch are those it gets alone, bit for bit (planning
-groups the scenes' social attention by exact width, ``policies.learned.packing``); the
-rest differs by float rounding in ops whose vectorisation depends on the batch's shape,
-which the guidance's Adam steps amplify, to a few 1e-4 m here.
+groups the scenes' social attention by exact width, ``policies.learned.packing``), and so
+is every stage after it, each row computed from its own inputs only (the rollout's
+gradient picks its speed-bound path row by row, ``riskflow_env.dynamics``): the plans
+are equal bit for bit on the CPUs measured. The tolerance is for a BLAS whose rounding
+depends on the matrix's shape (MKL with ``MKL_CBWR=COMPATIBLE`` and scalar ATen kernels
+gives 1e-6 differences in the generator's output, which the guidance's Adam steps
+amplify to 3.5e-3 m by cycle 10).
 """
 
 from __future__ import annotations
