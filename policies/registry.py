@@ -13,6 +13,7 @@ policy for one rollout.
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -24,46 +25,27 @@ SHARED = ("k", "planning_interval", "target", "seed", "device")
 DIFFUSION_STEPS_OPTION = "sampling_steps"  # the DiffusionAdversary argument --diffusion-steps sets
 
 
-def _riskflow() -> type:
-    from policies.riskflow import RiskFlowAdversary
+def _class_loader(module: str, name: str) -> Callable[[], type]:
+    """A loader that imports ``module`` when called and returns its class ``name`` (an
+    ImportError naming the module when it or the class is missing)."""
 
-    return RiskFlowAdversary
+    def load() -> type:
+        loaded = importlib.import_module(module)
+        try:
+            return getattr(loaded, name)
+        except AttributeError as err:
+            raise ImportError(f"cannot import name {name!r} from {module!r}") from err
 
-
-def _diffusion() -> type:
-    from policies.baselines.diffusion import DiffusionAdversary
-
-    return DiffusionAdversary
-
-
-def _strive() -> type:
-    from policies.baselines.strive import StriveAdversary
-
-    return StriveAdversary
+    return load
 
 
-def _nominal() -> type:
-    from policies.baselines.nominal import NominalGenerator
-
-    return NominalGenerator
-
-
-def _idm() -> type:
-    from riskflow_env.agents import IDMPolicy
-
-    return IDMPolicy
-
-
-def _replay() -> type:
-    from riskflow_env.agents import ReplayPolicy
-
-    return ReplayPolicy
-
-
-def _constant_velocity() -> type:
-    from riskflow_env.agents import ConstantVelocityPolicy
-
-    return ConstantVelocityPolicy
+_riskflow = _class_loader("policies.riskflow", "RiskFlowAdversary")
+_diffusion = _class_loader("policies.baselines.diffusion", "DiffusionAdversary")
+_strive = _class_loader("policies.baselines.strive", "StriveAdversary")
+_nominal = _class_loader("policies.baselines.nominal", "NominalGenerator")
+_idm = _class_loader("riskflow_env.agents", "IDMPolicy")
+_replay = _class_loader("riskflow_env.agents", "ReplayPolicy")
+_constant_velocity = _class_loader("riskflow_env.agents", "ConstantVelocityPolicy")
 
 
 @dataclass(frozen=True)
