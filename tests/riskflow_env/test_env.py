@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pettingzoo.test import parallel_api_test, parallel_seed_test
 
 import riskflow_env
 from riskflow_env.config import EnvConfig
 from riskflow_env.maps import FAMILIES
 from riskflow_env.scenarios import HighwayTrafficSource, TrafficConfig
+from tests.pettingzoo_checks import pettingzoo_checks
 
 
 def make_env(
@@ -25,13 +25,8 @@ def make_env(
 
 
 @pytest.mark.parametrize("family", FAMILIES)
-def test_parallel_api(family):
-    parallel_api_test(make_env(family), num_cycles=30)
-
-
-@pytest.mark.parametrize("family", FAMILIES)
-def test_parallel_seed(family):
-    parallel_seed_test(lambda: make_env(family), num_cycles=30)
+def test_pettingzoo_api_and_seed_tests(family):
+    pettingzoo_checks(lambda: make_env(family))
 
 
 def rollout(env, seed: int, steps: int = 30) -> list:

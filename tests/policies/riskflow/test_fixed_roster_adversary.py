@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pettingzoo.test import parallel_api_test, parallel_seed_test
 
 from policies.riskflow import RiskFlowAdversary
 from riskflow_env.config import EnvConfig
 from riskflow_env.wrappers import FixedRosterEnv
+from tests.pettingzoo_checks import pettingzoo_checks
 from tests.policies.straight_road import make_road_scenario
 
 
@@ -29,8 +29,7 @@ def make_env(tiny_meanflow, tiny_normalizer):
 
 
 def test_pettingzoo_api_and_seed_tests(make_env):
-    parallel_api_test(make_env(), num_cycles=10)
-    parallel_seed_test(make_env, num_cycles=10)
+    pettingzoo_checks(make_env, num_cycles=10)
 
 
 def test_seeded_reset_repeats_the_adversary_bit_for_bit(make_env):

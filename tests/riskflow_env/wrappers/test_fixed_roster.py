@@ -7,7 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from pettingzoo.test import max_cycles_test, parallel_api_test, parallel_seed_test
+from pettingzoo.test import max_cycles_test
 from pettingzoo.utils.conversions import parallel_to_aec
 
 from riskflow_env.agents import ConstantVelocityPolicy
@@ -15,6 +15,7 @@ from riskflow_env.config import EnvConfig
 from riskflow_env.rewards import REWARD_TERMS
 from riskflow_env.scenarios import HighwayTrafficSource, TrafficConfig
 from riskflow_env.wrappers import FixedRosterEnv
+from tests.pettingzoo_checks import pettingzoo_checks
 
 SLOTS = 5
 # Scenes with 2-4 vehicles in 5 slots: at least one slot is always padded.
@@ -57,13 +58,8 @@ def run_episode(env: FixedRosterEnv, seed: int, actions=sample_actions) -> list[
 
 
 @pytest.mark.parametrize("name", CONFIGS)
-def test_parallel_api(name):
-    parallel_api_test(make_env(name), num_cycles=30)
-
-
-@pytest.mark.parametrize("name", CONFIGS)
-def test_parallel_seed(name):
-    parallel_seed_test(lambda: make_env(name), num_cycles=30)
+def test_pettingzoo_api_and_seed_tests(name):
+    pettingzoo_checks(lambda: make_env(name))
 
 
 @pytest.mark.parametrize("name", ["all-slots", "adversaries", "ego-only"])
