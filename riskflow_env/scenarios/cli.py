@@ -37,7 +37,7 @@ import sys
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -314,16 +314,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_output_folder(args.out, "--out")
     except ValueError as err:
         parser.error(str(err))
-    options = GenerateOptions(
-        out=args.out,
-        families=tuple(dict.fromkeys(args.families)),
-        scenes=args.scenes,
-        seed=args.seed,
-        split=args.split,
-        workers=args.workers,
-        future_steps=args.future_steps,
-        stop_share=args.stop_share,
-    )
+    # every field of GenerateOptions is the `generate` argument of the same name
+    parsed = {field.name: getattr(args, field.name) for field in fields(GenerateOptions)}
+    options = GenerateOptions(**parsed | {"families": tuple(dict.fromkeys(args.families))})
     with user_errors(f"{parser.prog} generate", args.debug):
         generate(options)
     return 0
