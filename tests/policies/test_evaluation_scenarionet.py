@@ -64,13 +64,18 @@ def test_bad_dataset_folders_name_the_argument(scenarionet_toy, tmp_path, capsys
 
 
 @pytest.mark.slow  # 10 s rollouts of three methods on every real sample: about 20 s of CPU
-def test_realism_ranks_replay_over_the_generator_over_the_adversary(tmp_path, monkeypatch):
-    """On the real nuScenes samples (10 s, IDM ego, one seed): log replay is more realistic
-    than the unguided generator, which is more realistic than the RiskFlow adversary
-    attacking the ego, by WOSAC-style score and ADE (measured: WOSAC 0.835 / 0.763 / 0.759,
-    ADE 0.06 / 2.1 / 2.3 m); by KDD replay beats both (KDD 2.13 / 2.64 / 2.62: the last two
-    too close to order on 4 rollouts). Replay is a reference: outside the RS
-    normalisation, which compares the two generators."""
+def test_realism_on_real_samples_replay_nearest_the_log_the_generators_close_to_it(
+    tmp_path, monkeypatch
+):
+    """On the real nuScenes samples (10 s, IDM ego, one seed): log replay is nearest the log
+    by ADE and KDD; the unguided generator scores within 0.05 of it by WOSAC-style (the
+    replayed vehicles do not react to the IDM ego, the generated ones do), and the RiskFlow
+    adversary attacking the ego within 0.02 of the generator, moving its vehicles off the
+    log no less. Measured at seed 0: WOSAC 0.857 / 0.822 / 0.822, ADE 0.06 / 2.15 / 2.32 m,
+    KDD 2.13 / 2.64 / 2.64; at seeds 1 and 2 both generators score above replay by WOSAC
+    (0.858-0.861 against 0.857), so no order of the three by WOSAC holds on four
+    rollouts. Replay is a reference: outside the RS normalisation, which compares the
+    two generators."""
     require_samples()
     monkeypatch.setenv(CACHE_ENV, str(tmp_path / "user-cache"))
     options = EvalOptions(
@@ -81,10 +86,11 @@ def test_realism_ranks_replay_over_the_generator_over_the_adversary(tmp_path, mo
     (table,) = build_tables(ResultsStore(tmp_path / "eval"))
     metrics = table.metrics
     replay, generator, adversary = (metrics[m] for m in ("replay", "bits", "riskflow"))
-    assert replay["wosac"] > generator["wosac"] > adversary["wosac"]
     assert math.isnan(replay["rs"]) and math.isnan(replay["cs"])  # a reference
     assert replay["kdd"] < min(generator["kdd"], adversary["kdd"])
-    assert replay["ade"] < generator["ade"] < adversary["ade"]
+    assert replay["ade"] < 0.5 < generator["ade"] < adversary["ade"]
+    assert abs(generator["wosac"] - replay["wosac"]) < 0.05
+    assert abs(adversary["wosac"] - generator["wosac"]) < 0.02
     # One attacker against the IDM ego does not reach it on these four short scenes
     # (ego collisions 0 of 4 for both); the adversary only moves its vehicles off the log.
     assert adversary["ego_collision_rate"] >= generator["ego_collision_rate"]
