@@ -48,11 +48,9 @@ def rollout(key: str):
     """The record of the 2 s default rollout of ``key``: ``"method/target"`` (K = 5) or
     ``"method/unguided"`` (K = 0)."""
     method, target = key.split("/")
-    k = 0 if target == "unguided" else 5
+    k, target = (0, "others") if target == "unguided" else (5, target)
     threads = torch.get_num_threads()
-    policy = build_policy(
-        method, {}, k=k, planning_interval=0.5, target="others" if k == 0 else target, seed=0
-    )
+    policy = build_policy(method, {}, k=k, planning_interval=0.5, target=target, seed=0)
     try:
         with ClosedLoop(IDMPlanner(), policy, config=EnvConfig(episode_steps=20)) as loop:
             return loop.run(shipped_bank("eval")[0], seed=0)
