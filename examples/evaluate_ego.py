@@ -9,9 +9,10 @@ model files, with or without ``.zip`` (``RUN/checkpoints/ppo_N_steps``). A path 
 not one of those is one line naming ``--runs`` (or ``--model``) and what was expected.
 
 Every ego drives the same scenes of the shipped *evaluation* bank (the PPO egos trained
-on the training bank) under two kinds of traffic: the RiskFlow adversary at its defaults
-(K=5, 30 guidance steps, re-plan every 0.5 s, target ``others``) and nominal traffic (the
-unguided generator, K=0, or IDM with ``--nominal idm``). Each PPO run contributes its
+on the training bank), or of ``--data`` (a ScenarioNet folder or a folder of ``.npz``
+scenes: recorded traffic), under the RiskFlow adversary at its defaults (K=5, 30 guidance
+steps, re-plan every 0.5 s, target ``others``) and each nominal traffic of ``--nominal``
+(the unguided generator, K=0; IDM; log replay). Each PPO run contributes its
 trained policy (``final_model.zip`` or ``--model``; rows ``ppo`` or ``--label``) and its
 untrained initial policy (``initial_model.zip``; rows ``ppo-initial``), both acting with
 the Gaussian's mean; a run is evaluated with its own seed (adversary noise:
@@ -37,6 +38,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from policies.cli_inputs import open_data
 from policies.dataclass_cli import parse_dataclass
 from policies.planners import OraclePlanner, make_planner
 from policies.rl.adversary import TARGETS, AdversaryStage, ScenePolicyConfig
@@ -49,7 +51,7 @@ from policies.statistics import wilson_interval
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
 
-NOMINAL = ("generator", "idm")
+NOMINAL = ("generator", "idm", "replay")
 BASELINES = {
     **{
         name: lambda seed, name=name: make_planner(name)
@@ -74,7 +76,10 @@ class Options:
     out: Path = Path("outputs/evaluate_ego")
     """output folder"""
     split: str = "eval"
-    """shipped scenario bank"""
+    """shipped scenario bank (without --data)"""
+    data: str | None = None
+    """scenes from a ScenarioNet dataset folder or a folder of .npz scenes instead of the
+    shipped bank (e.g. recorded nuScenes scenes)"""
     scenes: int = 35
     """number of scenes, spread evenly over the bank (every family)"""
     seeds: str = "0,1,2"
@@ -82,7 +87,8 @@ class Options:
     episodes_per_run: int = 1
     """adversary seeds per PPO run (seed*100 + i): more episodes per scene"""
     nominal: str = "generator"
-    """nominal traffic: 'generator' (unguided, K=0) or 'idm'"""
+    """comma-separated nominal traffics, of 'generator' (unguided, K=0), 'idm' and 'replay'
+    (log replay: the recorded trajectories)"""
     k: int = 5
     """K of the adversarial traffic"""
     target: str = "others"
@@ -112,9 +118,12 @@ class Options:
     """comma-separated results.json files of earlier runs: merge them (no new episodes)"""
 
     def __post_init__(self) -> None:
-        if self.nominal not in NOMINAL:
-            raise ValueError(f"--nominal must be one of {NOMINAL}, got {self.nominal!r}")
-        if self.oracle and self.nominal == "idm":
+        nominal = self.nominal_names()
+        if not nominal or not set(nominal) <= set(NOMINAL):
+            raise ValueError(
+                f"--nominal must be a comma-separated list of {NOMINAL}, got {self.nominal!r}"
+            )
+        if self.oracle and nominal != ["generator"]:
             raise ValueError("--oracle reads the traffic's plans: it needs --nominal generator")
         if self.runs and not self.trust_model:
             raise ValueError(
@@ -130,6 +139,11 @@ class Options:
             )
         if self.scenes < 1 or self.episodes_per_run < 1:
             raise ValueError("--scenes and --episodes-per-run must be >= 1")
+
+    def nominal_names(self) -> list[str]:
+        """The nominal traffics of ``--nominal``, in order, each once."""
+        names = [name.strip() for name in self.nominal.split(",") if name.strip()]
+        return list(dict.fromkeys(names))
 
     def planner_names(self) -> list[str]:
         """The baselines of ``--planners`` (empty: every one of ``BASELINES``)."""
@@ -247,7 +261,11 @@ def main(argv: list[str] | None = None) -> None:
         adversarial_label = ScenePolicyConfig(stage=stage).label
         write_report(summaries, per_run, paired, adversarial_label, options.out)
         return
-    bank = shipped_bank(options.split)
+    try:
+        bank = shipped_bank(options.split) if options.data is None else open_data(options.data)
+    except ValueError as error:
+        print(f"evaluate_ego.py: error: {error}", file=sys.stderr)
+        sys.exit(2)
     count = min(options.scenes, len(bank))
     scenes = [bank[round(i * len(bank) / count)] for i in range(count)]
     config = EnvConfig(episode_steps=options.episode_steps)
@@ -256,14 +274,14 @@ def main(argv: list[str] | None = None) -> None:
         guidance_steps=options.guidance_steps,
         planning_interval=options.planning_interval,
     )
-    nominal = (
-        ScenePolicyConfig(kind="idm")
-        if options.nominal == "idm"
-        else ScenePolicyConfig(
+    nominal = {
+        "generator": ScenePolicyConfig(
             stage=AdversaryStage(k=0), planning_interval=options.planning_interval
-        )
-    )
-    traffics = (adversarial, nominal)
+        ),
+        "idm": ScenePolicyConfig(kind="idm"),
+        "replay": ScenePolicyConfig(kind="replay"),
+    }
+    traffics = (adversarial, *(nominal[name] for name in options.nominal_names()))
     names = options.planner_names() if options.baselines else []
     baselines = {name: BASELINES[name] for name in names}
     if options.oracle:

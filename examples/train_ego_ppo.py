@@ -66,7 +66,7 @@ from stable_baselines3.common.vec_env import (
 )
 
 from policies.evaluation.options import check_device
-from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
+from policies.rl.adversary import TRAFFIC_KINDS, AdversaryStage, ScenePolicyConfig
 from policies.rl.checkpoints import (
     RunCheckpoints,
     keep_progress_rows,
@@ -142,6 +142,10 @@ class Options:
     constant over ``sde_sample_freq`` steps instead of fresh every step"""
     sde_sample_freq: int = -1
     """resample the gSDE noise every N decisions (-1: once per rollout)"""
+    traffic: str = "riskflow"
+    """the other vehicles' driver: 'riskflow' (the adversary, ramped by the curriculum
+    options below; --k-start 0 --k-end 0 is the unguided generator) or 'idm' (IDM traffic,
+    no adversary: the curriculum options do not apply)"""
     guidance_steps: int = 10
     """K_g of the training adversary (evaluation uses 30)"""
     planning_interval: float = 1.0
@@ -222,6 +226,8 @@ class Options:
             )
         if self.checkpoint_every < 0:
             raise ValueError(f"--checkpoint-every must be >= 0, got {self.checkpoint_every}")
+        if self.traffic not in TRAFFIC_KINDS:
+            raise ValueError(f"--traffic must be one of {TRAFFIC_KINDS}, got {self.traffic!r}")
 
 
 def env_config(options: Options) -> EgoEnvConfig:
@@ -239,6 +245,7 @@ def env_config(options: Options) -> EgoEnvConfig:
             terminate_on_offroad="ego" if options.terminate_on_offroad else "none",
         ),
         traffic=ScenePolicyConfig(
+            kind=options.traffic,
             stage=start,
             guidance_steps=options.guidance_steps,
             planning_interval=options.planning_interval,
@@ -339,8 +346,9 @@ def train(options: Options) -> Path:
     )
     with StopSignals() as stop:
         checkpoints = RunCheckpoints(out / "checkpoints", options.checkpoint_every, stop)
+        ramp = [CurriculumCallback(curriculum, options.total_timesteps)]
         callbacks = [
-            CurriculumCallback(curriculum, options.total_timesteps),
+            *(ramp if options.traffic == "riskflow" else []),  # IDM traffic has no stages
             OutcomeCallback(),
             StepProgressBar(options.total_timesteps, "PPO ego"),
             checkpoints,

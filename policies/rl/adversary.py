@@ -18,7 +18,7 @@ from policies.learned.guidance_losses import TARGETS
 from policies.learned.ranking import check_k
 from riskflow_env.view import ScenePolicy
 
-TRAFFIC_KINDS = ("riskflow", "idm")
+TRAFFIC_KINDS = ("riskflow", "idm", "replay")
 
 
 @dataclass(frozen=True)
@@ -50,7 +50,9 @@ class ScenePolicyConfig:
 
     Attributes:
         kind: ``"riskflow"`` (the RiskFlow generator; ``stage.k = 0`` is the unguided
-            generator, nominal traffic) or ``"idm"`` (IDM car following, nominal traffic).
+            generator, nominal traffic), ``"idm"`` (IDM car following, nominal traffic) or
+            ``"replay"`` (every vehicle tracks its logged trajectory: recorded traffic, which
+            does not react to the ego).
         stage: k, guidance weight and target of the RiskFlow adversary.
         guidance_steps: ``K_g`` guidance steps per planning cycle (default 30).
         planning_interval: time between re-plans [s] (default 0.5).
@@ -80,10 +82,10 @@ class ScenePolicyConfig:
 
     @property
     def label(self) -> str:
-        """Short name for tables: ``riskflow K=5``, ``riskflow K=0``, ``idm``; ``riskflow K=5
-        ego`` for the target ``ego``."""
-        if self.kind == "idm":
-            return "idm"
+        """Short name for tables: ``riskflow K=5``, ``riskflow K=0``, ``idm``, ``replay``;
+        ``riskflow K=5 ego`` for the target ``ego``."""
+        if self.kind != "riskflow":
+            return self.kind
         return f"riskflow K={self.stage.k}" + (" ego" if self.stage.target == "ego" else "")
 
 
@@ -99,8 +101,10 @@ def make_traffic(config: ScenePolicyConfig, seed: int = 0, generator=None, norma
     """
     from policies.registry import build_policy
 
-    if config.kind == "idm":
-        return build_policy("idm", {}, k=None, planning_interval=None, target="others", seed=seed)
+    if config.kind != "riskflow":  # idm, replay: nothing to configure
+        return build_policy(
+            config.kind, {}, k=None, planning_interval=None, target="others", seed=seed
+        )
     stage = config.stage
     options = {"lambda_adv": stage.lambda_adv, "guidance_steps": config.guidance_steps}
     if generator is not None:

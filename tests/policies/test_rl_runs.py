@@ -206,6 +206,7 @@ def test_find_model_takes_folders_and_files_with_or_without_zip(tmp_path):
          "--runs {tmp}/run/final_model.zip: cannot load"),
         ("loose", ["--runs", "{tmp}/loose.zip"], "no options.json beside the model"),
         (None, ["--combine", "{tmp}/results.json"], "--combine {tmp}/results.json: no such file"),
+        (None, ["--data", "{tmp}/scenes"], "--data: "),
     ],
 )  # fmt: skip
 def test_every_wrong_path_is_one_line_naming_the_argument(tmp_path, capsys, make, args, message):
@@ -239,3 +240,28 @@ def test_planners_picks_the_baselines(tmp_path, capsys):
     )  # fmt: skip
     rows = json.loads((out / "results.json").read_text())["summary"]
     assert {row["planner"] for row in rows} == {"lane_keeping"} and len(rows) == 2
+
+
+def test_nominal_traffics_and_recorded_scenes(tmp_path, capsys):
+    """``--nominal`` takes several traffics (log replay among them) and ``--data`` a folder
+    of scenes instead of the shipped bank: one row per (planner, traffic)."""
+    from riskflow_env.scenarios import save_scenario, shipped_bank
+
+    with pytest.raises(SystemExit) as exit_info:
+        evaluate_main()(["--nominal", "generator,log"])
+    assert exit_info.value.code == 2
+    assert "--nominal must be a comma-separated list of" in capsys.readouterr().err
+
+    scenes = tmp_path / "scenes"
+    scenes.mkdir()
+    for scenario in shipped_bank("eval")[:2]:
+        save_scenario(scenario, scenes / f"{scenario.name}.npz")
+    out = tmp_path / "out"
+    evaluate_main()(
+        ["--planners", "lane_keeping", "--nominal", "replay,idm", "--data", str(scenes),
+         "--scenes", "2", "--seeds", "0", "--episode-steps", "5", "--guidance-steps", "2",
+         "--target", "ego", "--out", str(out)]
+    )  # fmt: skip
+    rows = json.loads((out / "results.json").read_text())["summary"]
+    assert [row["traffic"] for row in rows] == ["riskflow K=5 ego", "idm", "replay"]
+    assert all(row["ego_collision_rate"]["n"] == 2 for row in rows)
