@@ -15,10 +15,11 @@ steps, re-plan every 0.5 s, target ``others``) and each nominal traffic of ``--n
 (the unguided generator, K=0; IDM; log replay). Each PPO run contributes its
 trained policy (``final_model.zip`` or ``--model``; rows ``ppo`` or ``--label``) and its
 untrained initial policy (``initial_model.zip``; rows ``ppo-initial``), both acting with
-the Gaussian's mean; a run is evaluated with its own seed (adversary noise:
-``seed * 100 + i``, ``i < --episodes-per-run``), the baselines with every seed of
-``--seeds``. Episodes: 10 s, ending at an ego collision or off-road (the
-library's default ``EnvConfig``).
+the Gaussian's mean (maneuver actions: the most probable maneuver among those the action
+mask allows, ``--no-mask-actions`` for the raw policy's choice); a run is evaluated
+with its own seed (adversary noise: ``seed * 100 + i``, ``i < --episodes-per-run``), the
+baselines with every seed of ``--seeds``. Episodes: 10 s, ending at an ego collision or
+off-road (the library's default ``EnvConfig``).
 
 Report: ego collision rate, off-road rate, collision-or-off-road rate (Wilson 95%
 intervals over all (seed, scene) episodes), progress [m] and time to the first ego
@@ -111,6 +112,10 @@ class Options:
     oracle: bool = False
     """also evaluate the oracle (sampling MPC that reads the adversary's plans: what is
     avoidable; needs RiskFlow nominal traffic)"""
+    mask_actions: bool = True
+    """PPO egos with maneuver actions choose among the maneuvers the action mask allows (those
+    that keep the ego on the road over the next second: a safety filter at deployment);
+    --no-mask-actions: the raw policy"""
     trust_model: bool = False
     """load the --runs PPO models although SB3 model files are pickles that can run code
     (required with --runs; only for files you trust, docs/reference/security.md)"""
@@ -158,9 +163,12 @@ def run_options(run: Path) -> tuple[int, dict]:
     return int(options["seed"]), interface_options(options)
 
 
-def ppo_factory(path: Path, policy: dict):
-    """``factory(seed)`` of the PPO planner saved at ``path`` (deterministic actions)."""
-    return lambda seed: load_ppo_planner(str(path), True, **policy, trusted=True)
+def ppo_factory(path: Path, policy: dict, mask_actions: bool = True):
+    """``factory(seed)`` of the PPO planner saved at ``path`` (deterministic actions; with
+    ``mask_actions``, maneuvers chosen among those the action mask allows)."""
+    return lambda seed: load_ppo_planner(
+        str(path), True, **policy, trusted=True, mask_actions=mask_actions
+    )
 
 
 def find_runs(options: Options) -> list[tuple[RunModel, Path]]:
@@ -306,8 +314,8 @@ def main(argv: list[str] | None = None) -> None:
         seeds = [seed * 100 + i for i in range(options.episodes_per_run)]
         seeds = baseline_seeds if options.paired else seeds
         planners = {
-            options.label: ppo_factory(chosen.model, policy),
-            f"{options.label}-initial": ppo_factory(initial, policy),
+            options.label: ppo_factory(chosen.model, policy, options.mask_actions),
+            f"{options.label}-initial": ppo_factory(initial, policy, options.mask_actions),
         }
         records = evaluate(planners, traffics, scenes, seeds, config, progress=advance)
         for (name, traffic), episodes in records.items():

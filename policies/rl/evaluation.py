@@ -41,6 +41,12 @@ class PPOPlanner:
             are applied), or None.
         deterministic: act with the mean of the Gaussian (True) or sample it.
         dynamics: the env's bounds (to de-normalise actions).
+        mask_actions: with maneuver actions, choose only among the maneuvers the action
+            mask allows (:meth:`~policies.rl.envs.EgoInterface.action_mask`: those that keep
+            the ego's footprint on the road over the next second), the most probable one
+            (or a draw from the policy's probabilities renormalised over them): a safety
+            filter at deployment, as highway-env's available actions. False: the policy's
+            own choice (the raw policy). Continuous actions have no mask.
         **interface: ``base_planner``, ``action_repeat``, ``maneuver_features``,
             ``maneuver_actions``, ``maneuver_set`` of
             :class:`~policies.rl.envs.EgoInterface`, as trained.
@@ -52,10 +58,11 @@ class PPOPlanner:
         normalize: Any = None,
         deterministic: bool = True,
         dynamics: DynamicsConfig | None = None,
+        mask_actions: bool = True,
         **interface: Any,
     ) -> None:
         self.model, self.normalize = model, normalize
-        self.deterministic = deterministic
+        self.deterministic, self.mask_actions = deterministic, mask_actions
         self.interface = EgoInterface(dynamics or DynamicsConfig(), **interface)
         self._held: Any = None
         self._calls = 0
@@ -75,9 +82,25 @@ class PPOPlanner:
             seen = self.interface.observe(observation, view)
             if self.normalize is not None:
                 seen = self.normalize.normalize_obs(seen)
-            self._held, _ = self.model.predict(seen, deterministic=self.deterministic)
+            masked = self.mask_actions and view is not None  # the mask needs the scene
+            allowed = self.interface.action_mask(view) if masked else None
+            if allowed is None:
+                self._held, _ = self.model.predict(seen, deterministic=self.deterministic)
+            else:
+                self._held = self._masked_choice(seen, allowed)
         self._calls += 1
         return self.interface.env_action(self._held, observation, view, substep)
+
+    def _masked_choice(self, observation: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+        """The maneuver index the policy chooses among the ``allowed`` (M,) ones."""
+        policy = self.model.policy
+        with torch.no_grad():
+            tensor, _ = policy.obs_to_tensor(observation)
+            logits = policy.get_distribution(tensor).distribution.logits[0]
+            logits = logits.masked_fill(~torch.as_tensor(allowed), -torch.inf)
+            if self.deterministic:
+                return np.array(int(torch.argmax(logits)))
+            return np.array(int(torch.distributions.Categorical(logits=logits).sample()))
 
 
 class RandomPlanner:
@@ -110,6 +133,7 @@ def load_ppo_planner(
     deterministic: bool = True,
     *,
     trusted: bool = False,
+    mask_actions: bool = True,
     **interface: Any,
 ) -> PPOPlanner:
     """A :class:`PPOPlanner` from a model file (``.zip``) saved by ``train_ego_ppo.py``;
@@ -123,7 +147,7 @@ def load_ppo_planner(
     the ``VecNormalize`` statistics are read from the same name with ``_vecnormalize.pkl``
     in place of ``.zip`` (checkpoints: ``ppo_N_steps.zip`` -> ``ppo_vecnormalize_N_steps.pkl``)
     when that file exists. ``interface`` (:class:`PPOPlanner`'s) must be what the model
-    was trained with."""
+    was trained with; ``mask_actions`` as :class:`PPOPlanner`'s."""
     from pathlib import Path
 
     from stable_baselines3 import PPO
@@ -145,7 +169,7 @@ def load_ppo_planner(
     if stats.is_file():
         normalize = VecNormalize.load(str(stats), venv=_DummyVec(model))
         normalize.training, normalize.norm_reward = False, False
-    return PPOPlanner(model, normalize, deterministic, None, **interface)
+    return PPOPlanner(model, normalize, deterministic, None, mask_actions, **interface)
 
 
 class _DummyVec:

@@ -218,7 +218,7 @@ def test_stage_validation():
     with pytest.raises(ValueError, match="k must be"):
         AdversaryStage(k=-1)
     with pytest.raises(ValueError, match="kind"):
-        ScenePolicyConfig(kind="replay")
+        ScenePolicyConfig(kind="recorded")
 
 
 def test_training_env_normalised_actions_outcome_and_stage():

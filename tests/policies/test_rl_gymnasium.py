@@ -5,6 +5,7 @@ where physical bounds exist, and maneuver actions come with an action mask in ``
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import gymnasium
 import numpy as np
@@ -91,6 +92,52 @@ def test_the_action_mask_removes_maneuvers_that_leave_the_road_within_a_second()
     assert centred.reset(seed=0)[1]["action_mask"].all()  # mid-road: every maneuver
     continuous = EgoTrainingEnv(EgoEnv(config=CONFIG, scenarios=edge_scenario(0.0)))
     assert "action_mask" not in continuous.reset(seed=0)[1]
+
+
+def test_the_ppo_planner_chooses_among_the_maneuvers_the_mask_allows():
+    """Ego at the left edge, a policy whose favourite maneuvers go left: masked, it takes its
+    most probable maneuver that stays on the road; ``mask_actions=False`` (the raw policy)
+    takes the one it prefers."""
+    import torch
+
+    from policies.rl.evaluation import PPOPlanner
+
+    left = maneuvers()[:, 0, 1] > 0
+    logits = torch.where(torch.as_tensor(left), 5.0, 0.0) + 0.01 * torch.arange(15.0)
+
+    class Policy:
+        @staticmethod
+        def obs_to_tensor(observation):
+            return torch.as_tensor(observation)[None], True
+
+        @staticmethod
+        def get_distribution(observation):
+            return SimpleNamespace(
+                distribution=torch.distributions.Categorical(logits=logits[None])
+            )
+
+    class Model:
+        policy = Policy()
+
+        def predict(self, observation, deterministic=True):
+            return np.int64(torch.argmax(logits)), None
+
+    env = EgoTrainingEnv(EgoEnv(config=CONFIG, scenarios=edge_scenario(4.6)), maneuver_actions=True)
+    observation, info = env.reset(seed=0)
+    view = env.unwrapped.parallel_env.view()
+    allowed = info["action_mask"]
+    best_allowed = int(np.flatnonzero(allowed)[np.argmax(logits.numpy()[allowed])])
+    table = maneuvers()
+    for mask_actions, chosen in ((True, best_allowed), (False, int(torch.argmax(logits)))):
+        planner = PPOPlanner(Model(), maneuver_actions=True, mask_actions=mask_actions)
+        planner.reset(view)
+        np.testing.assert_allclose(planner(observation, view), table[chosen, 0])
+    assert left[int(torch.argmax(logits))] and not left[best_allowed]
+    sampled = PPOPlanner(Model(), deterministic=False, maneuver_actions=True)
+    sampled.reset(view)
+    torch.manual_seed(0)
+    for _ in range(20):  # draws from the renormalised probabilities: never a masked one
+        assert allowed[int(sampled._masked_choice(observation, allowed))]
 
 
 def test_the_vector_env_reports_each_scenes_action_mask():
