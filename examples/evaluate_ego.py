@@ -201,24 +201,32 @@ def find_runs(options: Options) -> list[tuple[RunModel, Path]]:
 RATES = ("ego_collision_rate", "ego_offroad_rate", "ego_failure_rate")
 
 
-def load_results(paths: str) -> tuple[dict, dict, list]:
-    """Summaries, per-run summaries and paired counts of earlier ``results.json`` files,
-    merged.
+def load_results(paths: str) -> tuple[dict, dict, list, bool | None]:
+    """Summaries, per-run summaries, paired counts and the PPO egos' ``mask_actions`` (None:
+    not recorded) of earlier ``results.json`` files, merged; a RunError if the files' PPO
+    egos chose their maneuvers differently (with and without the action mask).
 
     A (planner, traffic) row found in several files (e.g. PPO runs evaluated in separate
     processes) is pooled: rates exactly (Wilson interval of the summed counts), means as
     the episode-weighted mean without an interval (the episodes are not in the files).
     """
-    summaries, per_run, paired = {}, {}, []
+    summaries, per_run, paired, masks = {}, {}, [], {}
     for path in [Path(p) for p in paths.split(",") if p]:
         content = read_results(path)
+        masks[path] = content.get("mask_actions")  # None: no PPO rows, or written before it
         paired.extend(content.get("paired", []))
         for target, rows in ((summaries, content["summary"]), (per_run, content["per_run"])):
             for row in rows:
                 row = dict(row)
                 key = row.pop("planner"), row.pop("traffic")
                 target[key] = pool(target[key], row) if key in target else row
-    return summaries, per_run, paired
+    settings = {mask for mask in masks.values() if mask is not None}
+    if len(settings) > 1:
+        raise RunError(
+            "--combine: the files' PPO egos were evaluated with and without the action mask "
+            f"(mask_actions: {', '.join(f'{path}: {mask}' for path, mask in masks.items())})"
+        )
+    return summaries, per_run, paired, settings.pop() if settings else None
 
 
 def read_results(path: Path) -> dict:
@@ -264,10 +272,10 @@ def main(argv: list[str] | None = None) -> None:
         print(f"evaluate_ego.py: error: {error}", file=sys.stderr)
         sys.exit(2)
     if combined is not None:
-        summaries, per_run, paired = combined
+        summaries, per_run, paired, mask_actions = combined
         stage = AdversaryStage(k=options.k, target=options.target)
         adversarial_label = ScenePolicyConfig(stage=stage).label
-        write_report(summaries, per_run, paired, adversarial_label, options.out)
+        write_report(summaries, per_run, paired, adversarial_label, options.out, mask_actions)
         return
     try:
         bank = shipped_bank(options.split) if options.data is None else open_data(options.data)
@@ -332,7 +340,8 @@ def main(argv: list[str] | None = None) -> None:
     bar.close()
 
     summaries = {key: summarize_ego(episodes) for key, episodes in results.items()}
-    write_report(summaries, per_run, paired, adversarial.label, options.out)
+    mask_actions = options.mask_actions if runs else None
+    write_report(summaries, per_run, paired, adversarial.label, options.out, mask_actions)
     curves = {f"seed {run_options(chosen.run)[0]}": chosen.run for chosen, _ in runs}
     if curves:
         plot_training(curves, options.out / "training.png")
@@ -340,9 +349,15 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def write_report(
-    summaries: dict, per_run: dict, paired: list, adversarial_label: str, out: Path
+    summaries: dict,
+    per_run: dict,
+    paired: list,
+    adversarial_label: str,
+    out: Path,
+    mask_actions: bool | None = None,
 ) -> None:
-    """results.md (printed), results.png and results.json; adversarial rows first."""
+    """results.md (printed), results.png and results.json; adversarial rows first;
+    ``mask_actions``: how the PPO egos chose their maneuvers (None: no PPO rows)."""
     order = sorted(summaries, key=lambda key: (key[1] != adversarial_label, key[1]))
     summaries = {key: summaries[key] for key in order}
     sections = [markdown_table(summaries)]
@@ -356,7 +371,7 @@ def write_report(
     plot_summaries(summaries, out / "results.png")
     rows = [{"planner": p, "traffic": t, **s} for (p, t), s in summaries.items()]
     runs = [{"planner": p, "traffic": t, **s} for (p, t), s in per_run.items()]
-    content = {"summary": rows, "per_run": runs, "paired": paired}
+    content = {"summary": rows, "per_run": runs, "paired": paired, "mask_actions": mask_actions}
     (out / "results.json").write_text(json.dumps(content, indent=1))
     print(text)
     print(f"\nwritten: {out / 'results.md'}, {out / 'results.png'}, {out / 'results.json'}")

@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 import signal
 import sys
 from dataclasses import dataclass
@@ -66,7 +67,7 @@ from stable_baselines3.common.vec_env import (
 )
 
 from policies.evaluation.options import check_device
-from policies.rl.adversary import TRAFFIC_KINDS, AdversaryStage, ScenePolicyConfig
+from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.checkpoints import (
     RunCheckpoints,
     keep_progress_rows,
@@ -94,6 +95,7 @@ from riskflow_env.config import EnvConfig, RewardConfig
 
 VEC_ENVS = ("subproc", "dummy", "batched")
 RESUMABLE = ("total_timesteps", "checkpoint_every")  # what --resume lets change
+TRAFFICS = ("riskflow", "idm")  # what --traffic trains against (log replay does not react)
 
 
 @dataclass(frozen=True)
@@ -226,8 +228,8 @@ class Options:
             )
         if self.checkpoint_every < 0:
             raise ValueError(f"--checkpoint-every must be >= 0, got {self.checkpoint_every}")
-        if self.traffic not in TRAFFIC_KINDS:
-            raise ValueError(f"--traffic must be one of {TRAFFIC_KINDS}, got {self.traffic!r}")
+        if self.traffic not in TRAFFICS:
+            raise ValueError(f"--traffic must be one of {TRAFFICS}, got {self.traffic!r}")
 
 
 def env_config(options: Options) -> EgoEnvConfig:
@@ -319,7 +321,13 @@ def train(options: Options) -> Path:
     checkpoint = latest_checkpoint(out) if options.resume is not None else None
     if checkpoint is not None and checkpoint.decisions >= options.total_timesteps:
         print(f"{out} has trained {checkpoint.decisions} decisions (raise --total-timesteps)")
-        return out / "final_model.zip"
+        final = out / "final_model.zip"
+        if not final.is_file():  # stopped between the last checkpoint and the final model
+            shutil.copyfile(checkpoint.model, final)
+            if checkpoint.stats is not None and checkpoint.stats.is_file():
+                shutil.copyfile(checkpoint.stats, out / "final_model_vecnormalize.pkl")
+            print(f"final model: {final}, from {checkpoint.model.name}")
+        return final
     if options.resume is not None and checkpoint is None:
         print(f"{out} has no checkpoint yet: training from the start")
     out.mkdir(parents=True, exist_ok=True)

@@ -13,25 +13,31 @@ decisions) three times, with the same budget and seed and only the traffic chang
 * ``idm``: IDM traffic.
 
 A run folder that has a final model is reused, one with checkpoints is resumed
-(``train_ego_ppo.py --resume``), so the command picks up where an interrupted one stopped.
-Then every trained ego (the policy's mean action) drives the same episodes:
+(``train_ego_ppo.py --resume``), so the command picks up where an interrupted one stopped;
+both load model files from ``--out`` and so need ``--trust-model``. Then every trained
+ego drives the same episodes, choosing the most probable maneuver among those its action
+mask allows (``--no-mask-actions``: the raw policy's choice):
 
 * the shipped evaluation bank (``--scenes`` scenes x ``--eval-seeds``), in the unguided
   generator's traffic and under the adversary (K = 5, target ``ego``);
 * with ``--data`` (a ScenarioNet folder or a folder of ``.npz`` scenes: recorded driving),
   the same scenes' log replay, the unguided generator and the adversary.
 
-Each ego's evaluation is saved as its episodes' outcomes in
-``<out>/episodes/<traffic>-seed<N>.json`` and not re-run. The report, ``<out>/transfer.md``
-(printed) and ``<out>/transfer.json``, has per evaluation traffic and per trained-against
-traffic the ego collision rate and off-road rate (Wilson 95% intervals, pooled over seeds)
-and the progress [m], then the adversary-trained ego's paired difference in collision rate
-against each of the two others on the same episodes (interval and exact McNemar test,
-:func:`policies.statistics.paired_difference`). The claim it tests: the adversary-trained
-ego collides no more than the others in ordinary traffic, and less under attack.
+Each ego's evaluation is saved with its settings and its episodes' outcomes, each keyed
+by (scene, traffic seed), in ``<out>/episodes/<trained against>-seed<N>.json``, and not
+re-run while the settings are the same. The report, ``<out>/transfer.md`` (printed) and
+``<out>/transfer.json``, has per evaluation traffic and per trained-against traffic the
+ego collision rate and off-road rate (Wilson 95% intervals, pooled over seeds) and the
+progress [m], then the adversary-trained ego's paired difference in collision rate
+against each of the two others on the same episodes (interval and exact two-sided McNemar
+test, :func:`policies.statistics.paired_difference`). The question it answers: does the
+adversary-trained ego collide less than the others under attack, and how much more or
+less in ordinary traffic?
 
-``--train-args`` is appended to every training command (e.g. a smaller budget:
-``--train-args "--total-timesteps 20000"``; the tests run the whole pipeline on a tiny one).
+``--train-args`` adds options to every training command (e.g. a smaller budget:
+``--train-args "--total-timesteps 20000"``; the tests run the whole pipeline on a tiny
+one); the options that make the three egos differ (``--traffic``, ``--k-start``,
+``--k-end``) and ``--seed`` / ``--out`` are the experiment's, not its.
 """
 
 from __future__ import annotations
@@ -66,6 +72,7 @@ TRAINED_AGAINST = {  # name: what train_ego_ppo.py is given besides the recipe
     "unguided": ("--k-start", "0", "--k-end", "0"),
     "idm": ("--traffic", "idm"),
 }
+EXPERIMENT_OPTIONS = ("--traffic", "--k-start", "--k-end", "--seed", "--out", "--resume")
 ATTACK = ScenePolicyConfig(stage=AdversaryStage(k=5, target="ego"))
 TRAFFICS = {  # evaluation traffic: (scene source, traffic)
     "generator": ("shipped", ScenePolicyConfig(stage=AdversaryStage(k=0))),
@@ -96,22 +103,34 @@ class Options:
     """evaluation episode length [steps of 0.1 s]"""
     train_args: str = ""
     """options appended to every train_ego_ppo.py command (they override the recipe's)"""
+    mask_actions: bool = True
+    """the egos choose among the maneuvers their action mask allows (--no-mask-actions: the
+    raw policies)"""
     trust_model: bool = False
-    """load run folders found already trained in --out (SB3 model files are pickles that can
+    """load (reuse or resume) the runs found in --out (SB3 model files are pickles that can
     run code: only for files you trust, docs/reference/security.md); the runs this command
-    trains itself need no flag"""
+    trains from the start need no flag"""
 
     def __post_init__(self) -> None:
         for name in ("seeds", "eval_seeds"):
+            flag, value = name.replace("_", "-"), getattr(self, name)
             try:
-                values = _integers(getattr(self, name))
+                values = _integers(value)
             except ValueError:
                 values = []
-            if not values:
-                flag, value = name.replace("_", "-"), getattr(self, name)
-                raise ValueError(f"--{flag} must be comma-separated integers, got {value!r}")
+            if not values or len(set(values)) != len(values):
+                raise ValueError(
+                    f"--{flag} must be distinct comma-separated integers, got {value!r}"
+                )
         if self.scenes < 1 or self.data_scenes < 1 or self.episode_steps < 1:
             raise ValueError("--scenes, --data-scenes and --episode-steps must be >= 1")
+        try:
+            extra = shlex.split(self.train_args)
+        except ValueError as error:
+            raise ValueError(f"--train-args: {error}") from None
+        taken = sorted({arg.split("=")[0] for arg in extra} & set(EXPERIMENT_OPTIONS))
+        if taken:
+            raise ValueError(f"--train-args may not set {taken}: the experiment sets them")
 
 
 def _integers(text: str) -> list[int]:
@@ -119,37 +138,62 @@ def _integers(text: str) -> list[int]:
 
 
 def train(options: Options, name: str, seed: int) -> Path:
-    """The run folder of the ego trained against ``name`` with ``seed`` (trained or resumed
-    here unless it has a final model, which needs ``--trust-model``)."""
+    """The run folder of the ego trained against ``name`` with ``seed``: trained here, or
+    resumed or reused (which needs ``--trust-model``)."""
     run = options.out / name / f"seed{seed}"
-    if (run / "final_model.zip").is_file():
-        if not options.trust_model:
-            raise SystemExit(
-                f"transfer_experiment.py: error: {run} is already trained: add --trust-model "
-                "to load its model files (pickles that can run code; docs/reference/security.md)"
-            )
+    final = run / "final_model.zip"
+    started = (run / "checkpoints").is_dir() and any((run / "checkpoints").iterdir())
+    if (final.is_file() or started) and not options.trust_model:
+        _fail(
+            f"{run} has {'a trained model' if final.is_file() else 'checkpoints'}: add "
+            "--trust-model to load its model files (pickles that can run code; "
+            "docs/reference/security.md)"
+        )
+    if final.is_file():
         return run
     script = str(HERE / "train_ego_ppo.py")
-    if (run / "checkpoints").is_dir() and any((run / "checkpoints").iterdir()):
+    if started:
         command = [sys.executable, script, "--resume", str(run)]
     else:
-        extra = (*TRAINED_AGAINST[name], *shlex.split(options.train_args))
+        extra = (*shlex.split(options.train_args), *TRAINED_AGAINST[name])
         command = [sys.executable, script, *RECIPE, *extra, "--seed", str(seed), "--out", str(run)]
     print("$ " + shlex.join(command), flush=True)
-    subprocess.run(command, check=True)
+    if subprocess.run(command).returncode != 0 or not final.is_file():
+        _fail(f"training {run} did not finish; run the same command again to resume it")
     return run
 
 
+def _fail(message: str) -> None:
+    print(f"transfer_experiment.py: error: {message}", file=sys.stderr)
+    sys.exit(2)
+
+
+def settings(options: Options, scenes: dict) -> dict:
+    """What an ego's evaluation depends on besides its model (an evaluation saved with
+    other settings is run again)."""
+    return {
+        "scenes": {source: [scene.name for scene in chosen] for source, chosen in scenes.items()},
+        "eval_seeds": _integers(options.eval_seeds),
+        "episode_steps": options.episode_steps,
+        "mask_actions": options.mask_actions,
+    }
+
+
 def outcomes(options: Options, name: str, run: Path, scenes: dict) -> dict[str, list]:
-    """``{evaluation traffic: [[collided, off-road, progress], ...]}`` of the trained ego of
-    ``run`` on every episode (read from its file when an earlier call wrote it)."""
+    """``{evaluation traffic: [[scene, traffic seed, collided, off-road, progress], ...]}``
+    of the trained ego of ``run`` on every episode (read from its file when an earlier call
+    wrote it with the same settings)."""
     path = options.out / "episodes" / f"{name}-{run.name}.json"
+    wanted = settings(options, scenes)
     if path.is_file():
-        return json.loads(path.read_text())
+        saved = json.loads(path.read_text())
+        if saved.get("settings") == wanted:
+            return saved["episodes"]
+        print(f"{path}: saved with other settings: evaluating again")
     _, interface = run_options(run)
-    factory = ppo_factory(run / "final_model.zip", interface)
+    factory = ppo_factory(run / "final_model.zip", interface, options.mask_actions)
     config = EnvConfig(episode_steps=options.episode_steps)
-    seeds = _integers(options.eval_seeds)
+    seeds = wanted["eval_seeds"]
     labels = [label for label, (source, _) in TRAFFICS.items() if scenes[source]]
     total = len(seeds) * sum(len(scenes[TRAFFICS[label][0]]) for label in labels)
     result = {}
@@ -159,18 +203,21 @@ def outcomes(options: Options, name: str, run: Path, scenes: dict) -> dict[str, 
             records = evaluate(
                 {name: factory}, [traffic], scenes[source], seeds, config, lambda _: bar.update()
             )
-            result[label] = [
-                [bool(r.metrics["ego_collided"]), bool(r.metrics["ego_offroad"]), progress(r)]
-                for r in records[name, traffic.label]
-            ]
+            keys = [(seed, scene.name) for seed in seeds for scene in scenes[source]]
+            result[label] = [  # evaluate's order: seed after seed, every scene
+                [scene, seed, bool(r.metrics["ego_collided"]), bool(r.metrics["ego_offroad"]),
+                 progress(r)]
+                for (seed, scene), r in zip(keys, records[name, traffic.label], strict=True)
+            ]  # fmt: skip
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(result))
+    path.write_text(json.dumps({"settings": wanted, "episodes": result}))
     return result
 
 
 def report(results: dict[str, dict[str, list]]) -> tuple[str, dict]:
-    """The Markdown table and its JSON of ``{trained against: {traffic: episodes}}``, the
-    episodes of every seed concatenated in the same order for every ego."""
+    """The Markdown table and its JSON of ``{trained against: {traffic: episodes}}`` (the
+    episodes of every training seed, concatenated); ValueError if two egos' episodes of a
+    traffic are not the same (scene, seed) list."""
     rows, lines = [], _header(
         "evaluated in", "trained against", "ego collision rate", "off-road rate",
         "progress [m]", "episodes",
@@ -180,7 +227,10 @@ def report(results: dict[str, dict[str, list]]) -> tuple[str, dict]:
         "p (McNemar)", "episodes",
     )  # fmt: skip
     for traffic in TRAFFICS:
-        episodes = {n: np.array(r[traffic], float) for n, r in results.items() if traffic in r}
+        keys = {n: [tuple(e[:2]) for e in r[traffic]] for n, r in results.items() if traffic in r}
+        if len({tuple(k) for k in keys.values()}) > 1:
+            raise ValueError(f"{traffic}: the egos' episodes differ; cannot pair them")
+        episodes = {n: np.array([e[2:] for e in results[n][traffic]], float) for n in keys}
         for name, values in episodes.items():
             entry = {
                 "traffic": traffic,
@@ -197,10 +247,10 @@ def report(results: dict[str, dict[str, list]]) -> tuple[str, dict]:
             continue
         ours = episodes["adversary"][:, 0].astype(bool)
         for name, values in episodes.items():
-            if name == "adversary" or len(values) != len(ours):
+            if name == "adversary":
                 continue
             theirs = values[:, 0].astype(bool)
-            counts = {
+            counts = {  # paired_difference's names: "trained" is the adversary-trained ego
                 "n": len(ours),
                 "trained": int(ours.sum()),
                 "untrained": int(theirs.sum()),
@@ -208,7 +258,13 @@ def report(results: dict[str, dict[str, list]]) -> tuple[str, dict]:
                 "untrained_only": int((~ours & theirs).sum()),
             }
             diff = paired_difference(counts)
-            pairs.append({"traffic": traffic, "against": name, **diff})
+            pairs.append({
+                "traffic": traffic, "against": name, "n": diff["n"],
+                "adversary_trained": diff["trained"], "other": diff["untrained"],
+                "adversary_trained_only": diff["trained_only"],
+                "other_only": diff["untrained_only"],
+                **{k: diff[k] for k in ("difference", "low", "high", "p_value")},
+            })  # fmt: skip
             pair_lines.append(
                 f"| {traffic} | {name} | {diff['difference']:+.3f} "
                 f"[{diff['low']:+.3f}, {diff['high']:+.3f}] | {diff['p_value']:.3g} | {len(ours)} |"
@@ -232,8 +288,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         data = open_data(options.data) if options.data is not None else []
     except ValueError as error:
-        print(f"transfer_experiment.py: error: {error}", file=sys.stderr)
-        sys.exit(2)
+        _fail(str(error))
     bank = shipped_bank("eval")
     count = min(options.scenes, len(bank))
     scenes = {

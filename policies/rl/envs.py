@@ -119,7 +119,8 @@ def record_outcome(outcome: np.ndarray, info: Mapping[str, Any]) -> np.ndarray:
 class EgoInterface:
     """A policy's view of the ego: its observation and how its actions drive (module
     docstring). Shared by :class:`EgoTrainingEnv` and
-    :class:`~policies.rl.evaluation.PPOPlanner`, so training and evaluation cannot differ.
+    :class:`~policies.rl.evaluation.PPOPlanner`, so that training and evaluation see and act
+    alike (evaluation adds only the action mask's filter, ``PPOPlanner(mask_actions=True)``).
 
     Args:
         dynamics: the env's dynamics (bounds and time step).

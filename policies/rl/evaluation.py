@@ -97,7 +97,7 @@ class PPOPlanner:
         with torch.no_grad():
             tensor, _ = policy.obs_to_tensor(observation)
             logits = policy.get_distribution(tensor).distribution.logits[0]
-            logits = logits.masked_fill(~torch.as_tensor(allowed), -torch.inf)
+            logits = logits.masked_fill(~torch.as_tensor(allowed, device=logits.device), -torch.inf)
             if self.deterministic:
                 return np.array(int(torch.argmax(logits)))
             return np.array(int(torch.distributions.Categorical(logits=logits).sample()))

@@ -62,12 +62,41 @@ def test_pipeline_trains_three_egos_evaluates_them_and_reuses_its_work(tmp_path)
     assert all(pair["n"] == episodes[t] for (t, _), pair in pairs.items())
     assert "Paired, same episodes" in (out / "transfer.md").read_text()
 
+    saved = json.loads((out / "episodes" / "idm-seed3.json").read_text())
+    assert saved["settings"]["eval_seeds"] == [0] and saved["settings"]["mask_actions"]
+    assert [tuple(e[:2]) for e in saved["episodes"]["generator"]] == [
+        (name, 0) for name in saved["settings"]["scenes"]["shipped"]
+    ]
+
     # a second call trains nothing and evaluates nothing: it needs --trust-model to load
     # models it did not train, and reads the saved outcomes
     refused = run(*common)
-    assert refused.returncode != 0
+    assert refused.returncode == 2
     assert refused.stderr.strip().splitlines()[-1].endswith("docs/reference/security.md)")
     again = run(*common, "--trust-model")
     assert again.returncode == 0, again.stderr[-3000:]
     assert "train_ego_ppo.py" not in again.stdout
     assert json.loads((out / "transfer.json").read_text()) == report
+
+    # a run stopped after its last checkpoint, before its final model: resumed, it gets
+    # the final model from that checkpoint, and its saved evaluation still counts
+    (out / "idm" / "seed3" / "final_model.zip").unlink()
+    resumed = run(*common, "--trust-model")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "--resume" in resumed.stdout and (out / "idm" / "seed3" / "final_model.zip").is_file()
+    assert json.loads((out / "transfer.json").read_text()) == report
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--seeds", "1,1"], "--seeds must be distinct comma-separated integers"),
+        (["--eval-seeds", "a"], "--eval-seeds must be distinct comma-separated integers"),
+        (["--train-args", "--traffic riskflow"], "--train-args may not set ['--traffic']"),
+        (["--train-args", "--n-steps '8"], "--train-args: No closing quotation"),
+    ],
+)
+def test_options_are_checked_before_anything_runs(tmp_path, args, message):
+    done = run("--out", tmp_path / "transfer", *args)
+    assert done.returncode == 2 and message in done.stderr
+    assert not (tmp_path / "transfer").exists()

@@ -265,3 +265,25 @@ def test_nominal_traffics_and_recorded_scenes(tmp_path, capsys):
     rows = json.loads((out / "results.json").read_text())["summary"]
     assert [row["traffic"] for row in rows] == ["riskflow K=5 ego", "idm", "replay"]
     assert all(row["ego_collision_rate"]["n"] == 2 for row in rows)
+
+
+def test_combine_refuses_masked_and_raw_egos_together(tmp_path, capsys):
+    """``--combine`` pools rows of the same name: not those of egos that chose their
+    maneuvers with the action mask and without it."""
+    entry = {"value": 0.1, "low": 0.0, "high": 0.2, "n": 10}
+    metrics = ("ego_collision_rate", "ego_offroad_rate", "ego_failure_rate",
+               "avoidable_failure_rate", "progress", "time_to_first_ego_collision")  # fmt: skip
+    row = {"planner": "ppo", "traffic": "riskflow K=5"} | dict.fromkeys(metrics, entry)
+    files = []
+    for mask in (True, False):
+        path = tmp_path / f"{mask}.json"
+        content = {"summary": [row], "per_run": [], "paired": [], "mask_actions": mask}
+        path.write_text(json.dumps(content))
+        files.append(str(path))
+    with pytest.raises(SystemExit) as exit_info:
+        evaluate_main()(["--combine", ",".join(files), "--out", str(tmp_path / "out")])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "with and without the action mask" in err
+    evaluate_main()(["--combine", files[0], "--out", str(tmp_path / "out")])
+    assert json.loads((tmp_path / "out" / "results.json").read_text())["mask_actions"] is True
