@@ -71,6 +71,8 @@ SIZES: dict[str, str] = {
     "--eval-every": "2",  # riskflow-train validation interval [steps]
     "--val-windows": "2",  # riskflow-train validation windows (0 = all)
     "--episodes-per-run": "1",
+    "--eval-seeds": FIRST,  # examples/transfer_experiment.py
+    "--data-scenes": "1",
     "--episode-steps": "5",
     "--eval-episodes": "1",
     "--duration": "1",  # riskflow-eval episode length [s]
@@ -115,6 +117,12 @@ SMALLEST: list[tuple[str, str]] = [
         "--scenes 1 --seeds 0 --episodes-per-run 1 --episode-steps 5",
     ),
     (
+        r"python examples/transfer_experiment\.py",
+        "--scenes 1 --data-scenes 1 --eval-seeds 0 --episode-steps 5 --train-args "
+        '"--total-timesteps 64 --n-steps 32 --batch-size 32 --num-envs 2 --scenes 1 '
+        '--episode-steps 5 --guidance-steps 2"',
+    ),
+    (
         r"python examples/train_adversaries_marl\.py",
         "--total-timesteps 64 --n-steps 16 --batch-size 16 --episode-steps 5 --eval-episodes 1",
     ),
@@ -142,6 +150,10 @@ SLOW: dict[tuple[str, str], str] = {
     # evaluation episodes against the adversary): about 110 s even at 64 timesteps.
     ("docs/tutorials/rl-ego.md", "python examples/train_ego_ppo.py"): (
         "PPO training and evaluation, about 110 s"
+    ),
+    # three PPO trainings, then 3 x 5 evaluation traffics: about 100 s at their smallest
+    ("docs/tutorials/rl-ego.md", "python examples/transfer_experiment.py"): (
+        "three PPO trainings and their evaluation, about 100 s"
     ),
 }
 
