@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import shutil
 import signal
 import sys
 from dataclasses import dataclass
@@ -84,6 +83,7 @@ from policies.rl.runs import (
     Checkpoint,
     RunError,
     checkpoint_files,
+    final_from_checkpoint,
     latest_checkpoint,
     parse_resumable,
 )
@@ -321,13 +321,7 @@ def train(options: Options) -> Path:
     checkpoint = latest_checkpoint(out) if options.resume is not None else None
     if checkpoint is not None and checkpoint.decisions >= options.total_timesteps:
         print(f"{out} has trained {checkpoint.decisions} decisions (raise --total-timesteps)")
-        final = out / "final_model.zip"
-        if not final.is_file():  # stopped between the last checkpoint and the final model
-            shutil.copyfile(checkpoint.model, final)
-            if checkpoint.stats is not None and checkpoint.stats.is_file():
-                shutil.copyfile(checkpoint.stats, out / "final_model_vecnormalize.pkl")
-            print(f"final model: {final}, from {checkpoint.model.name}")
-        return final
+        return final_from_checkpoint(out, checkpoint)
     if options.resume is not None and checkpoint is None:
         print(f"{out} has no checkpoint yet: training from the start")
     out.mkdir(parents=True, exist_ok=True)

@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import shutil
 import sys
 import zipfile
 from collections.abc import Sequence
@@ -178,6 +179,18 @@ def latest_checkpoint(run: Path) -> Checkpoint | None:
     """The run's checkpoint with the most decisions, or None."""
     found = checkpoints(run)
     return found[-1] if found else None
+
+
+def final_from_checkpoint(run: Path, checkpoint: Checkpoint) -> Path:
+    """The run's final model: written from ``checkpoint`` (the model and its normalisation
+    statistics) if the run stopped after its last checkpoint and before its final model."""
+    final = run / f"{FINAL}.zip"
+    if not final.is_file():
+        shutil.copyfile(checkpoint.model, final)
+        if checkpoint.stats is not None and checkpoint.stats.is_file():
+            shutil.copyfile(checkpoint.stats, run / f"{FINAL}_vecnormalize.pkl")
+        print(f"final model: {final}, from {checkpoint.model.name}")
+    return final
 
 
 def parse_resumable(
