@@ -163,6 +163,12 @@ def run_options(run: Path) -> tuple[int, dict]:
     return int(options["seed"]), interface_options(options)
 
 
+def spread_scenes(bank, count: int) -> list:
+    """``count`` scenes of ``bank`` spread evenly over it (every family; all if fewer)."""
+    count = min(count, len(bank))
+    return [bank[round(i * len(bank) / count)] for i in range(count)]
+
+
 def ppo_factory(path: Path, policy: dict, mask_actions: bool = True):
     """``factory(seed)`` of the PPO planner saved at ``path`` (deterministic actions; with
     ``mask_actions``, maneuvers chosen among those the action mask allows)."""
@@ -282,8 +288,7 @@ def main(argv: list[str] | None = None) -> None:
     except ValueError as error:
         print(f"evaluate_ego.py: error: {error}", file=sys.stderr)
         sys.exit(2)
-    count = min(options.scenes, len(bank))
-    scenes = [bank[round(i * len(bank) / count)] for i in range(count)]
+    scenes = spread_scenes(bank, options.scenes)
     config = EnvConfig(episode_steps=options.episode_steps)
     adversarial = ScenePolicyConfig(
         stage=AdversaryStage(k=options.k, target=options.target),
@@ -306,7 +311,7 @@ def main(argv: list[str] | None = None) -> None:
     run_episodes = len(baseline_seeds) if options.paired else options.episodes_per_run
     episodes = (
         len(traffics)
-        * count
+        * len(scenes)
         * (len(runs) * 2 * run_episodes + len(baselines) * len(baseline_seeds))
     )
     bar = tqdm(total=episodes, desc="episodes", unit="episode")

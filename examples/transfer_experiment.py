@@ -50,13 +50,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from evaluate_ego import ppo_factory, run_options
+from evaluate_ego import ppo_factory, run_options, spread_scenes
 from tqdm import tqdm
 
 from policies.cli_inputs import open_data
 from policies.dataclass_cli import parse_dataclass
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.evaluation import evaluate
+from policies.rl.paired import outcome_counts
+from policies.rl.report import markdown_table
 from policies.statistics import mean_summary, paired_difference, rate
 from policies.stress.summary import progress
 from riskflow_env.config import EnvConfig
@@ -218,10 +220,7 @@ def report(results: dict[str, dict[str, list]]) -> tuple[str, dict]:
     """The Markdown table and its JSON of ``{trained against: {traffic: episodes}}`` (the
     episodes of every training seed, concatenated); ValueError if two egos' episodes of a
     traffic are not the same (scene, seed) list."""
-    rows, lines = [], _header(
-        "evaluated in", "trained against", "ego collision rate", "off-road rate",
-        "progress [m]", "episodes",
-    )  # fmt: skip
+    rows, summaries = [], {}
     pairs, pair_lines = [], _header(
         "evaluated in", "adversary-trained minus", "collision rate difference [95%]",
         "p (McNemar)", "episodes",
@@ -240,24 +239,15 @@ def report(results: dict[str, dict[str, list]]) -> tuple[str, dict]:
                 "progress": mean_summary(values[:, 2].tolist()),
             }
             rows.append(entry)
-            cells = [_rate(entry["ego_collision_rate"]), _rate(entry["ego_offroad_rate"])]
-            lines.append(f"| {traffic} | {name} | {' | '.join(cells)} | "
-                         f"{entry['progress']['value']:.1f} | {len(values)} |")  # fmt: skip
+            summaries[f"trained against {name}", traffic] = entry
         if "adversary" not in episodes:
             continue
         ours = episodes["adversary"][:, 0].astype(bool)
         for name, values in episodes.items():
             if name == "adversary":
                 continue
-            theirs = values[:, 0].astype(bool)
-            counts = {  # paired_difference's names: "trained" is the adversary-trained ego
-                "n": len(ours),
-                "trained": int(ours.sum()),
-                "untrained": int(theirs.sum()),
-                "trained_only": int((ours & ~theirs).sum()),
-                "untrained_only": int((~ours & theirs).sum()),
-            }
-            diff = paired_difference(counts)
+            # paired_difference's names: "trained" is the adversary-trained ego
+            diff = paired_difference(outcome_counts(ours, values[:, 0].astype(bool)))
             pairs.append({
                 "traffic": traffic, "against": name, "n": diff["n"],
                 "adversary_trained": diff["trained"], "other": diff["untrained"],
@@ -269,16 +259,13 @@ def report(results: dict[str, dict[str, list]]) -> tuple[str, dict]:
                 f"| {traffic} | {name} | {diff['difference']:+.3f} "
                 f"[{diff['low']:+.3f}, {diff['high']:+.3f}] | {diff['p_value']:.3g} | {len(ours)} |"
             )
-    text = "\n".join(lines) + "\n\nPaired, same episodes:\n\n" + "\n".join(pair_lines)
+    table = markdown_table(summaries, ("ego_collision_rate", "ego_offroad_rate", "progress"))
+    text = table + "\n\nPaired, same episodes:\n\n" + "\n".join(pair_lines)
     return text, {"rows": rows, "paired": pairs}
 
 
 def _header(*names: str) -> list[str]:
     return ["| " + " | ".join(names) + " |", "|" + " --- |" * len(names)]
-
-
-def _rate(entry: dict) -> str:
-    return f"{entry['value']:.3f} [{entry['low']:.3f}, {entry['high']:.3f}]"
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -289,10 +276,8 @@ def main(argv: list[str] | None = None) -> None:
         data = open_data(options.data) if options.data is not None else []
     except ValueError as error:
         _fail(str(error))
-    bank = shipped_bank("eval")
-    count = min(options.scenes, len(bank))
     scenes = {
-        "shipped": [bank[round(i * len(bank) / count)] for i in range(count)],
+        "shipped": spread_scenes(shipped_bank("eval"), options.scenes),
         "data": [data[i] for i in range(min(options.data_scenes, len(data)))],
     }
     runs = {(name, seed): train(options, name, seed)

@@ -46,7 +46,12 @@ def paired_counts(
         keys = PAIRED_OUTCOMES[metric]
         return np.array([any(r.metrics[k] for k in keys) for r in records], dtype=bool)
 
-    a, b = outcome(trained), outcome(untrained)
+    return outcome_counts(outcome(trained), outcome(untrained))
+
+
+def outcome_counts(trained: np.ndarray, untrained: np.ndarray) -> dict[str, int]:
+    """:func:`paired_counts` of two (N,) bool arrays of outcomes, episode for episode."""
+    a, b = np.asarray(trained, dtype=bool), np.asarray(untrained, dtype=bool)
     return {
         "n": len(a),
         "trained": int(a.sum()),
