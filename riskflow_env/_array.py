@@ -9,6 +9,7 @@ few operations the standard lacks.
 from __future__ import annotations
 
 import functools
+import math
 import types
 from typing import Any
 
@@ -29,6 +30,8 @@ _BY_TYPE: dict[type, Any] = {}  # array type -> namespace, filled on first sight
 def _namespace_of_type(x: Array):
     if _NUMPY_IS_STANDARD and isinstance(x, np.ndarray):
         return _numpy
+    if array_api_compat.is_torch_array(x):
+        return _torch_namespace()
     return array_api_compat.array_namespace(x)
 
 
@@ -123,6 +126,95 @@ def _make_numpy_namespace() -> types.ModuleType:
 
 
 _numpy = _make_numpy_namespace()
+
+
+# --- torch, minus some of the compat layer's Python ------------------------------------
+# The policies' closed-form guidance and avoidance steps run dozens of array ops on tensors
+# of a few thousand elements, where the compat wrappers' dtype checks cost as much as the
+# op (its ``broadcast_arrays`` alone, through ``torch.broadcast_shapes``, was a tenth of a
+# planning cycle). ``_torch_namespace()`` is the compat namespace with the hot functions
+# calling torch directly where the compat layer would change nothing: tensors of one
+# dtype (a 0-D tensor, which torch and the standard promote differently, goes through the
+# compat function), Python scalar bounds, an integer axis. Bit-identical results
+# (tests/riskflow_env/test_array.py).
+
+
+def _plain(*values: Any) -> bool:
+    """True when no value is a 0-D tensor (torch promotes those as scalars, the standard
+    as arrays: the compat function decides) and the tensors among them share one dtype."""
+    dtype = None
+    for value in values:
+        if isinstance(value, (int, float, bool)):
+            continue
+        if value.ndim == 0 or (dtype is not None and value.dtype != dtype):
+            return False
+        dtype = value.dtype
+    return True
+
+
+@functools.cache
+def _torch_namespace() -> types.ModuleType:
+    import torch
+    from array_api_compat import torch as compat
+
+    module = types.ModuleType(compat.__name__, compat.__doc__)
+    module.__dict__.update({k: v for k, v in vars(compat).items() if not k.startswith("__")})
+    module.__getattr__ = lambda name: getattr(compat, name)
+
+    def where(condition: Array, x1: Any, x2: Any, /) -> Array:
+        if _plain(x1, x2):
+            return torch.where(condition, x1, x2)
+        return compat.where(condition, x1, x2)
+
+    def binary(fast: Any, fallback: Any) -> Any:
+        def call(x1: Any, x2: Any, /) -> Array:
+            if isinstance(x1, torch.Tensor) and isinstance(x2, torch.Tensor) and _plain(x1, x2):
+                return fast(x1, x2)
+            return fallback(x1, x2)
+
+        call.__doc__ = fallback.__doc__
+        return call
+
+    def clip(x: Array, /, min: Any = None, max: Any = None) -> Array:  # noqa: A002
+        scalars = all(isinstance(b, float) or b is None for b in (min, max))
+        if scalars and x.is_floating_point() and (min, max) != (None, None):
+            if not any(b is not None and math.isnan(b) for b in (min, max)):
+                return torch.clamp(x, min, max)
+        return compat.clip(x, min, max)
+
+    def cumulative_sum(x: Array, /, *, axis: Any = None, dtype: Any = None, **kwargs) -> Array:
+        if isinstance(axis, int) and dtype is None and not kwargs and x.is_floating_point():
+            return torch.cumsum(x, dim=axis)
+        return compat.cumulative_sum(x, axis=axis, dtype=dtype, **kwargs)
+
+    def concat(arrays: Any, /, *, axis: Any = 0) -> Array:
+        if isinstance(axis, int):
+            return torch.cat(tuple(arrays), dim=axis)
+        return compat.concat(arrays, axis=axis)
+
+    def flip(x: Array, /, *, axis: Any = None) -> Array:
+        if isinstance(axis, int):
+            return torch.flip(x, dims=(axis,))
+        return compat.flip(x, axis=axis)
+
+    def sign(x: Array, /) -> Array:
+        if x.is_floating_point():  # the standard's sign keeps NaN (torch's gives 0)
+            return torch.where(torch.isnan(x), x, torch.sign(x))
+        return compat.sign(x)
+
+    def sum(x: Array, /, *, axis: Any = None, dtype: Any = None, keepdims: bool = False) -> Array:  # noqa: A001
+        if isinstance(axis, int) and dtype is None and x.is_floating_point():
+            return torch.sum(x, dim=axis, keepdim=keepdims)
+        return compat.sum(x, axis=axis, dtype=dtype, keepdims=keepdims)
+
+    module.where, module.clip, module.cumulative_sum, module.concat = (
+        where, clip, cumulative_sum, concat
+    )  # fmt: skip
+    module.flip, module.sign, module.sum = flip, sign, sum
+    module.maximum = binary(torch.maximum, compat.maximum)
+    module.minimum = binary(torch.minimum, compat.minimum)
+    module.broadcast_arrays = lambda *arrays: tuple(torch.broadcast_tensors(*arrays))
+    return module
 
 
 def namespace(*arrays: Array):

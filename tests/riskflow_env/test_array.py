@@ -179,3 +179,70 @@ def test_take_gathers_what_indexing_gathers(shape):
         gathered.sum().backward()  # the gradient reaches the table as with indexing
         counts = np.bincount(index.reshape(-1), minlength=50)
         assert np.array_equal(t_table.grad.numpy(), counts.astype(t_table.grad.numpy().dtype))
+
+
+def _tensors():
+    generator = torch.Generator().manual_seed(0)
+    for dtype in (torch.float64, torch.float32, torch.int64, torch.bool):
+        for shape in ((), (5,), (3, 4), (2, 3, 4)):
+            x = (torch.randn(shape, generator=generator, dtype=torch.float64) * 10).to(dtype)
+            if dtype.is_floating_point and x.numel():
+                x.view(-1)[0], x.view(-1)[-1] = float("nan"), -0.0
+            yield x
+
+
+def _assert_same_tensor(expected_call, got_call):
+    expected, got = _outcome(expected_call), _outcome(got_call)
+    if isinstance(expected, type) or isinstance(got, type):
+        assert expected is got
+        return
+    expected = expected if isinstance(expected, tuple) else (expected,)
+    got = got if isinstance(got, tuple) else (got,)
+    assert len(got) == len(expected)
+    for mine, theirs in zip(got, expected, strict=True):
+        assert mine.dtype == theirs.dtype and mine.shape == theirs.shape
+        torch.testing.assert_close(mine, theirs, rtol=0, atol=0, equal_nan=True)
+        if mine.is_floating_point():
+            assert torch.equal(torch.signbit(mine), torch.signbit(theirs))
+
+
+def test_the_torch_namespace_gives_what_the_compat_namespace_gives():
+    """``namespace(tensor)`` calls torch directly where the compat wrappers would change
+    nothing (same dtype, no 0-D tensor, Python scalar bounds, an integer axis) and hands
+    anything else to them: the same values, dtypes and shapes either way."""
+    compat = array_api_compat.array_namespace(torch.zeros(1))
+    fast = namespace(torch.zeros(1))
+    assert fast is not compat and namespace(torch.zeros(2), 1.0) is fast
+    for x in _tensors():
+        scalar = torch.tensor(1.5, dtype=torch.float64)  # 0-D: promoted as an array
+        others = (x, 2.0, 0, scalar, x.to(torch.float64), torch.ones_like(x))
+        for other in others:
+            _assert_same_tensor(
+                lambda o=other, x=x: compat.where(x > 0, x, o),
+                lambda o=other, x=x: fast.where(x > 0, x, o),
+            )
+            for name in ("maximum", "minimum"):
+                _assert_same_tensor(
+                    lambda n=name, o=other, x=x: getattr(compat, n)(x, o),
+                    lambda n=name, o=other, x=x: getattr(fast, n)(x, o),
+                )
+        for bounds in ((0.0, 1.0), (None, 2.0), (-1.0, None), (0, 3), (float("nan"), 1.0)):
+            _assert_same_tensor(
+                lambda b=bounds, x=x: compat.clip(x, *b), lambda b=bounds, x=x: fast.clip(x, *b)
+            )
+        _assert_same_tensor(lambda x=x: compat.sign(x), lambda x=x: fast.sign(x))
+        for axis in (None, 0, -1, (0, 1)):
+            for call in (
+                lambda xp, x=x, a=axis: xp.cumulative_sum(x, axis=a),
+                lambda xp, x=x, a=axis: xp.sum(x, axis=a),
+                lambda xp, x=x, a=axis: xp.sum(x, axis=a, keepdims=True),
+                lambda xp, x=x, a=axis: xp.flip(x, axis=a),
+                lambda xp, x=x, a=axis: xp.concat([x, x], axis=a),
+            ):
+                _assert_same_tensor(lambda c=call: c(compat), lambda c=call: c(fast))
+        for shapes in (((3, 1), (1, 4)), ((2,), (2,)), ((), (3,))):
+            parts = [torch.zeros(s, dtype=x.dtype) for s in shapes]
+            _assert_same_tensor(
+                lambda p=parts: compat.broadcast_arrays(*p),
+                lambda p=parts: fast.broadcast_arrays(*p),
+            )
