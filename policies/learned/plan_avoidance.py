@@ -76,6 +76,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from policies.learned import compiled_plans
 from policies.learned.adam import Adam
 from policies.learned.data import Normalizer
 from policies.learned.guidance_losses import HUMAN_ACCEL, MapTerm
@@ -183,53 +184,60 @@ def avoid_overlaps(
             if term is not None:
                 term.forgive(now)
             share = 1.0 if gain is None else gain[..., :horizon, :].flatten(0, 1)[rows]
-            delta = torch.zeros_like(moving)
-            adam = Adam(delta, step_size)
-            num_agents = variable.shape[1]
-            # The loop's scenes are those not stopped yet: ``scene`` (the position of each
-            # variable's scene among them) and ``slot`` index the compacted tensors.
-            scene, slot = rows // num_agents, rows % num_agents
             u_rows = u.flatten(0, 1)  # a view: the corrections are written through it
-            for _ in range(steps):
-                planned, vjp = rollout_with_vjp(
-                    now, normalizer.denormalize(moving + share * delta), dynamics
-                )
-                joint = obstacles.clone()
-                joint[scene, slot] = planned
-                d_joint, closest = overlap_gradient(
-                    joint[:, None], length, width, pairs, STOP_MARGIN
-                )
-                d_planned = d_joint[:, 0][scene, slot]
-                if term is not None:
-                    d_planned = d_planned + term.rows_and_gradient(planned)[1]
-                gradient = vjp(d_planned) * scale * share
-                # each scene stops on its own, as it would alone (module docstring)
-                keep = torch.zeros_like(closest[:, 0], dtype=torch.bool)  # left to correct
-                keep[scene[gradient.flatten(1).ne(0).any(dim=1)]] = True
-                if adam.count > 0:  # a later step: stop with a margin
-                    keep |= closest[:, 0] < STOP_MARGIN
-                if not bool(keep.all()):
-                    # the stopped scenes keep their correction; their rows leave the loop
-                    going = keep[scene]
-                    stopped = ~going
-                    u_rows[rows[stopped], :horizon] += _rows(share, stopped) * delta[stopped]
-                    if not bool(going.any()):
-                        break
-                    scene = (torch.cumsum(keep, 0) - 1)[scene[going]]
-                    rows, slot, moving, now, delta, gradient = (
-                        t[going] for t in (rows, slot, moving, now, delta, gradient)
-                    )
-                    share = _rows(share, going)
-                    obstacles, length, width, pairs = (
-                        t[keep] for t in (obstacles, length, width, pairs)
-                    )
-                    adam.select(going)
-                    if term is not None:
-                        term = map_term_of(rows)
-                        term.forgive(now)
-                delta = delta - adam.step(gradient)
+            if compiled_plans.accepts(moving, term, normalizer):  # the same loop, compiled
+                u_rows[rows, :horizon] += compiled_plans.avoidance_correction(
+                    rows, variable.shape[1], now, moving, share, obstacles, scored, term,
+                    normalizer, dynamics, steps=steps, step_size=step_size,
+                    stop_margin=STOP_MARGIN,
+                )  # fmt: skip
             else:
-                u_rows[rows, :horizon] += share * delta
+                delta = torch.zeros_like(moving)
+                adam = Adam(delta, step_size)
+                num_agents = variable.shape[1]
+                # The loop's scenes are those not stopped yet: ``scene`` (the position of each
+                # variable's scene among them) and ``slot`` index the compacted tensors.
+                scene, slot = rows // num_agents, rows % num_agents
+                for _ in range(steps):
+                    planned, vjp = rollout_with_vjp(
+                        now, normalizer.denormalize(moving + share * delta), dynamics
+                    )
+                    joint = obstacles.clone()
+                    joint[scene, slot] = planned
+                    d_joint, closest = overlap_gradient(
+                        joint[:, None], length, width, pairs, STOP_MARGIN
+                    )
+                    d_planned = d_joint[:, 0][scene, slot]
+                    if term is not None:
+                        d_planned = d_planned + term.rows_and_gradient(planned)[1]
+                    gradient = vjp(d_planned) * scale * share
+                    # each scene stops on its own, as it would alone (module docstring)
+                    keep = torch.zeros_like(closest[:, 0], dtype=torch.bool)  # left to correct
+                    keep[scene[gradient.flatten(1).ne(0).any(dim=1)]] = True
+                    if adam.count > 0:  # a later step: stop with a margin
+                        keep |= closest[:, 0] < STOP_MARGIN
+                    if not bool(keep.all()):
+                        # the stopped scenes keep their correction; their rows leave the loop
+                        going = keep[scene]
+                        stopped = ~going
+                        u_rows[rows[stopped], :horizon] += _rows(share, stopped) * delta[stopped]
+                        if not bool(going.any()):
+                            break
+                        scene = (torch.cumsum(keep, 0) - 1)[scene[going]]
+                        rows, slot, moving, now, delta, gradient = (
+                            t[going] for t in (rows, slot, moving, now, delta, gradient)
+                        )
+                        share = _rows(share, going)
+                        obstacles, length, width, pairs = (
+                            t[keep] for t in (obstacles, length, width, pairs)
+                        )
+                        adam.select(going)
+                        if term is not None:
+                            term = map_term_of(rows)
+                            term.forgive(now)
+                    delta = delta - adam.step(gradient)
+                else:
+                    u_rows[rows, :horizon] += share * delta
     actions, trajectories = decode_plans(eps + u, state, agent_mask, normalizer, dynamics)
     if brake and steps > 0 and rows.numel() > 0:
         with torch.no_grad():

@@ -153,9 +153,11 @@ def test_exempt_pairs_are_left_as_they_are():
 
 
 def _count_rollouts(monkeypatch) -> list:
-    """A list that grows by one at each avoidance step (each rollout of the variables)."""
+    """A list that grows by one at each avoidance step (each rollout of the variables) of
+    the reference loop (the compiled loop has its tests: test_compiled_plans.py)."""
     import policies.learned.plan_avoidance as avoidance
 
+    monkeypatch.setenv("RISKFLOW_COMPILED", "0")
     calls = []
 
     def counted(*args, **kwargs):
@@ -321,6 +323,7 @@ def test_a_batch_drops_each_scene_when_it_stops(monkeypatch):
         return of
 
     rows_per_call = []
+    monkeypatch.setenv("RISKFLOW_COMPILED", "0")  # the reference loop (test_compiled_plans.py)
 
     def counted(now, *args, **kwargs):
         rows_per_call.append(now.shape[0])

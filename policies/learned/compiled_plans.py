@@ -1,0 +1,135 @@
+"""The compiled avoidance steps: :func:`policies.learned.plan_avoidance.avoid_overlaps`'
+loop as one numba kernel (:mod:`policies.learned.plan_kernels`).
+
+Each avoidance step of the reference is about 250 small torch operations (a rollout, the
+SAT gradient of the pairs that can touch, the map term's SDF lookups, the rollout's
+vector-Jacobian product, Adam), whose cost on a CPU is dispatch, not arithmetic: 20 steps
+were a third of a default planning cycle. The kernel runs every step of every scene in
+compiled loops over rows, pairs and plan steps, with the reference's formulas and its
+stopping rule. It computes in float64 (the reference in the plans' float32), so the two
+paths agree to float rounding, not bit for bit (``tests/policies/learned/test_compiled_plans.py``).
+
+Where it runs: numba installed (the ``fast`` extra), CPU tensors, an
+:class:`~policies.learned.data.ActionNormalizer`, and a map term on a
+:class:`~riskflow_env.maps.DrivableMap` or a :class:`~riskflow_env.maps.MapStack`
+selection (or none). Otherwise, or with ``RISKFLOW_COMPILED=0`` (the switch of the
+compiled simulator step, :mod:`riskflow_env.compiled`), the reference runs.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import warnings
+from types import ModuleType
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from policies.learned.data import ActionNormalizer
+from policies.learned.guidance_losses import MapTerm
+from riskflow_env.compiled import SWITCH, _dynamics_params, _map_tables
+from riskflow_env.config import DynamicsConfig
+from riskflow_env.maps import DrivableMap, MapStack
+
+
+@functools.cache
+def kernels() -> ModuleType | None:
+    """The kernel module, or None where numba cannot be imported or cache its code (a
+    warning says so; the reference runs)."""
+    try:
+        from policies.learned import plan_kernels
+    except ImportError:
+        return None
+    except RuntimeError as error:  # numba's cache=True with no writable directory
+        if "cannot cache" not in str(error):
+            raise
+        warnings.warn(
+            f"the compiled avoidance steps are off: {error}. Set NUMBA_CACHE_DIR to a "
+            "writable directory to run them; the reference runs.",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+        return None
+    return plan_kernels
+
+
+def accepts(moving: Tensor, term: MapTerm | None, normalizer: object) -> bool:
+    """The compiled loop applies (module docstring)."""
+    if moving.device.type != "cpu" or type(normalizer) is not ActionNormalizer:
+        return False
+    if term is not None and not (
+        type(term.map) is DrivableMap or isinstance(term.map, MapStack.Selection)
+    ):
+        return False
+    return os.environ.get(SWITCH, "1") != "0" and kernels() is not None
+
+
+def avoidance_correction(
+    rows: Tensor,
+    num_agents: int,
+    now: Tensor,
+    moving: Tensor,
+    share: Tensor | float,
+    obstacles: Tensor,
+    scored: tuple[Tensor, Tensor, Tensor],
+    term: MapTerm | None,
+    normalizer: ActionNormalizer,
+    dynamics: DynamicsConfig,
+    *,
+    steps: int,
+    step_size: float,
+    stop_margin: float,
+) -> Tensor:
+    """The avoidance loop of ``avoid_overlaps``, compiled: ``(V, H, 2)`` each variable
+    row's correction of ``u`` over the scored steps (``share * delta``).
+
+    Args:
+        rows: ``(V,)`` the variables' flat ``(scene, agent)`` indices, ascending.
+        num_agents: A.
+        now: ``(V, 4)`` their states; ``moving`` ``(V, H, 2)`` ``eps + u0``;
+            ``share`` ``(V, H, 1)`` the gain, or 1.0.
+        obstacles: ``(B, A, H, 4)`` every row's plan (the slow egos standing).
+        scored: ``(pairs, length, width)``, ``(B, A, A)`` bool and ``(B, A)`` [m].
+        term: the variables' map term (already forgiving), or None.
+        normalizer, dynamics: the plans' decoding.
+        steps, step_size: Adam's steps and learning rate.
+        stop_margin: the stopping rule's margin [m] (and the pairs' slack).
+    """
+    pairs, length, width = scored
+    count, horizon = moving.shape[:2]
+
+    def array(x: Tensor) -> np.ndarray:
+        return np.ascontiguousarray(x.detach().numpy(), dtype=np.float64)
+
+    gain = np.ones((count, horizon)) if not isinstance(share, Tensor) else array(share[..., 0])
+    if term is None:
+        use_map, frames, along, across = False, np.zeros((count, 5)), *np.zeros((2, count, 9))
+        margins, weights = np.zeros(count), np.zeros(horizon)
+        flat, grid_int, grid_float = np.zeros(4), np.zeros((1, 3), np.int64), np.zeros((1, 4))
+        map_of_row = np.zeros(count, np.int64)
+    else:
+        use_map = True
+        parts = (term.origin_x, term.origin_y, term.yaw, term.cos, term.sin)  # (1 or V, 1)
+        frames = np.stack([np.broadcast_to(array(p)[:, 0], (count,)) for p in parts], axis=-1)
+        along, across = array(term.along[:, 0]), array(term.across[:, 0])
+        margin = term.margin
+        margins = np.broadcast_to(
+            array(margin).reshape(-1) if isinstance(margin, Tensor) else np.float64(margin),
+            (count,),
+        ).copy()
+        weights = array(term.weights)
+        flat, grid_int, grid_float, map_of_row = _map_tables(term.map, (count,), count)
+    mean, std = normalizer.mean, normalizer.std
+    correction = kernels().avoid_scenes(
+        (rows // num_agents).numpy(), (rows % num_agents).numpy(), array(now), array(moving),
+        gain, array(obstacles), array(length), array(width), pairs.numpy(), use_map, frames,
+        along, across, margins, weights, flat, grid_int, grid_float, map_of_row,
+        np.array([mean[0], mean[1], std[0], std[1]], dtype=np.float64),
+        _dynamics_params(dynamics), steps, step_size, stop_margin, stop_margin,
+    )  # fmt: skip
+    return torch.from_numpy(correction).to(moving.dtype)
+
+
+__all__ = ["accepts", "avoidance_correction", "kernels"]

@@ -1,0 +1,378 @@
+"""numba kernels of the avoidance steps (:mod:`policies.learned.compiled_plans`).
+
+One kernel, :func:`avoid_scenes`, runs every avoidance step of every scene of a batch
+inside compiled code: per scene, per step, the rollout of its variables' plans
+(:func:`riskflow_env.dynamics.rollout` with its speed bounds), the SAT penetration
+gradient of the scored pairs whose boxes can touch
+(:func:`policies.learned.plan_overlap.overlap_gradient`), the map term's gradient
+(:meth:`policies.learned.guidance_losses.MapTerm.rows_and_gradient`), the rollout's
+vector-Jacobian product (:func:`riskflow_env.dynamics.rollout_with_vjp`) and Adam
+(:class:`policies.learned.adam.Adam`), with the reference's stopping rule. Each helper
+repeats the formula of the function it names, op for op; the arithmetic is float64 (the
+reference runs in the plans' dtype, float32), so the two paths agree to float rounding,
+not bit for bit.
+
+Importing this module imports numba (ImportError without it); ``cache=True`` keeps the
+machine code on disk, so only the first run on a machine compiles.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+_jit = numba.njit(cache=True, nogil=True)
+_inline = numba.njit(cache=True, inline="always")
+
+# Footprint point k at (_ALONG[k] * length/2, _ACROSS[k] * width/2) in the vehicle frame
+# (riskflow_env.geometry's layout).
+_ALONG = np.array((1.0, 1.0, -1.0, -1.0, 1.0, 0.0, -1.0, 0.0, 0.0))
+_ACROSS = np.array((-1.0, 1.0, 1.0, -1.0, 0.0, 1.0, 0.0, -1.0, 0.0))
+BETA1, BETA2, EPSILON = 0.9, 0.999, 1e-8  # policies.learned.adam
+
+
+@_jit
+def _rollout(state, actions, params, out, saved):
+    """``dynamics._rollout`` of one plan: ``state`` (4,), commanded ``actions`` (H, 2) ->
+    ``out`` (H, 4); ``saved`` (H, 8) keeps what :func:`_rollout_vjp` needs (below,
+    below_max, above, above_max, both, distance, cos_before, sin_before)."""
+    dt, accel_min, accel_max, yaw_max, speed_min, speed_max = params
+    x0, y0, v0, psi0 = state[0], state[1], state[2], state[3]
+    sum_accel, sum_yaw_rate, sum_x, sum_y = 0.0, 0.0, 0.0, 0.0  # the reference's cumsums
+    below_max = -math.inf
+    above_max = -math.inf
+    speed_before, yaw_before = v0, psi0
+    for t in range(actions.shape[0]):
+        sum_accel += min(max(actions[t, 0], accel_min), accel_max)
+        sum_yaw_rate += min(max(actions[t, 1], -yaw_max), yaw_max)
+        free = v0 + dt * sum_accel
+        below = speed_min - free
+        below_max = max(below_max, below)
+        lower = free + max(below_max, 0.0)
+        above = lower - speed_max
+        above_max = max(above_max, above)
+        both = lower - max(above_max, 0.0)
+        speed = min(max(both, speed_min), speed_max)
+        yaw = psi0 + dt * sum_yaw_rate
+        cos_before, sin_before = math.cos(yaw_before), math.sin(yaw_before)
+        distance = 0.5 * (speed_before + speed) * dt
+        sum_x += distance * cos_before
+        sum_y += distance * sin_before
+        out[t, 0], out[t, 1], out[t, 2], out[t, 3] = x0 + sum_x, y0 + sum_y, speed, yaw
+        saved[t, 0], saved[t, 1], saved[t, 2], saved[t, 3] = below, below_max, above, above_max
+        saved[t, 4], saved[t, 5], saved[t, 6], saved[t, 7] = both, distance, cos_before, sin_before
+        speed_before, yaw_before = speed, yaw
+
+
+@_jit
+def _bounded_speed_vjp(d_speed, saved, params, out):
+    """``dynamics._bounded_speed_vjp`` of one plan: ``d_speed`` (H,) -> ``out`` (H,)."""
+    dt, speed_min, speed_max = params[0], params[4], params[5]
+    horizon = d_speed.shape[0]
+    touched = False
+    for t in range(horizon):
+        if saved[t, 1] >= 0.0 or saved[t, 3] >= 0.0:
+            touched = True
+    if not touched:  # the free path: dt * reverse cumsum
+        total = 0.0
+        for t in range(horizon - 1, -1, -1):
+            total += d_speed[t]
+            out[t] = dt * total
+        return
+    first = np.zeros(horizon, dtype=np.int64)  # window start of the lower reflection
+    latest_below, latest_above = 0, 0
+    latest = np.zeros(horizon, dtype=np.int64)  # argmax step of the upper reflection
+    for t in range(horizon):
+        if saved[t, 0] == saved[t, 1]:
+            latest_below = t
+        if saved[t, 2] == saved[t, 3]:
+            latest_above = t
+        first[t] = latest_below + 1 if saved[t, 1] >= 0.0 else 0
+        latest[t] = latest_above
+    for k in range(horizon):
+        out[k] = 0.0
+    for t in range(horizon):
+        both = saved[t, 4]
+        if not (both >= speed_min and both <= speed_max):
+            continue
+        cot = d_speed[t]
+        for k in range(first[t], t + 1):
+            out[k] += cot
+        if saved[t, 3] >= 0.0:
+            for k in range(first[latest[t]], latest[t] + 1):
+                out[k] -= cot
+    for k in range(horizon):
+        out[k] = dt * out[k]
+
+
+@_jit
+def _rollout_vjp(cotangent, actions, saved, params, out, scratch):
+    """``dynamics._rollout_vjp`` of one plan (the clip's mask included): ``cotangent``
+    (H, 4) -> ``out`` (H, 2); ``scratch`` (H, 3)."""
+    dt, accel_min, accel_max, yaw_max = params[0], params[1], params[2], params[3]
+    horizon = cotangent.shape[0]
+    inc_x, inc_y = 0.0, 0.0
+    next_d_distance, next_d_yaw_before = 0.0, 0.0
+    d_speed, d_yaw = scratch[:, 0], scratch[:, 1]
+    for t in range(horizon - 1, -1, -1):
+        inc_x += cotangent[t, 0]
+        inc_y += cotangent[t, 1]
+        distance, cos_before, sin_before = saved[t, 5], saved[t, 6], saved[t, 7]
+        d_distance = inc_x * cos_before + inc_y * sin_before
+        d_yaw_before = distance * (inc_y * cos_before - inc_x * sin_before)
+        d_yaw[t] = cotangent[t, 3] + next_d_yaw_before
+        d_speed[t] = cotangent[t, 2] + (0.5 * dt) * (d_distance + next_d_distance)
+        next_d_distance, next_d_yaw_before = d_distance, d_yaw_before
+    _bounded_speed_vjp(d_speed, saved, params, scratch[:, 2])
+    total = 0.0
+    for t in range(horizon - 1, -1, -1):
+        total += d_yaw[t]
+        accel, yaw_rate = actions[t, 0], actions[t, 1]
+        inside_a = accel >= accel_min and accel <= accel_max
+        inside_y = yaw_rate >= -yaw_max and yaw_rate <= yaw_max
+        out[t, 0] = scratch[t, 2] if inside_a else 0.0
+        out[t, 1] = dt * total if inside_y else 0.0
+
+
+@_inline
+def _sign(x):
+    return 1.0 if x > 0.0 else (-1.0 if x < 0.0 else 0.0)
+
+
+@_jit
+def _separation_gradient(xa, ya, yaw_a, len_a, wid_a, xb, yb, yaw_b, len_b, wid_b):
+    """``geometry.separation_gradient`` of one pair of boxes: ``(gap, d_x, d_y, d_yaw_a,
+    d_yaw_b)``, the derivatives of the first largest SAT gap (d/d xy_a = -d/d xy_b)."""
+    cos_a, sin_a = math.cos(yaw_a), math.sin(yaw_a)
+    cos_b, sin_b = math.cos(yaw_b), math.sin(yaw_b)
+    dx, dy = xb - xa, yb - ya
+    hl_a, hw_a, hl_b, hw_b = 0.5 * len_a, 0.5 * wid_a, 0.5 * len_b, 0.5 * wid_b
+    cos_ab = cos_a * cos_b + sin_a * sin_b
+    sin_ab = cos_a * sin_b - sin_a * cos_b
+    abs_cos, abs_sin = abs(cos_ab), abs(sin_ab)
+    p0 = dx * cos_a + dy * sin_a
+    p1 = dy * cos_a - dx * sin_a
+    p2 = dx * cos_b + dy * sin_b
+    p3 = dy * cos_b - dx * sin_b
+    g0 = abs(p0) - hl_a - (hl_b * abs_cos + hw_b * abs_sin)
+    g1 = abs(p1) - hw_a - (hl_b * abs_sin + hw_b * abs_cos)
+    g2 = abs(p2) - hl_b - (hl_a * abs_cos + hw_a * abs_sin)
+    g3 = abs(p3) - hw_b - (hl_a * abs_sin + hw_a * abs_cos)
+    best = max(max(g0, g1), max(g2, g3))
+    c_turn = _sign(cos_ab) * sin_ab
+    s_turn = _sign(sin_ab) * cos_ab
+    if g0 == best:
+        s0 = _sign(p0)
+        turn_b = hl_b * c_turn - hw_b * s_turn
+        return best, s0 * cos_a, s0 * sin_a, s0 * p1 - turn_b, turn_b
+    if g1 == best:
+        s1 = _sign(p1)
+        cross_b = hl_b * s_turn - hw_b * c_turn
+        return best, -s1 * sin_a, s1 * cos_a, -s1 * p0 + cross_b, -cross_b
+    if g2 == best:
+        s2 = _sign(p2)
+        turn_a = hl_a * c_turn - hw_a * s_turn
+        return best, s2 * cos_b, s2 * sin_b, -turn_a, s2 * p3 + turn_a
+    s3 = _sign(p3)
+    cross_a = hl_a * s_turn - hw_a * c_turn
+    return best, -s3 * sin_b, s3 * cos_b, cross_a, -s3 * p2 - cross_a
+
+
+@_jit
+def _sdf_with_gradient(flat, grid_int, grid_float, x, y):
+    """``maps.sampling.interpolate_flat`` with ``extend`` and its gradient at one point:
+    ``(value, d/dx, d/dy)``; ``grid_int`` (height, width, offset), ``grid_float``
+    (origin_x, origin_y, resolution, ...)."""
+    height, width, offset = grid_int[0], grid_int[1], grid_int[2]
+    origin_x, origin_y, resolution = grid_float[0], grid_float[1], grid_float[2]
+    col = (x - origin_x) / resolution - 0.5
+    row = (y - origin_y) / resolution - 0.5
+    col_c = min(max(col, 0.0), float(width - 1))
+    row_c = min(max(row, 0.0), float(height - 1))
+    col0 = max(min(int(col_c), width - 2), 0)
+    row0 = max(min(int(row_c), height - 2), 0)
+    fc = col_c - float(col0)
+    fr = row_c - float(row0)
+    base = row0 * width + col0 + offset
+    v00, v01 = float(flat[base]), float(flat[base + 1])
+    v10, v11 = float(flat[base + width]), float(flat[base + width + 1])
+    gc, gr = 1.0 - fc, 1.0 - fr
+    top = v00 * gc + v01 * fc
+    bottom = v10 * gc + v11 * fc
+    value = top * gr + bottom * fr
+    off_c, off_r = col - col_c, row - row_c
+    distance = math.sqrt(off_c * off_c + off_r * off_r) if value > 0.0 else 0.0
+    inside_c = 1.0 if col == col_c else 0.0
+    inside_r = 1.0 if row == row_c else 0.0
+    d_col = ((v01 - v00) * gr + (v11 - v10) * fr) * (inside_c / resolution)
+    d_row = (bottom - top) * (inside_r / resolution)
+    if distance > 0.0:
+        d_col += off_c / distance
+        d_row += off_r / distance
+    return value + distance * resolution, d_col, d_row
+
+
+@_jit
+def _map_gradient(plan, frame, along, across, margin, weights, flat, grid_int, grid_float, out):
+    """``MapTerm._evaluate`` with the gradient of one plan (H, 4) -> adds to ``out`` (H, 4);
+    ``frame`` (origin_x, origin_y, yaw, cos, sin) of the scene frame in the world, ``along``
+    and ``across`` (9,) the footprint offsets [m], ``weights`` (H,) the decay."""
+    origin_x, origin_y, frame_yaw, cos_f, sin_f = frame[0], frame[1], frame[2], frame[3], frame[4]
+    for t in range(plan.shape[0]):
+        x_s, y_s = plan[t, 0], plan[t, 1]
+        world_x = origin_x + cos_f * x_s - sin_f * y_s
+        world_y = origin_y + sin_f * x_s + cos_f * y_s
+        yaw = plan[t, 3] + frame_yaw
+        cos, sin = math.cos(yaw), math.sin(yaw)
+        d_wx, d_wy, d_yaw = 0.0, 0.0, 0.0
+        for k in range(along.shape[0]):
+            along_x, across_x = cos * along[k], sin * across[k]
+            along_y, across_y = sin * along[k], cos * across[k]
+            px = world_x + along_x - across_x
+            py = world_y + along_y + across_y
+            sdf, g_x, g_y = _sdf_with_gradient(flat, grid_int, grid_float, px, py)
+            depth = max(sdf + margin, 0.0)
+            if depth == 0.0:
+                continue
+            slope = 2.0 * depth * weights[t]
+            slope_x, slope_y = slope * g_x, slope * g_y
+            d_wx += slope_x
+            d_wy += slope_y
+            d_yaw += slope_y * (along_x - across_x) - slope_x * (along_y + across_y)
+        out[t, 0] += cos_f * d_wx + sin_f * d_wy
+        out[t, 1] += -sin_f * d_wx + cos_f * d_wy
+        out[t, 3] += d_yaw
+
+
+@_jit
+def avoid_scenes(
+    scene_of_row, slot_of_row, now, moving, share, obstacles, length, width, pairs,
+    use_map, frames, along, across, margins, weights, flat, grid_int, grid_float,
+    map_of_row, norm, params, steps, step_size, slack, stop_margin,
+):  # fmt: skip
+    """Every avoidance step of every scene (``plan_avoidance.avoid_overlaps``' loop).
+
+    Rows: the V variables, sorted by scene; ``scene_of_row``, ``slot_of_row`` (V,);
+    ``now`` (V, 4); ``moving`` (V, H, 2) ``eps + u0`` [normalised]; ``share`` (V, H) the
+    gain. Scenes: ``obstacles`` (B, A, H, 4) every row's plan, ``length``, ``width``
+    (B, A), ``pairs`` (B, A, A) bool. Map (``use_map``): per row ``frames`` (V, 5),
+    ``along``, ``across`` (V, 9), ``margins`` (V,), ``map_of_row`` (V,) into the
+    ``grid_int`` / ``grid_float`` rows of the rasters ``flat``; ``weights`` (H,).
+    ``norm`` (mean_a, mean_yaw, std_a, std_yaw); ``params`` the dynamics'.
+
+    Returns:
+        (V, H, 2) each row's correction ``share * delta``, added to ``u0``.
+    """
+    num_rows, horizon = moving.shape[0], moving.shape[1]
+    num_agents = obstacles.shape[1]
+    correction = np.zeros((num_rows, horizon, 2))
+    start = 0
+    while start < num_rows:
+        scene = scene_of_row[start]
+        end = start
+        while end < num_rows and scene_of_row[end] == scene:
+            end += 1
+        _avoid_scene(
+            scene, slot_of_row[start:end], now[start:end], moving[start:end], share[start:end],
+            obstacles[scene], length[scene], width[scene], pairs[scene], use_map,
+            frames[start:end], along[start:end], across[start:end], margins[start:end], weights,
+            flat, grid_int, grid_float, map_of_row[start:end], norm, params, steps, step_size,
+            slack, stop_margin, num_agents, correction[start:end],
+        )  # fmt: skip
+        start = end
+    return correction
+
+
+@_jit
+def _avoid_scene(
+    scene, slots, now, moving, share, obstacles, length, width, pairs, use_map, frames,
+    along, across, margins, weights, flat, grid_int, grid_float, map_of_row, norm, params,
+    steps, step_size, slack, stop_margin, num_agents, correction,
+):  # fmt: skip
+    """The avoidance steps of one scene's V variables (:func:`avoid_scenes`)."""
+    num_rows, horizon = moving.shape[0], moving.shape[1]
+    delta = np.zeros((num_rows, horizon, 2))
+    first = np.zeros((num_rows, horizon, 2))
+    second = np.zeros((num_rows, horizon, 2))
+    actions = np.empty((num_rows, horizon, 2))
+    saved = np.empty((num_rows, horizon, 8))
+    joint = obstacles.copy()
+    d_joint = np.zeros((num_agents, horizon, 4))
+    gradient = np.empty((num_rows, horizon, 2))
+    scratch = np.empty((horizon, 3))
+    reach = np.empty(num_agents)
+    for a in range(num_agents):
+        reach[a] = 0.5 * math.hypot(length[a], width[a])
+    mean_a, mean_y, std_a, std_y = norm[0], norm[1], norm[2], norm[3]
+    count = 0
+    for _ in range(steps):
+        for r in range(num_rows):
+            for t in range(horizon):
+                actions[r, t, 0] = (moving[r, t, 0] + share[r, t] * delta[r, t, 0]) * std_a + mean_a
+                actions[r, t, 1] = (moving[r, t, 1] + share[r, t] * delta[r, t, 1]) * std_y + mean_y
+            _rollout(now[r], actions[r], params, joint[slots[r]], saved[r])
+        d_joint[:] = 0.0
+        closest = math.inf
+        for i in range(num_agents):
+            for j in range(i + 1, num_agents):
+                if not pairs[i, j]:
+                    continue
+                touch = reach[i] + reach[j] + slack
+                near = False
+                for t in range(horizon):
+                    dx = joint[i, t, 0] - joint[j, t, 0]
+                    dy = joint[i, t, 1] - joint[j, t, 1]
+                    if math.sqrt(dx * dx + dy * dy) <= touch:
+                        near = True
+                        break
+                if not near:
+                    continue
+                for t in range(horizon):
+                    gap, g_x, g_y, g_yaw_i, g_yaw_j = _separation_gradient(
+                        joint[i, t, 0], joint[i, t, 1], joint[i, t, 3], length[i], width[i],
+                        joint[j, t, 0], joint[j, t, 1], joint[j, t, 3], length[j], width[j],
+                    )  # fmt: skip
+                    closest = min(closest, gap)
+                    if gap >= 0.0:
+                        continue
+                    weight = 2.0 * gap
+                    d_joint[i, t, 0] -= weight * g_x
+                    d_joint[i, t, 1] -= weight * g_y
+                    d_joint[i, t, 3] += weight * g_yaw_i
+                    d_joint[j, t, 0] += weight * g_x
+                    d_joint[j, t, 1] += weight * g_y
+                    d_joint[j, t, 3] += weight * g_yaw_j
+        moved = False
+        for r in range(num_rows):
+            cotangent = d_joint[slots[r]].copy()
+            if use_map:
+                g = map_of_row[r]
+                _map_gradient(
+                    joint[slots[r]], frames[r], along[r], across[r], margins[r], weights, flat,
+                    grid_int[g], grid_float[g], cotangent,
+                )  # fmt: skip
+            _rollout_vjp(cotangent, actions[r], saved[r], params, gradient[r], scratch)
+            for t in range(horizon):
+                gradient[r, t, 0] *= std_a * share[r, t]
+                gradient[r, t, 1] *= std_y * share[r, t]
+                if gradient[r, t, 0] != 0.0 or gradient[r, t, 1] != 0.0:
+                    moved = True
+        if not moved and not (count > 0 and closest < stop_margin):
+            break
+        count += 1
+        scale = step_size / (1.0 - BETA1**count)
+        unbias = 1.0 - BETA2**count
+        for r in range(num_rows):
+            for t in range(horizon):
+                for c in range(2):
+                    g = gradient[r, t, c]
+                    first[r, t, c] = first[r, t, c] * BETA1 + (1.0 - BETA1) * g
+                    second[r, t, c] = second[r, t, c] * BETA2 + (1.0 - BETA2) * g * g
+                    step = scale * first[r, t, c] / (math.sqrt(second[r, t, c] / unbias) + EPSILON)
+                    delta[r, t, c] -= step
+    for r in range(num_rows):
+        for t in range(horizon):
+            correction[r, t, 0] = share[r, t] * delta[r, t, 0]
+            correction[r, t, 1] = share[r, t] * delta[r, t, 1]
