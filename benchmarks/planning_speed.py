@@ -13,7 +13,15 @@ Peers, measured interleaved with it (same machine load):
   ``A_c`` rows score the lowest ``L_adv``;
 * **raw** (``--raw``) -- ``riskflow-raw`` and ``bits-raw``, the same methods on the raw
   generator (no avoidance steps, no holding at rest), with the ratio of each default
-  cycle to its raw one.
+  cycle to its raw one;
+* **reference loops** -- the default cycle with the compiled avoidance and guidance loops
+  off (``RISKFLOW_COMPILED=0``, :mod:`policies.learned.compiled_plans`): the torch
+  reference; ``--no-reference`` skips it. Where numba is not installed both rows run the
+  reference.
+
+The compiled loops' one-off start-up (importing numba and the kernels, compiling them on a
+machine's first run, loading them from numba's cache after) is measured in fresh
+processes and printed last (``--no-startup`` skips it).
 
 Prints the median [ms] of each phase and the ratios to the peers. Speed does not depend
 on the weights: without the shipped checkpoint the default-size model is randomly
@@ -24,16 +32,21 @@ initialised.
 
 from __future__ import annotations
 
+import os
 import statistics
+import subprocess
+import sys
+import tempfile
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from methods import make_policy, raw_variant
-from timing import interleaved_ms
+from timing import interleaved_ms, step_path
 
 import riskflow_env
 from policies.dataclass_cli import parse_dataclass
+from policies.learned import compiled_plans
 from policies.learned.config import ModelConfig
 from policies.learned.data import ActionNormalizer
 from policies.learned.generator import RiskFlowGenerator
@@ -70,6 +83,10 @@ class Options:
     """untimed cycles per method first"""
     raw: bool = False
     """also riskflow-raw and bits-raw, the raw generator without the rule layer"""
+    reference: bool = True
+    """also the default cycle with the compiled planning loops off (the torch reference)"""
+    startup: bool = True
+    """measure the compiled loops' one-off start-up in fresh processes (cold and cached)"""
 
     def __post_init__(self) -> None:
         if self.guidance_steps is not None and self.guidance_steps < 1:
@@ -163,8 +180,16 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         finally:
             torch.set_num_threads(previous)
 
+    def reference_cycle() -> None:
+        with step_path("reference"):
+            reference.plan(view)
+
     cycles = {name: (lambda p=policy: p.plan(view)) for name, policy in policies.items()}
     cycles["riskflow"], cycles["resample"] = guided_cycle, resample
+    if options.reference:
+        reference = make_policy("riskflow", models | steps, k=options.k, device=options.device)
+        reference.reset(view)
+        cycles["reference"] = reference_cycle
     walls = interleaved_ms(cycles, options.repeats, options.warmup)
     med = {name: statistics.median(values) for name, values in walls.items()}
     print(
@@ -189,9 +214,12 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         "resample": f"re-sampling, best of {samples}",
         "riskflow-raw": f"riskflow-raw, K={options.k}",
         "bits-raw": "bits-raw (unguided, K=0)",
+        "reference": f"riskflow, K={options.k}, reference loops",
     }
+    compiled = compiled_plans.kernels() is not None and options.device == "cpu"
+    print(f"planning loops: {'compiled (numba)' if compiled else 'the torch reference'}")
     print(f"{'method':<34}{'ms':>9}{'riskflow / it':>15}")
-    for name in (*methods[:2], "resample", *methods[2:]):
+    for name in (*methods[:2], "resample", *methods[2:], *(("reference",) * options.reference)):
         print(f"{labels[name]:<34}{med[name]:9.2f}{med['riskflow'] / med[name]:14.2f}x")
     if options.raw:
         print("\nrealistic base / raw generator, same method:")
@@ -199,7 +227,53 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
             print(f"{name:<34}{med[name] / med[raw_variant(name)]:9.2f}x")
     spread = np.percentile(walls["riskflow"], [10, 90])
     print(f"\nriskflow cycle p10-p90: {spread[0]:.1f}-{spread[1]:.1f} ms")
+    if options.startup and compiled:
+        costs = startup_seconds(options.agents)
+        print(
+            "compiled loops' start-up, once per process: import {import:.2f} s, first cycle "
+            "{compile:.1f} s with an empty kernel cache (compiling), {load:.2f} s with it "
+            "filled (loading), each over a later cycle".format(**costs)
+        )
     return med
+
+
+_STARTUP = """
+import sys, time
+sys.path.insert(0, {folder!r})
+from policies.learned import compiled_plans
+start = time.perf_counter()
+assert compiled_plans.kernels() is not None
+imported = time.perf_counter() - start
+from planning_speed import load_model, scene_view
+from methods import make_policy
+model, normalizer, _ = load_model("cpu")
+view, _ = scene_view({agents})
+policy = make_policy("riskflow", dict(generator=model, normalizer=normalizer, threads=1))
+policy.reset(view)
+start = time.perf_counter()
+policy.plan(view)
+first = time.perf_counter()
+policy.plan(view)
+print(imported, (first - start) - (time.perf_counter() - first))
+"""
+
+
+def startup_seconds(agents: int) -> dict[str, float]:
+    """The compiled loops' one-off costs [s], each in a fresh process: importing numba and
+    the kernels, and what the first cycle costs over the next with an empty kernel cache
+    (compiling) and with the cache that run filled (loading)."""
+    script = _STARTUP.format(folder=os.path.dirname(os.path.abspath(__file__)), agents=agents)
+    with tempfile.TemporaryDirectory() as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache, compiled_plans.SWITCH: "1"}
+        runs = []
+        for _ in range(2):  # cold, then cached
+            out = subprocess.run(
+                [sys.executable, "-c", script], env=env, capture_output=True, text=True
+            )
+            if out.returncode:
+                raise RuntimeError(f"start-up measurement failed:\n{out.stderr[-2000:]}")
+            runs.append([float(value) for value in out.stdout.split()[-2:]])
+    return {"import": runs[1][0], "compile": runs[0][1], "load": runs[1][1]}
 
 
 if __name__ == "__main__":

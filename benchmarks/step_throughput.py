@@ -35,13 +35,13 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import gymnasium
 import highway_env  # noqa: F401 - registers highway-v0
 import numpy as np
+from timing import step_path
 from tqdm import tqdm
 
 import riskflow_env
@@ -96,20 +96,6 @@ def _parse(argv: list[str] | None = None) -> Options:
     if not options.paths or set(options.paths) - {"compiled", "reference"}:
         raise SystemExit(f"--paths must name 'compiled' and/or 'reference', got {options.paths}")
     return options
-
-
-@contextmanager
-def step_path(path: str) -> Iterator[None]:
-    """Run the riskflow steps inside on ``path`` ('compiled' or 'reference')."""
-    before = os.environ.get(compiled.SWITCH)
-    os.environ[compiled.SWITCH] = "1" if path == "compiled" else "0"
-    try:
-        yield
-    finally:
-        if before is None:
-            del os.environ[compiled.SWITCH]
-        else:
-            os.environ[compiled.SWITCH] = before
 
 
 _STARTUP = """

@@ -8,10 +8,14 @@ on ``sys.path``.
 
 from __future__ import annotations
 
+import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 from tqdm import tqdm
+
+from riskflow_env.compiled import SWITCH
 
 
 def _no_sync() -> None:
@@ -39,3 +43,19 @@ def interleaved_ms(
             sync()
             times[name].append(1e3 * (time.perf_counter() - start))
     return times
+
+
+@contextmanager
+def step_path(path: str) -> Iterator[None]:
+    """Run the code inside on ``path``: 'compiled' (the numba kernels of the simulator step
+    and of the planning loops, where numba is installed) or 'reference' (the array-API
+    functions: ``RISKFLOW_COMPILED=0``)."""
+    before = os.environ.get(SWITCH)
+    os.environ[SWITCH] = "1" if path == "compiled" else "0"
+    try:
+        yield
+    finally:
+        if before is None:
+            del os.environ[SWITCH]
+        else:
+            os.environ[SWITCH] = before

@@ -22,11 +22,13 @@ import functools
 import os
 import warnings
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from policies.learned import guidance_losses
 from policies.learned.data import ActionNormalizer
 from policies.learned.guidance_losses import MapTerm
 from riskflow_env.compiled import SWITCH, _dynamics_params, _map_tables
@@ -55,9 +57,12 @@ def kernels() -> ModuleType | None:
     return plan_kernels
 
 
-def accepts(moving: Tensor, term: MapTerm | None, normalizer: object) -> bool:
-    """The compiled loop applies (module docstring)."""
-    if moving.device.type != "cpu" or type(normalizer) is not ActionNormalizer:
+def accepts(moving: Tensor, term: MapTerm | None, normalizer: object = None) -> bool:
+    """The compiled loops apply (module docstring): ``moving`` the variables (on the CPU),
+    ``term`` their map term, ``normalizer`` the plans' decoding (None: decoded already)."""
+    if moving.device.type != "cpu":
+        return False
+    if normalizer is not None and type(normalizer) is not ActionNormalizer:
         return False
     if term is not None and not (
         type(term.map) is DrivableMap or isinstance(term.map, MapStack.Selection)
@@ -100,36 +105,79 @@ def avoidance_correction(
     pairs, length, width = scored
     count, horizon = moving.shape[:2]
 
-    def array(x: Tensor) -> np.ndarray:
-        return np.ascontiguousarray(x.detach().numpy(), dtype=np.float64)
-
-    gain = np.ones((count, horizon)) if not isinstance(share, Tensor) else array(share[..., 0])
-    if term is None:
-        use_map, frames, along, across = False, np.zeros((count, 5)), *np.zeros((2, count, 9))
-        margins, weights = np.zeros(count), np.zeros(horizon)
-        flat, grid_int, grid_float = np.zeros(4), np.zeros((1, 3), np.int64), np.zeros((1, 4))
-        map_of_row = np.zeros(count, np.int64)
-    else:
-        use_map = True
-        parts = (term.origin_x, term.origin_y, term.yaw, term.cos, term.sin)  # (1 or V, 1)
-        frames = np.stack([np.broadcast_to(array(p)[:, 0], (count,)) for p in parts], axis=-1)
-        along, across = array(term.along[:, 0]), array(term.across[:, 0])
-        margin = term.margin
-        margins = np.broadcast_to(
-            array(margin).reshape(-1) if isinstance(margin, Tensor) else np.float64(margin),
-            (count,),
-        ).copy()
-        weights = array(term.weights)
-        flat, grid_int, grid_float, map_of_row = _map_tables(term.map, (count,), count)
+    gain = np.ones((count, horizon)) if not isinstance(share, Tensor) else _array(share[..., 0])
     mean, std = normalizer.mean, normalizer.std
     correction = kernels().avoid_scenes(
-        (rows // num_agents).numpy(), (rows % num_agents).numpy(), array(now), array(moving),
-        gain, array(obstacles), array(length), array(width), pairs.numpy(), use_map, frames,
-        along, across, margins, weights, flat, grid_int, grid_float, map_of_row,
+        (rows // num_agents).numpy(), (rows % num_agents).numpy(), _array(now),
+        _array(moving), gain, _array(obstacles), _array(length), _array(width), pairs.numpy(),
+        *_map_inputs(term, count, horizon),
         np.array([mean[0], mean[1], std[0], std[1]], dtype=np.float64),
         _dynamics_params(dynamics), steps, step_size, stop_margin, stop_margin,
+        moving.dtype == torch.float32,
     )  # fmt: skip
     return torch.from_numpy(correction).to(moving.dtype)
 
 
-__all__ = ["accepts", "avoidance_correction", "kernels"]
+def guidance_steps(
+    objective: Any, u_c: Tensor, lower: Tensor, upper: Tensor, config: Any
+) -> tuple[Tensor, Tensor]:
+    """The steps of output-space guidance (``policies.riskflow.guidance._guide_scenes``'
+    loop), compiled: the guided residual ``u_c`` (C, T, 2) after ``config.steps`` steps
+    within ``lower``/``upper``, and (steps, C, 2) ``(L_adv, L_map)`` of each row before
+    each step. ``objective`` is the loop's ``_Objective`` (its rows, targets and terms)."""
+    count, length = u_c.shape[:2]
+    horizon = min(length, objective.horizon or length)
+    term, separation = objective.map_term, objective.separation
+    if separation is None:
+        sep_pairs, sizes = np.zeros((0, 2), np.int64), np.zeros((count, 2))
+        fixed = np.zeros((0, horizon, 4))
+    else:
+        box_length, box_width, pairs = (box[0] for box in separation.boxes)
+        sep_pairs = torch.nonzero(pairs).numpy()
+        sizes = np.stack([_array(box_length), _array(box_width)], axis=-1)
+        fixed = np.zeros((0, horizon, 4)) if separation.fixed is None else _array(separation.fixed)
+    floor = objective.floor
+    keep = guidance_losses.LAMBDA_KEEP_MOVING  # read at the call, as the reference does
+    lambdas = (config.lambda_adv, config.lambda_map, objective.lambda_sep, keep)
+    u, losses = kernels().guide_rows(
+        _array(objective.state), _array(objective.offset), _array(objective.std).reshape(-1),
+        _array(u_c), _array(lower), _array(upper), _array(objective.target_xy),
+        objective.target_valid.numpy(), horizon, *_map_inputs(term, count, length), sep_pairs,
+        sizes, fixed,
+        floor is not None, np.zeros(count) if floor is None else _array(floor),
+        np.array(lambdas, dtype=np.float64), _dynamics_params(objective.dynamics),
+        config.steps, config.resolved_step_size, config.optimizer != "gradient",
+        u_c.dtype == torch.float32,
+    )  # fmt: skip
+    return torch.from_numpy(u).to(u_c.dtype), torch.from_numpy(losses).to(u_c.dtype)
+
+
+def _array(x: Tensor) -> np.ndarray:
+    return np.ascontiguousarray(x.detach().numpy(), dtype=np.float64)
+
+
+def _map_inputs(term: MapTerm | None, count: int, horizon: int) -> tuple:
+    """The kernels' map arguments for ``count`` rows: ``use_map``, frames (count, 5),
+    along and across (count, 9), margins (count,), weights (horizon,), and the rasters."""
+    if term is None:
+        frames, along, across = np.zeros((count, 5)), *np.zeros((2, count, 9))
+        margins, weights = np.zeros(count), np.zeros(horizon)
+        flat, grid_int, grid_float = np.zeros(4), np.zeros((1, 3), np.int64), np.zeros((1, 4))
+        rasters = (flat, grid_int, grid_float, np.zeros(count, np.int64))
+        return (False, frames, along, across, margins, weights, *rasters)
+    parts = (term.origin_x, term.origin_y, term.yaw, term.cos, term.sin)  # (1 or V, 1)
+    frames = np.stack([np.broadcast_to(_array(p)[:, 0], (count,)) for p in parts], axis=-1)
+    margin = term.margin
+    margins = np.broadcast_to(
+        _array(margin).reshape(-1) if isinstance(margin, Tensor) else np.float64(margin),
+        (count,),
+    ).copy()
+    lookup = term.map
+    if isinstance(lookup, MapStack.Selection) and isinstance(lookup.index, Tensor):
+        lookup = lookup.stack.select(lookup.index.numpy())  # the rasters' numpy tables
+    rasters = _map_tables(lookup, (count,), count)
+    along, across = _array(term.along[:, 0]), _array(term.across[:, 0])
+    return (True, frames, along, across, margins, _array(term.weights), *rasters)
+
+
+__all__ = ["accepts", "avoidance_correction", "guidance_steps", "kernels"]

@@ -33,11 +33,26 @@ _ACROSS = np.array((-1.0, 1.0, 1.0, -1.0, 0.0, 1.0, 0.0, -1.0, 0.0))
 BETA1, BETA2, EPSILON = 0.9, 0.999, 1e-8  # policies.learned.adam
 
 
+@_inline
+def _decoded(base, weight, value, scale, shift, single):
+    """The action ``(base + weight * value) * scale + shift``, op by op in float32 when the
+    plans are float32 (``single``): the reference's rounding, so that a correction that
+    cancels exactly there (a residue ``-eps`` on the noise ``eps``: a base plan that keeps
+    its speed and heading) cancels here too; Adam would blow a residue of 1e-9 up to a
+    step of its full length."""
+    if single:
+        product = np.float32(np.float32(weight) * np.float32(value))
+        total = np.float32(np.float32(base) + product)
+        return float(np.float32(np.float32(total * np.float32(scale)) + np.float32(shift)))
+    return (base + weight * value) * scale + shift
+
+
 @_jit
-def _rollout(state, actions, params, out, saved):
+def _rollout(state, actions, params, clip, out, saved):
     """``dynamics._rollout`` of one plan: ``state`` (4,), commanded ``actions`` (H, 2) ->
-    ``out`` (H, 4); ``saved`` (H, 8) keeps what :func:`_rollout_vjp` needs (below,
-    below_max, above, above_max, both, distance, cos_before, sin_before)."""
+    ``out`` (H, 4), the actions clipped to the bounds if ``clip``; ``saved`` (H, 8) keeps
+    what :func:`_rollout_vjp` needs (below, below_max, above, above_max, both, distance,
+    cos_before, sin_before)."""
     dt, accel_min, accel_max, yaw_max, speed_min, speed_max = params
     x0, y0, v0, psi0 = state[0], state[1], state[2], state[3]
     sum_accel, sum_yaw_rate, sum_x, sum_y = 0.0, 0.0, 0.0, 0.0  # the reference's cumsums
@@ -45,8 +60,12 @@ def _rollout(state, actions, params, out, saved):
     above_max = -math.inf
     speed_before, yaw_before = v0, psi0
     for t in range(actions.shape[0]):
-        sum_accel += min(max(actions[t, 0], accel_min), accel_max)
-        sum_yaw_rate += min(max(actions[t, 1], -yaw_max), yaw_max)
+        accel, yaw_rate = actions[t, 0], actions[t, 1]
+        if clip:
+            accel = min(max(accel, accel_min), accel_max)
+            yaw_rate = min(max(yaw_rate, -yaw_max), yaw_max)
+        sum_accel += accel
+        sum_yaw_rate += yaw_rate
         free = v0 + dt * sum_accel
         below = speed_min - free
         below_max = max(below_max, below)
@@ -108,9 +127,9 @@ def _bounded_speed_vjp(d_speed, saved, params, out):
 
 
 @_jit
-def _rollout_vjp(cotangent, actions, saved, params, out, scratch):
-    """``dynamics._rollout_vjp`` of one plan (the clip's mask included): ``cotangent``
-    (H, 4) -> ``out`` (H, 2); ``scratch`` (H, 3)."""
+def _rollout_vjp(cotangent, actions, saved, params, clip, out, scratch):
+    """``dynamics._rollout_vjp`` of one plan (with ``clip``, the clip's mask):
+    ``cotangent`` (H, 4) -> ``out`` (H, 2); ``scratch`` (H, 3)."""
     dt, accel_min, accel_max, yaw_max = params[0], params[1], params[2], params[3]
     horizon = cotangent.shape[0]
     inc_x, inc_y = 0.0, 0.0
@@ -130,8 +149,8 @@ def _rollout_vjp(cotangent, actions, saved, params, out, scratch):
     for t in range(horizon - 1, -1, -1):
         total += d_yaw[t]
         accel, yaw_rate = actions[t, 0], actions[t, 1]
-        inside_a = accel >= accel_min and accel <= accel_max
-        inside_y = yaw_rate >= -yaw_max and yaw_rate <= yaw_max
+        inside_a = not clip or (accel >= accel_min and accel <= accel_max)
+        inside_y = not clip or (yaw_rate >= -yaw_max and yaw_rate <= yaw_max)
         out[t, 0] = scratch[t, 2] if inside_a else 0.0
         out[t, 1] = dt * total if inside_y else 0.0
 
@@ -181,6 +200,40 @@ def _separation_gradient(xa, ya, yaw_a, len_a, wid_a, xb, yb, yaw_b, len_b, wid_
 
 
 @_jit
+def _pair_gradient(plan_i, plan_j, size_i, size_j, touch, horizon, d_i, d_j):
+    """``plan_overlap.overlap_gradient`` of one pair of plans over their first
+    ``horizon`` steps: when their centres come within ``touch`` [m] at some step, adds the
+    gradient of ``sum relu(-separation)^2`` to ``d_i`` and ``d_j`` (H, 4) and returns the
+    pair's smallest separation [m]; ``inf`` otherwise. ``size_*``: (length, width)."""
+    near = False
+    for t in range(horizon):
+        dx = plan_i[t, 0] - plan_j[t, 0]
+        dy = plan_i[t, 1] - plan_j[t, 1]
+        if math.sqrt(dx * dx + dy * dy) <= touch:
+            near = True
+            break
+    if not near:
+        return math.inf
+    closest = math.inf
+    for t in range(horizon):
+        gap, g_x, g_y, g_yaw_i, g_yaw_j = _separation_gradient(
+            plan_i[t, 0], plan_i[t, 1], plan_i[t, 3], size_i[0], size_i[1],
+            plan_j[t, 0], plan_j[t, 1], plan_j[t, 3], size_j[0], size_j[1],
+        )  # fmt: skip
+        closest = min(closest, gap)
+        if gap >= 0.0:
+            continue
+        weight = 2.0 * gap
+        d_i[t, 0] -= weight * g_x
+        d_i[t, 1] -= weight * g_y
+        d_i[t, 3] += weight * g_yaw_i
+        d_j[t, 0] += weight * g_x
+        d_j[t, 1] += weight * g_y
+        d_j[t, 3] += weight * g_yaw_j
+    return closest
+
+
+@_jit
 def _sdf_with_gradient(flat, grid_int, grid_float, x, y):
     """``maps.sampling.interpolate_flat`` with ``extend`` and its gradient at one point:
     ``(value, d/dx, d/dy)``; ``grid_int`` (height, width, offset), ``grid_float``
@@ -216,10 +269,12 @@ def _sdf_with_gradient(flat, grid_int, grid_float, x, y):
 
 @_jit
 def _map_gradient(plan, frame, along, across, margin, weights, flat, grid_int, grid_float, out):
-    """``MapTerm._evaluate`` with the gradient of one plan (H, 4) -> adds to ``out`` (H, 4);
-    ``frame`` (origin_x, origin_y, yaw, cos, sin) of the scene frame in the world, ``along``
-    and ``across`` (9,) the footprint offsets [m], ``weights`` (H,) the decay."""
+    """``MapTerm._evaluate`` with the gradient of one plan (H, 4): returns its ``L_map``
+    [m^2] and adds its gradient to ``out`` (H, 4); ``frame`` (origin_x, origin_y, yaw,
+    cos, sin) of the scene frame in the world, ``along`` and ``across`` (9,) the footprint
+    offsets [m], ``weights`` (H,) the decay."""
     origin_x, origin_y, frame_yaw, cos_f, sin_f = frame[0], frame[1], frame[2], frame[3], frame[4]
+    total = 0.0
     for t in range(plan.shape[0]):
         x_s, y_s = plan[t, 0], plan[t, 1]
         world_x = origin_x + cos_f * x_s - sin_f * y_s
@@ -236,6 +291,7 @@ def _map_gradient(plan, frame, along, across, margin, weights, flat, grid_int, g
             depth = max(sdf + margin, 0.0)
             if depth == 0.0:
                 continue
+            total += depth * depth * weights[t]
             slope = 2.0 * depth * weights[t]
             slope_x, slope_y = slope * g_x, slope * g_y
             d_wx += slope_x
@@ -244,13 +300,14 @@ def _map_gradient(plan, frame, along, across, margin, weights, flat, grid_int, g
         out[t, 0] += cos_f * d_wx + sin_f * d_wy
         out[t, 1] += -sin_f * d_wx + cos_f * d_wy
         out[t, 3] += d_yaw
+    return total
 
 
 @_jit
 def avoid_scenes(
     scene_of_row, slot_of_row, now, moving, share, obstacles, length, width, pairs,
     use_map, frames, along, across, margins, weights, flat, grid_int, grid_float,
-    map_of_row, norm, params, steps, step_size, slack, stop_margin,
+    map_of_row, norm, params, steps, step_size, slack, stop_margin, single,
 ):  # fmt: skip
     """Every avoidance step of every scene (``plan_avoidance.avoid_overlaps``' loop).
 
@@ -279,7 +336,7 @@ def avoid_scenes(
             obstacles[scene], length[scene], width[scene], pairs[scene], use_map,
             frames[start:end], along[start:end], across[start:end], margins[start:end], weights,
             flat, grid_int, grid_float, map_of_row[start:end], norm, params, steps, step_size,
-            slack, stop_margin, num_agents, correction[start:end],
+            slack, stop_margin, single, num_agents, correction[start:end],
         )  # fmt: skip
         start = end
     return correction
@@ -289,7 +346,7 @@ def avoid_scenes(
 def _avoid_scene(
     scene, slots, now, moving, share, obstacles, length, width, pairs, use_map, frames,
     along, across, margins, weights, flat, grid_int, grid_float, map_of_row, norm, params,
-    steps, step_size, slack, stop_margin, num_agents, correction,
+    steps, step_size, slack, stop_margin, single, num_agents, correction,
 ):  # fmt: skip
     """The avoidance steps of one scene's V variables (:func:`avoid_scenes`)."""
     num_rows, horizon = moving.shape[0], moving.shape[1]
@@ -303,47 +360,30 @@ def _avoid_scene(
     gradient = np.empty((num_rows, horizon, 2))
     scratch = np.empty((horizon, 3))
     reach = np.empty(num_agents)
+    sizes = np.empty((num_agents, 2))
     for a in range(num_agents):
         reach[a] = 0.5 * math.hypot(length[a], width[a])
-    mean_a, mean_y, std_a, std_y = norm[0], norm[1], norm[2], norm[3]
+        sizes[a, 0], sizes[a, 1] = length[a], width[a]
+    std_a, std_y = norm[2], norm[3]
     count = 0
     for _ in range(steps):
         for r in range(num_rows):
             for t in range(horizon):
-                actions[r, t, 0] = (moving[r, t, 0] + share[r, t] * delta[r, t, 0]) * std_a + mean_a
-                actions[r, t, 1] = (moving[r, t, 1] + share[r, t] * delta[r, t, 1]) * std_y + mean_y
-            _rollout(now[r], actions[r], params, joint[slots[r]], saved[r])
+                for c in range(2):
+                    actions[r, t, c] = _decoded(
+                        moving[r, t, c], share[r, t], delta[r, t, c], norm[2 + c], norm[c], single
+                    )
+            _rollout(now[r], actions[r], params, True, joint[slots[r]], saved[r])
         d_joint[:] = 0.0
         closest = math.inf
         for i in range(num_agents):
             for j in range(i + 1, num_agents):
-                if not pairs[i, j]:
-                    continue
-                touch = reach[i] + reach[j] + slack
-                near = False
-                for t in range(horizon):
-                    dx = joint[i, t, 0] - joint[j, t, 0]
-                    dy = joint[i, t, 1] - joint[j, t, 1]
-                    if math.sqrt(dx * dx + dy * dy) <= touch:
-                        near = True
-                        break
-                if not near:
-                    continue
-                for t in range(horizon):
-                    gap, g_x, g_y, g_yaw_i, g_yaw_j = _separation_gradient(
-                        joint[i, t, 0], joint[i, t, 1], joint[i, t, 3], length[i], width[i],
-                        joint[j, t, 0], joint[j, t, 1], joint[j, t, 3], length[j], width[j],
+                if pairs[i, j]:
+                    gap = _pair_gradient(
+                        joint[i], joint[j], sizes[i], sizes[j], reach[i] + reach[j] + slack,
+                        horizon, d_joint[i], d_joint[j],
                     )  # fmt: skip
                     closest = min(closest, gap)
-                    if gap >= 0.0:
-                        continue
-                    weight = 2.0 * gap
-                    d_joint[i, t, 0] -= weight * g_x
-                    d_joint[i, t, 1] -= weight * g_y
-                    d_joint[i, t, 3] += weight * g_yaw_i
-                    d_joint[j, t, 0] += weight * g_x
-                    d_joint[j, t, 1] += weight * g_y
-                    d_joint[j, t, 3] += weight * g_yaw_j
         moved = False
         for r in range(num_rows):
             cotangent = d_joint[slots[r]].copy()
@@ -353,7 +393,7 @@ def _avoid_scene(
                     joint[slots[r]], frames[r], along[r], across[r], margins[r], weights, flat,
                     grid_int[g], grid_float[g], cotangent,
                 )  # fmt: skip
-            _rollout_vjp(cotangent, actions[r], saved[r], params, gradient[r], scratch)
+            _rollout_vjp(cotangent, actions[r], saved[r], params, True, gradient[r], scratch)
             for t in range(horizon):
                 gradient[r, t, 0] *= std_a * share[r, t]
                 gradient[r, t, 1] *= std_y * share[r, t]
@@ -376,3 +416,131 @@ def _avoid_scene(
         for t in range(horizon):
             correction[r, t, 0] = share[r, t] * delta[r, t, 0]
             correction[r, t, 1] = share[r, t] * delta[r, t, 1]
+
+
+@_jit
+def _adversarial(plan, targets, valid, horizon, out):
+    """``adversarial_term._adversarial`` of one row: returns its ``L_adv`` [m] (the mean
+    distance to the nearest valid target over the first ``horizon`` steps) and writes its
+    gradient into ``out[:horizon, :2]``; ``targets`` (J, H, 2), ``valid`` (J,) bool."""
+    any_valid = False
+    for j in range(valid.shape[0]):
+        any_valid = any_valid or valid[j]
+    total = 0.0
+    for t in range(horizon):
+        if not any_valid:
+            out[t, 0], out[t, 1] = 0.0, 0.0
+            continue
+        best, best_dx, best_dy = math.inf, 0.0, 0.0
+        for j in range(targets.shape[0]):
+            if not valid[j]:
+                continue
+            dx = plan[t, 0] - targets[j, t, 0]
+            dy = plan[t, 1] - targets[j, t, 1]
+            squared = dx * dx + dy * dy
+            if squared < best:
+                best, best_dx, best_dy = squared, dx, dy
+        distance = math.sqrt(best_dx * best_dx + best_dy * best_dy)
+        total += distance
+        scale = distance * horizon if distance > 0.0 else math.inf
+        out[t, 0], out[t, 1] = best_dx / scale, best_dy / scale
+    return total / horizon
+
+
+@_jit
+def guide_rows(
+    state, offset, std, u, lower, upper, targets, valid, horizon, use_map, frames, along,
+    across, margins, weights, flat, grid_int, grid_float, map_of_row, sep_pairs, sizes, fixed,
+    use_floor, floor, lambdas, params, steps, step_size, adam, single,
+):  # fmt: skip
+    """The steps of output-space guidance (``policies.riskflow.guidance._guide_scenes``'
+    loop) on the C guided rows of B scenes.
+
+    Rows: ``state`` (C, 4), ``offset`` (C, T, 2) and ``std`` (2,) with ``a = offset + std *
+    u``, ``u`` (C, T, 2) the residual to guide, kept within ``lower``/``upper`` (C, T, 2).
+    ``L_adv``: ``targets`` (C, J, T, 2) and ``valid`` (C, J) each row's targets, over
+    ``horizon`` steps (also ``L_sep``'s and the speed floor's). ``L_map`` (``use_map``): as
+    :func:`avoid_scenes`. ``L_sep``: ``sep_pairs`` (P, 2) pairs
+    of boxes, the C rows then the O bystanders whose plans ``fixed`` (O, horizon, 4) are
+    held; ``sizes`` (C + O, 2). The speed floor (``use_floor``): ``floor`` (C,).
+    ``lambdas``: (adv, map, sep, keep moving). ``adam``: Adam steps, else plain ones.
+
+    Returns:
+        ``(u, losses)``: (C, T, 2) the guided residual, (steps, C, 2) ``(L_adv, L_map)`` of
+        each row before each step.
+    """
+    num_rows, length = u.shape[0], u.shape[1]
+    lambda_adv, lambda_map, lambda_sep, lambda_keep = lambdas[0], lambdas[1], lambdas[2], lambdas[3]
+    u = u.copy()
+    losses = np.zeros((steps, num_rows, 2))
+    actions = np.empty((num_rows, length, 2))
+    plans = np.empty((num_rows, length, 4))
+    saved = np.empty((num_rows, length, 8))
+    cotangent = np.empty((num_rows, length, 4))
+    term = np.empty((length, 4))
+    gradient = np.empty((length, 2))
+    scratch = np.empty((length, 3))
+    first = np.zeros((num_rows, length, 2))
+    second = np.zeros((num_rows, length, 2))
+    num_boxes = sizes.shape[0]
+    d_sep = np.empty((num_boxes, horizon, 4))
+    reach = np.empty(num_boxes)
+    for b in range(num_boxes):
+        reach[b] = 0.5 * math.hypot(sizes[b, 0], sizes[b, 1])
+    for step in range(steps):
+        for r in range(num_rows):
+            for t in range(length):
+                for c in range(2):
+                    actions[r, t, c] = _decoded(
+                        offset[r, t, c], std[c], u[r, t, c], 1.0, 0.0, single
+                    )
+            _rollout(state[r], actions[r], params, False, plans[r], saved[r])
+        cotangent[:] = 0.0
+        for r in range(num_rows):
+            losses[step, r, 0] = _adversarial(plans[r], targets[r], valid[r], horizon, term)
+            for t in range(horizon):
+                cotangent[r, t, 0] = lambda_adv * term[t, 0]
+                cotangent[r, t, 1] = lambda_adv * term[t, 1]
+            if use_map:
+                term[:] = 0.0
+                g = map_of_row[r]
+                losses[step, r, 1] = _map_gradient(
+                    plans[r], frames[r], along[r], across[r], margins[r], weights, flat,
+                    grid_int[g], grid_float[g], term,
+                )  # fmt: skip
+                for t in range(length):
+                    for c in range(4):
+                        cotangent[r, t, c] += lambda_map * term[t, c]
+        if sep_pairs.shape[0] > 0:
+            d_sep[:] = 0.0
+            for p in range(sep_pairs.shape[0]):
+                a, b = sep_pairs[p, 0], sep_pairs[p, 1]
+                plan_a = plans[a] if a < num_rows else fixed[a - num_rows]
+                plan_b = plans[b] if b < num_rows else fixed[b - num_rows]
+                _pair_gradient(
+                    plan_a, plan_b, sizes[a], sizes[b], reach[a] + reach[b], horizon, d_sep[a],
+                    d_sep[b],
+                )  # fmt: skip
+            for r in range(num_rows):
+                for t in range(horizon):
+                    for c in range(4):
+                        cotangent[r, t, c] += lambda_sep * d_sep[r, t, c]
+        if use_floor:
+            for r in range(num_rows):
+                for t in range(horizon):
+                    cotangent[r, t, 2] += -2.0 * lambda_keep * max(floor[r] - plans[r, t, 2], 0.0)
+        scale = step_size / (1.0 - BETA1 ** (step + 1))
+        unbias = 1.0 - BETA2 ** (step + 1)
+        for r in range(num_rows):
+            _rollout_vjp(cotangent[r], actions[r], saved[r], params, False, gradient, scratch)
+            for t in range(length):
+                for c in range(2):
+                    g = gradient[t, c] * std[c]
+                    if adam:
+                        first[r, t, c] = first[r, t, c] * BETA1 + (1.0 - BETA1) * g
+                        second[r, t, c] = second[r, t, c] * BETA2 + (1.0 - BETA2) * g * g
+                        g = scale * first[r, t, c] / (math.sqrt(second[r, t, c] / unbias) + EPSILON)
+                    else:
+                        g = step_size * g
+                    u[r, t, c] = min(max(u[r, t, c] - g, lower[r, t, c]), upper[r, t, c])
+    return u, losses

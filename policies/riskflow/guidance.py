@@ -43,6 +43,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from policies.learned import compiled_plans
 from policies.learned.adam import Adam
 from policies.learned.data import Normalizer
 from policies.learned.guidance_losses import (
@@ -298,10 +299,13 @@ def _guide_scenes(
     step_size = config.resolved_step_size
     adam = Adam(u_c, step_size)
     history = []
+    if compiled_plans.accepts(u_c, objective.map_term):  # the same loop, compiled
+        u_c, rows_losses = compiled_plans.guidance_steps(objective, u_c, lower, upper, config)
+        history = list(guided.per_scene(rows_losses.transpose(0, 1), num_scenes).unbind(1))
     # Closed-form gradients: nothing to record, and inference mode skips autograd's
     # per-op bookkeeping (version counters) too; u_c leaves it only through copies.
     with torch.inference_mode():
-        for _ in range(config.steps):
+        for _ in range(0 if history else config.steps):
             grad, adv, off_road = objective.gradient(u_c, config.lambda_adv, config.lambda_map)
             history.append(per_scene(adv, off_road))
             if config.optimizer == "gradient":

@@ -152,3 +152,85 @@ def test_a_shipped_planning_cycle_agrees(monkeypatch):
     finally:
         torch.set_num_threads(threads)
     assert len(corrections) == 2 and all(float(c.abs().max()) > 0.1 for c in corrections)
+
+
+def _guidance_batch(dtype):
+    """Three scenes of the guidance tests with their own maps and frames, padded to 6."""
+    import dataclasses
+
+    from policies.riskflow.guidance import GuidanceScene
+    from riskflow_env.maps import Lane, from_lanes
+    from tests.policies.riskflow.guidance_scenes import HIGHWAY, make_scene, mask_of
+    from tests.policies.riskflow.test_guidance import _padded
+
+    narrow = from_lanes([Lane(np.array([[-50.0, 10.0], [250.0, 40.0]]), 7.0, "narrow")])
+    close = [[0.0, 0.0, 12.0, 0.0], [12.0, 2.5, 12.0, 0.1], [-9.0, -2.0, 14.0, 0.0]]
+    scenes = [
+        make_scene(HIGHWAY[:4], frame=(3.0, -1.0, 0.2), seed=1),
+        make_scene(HIGHWAY, seed=2),
+        dataclasses.replace(
+            make_scene(close, frame=(-50.0, 10.0, 0.0997), seed=3), drivable_map=narrow
+        ),
+    ]
+    padded = [_padded(s, 6) for s in scenes]
+    names = ("eps", "u0", "state", "length", "width", "base_actions", "base_trajectories", "frame")
+    batch = GuidanceScene(
+        **{name: torch.stack([getattr(s, name) for s in padded]).to(dtype) for name in names},
+        agent_mask=torch.stack([s.agent_mask for s in padded]),
+        drivable_map=MapStack([s.drivable_map for s in scenes]),
+    )
+    controllable = [mask_of(4, [1, 3]), mask_of(6, [2, 4, 5]), mask_of(3, [1, 2])]
+    masks = torch.stack([torch.cat([c, c.new_zeros(6 - len(c))]) for c in controllable])
+    return batch, masks
+
+
+GUIDED = [("others", 0.0, "adam"), ("ego", 50.0, "adam"), ("ego", 100.0, "gradient")]
+
+
+@pytest.mark.parametrize(
+    ("dtype", "target", "lambda_sep", "optimizer"),
+    [(torch.float64, *case) for case in GUIDED] + [(torch.float32, *case) for case in GUIDED[:2]],
+)
+def test_compiled_guidance_equals_the_reference(monkeypatch, dtype, target, lambda_sep, optimizer):
+    """Output-space guidance of three scenes in one loop (``L_adv``, ``L_map`` on two maps,
+    ``L_sep`` with bystanders, the attacker's speed floor, Adam or plain steps): the
+    compiled loop's plans and losses are the reference's. Plain steps of this size on
+    float32 plans are not compared: their gradients (up to 3e4) make each step a jump to
+    a bound, and the float32 reference itself moves by 0.05 from the float64 one."""
+    from policies.riskflow.guidance import GuidanceConfig, guide
+    from tests.policies.riskflow.guidance_scenes import NORMALIZER as GUIDANCE_NORMALIZER
+
+    batch, masks = _guidance_batch(dtype)
+    config = GuidanceConfig(
+        steps=20, target=target, lambda_sep=lambda_sep, optimizer=optimizer, step_size=0.05
+    )
+    results = []
+    for switch in ("0", "1"):
+        monkeypatch.setenv(SWITCH, switch)
+        results.append(guide(batch, masks, GUIDANCE_NORMALIZER, config))
+    reference, compiled = results
+    assert not torch.equal(reference.u, batch.u0)
+    assert (reference.losses[0, :, 1] > 0).any()  # the map term is active somewhere
+    tolerance = 1e-8 if dtype == torch.float64 else 1e-3
+    for name in ("u", "actions", "trajectories", "losses"):
+        np.testing.assert_allclose(
+            getattr(compiled, name).numpy(), getattr(reference, name).numpy(),
+            rtol=tolerance if name == "losses" else 0, atol=tolerance, err_msg=name,
+        )  # fmt: skip
+
+
+def test_one_guided_row_of_a_batch(monkeypatch):
+    """One attacker in a batch of three scenes on their own maps (a selection of one map
+    by a one-element index)."""
+    from policies.riskflow.guidance import GuidanceConfig, guide
+    from tests.policies.riskflow.guidance_scenes import NORMALIZER as GUIDANCE_NORMALIZER
+
+    batch, masks = _guidance_batch(torch.float64)
+    masks[:] = False
+    masks[1, 2] = True
+    results = []
+    for switch in ("0", "1"):
+        monkeypatch.setenv(SWITCH, switch)
+        results.append(guide(batch, masks, GUIDANCE_NORMALIZER, GuidanceConfig(target="ego")))
+    assert not torch.equal(results[0].u, batch.u0)
+    np.testing.assert_allclose(results[1].u.numpy(), results[0].u.numpy(), rtol=0, atol=1e-8)
