@@ -34,15 +34,12 @@ from __future__ import annotations
 
 import os
 import statistics
-import subprocess
-import sys
-import tempfile
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from methods import make_policy, raw_variant
-from timing import interleaved_ms, step_path
+from timing import interleaved_ms, startup_runs, step_path
 
 import riskflow_env
 from policies.dataclass_cli import parse_dataclass
@@ -262,18 +259,8 @@ def startup_seconds(agents: int) -> dict[str, float]:
     """The compiled loops' one-off costs [s], each in a fresh process: importing numba and
     the kernels, and what the first cycle costs over the next with an empty kernel cache
     (compiling) and with the cache that run filled (loading)."""
-    script = _STARTUP.format(folder=os.path.dirname(os.path.abspath(__file__)), agents=agents)
-    with tempfile.TemporaryDirectory() as cache:
-        env = {**os.environ, "NUMBA_CACHE_DIR": cache, compiled_plans.SWITCH: "1"}
-        runs = []
-        for _ in range(2):  # cold, then cached
-            out = subprocess.run(
-                [sys.executable, "-c", script], env=env, capture_output=True, text=True
-            )
-            if out.returncode:
-                raise RuntimeError(f"start-up measurement failed:\n{out.stderr[-2000:]}")
-            runs.append([float(value) for value in out.stdout.split()[-2:]])
-    return {"import": runs[1][0], "compile": runs[0][1], "load": runs[1][1]}
+    folder = os.path.dirname(os.path.abspath(__file__))
+    return startup_runs(_STARTUP.format(folder=folder, agents=agents))
 
 
 if __name__ == "__main__":

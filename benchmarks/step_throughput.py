@@ -30,10 +30,6 @@ may be shared; the best round is the least disturbed one).
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -41,7 +37,7 @@ from dataclasses import dataclass
 import gymnasium
 import highway_env  # noqa: F401 - registers highway-v0
 import numpy as np
-from timing import step_path
+from timing import startup_runs, step_path
 from tqdm import tqdm
 
 import riskflow_env
@@ -117,17 +113,7 @@ def startup_seconds() -> dict[str, float]:
     """The compiled path's one-off costs [s], each in a fresh process: importing numba and
     the kernels, the first step with an empty kernel cache (compilation) and with the
     cache that run filled (loading)."""
-    with tempfile.TemporaryDirectory() as cache:
-        env = {**os.environ, "NUMBA_CACHE_DIR": cache, compiled.SWITCH: "1"}
-        runs = []
-        for _ in range(2):  # cold, then cached
-            out = subprocess.run(
-                [sys.executable, "-c", _STARTUP], env=env, capture_output=True, text=True
-            )
-            if out.returncode:
-                raise RuntimeError(f"start-up measurement failed:\n{out.stderr[-2000:]}")
-            runs.append([float(value) for value in out.stdout.split()[-2:]])
-    return {"import": runs[1][0], "compile": runs[0][1], "load": runs[1][1]}
+    return startup_runs(_STARTUP)
 
 
 def converter(options: Options) -> Callable:

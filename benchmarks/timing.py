@@ -9,6 +9,9 @@ on ``sys.path``.
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
+import tempfile
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -59,3 +62,22 @@ def step_path(path: str) -> Iterator[None]:
             del os.environ[SWITCH]
         else:
             os.environ[SWITCH] = before
+
+
+def startup_runs(script: str) -> dict[str, float]:
+    """One-off costs [s] of compiled code, each in a fresh Python process running
+    ``script``, which prints two numbers last: the import [s] and the first call's cost
+    [s]. Two processes share one empty numba cache directory: the first compiles, the
+    second loads what the first wrote. Returns ``import`` (the second's), ``compile`` and
+    ``load`` (the first call's cost in each)."""
+    with tempfile.TemporaryDirectory() as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache, SWITCH: "1"}
+        runs = []
+        for _ in range(2):  # cold, then cached
+            out = subprocess.run(
+                [sys.executable, "-c", script], env=env, capture_output=True, text=True
+            )
+            if out.returncode:
+                raise RuntimeError(f"start-up measurement failed:\n{out.stderr[-2000:]}")
+            runs.append([float(value) for value in out.stdout.split()[-2:]])
+    return {"import": runs[1][0], "compile": runs[0][1], "load": runs[1][1]}

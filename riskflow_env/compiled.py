@@ -21,6 +21,7 @@ run on a machine, or after the kernels change, compiles them (about 7 s).
 from __future__ import annotations
 
 import functools
+import importlib
 import math
 import os
 import warnings
@@ -45,21 +46,27 @@ def kernels() -> ModuleType | None:
     """The kernel module, or None where numba cannot be imported or finds no writable
     cache directory (the package's ``__pycache__``, the user's cache, ``NUMBA_CACHE_DIR``;
     a warning says so, and the reference runs)."""
+    return import_kernels("riskflow_env.compiled_kernels", "riskflow_env.compiled")
+
+
+def import_kernels(module: str, what: str) -> ModuleType | None:
+    """Import the numba kernel ``module``; None where numba is not installed, or where it
+    finds no writable cache directory (a warning says that ``what`` is off and names
+    ``NUMBA_CACHE_DIR``). Shared by the compiled step and the compiled planning loops."""
     try:
-        from riskflow_env import compiled_kernels
+        return importlib.import_module(module)
     except ImportError:
         return None
     except RuntimeError as error:  # numba's cache=True with no writable directory
         if "cannot cache" not in str(error):
             raise
         warnings.warn(
-            f"riskflow_env.compiled is off: {error}. Set NUMBA_CACHE_DIR to a writable "
-            "directory to run the compiled step; the array-API reference runs.",
+            f"{what} is off: {error}. Set NUMBA_CACHE_DIR to a writable directory to run "
+            "the compiled code; the array-API reference runs.",
             RuntimeWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
         return None
-    return compiled_kernels
 
 
 def enabled() -> bool:

@@ -77,11 +77,14 @@ def advance(current, present, active, actions, params):
 
 
 @numba.njit(cache=True, inline="always")
-def _sdf(flat, grid, x, y):
-    """Bilinear SDF [m] at (x, y) (maps.sampling.interpolate_flat with extend) on the map
-    ``grid`` = (height, width, offset, origin_x, origin_y, resolution, scale) of
-    :func:`_grid`; ``scale`` is 1 / resolution where that is exact (a power-of-two
-    resolution: the product then equals the reference's quotient), else 0 (divide)."""
+def _cell(flat, grid, x, y):
+    """The bilinear cell of (x, y) (maps.sampling.interpolate_flat) on the map ``grid`` =
+    (height, width, offset, origin_x, origin_y, resolution, scale) of :func:`_grid`:
+    ``(col, row, col_c, row_c, fc, fr, v00, v01, v10, v11)``, the pixel coordinates, their
+    clamp onto the pixel centres, the fractions within the cell and its corner values.
+    ``scale`` is 1 / resolution where that is exact (a power-of-two resolution: the
+    product then equals the reference's quotient), else 0 (divide). Shared by this
+    module's SDF lookup and the planning loops' (``policies.learned.plan_kernels``)."""
     height, width, offset, origin_x, origin_y, resolution, scale = grid
     if scale > 0.0:
         col = (x - origin_x) * scale - 0.5
@@ -98,13 +101,21 @@ def _sdf(flat, grid, x, y):
     base = numba.uint64(row0 * width + col0 + offset)  # unsigned: no wraparound test
     v00, v01 = float(flat[base]), float(flat[base + 1])
     v10, v11 = float(flat[base + width]), float(flat[base + width + 1])
+    return col, row, col_c, row_c, fc, fr, v00, v01, v10, v11
+
+
+@numba.njit(cache=True, inline="always")
+def _sdf(flat, grid, x, y):
+    """Bilinear SDF [m] at (x, y) (maps.sampling.interpolate_flat with extend) on the map
+    ``grid`` of :func:`_grid` (:func:`_cell`)."""
+    col, row, col_c, row_c, fc, fr, v00, v01, v10, v11 = _cell(flat, grid, x, y)
     gc, gr = 1.0 - fc, 1.0 - fr
     top = v00 * gc + v01 * fc
     bottom = v10 * gc + v11 * fc
     value = top * gr + bottom * fr
     off_c, off_r = col - col_c, row - row_c
     if value > 0.0 and (off_c != 0.0 or off_r != 0.0):  # off-road beyond the raster
-        return value + math.sqrt(off_c * off_c + off_r * off_r) * resolution
+        return value + math.sqrt(off_c * off_c + off_r * off_r) * grid[5]
     return value + 0.0
 
 

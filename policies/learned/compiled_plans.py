@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import functools
 import os
-import warnings
 from types import ModuleType
 from typing import Any
 
@@ -31,7 +30,7 @@ from torch import Tensor
 from policies.learned import guidance_losses
 from policies.learned.data import ActionNormalizer
 from policies.learned.guidance_losses import MapTerm
-from riskflow_env.compiled import SWITCH, _dynamics_params, _map_tables
+from riskflow_env.compiled import SWITCH, _dynamics_params, _map_tables, import_kernels
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.maps import DrivableMap, MapStack
 
@@ -40,21 +39,7 @@ from riskflow_env.maps import DrivableMap, MapStack
 def kernels() -> ModuleType | None:
     """The kernel module, or None where numba cannot be imported or cache its code (a
     warning says so; the reference runs)."""
-    try:
-        from policies.learned import plan_kernels
-    except ImportError:
-        return None
-    except RuntimeError as error:  # numba's cache=True with no writable directory
-        if "cannot cache" not in str(error):
-            raise
-        warnings.warn(
-            f"the compiled avoidance steps are off: {error}. Set NUMBA_CACHE_DIR to a "
-            "writable directory to run them; the reference runs.",
-            RuntimeWarning,
-            stacklevel=2,
-        )
-        return None
-    return plan_kernels
+    return import_kernels("policies.learned.plan_kernels", "the compiled planning loops")
 
 
 def accepts(moving: Tensor, term: MapTerm | None, normalizer: object = None) -> bool:

@@ -23,13 +23,14 @@ import math
 import numba
 import numpy as np
 
+from riskflow_env.compiled_kernels import _cell, _grid
+
 _jit = numba.njit(cache=True, nogil=True)
 _inline = numba.njit(cache=True, inline="always")
 
-# Footprint point k at (_ALONG[k] * length/2, _ACROSS[k] * width/2) in the vehicle frame
-# (riskflow_env.geometry's layout).
-_ALONG = np.array((1.0, 1.0, -1.0, -1.0, 1.0, 0.0, -1.0, 0.0, 0.0))
-_ACROSS = np.array((-1.0, 1.0, 1.0, -1.0, 0.0, 1.0, 0.0, -1.0, 0.0))
+# SHA-256 of riskflow_env/compiled_kernels.py, whose SDF cell lookup these kernels call:
+# numba's cache checks only this file's source, so editing that file must edit this one.
+KERNELS_DIGEST = "bcd3836e86b328aeae8b05e6cc003b3cf47d27f39ec26d0c068a9637412f64a2"
 BETA1, BETA2, EPSILON = 0.9, 0.999, 1e-8  # policies.learned.adam
 
 
@@ -234,23 +235,12 @@ def _pair_gradient(plan_i, plan_j, size_i, size_j, touch, horizon, d_i, d_j):
 
 
 @_jit
-def _sdf_with_gradient(flat, grid_int, grid_float, x, y):
+def _sdf_with_gradient(flat, grid, x, y):
     """``maps.sampling.interpolate_flat`` with ``extend`` and its gradient at one point:
-    ``(value, d/dx, d/dy)``; ``grid_int`` (height, width, offset), ``grid_float``
-    (origin_x, origin_y, resolution, ...)."""
-    height, width, offset = grid_int[0], grid_int[1], grid_int[2]
-    origin_x, origin_y, resolution = grid_float[0], grid_float[1], grid_float[2]
-    col = (x - origin_x) / resolution - 0.5
-    row = (y - origin_y) / resolution - 0.5
-    col_c = min(max(col, 0.0), float(width - 1))
-    row_c = min(max(row, 0.0), float(height - 1))
-    col0 = max(min(int(col_c), width - 2), 0)
-    row0 = max(min(int(row_c), height - 2), 0)
-    fc = col_c - float(col0)
-    fr = row_c - float(row0)
-    base = row0 * width + col0 + offset
-    v00, v01 = float(flat[base]), float(flat[base + 1])
-    v10, v11 = float(flat[base + width]), float(flat[base + width + 1])
+    ``(value, d/dx, d/dy)`` on the map ``grid`` (``riskflow_env.compiled_kernels._grid``;
+    the cell lookup is the compiled step's, ``_cell``)."""
+    col, row, col_c, row_c, fc, fr, v00, v01, v10, v11 = _cell(flat, grid, x, y)
+    resolution = grid[5]
     gc, gr = 1.0 - fc, 1.0 - fr
     top = v00 * gc + v01 * fc
     bottom = v10 * gc + v11 * fc
@@ -268,11 +258,11 @@ def _sdf_with_gradient(flat, grid_int, grid_float, x, y):
 
 
 @_jit
-def _map_gradient(plan, frame, along, across, margin, weights, flat, grid_int, grid_float, out):
+def _map_gradient(plan, frame, along, across, margin, weights, flat, grid, out):
     """``MapTerm._evaluate`` with the gradient of one plan (H, 4): returns its ``L_map``
     [m^2] and adds its gradient to ``out`` (H, 4); ``frame`` (origin_x, origin_y, yaw,
     cos, sin) of the scene frame in the world, ``along`` and ``across`` (9,) the footprint
-    offsets [m], ``weights`` (H,) the decay."""
+    offsets [m], ``weights`` (H,) the decay; ``grid`` the map's (``compiled_kernels._grid``)."""
     origin_x, origin_y, frame_yaw, cos_f, sin_f = frame[0], frame[1], frame[2], frame[3], frame[4]
     total = 0.0
     for t in range(plan.shape[0]):
@@ -287,7 +277,7 @@ def _map_gradient(plan, frame, along, across, margin, weights, flat, grid_int, g
             along_y, across_y = sin * along[k], cos * across[k]
             px = world_x + along_x - across_x
             py = world_y + along_y + across_y
-            sdf, g_x, g_y = _sdf_with_gradient(flat, grid_int, grid_float, px, py)
+            sdf, g_x, g_y = _sdf_with_gradient(flat, grid, px, py)
             depth = max(sdf + margin, 0.0)
             if depth == 0.0:
                 continue
@@ -391,7 +381,7 @@ def _avoid_scene(
                 g = map_of_row[r]
                 _map_gradient(
                     joint[slots[r]], frames[r], along[r], across[r], margins[r], weights, flat,
-                    grid_int[g], grid_float[g], cotangent,
+                    _grid(grid_int, grid_float, g), cotangent,
                 )  # fmt: skip
             _rollout_vjp(cotangent, actions[r], saved[r], params, True, gradient[r], scratch)
             for t in range(horizon):
@@ -506,7 +496,7 @@ def guide_rows(
                 g = map_of_row[r]
                 losses[step, r, 1] = _map_gradient(
                     plans[r], frames[r], along[r], across[r], margins[r], weights, flat,
-                    grid_int[g], grid_float[g], term,
+                    _grid(grid_int, grid_float, g), term,
                 )  # fmt: skip
                 for t in range(length):
                     for c in range(4):

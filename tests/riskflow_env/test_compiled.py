@@ -5,7 +5,6 @@ fallback."""
 from __future__ import annotations
 
 import hashlib
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +18,7 @@ from riskflow_env.config import EnvConfig, ObservationConfig
 from riskflow_env.geometry import footprint_points, separation
 from riskflow_env.maps import MapStack, from_polygons
 from riskflow_env.state import SceneState
+from tests.numba_cache import without_writable_cache
 
 needs_numba = pytest.mark.skipif(compiled.kernels() is None, reason="numba is not installed")
 ROAD = from_polygons(  # the road along x leaves the map on the right (x = 65)
@@ -289,17 +289,9 @@ def test_the_kernel_cache_sees_the_pair_kernels():
 def test_no_writable_cache_directory(monkeypatch):
     """Where numba finds no writable cache directory (a read-only install, no writable
     home), a warning names NUMBA_CACHE_DIR and the reference runs."""
-    caching = pytest.importorskip("numba.core.caching")
-    if not hasattr(caching, "_CacheLocator"):
-        pytest.skip("numba's cache locators changed")
-
-    def read_only(locator):
-        raise PermissionError("read-only")
-
-    monkeypatch.setattr(caching._CacheLocator, "ensure_cache_path", read_only)
-    for name in ("riskflow_env.compiled_kernels", "riskflow_env.compiled_pairs"):
-        monkeypatch.delitem(sys.modules, name, raising=False)
-        monkeypatch.delattr(riskflow_env, name.split(".")[1], raising=False)
+    without_writable_cache(
+        monkeypatch, ("riskflow_env.compiled_kernels", "riskflow_env.compiled_pairs")
+    )
     monkeypatch.setenv(compiled.SWITCH, "1")
     compiled.kernels.cache_clear()
     try:

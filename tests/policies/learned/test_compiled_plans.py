@@ -234,3 +234,37 @@ def test_one_guided_row_of_a_batch(monkeypatch):
         results.append(guide(batch, masks, GUIDANCE_NORMALIZER, GuidanceConfig(target="ego")))
     assert not torch.equal(results[0].u, batch.u0)
     np.testing.assert_allclose(results[1].u.numpy(), results[0].u.numpy(), rtol=0, atol=1e-8)
+
+
+def test_the_kernel_cache_sees_the_compiled_step_kernels():
+    """numba's cache of the planning kernels checks only plan_kernels.py's source; the SDF
+    cell lookup they call from riskflow_env/compiled_kernels.py is in it through
+    KERNELS_DIGEST."""
+    import hashlib
+    from pathlib import Path
+
+    from policies.learned import plan_kernels
+    from riskflow_env import compiled_kernels
+
+    source = Path(compiled_kernels.__file__).read_bytes().replace(b"\r\n", b"\n")
+    digest = hashlib.sha256(source).hexdigest()
+    assert digest == plan_kernels.KERNELS_DIGEST, (
+        f"compiled_kernels.py changed: set plan_kernels.KERNELS_DIGEST = {digest!r}"
+    )
+
+
+def test_no_writable_cache_directory(monkeypatch):
+    """Where numba finds no writable cache directory, a warning names NUMBA_CACHE_DIR and
+    the planning loops run the reference."""
+    from tests.numba_cache import without_writable_cache
+
+    without_writable_cache(monkeypatch, ("policies.learned.plan_kernels",))
+    monkeypatch.setenv(SWITCH, "1")
+    compiled_plans.kernels.cache_clear()
+    try:
+        with pytest.warns(RuntimeWarning, match="NUMBA_CACHE_DIR"):
+            assert not compiled_plans.accepts(torch.zeros(1, 30, 2), None)
+    finally:
+        monkeypatch.undo()
+        compiled_plans.kernels.cache_clear()
+    assert compiled_plans.accepts(torch.zeros(1, 30, 2), None)
