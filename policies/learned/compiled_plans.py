@@ -1,19 +1,22 @@
-"""The compiled avoidance steps: :func:`policies.learned.plan_avoidance.avoid_overlaps`'
-loop as one numba kernel (:mod:`policies.learned.plan_kernels`).
+"""The compiled planning loops: the avoidance steps
+(:func:`policies.learned.plan_avoidance.avoid_overlaps`) and output-space guidance
+(:func:`policies.riskflow.guidance.guide`), each as one numba kernel
+(:mod:`policies.learned.plan_loops`, its pieces in :mod:`policies.learned.plan_kernels`).
 
-Each avoidance step of the reference is about 250 small torch operations (a rollout, the
-SAT gradient of the pairs that can touch, the map term's SDF lookups, the rollout's
-vector-Jacobian product, Adam), whose cost on a CPU is dispatch, not arithmetic: 20 steps
-were a third of a default planning cycle. The kernel runs every step of every scene in
-compiled loops over rows, pairs and plan steps, with the reference's formulas and its
-stopping rule. It computes in float64 (the reference in the plans' float32), so the two
-paths agree to float rounding, not bit for bit (``tests/policies/learned/test_compiled_plans.py``).
+Each step of the torch loops is a few hundred small operations (a rollout, the SAT
+gradient of the pairs that can touch, the map term's SDF lookups, the rollout's
+vector-Jacobian product, Adam), whose cost on a CPU is dispatch, not arithmetic: the two
+loops were two thirds of a default planning cycle. The kernels run every step of every
+scene in compiled loops over rows, pairs and plan steps, with the reference's formulas
+and stopping rule. They compute in float64 (the reference in the plans' float32), so the
+two paths agree to float rounding, not bit for bit
+(``tests/policies/learned/test_compiled_plans.py``).
 
-Where it runs: numba installed (the ``fast`` extra), CPU tensors, an
-:class:`~policies.learned.data.ActionNormalizer`, and a map term on a
+Where they run: numba installed (the ``fast`` extra), CPU tensors, an
+:class:`~policies.learned.data.ActionNormalizer` (avoidance), and a map term on a
 :class:`~riskflow_env.maps.DrivableMap` or a :class:`~riskflow_env.maps.MapStack`
 selection (or none). Otherwise, or with ``RISKFLOW_COMPILED=0`` (the switch of the
-compiled simulator step, :mod:`riskflow_env.compiled`), the reference runs.
+compiled simulator step, :mod:`riskflow_env.compiled`), the torch reference runs.
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ from riskflow_env.maps import DrivableMap, MapStack
 def kernels() -> ModuleType | None:
     """The kernel module, or None where numba cannot be imported or cache its code (a
     warning says so; the reference runs)."""
-    return import_kernels("policies.learned.plan_kernels", "the compiled planning loops")
+    return import_kernels("policies.learned.plan_loops", "the compiled planning loops")
 
 
 def accepts(moving: Tensor, term: MapTerm | None, normalizer: object = None) -> bool:

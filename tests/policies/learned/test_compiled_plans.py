@@ -236,21 +236,23 @@ def test_one_guided_row_of_a_batch(monkeypatch):
     np.testing.assert_allclose(results[1].u.numpy(), results[0].u.numpy(), rtol=0, atol=1e-8)
 
 
-def test_the_kernel_cache_sees_the_compiled_step_kernels():
-    """numba's cache of the planning kernels checks only plan_kernels.py's source; the SDF
-    cell lookup they call from riskflow_env/compiled_kernels.py is in it through
-    KERNELS_DIGEST."""
+@pytest.mark.parametrize(
+    ("module", "name", "called"),
+    [("plan_kernels", "KERNELS_DIGEST", "riskflow_env/compiled_kernels.py"),
+     ("plan_loops", "PIECES_DIGEST", "policies/learned/plan_kernels.py")],
+)  # fmt: skip
+def test_the_kernel_cache_sees_the_kernels_called_from_other_files(module, name, called):
+    """numba's cache of a kernel module checks only its own source; the kernels it calls
+    from another file are in it through that file's digest."""
     import hashlib
+    import importlib
     from pathlib import Path
 
-    from policies.learned import plan_kernels
-    from riskflow_env import compiled_kernels
-
-    source = Path(compiled_kernels.__file__).read_bytes().replace(b"\r\n", b"\n")
+    root = Path(__file__).resolve().parents[3]
+    source = (root / called).read_bytes().replace(b"\r\n", b"\n")
     digest = hashlib.sha256(source).hexdigest()
-    assert digest == plan_kernels.KERNELS_DIGEST, (
-        f"compiled_kernels.py changed: set plan_kernels.KERNELS_DIGEST = {digest!r}"
-    )
+    kernels = importlib.import_module(f"policies.learned.{module}")
+    assert getattr(kernels, name) == digest, f"{called} changed: set {module}.{name} = {digest!r}"
 
 
 def test_no_writable_cache_directory(monkeypatch):
@@ -258,7 +260,9 @@ def test_no_writable_cache_directory(monkeypatch):
     the planning loops run the reference."""
     from tests.numba_cache import without_writable_cache
 
-    without_writable_cache(monkeypatch, ("policies.learned.plan_kernels",))
+    without_writable_cache(
+        monkeypatch, ("policies.learned.plan_loops", "policies.learned.plan_kernels")
+    )
     monkeypatch.setenv(SWITCH, "1")
     compiled_plans.kernels.cache_clear()
     try:
