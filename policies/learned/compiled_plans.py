@@ -108,11 +108,12 @@ def avoidance_correction(
 
 def guidance_steps(
     objective: Any, u_c: Tensor, lower: Tensor, upper: Tensor, config: Any
-) -> tuple[Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor]:
     """The steps of output-space guidance (``policies.riskflow.guidance._guide_scenes``'
     loop), compiled: the guided residual ``u_c`` (C, T, 2) after ``config.steps`` steps
-    within ``lower``/``upper``, and (steps, C, 2) ``(L_adv, L_map)`` of each row before
-    each step. ``objective`` is the loop's ``_Objective`` (its rows, targets and terms)."""
+    within ``lower``/``upper``, its rollout (C, T, 4), and (steps + 1, C, 2) ``(L_adv,
+    L_map)`` of each row before each step and after the last. ``objective`` is the loop's
+    ``_Objective`` (its rows, targets and terms)."""
     count, length = u_c.shape[:2]
     horizon = min(length, objective.horizon or length)
     term, separation = objective.map_term, objective.separation
@@ -127,7 +128,7 @@ def guidance_steps(
     floor = objective.floor
     keep = guidance_losses.LAMBDA_KEEP_MOVING  # read at the call, as the reference does
     lambdas = (config.lambda_adv, config.lambda_map, objective.lambda_sep, keep)
-    u, losses = kernels().guide_rows(
+    u, plans, losses = kernels().guide_rows(
         _array(objective.state), _array(objective.offset), _array(objective.std).reshape(-1),
         _array(u_c), _array(lower), _array(upper), _array(objective.target_xy),
         objective.target_valid.numpy(), horizon, *_map_inputs(term, count, length), sep_pairs,
@@ -137,7 +138,7 @@ def guidance_steps(
         config.steps, config.resolved_step_size, config.optimizer != "gradient",
         u_c.dtype == torch.float32,
     )  # fmt: skip
-    return torch.from_numpy(u).to(u_c.dtype), torch.from_numpy(losses).to(u_c.dtype)
+    return tuple(torch.from_numpy(x).to(u_c.dtype) for x in (u, plans, losses))
 
 
 def _array(x: Tensor) -> np.ndarray:

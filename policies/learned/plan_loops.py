@@ -198,13 +198,14 @@ def guide_rows(
     ``lambdas``: (adv, map, sep, keep moving). ``adam``: Adam steps, else plain ones.
 
     Returns:
-        ``(u, losses)``: (C, T, 2) the guided residual, (steps, C, 2) ``(L_adv, L_map)`` of
-        each row before each step.
+        ``(u, plans, losses)``: (C, T, 2) the guided residual, (C, T, 4) its rollout (the
+        actions clipped, as ``dynamics.rollout``) and (steps + 1, C, 2) ``(L_adv, L_map)``
+        of each row before each step and after the last.
     """
     num_rows, length = u.shape[0], u.shape[1]
     lambda_adv, lambda_map, lambda_sep, lambda_keep = lambdas[0], lambdas[1], lambdas[2], lambdas[3]
     u = u.copy()
-    losses = np.zeros((steps, num_rows, 2))
+    losses = np.zeros((steps + 1, num_rows, 2))
     actions = np.empty((num_rows, length, 2))
     plans = np.empty((num_rows, length, 4))
     saved = np.empty((num_rows, length, 8))
@@ -219,14 +220,15 @@ def guide_rows(
     reach = np.empty(num_boxes)
     for b in range(num_boxes):
         reach[b] = 0.5 * math.hypot(sizes[b, 0], sizes[b, 1])
-    for step in range(steps):
+    for step in range(steps + 1):  # the last pass scores the result
+        last = step == steps
         for r in range(num_rows):
             for t in range(length):
                 for c in range(2):
                     actions[r, t, c] = _decoded(
                         offset[r, t, c], std[c], u[r, t, c], 1.0, 0.0, single
                     )
-            _rollout(state[r], actions[r], params, False, plans[r], saved[r])
+            _rollout(state[r], actions[r], params, last, plans[r], saved[r])
         cotangent[:] = 0.0
         for r in range(num_rows):
             losses[step, r, 0] = _adversarial(plans[r], targets[r], valid[r], horizon, term)
@@ -243,6 +245,8 @@ def guide_rows(
                 for t in range(length):
                     for c in range(4):
                         cotangent[r, t, c] += lambda_map * term[t, c]
+        if last:
+            break
         if sep_pairs.shape[0] > 0:
             d_sep[:] = 0.0
             for p in range(sep_pairs.shape[0]):
@@ -275,4 +279,4 @@ def guide_rows(
                     else:
                         g = step_size * g
                     u[r, t, c] = min(max(u[r, t, c] - g, lower[r, t, c]), upper[r, t, c])
-    return u, losses
+    return u, plans, losses

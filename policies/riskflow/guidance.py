@@ -290,24 +290,48 @@ def _guide_scenes(
         scene_of_row, (guided.bystanders, guided.scene_of_bystander),
     )  # fmt: skip
 
-    def per_scene(adv: Tensor, off_road: Tensor) -> Tensor:  # (C,) x 2 -> (B, 2)
-        return guided.per_scene(torch.stack([adv, off_road], dim=-1), num_scenes)
-
     with torch.no_grad():
         lower, upper = objective.bounds()
         u_c = torch.minimum(torch.maximum(flat.u0[rows], lower), upper)
+    if compiled_plans.accepts(u_c, objective.map_term):  # the same loop, compiled
+        u_c, trajectories_c, row_losses = compiled_plans.guidance_steps(
+            objective, u_c, lower, upper, config
+        )
+    else:
+        u_c, trajectories_c, row_losses = _steps(objective, u_c, lower, upper, config)
+    with torch.no_grad():
+        u = flat.u0.clone()
+        u[rows] = u_c
+        actions = flat.base_actions.clone()
+        actions[rows] = clip_actions(objective.actions(u_c), dynamics)
+        trajectories = flat.base_trajectories.clone()
+        trajectories[rows] = trajectories_c  # rollout clips: the same as the clipped actions'
+        losses = guided.per_scene(row_losses.transpose(0, 1), num_scenes).transpose(0, 1)
+    lead = (num_scenes, num_agents)
+    return GuidanceResult(
+        u=u.reshape(*lead, *u.shape[1:]),
+        actions=actions.reshape(*lead, *actions.shape[1:]),
+        trajectories=trajectories.reshape(*lead, *trajectories.shape[1:]),
+        losses=losses,
+    )
+
+
+def _steps(
+    objective: _Objective, u_c: Tensor, lower: Tensor, upper: Tensor, config: GuidanceConfig
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The guidance steps in torch (the reference of the compiled loop,
+    :func:`policies.learned.compiled_plans.guidance_steps`): the guided ``u_c`` (C, T, 2),
+    its rollout (C, T, 4) and (steps + 1, C, 2) ``(L_adv, L_map)`` of each row before each
+    step and after the last."""
     step_size = config.resolved_step_size
     adam = Adam(u_c, step_size)
     history = []
-    if compiled_plans.accepts(u_c, objective.map_term):  # the same loop, compiled
-        u_c, rows_losses = compiled_plans.guidance_steps(objective, u_c, lower, upper, config)
-        history = list(guided.per_scene(rows_losses.transpose(0, 1), num_scenes).unbind(1))
     # Closed-form gradients: nothing to record, and inference mode skips autograd's
     # per-op bookkeeping (version counters) too; u_c leaves it only through copies.
     with torch.inference_mode():
-        for _ in range(0 if history else config.steps):
+        for _ in range(config.steps):
             grad, adv, off_road = objective.gradient(u_c, config.lambda_adv, config.lambda_map)
-            history.append(per_scene(adv, off_road))
+            history.append(torch.stack([adv, off_road], dim=-1))
             if config.optimizer == "gradient":
                 grad = step_size * grad
             else:
@@ -315,20 +339,8 @@ def _guide_scenes(
             u_c = torch.minimum(torch.maximum(u_c - grad, lower), upper)
     with torch.no_grad():
         trajectories_c, adv, off_road = objective(u_c)
-        history.append(per_scene(adv, off_road))
-        u = flat.u0.clone()
-        u[rows] = u_c
-        actions = flat.base_actions.clone()
-        actions[rows] = clip_actions(objective.actions(u_c), dynamics)
-        trajectories = flat.base_trajectories.clone()
-        trajectories[rows] = trajectories_c  # rollout clips: the same as the clipped actions'
-    lead = (num_scenes, num_agents)
-    return GuidanceResult(
-        u=u.reshape(*lead, *u.shape[1:]),
-        actions=actions.reshape(*lead, *actions.shape[1:]),
-        trajectories=trajectories.reshape(*lead, *trajectories.shape[1:]),
-        losses=torch.stack(history),
-    )
+        history.append(torch.stack([adv, off_road], dim=-1))
+    return u_c, trajectories_c, torch.stack(history)
 
 
 def guidance_scene(plans: PlanSet) -> GuidanceScene:
