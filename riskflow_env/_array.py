@@ -144,7 +144,7 @@ def _plain(*values: Any) -> bool:
     as arrays: the compat function decides) and the tensors among them share one dtype."""
     dtype = None
     for value in values:
-        if isinstance(value, (int, float, bool)):
+        if isinstance(value, (int, float, bool, complex)):
             continue
         if value.ndim == 0 or (dtype is not None and value.dtype != dtype):
             return False
@@ -198,8 +198,8 @@ def _torch_namespace() -> types.ModuleType:
         return compat.flip(x, axis=axis)
 
     def sign(x: Array, /) -> Array:
-        if x.is_floating_point():  # the standard's sign keeps NaN (torch's gives 0)
-            return torch.where(torch.isnan(x), x, torch.sign(x))
+        if x.is_floating_point():  # the standard's sign keeps NaN (torch's gives 0), as +NaN
+            return torch.where(torch.isnan(x), torch.abs(x), torch.sign(x))
         return compat.sign(x)
 
     def sum(x: Array, /, *, axis: Any = None, dtype: Any = None, keepdims: bool = False) -> Array:  # noqa: A001

@@ -10,7 +10,12 @@ loops were two thirds of a default planning cycle. The kernels run every step of
 scene in compiled loops over rows, pairs and plan steps, with the reference's formulas
 and stopping rule. They compute in float64 (the reference in the plans' float32), so the
 two paths agree to float rounding, not bit for bit
-(``tests/policies/learned/test_compiled_plans.py``).
+(``tests/policies/learned/test_compiled_plans.py``). Two consequences: a guided row's
+trajectory is the float64 rollout of its actions (within 1e-5 m of the float32 one); and
+where two boxes touch to within float32 rounding, the paths can disagree on whether they
+overlap, and since Adam's first step has the learning rate's length whatever the
+gradient's size, such a plan can then differ by one step (0.15 in ``u`` in a constructed
+case of a car whose plan ends touching a standing one).
 
 Where they run: numba installed (the ``fast`` extra), CPU tensors, an
 :class:`~policies.learned.data.ActionNormalizer` (avoidance), and a map term on a
@@ -93,7 +98,9 @@ def avoidance_correction(
     pairs, length, width = scored
     count, horizon = moving.shape[:2]
 
-    gain = np.ones((count, horizon)) if not isinstance(share, Tensor) else _array(share[..., 0])
+    gain = np.ones((count, horizon))
+    if isinstance(share, Tensor):  # (V, H or 1, 1): broadcast over the steps, as torch does
+        gain = np.ascontiguousarray(np.broadcast_to(_array(share[..., 0]), (count, horizon)))
     mean, std = normalizer.mean, normalizer.std
     correction = kernels().avoid_scenes(
         (rows // num_agents).numpy(), (rows % num_agents).numpy(), _array(now),
@@ -154,6 +161,12 @@ def _map_inputs(term: MapTerm | None, count: int, horizon: int) -> tuple:
         flat, grid_int, grid_float = np.zeros(4), np.zeros((1, 3), np.int64), np.zeros((1, 4))
         rasters = (flat, grid_int, grid_float, np.zeros(count, np.int64))
         return (False, frames, along, across, margins, weights, *rasters)
+    if term.weights.shape[0] != horizon:  # the reference fails to broadcast too
+        raise ValueError(
+            f"the map term scores {term.weights.shape[0]} plan steps, the plans have {horizon}"
+        )
+    if isinstance(term.map, MapStack.Selection) and len(term.map.index) != count:
+        raise ValueError(f"the map term selects {len(term.map.index)} maps for {count} rows")
     parts = (term.origin_x, term.origin_y, term.yaw, term.cos, term.sin)  # (1 or V, 1)
     frames = np.stack([np.broadcast_to(_array(p)[:, 0], (count,)) for p in parts], axis=-1)
     margin = term.margin

@@ -226,6 +226,12 @@ def test_the_torch_namespace_gives_what_the_compat_namespace_gives():
                     lambda n=name, o=other, x=x: getattr(compat, n)(x, o),
                     lambda n=name, o=other, x=x: getattr(fast, n)(x, o),
                 )
+        if x.is_floating_point() and x.numel():
+            _assert_same_tensor(
+                lambda x=x: compat.where(x > 0, x, 1j), lambda x=x: fast.where(x > 0, x, 1j)
+            )
+            signed = -x.abs()  # a NaN with its sign bit set
+            _assert_same_tensor(lambda y=signed: compat.sign(y), lambda y=signed: fast.sign(y))
         for bounds in ((0.0, 1.0), (None, 2.0), (-1.0, None), (0, 3), (float("nan"), 1.0)):
             _assert_same_tensor(
                 lambda b=bounds, x=x: compat.clip(x, *b), lambda b=bounds, x=x: fast.clip(x, *b)

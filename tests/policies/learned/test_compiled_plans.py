@@ -98,6 +98,21 @@ def test_compiled_steps_equal_the_reference(monkeypatch, seed, with_map):
         np.testing.assert_allclose(got.numpy(), want.numpy(), rtol=0, atol=1e-9)
 
 
+def test_a_gain_over_every_step_and_a_map_term_of_another_length(monkeypatch):
+    """A gain of one value per vehicle (B, A, 1, 1) broadcasts over the steps as in torch;
+    a map term that scores fewer steps than the plans is an error that says so."""
+    eps, u0, state, length, width, mask = _random_scenes(2, 5, 3)
+    args = (eps, u0, state, length, width, mask)
+    gain = torch.full((2, 5, 1, 1), 0.5, dtype=torch.float64)
+    options = {"steps": 15, "step_size": 0.15, "gain": gain}
+    reference, compiled = _both(monkeypatch, *args, None, NORMALIZER, DYNAMICS, **options)
+    np.testing.assert_allclose(compiled[0].numpy(), reference[0].numpy(), rtol=0, atol=1e-9)
+    term = _map_term_of(length, width, 2, stack=True)  # 30 steps
+    monkeypatch.setenv(SWITCH, "1")
+    with pytest.raises(ValueError, match="30 plan steps, the plans have 40"):
+        avoid_overlaps(*args, term, NORMALIZER, DYNAMICS, steps=5, step_size=0.1, horizon=40)
+
+
 def test_the_switch_and_what_the_kernel_takes(monkeypatch):
     moving = torch.zeros(2, 30, 2)
     monkeypatch.setenv(SWITCH, "1")
