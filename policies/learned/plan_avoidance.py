@@ -176,8 +176,6 @@ def avoid_overlaps(
             if exempt is not None:
                 pairs = pairs & ~exempt
             scored = (pairs, length, width)  # the loop narrows them to the scenes still going
-            zero = torch.zeros_like(eps[0, 0, :1])  # (1, 2)
-            scale = normalizer.denormalize(zero + 1.0) - normalizer.denormalize(zero)  # da/du
             moving = (eps + u0)[..., :horizon, :].flatten(0, 1)[rows]  # (V, H, 2)
             now = state.flatten(0, 1)[rows]
             term = None if map_term_of is None else map_term_of(rows)
@@ -192,6 +190,8 @@ def avoid_overlaps(
                     stop_margin=STOP_MARGIN,
                 )  # fmt: skip
             else:
+                zero = torch.zeros_like(eps[0, 0, :1])  # (1, 2)
+                scale = normalizer.denormalize(zero + 1.0) - normalizer.denormalize(zero)  # da/du
                 delta = torch.zeros_like(moving)
                 adam = Adam(delta, step_size)
                 num_agents = variable.shape[1]
