@@ -118,7 +118,7 @@ def _avoid_scene(
                     closest = min(closest, gap)
         moved = False
         for r in range(num_rows):
-            cotangent = d_joint[slots[r]].copy()
+            cotangent = d_joint[slots[r]]  # each variable's own slot: added to in place
             if use_map:
                 g = map_of_row[r]
                 _map_gradient(
