@@ -197,11 +197,9 @@ class RiskFlowGenerator(nn.Module):
             isinstance(v, Tensor) for v in state_dict.values()
         ):
             raise CheckpointError("checkpoint 'state_dict' must map names to tensors")
-        with torch.device("meta"):  # shapes and dtypes first, nothing allocated
-            skeleton = cls(saved)
-        skeleton.check_checkpoint_state(state_dict)
         model = cls(saved)
-        model.load_state_dict(state_dict)  # checked on the skeleton
+        model.check_checkpoint_state(state_dict)
+        model.load_state_dict(state_dict)
         return model
 
     def check_checkpoint_state(self, state_dict: Mapping[str, Tensor]) -> None:
