@@ -5,7 +5,7 @@ from a reaction point on, keeps clear of every other vehicle (their executed tra
 held fixed: hindsight, as STRIVE's solvability check, Rempe et al., CVPR 2022) and on the
 road. :func:`find_escape` looks for one; the trajectory it finds is the *witness*.
 
-The search, vectorised over candidates, agents and time (torch):
+The search, vectorised over candidates, agents and time:
 
 1. **Controls.** An ego trajectory is its actions (accel [m/s^2], yaw rate [rad/s]) at
    knots every ``knot_interval`` seconds, linear in between, kept inside the
@@ -24,22 +24,33 @@ The search, vectorised over candidates, agents and time (torch):
 
 Not found within the budget means *not shown avoidable*, not *unavoidable*:
 :meth:`EscapeSearch.scaled` gives a longer search to measure how often that flips.
+
+Where numba is installed (the ``fast`` extra) steps 2 to 4 run as numba kernels
+(:mod:`policies.stress.escape_kernels`) with the gradients in closed form; the torch code
+here is their reference and runs without numba or with ``RISKFLOW_COMPILED=0``. The two
+agree to float rounding, and so give the same verdicts but where a candidate passes the
+hard check by less than that.
 """
 
 from __future__ import annotations
 
+import math
+import os
 from dataclasses import dataclass
+from types import ModuleType
 from typing import NamedTuple
 
 import numpy as np
 import torch
 
+from riskflow_env.compiled import SWITCH, _dynamics_params, _map_tables, import_kernels
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import rollout
-from riskflow_env.geometry import footprint_points, separation
+from riskflow_env.geometry import _ACROSS, _ALONG, footprint_points, separation
 from riskflow_env.maps import DrivableMap
 
 CLEARANCE = 0.1  # [m] least box separation a witness keeps to every other vehicle
+ROAD_SLACK = 0.1  # [m] the soft cost's road term starts this far inside the hard check
 STRAIGHT_SHARE = 1 / 3  # share of random candidates with yaw rates within 0.2 of the bound
 
 
@@ -146,18 +157,22 @@ def find_escape(
     if horizon < 1:
         raise ValueError(f"obstacles must cover at least one step, got {horizon}")
     problem = _Problem(start, size, obstacles, drivable_map, dynamics, search)
+    solver = _CompiledProblem.of(problem) or problem
     generator = torch.Generator().manual_seed(search.seed)
     knots = problem.sampled_knots(generator)
     with torch.no_grad():
-        score = problem.evaluate(knots)
+        score = solver.evaluate(knots)
     evaluated = knots.shape[0]
     if not bool(score.feasible.any()):
         best = torch.argsort(score.cost)[: search.refine]
-        knots, steps = _refine(problem, knots[best].clone(), search)
+        knots, steps = solver.refine(knots[best].clone())
         evaluated += best.numel() * steps
         with torch.no_grad():
-            score = problem.evaluate(knots)
+            score = solver.evaluate(knots)
     pick = int(torch.argmax(score.feasible.double() - score.cost / (1.0 + score.cost.max())))
+    if solver is not problem:  # the least separation of the pick without the skipped pairs
+        knots, pick = knots[pick : pick + 1], 0
+        score = solver.evaluate(knots, exact=True)
     return Escape(
         found=bool(score.feasible[pick]),
         actions=problem.actions(knots[pick : pick + 1])[0].numpy(),
@@ -166,23 +181,6 @@ def find_escape(
         road_depth=float(score.road_depth[pick]),
         candidates=evaluated,
     )
-
-
-def _refine(problem: _Problem, knots: torch.Tensor, search: EscapeSearch) -> tuple:
-    """Projected Adam on the soft cost until a row passes the hard check: the knots and
-    the steps taken."""
-    knots.requires_grad_(True)
-    optimizer = torch.optim.Adam([knots], lr=search.learning_rate)
-    for step in range(search.steps):
-        score = problem.evaluate(knots)
-        if bool(score.feasible.any()):
-            return knots.detach(), step
-        optimizer.zero_grad()
-        score.cost.sum().backward()
-        optimizer.step()
-        with torch.no_grad():
-            knots.copy_(problem.project(knots))
-    return knots.detach(), search.steps
 
 
 class _Score(NamedTuple):
@@ -233,6 +231,22 @@ class _Problem:
         """Knot controls clipped to the dynamics bounds."""
         return torch.maximum(torch.minimum(knots, self.high), self.low)
 
+    def refine(self, knots: torch.Tensor) -> tuple[torch.Tensor, int]:
+        """Projected Adam on the soft cost until a row passes the hard check: the knots
+        and the steps taken."""
+        knots.requires_grad_(True)
+        optimizer = torch.optim.Adam([knots], lr=self.search.learning_rate)
+        for step in range(self.search.steps):
+            score = self.evaluate(knots)
+            if bool(score.feasible.any()):
+                return knots.detach(), step
+            optimizer.zero_grad()
+            score.cost.sum().backward()
+            optimizer.step()
+            with torch.no_grad():
+                knots.copy_(self.project(knots))
+        return knots.detach(), self.search.steps
+
     def actions(self, knots: torch.Tensor) -> torch.Tensor:
         """(S, H, 2) actions, linear between the knots (S, K, 2)."""
         return torch.einsum("hk,skc->shc", self.interpolation, knots)
@@ -261,10 +275,81 @@ class _Problem:
         depth = self.road_depth(states)  # (S, H)
         excess = depth - self.road_allowance
         margin = CLEARANCE + self.search.margin
-        cost = torch.relu(margin - gap).sum(dim=(1, 2)) + torch.relu(excess + 0.1).sum(dim=1)
+        road = torch.relu(excess + ROAD_SLACK).sum(dim=1)
+        cost = torch.relu(margin - gap).sum(dim=(1, 2)) + road
         clear = gap.flatten(1).amin(dim=1) if gap.shape[1] else torch.full_like(cost, np.inf)
         feasible = (clear >= CLEARANCE) & (excess.amax(dim=1) <= 0)
         return _Score(cost, feasible, states.detach(), clear.detach(), depth.amax(dim=1).detach())
+
+
+class _CompiledProblem:
+    """The search's two phases as numba kernels (:mod:`policies.stress.escape_kernels`),
+    with :class:`_Problem`'s ``evaluate`` and ``refine``: several times faster, equal to
+    float rounding (``tests/policies/stress/test_escape.py``)."""
+
+    def __init__(self, problem: _Problem, kernels: ModuleType) -> None:
+        self.problem, self.kernels = problem, kernels
+        numpy = {name: getattr(problem, name).numpy() for name in ("xy", "yaw", "present")}
+        length, width = problem.other_length.numpy(), problem.other_width.numpy()
+        radius = 0.5 * np.sqrt(length**2 + width**2)
+        self.low, self.high = problem.low.numpy(), problem.high.numpy()
+        self.scene = (
+            problem.interpolation.numpy(),
+            problem.start.numpy(),
+            _dynamics_params(problem.dynamics),
+            np.concatenate([numpy["xy"], numpy["yaw"][..., None]], axis=-1),
+            np.stack([length, width, radius], axis=-1).reshape(-1, 3),
+            numpy["present"],
+            np.array([problem.length, problem.width]),
+            self._road(problem),
+            (
+                CLEARANCE + problem.search.margin,
+                problem.road_allowance,
+                0.5 * math.hypot(problem.length, problem.width),
+                ROAD_SLACK,
+            ),
+        )
+
+    @classmethod
+    def of(cls, problem: _Problem) -> _CompiledProblem | None:
+        """The compiled search of ``problem``; None where numba is missing, its cache is
+        not writable, the map is not a :class:`DrivableMap`, or ``RISKFLOW_COMPILED=0``."""
+        if os.environ.get(SWITCH, "1") == "0":
+            return None
+        if problem.map is not None and type(problem.map) is not DrivableMap:
+            return None
+        kernels = import_kernels("policies.stress.escape_kernels", "the compiled escape search")
+        return None if kernels is None else cls(problem, kernels)
+
+    @staticmethod
+    def _road(problem: _Problem) -> tuple:
+        """(use_map, SDF raster, its int and float geometry, the footprint's offsets)."""
+        along = 0.5 * problem.length * np.asarray(_ALONG)
+        across = 0.5 * problem.width * np.asarray(_ACROSS)
+        if problem.map is None:
+            return (False, np.zeros(4), np.zeros((1, 3), np.int64), np.zeros((1, 4)), along, across)
+        flat, grid_int, grid_float, _ = _map_tables(problem.map, (1,), 1)
+        return (True, flat, grid_int, grid_float, along, across)
+
+    def evaluate(self, knots: torch.Tensor, exact: bool = False) -> _Score:
+        """:meth:`_Problem.evaluate` (without gradient); ``exact``: no pair skipped, so
+        the least separation is exact too (module docstring of the kernels)."""
+        rows = np.ascontiguousarray(knots.detach().numpy())
+        states = np.empty((rows.shape[0], self.problem.horizon, 4))
+        scores = np.empty((rows.shape[0], 4))
+        self.kernels.score_rows(rows, *self.scene, exact, states, scores)
+        cost, clear, worst, deepest = torch.from_numpy(scores).unbind(dim=1)
+        feasible = (clear >= CLEARANCE) & (worst <= 0)
+        return _Score(cost, feasible, torch.from_numpy(states), clear, deepest)
+
+    def refine(self, knots: torch.Tensor) -> tuple[torch.Tensor, int]:
+        """:meth:`_Problem.refine`."""
+        rows = np.ascontiguousarray(knots.detach().numpy())
+        search = self.problem.search
+        steps = self.kernels.refine_rows(
+            rows, self.low, self.high, search.steps, search.learning_rate, CLEARANCE, *self.scene
+        )
+        return torch.from_numpy(rows), int(steps)
 
 
 def _interpolation(horizon: int, knot_steps: int) -> np.ndarray:
