@@ -47,28 +47,26 @@ def yield_gaps(
             conflict [m].
     """
     count, length, width = view.num_agents, view.length, view.width
-    dx, dy = in_frame(path[None] - path[:, None], heading[:, None])  # (A, A, K), i's frame
-    relative = heading[None] - heading[:, None]
+    # rows i = the controlled vehicles, columns j = every vehicle: (n, A, K)
+    dx, dy = in_frame(path[None] - path[rows, None], heading[rows, None])  # i's frame
+    relative = heading[None] - heading[rows, None]
     extent_x, extent_y = box_extents(relative, length[:, None], width[:, None])
-    overlap = (np.abs(dx) < 0.5 * length[:, None, None] + extent_x + conflict_margin) & (
-        np.abs(dy) < 0.5 * width[:, None, None] + extent_y + 0.3 * conflict_margin
+    overlap = (np.abs(dx) < 0.5 * length[rows, None, None] + extent_x + conflict_margin) & (
+        np.abs(dy) < 0.5 * width[rows, None, None] + extent_y + 0.3 * conflict_margin
     )
-    pair = view.present[:, None] & view.present[None, :] & ~np.eye(count, dtype=bool)
+    pair = view.present[rows, None] & view.present[None, :] & (rows[:, None] != np.arange(count))
     conflict = overlap.any(axis=-1) & pair
-    first = np.argmax(overlap, axis=-1)  # (A, A) first conflicting time index
-    behind = dx[..., 0] < -0.5 * length[:, None]
+    first = np.argmax(overlap, axis=-1)  # (n, A) first conflicting time index
+    behind = dx[..., 0] < -0.5 * length[rows, None]
     must_yield = conflict & ~behind
-    controlled = np.zeros(count, dtype=bool)
-    controlled[rows] = True
     point = 0.5 * (
-        np.take_along_axis(path[:, None], first[..., None, None], 2)[:, :, 0]
+        np.take_along_axis(path[rows, None], first[..., None, None], 2)[:, :, 0]
         + np.take_along_axis(path[None], first[..., None, None], 2)[:, :, 0]
     )
-    distance = np.linalg.norm(point - path[:, None, 0], axis=-1)  # (A, A) i to conflict
-    farther = (distance > distance.T) | (
-        (distance == distance.T) & (np.arange(count)[:, None] > np.arange(count))
-    )
-    mutual = must_yield & must_yield.T & controlled[:, None] & controlled[None, :]
-    must_yield &= ~mutual | farther
-    travel = speed[:, None] * step * np.maximum(first - 1, 0)  # last clear distance
-    return np.where(must_yield, travel, np.inf)[rows].min(axis=-1)
+    distance = np.linalg.norm(point - path[rows, None, 0], axis=-1)  # (n, A) i to conflict
+    # two controlled vehicles that would yield to each other: the farther one goes second
+    mutual, near = must_yield[:, rows], distance[:, rows]  # (n, n)
+    farther = (near > near.T) | ((near == near.T) & (rows[:, None] > rows[None, :]))
+    must_yield[:, rows] &= ~(mutual & mutual.T) | farther
+    travel = speed[rows, None] * step * np.maximum(first - 1, 0)  # last clear distance
+    return np.where(must_yield, travel, np.inf).min(axis=-1)
