@@ -3,12 +3,21 @@
 Matching every agent to a lane (distance plus a heading penalty) and looking up points
 ahead along lanes and their successors become a few array ops, with no Python loop over
 agents (nor over lanes). All arrays are numpy; ``N`` is the number of agents queried.
+Where numba is installed (the ``fast`` extra) :meth:`LaneGraph.match`,
+:meth:`~LaneGraph.position` and :meth:`~LaneGraph.distance_to_dead_end` run as numba
+kernels (:mod:`riskflow_env.agents.lane_kernels`) with the same formulas; the numpy code
+here is their reference and runs without numba or with ``RISKFLOW_COMPILED=0``.
 """
 
 from __future__ import annotations
 
+import functools
+import os
+from types import ModuleType
+
 import numpy as np
 
+from riskflow_env.compiled import SWITCH, import_kernels
 from riskflow_env.dynamics import wrap_angle
 from riskflow_env.maps import DrivableMap
 
@@ -20,6 +29,18 @@ MAX_HOPS = 4  # successor lanes followed by a lookup ahead
 MERGE_MAX_OFFSET = 0.75  # [lane widths] farthest a dead end may lie from a lane it merges into
 MERGE_MAX_TURN = 1.2  # [rad] largest heading change of a merge (roundabout entries: ~60 deg)
 REACH_CAP = 300.0  # [m] a successor whose path runs this far without a dead end is "open"
+NO_ROUTE = np.zeros((1, 1), dtype=bool)  # the kernels' route argument without a route
+
+
+@functools.cache
+def _kernels() -> ModuleType | None:
+    return import_kernels("riskflow_env.agents.lane_kernels", "the compiled lane lookups")
+
+
+def compiled() -> ModuleType | None:
+    """The lane kernels, or None where numba is missing, finds no writable cache directory
+    (a warning says so) or ``RISKFLOW_COMPILED=0``: the numpy reference runs."""
+    return None if os.environ.get(SWITCH, "1") == "0" else _kernels()
 
 
 class LaneGraph:
@@ -82,6 +103,17 @@ class LaneGraph:
         self.successors_s = np.zeros((self.num_lanes, width))  # (L, K) [m] joining arclength
         self.successors[source, rank] = target
         self.successors_s[source, rank] = entry
+
+    @functools.cached_property
+    def tables(self) -> tuple:
+        """The segment and lane tables as the kernels take them (module
+        :mod:`~riskflow_env.agents.lane_kernels`)."""
+        return (
+            self.start, self.delta, self.segment_length, self.segment_s,
+            self.segment_heading, self.segment_lane, self.segment_low, self.segment_high,
+            self.segment_key, self.offset, self.length, self.first_segment,
+            self.last_segment, self.successors, self.successors_s,
+        )  # fmt: skip
 
     def _edges(self, drivable_map: DrivableMap) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(source, target, entry arclength [m]) of every continuation of a lane.
@@ -177,6 +209,17 @@ class LaneGraph:
             signed offset (positive left); heading_error: (N,) [rad] agent minus lane.
         """
         out = np.zeros((4, len(xy)))
+        kernels = compiled()
+        if kernels is not None and len(self.start):
+            has_route = route is not None
+            kernels.match(
+                np.ascontiguousarray(xy, dtype=np.float64),
+                np.ascontiguousarray(yaw, dtype=np.float64),
+                float(heading_weight),
+                np.ascontiguousarray(route) if has_route else NO_ROUTE,
+                has_route, ROUTE_PENALTY, NEAR, MATCH_CHUNK, self.tables, out,
+            )  # fmt: skip
+            return out[0].astype(int), out[1], out[2], out[3]
         for start in range(0, len(xy), MATCH_CHUNK):  # chunks of query points, bounded memory
             rows = np.arange(start, min(start + MATCH_CHUNK, len(xy)))
             low, high = xy[rows].min(axis=0) - NEAR, xy[rows].max(axis=0) + NEAR
@@ -251,6 +294,18 @@ class LaneGraph:
         Returns:
             xy: (N, ..., 2) [m]; heading: (N, ...) [rad].
         """
+        kernels = compiled()
+        if kernels is not None:
+            lane, s = np.broadcast_arrays(np.asarray(lane, dtype=np.int64), np.asarray(s, float))
+            rows = lane.reshape(len(lane), -1) if lane.ndim else lane.reshape(1, 1)
+            out = np.empty((*rows.shape, 3))
+            kernels.positions(
+                np.ascontiguousarray(rows), np.ascontiguousarray(s.reshape(rows.shape)),
+                NO_ROUTE if route is None else np.ascontiguousarray(route), route is not None,
+                MAX_HOPS, self.tables, out,
+            )  # fmt: skip
+            out = out.reshape(*lane.shape, 3)
+            return out[..., :2], out[..., 2]
         lane, s = self.advance(lane, s, route)
         segment = self._segment_at(lane, s)
         fraction = (s - self.segment_s[segment]) / self.segment_length[segment]
@@ -262,6 +317,15 @@ class LaneGraph:
     ) -> np.ndarray:
         """(N,) [m] path distance from ``(lane, s)`` to the end of a lane without
         successor, inf if none is met within ``MAX_HOPS`` lanes."""
+        kernels = compiled()
+        if kernels is not None:
+            out = np.empty(len(lane))
+            kernels.dead_end_distances(
+                np.ascontiguousarray(lane, dtype=np.int64), np.ascontiguousarray(s, float),
+                NO_ROUTE if route is None else np.ascontiguousarray(route), route is not None,
+                MAX_HOPS, self.tables, out,
+            )  # fmt: skip
+            return out
         remaining = self.length[lane] - s
         for _ in range(MAX_HOPS):
             nxt, entry = self._next(lane, route)

@@ -12,6 +12,7 @@ from riskflow_env.agents.controllers import (
     speed_control,
 )
 from riskflow_env.agents.lane_graph import LaneGraph
+from riskflow_env.compiled import SWITCH
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.maps import Lane, from_lanes
 
@@ -69,7 +70,9 @@ def _fork() -> LaneGraph:
     return LaneGraph(from_lanes(lanes))
 
 
-def test_lane_graph_match_position_and_successors():
+@pytest.mark.parametrize("switch", ["0", "1"], ids=["numpy", "compiled"])
+def test_lane_graph_match_position_and_successors(switch, monkeypatch):
+    monkeypatch.setenv(SWITCH, switch)
     graph = _fork()
     lane, s, lateral, error = graph.match(
         np.array([[10.0, 1.0], [10.0, 1.0]]), np.array([0.0, np.pi])
