@@ -69,6 +69,21 @@ def import_kernels(module: str, what: str) -> ModuleType | None:
         return None
 
 
+@functools.cache
+def _imported(module: str, what: str) -> ModuleType | None:
+    return import_kernels(module, what)
+
+
+def optional_kernels(module: str, what: str) -> ModuleType | None:
+    """The numba kernel ``module`` where the compiled paths are on; None with
+    ``RISKFLOW_COMPILED=0`` or where :func:`import_kernels` gives None (tried once per
+    process). For the kernels beside the step's: lane lookups, WOSAC distances, the
+    escape search."""
+    if os.environ.get(SWITCH, "1") == "0":
+        return None
+    return _imported(module, what)
+
+
 def enabled() -> bool:
     """The compiled path runs: numba is importable and ``RISKFLOW_COMPILED`` is not "0"."""
     return os.environ.get(SWITCH, "1") != "0" and kernels() is not None

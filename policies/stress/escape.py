@@ -35,7 +35,6 @@ hard check by less than that.
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass
 from types import ModuleType
 from typing import NamedTuple
@@ -43,7 +42,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from riskflow_env.compiled import SWITCH, _dynamics_params, _map_tables, import_kernels
+from riskflow_env.compiled import _dynamics_params, _map_tables, optional_kernels
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import rollout
 from riskflow_env.geometry import _ACROSS, _ALONG, footprint_points, separation
@@ -314,11 +313,9 @@ class _CompiledProblem:
     def of(cls, problem: _Problem) -> _CompiledProblem | None:
         """The compiled search of ``problem``; None where numba is missing, its cache is
         not writable, the map is not a :class:`DrivableMap`, or ``RISKFLOW_COMPILED=0``."""
-        if os.environ.get(SWITCH, "1") == "0":
-            return None
         if problem.map is not None and type(problem.map) is not DrivableMap:
             return None
-        kernels = import_kernels("policies.stress.escape_kernels", "the compiled escape search")
+        kernels = optional_kernels("policies.stress.escape_kernels", "the compiled escape search")
         return None if kernels is None else cls(problem, kernels)
 
     @staticmethod

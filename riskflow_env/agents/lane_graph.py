@@ -12,12 +12,11 @@ here is their reference and runs without numba or with ``RISKFLOW_COMPILED=0``.
 from __future__ import annotations
 
 import functools
-import os
 from types import ModuleType
 
 import numpy as np
 
-from riskflow_env.compiled import SWITCH, import_kernels
+from riskflow_env.compiled import optional_kernels
 from riskflow_env.dynamics import wrap_angle
 from riskflow_env.maps import DrivableMap
 
@@ -32,15 +31,10 @@ REACH_CAP = 300.0  # [m] a successor whose path runs this far without a dead end
 NO_ROUTE = np.zeros((1, 1), dtype=bool)  # the kernels' route argument without a route
 
 
-@functools.cache
-def _kernels() -> ModuleType | None:
-    return import_kernels("riskflow_env.agents.lane_kernels", "the compiled lane lookups")
-
-
 def compiled() -> ModuleType | None:
     """The lane kernels, or None where numba is missing, finds no writable cache directory
     (a warning says so) or ``RISKFLOW_COMPILED=0``: the numpy reference runs."""
-    return None if os.environ.get(SWITCH, "1") == "0" else _kernels()
+    return optional_kernels("riskflow_env.agents.lane_kernels", "the compiled lane lookups")
 
 
 class LaneGraph:

@@ -33,6 +33,7 @@ import math
 
 import numpy as np
 
+from riskflow_env.compiled import optional_kernels
 from riskflow_env.dynamics import SPEED, YAW, wrap_angle
 from riskflow_env.geometry import box_corners, separation, to_frame
 from riskflow_env.maps import DrivableMap
@@ -142,8 +143,16 @@ def interaction_features(
     """Distance to the nearest object, collision flag and TTC, each (A, T)."""
     num_agents = states.shape[0]
     pair_ok = valid.T[:, :, None] & valid.T[:, None, :] & ~np.eye(num_agents, dtype=bool)
-    distance = np.where(pair_ok, box_signed_distance(states, length, width), np.inf)
-    nearest = distance.min(axis=2).T  # (A, T)
+    kernels = optional_kernels("riskflow_env.metrics.wosac_kernels", "the compiled WOSAC distances")
+    if kernels is not None:  # the same distances, each pair once and the far ones skipped
+        nearest = np.empty(valid.shape)
+        kernels.nearest_objects(
+            np.ascontiguousarray(states, dtype=np.float64), np.ascontiguousarray(valid),
+            np.asarray(length, dtype=np.float64), np.asarray(width, dtype=np.float64), nearest,
+        )  # fmt: skip
+    else:
+        distance = np.where(pair_ok, box_signed_distance(states, length, width), np.inf)
+        nearest = distance.min(axis=2).T  # (A, T)
 
     forward, left, cos_d, sin_d = _pair_frame(states)
     abs_c, abs_s = np.abs(cos_d), np.abs(sin_d)

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from riskflow_env.compiled import SWITCH
 from riskflow_env.metrics import WOSAC_2024, FeatureConfig, wosac_scene
 from riskflow_env.metrics.wosac import (
     bernoulli_log_likelihood,
@@ -86,6 +87,32 @@ def test_kinematic_features_of_constant_accelerations():
     np.testing.assert_allclose(features["angular_acceleration"][0][1, inner2], alpha)
     np.testing.assert_allclose(features["linear_speed"][0][1, inner], 0.0, atol=1e-12)
     np.testing.assert_allclose(features["angular_speed"][0][0, inner], 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_nearest_object_equals_the_reference(seed, monkeypatch):
+    """The numba kernel (riskflow_env.metrics.wosac_kernels) against the numpy pairs:
+    crowded random boxes, some overlapping, some agents absent at some steps."""
+    pytest.importorskip("numba")
+    rng = np.random.default_rng(seed)
+    agents, steps = 14, 25
+    states = np.zeros((agents, steps, 4))
+    states[..., :2] = rng.uniform(-15.0, 15.0, (agents, 1, 2)) + np.cumsum(
+        rng.normal(0.0, 0.4, (agents, steps, 2)), axis=1
+    )
+    states[..., 3] = rng.uniform(-np.pi, np.pi, (agents, 1)) + rng.normal(0, 0.1, (agents, steps))
+    valid = rng.random((agents, steps)) < 0.85
+    sizes = rng.uniform(3.5, 6.0, agents), rng.uniform(1.6, 2.4, agents)
+    out = {}
+    for switch in ("0", "1"):
+        monkeypatch.setenv(SWITCH, switch)
+        out[switch] = interaction_features(states, valid, *sizes)
+    reference, compiled = out["0"], out["1"]
+    distance = reference["distance_to_nearest_object"]
+    assert (distance < 0).any() and np.isfinite(distance).any() and np.isinf(distance).any()
+    np.testing.assert_allclose(compiled["distance_to_nearest_object"], distance, rtol=0, atol=1e-9)
+    for name in ("collision_indication", "time_to_collision"):
+        np.testing.assert_array_equal(compiled[name], reference[name])
 
 
 def test_nearest_object_collision_flag_and_road_edge(road):
