@@ -262,7 +262,8 @@ def read_checkpoint(
 ) -> dict[str, Any]:
     """:func:`load_checkpoint` of ``path``, or of the shipped
     ``policies/checkpoints/<default_name>`` when ``path`` is None (a FileNotFoundError
-    names the ``what`` checkpoint and ``how_to_train`` one when it is not shipped)."""
+    names the ``what`` checkpoint and ``how_to_train`` one when it is not shipped); a file
+    is read once per process while it is unchanged (:func:`_read_once`)."""
     with ExitStack() as stack:
         if path is None:
             resource = resources.files("policies").joinpath("checkpoints", default_name)
@@ -272,7 +273,28 @@ def read_checkpoint(
                     f"missing; train one with {how_to_train} and pass its path"
                 )
             path = stack.enter_context(resources.as_file(resource))
-        return load_checkpoint(path)
+        return dict(_read_once(Path(path)))
+
+
+_READ: dict[tuple, dict[str, Any]] = {}  # (path, mtime, size, inode) -> checkpoint
+READ_CACHE_SIZE = 4  # checkpoint files kept read in a process
+
+
+def _read_once(path: Path) -> dict[str, Any]:
+    """:func:`load_checkpoint` of ``path``, read and verified once per process while the
+    file is unchanged (an evaluation builds a policy per rollout). The caller gets a
+    shallow copy and must not change the tensors: the models copy them in
+    ``load_state_dict``."""
+    try:
+        stat = path.stat()
+    except OSError:
+        return load_checkpoint(path)  # its error names the file
+    key = (str(path.resolve()), stat.st_mtime_ns, stat.st_size, stat.st_ino)
+    if key not in _READ:
+        if len(_READ) >= READ_CACHE_SIZE:
+            _READ.pop(next(iter(_READ)))
+        _READ[key] = load_checkpoint(path)
+    return _READ[key]
 
 
 def frozen_generator(

@@ -197,8 +197,14 @@ class RiskFlowGenerator(nn.Module):
             isinstance(v, Tensor) for v in state_dict.values()
         ):
             raise CheckpointError("checkpoint 'state_dict' must map names to tensors")
-        model = cls(saved)
-        model.check_checkpoint_state(state_dict)
+        if saved == ModelConfig():  # the shipped architecture: its size is known
+            model = cls(saved)
+            model.check_checkpoint_state(state_dict)
+        else:  # any other: shapes and dtypes first, on the meta device, nothing allocated
+            # (costs the import of torch._dynamo, seconds, which meta kernels trigger)
+            with torch.device("meta"):
+                cls(saved).check_checkpoint_state(state_dict)
+            model = cls(saved)
         model.load_state_dict(state_dict)
         return model
 

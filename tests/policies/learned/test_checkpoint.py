@@ -106,3 +106,19 @@ def test_default_checkpoint(monkeypatch):
     monkeypatch.setattr(checkpoint_module, "DEFAULT_NAME", "does-not-exist.pt")
     with pytest.raises(FileNotFoundError, match="riskflow-train"):
         load_generator()
+
+
+def test_loading_the_shipped_generator_does_not_import_dynamo():
+    """The shipped architecture is built once, off the meta device, whose Python kernels
+    import torch._dynamo (seconds in every fresh process)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; from policies.learned.checkpoint import load_generator; "
+        "load_generator(); print('torch._dynamo' in sys.modules)"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=300
+    )
+    assert result.stdout.strip().splitlines()[-1] == "False"
