@@ -32,6 +32,7 @@ from riskflow_env.maps.sampling import (
     bilinear,
     bilinear_with_gradient,
     constant_like,
+    crop_offsets,
     crop_points,
 )
 
@@ -226,6 +227,13 @@ class DrivableMap:
             raise ValueError(f"crop size must be an int >= 1 [px], got {size!r}")
         if resolution is not None:
             resolution = finite_number("crop resolution", resolution, "m/px")
+        if layer not in ("drivable", "sdf"):
+            raise ValueError(f"crop layer must be 'drivable' or 'sdf', got {layer!r}")
+        from riskflow_env.compiled import optional_kernels  # it imports this module
+
+        kernels = optional_kernels("riskflow_env.maps.crop_kernels", "the compiled map crops")
+        if kernels is not None and _float32_numpy(xy, yaw):  # numpy's values, bit for bit
+            return self._compiled_crop(kernels, xy, yaw, int(size), resolution, layer)
         points = crop_points(xy, yaw, int(size), resolution or self.resolution)
         if layer == "sdf":
             return bilinear(self._table("sdf", xy), points, self._origin, self.resolution, True)
@@ -234,7 +242,21 @@ class DrivableMap:
             padded_origin = (ox - self.resolution, oy - self.resolution)
             table = self._table("drivable_padded", xy)
             return bilinear(table, points, padded_origin, self.resolution, extend=False)
-        raise ValueError(f"crop layer must be 'drivable' or 'sdf', got {layer!r}")
+        raise AssertionError(layer)
+
+    def _compiled_crop(self, kernels, xy, yaw, size, resolution, layer) -> np.ndarray:
+        """:meth:`crop` of float32 numpy queries by :mod:`~riskflow_env.maps.crop_kernels`."""
+        ox, oy = self._origin
+        if layer == "drivable":  # the padded raster starts one pixel earlier
+            ox, oy = ox - self.resolution, oy - self.resolution
+        offsets = crop_offsets(size, resolution or self.resolution).astype(np.float32)
+        out = np.empty((len(xy), size, size), dtype=np.float32)
+        kernels.crop(
+            self._table("sdf" if layer == "sdf" else "drivable_padded", xy), ox, oy,
+            self.resolution, layer == "sdf", np.ascontiguousarray(xy), np.cos(yaw),
+            np.sin(yaw), offsets, out,
+        )  # fmt: skip
+        return out
 
     def lane_by_id(self, lane_id: str) -> Lane:
         """The lane with id ``lane_id``; KeyError naming the known ids otherwise."""
@@ -285,6 +307,10 @@ class DrivableMap:
         if key not in self._tables:
             self._tables[key] = constant_like(base, like)
         return self._tables[key]
+
+
+def _float32_numpy(*arrays: Any) -> bool:
+    return all(type(a) is np.ndarray and a.dtype == np.float32 for a in arrays)
 
 
 def _check_lane_ranges(lanes: tuple[Lane, ...]) -> None:

@@ -162,6 +162,12 @@ def _last(xp, size: int | Array, like: Array) -> float | Array:
     return xp.astype(size - 1, like.dtype)
 
 
+def crop_offsets(size: int, resolution: float) -> np.ndarray:
+    """(size,) [m] float64 offsets of a crop's pixel centres from its centre, along the
+    columns (forward) and the rows (left) alike (:func:`crop_points`)."""
+    return (np.arange(size, dtype=np.float64) - (size - 1) / 2.0) * resolution
+
+
 def crop_points(xy: Array, yaw: Array, size: int, resolution: float) -> Array:
     """World coordinates of the pixel centres of agent-centred, heading-aligned crops.
 
@@ -180,8 +186,7 @@ def crop_points(xy: Array, yaw: Array, size: int, resolution: float) -> Array:
         (N, size, size, 2) [m] world points.
     """
     xp = namespace(xy, yaw)
-    offsets = (np.arange(size, dtype=np.float64) - (size - 1) / 2.0) * resolution
-    offsets = asarray_like(offsets, xy)
+    offsets = asarray_like(crop_offsets(size, resolution), xy)
     forward = offsets[None, None, :]  # varies along columns
     left = offsets[None, :, None]  # varies along rows
     cos = xp.cos(yaw)[:, None, None]

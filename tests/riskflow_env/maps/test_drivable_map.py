@@ -276,3 +276,27 @@ def test_autograd_through_sdf_at_is_the_analytic_gradient(
     assert torch.equal(value.detach(), expected_value)
     assert torch.equal(value.detach(), rect_map.sdf_at(points))
     assert torch.equal(grad, expected_grad)
+
+
+@pytest.mark.parametrize("layer", ["drivable", "sdf"])
+@pytest.mark.parametrize(("size", "resolution"), [(48, 1.0), (17, 0.3), (1, None)])
+def test_compiled_crop_gives_numpys_float32_values(layer, size, resolution, monkeypatch):
+    """float32 queries (the learned policies' windows) run riskflow_env.maps.crop_kernels:
+    the same values bit for bit, on and far off the raster."""
+    pytest.importorskip("numba")
+    from riskflow_env.compiled import SWITCH
+    from riskflow_env.scenarios import shipped_bank
+
+    scenario = shipped_bank("eval")[2]
+    rng = np.random.default_rng(size)
+    xy = scenario.states[0, scenario.current_index, :2] + rng.normal(0.0, 40.0, (32, 2))
+    yaw = rng.uniform(-4.0, 4.0, 32)
+    crops = {}
+    for switch in ("0", "1"):
+        monkeypatch.setenv(SWITCH, switch)
+        crops[switch] = scenario.map.crop(
+            xy.astype(np.float32), yaw.astype(np.float32), size, resolution, layer
+        )
+    assert crops["1"].dtype == crops["0"].dtype == np.float32
+    assert crops["1"].shape == (32, size, size)
+    np.testing.assert_array_equal(crops["1"], crops["0"])
