@@ -21,10 +21,8 @@ run on a machine, or after the kernels change, compiles them (about 7 s).
 from __future__ import annotations
 
 import functools
-import importlib
 import math
 import os
-import warnings
 import weakref
 from types import ModuleType
 from typing import Any
@@ -33,12 +31,11 @@ import numpy as np
 
 from riskflow_env.config import DynamicsConfig, EnvConfig
 from riskflow_env.events import FrameEvents
+from riskflow_env.kernel_loading import SWITCH, import_kernels
 from riskflow_env.maps import DrivableMap, MapStack
 from riskflow_env.observations import _sample_offsets
 from riskflow_env.rewards import REWARD_TERMS
 from riskflow_env.risk import MAX_INTERACTION_DISTANCE, TAU_MAX
-
-SWITCH = "RISKFLOW_COMPILED"  # environment variable; "0" turns the compiled path off
 
 
 @functools.cache
@@ -47,41 +44,6 @@ def kernels() -> ModuleType | None:
     cache directory (the package's ``__pycache__``, the user's cache, ``NUMBA_CACHE_DIR``;
     a warning says so, and the reference runs)."""
     return import_kernels("riskflow_env.compiled_kernels", "riskflow_env.compiled")
-
-
-def import_kernels(module: str, what: str) -> ModuleType | None:
-    """Import the numba kernel ``module``; None where numba is not installed, or where it
-    finds no writable cache directory (a warning says that ``what`` is off and names
-    ``NUMBA_CACHE_DIR``). Shared by the compiled step and the compiled planning loops."""
-    try:
-        return importlib.import_module(module)
-    except ImportError:
-        return None
-    except RuntimeError as error:  # numba's cache=True with no writable directory
-        if "cannot cache" not in str(error):
-            raise
-        warnings.warn(
-            f"{what} is off: {error}. Set NUMBA_CACHE_DIR to a writable directory to run "
-            "the compiled code; the array-API reference runs.",
-            RuntimeWarning,
-            stacklevel=3,
-        )
-        return None
-
-
-@functools.cache
-def _imported(module: str, what: str) -> ModuleType | None:
-    return import_kernels(module, what)
-
-
-def optional_kernels(module: str, what: str) -> ModuleType | None:
-    """The numba kernel ``module`` where the compiled paths are on; None with
-    ``RISKFLOW_COMPILED=0`` or where :func:`import_kernels` gives None (tried once per
-    process). For the kernels beside the step's: lane lookups, WOSAC distances, the
-    escape search."""
-    if os.environ.get(SWITCH, "1") == "0":
-        return None
-    return _imported(module, what)
 
 
 def enabled() -> bool:

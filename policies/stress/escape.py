@@ -42,10 +42,11 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from riskflow_env.compiled import _dynamics_params, _map_tables, optional_kernels
+from riskflow_env.compiled import _dynamics_params, _map_tables
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import rollout
 from riskflow_env.geometry import _ACROSS, _ALONG, footprint_points, separation
+from riskflow_env.kernel_loading import optional_kernels
 from riskflow_env.maps import DrivableMap
 
 CLEARANCE = 0.1  # [m] least box separation a witness keeps to every other vehicle

@@ -16,8 +16,8 @@ from types import ModuleType
 
 import numpy as np
 
-from riskflow_env.compiled import optional_kernels
 from riskflow_env.dynamics import wrap_angle
+from riskflow_env.kernel_loading import optional_kernels
 from riskflow_env.maps import DrivableMap
 
 HEADING_WEIGHT = 5.0  # [m] lane-matching cost of a lane at 90 deg to the agent's heading

@@ -25,6 +25,7 @@ from typing import Any, Literal
 import numpy as np
 
 from riskflow_env._array import Array, is_torch, namespace
+from riskflow_env.kernel_loading import optional_kernels
 from riskflow_env.maps._validate import finite_number, number_in_range
 from riskflow_env.maps.lanes import Lane, as_query
 from riskflow_env.maps.rasterize import signed_distance
@@ -229,8 +230,6 @@ class DrivableMap:
             resolution = finite_number("crop resolution", resolution, "m/px")
         if layer not in ("drivable", "sdf"):
             raise ValueError(f"crop layer must be 'drivable' or 'sdf', got {layer!r}")
-        from riskflow_env.compiled import optional_kernels  # it imports this module
-
         kernels = optional_kernels("riskflow_env.maps.crop_kernels", "the compiled map crops")
         if kernels is not None and _float32_numpy(xy, yaw):  # numpy's values, bit for bit
             return self._compiled_crop(kernels, xy, yaw, int(size), resolution, layer)

@@ -33,9 +33,9 @@ import math
 
 import numpy as np
 
-from riskflow_env.compiled import optional_kernels
 from riskflow_env.dynamics import SPEED, YAW, wrap_angle
 from riskflow_env.geometry import box_corners, separation, to_frame
+from riskflow_env.kernel_loading import optional_kernels
 from riskflow_env.maps import DrivableMap
 from riskflow_env.metrics.safety import footprint_sdf
 

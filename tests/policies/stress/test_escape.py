@@ -10,7 +10,7 @@ import torch
 
 from policies.stress import EscapeSearch, Obstacles, find_escape
 from policies.stress import escape as escape_module
-from riskflow_env import compiled
+from riskflow_env import kernel_loading
 from riskflow_env.compiled import SWITCH
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.maps import from_polygons
@@ -143,11 +143,11 @@ def test_no_writable_cache_directory_runs_the_reference(monkeypatch):
     problem, _ = crowded_problem(0)
     without_writable_cache(monkeypatch, ("policies.stress.escape_kernels",))
     monkeypatch.setenv(SWITCH, "1")
-    compiled._imported.cache_clear()
+    kernel_loading._imported.cache_clear()
     try:
         with pytest.warns(RuntimeWarning, match="NUMBA_CACHE_DIR"):
             assert escape_module._CompiledProblem.of(problem) is None
     finally:
         monkeypatch.undo()
-        compiled._imported.cache_clear()
+        kernel_loading._imported.cache_clear()
     assert escape_module._CompiledProblem.of(problem) is not None

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from riskflow_env import compiled
+from riskflow_env import kernel_loading
 from riskflow_env.agents import lane_graph
 from riskflow_env.agents.lane_graph import LaneGraph
 from riskflow_env.compiled import SWITCH
@@ -65,11 +65,11 @@ def test_no_writable_cache_directory_runs_the_reference(monkeypatch):
 
     without_writable_cache(monkeypatch, ("riskflow_env.agents.lane_kernels",))
     monkeypatch.setenv(SWITCH, "1")
-    compiled._imported.cache_clear()
+    kernel_loading._imported.cache_clear()
     try:
         with pytest.warns(RuntimeWarning, match="NUMBA_CACHE_DIR"):
             assert lane_graph.compiled() is None
     finally:
         monkeypatch.undo()
-        compiled._imported.cache_clear()
+        kernel_loading._imported.cache_clear()
     assert lane_graph.compiled() is not None
