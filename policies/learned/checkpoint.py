@@ -29,10 +29,12 @@ an interrupted save never leaves a truncated checkpoint. The shipped checkpoint
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import os
 import subprocess
 import tempfile
+import threading
 import warnings
 from collections.abc import Mapping
 from contextlib import ExitStack
@@ -273,28 +275,35 @@ def read_checkpoint(
                     f"missing; train one with {how_to_train} and pass its path"
                 )
             path = stack.enter_context(resources.as_file(resource))
-        return dict(_read_once(Path(path)))
+        return _read_once(Path(path))
 
 
-_READ: dict[tuple, dict[str, Any]] = {}  # (path, mtime, size, inode) -> checkpoint
+_READ: dict[tuple, dict[str, Any]] = {}  # (path, mtime, ctime, size, inode) -> checkpoint
+_READ_LOCK = threading.Lock()
 READ_CACHE_SIZE = 4  # checkpoint files kept read in a process
 
 
 def _read_once(path: Path) -> dict[str, Any]:
     """:func:`load_checkpoint` of ``path``, read and verified once per process while the
-    file is unchanged (an evaluation builds a policy per rollout). The caller gets a
-    shallow copy and must not change the tensors: the models copy them in
-    ``load_state_dict``."""
+    file is unchanged (an evaluation builds a policy per rollout). The caller gets its own
+    copy of everything but the state dict's tensors, which it must not change in place
+    (the models copy them in ``load_state_dict``)."""
     try:
         stat = path.stat()
     except OSError:
         return load_checkpoint(path)  # its error names the file
-    key = (str(path.resolve()), stat.st_mtime_ns, stat.st_size, stat.st_ino)
-    if key not in _READ:
-        if len(_READ) >= READ_CACHE_SIZE:
-            _READ.pop(next(iter(_READ)))
-        _READ[key] = load_checkpoint(path)
-    return _READ[key]
+    key = (str(path.resolve()), stat.st_mtime_ns, stat.st_ctime_ns, stat.st_size, stat.st_ino)
+    with _READ_LOCK:
+        checkpoint = _READ.get(key)
+        if checkpoint is None:
+            checkpoint = load_checkpoint(path)
+            if len(_READ) >= READ_CACHE_SIZE:
+                _READ.pop(next(iter(_READ)))
+            _READ[key] = checkpoint
+    return {
+        name: dict(value) if name == "state_dict" else copy.deepcopy(value)
+        for name, value in checkpoint.items()
+    }
 
 
 def frozen_generator(

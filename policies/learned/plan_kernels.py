@@ -159,10 +159,18 @@ def _sign(x):
     return 1.0 if x > 0.0 else (-1.0 if x < 0.0 else 0.0)
 
 
+@_inline
+def _share(a, b):
+    """The part of ``torch.maximum(a, b)``'s gradient that autograd gives ``a``."""
+    return 1.0 if a > b else (0.5 if a == b else 0.0)
+
+
 @_jit
-def _separation_gradient(xa, ya, yaw_a, len_a, wid_a, xb, yb, yaw_b, len_b, wid_b):
+def _separation_gradient(xa, ya, yaw_a, len_a, wid_a, xb, yb, yaw_b, len_b, wid_b, split):
     """``geometry.separation_gradient`` of one pair of boxes: ``(gap, d_x, d_y, d_yaw_a,
-    d_yaw_b)``, the derivatives of the first largest SAT gap (d/d xy_a = -d/d xy_b)."""
+    d_yaw_b)``, the derivatives of the first largest SAT gap (d/d xy_a = -d/d xy_b); with
+    ``split``, autograd's through ``geometry.separation`` instead, which shares the
+    gradient among equal gaps (``torch.maximum`` gives each half)."""
     cos_a, sin_a = math.cos(yaw_a), math.sin(yaw_a)
     cos_b, sin_b = math.cos(yaw_b), math.sin(yaw_b)
     dx, dy = xb - xa, yb - ya
@@ -181,6 +189,41 @@ def _separation_gradient(xa, ya, yaw_a, len_a, wid_a, xb, yb, yaw_b, len_b, wid_
     best = max(max(g0, g1), max(g2, g3))
     c_turn = _sign(cos_ab) * sin_ab
     s_turn = _sign(sin_ab) * cos_ab
+    if split:
+        m01, m23 = max(g0, g1), max(g2, g3)
+        w01, w23 = _share(m01, m23), _share(m23, m01)
+        weights = (
+            w01 * _share(g0, g1),
+            w01 * _share(g1, g0),
+            w23 * _share(g2, g3),
+            w23 * _share(g3, g2),
+        )
+        d_x, d_y, d_yaw_a, d_yaw_b = 0.0, 0.0, 0.0, 0.0
+        for k in range(4):
+            w = weights[k]
+            if w == 0.0:
+                continue
+            if k == 0:
+                s0 = _sign(p0)
+                turn_b = hl_b * c_turn - hw_b * s_turn
+                terms = (s0 * cos_a, s0 * sin_a, s0 * p1 - turn_b, turn_b)
+            elif k == 1:
+                s1 = _sign(p1)
+                cross_b = hl_b * s_turn - hw_b * c_turn
+                terms = (-s1 * sin_a, s1 * cos_a, -s1 * p0 + cross_b, -cross_b)
+            elif k == 2:
+                s2 = _sign(p2)
+                turn_a = hl_a * c_turn - hw_a * s_turn
+                terms = (s2 * cos_b, s2 * sin_b, -turn_a, s2 * p3 + turn_a)
+            else:
+                s3 = _sign(p3)
+                cross_a = hl_a * s_turn - hw_a * c_turn
+                terms = (-s3 * sin_b, s3 * cos_b, cross_a, -s3 * p2 - cross_a)
+            d_x += w * terms[0]
+            d_y += w * terms[1]
+            d_yaw_a += w * terms[2]
+            d_yaw_b += w * terms[3]
+        return best, d_x, d_y, d_yaw_a, d_yaw_b
     if g0 == best:
         s0 = _sign(p0)
         turn_b = hl_b * c_turn - hw_b * s_turn
@@ -217,7 +260,7 @@ def _pair_gradient(plan_i, plan_j, size_i, size_j, touch, horizon, d_i, d_j):
     for t in range(horizon):
         gap, g_x, g_y, g_yaw_i, g_yaw_j = _separation_gradient(
             plan_i[t, 0], plan_i[t, 1], plan_i[t, 3], size_i[0], size_i[1],
-            plan_j[t, 0], plan_j[t, 1], plan_j[t, 3], size_j[0], size_j[1],
+            plan_j[t, 0], plan_j[t, 1], plan_j[t, 3], size_j[0], size_j[1], False,
         )  # fmt: skip
         closest = min(closest, gap)
         if gap >= 0.0:

@@ -31,7 +31,7 @@ _jit = numba.njit(cache=True, nogil=True)
 
 # SHA-256 of plan_kernels.py, whose functions these loops call: numba's cache checks only
 # this file's source, so editing that file must edit this one.
-PIECES_DIGEST = "514e16887ee4834ba80abd0bf18fba56e9fe544fd3b5de0faaae162e73c20c9b"
+PIECES_DIGEST = "8a3f13cfb7e65cd326836d63c88b3f52abd8368d0dfd7922c4a9227ab7aa993e"
 BETA1, BETA2, EPSILON = 0.9, 0.999, 1e-8  # policies.learned.adam
 
 

@@ -39,7 +39,7 @@ _jit = numba.njit(cache=True, nogil=True)
 
 # SHA-256 of policies/learned/plan_kernels.py, whose pieces these kernels call: numba's
 # cache checks only this file's source, so editing that file must edit this one.
-PIECES_DIGEST = "514e16887ee4834ba80abd0bf18fba56e9fe544fd3b5de0faaae162e73c20c9b"
+PIECES_DIGEST = "8a3f13cfb7e65cd326836d63c88b3f52abd8368d0dfd7922c4a9227ab7aa993e"
 BETA1, BETA2, EPSILON = 0.9, 0.999, 1e-8  # torch.optim.Adam's defaults
 
 
@@ -80,7 +80,7 @@ def _score_row(
                     continue
             gap, g_x, g_y, g_yaw_ego, _ = _separation_gradient(
                 states[t, 0], states[t, 1], states[t, 3], ego_size[0], ego_size[1],
-                x, y, obstacles[n, t, 2], sizes[n, 0], sizes[n, 1],
+                x, y, obstacles[n, t, 2], sizes[n, 0], sizes[n, 1], True,
             )  # fmt: skip
             clear = min(clear, gap)
             if gap < margin:
@@ -92,24 +92,32 @@ def _score_row(
     use_map, flat, grid_int, grid_float, along, across = road
     if use_map:
         grid = _grid(grid_int, grid_float, 0)
+        values, slope = np.empty(along.shape[0]), np.empty((along.shape[0], 2))
         for t in range(horizon):
             cos, sin = math.cos(states[t, 3]), math.sin(states[t, 3])
-            depth, best, best_x, best_y = -math.inf, 0, 0.0, 0.0
+            depth = -math.inf
             for k in range(along.shape[0]):
                 px = states[t, 0] + along[k] * cos - across[k] * sin
                 py = states[t, 1] + along[k] * sin + across[k] * cos
-                value, g_x, g_y = _sdf_with_gradient(flat, grid, px, py)
-                if value > depth:
-                    depth, best, best_x, best_y = value, k, g_x, g_y
+                value, slope[k, 0], slope[k, 1] = _sdf_with_gradient(flat, grid, px, py)
+                values[k] = value
+                depth = max(depth, value)
             excess = depth - allowance
             worst, deepest = max(worst, excess), max(deepest, depth)
             if excess + road_slack > 0.0:
                 road_cost += excess + road_slack
-                d_states[t, 0] += best_x
-                d_states[t, 1] += best_y
-                d_states[t, 3] += best_x * (-along[best] * sin - across[best] * cos) + best_y * (
-                    along[best] * cos - across[best] * sin
-                )
+                ties = 0  # autograd's amax shares the gradient among equal samples
+                for k in range(along.shape[0]):
+                    ties += values[k] == depth
+                for k in range(along.shape[0]):
+                    if values[k] != depth:
+                        continue
+                    g_x, g_y = slope[k, 0] / ties, slope[k, 1] / ties
+                    d_states[t, 0] += g_x
+                    d_states[t, 1] += g_y
+                    d_states[t, 3] += g_x * (-along[k] * sin - across[k] * cos) + g_y * (
+                        along[k] * cos - across[k] * sin
+                    )
     if want_gradient:
         _rollout_vjp(d_states, actions, saved, params, False, d_actions, scratch)
         for k in range(num_knots):

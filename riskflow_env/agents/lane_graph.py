@@ -109,6 +109,21 @@ class LaneGraph:
             self.last_segment, self.successors, self.successors_s,
         )  # fmt: skip
 
+    def _route_fits(self, route: np.ndarray | None, count: int) -> bool:
+        return route is None or (
+            isinstance(route, np.ndarray) and route.dtype == bool
+            and route.shape == (count, self.num_lanes)
+        )  # fmt: skip
+
+    def _lanes_fit(self, lane: np.ndarray, route: np.ndarray | None) -> bool:
+        """The kernels take the query: integer lanes (N, ...) with N >= 1, all valid, and a
+        route of N rows; anything else runs the reference (which raises where it must)."""
+        return (
+            lane.ndim >= 1 and lane.size > 0 and np.issubdtype(lane.dtype, np.integer)
+            and int(lane.min()) >= 0 and int(lane.max()) < self.num_lanes
+            and self._route_fits(route, lane.shape[0])
+        )  # fmt: skip
+
     def _edges(self, drivable_map: DrivableMap) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(source, target, entry arclength [m]) of every continuation of a lane.
 
@@ -204,12 +219,16 @@ class LaneGraph:
         """
         out = np.zeros((4, len(xy)))
         kernels = compiled()
-        if kernels is not None and len(self.start):
+        xy, yaw = np.asarray(xy, dtype=np.float64), np.asarray(yaw, dtype=np.float64)
+        if (
+            kernels is not None
+            and xy.ndim == 2 and xy.shape[1] == 2 and yaw.shape == xy.shape[:1] and len(xy)
+            and heading_weight >= 0  # the kernel's pruning needs costs >= the distance
+            and self._route_fits(route, len(xy))
+        ):  # fmt: skip
             has_route = route is not None
             kernels.match(
-                np.ascontiguousarray(xy, dtype=np.float64),
-                np.ascontiguousarray(yaw, dtype=np.float64),
-                float(heading_weight),
+                np.ascontiguousarray(xy), np.ascontiguousarray(yaw), float(heading_weight),
                 np.ascontiguousarray(route) if has_route else NO_ROUTE,
                 has_route, ROUTE_PENALTY, NEAR, MATCH_CHUNK, self.tables, out,
             )  # fmt: skip
@@ -289,12 +308,12 @@ class LaneGraph:
             xy: (N, ..., 2) [m]; heading: (N, ...) [rad].
         """
         kernels = compiled()
-        if kernels is not None:
-            lane, s = np.broadcast_arrays(np.asarray(lane, dtype=np.int64), np.asarray(s, float))
-            rows = lane.reshape(len(lane), -1) if lane.ndim else lane.reshape(1, 1)
+        lane, s = np.broadcast_arrays(lane, s)
+        if kernels is not None and self._lanes_fit(lane, route):
+            rows = lane.reshape(lane.shape[0], -1).astype(np.int64)
             out = np.empty((*rows.shape, 3))
             kernels.positions(
-                np.ascontiguousarray(rows), np.ascontiguousarray(s.reshape(rows.shape)),
+                np.ascontiguousarray(rows), np.ascontiguousarray(s.reshape(rows.shape), dtype=float),
                 NO_ROUTE if route is None else np.ascontiguousarray(route), route is not None,
                 MAX_HOPS, self.tables, out,
             )  # fmt: skip
@@ -312,7 +331,8 @@ class LaneGraph:
         """(N,) [m] path distance from ``(lane, s)`` to the end of a lane without
         successor, inf if none is met within ``MAX_HOPS`` lanes."""
         kernels = compiled()
-        if kernels is not None:
+        lane, s = np.broadcast_arrays(lane, s)
+        if kernels is not None and lane.ndim == 1 and self._lanes_fit(lane, route):
             out = np.empty(len(lane))
             kernels.dead_end_distances(
                 np.ascontiguousarray(lane, dtype=np.int64), np.ascontiguousarray(s, float),

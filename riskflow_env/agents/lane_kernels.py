@@ -43,6 +43,9 @@ def match(xy, yaw, heading_weight, route, has_route, route_penalty, near, chunk,
         last = min(first + chunk, count)
         low_x, low_y, high_x, high_y = math.inf, math.inf, -math.inf, -math.inf
         for p in range(first, last):
+            if xy[p, 0] != xy[p, 0] or xy[p, 1] != xy[p, 1]:  # NaN: numpy's box is NaN
+                low_x = math.nan
+                break
             low_x, high_x = min(low_x, xy[p, 0]), max(high_x, xy[p, 0])
             low_y, high_y = min(low_y, xy[p, 1]), max(high_y, xy[p, 1])
         low_x, low_y, high_x, high_y = low_x - near, low_y - near, high_x + near, high_y + near
@@ -64,7 +67,7 @@ def match(xy, yaw, heading_weight, route, has_route, route_penalty, near, chunk,
                         free = False
                         break
             best = math.inf
-            pick, pick_s, pick_lateral, pick_error = -1, 0.0, 0.0, 0.0
+            pick, pick_s, pick_lateral, pick_error = 0, 0.0, 0.0, 0.0
             for q in range(found):
                 g = candidates[q]
                 d_x, d_y, length = delta[g, 0], delta[g, 1], seg_length[g]
@@ -84,7 +87,7 @@ def match(xy, yaw, heading_weight, route, has_route, route_penalty, near, chunk,
                 cost = abs(lateral) + heading_weight * (1.0 - math.cos(error))
                 if not free and not route[p, seg_lane[g]]:
                     cost += route_penalty
-                if cost < best or cost != cost:  # numpy's argmin: the first minimum or NaN
+                if q == 0 or cost < best or cost != cost:  # argmin: the first minimum or NaN
                     best, pick, pick_s = cost, g, seg_s[g] + t * length
                     pick_lateral, pick_error = lateral, error
                     if cost != cost:

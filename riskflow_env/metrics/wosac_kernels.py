@@ -23,6 +23,14 @@ CORNER_ACROSS = (-1.0, 1.0, 1.0, -1.0)
 
 
 @_jit
+def _min(a, b):
+    """numpy's minimum: NaN when either is."""
+    if a != a or b != b:
+        return math.nan
+    return min(a, b)
+
+
+@_jit
 def _corner_distance(x, y, cos, sin, half_len, half_wid, cx, cy, c_cos, c_sin, c_len, c_wid):
     """Smallest distance [m] from the corners of box c to box (x, y, yaw, size)."""
     best = math.inf
@@ -32,7 +40,7 @@ def _corner_distance(x, y, cos, sin, half_len, half_wid, cx, cy, c_cos, c_sin, c
         dy = cy + along * c_sin + across * c_cos - y
         out_x = max(abs(cos * dx + sin * dy) - half_len, 0.0)
         out_y = max(abs(-sin * dx + cos * dy) - half_wid, 0.0)
-        best = min(best, math.hypot(out_x, out_y))
+        best = _min(best, math.hypot(out_x, out_y))
     return best
 
 
@@ -54,7 +62,7 @@ def _signed_distance(xa, ya, ca, sa, la, wa, xb, yb, cb, sb, lb, wb):
     )
     if gap <= 0.0:
         return gap
-    return min(
+    return _min(
         _corner_distance(xa, ya, ca, sa, 0.5 * la, 0.5 * wa, xb, yb, cb, sb, lb, wb),
         _corner_distance(xb, yb, cb, sb, 0.5 * lb, 0.5 * wb, xa, ya, ca, sa, la, wa),
     )
@@ -88,5 +96,5 @@ def nearest_objects(states, valid, length, width, out):
                     xa, ya, cos[a], sin[a], length[a], width[a],
                     xb, yb, cos[b], sin[b], length[b], width[b],
                 )  # fmt: skip
-                out[a, t] = min(out[a, t], distance)
-                out[b, t] = min(out[b, t], distance)
+                out[a, t] = _min(out[a, t], distance)
+                out[b, t] = _min(out[b, t], distance)

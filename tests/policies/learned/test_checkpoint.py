@@ -122,3 +122,16 @@ def test_loading_the_shipped_generator_does_not_import_dynamo():
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=300
     )
     assert result.stdout.strip().splitlines()[-1] == "False"
+
+
+def test_a_checkpoint_is_read_once_and_again_when_it_changes(tmp_path, make_model, normalizer):
+    """read_checkpoint keeps a file it read while the file is unchanged; a caller's
+    changes to what it got do not reach the next caller."""
+    path = _write(tmp_path / "generator.pt", make_model(seed=1), normalizer)
+    first = checkpoint_module.read_checkpoint(path, "unused", "generator", "")
+    first["train_config"]["lr"] = 99.0
+    first["state_dict"] = {}
+    second = checkpoint_module.read_checkpoint(path, "unused", "generator", "")
+    assert second["train_config"] == {"lr": 1e-4} and second["state_dict"]
+    _write(path, make_model(seed=2), normalizer, step=13)  # a new file at the same path
+    assert checkpoint_module.read_checkpoint(path, "unused", "generator", "")["step"] == 13

@@ -151,3 +151,36 @@ def test_no_writable_cache_directory_runs_the_reference(monkeypatch):
         monkeypatch.undo()
         kernel_loading._imported.cache_clear()
     assert escape_module._CompiledProblem.of(problem) is not None
+
+
+@pytest.mark.parametrize("case", ["edge", "beside"])
+def test_ties_share_the_gradient_as_autograd_does(case):
+    """Exact ties (yaw 0 on an axis-aligned road: three footprint samples level with the
+    edge; a same-size car alongside: equal SAT gaps) split the gradient in autograd; the
+    kernels split it the same way, so the refinements stay equal."""
+    horizon = 30
+    time = np.arange(1, horizon + 1) * 0.1
+    if case == "edge":  # the ego along the left road edge, a standing car ahead of it
+        start, xy = (
+            np.array([0.0, 3.9, 12.0, 0.0]),
+            np.stack([np.full(horizon, 14.0), np.full(horizon, 3.9)], axis=-1),
+        )
+    else:  # a car of the same size alongside, as fast as the ego
+        start, xy = (
+            np.array([0.0, 0.0, 10.0, 0.0]),
+            np.stack([4.55 + 10.0 * time, np.full(horizon, 1.0)], axis=-1),
+        )
+    obstacles = Obstacles(
+        xy[None], np.zeros((1, horizon)), np.array([4.5]), np.array([2.0]),
+        np.ones((1, horizon), dtype=bool),
+    )  # fmt: skip
+    search = EscapeSearch(samples=64, refine=4, steps=20)
+    problem = escape_module._Problem(start, (4.5, 2.0), obstacles, ROAD, DynamicsConfig(), search)
+    compiled = escape_module._CompiledProblem.of(problem)
+    knots = problem.sampled_knots(torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        worst = knots[torch.argsort(problem.evaluate(knots).cost, descending=True)[:4]]
+    reference, steps = problem.refine(worst.clone())
+    mine, compiled_steps = compiled.refine(worst.clone())
+    assert steps == compiled_steps
+    np.testing.assert_allclose(mine.numpy(), reference.numpy(), rtol=0, atol=1e-9)

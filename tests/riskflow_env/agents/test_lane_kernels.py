@@ -73,3 +73,25 @@ def test_no_writable_cache_directory_runs_the_reference(monkeypatch):
         monkeypatch.undo()
         kernel_loading._imported.cache_clear()
     assert lane_graph.compiled() is not None
+
+
+def test_edge_queries_give_the_references_answers(monkeypatch):
+    """A NaN point in a chunk (numpy then searches every segment), a point at infinity
+    (every cost inf: the first segment), no query, a scalar arclength; and invalid lanes
+    raise as in numpy."""
+    graph = LaneGraph(shipped_bank("eval")[0].map)
+    xy = np.array([[20.0, 2.0], [np.nan, 0.0], [np.inf, 0.0]])
+    yaw = np.zeros(3)
+    reference, compiled = both(monkeypatch, graph.match, xy, yaw)
+    for mine, theirs in zip(compiled, reference, strict=True):
+        np.testing.assert_array_equal(mine, theirs)
+    empty = np.zeros((0, 5), dtype=int)
+    reference, compiled = both(monkeypatch, graph.position, empty, empty + 1.0)
+    assert compiled[0].shape == reference[0].shape == (0, 5, 2)
+    lanes = np.array([0, 1, 1])
+    reference, compiled = both(monkeypatch, graph.distance_to_dead_end, lanes, 3.0)
+    np.testing.assert_array_equal(compiled, reference)
+    for switch in ("0", "1"):
+        monkeypatch.setenv(SWITCH, switch)
+        with pytest.raises(IndexError):
+            graph.position(np.array([graph.num_lanes + 3]), np.array([1.0]))

@@ -113,6 +113,13 @@ def test_compiled_nearest_object_equals_the_reference(seed, monkeypatch):
     np.testing.assert_allclose(compiled["distance_to_nearest_object"], distance, rtol=0, atol=1e-9)
     for name in ("collision_indication", "time_to_collision"):
         np.testing.assert_array_equal(compiled[name], reference[name])
+    states[3, 5, 0] = np.nan  # a NaN state makes its step's distances NaN in both
+    out = {}
+    for switch in ("0", "1"):
+        monkeypatch.setenv(SWITCH, switch)
+        out[switch] = interaction_features(states, valid, *sizes)["distance_to_nearest_object"]
+    np.testing.assert_array_equal(np.isnan(out["1"]), np.isnan(out["0"]))
+    assert np.isnan(out["0"][:, 5]).any() or not valid[3, 5]
 
 
 def test_nearest_object_collision_flag_and_road_edge(road):
