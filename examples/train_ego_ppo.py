@@ -31,7 +31,7 @@ The adversary plans on the CPU; that is the cost of a step. Training uses the ev
 adversary (``guidance_steps`` 30, a re-plan every 0.5 s): over four seeds its egos collide
 less than those trained against a cheaper one (10 steps, 1 s): 0.119 against 0.195 on the
 same 420 episodes, paired -0.076 [-0.120, -0.032] (docs/explanation/rl-results.md). With
-the compiled planning loops an 80k-decision run takes about half an hour on a 2-core CPU.
+the compiled planning loops an 80k-decision run took 27 to 54 minutes on a 2-core CPU.
 
 Writes to ``--out`` (:mod:`policies.rl.runs`): ``options.json``; ``initial_model.zip``
 (the untrained policy) and ``final_model.zip``, each with its ``*_vecnormalize.pkl``
