@@ -30,9 +30,12 @@ may be shared; the best round is the least disturbed one).
 
 from __future__ import annotations
 
+import cProfile
+import pstats
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import gymnasium
 import highway_env  # noqa: F401 - registers highway-v0
@@ -77,6 +80,8 @@ class Options:
     """step paths measured: 'compiled' (riskflow_env.compiled, numba) and 'reference'"""
     startup: bool = True
     """measure the compiled path's one-off start-up in subprocesses (cold and cached)"""
+    profile: bool = True
+    """after table 1, what limits its largest row on each path: cProfile's top entries"""
 
 
 def _parse(argv: list[str] | None = None) -> Options:
@@ -233,6 +238,21 @@ def batched_run(
     return run
 
 
+def limits(run: Callable[[float], tuple[int, float]], seconds: float, top: int = 6) -> list[str]:
+    """The ``top`` functions of a cProfile of ``run`` by own time, each with its share."""
+    profile = cProfile.Profile()
+    profile.enable()
+    run(seconds)
+    profile.disable()
+    stats = pstats.Stats(profile).stats  # (file, line, name) -> (calls, _, own, cumulative, _)
+    total = sum(entry[2] for entry in stats.values()) or 1.0
+    ranked = sorted(stats.items(), key=lambda item: item[1][2], reverse=True)[:top]
+    return [
+        f"  {100 * own / total:5.1f}%  {name} ({Path(file).name}:{line}), {calls:,} calls"
+        for (file, line, name), (calls, _, own, _, _) in ranked
+    ]
+
+
 def main(argv: list[str] | None = None) -> dict[str, list[dict]]:
     """Print the tables; returns their rows: ``api`` (vehicles, path, highway, riskflow
     [vehicle-steps/s]), ``batched`` (agents, scenes, observations, path, rate
@@ -287,6 +307,17 @@ def main(argv: list[str] | None = None) -> dict[str, list[dict]]:
                 }
             )
         bar.update()
+
+    if options.api and options.profile and options.vehicles:
+        vehicles = max(options.vehicles)
+        for path in paths:
+            with step_path(path):
+                write(
+                    f"\nWhat limits {vehicles} vehicles on the {path} path (cProfile of "
+                    "the steps and the resets between episodes):"
+                )
+                for line in limits(riskflow_run(vehicles), options.seconds):
+                    write(line)
 
     where = options.backend + (f" on {options.device}" if options.backend == "torch" else "")
     write(f"\nBatched stepping (riskflow_env.batched, {where} {options.dtype}, one map per batch)")

@@ -23,6 +23,7 @@ def test_prints_both_tables(capsys):
     out = capsys.readouterr().out
     assert "highway-env vehicle-steps/s" in out and "numpy float64" in out
     assert "compiled agent-steps/s | reference agent-steps/s" in out
+    assert "What limits 8 vehicles on the compiled path" in out and "% " in out
 
 
 def test_startup_is_measured_in_fresh_processes(capsys):
