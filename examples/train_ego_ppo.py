@@ -29,9 +29,8 @@ cheaper way out of a crash than the crash itself (both end the episode).
 
 The adversary plans on the CPU; that is the cost of a step. Training uses the evaluation's
 adversary (``guidance_steps`` 30, a re-plan every 0.5 s): over four seeds its egos collide
-less than those trained against a cheaper one (10 steps, 1 s): 0.119 against 0.195 on the
-same 420 episodes, paired -0.076 [-0.120, -0.032] (docs/explanation/rl-results.md). With
-the compiled planning loops an 80k-decision run took 27 to 54 minutes on a 2-core CPU.
+in 0.119 of 420 paired episodes against 0.195 with a cheaper one (10 steps, 1 s); an
+80k-decision run took 27 to 54 minutes on a 2-core CPU (docs/explanation/rl-results.md).
 
 Writes to ``--out`` (:mod:`policies.rl.runs`): ``options.json``; ``initial_model.zip``
 (the untrained policy) and ``final_model.zip``, each with its ``*_vecnormalize.pkl``

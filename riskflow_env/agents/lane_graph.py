@@ -31,6 +31,11 @@ REACH_CAP = 300.0  # [m] a successor whose path runs this far without a dead end
 NO_ROUTE = np.zeros((1, 1), dtype=bool)  # the kernels' route argument without a route
 
 
+def _kernel_route(route: np.ndarray | None) -> tuple[np.ndarray, bool]:
+    """The kernels' ``(route, has_route)`` arguments."""
+    return (NO_ROUTE, False) if route is None else (np.ascontiguousarray(route), True)
+
+
 def compiled() -> ModuleType | None:
     """The lane kernels, or None where numba is missing, finds no writable cache directory
     (a warning says so) or ``RISKFLOW_COMPILED=0``: the numpy reference runs."""
@@ -226,11 +231,9 @@ class LaneGraph:
             and heading_weight >= 0  # the kernel's pruning needs costs >= the distance
             and self._route_fits(route, len(xy))
         ):  # fmt: skip
-            has_route = route is not None
             kernels.match(
                 np.ascontiguousarray(xy), np.ascontiguousarray(yaw), float(heading_weight),
-                np.ascontiguousarray(route) if has_route else NO_ROUTE,
-                has_route, ROUTE_PENALTY, NEAR, MATCH_CHUNK, self.tables, out,
+                *_kernel_route(route), ROUTE_PENALTY, NEAR, MATCH_CHUNK, self.tables, out,
             )  # fmt: skip
             return out[0].astype(int), out[1], out[2], out[3]
         for start in range(0, len(xy), MATCH_CHUNK):  # chunks of query points, bounded memory
@@ -311,11 +314,11 @@ class LaneGraph:
         lane, s = np.broadcast_arrays(lane, s)
         if kernels is not None and self._lanes_fit(lane, route):
             rows = lane.reshape(lane.shape[0], -1).astype(np.int64)
+            arclength = np.ascontiguousarray(s.reshape(rows.shape), dtype=float)
             out = np.empty((*rows.shape, 3))
             kernels.positions(
-                np.ascontiguousarray(rows), np.ascontiguousarray(s.reshape(rows.shape), dtype=float),
-                NO_ROUTE if route is None else np.ascontiguousarray(route), route is not None,
-                MAX_HOPS, self.tables, out,
+                np.ascontiguousarray(rows), arclength,
+                *_kernel_route(route), MAX_HOPS, self.tables, out,
             )  # fmt: skip
             out = out.reshape(*lane.shape, 3)
             return out[..., :2], out[..., 2]
@@ -336,8 +339,7 @@ class LaneGraph:
             out = np.empty(len(lane))
             kernels.dead_end_distances(
                 np.ascontiguousarray(lane, dtype=np.int64), np.ascontiguousarray(s, float),
-                NO_ROUTE if route is None else np.ascontiguousarray(route), route is not None,
-                MAX_HOPS, self.tables, out,
+                *_kernel_route(route), MAX_HOPS, self.tables, out,
             )  # fmt: skip
             return out
         remaining = self.length[lane] - s
