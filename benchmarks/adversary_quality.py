@@ -34,6 +34,7 @@ from policies.evaluation.options import parse_k
 from policies.harness import ClosedLoop, EpisodeRecord, mean_summary, summarize
 from policies.planners import IDMPlanner
 from policies.registry import method_options
+from riskflow_env.cli_errors import run_script
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
 from riskflow_env.view import ScenePolicy, SceneView
@@ -194,7 +195,7 @@ def table(results: dict[str, dict]) -> str:
 
 def main(argv: list[str] | None = None) -> dict[str, dict]:
     """Run, write ``quality.json``, print the table; returns :func:`run`'s result."""
-    options = parse_dataclass(Options, argv, prog="adversary_quality")
+    options = parse_dataclass(Options, argv, prog="adversary_quality.py", debug=True)
     results = run(options)
     out = Path(options.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -211,4 +212,4 @@ def main(argv: list[str] | None = None) -> dict[str, dict]:
 
 
 if __name__ == "__main__":
-    main()
+    run_script("adversary_quality.py", main)

@@ -40,6 +40,7 @@ from policies.registry import build_policy
 from policies.statistics import paired_difference
 from policies.stress import EscapeSearch, analyse, stress_summary
 from policies.stress.summary import episode_outcome
+from riskflow_env.cli_errors import run_script
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
 from riskflow_env.scenarios.folders import open_scenes
@@ -192,8 +193,7 @@ def _avoidable(row: dict[str, Any]) -> bool:
 
 
 if __name__ == "__main__":
-    main(
-        parse_dataclass(
-            Options, prog="failures_that_matter.py", description=__doc__.splitlines()[0]
-        )
+    prog, about = "failures_that_matter.py", __doc__.splitlines()[0]
+    run_script(
+        prog, lambda: main(parse_dataclass(Options, prog=prog, description=about, debug=True))
     )

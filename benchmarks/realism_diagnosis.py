@@ -55,6 +55,7 @@ from policies.harness import ClosedLoop
 from policies.learned.plan_stitching import REST_SPEED
 from policies.planners import IDMPlanner
 from riskflow_env.agents.lane_graph import LaneGraph
+from riskflow_env.cli_errors import run_script
 from riskflow_env.config import EnvConfig
 from riskflow_env.dynamics import SPEED, YAW
 from riskflow_env.geometry import CENTRE, pairwise_overlap
@@ -311,7 +312,7 @@ class Options:
 def main(argv: list[str] | None = None) -> str:
     """Entry point: run, print and return the tables."""
     args = parse_dataclass(
-        Options, argv, prog="realism_diagnosis.py", description=__doc__.split("\n")[0]
+        Options, argv, prog="realism_diagnosis.py", description=__doc__.split("\n")[0], debug=True
     )
     start = time.perf_counter()
     sections = []
@@ -326,4 +327,4 @@ def main(argv: list[str] | None = None) -> str:
 
 
 if __name__ == "__main__":
-    main()
+    run_script("realism_diagnosis.py", main)

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from policies.dataclass_cli import parse_dataclass
+from riskflow_env.cli_errors import run_script
 from riskflow_env.scenarios.map_cache import MapCache
 from riskflow_env.scenarios.safe_pickle import load_data_pickle
 from riskflow_env.scenarios.scenario import Scenario
@@ -115,7 +116,9 @@ def miss_vs_hit(path: Path, crop: bool, repeats: int, root: Path) -> tuple[float
 
 def main(argv: list[str] | None = None) -> None:
     """Print both tables."""
-    options = parse_dataclass(Options, argv, "scenarionet_dataset", __doc__.split("\n")[0])
+    options = parse_dataclass(
+        Options, argv, "scenarionet_dataset.py", __doc__.split("\n")[0], debug=True
+    )
     source = Dataset(options.data, map_cache=False)
     with tempfile.TemporaryDirectory() as scratch:
         root = Path(scratch)
@@ -141,4 +144,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script("scenarionet_dataset.py", main)

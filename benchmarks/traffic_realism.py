@@ -61,6 +61,7 @@ from policies.dataclass_cli import parse_dataclass
 from policies.evaluation.options import SHIPPED, EvalOptions, Job, RunConfig
 from policies.evaluation.rollout import rollout_episode
 from policies.registry import method_spec
+from riskflow_env.cli_errors import run_script
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.metrics import (
     KinematicSamples,
@@ -156,7 +157,7 @@ class Options:
 
 def parse_args(argv: Sequence[str] | None = None) -> Options:
     return parse_dataclass(
-        Options, argv, prog="traffic_realism.py", description=__doc__.split("\n\n")[0]
+        Options, argv, prog="traffic_realism.py", description=__doc__.split("\n\n")[0], debug=True
     )
 
 
@@ -372,4 +373,4 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
 
 
 if __name__ == "__main__":
-    main()
+    run_script("traffic_realism.py", main)

@@ -38,6 +38,7 @@ from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
 from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
 from riskflow_env.agents import ReplayPolicy
+from riskflow_env.cli_errors import run_script
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import Scenario, load_scenario, shipped_bank
 from riskflow_env.scenarios.scenarionet import load_scenarionet
@@ -208,4 +209,7 @@ def main(options: Options) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    main(parse_dataclass(Options, prog="rollout.py", description=__doc__.splitlines()[0]))
+    prog, about = "rollout.py", __doc__.splitlines()[0]
+    run_script(
+        prog, lambda: main(parse_dataclass(Options, prog=prog, description=about, debug=True))
+    )

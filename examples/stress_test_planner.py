@@ -34,6 +34,7 @@ from policies.dataclass_cli import parse_dataclass
 from policies.stress import riskflow_stress
 from policies.stress.cli import stress_kwargs
 from policies.stress.runner import StressOptions
+from riskflow_env.cli_errors import run_script
 
 
 def my_planner(observation: np.ndarray, view) -> np.ndarray:
@@ -71,6 +72,7 @@ def main(options: Options):
 
 
 if __name__ == "__main__":
-    main(
-        parse_dataclass(Options, prog="stress_test_planner.py", description=__doc__.splitlines()[0])
+    prog, about = "stress_test_planner.py", __doc__.splitlines()[0]
+    run_script(
+        prog, lambda: main(parse_dataclass(Options, prog=prog, description=about, debug=True))
     )

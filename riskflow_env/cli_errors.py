@@ -4,7 +4,8 @@ A user error is a bad file or folder (``OSError``: missing, unreadable, not a di
 a value the code refuses (``ValueError``, which :class:`ScenarioFormatError` and the
 argument checks raise, naming the file or the argument and what was expected). The
 console scripts (``riskflow-data``, ``riskflow-eval``, ``riskflow-stress``,
-``riskflow-train``) run their work inside :func:`user_errors`, which prints such an error
+``riskflow-train``) run their work inside :func:`user_errors`, and the examples and
+benchmarks that read files or planner specs inside :func:`run_script`, which prints such an error
 as ``<prog>: error: <message>`` on stderr and exits with status 2, as argparse does for a
 bad flag. ``--debug`` (declared by :func:`add_debug_flag`) re-raises it instead, with its
 traceback. Any other exception is a bug and keeps its traceback.
@@ -14,8 +15,9 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from typing import Any
 
 from riskflow_env.untrusted import error_text
 
@@ -60,3 +62,11 @@ def user_errors(prog: str, debug: bool = False) -> Iterator[None]:
             raise
         print(f"{prog}: error: {message(error)} (--debug shows the traceback)", file=sys.stderr)
         raise SystemExit(2) from None
+
+
+def run_script(prog: str, main: Callable[[], Any], argv: Sequence[str] | None = None) -> None:
+    """The ``__main__`` of an example or a benchmark: ``main()`` inside :func:`user_errors`,
+    with ``--debug`` read from ``argv`` (``sys.argv[1:]`` if None). ``main`` parses the
+    command line itself, with ``--debug`` declared (``parse_dataclass(..., debug=True)``)."""
+    with user_errors(prog, debug_requested(sys.argv[1:] if argv is None else argv)):
+        main()

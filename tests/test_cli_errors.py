@@ -3,10 +3,14 @@ shows the traceback instead (riskflow_env.cli_errors)."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
 from policies.evaluation.cli import main as eval_main
-from riskflow_env.cli_errors import debug_requested, message, user_errors
+from riskflow_env.cli_errors import debug_requested, message, run_script, user_errors
 from riskflow_env.scenarios._npz import ScenarioFormatError
 from riskflow_env.scenarios.cli import main as data_main
 
@@ -61,3 +65,39 @@ def test_riskflow_data_info_on_a_broken_bank(tmp_path, capsys):
 def test_debug_is_recognised_as_argparse_reads_it():
     assert debug_requested(["--data", "d", "--deb"]) and debug_requested(["--debug"])
     assert not debug_requested(["--data", "d", "--steps", "2"])
+
+
+def test_run_script_is_one_line_and_reads_debug_from_argv(capsys):
+    def main():
+        raise FileNotFoundError("no generator checkpoint at /nope")
+
+    with pytest.raises(SystemExit) as exit_info:
+        run_script("rollout.py", main, ["--checkpoint", "/nope"])
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err.startswith("rollout.py: error: FileNotFoundError: no gen")
+    with pytest.raises(FileNotFoundError):
+        run_script("rollout.py", main, ["--checkpoint", "/nope", "--debug"])
+
+
+SCRIPTS_WITH_PATHS = [
+    ("examples/rollout.py", ["--checkpoint", "/nope"], "no generator checkpoint at /nope"),
+    ("examples/stress_test_planner.py", ["--planner", "nope.mod:x"], "no module named 'nope'"),
+    ("examples/stress_test_planner.py", ["--data", "/nope"], "/nope does not exist"),
+    ("benchmarks/failures_that_matter.py", ["--data", "/nope"], "/nope does not exist"),
+    ("benchmarks/adversary_quality.py", ["--checkpoint", "/nope"], "checkpoint at /nope"),
+    ("benchmarks/realism_diagnosis.py", ["--bank", "/nope"], "/nope does not exist"),
+    ("benchmarks/traffic_realism.py", ["--bank", "/nope"], "/nope does not exist"),
+    ("benchmarks/scenarionet_dataset.py", ["--data", "/nope"], "/nope does not exist"),
+]
+
+
+@pytest.mark.reliability
+@pytest.mark.parametrize(("script", "args", "expected"), SCRIPTS_WITH_PATHS)
+def test_examples_and_benchmarks_name_a_bad_path_in_one_line(script, args, expected):
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run(
+        [sys.executable, str(root / script), *args], capture_output=True, text=True, cwd=root
+    )
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
+    assert done.stderr.startswith(f"{Path(script).name}: error: ") and expected in done.stderr
