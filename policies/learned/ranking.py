@@ -34,6 +34,11 @@ most (:func:`ego_attacker`), so that the ego meets one adversary at a time, not 
 * only a vehicle ahead of or beside the ego (its centre ahead of the ego's rear bumper) may
   attack, so that it strikes the ego's front or side, where the ego sees it and can brake
   or swerve, never its rear;
+* only a moving vehicle, at ``MIN_ATTACKER_SPEED`` or faster, may attack: a parked car
+  cannot reach the ego within the attack's 3 s (its speed floor is its speed now, 0:
+  ``policies.learned.guidance_losses.KEEP_MOVING``), yet beside a road lined with parked
+  cars the TTC ranking puts them first, and the one attack of the scene went to cars that
+  never moved (docs/explanation/results.md, section 6);
 * the last cycle's attacker stays while it is eligible (hopping to another vehicle every
   cycle would bend several plans toward the ego in turn); a new one is the eligible
   candidate at the highest TTC risk with the ego, then the nearest.
@@ -53,6 +58,7 @@ from riskflow_env.risk import FEATURE_NAMES
 
 DEFAULT_THRESHOLD = 0.5  # risk above which a pair is an edge (TTC < 10 s with tau_max = 20 s)
 MIN_ATTACK_SPEED = 2.0  # [m/s] ego speed below which target "ego" guides no vehicle
+MIN_ATTACKER_SPEED = 0.5  # [m/s] a vehicle slower than this (parked, waiting) never attacks
 RISK_CHANNEL = FEATURE_NAMES.index("risk")
 NO_GROUP = -1
 
@@ -237,14 +243,16 @@ def ego_attacker(ranking: Ranking, window: Window, k: int | str, previous: int |
 
     Returns:
         the ranking with ``controllable`` the attacker's slot alone, or no slot (``k = 0``,
-        the ego slower than ``MIN_ATTACK_SPEED``, or no eligible candidate).
+        the ego slower than ``MIN_ATTACK_SPEED``, or no eligible candidate: ahead of or
+        beside the ego and at ``MIN_ATTACKER_SPEED`` or faster).
     """
     current = np.asarray(window.history, dtype=np.float64)[:, -1]  # (A, 4), the ego at 0
     candidates = ranking.order
     if k == 0 or current[0, SPEED] < MIN_ATTACK_SPEED:
         candidates = candidates[:0]
     rear_bumper = -0.5 * float(window.length[0])  # [m] along the ego's heading
-    eligible = candidates[current[candidates, 0] > rear_bumper]
+    ahead = current[candidates, 0] > rear_bumper
+    eligible = candidates[ahead & (current[candidates, SPEED] >= MIN_ATTACKER_SPEED)]
     if previous is not None and previous in eligible:
         chosen = [previous]
     else:
@@ -260,6 +268,7 @@ def ego_attacker(ranking: Ranking, window: Window, k: int | str, previous: int |
 __all__ = [
     "DEFAULT_THRESHOLD",
     "MIN_ATTACK_SPEED",
+    "MIN_ATTACKER_SPEED",
     "NO_GROUP",
     "Ranking",
     "causal_ranking",

@@ -7,6 +7,7 @@ import pytest
 
 from policies.learned.ranking import (
     MIN_ATTACK_SPEED,
+    MIN_ATTACKER_SPEED,
     NO_GROUP,
     causal_ranking,
     check_k,
@@ -211,3 +212,13 @@ def test_no_attack_on_an_ego_at_rest_or_with_k0():
     assert not ego_attacker(ranking, window, 5, previous=1).controllable.any()
     moving = _ego_scene(EGO_SCENE, [10.0] * 5, {1: 0.9})
     assert not ego_attacker(rank_window(moving, 0), moving, 0, previous=None).controllable.any()
+
+
+def test_a_vehicle_at_rest_never_attacks():
+    # 1 (parked ahead) is the riskiest, 2 (beside, moving) the only one that may attack.
+    speeds = [10.0, MIN_ATTACKER_SPEED - 0.1, 10.0, 10.0, 10.0]
+    window = _ego_scene(EGO_SCENE, speeds, {1: 0.9, 2: 0.1})
+    attack = ego_attacker(rank_window(window, 5), window, 5, previous=1)
+    assert list(np.flatnonzero(attack.controllable)) == [2]  # the last attacker stopped too
+    parked = _ego_scene(EGO_SCENE, [10.0, 0.0, 0.0, 10.0, 10.0], {1: 0.9, 2: 0.5})
+    assert not ego_attacker(rank_window(parked, 5), parked, 5, None).controllable.any()
