@@ -193,9 +193,12 @@ def table(results: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
+PROG = "adversary_quality.py"  # the name in usage and error lines
+
+
 def main(argv: list[str] | None = None) -> dict[str, dict]:
     """Run, write ``quality.json``, print the table; returns :func:`run`'s result."""
-    options = parse_dataclass(Options, argv, prog="adversary_quality.py", debug=True)
+    options = parse_dataclass(Options, argv, prog=PROG, debug=True)
     results = run(options)
     out = Path(options.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -212,4 +215,4 @@ def main(argv: list[str] | None = None) -> dict[str, dict]:
 
 
 if __name__ == "__main__":
-    run_script("adversary_quality.py", main)
+    run_script(PROG, main)

@@ -33,14 +33,13 @@ from typing import Any
 
 from tqdm import tqdm
 
-from policies.dataclass_cli import parse_dataclass
+from policies.dataclass_cli import run_main
 from policies.harness import ClosedLoop
 from policies.planners import OraclePlanner, make_planner
 from policies.registry import build_policy
 from policies.statistics import paired_difference
 from policies.stress import EscapeSearch, analyse, stress_summary
 from policies.stress.summary import episode_outcome
-from riskflow_env.cli_errors import run_script
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
 from riskflow_env.scenarios.folders import open_scenes
@@ -193,7 +192,4 @@ def _avoidable(row: dict[str, Any]) -> bool:
 
 
 if __name__ == "__main__":
-    prog, about = "failures_that_matter.py", __doc__.splitlines()[0]
-    run_script(
-        prog, lambda: main(parse_dataclass(Options, prog=prog, description=about, debug=True))
-    )
+    run_main(main, Options, "failures_that_matter.py", __doc__.splitlines()[0])

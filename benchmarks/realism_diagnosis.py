@@ -309,11 +309,12 @@ class Options:
             raise ValueError(f"--scenes must be >= 1, got {self.scenes}")
 
 
+PROG = "realism_diagnosis.py"  # the name in usage and error lines
+
+
 def main(argv: list[str] | None = None) -> str:
     """Entry point: run, print and return the tables."""
-    args = parse_dataclass(
-        Options, argv, prog="realism_diagnosis.py", description=__doc__.split("\n")[0], debug=True
-    )
+    args = parse_dataclass(Options, argv, prog=PROG, description=__doc__.split("\n")[0], debug=True)
     start = time.perf_counter()
     sections = []
     for method in with_raw((GENERATOR,), args.raw):
@@ -327,4 +328,4 @@ def main(argv: list[str] | None = None) -> str:
 
 
 if __name__ == "__main__":
-    run_script("realism_diagnosis.py", main)
+    run_script(PROG, main)

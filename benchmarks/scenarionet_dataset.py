@@ -114,11 +114,12 @@ def miss_vs_hit(path: Path, crop: bool, repeats: int, root: Path) -> tuple[float
     return statistics.median(misses), statistics.median(hits), size
 
 
+PROG = "scenarionet_dataset.py"  # the name in usage and error lines
+
+
 def main(argv: list[str] | None = None) -> None:
     """Print both tables."""
-    options = parse_dataclass(
-        Options, argv, "scenarionet_dataset.py", __doc__.split("\n")[0], debug=True
-    )
+    options = parse_dataclass(Options, argv, PROG, __doc__.split("\n")[0], debug=True)
     source = Dataset(options.data, map_cache=False)
     with tempfile.TemporaryDirectory() as scratch:
         root = Path(scratch)
@@ -144,4 +145,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    run_script("scenarionet_dataset.py", main)
+    run_script(PROG, main)

@@ -22,6 +22,7 @@ import numpy as np
 import shapely
 
 from policies.dataclass_cli import parse_dataclass
+from riskflow_env.cli_errors import run_script
 from riskflow_env.scenarios.safe_pickle import load_data_pickle
 from riskflow_env.scenarios.scenarionet import scenario_from_description
 
@@ -116,9 +117,12 @@ def measure(description: dict, options: Options, crop: bool) -> tuple:
     return scenario.map.shape, size, statistics.median(times)
 
 
+PROG = "scenarionet_map_size.py"  # the name in usage and error lines
+
+
 def main(argv: list[str] | None = None) -> None:
     options = parse_dataclass(
-        Options, argv, prog="scenarionet_map_size.py", description=__doc__.split("\n")[0]
+        Options, argv, prog=PROG, description=__doc__.split("\n")[0], debug=True
     )
     scenes = [(f"synthetic {options.area:g} m city", synthetic_city(options))]
     scenes += [(name, load_data_pickle(name)) for name in options.files]
@@ -138,4 +142,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(PROG, main)

@@ -155,9 +155,12 @@ class Options:
                 raise ValueError(f"--checkpoint: no file {path}")
 
 
+PROG = "traffic_realism.py"  # the name in usage and error lines
+
+
 def parse_args(argv: Sequence[str] | None = None) -> Options:
     return parse_dataclass(
-        Options, argv, prog="traffic_realism.py", description=__doc__.split("\n\n")[0], debug=True
+        Options, argv, prog=PROG, description=__doc__.split("\n\n")[0], debug=True
     )
 
 
@@ -373,4 +376,4 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
 
 
 if __name__ == "__main__":
-    run_script("traffic_realism.py", main)
+    run_script(PROG, main)

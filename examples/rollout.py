@@ -31,14 +31,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from policies.dataclass_cli import parse_dataclass
+from policies.dataclass_cli import run_main
 from policies.harness import METRICS, ClosedLoop
 from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
 from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
 from riskflow_env.agents import ReplayPolicy
-from riskflow_env.cli_errors import run_script
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import Scenario, load_scenario, shipped_bank
 from riskflow_env.scenarios.scenarionet import load_scenarionet
@@ -209,7 +208,4 @@ def main(options: Options) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    prog, about = "rollout.py", __doc__.splitlines()[0]
-    run_script(
-        prog, lambda: main(parse_dataclass(Options, prog=prog, description=about, debug=True))
-    )
+    run_main(main, Options, "rollout.py", __doc__.splitlines()[0])

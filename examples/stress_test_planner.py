@@ -30,11 +30,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from policies.dataclass_cli import parse_dataclass
+from policies.dataclass_cli import run_main
 from policies.stress import riskflow_stress
 from policies.stress.cli import stress_kwargs
 from policies.stress.runner import StressOptions
-from riskflow_env.cli_errors import run_script
 
 
 def my_planner(observation: np.ndarray, view) -> np.ndarray:
@@ -72,7 +71,4 @@ def main(options: Options):
 
 
 if __name__ == "__main__":
-    prog, about = "stress_test_planner.py", __doc__.splitlines()[0]
-    run_script(
-        prog, lambda: main(parse_dataclass(Options, prog=prog, description=about, debug=True))
-    )
+    run_main(main, Options, "stress_test_planner.py", __doc__.splitlines()[0])

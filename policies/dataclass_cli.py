@@ -37,7 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
-from riskflow_env.cli_errors import add_debug_flag
+from riskflow_env.cli_errors import add_debug_flag, run_script
 
 T = TypeVar("T")
 
@@ -239,3 +239,10 @@ def _apply_recipe(
         if action.dest in values:
             action.required = False
     parser.set_defaults(**values)
+
+
+def run_main(main: Callable[[T], Any], cls: type[T], prog: str, description: str = "") -> None:
+    """The ``__main__`` of a script whose ``main`` takes its options: the command line parsed
+    into ``cls`` (``--debug`` declared) and ``main(options)`` run, a user error printed as
+    one line (:func:`riskflow_env.cli_errors.run_script`)."""
+    run_script(prog, lambda: main(parse_dataclass(cls, None, prog, description, debug=True)))

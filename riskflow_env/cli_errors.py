@@ -2,13 +2,14 @@
 
 A user error is a bad file or folder (``OSError``: missing, unreadable, not a directory) or
 a value the code refuses (``ValueError``, which :class:`ScenarioFormatError` and the
-argument checks raise, naming the file or the argument and what was expected). The
-console scripts (``riskflow-data``, ``riskflow-eval``, ``riskflow-stress``,
-``riskflow-train``) run their work inside :func:`user_errors`, and the examples and
-benchmarks that read files or planner specs inside :func:`run_script`, which prints such an error
-as ``<prog>: error: <message>`` on stderr and exits with status 2, as argparse does for a
-bad flag. ``--debug`` (declared by :func:`add_debug_flag`) re-raises it instead, with its
-traceback. Any other exception is a bug and keeps its traceback.
+argument checks raise, naming the file or the argument and what was expected).
+:func:`user_errors` prints such an error as ``<prog>: error: <message>`` on stderr and
+exits with status 2, as argparse does for a bad flag; ``--debug`` (declared by
+:func:`add_debug_flag`) re-raises it instead, with its traceback. Any other exception is a
+bug and keeps its traceback. The console scripts (``riskflow-data``, ``riskflow-eval``,
+``riskflow-stress``, ``riskflow-train``) run their work inside it, and so do the examples
+and benchmarks that read files or planner specs (:func:`run_script`,
+:func:`policies.dataclass_cli.run_main`).
 """
 
 from __future__ import annotations

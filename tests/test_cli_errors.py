@@ -88,6 +88,7 @@ SCRIPTS_WITH_PATHS = [
     ("benchmarks/realism_diagnosis.py", ["--bank", "/nope"], "/nope does not exist"),
     ("benchmarks/traffic_realism.py", ["--bank", "/nope"], "/nope does not exist"),
     ("benchmarks/scenarionet_dataset.py", ["--data", "/nope"], "/nope does not exist"),
+    ("benchmarks/scenarionet_map_size.py", ["--files", "/nope.pkl", "--area", "50"], "/nope.pkl"),
 ]
 
 
@@ -96,7 +97,11 @@ SCRIPTS_WITH_PATHS = [
 def test_examples_and_benchmarks_name_a_bad_path_in_one_line(script, args, expected):
     root = Path(__file__).resolve().parents[1]
     done = subprocess.run(
-        [sys.executable, str(root / script), *args], capture_output=True, text=True, cwd=root
+        [sys.executable, str(root / script), *args],
+        capture_output=True,
+        text=True,
+        cwd=root,
+        timeout=300,
     )
     assert done.returncode == 2, done.stderr
     assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr

@@ -34,11 +34,11 @@ most (:func:`ego_attacker`), so that the ego meets one adversary at a time, not 
 * only a vehicle ahead of or beside the ego (its centre ahead of the ego's rear bumper) may
   attack, so that it strikes the ego's front or side, where the ego sees it and can brake
   or swerve, never its rear;
-* only a moving vehicle, at ``MIN_ATTACKER_SPEED`` or faster, may attack: a parked car
-  cannot reach the ego within the attack's 3 s (its speed floor is its speed now, 0:
-  ``policies.learned.guidance_losses.KEEP_MOVING``), yet beside a road lined with parked
-  cars the TTC ranking puts them first, and the one attack of the scene went to cars that
-  never moved (docs/explanation/results.md, section 6);
+* only a moving vehicle, at ``MIN_ATTACKER_SPEED`` or faster, may attack. Beside a road
+  lined with parked cars the TTC ranking puts a parked car first; chosen, it did not pull
+  out (its speed floor is its speed now, 0, so nothing made it), and the one attack of the
+  scene was spent on a car that never moved (docs/explanation/results.md, "Only a moving
+  vehicle attacks");
 * the last cycle's attacker stays while it is eligible (hopping to another vehicle every
   cycle would bend several plans toward the ego in turn); a new one is the eligible
   candidate at the highest TTC risk with the ego, then the nearest.

@@ -7,9 +7,9 @@ It drives every non-ego vehicle. Every planning cycle (``planning_interval``, 0.
 1. ``encode``: one window (ego frame; docs/how-to/windows.md) and one encoder pass;
 2. ``rank``: TTC causal ranking -> the controllable set ``A_c``
    (:mod:`policies.learned.ranking`; from the window's current states, so it comes first:
-   the avoidance steps need it); with ``target="ego"`` one attacker at a time, ahead of or
-   beside a moving ego and kept across cycles (:func:`~policies.learned.ranking.
-   ego_attacker`);
+   the avoidance steps need it); with ``target="ego"`` one moving attacker at a time,
+   ahead of or beside a moving ego and kept across cycles (:func:`~policies.learned.
+   ranking.ego_attacker`);
 3. ``generate``, ``stitch``, ``decode``: one MeanFlow pass for all agents,
    ``u0 = u_theta(eps, 0, 1; C)``, blended into the executed plans, base plans
    ``a = clip(denorm(eps + u0))`` (:mod:`policies.learned.sampler`);
