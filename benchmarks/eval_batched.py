@@ -42,6 +42,7 @@ from pathlib import Path
 
 from policies.dataclass_cli import parse_dataclass
 from policies.evaluation import ResultsStore, build_tables
+from riskflow_env.cli_errors import run_script
 
 ROOT = Path(__file__).resolve().parents[1]
 SUMMARY = re.compile(r"(\d+) rollouts run in ([\d.]+) s")
@@ -94,9 +95,12 @@ main(sys.argv[2:])
 """
 
 
+PROG = "eval_batched.py"  # the name in usage and error lines
+
+
 def _parse(argv: list[str] | None = None) -> Options:
     options = parse_dataclass(
-        Options, argv, prog="eval_batched.py", description=__doc__.split("\n")[0]
+        Options, argv, prog=PROG, description=__doc__.split("\n")[0], debug=True
     )
     if options.perturb is not None:
         from policies.registry import METHODS
@@ -133,6 +137,9 @@ def run_eval(options: Options, batch: int, out: Path, perturb: float | None = No
     result = subprocess.run(argv, capture_output=True, text=True, env=env, cwd=ROOT)
     command = time.perf_counter() - start
     match = SUMMARY.search(result.stdout)
+    if result.returncode == 2:  # a user error (a bad --out, ...): riskflow-eval's one line
+        lines = result.stderr.strip().splitlines() or ["(no message)"]
+        raise ValueError(lines[-1].removeprefix("riskflow-eval: error: "))
     if result.returncode != 0 or match is None:
         raise RuntimeError(f"riskflow-eval failed ({result.returncode}):\n{result.stderr[-2000:]}")
     label = batch if perturb is None else f"1+{perturb:g}"
@@ -239,4 +246,4 @@ def main(argv: list[str] | None = None) -> list[dict]:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(PROG, main)

@@ -88,6 +88,7 @@ SCRIPTS_WITH_PATHS = [
     ("benchmarks/realism_diagnosis.py", ["--bank", "/nope"], "/nope does not exist"),
     ("benchmarks/traffic_realism.py", ["--bank", "/nope"], "/nope does not exist"),
     ("benchmarks/scenarionet_dataset.py", ["--data", "/nope"], "/nope does not exist"),
+    ("benchmarks/eval_batched.py", ["--scenes", "1", "--out", "/proc/x"], "--out"),
     ("benchmarks/scenarionet_map_size.py", ["--files", "/nope.pkl", "--area", "50"], "/nope.pkl"),
 ]
 
