@@ -27,13 +27,16 @@ off-road; a legend on the frame), ``events.jsonl`` (the event log,
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+import math
+import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from policies.dataclass_cli import run_main
 from policies.harness import METRICS, ClosedLoop
 from policies.learned.adversary_config import AdversaryConfig
+from policies.learned.checkpoint import CheckpointError
 from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
 from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
@@ -44,6 +47,7 @@ from riskflow_env.scenarios.scenarionet import load_scenarionet
 
 VIDEO_FORMATS = ("gif", "mp4", "none")
 TRAFFIC = ("riskflow", "replay")
+DT = EnvConfig().dynamics.dt  # [s] the env's time step
 
 
 @dataclass(frozen=True)
@@ -88,6 +92,11 @@ class Options:
             raise ValueError(f"--target must be 'others' or 'ego', got {self.target!r}")
         if not (self.k == "all" or (self.k.isdigit())):
             raise ValueError(f"--k must be an int >= 0 or 'all', got {self.k!r}")
+        steps = self.planning_interval / DT
+        if not (math.isfinite(steps) and round(steps) >= 1 and math.isclose(steps, round(steps))):
+            raise ValueError(
+                f"--planning-interval must be a multiple of {DT} s, got {self.planning_interval}"
+            )
         if self.steps < 1:
             raise ValueError(f"--steps must be >= 1, got {self.steps}")
         if not 0 <= self.lambda_map < float("inf"):
@@ -110,27 +119,37 @@ def load_scene(spec: str) -> Scenario:
         bank = shipped_bank("eval")
         index = int(spec)
         if not 0 <= index < len(bank):
-            raise SystemExit(f"--scenario {spec}: the shipped bank has scenes 0-{len(bank) - 1}")
+            raise ValueError(f"--scenario {spec}: the shipped bank has scenes 0-{len(bank) - 1}")
         return bank[index]
     path = Path(spec)
+    if path.is_dir():
+        raise ValueError(f"--scenario {spec!r} is a folder; give one scenario file or a bank index")
     if not path.is_file():
-        raise SystemExit(f"--scenario {spec!r}: no such scenario file (or give a bank index)")
+        raise ValueError(f"--scenario {spec!r}: no such scenario file (or give a bank index)")
     suffix = path.suffix.lower()
     if suffix not in (".npz", ".pkl"):
-        raise SystemExit(
+        raise ValueError(
             f"--scenario {spec!r}: unknown scenario format {suffix or '(no suffix)'!r}; expected "
             "a bank index, a RiskFlow scenario file (.npz) or a ScenarioNet pickle (.pkl)"
         )
     try:
         return load_scenarionet(path) if suffix == ".pkl" else load_scenario(path)
     except (ValueError, KeyError, OSError) as err:  # a file of that suffix it cannot read
-        raise SystemExit(f"--scenario {spec!r}: {err}") from None
+        raise ValueError(f"--scenario {spec!r}: {err}") from None
 
 
 def make_traffic(options: Options) -> RiskFlowAdversary | ReplayPolicy:
     """The scene policy of every vehicle but the ego."""
     if options.traffic == "replay":
         return ReplayPolicy(controlled="others", mode="open_loop")
+    try:
+        return adversary(options)
+    except (CheckpointError, FileNotFoundError) as err:
+        raise ValueError(f"--checkpoint: {err}") from None
+
+
+def adversary(options: Options) -> RiskFlowAdversary:
+    """The RiskFlow adversary of ``options``."""
     return RiskFlowAdversary(
         k=options.controllable,
         planning_interval=options.planning_interval,
@@ -163,6 +182,21 @@ def describe(event: dict[str, Any]) -> str:
     return f"{head}{kind}: {event.get('end_reason', '')}"
 
 
+def warm_up(options: Options, scenario: Scenario, config: EnvConfig) -> None:
+    """One untimed step with a throwaway adversary, as ``riskflow-eval`` does, so that the
+    one-off costs (the first model call; on a new install, compiling the kernels, which
+    are cached on disk after) stay out of the episode's planning times."""
+    if options.traffic != "riskflow":
+        return
+    start = time.perf_counter()
+    one_step = replace(config, episode_steps=1)
+    with ClosedLoop(IDMPlanner(dynamics=config.dynamics), make_traffic(options), one_step) as loop:
+        loop.run(scenario)
+    seconds = time.perf_counter() - start
+    if seconds > 2.0:
+        print(f"warm-up {seconds:.1f} s (first run of a new install: compiling the kernels)")
+
+
 def main(options: Options) -> dict[str, Any]:
     """Run the episode, print it, write the outputs; returns the metrics."""
     scenario = load_scene(options.scenario)
@@ -172,6 +206,7 @@ def main(options: Options) -> dict[str, Any]:
     video = None if options.video == "none" else out / f"rollout.{options.video}"
     config = EnvConfig(episode_steps=options.steps)
     print(f"scene {scenario.name!r} ({scenario.num_agents} vehicles), traffic: {options.traffic}")
+    warm_up(options, scenario, config)
     with ClosedLoop(
         IDMPlanner(dynamics=config.dynamics),
         traffic,

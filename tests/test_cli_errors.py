@@ -80,7 +80,10 @@ def test_run_script_is_one_line_and_reads_debug_from_argv(capsys):
 
 
 SCRIPTS_WITH_PATHS = [
-    ("examples/rollout.py", ["--checkpoint", "/nope"], "no generator checkpoint at /nope"),
+    ("examples/rollout.py", ["--checkpoint", "/nope"], "--checkpoint: no generator checkpoint"),
+    ("examples/rollout.py", ["--checkpoint", "README.md"], "--checkpoint: cannot read"),
+    ("examples/rollout.py", ["--scenario", "docs"], "--scenario 'docs' is a folder"),
+    ("examples/rollout.py", ["--scenario", "105"], "--scenario 105: the shipped bank"),
     ("examples/stress_test_planner.py", ["--planner", "nope.mod:x"], "no module named 'nope'"),
     ("examples/stress_test_planner.py", ["--data", "/nope"], "/nope does not exist"),
     ("benchmarks/failures_that_matter.py", ["--data", "/nope"], "/nope does not exist"),

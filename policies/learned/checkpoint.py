@@ -168,10 +168,13 @@ def load_checkpoint(path: str | os.PathLike, device: torch.device | str = "cpu")
     if not path.is_file():
         raise FileNotFoundError(f"no generator checkpoint at {path}")
     try:
-        checkpoint = torch.load(path, map_location=device, weights_only=True)
+        with warnings.catch_warnings():  # a foreign pickle's protocol: the error says enough
+            warnings.filterwarnings("ignore", message="Detected pickle protocol")
+            checkpoint = torch.load(path, map_location=device, weights_only=True)
     except Exception as err:  # torch raises several types for corrupt or foreign files
-        message = str(err)[:300]
-        raise CheckpointError(f"cannot read generator checkpoint {path}: {message}") from None
+        raise CheckpointError(
+            f"cannot read generator checkpoint {path}: {load_failure(err)}"
+        ) from None
     if not isinstance(checkpoint, dict):
         raise CheckpointError(f"{path} holds a {type(checkpoint).__name__}, not a checkpoint dict")
     check_tensor_layouts(checkpoint, str(path))
@@ -179,6 +182,20 @@ def load_checkpoint(path: str | os.PathLike, device: torch.device | str = "cpu")
     if isinstance(checkpoint.get("state_dict"), Mapping):
         check_finite(checkpoint["state_dict"], str(path))
     return checkpoint
+
+
+def load_failure(error: Exception) -> str:
+    """What ``torch.load(weights_only=True)``'s ``error`` says of a file, in one short line.
+
+    The safe loader refuses any file that is not a ``torch.save`` of tensors and plain
+    values (a text file, a foreign pickle); its message then advises loading the file
+    unsafely, which a file that is not a checkpoint never calls for, so only its reason
+    is kept."""
+    text = " ".join(str(error).split())
+    if "Weights only load failed" in text or "WeightsUnpickler error" in text:
+        reason = text.split("WeightsUnpickler error:")[-1].split(" Check the documentation")[0]
+        return f"not a torch.save file of tensors and plain values ({reason.strip()})"
+    return text[:300]
 
 
 def verify_weights(checkpoint: Mapping[str, Any], source: str = "checkpoint") -> None:

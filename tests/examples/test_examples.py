@@ -75,6 +75,8 @@ def test_rollout(checkpoint, tmp_path):
         (["--avoid-steps", "-1"], "--avoid-steps must be >= 0"),
         (["--hold-distance", "-2"], "--hold-distance finite and >= 0"),
         (["--lambda-map", "-1"], "--lambda-map must be finite and >= 0"),
+        (["--planning-interval", "0.25"], "--planning-interval must be a multiple of 0.1 s"),
+        (["--planning-interval", "nan"], "--planning-interval must be a multiple of 0.1 s"),
     ],
 )
 def test_rollout_rejects_bad_options(argv, message, monkeypatch, capsys):
@@ -142,9 +144,9 @@ def test_rollout_scenario_formats(monkeypatch, tmp_path):
     assert rollout.load_scene(str(pickled)) == ("scenarionet", pickled)
     other = tmp_path / "scene.json"
     other.write_text("{}")
-    with pytest.raises(SystemExit, match=r"--scenario .*\.npz.*\.pkl"):
+    with pytest.raises(ValueError, match=r"--scenario .*\.npz.*\.pkl"):
         rollout.load_scene(str(other))
     broken = tmp_path / "broken.npz"
     broken.write_bytes(b"not a zip")
-    with pytest.raises(SystemExit, match=r"--scenario .*broken\.npz"):
+    with pytest.raises(ValueError, match=r"--scenario .*broken\.npz"):
         rollout.load_scene(str(broken))

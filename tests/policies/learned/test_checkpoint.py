@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import pickle
 
+import numpy as np
 import pytest
 import torch
 
@@ -80,6 +82,19 @@ def test_mismatches_raise_clear_errors(tmp_path, make_model, normalizer, tiny_co
         load_generator(tmp_path / "junk.pt")
     with pytest.raises(FileNotFoundError, match="no generator checkpoint"):
         load_generator(tmp_path / "missing.pt")
+
+
+def test_a_file_the_safe_loader_refuses_is_named_in_one_short_line(tmp_path):
+    foreign = tmp_path / "foreign.pt"
+    foreign.write_bytes(pickle.dumps({"weights": np.zeros(3)}, protocol=4))
+    text = tmp_path / "notes.pt"
+    text.write_text("# my notes\n")
+    for path in (foreign, text):
+        with pytest.raises(CheckpointError) as raised:
+            load_checkpoint(path)
+        message = str(raised.value)
+        assert "not a torch.save file of tensors and plain values" in message
+        assert "weights_only" not in message and "\n" not in message and len(message) < 300
 
 
 def test_save_is_atomic(tmp_path, make_model, normalizer, tiny_config, monkeypatch):
