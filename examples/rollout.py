@@ -28,16 +28,17 @@ from __future__ import annotations
 
 import json
 import math
-import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from policies import harness
 from policies.dataclass_cli import run_main
 from policies.harness import METRICS, ClosedLoop
 from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.checkpoint import CheckpointError
 from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
+from policies.learned.windows import WindowConfig
 from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
 from riskflow_env.agents import ReplayPolicy
@@ -48,6 +49,7 @@ from riskflow_env.scenarios.scenarionet import load_scenarionet
 VIDEO_FORMATS = ("gif", "mp4", "none")
 TRAFFIC = ("riskflow", "replay")
 DT = EnvConfig().dynamics.dt  # [s] the env's time step
+HORIZON = WindowConfig().future_steps  # [steps] of the shipped generator's plans
 
 
 @dataclass(frozen=True)
@@ -59,7 +61,7 @@ class Options:
     k: str = "5"
     """size of the controllable set A_c: an int >= 0 (0: unguided generator) or 'all'"""
     planning_interval: float = 0.5
-    """time between re-plans of the adversary [s], a multiple of 0.1 s"""
+    """time between re-plans of the adversary [s], a multiple of 0.1 s up to 5.2 s"""
     target: str = "ego"
     """what A_c is pulled toward: 'ego' (stress testing the ego) or 'others' (the paper's)"""
     seed: int = 0
@@ -93,9 +95,12 @@ class Options:
         if not (self.k == "all" or (self.k.isdigit())):
             raise ValueError(f"--k must be an int >= 0 or 'all', got {self.k!r}")
         steps = self.planning_interval / DT
-        if not (math.isfinite(steps) and round(steps) >= 1 and math.isclose(steps, round(steps))):
+        if not (math.isfinite(steps) and math.isclose(steps, round(steps))) or not (
+            1 <= round(steps) <= HORIZON
+        ):
             raise ValueError(
-                f"--planning-interval must be a multiple of {DT} s, got {self.planning_interval}"
+                f"--planning-interval must be a multiple of {DT} s from {DT} to "
+                f"{HORIZON * DT:.1f} s (the plans' horizon), got {self.planning_interval}"
             )
         if self.steps < 1:
             raise ValueError(f"--steps must be >= 1, got {self.steps}")
@@ -183,18 +188,16 @@ def describe(event: dict[str, Any]) -> str:
 
 
 def warm_up(options: Options, scenario: Scenario, config: EnvConfig) -> None:
-    """One untimed step with a throwaway adversary, as ``riskflow-eval`` does, so that the
-    one-off costs (the first model call; on a new install, compiling the kernels, which
-    are cached on disk after) stay out of the episode's planning times."""
+    """One untimed step with a throwaway adversary (:func:`policies.harness.warm_up`, as
+    ``riskflow-eval`` does), so that the one-off costs stay out of the episode's planning
+    times."""
     if options.traffic != "riskflow":
         return
-    start = time.perf_counter()
-    one_step = replace(config, episode_steps=1)
-    with ClosedLoop(IDMPlanner(dynamics=config.dynamics), make_traffic(options), one_step) as loop:
-        loop.run(scenario)
-    seconds = time.perf_counter() - start
-    if seconds > 2.0:
-        print(f"warm-up {seconds:.1f} s (first run of a new install: compiling the kernels)")
+    print("warm-up (the first model call; on a new install also compiling the kernels, about "
+          "half a minute once) ...", end="", flush=True)  # fmt: skip
+    planner = IDMPlanner(dynamics=config.dynamics)
+    seconds = harness.warm_up(planner, make_traffic(options), scenario, config)
+    print(f" {seconds:.1f} s")
 
 
 def main(options: Options) -> dict[str, Any]:

@@ -10,14 +10,14 @@ The loop, written once for the examples and the evaluations::
 
 Every run goes through an :class:`~riskflow_env.wrappers.EventLogWrapper` (JSON Lines on
 disk with ``event_log=``, in memory otherwise) and, with ``video=``, a
-:class:`~riskflow_env.wrappers.VideoRecorder`. Each episode gives an
-:class:`EpisodeRecord`: the executed states, the events and the metrics of
-:data:`METRICS` (the off-road rates are :func:`riskflow_env.metrics.offroad_counts` over
-the episode's live agent-steps, with the env's own off-road flags; the evaluation's ORR
-counts a record's scored agent-steps instead, see :mod:`riskflow_env.metrics.safety`);
-:meth:`EpisodeRecord.to_scenario` turns it into a scenario whose
-reference future is what was executed, so that :class:`~policies.baselines.ReplayPolicy`
-replays it. :func:`summarize` aggregates records with 95% confidence intervals.
+:class:`~riskflow_env.wrappers.VideoRecorder`. Each episode gives an :class:`EpisodeRecord`:
+the executed states, the events and the metrics of :data:`METRICS` (the off-road rates are
+:func:`riskflow_env.metrics.offroad_counts` over the episode's live agent-steps, with the
+env's own off-road flags; the evaluation's ORR counts a record's scored agent-steps instead,
+see :mod:`riskflow_env.metrics.safety`); :meth:`EpisodeRecord.to_scenario` turns it into a
+scenario whose reference future is what was executed, so that
+:class:`~policies.baselines.ReplayPolicy` replays it. :func:`summarize` aggregates records
+with 95% confidence intervals; :func:`warm_up` keeps one-off costs out of the timings.
 
 Episodes end as ``config`` says; the default :class:`~riskflow_env.config.EnvConfig`
 ends an episode when the ego collides or leaves the road, or after 10 s, and freezes both
@@ -257,6 +257,17 @@ class ClosedLoop:
         return record
 
 
+def warm_up(
+    planner: EgoPlanner, policy: ScenePolicy, scenario: Scenario, config: EnvConfig, seed: int = 0
+) -> float:
+    """One untimed step of ``scenario`` with a throwaway ``policy``: one-off costs (the first
+    model call, compiling the kernels) stay out of later planning times. Its time [s]."""
+    start = time.perf_counter()
+    with ClosedLoop(planner, policy, dataclasses.replace(config, episode_steps=1)) as loop:
+        loop.run(scenario, seed=seed)
+    return time.perf_counter() - start
+
+
 def controllable_now(policy: ScenePolicy, num_agents: int) -> np.ndarray | None:
     """(A,) copy of the policy's ``A_c`` after ``act`` (None if it has none)."""
     controllable = getattr(policy, "controllable", None)
@@ -275,13 +286,8 @@ def guided_frames(flags: list[np.ndarray | None]) -> np.ndarray | None:
 
 def _frame(base: RiskFlowParallelEnv) -> tuple[np.ndarray, ...]:
     scene, events = base.scene, base.last_events
-    return (
-        scene.current.copy(),
-        scene.present.copy(),
-        scene.active.copy(),
-        events.centroid_offroad,
-        events.offroad,
-    )
+    flags = (scene.present.copy(), scene.active.copy(), events.centroid_offroad, events.offroad)
+    return (scene.current.copy(), *flags)
 
 
 def _mean_ms(seconds: list[float]) -> float | None:

@@ -16,12 +16,12 @@ from __future__ import annotations
 import functools
 import math
 import time
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
 import torch
 
+from policies import harness
 from policies.evaluation.options import Job, method_label, open_data
 from policies.harness import ClosedLoop, EpisodeRecord
 from policies.planners import make_planner
@@ -78,11 +78,7 @@ def warm_up(job: Job, scenario: Scenario, config: EnvConfig) -> float:
     if label in _WARM:
         return 0.0
     start = time.perf_counter()
-    policy = job_policy(job)
-    one_step = replace(config, episode_steps=1)
-    planner = make_planner(job.run.ego)
-    with ClosedLoop(planner, policy, config=one_step, scenarios=scenario) as loop:
-        loop.run(scenario, seed=job.seed)
+    harness.warm_up(make_planner(job.run.ego), job_policy(job), scenario, config, job.seed)
     _WARM.add(label)
     return time.perf_counter() - start
 

@@ -32,6 +32,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import os
+import re
 import subprocess
 import tempfile
 import threading
@@ -188,14 +189,19 @@ def load_failure(error: Exception) -> str:
     """What ``torch.load(weights_only=True)``'s ``error`` says of a file, in one short line.
 
     The safe loader refuses any file that is not a ``torch.save`` of tensors and plain
-    values (a text file, a foreign pickle); its message then advises loading the file
-    unsafely, which a file that is not a checkpoint never calls for, so only its reason
-    is kept."""
+    values (a text file, a foreign pickle, a saved module or numpy array); its message then
+    advises loading the file unsafely or allowlisting what it holds, which a generator
+    checkpoint never calls for, so only what it refused is kept."""
     text = " ".join(str(error).split())
-    if "Weights only load failed" in text or "WeightsUnpickler error" in text:
-        reason = text.split("WeightsUnpickler error:")[-1].split(" Check the documentation")[0]
-        return f"not a torch.save file of tensors and plain values ({reason.strip()})"
-    return text[:300]
+    if "Weights only load failed" not in text and "WeightsUnpickler error" not in text:
+        return text[:300]
+    refused = re.search(r"Unsupported global: GLOBAL (\S+)", text)
+    if refused:
+        what = f"it holds {refused.group(1)}"
+    else:
+        what = text.split("WeightsUnpickler error:")[-1].split(" Check the documentation")[0]
+        what = what.split(" Please ")[0].strip()[:120]
+    return f"the safe loader refuses it ({what}); a checkpoint holds tensors and plain values"
 
 
 def verify_weights(checkpoint: Mapping[str, Any], source: str = "checkpoint") -> None:

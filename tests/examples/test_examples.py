@@ -68,6 +68,28 @@ def test_rollout(checkpoint, tmp_path):
     assert frames.shape == (metrics["steps"] + 1, 360, 640, 3)
 
 
+def test_rollout_warm_up_leaves_the_episode_as_it_is(checkpoint, tmp_path, monkeypatch):
+    """The untimed warm-up step runs a throwaway adversary: the episode's events and
+    metrics (all but the wall times) are those of a run without it."""
+    rollout = _example("rollout", monkeypatch)
+    runs = {}
+    for warm in (True, False):
+        if not warm:
+            monkeypatch.setattr(rollout, "warm_up", lambda *args: None)
+        out = tmp_path / str(warm)
+        options = rollout.Options(
+            steps=12, checkpoint=checkpoint, out=out, k="2", seed=1, video="none"
+        )
+        metrics = rollout.main(options)
+        timing = {"planning_time_ms", "planning_time_max_ms", "ego_time_ms"}
+        events = [
+            {key: value for key, value in event.items() if "time_" not in key}
+            for event in read_event_log(out / "events.jsonl")
+        ]
+        runs[warm] = ({k: v for k, v in metrics.items() if k not in timing}, events)
+    assert runs[True] == runs[False]
+
+
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
@@ -77,6 +99,9 @@ def test_rollout(checkpoint, tmp_path):
         (["--lambda-map", "-1"], "--lambda-map must be finite and >= 0"),
         (["--planning-interval", "0.25"], "--planning-interval must be a multiple of 0.1 s"),
         (["--planning-interval", "nan"], "--planning-interval must be a multiple of 0.1 s"),
+        (["--planning-interval", "0"], "from 0.1 to 5.2 s (the plans' horizon), got 0.0"),
+        (["--planning-interval", "-0.5"], "from 0.1 to 5.2 s (the plans' horizon), got -0.5"),
+        (["--planning-interval", "10"], "from 0.1 to 5.2 s (the plans' horizon), got 10.0"),
     ],
 )
 def test_rollout_rejects_bad_options(argv, message, monkeypatch, capsys):

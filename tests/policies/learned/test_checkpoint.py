@@ -89,12 +89,20 @@ def test_a_file_the_safe_loader_refuses_is_named_in_one_short_line(tmp_path):
     foreign.write_bytes(pickle.dumps({"weights": np.zeros(3)}, protocol=4))
     text = tmp_path / "notes.pt"
     text.write_text("# my notes\n")
-    for path in (foreign, text):
+    with_numpy = tmp_path / "numpy.pt"
+    torch.save({"weights": np.zeros(3)}, with_numpy)
+    module = tmp_path / "module.pt"
+    torch.save(torch.nn.Linear(2, 2), module)
+    for path in (foreign, text, with_numpy, module):
         with pytest.raises(CheckpointError) as raised:
             load_checkpoint(path)
         message = str(raised.value)
-        assert "not a torch.save file of tensors and plain values" in message
-        assert "weights_only" not in message and "\n" not in message and len(message) < 300
+        assert "the safe loader refuses it" in message and path.name in message
+        assert "\n" not in message and len(message) < 300
+        for advice in ("weights_only", "add_safe_globals", "trust"):
+            assert advice not in message
+    with pytest.raises(CheckpointError, match=r"it holds torch\.nn\.modules\.linear\.Linear"):
+        load_checkpoint(module)
 
 
 def test_save_is_atomic(tmp_path, make_model, normalizer, tiny_config, monkeypatch):
