@@ -148,24 +148,19 @@ def make_traffic(options: Options) -> RiskFlowAdversary | ReplayPolicy:
     if options.traffic == "replay":
         return ReplayPolicy(controlled="others", mode="open_loop")
     try:
-        return adversary(options)
+        return RiskFlowAdversary(
+            k=options.controllable,
+            planning_interval=options.planning_interval,
+            target=options.target,
+            seed=options.seed,
+            device=options.device,
+            checkpoint=options.checkpoint,
+            avoid_steps=options.avoid_steps,
+            hold_distance=options.hold_distance,
+            lambda_map=options.lambda_map,
+        )
     except (CheckpointError, FileNotFoundError) as err:
         raise ValueError(f"--checkpoint: {err}") from None
-
-
-def adversary(options: Options) -> RiskFlowAdversary:
-    """The RiskFlow adversary of ``options``."""
-    return RiskFlowAdversary(
-        k=options.controllable,
-        planning_interval=options.planning_interval,
-        target=options.target,
-        seed=options.seed,
-        device=options.device,
-        checkpoint=options.checkpoint,
-        avoid_steps=options.avoid_steps,
-        hold_distance=options.hold_distance,
-        lambda_map=options.lambda_map,
-    )
 
 
 def describe(event: dict[str, Any]) -> str:
