@@ -196,7 +196,8 @@ def _exact_inverse(resolution: np.ndarray) -> np.ndarray:
 @functools.lru_cache(maxsize=16)
 def _dynamics_params(config: DynamicsConfig) -> np.ndarray:
     values = (config.dt, config.accel_min, config.accel_max, config.yaw_rate_max)
-    return np.array([*values, config.speed_min, config.speed_max], dtype=np.float64)
+    bounds = (config.speed_min, config.speed_max, config.turn_radius_min)
+    return np.array([*values, *bounds], dtype=np.float64)
 
 
 @functools.lru_cache(maxsize=16)

@@ -51,7 +51,7 @@ def advance(current, present, active, actions, params):
     """:func:`riskflow_env.simulator.advance` of N flattened slots: ``current`` (N, 4),
     ``present``, ``active`` (N,) bool, ``actions`` (N, 2) -> new (N, 4), applied (N, 2)."""
     dt, accel_min, accel_max = params[0], params[1], params[2]
-    yaw_max, speed_min, speed_max = params[3], params[4], params[5]
+    yaw_max, speed_min, speed_max, radius = params[3], params[4], params[5], params[6]
     count = current.shape[0]
     new = np.empty((count, 4))
     applied = np.zeros((count, 2))
@@ -68,10 +68,14 @@ def advance(current, present, active, actions, params):
         both = lower - max(lower - speed_max, 0.0)
         speed = min(max(both, speed_min), speed_max)
         distance = 0.5 * (v0 + speed) * dt
+        turn = yaw_rate
+        if radius > 0.0:  # dynamics._turn_bounded
+            reach = (v0 + speed) * (0.5 / radius)
+            turn = reach if yaw_rate > reach else (-reach if yaw_rate < -reach else yaw_rate)
         new[k, 0] = x + distance * math.cos(psi0)
         new[k, 1] = y + distance * math.sin(psi0)
         new[k, 2] = speed
-        new[k, 3] = psi0 + dt * yaw_rate
+        new[k, 3] = psi0 + dt * turn
         applied[k, 0], applied[k, 1] = accel, yaw_rate
     return new, applied
 

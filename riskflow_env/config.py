@@ -42,6 +42,10 @@ class DynamicsConfig:
         yaw_rate_max: bound on |yaw rate| [rad/s].
         speed_min: lowest speed [m/s]; 0 means vehicles never reverse.
         speed_max: highest speed [m/s].
+        turn_radius_min: tightest turn [m]: over each step ``|yaw rate| <= v_mean /
+            turn_radius_min`` (``v_mean`` the step's mean speed), the bound of a
+            kinematic bicycle at full lock, so a vehicle turns only while it rolls; 0
+            removes it (a vehicle may turn in place).
     """
 
     dt: float = 0.1
@@ -50,9 +54,13 @@ class DynamicsConfig:
     yaw_rate_max: float = 1.0
     speed_min: float = 0.0
     speed_max: float = 40.0
+    turn_radius_min: float = 5.0
 
     def __post_init__(self) -> None:
-        for name in ("dt", "accel_min", "accel_max", "yaw_rate_max", "speed_min", "speed_max"):
+        for name in (
+            "dt", "accel_min", "accel_max", "yaw_rate_max", "speed_min", "speed_max",
+            "turn_radius_min",
+        ):  # fmt: skip
             _finite(f"DynamicsConfig.{name}", getattr(self, name))
         _require(self.dt > 0, f"DynamicsConfig.dt must be > 0 s, got {self.dt}")
         _require(
@@ -68,6 +76,10 @@ class DynamicsConfig:
             0 <= self.speed_min < self.speed_max,
             "DynamicsConfig needs 0 <= speed_min < speed_max [m/s], "
             f"got speed_min={self.speed_min}, speed_max={self.speed_max}",
+        )
+        _require(
+            self.turn_radius_min >= 0,
+            f"DynamicsConfig.turn_radius_min must be >= 0 m, got {self.turn_radius_min}",
         )
 
 

@@ -19,7 +19,9 @@ model's physical limits. Speed is kept in ``[speed_min, speed_max]`` [0, 40 m/s]
 the effective acceleration ``a_eff = (v_next - v) / dt`` is what the bounded speed
 implies, and the position uses it, i.e. the position increment is
 ``0.5 * (v + v_next) * dt * cos(psi)``. ``a_eff`` has the sign of ``a`` and
-``|a_eff| <= |a|``. The heading is never wrapped by the dynamics (it stays
+``|a_eff| <= |a|``. The yaw rate is then kept within ``(v + v_next) / (2 *
+turn_radius_min)`` [5 m]: a vehicle turns no tighter than a car at full lock, and not at
+all while it stands. The heading is never wrapped by the dynamics (it stays
 continuous, which keeps gradients and yaw-rate recovery simple); wrap it with
 :func:`wrap_angle` where a bounded angle is needed.
 
@@ -77,21 +79,11 @@ def _require_last_dim(x: Array, size: int, name: str, min_ndim: int = 1) -> None
 
 
 def check_actions(actions: Array, name: str = "actions") -> Array:
-    """Validate actions at an API boundary (the env) and return them as an array.
-
-    Args:
-        actions: ``(..., 2)`` ``(accel [m/s^2], yaw_rate [rad/s])``; numpy array,
-            torch tensor, or anything ``numpy.asarray`` accepts.
-        name: argument name used in the error message (e.g. ``"actions['ego']"``).
-
-    Returns:
-        ``actions`` unchanged if it already is a numpy array or torch tensor, else
-        as a float64 numpy array. Values are not clipped.
-
-    Raises:
-        ValueError: naming ``name``, if the values are not numeric, the last
-            dimension is not 2, or any value is NaN or infinite.
-    """
+    """Validate ``(..., 2)`` ``(accel [m/s^2], yaw_rate [rad/s])`` actions at an API
+    boundary (the env): a numpy array or torch tensor is returned unchanged, anything else
+    ``numpy.asarray`` accepts as float64; values are not clipped. A ``ValueError`` naming
+    ``name`` (e.g. ``"actions['ego']"``) refuses non-numeric values, a last dimension
+    other than 2, and NaN or inf."""
     try:
         xp = namespace(actions)
     except TypeError:
@@ -247,16 +239,27 @@ def _rollout(state: Array, actions: Array, config: DynamicsConfig, clip: bool) -
     v0, psi0 = state[..., SPEED, None], state[..., YAW, None]
 
     speed, bounds = _bounded_speed(v0, actions[..., ACCEL], config)  # (..., T)
-    yaw = psi0 + dt * xp.cumulative_sum(actions[..., YAW_RATE], axis=-1)
     speed_before = _shift_in(v0, speed)
+    yaw_rate, turn = _turn_bounded(actions[..., YAW_RATE], speed_before, speed, config)
+    yaw = psi0 + dt * xp.cumulative_sum(yaw_rate, axis=-1)
     yaw_before = _shift_in(psi0, yaw)
     cos_before, sin_before = xp.cos(yaw_before), xp.sin(yaw_before)
     distance = 0.5 * (speed_before + speed) * dt  # (..., T) [m], uses a_eff
     x = x0 + xp.cumulative_sum(distance * cos_before, axis=-1)
     y = y0 + xp.cumulative_sum(distance * sin_before, axis=-1)
     x, y, speed, yaw = xp.broadcast_arrays(x, y, speed, yaw)
-    saved = (commanded if clip else None, bounds, distance, cos_before, sin_before)
+    saved = (commanded if clip else None, bounds, distance, cos_before, sin_before, turn)
     return xp.stack([x, y, speed, yaw], axis=-1), saved
+
+
+def _turn_bounded(yaw_rate: Array, speed_before: Array, speed: Array, config: DynamicsConfig):
+    """Yaw rates ``(..., T)`` within the turning bound, and where they were above, below."""
+    if not config.turn_radius_min:
+        return yaw_rate, None
+    xp = namespace(yaw_rate, speed)
+    reach = (speed_before + speed) * (0.5 / config.turn_radius_min)  # [rad/s]
+    above, below = yaw_rate > reach, yaw_rate < -reach
+    return xp.where(above, reach, xp.where(below, -reach, yaw_rate)), (above, below)
 
 
 def rollout_with_vjp(
@@ -317,7 +320,7 @@ def _shift_out(seq: Array) -> Array:
 
 def _rollout_vjp(cotangent: Array, saved: tuple, shape: tuple, config: DynamicsConfig) -> Array:
     """The backward pass of :func:`_rollout`, op by op in reverse."""
-    commanded, bounds, distance, cos_before, sin_before = saved
+    commanded, bounds, distance, cos_before, sin_before, turn = saved
     xp = namespace(cotangent)
     dt = config.dt
     # x_t = x0 + sum_{k<=t} distance_k cos(psi_{k-1}) (y: sin): each step's increment
@@ -329,8 +332,15 @@ def _rollout_vjp(cotangent: Array, saved: tuple, shape: tuple, config: DynamicsC
     # psi_t enters as psi_before_{t+1}; v_t in distance_t and distance_{t+1}.
     d_yaw = cotangent[..., YAW] + _shift_out(d_yaw_before)
     d_speed = cotangent[..., SPEED] + (0.5 * dt) * (d_distance + _shift_out(d_distance))
+    d_yaw_rate = dt * _reverse_cumsum(d_yaw, axis=-1)
+    if turn is not None:  # a bounded yaw rate follows the step's speeds, not the action
+        above, below = turn
+        d_reach = xp.where(above, d_yaw_rate, 0.0) - xp.where(below, d_yaw_rate, 0.0)
+        d_reach = (0.5 / config.turn_radius_min) * d_reach
+        d_speed = d_speed + d_reach + _shift_out(d_reach)
+        d_yaw_rate = xp.where(above | below, 0.0, d_yaw_rate)
     d_accel = _bounded_speed_vjp(d_speed, bounds, config)
-    d_actions = xp.stack([d_accel, dt * _reverse_cumsum(d_yaw, axis=-1)], axis=-1)
+    d_actions = xp.stack([d_accel, d_yaw_rate], axis=-1)
     if commanded is not None:  # clip_actions: gradient 1 inside the bounds (inclusive)
         low = asarray_like([config.accel_min, -config.yaw_rate_max], commanded)
         high = asarray_like([config.accel_max, config.yaw_rate_max], commanded)
@@ -351,17 +361,8 @@ def _sum_to_shape(x: Array, shape: tuple) -> Array:
 def step(
     state: Array, action: Array, config: DynamicsConfig = DEFAULT_CONFIG, clip: bool = True
 ) -> Array:
-    """Advance one time step (:func:`rollout` with ``T = 1``).
-
-    Args:
-        state: ``(..., 4)`` ``(x [m], y [m], v [m/s], psi [rad])``.
-        action: ``(..., 2)`` ``(accel [m/s^2], yaw_rate [rad/s])``, clipped to bounds.
-        config: time step ``dt`` [s] and bounds.
-        clip: False when the caller has clipped the actions already (the simulator).
-
-    Returns:
-        ``(..., 4)`` the state ``dt`` later (leading dimensions broadcast).
-    """
+    """The ``(..., 4)`` state ``dt`` later: :func:`rollout` of one ``(..., 2)`` action
+    (``clip``: False when the caller has clipped the actions already, as the simulator)."""
     _require_last_dim(action, ACTION_DIM, "action")
     return rollout(state, action[..., None, :], config, clip)[..., 0, :]
 
@@ -371,18 +372,17 @@ def inverse(states: Array, config: DynamicsConfig = DEFAULT_CONFIG, clip: bool =
 
     ``accel = dv / dt`` and ``yaw_rate = wrap_angle(dpsi) / dt``, so a heading that
     jumps across +-pi is handled. Positions are not used: a logged trajectory is
-    reproduced exactly in speed and heading, and in position only as far as it
-    follows this model.
+    reproduced exactly in speed and heading where it keeps the bounds (a heading that
+    turns faster than the turning radius allows at its speed is not), and in position
+    only as far as it follows this model.
 
     Args:
         states: ``(..., T + 1, 4)`` ``(x [m], y [m], v [m/s], psi [rad])``; the first
             one is the initial state.
         config: time step ``dt`` [s] and bounds.
-        clip: if True, clip the result with :func:`clip_actions`; by default the
-            actions are returned as measured, possibly outside the bounds.
+        clip: clip the result with :func:`clip_actions` (default: as measured).
 
-    Returns:
-        ``(..., T, 2)`` ``(accel [m/s^2], yaw_rate [rad/s])``.
+    Returns ``(..., T, 2)`` ``(accel [m/s^2], yaw_rate [rad/s])``.
     """
     _require_last_dim(states, STATE_DIM, "states", min_ndim=2)
     xp = namespace(states)

@@ -29,7 +29,7 @@ _inline = numba.njit(cache=True, inline="always")
 
 # SHA-256 of riskflow_env/compiled_kernels.py, whose SDF cell lookup these kernels call:
 # numba's cache checks only this file's source, so editing that file must edit this one.
-KERNELS_DIGEST = "bcd3836e86b328aeae8b05e6cc003b3cf47d27f39ec26d0c068a9637412f64a2"
+KERNELS_DIGEST = "36bb7e14467147486b7f0f53fe14b5bafcfc216bdad24aabb1069961fffcda57"
 
 
 @_inline
@@ -49,10 +49,11 @@ def _decoded(base, weight, value, scale, shift, single):
 @_jit
 def _rollout(state, actions, params, clip, out, saved):
     """``dynamics._rollout`` of one plan: ``state`` (4,), commanded ``actions`` (H, 2) ->
-    ``out`` (H, 4), the actions clipped to the bounds if ``clip``; ``saved`` (H, 8) keeps
+    ``out`` (H, 4), the actions clipped to the bounds if ``clip``; ``saved`` (H, 9) keeps
     what :func:`_rollout_vjp` needs (below, below_max, above, above_max, both, distance,
-    cos_before, sin_before)."""
-    dt, accel_min, accel_max, yaw_max, speed_min, speed_max = params
+    cos_before, sin_before, and +1 / -1 where the yaw rate was above / below the turning
+    bound, else 0)."""
+    dt, accel_min, accel_max, yaw_max, speed_min, speed_max, radius = params
     x0, y0, v0, psi0 = state[0], state[1], state[2], state[3]
     sum_accel, sum_yaw_rate, sum_x, sum_y = 0.0, 0.0, 0.0, 0.0  # the reference's cumsums
     below_max = -math.inf
@@ -64,7 +65,6 @@ def _rollout(state, actions, params, clip, out, saved):
             accel = min(max(accel, accel_min), accel_max)
             yaw_rate = min(max(yaw_rate, -yaw_max), yaw_max)
         sum_accel += accel
-        sum_yaw_rate += yaw_rate
         free = v0 + dt * sum_accel
         below = speed_min - free
         below_max = max(below_max, below)
@@ -73,6 +73,14 @@ def _rollout(state, actions, params, clip, out, saved):
         above_max = max(above_max, above)
         both = lower - max(above_max, 0.0)
         speed = min(max(both, speed_min), speed_max)
+        side = 0.0
+        if radius > 0.0:  # dynamics._turn_bounded
+            reach = (speed_before + speed) * (0.5 / radius)
+            if yaw_rate > reach:
+                yaw_rate, side = reach, 1.0
+            elif yaw_rate < -reach:
+                yaw_rate, side = -reach, -1.0
+        sum_yaw_rate += yaw_rate
         yaw = psi0 + dt * sum_yaw_rate
         cos_before, sin_before = math.cos(yaw_before), math.sin(yaw_before)
         distance = 0.5 * (speed_before + speed) * dt
@@ -81,6 +89,7 @@ def _rollout(state, actions, params, clip, out, saved):
         out[t, 0], out[t, 1], out[t, 2], out[t, 3] = x0 + sum_x, y0 + sum_y, speed, yaw
         saved[t, 0], saved[t, 1], saved[t, 2], saved[t, 3] = below, below_max, above, above_max
         saved[t, 4], saved[t, 5], saved[t, 6], saved[t, 7] = both, distance, cos_before, sin_before
+        saved[t, 8] = side
         speed_before, yaw_before = speed, yaw
 
 
@@ -130,6 +139,7 @@ def _rollout_vjp(cotangent, actions, saved, params, clip, out, scratch):
     """``dynamics._rollout_vjp`` of one plan (with ``clip``, the clip's mask):
     ``cotangent`` (H, 4) -> ``out`` (H, 2); ``scratch`` (H, 3)."""
     dt, accel_min, accel_max, yaw_max = params[0], params[1], params[2], params[3]
+    radius = params[6]
     horizon = cotangent.shape[0]
     inc_x, inc_y = 0.0, 0.0
     next_d_distance, next_d_yaw_before = 0.0, 0.0
@@ -143,15 +153,23 @@ def _rollout_vjp(cotangent, actions, saved, params, clip, out, scratch):
         d_yaw[t] = cotangent[t, 3] + next_d_yaw_before
         d_speed[t] = cotangent[t, 2] + (0.5 * dt) * (d_distance + next_d_distance)
         next_d_distance, next_d_yaw_before = d_distance, d_yaw_before
-    _bounded_speed_vjp(d_speed, saved, params, scratch[:, 2])
-    total = 0.0
-    for t in range(horizon - 1, -1, -1):
+    total, next_reach = 0.0, 0.0
+    for t in range(horizon - 1, -1, -1):  # d_yaw becomes the cotangent on the yaw rates
         total += d_yaw[t]
+        d_yaw[t] = dt * total
+        if radius > 0.0:  # a bounded yaw rate follows the step's speeds, not the action
+            reach = (saved[t, 8] * d_yaw[t]) * (0.5 / radius) if saved[t, 8] != 0.0 else 0.0
+            d_speed[t] = (d_speed[t] + reach) + next_reach
+            next_reach = reach
+            if saved[t, 8] != 0.0:
+                d_yaw[t] = 0.0
+    _bounded_speed_vjp(d_speed, saved, params, scratch[:, 2])
+    for t in range(horizon):
         accel, yaw_rate = actions[t, 0], actions[t, 1]
         inside_a = not clip or (accel >= accel_min and accel <= accel_max)
         inside_y = not clip or (yaw_rate >= -yaw_max and yaw_rate <= yaw_max)
         out[t, 0] = scratch[t, 2] if inside_a else 0.0
-        out[t, 1] = dt * total if inside_y else 0.0
+        out[t, 1] = d_yaw[t] if inside_y else 0.0
 
 
 @_inline

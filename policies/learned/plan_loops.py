@@ -31,7 +31,7 @@ _jit = numba.njit(cache=True, nogil=True)
 
 # SHA-256 of plan_kernels.py, whose functions these loops call: numba's cache checks only
 # this file's source, so editing that file must edit this one.
-PIECES_DIGEST = "8a3f13cfb7e65cd326836d63c88b3f52abd8368d0dfd7922c4a9227ab7aa993e"
+PIECES_DIGEST = "3177276e9fc54c89c331d24d249aa970e4ce2baf5602454ee83121d094b06e1b"
 BETA1, BETA2, EPSILON = 0.9, 0.999, 1e-8  # policies.learned.adam
 
 
@@ -86,7 +86,7 @@ def _avoid_scene(
     first = np.zeros((num_rows, horizon, 2))
     second = np.zeros((num_rows, horizon, 2))
     actions = np.empty((num_rows, horizon, 2))
-    saved = np.empty((num_rows, horizon, 8))
+    saved = np.empty((num_rows, horizon, 9))
     joint = obstacles.copy()
     d_joint = np.zeros((num_agents, horizon, 4))
     gradient = np.empty((num_rows, horizon, 2))
@@ -208,7 +208,7 @@ def guide_rows(
     losses = np.zeros((steps + 1, num_rows, 2))
     actions = np.empty((num_rows, length, 2))
     plans = np.empty((num_rows, length, 4))
-    saved = np.empty((num_rows, length, 8))
+    saved = np.empty((num_rows, length, 9))
     cotangent = np.empty((num_rows, length, 4))
     term = np.empty((length, 4))
     gradient = np.empty((length, 2))

@@ -39,7 +39,7 @@ _jit = numba.njit(cache=True, nogil=True)
 
 # SHA-256 of policies/learned/plan_kernels.py, whose pieces these kernels call: numba's
 # cache checks only this file's source, so editing that file must edit this one.
-PIECES_DIGEST = "8a3f13cfb7e65cd326836d63c88b3f52abd8368d0dfd7922c4a9227ab7aa993e"
+PIECES_DIGEST = "3177276e9fc54c89c331d24d249aa970e4ce2baf5602454ee83121d094b06e1b"
 BETA1, BETA2, EPSILON = 0.9, 0.999, 1e-8  # torch.optim.Adam's defaults
 
 
@@ -131,10 +131,10 @@ def _score_row(
 
 @_jit
 def _buffers(horizon):
-    """States (H, 4), the rollout's saved terms (H, 8), actions (H, 2), their cotangents
+    """States (H, 4), the rollout's saved terms (H, 9), actions (H, 2), their cotangents
     (H, 4) and (H, 2), the VJP's scratch (H, 3)."""
     return (
-        np.empty((horizon, 4)), np.empty((horizon, 8)), np.empty((horizon, 2)),
+        np.empty((horizon, 4)), np.empty((horizon, 9)), np.empty((horizon, 2)),
         np.empty((horizon, 4)), np.empty((horizon, 2)), np.empty((horizon, 3)),
     )  # fmt: skip
 

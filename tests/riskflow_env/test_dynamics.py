@@ -47,6 +47,9 @@ def _reference(state, actions, config=CONFIG):
         a = min(max(a, config.accel_min), config.accel_max)
         omega = min(max(omega, -config.yaw_rate_max), config.yaw_rate_max)
         v_next = min(max(v + a * config.dt, config.speed_min), config.speed_max)
+        if config.turn_radius_min:
+            reach = (v + v_next) / (2 * config.turn_radius_min)
+            omega = min(max(omega, -reach), reach)
         a_eff = (v_next - v) / config.dt
         x += math.cos(psi) * (v + 0.5 * a_eff * config.dt) * config.dt
         y += math.sin(psi) * (v + 0.5 * a_eff * config.dt) * config.dt
@@ -314,6 +317,32 @@ def test_speed_bounds_are_applied():
     states = rollout(np.array([0.0, 0.0, 10.0, 0.0]), np.tile([-8.0, 0.0], (20, 1)), config)
     np.testing.assert_allclose(states[11:, SPEED], 1.0)
     np.testing.assert_allclose(np.diff(states[11:, X]), 1.0 * config.dt)
+
+
+@pytest.mark.parametrize("backend", [np.asarray, torch.from_numpy])
+def test_a_standing_vehicle_does_not_turn(backend):
+    """A car turns only while it rolls: at rest a commanded yaw rate leaves the heading."""
+    start, actions = np.array([3.0, -1.0, 0.0, 0.3]), np.tile([0.0, 1.0], (20, 1))
+    states = rollout(backend(start), backend(actions))
+    np.testing.assert_array_equal(np.asarray(states)[:, YAW], 0.3)
+    np.testing.assert_array_equal(np.asarray(states)[:, :2], [[3.0, -1.0]] * 20)
+
+
+def test_turns_no_tighter_than_the_turning_radius():
+    """At 2 m/s a full yaw rate (1 rad/s, a 2 m circle) turns on the 5 m circle; at 10
+    m/s (a 10 m circle) the bound is not reached."""
+    for speed, expected in ((2.0, 2.0 / CONFIG.turn_radius_min), (10.0, 1.0)):
+        states = rollout(np.array([0.0, 0.0, speed, 0.0]), np.tile([0.0, 1.0], (30, 1)))
+        np.testing.assert_allclose(np.diff(states[:, YAW]) / DT, expected, rtol=1e-12)
+
+
+def test_without_the_turning_bound_a_vehicle_turns_in_place():
+    config = DynamicsConfig(turn_radius_min=0.0)
+    states = rollout(np.array([0.0, 0.0, 0.0, 0.3]), np.tile([0.0, 1.0], (10, 1)), config)
+    np.testing.assert_allclose(states[-1, YAW], 1.3)
+    np.testing.assert_array_equal(states[:, :2], 0.0)
+    with pytest.raises(ValueError, match="turn_radius_min must be >= 0 m"):
+        DynamicsConfig(turn_radius_min=-1.0)
 
 
 @pytest.mark.parametrize("backend", [np.asarray, torch.tensor])
