@@ -34,9 +34,9 @@ default; 0 turns it off). A vehicle at rest
 whole horizon keeps its brake on: the plan's positive accelerations are dropped and its
 yaw rate set to 0, so it stays where it is. The reason is the speed bound at 0: the
 generator's plans for a standing vehicle carry zero-mean acceleration noise (about 0.2-0.3
-m/s^2 per step on the real scenes), which the bound rectifies into forward motion, and the
-yaw rate turns a unicycle in place; re-planned every 0.5 s, parked cars creep 1-3 m and
-touch their neighbours in rows of parked cars. A plan that moves the vehicle by more than
+m/s^2 per step on the real scenes), which the bound rectifies into forward motion (and a
+creeping car may turn: ``DynamicsConfig.turn_radius_min``); re-planned every 0.5 s, parked
+cars creep 1-3 m and touch their neighbours in rows of parked cars. A plan that moves the vehicle by more than
 ``hold_distance`` (a start from a queue) runs as it is. At 4 m, 97% of the real samples'
 parked cars stay within 2 m.
 
