@@ -36,9 +36,9 @@ yaw rate set to 0, so it stays where it is. The reason is the speed bound at 0: 
 generator's plans for a standing vehicle carry zero-mean acceleration noise (about 0.2-0.3
 m/s^2 per step on the real scenes), which the bound rectifies into forward motion (and a
 creeping car may turn: ``DynamicsConfig.turn_radius_min``); re-planned every 0.5 s, parked
-cars creep 1-3 m and touch their neighbours in rows of parked cars. A plan that moves the vehicle by more than
-``hold_distance`` (a start from a queue) runs as it is. At 4 m, 97% of the real samples'
-parked cars stay within 2 m.
+cars creep 1-3 m and touch their neighbours in rows of parked cars. A plan that moves the
+vehicle by more than ``hold_distance`` (a start from a queue) runs as it is. At 4 m, 97% of
+the real samples' parked cars stay within 2 m.
 
 The ``stitch``, ``hold`` and ``restitch`` stages of :mod:`policies.pipeline.stages` call
 :func:`blend_first` (all scenes at once), :func:`hold_at_rest` and :func:`stitch_after`
