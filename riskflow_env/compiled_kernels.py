@@ -36,7 +36,7 @@ _OWN_SIZE = 6  # speed, accel, yaw rate, length, width, SDF at the centre
 NUM_TERMS = 5  # reward terms in riskflow_env.rewards.REWARD_TERMS order
 
 # params of `advance`: dt [s], accel_min, accel_max [m/s^2], yaw_rate_max [rad/s],
-# speed_min, speed_max [m/s]
+# speed_min, speed_max [m/s], turn_radius_min [m]
 # params of `evaluate_scenes`: tau_max [s], max_distance [m], then the reward weights
 # target_speed [m/s], speed, collision, offroad, risk, comfort, then accel_min,
 # accel_max [m/s^2] and yaw_rate_max [rad/s] (the comfort term's scales)
@@ -68,16 +68,27 @@ def advance(current, present, active, actions, params):
         both = lower - max(lower - speed_max, 0.0)
         speed = min(max(both, speed_min), speed_max)
         distance = 0.5 * (v0 + speed) * dt
-        turn = yaw_rate
-        if radius > 0.0:  # dynamics._turn_bounded
-            reach = (v0 + speed) * (0.5 / radius)
-            turn = reach if yaw_rate > reach else (-reach if yaw_rate < -reach else yaw_rate)
+        turn, _ = _turn_bounded(yaw_rate, v0, speed, radius)
         new[k, 0] = x + distance * math.cos(psi0)
         new[k, 1] = y + distance * math.sin(psi0)
         new[k, 2] = speed
         new[k, 3] = psi0 + dt * turn
         applied[k, 0], applied[k, 1] = accel, yaw_rate
     return new, applied
+
+
+@numba.njit(cache=True, inline="always")
+def _turn_bounded(yaw_rate, speed_before, speed, radius):
+    """:func:`riskflow_env.dynamics._turn_bounded` of one step: ``yaw_rate`` within
+    ``+-(speed_before + speed) / (2 radius)`` (no bound where ``radius`` is 0), and +1 / -1
+    where it was above / below that bound, else 0 (the side its VJP follows)."""
+    if radius > 0.0:
+        reach = (speed_before + speed) * (0.5 / radius)
+        if yaw_rate > reach:
+            return reach, 1.0
+        if yaw_rate < -reach:
+            return -reach, -1.0
+    return yaw_rate, 0.0
 
 
 @numba.njit(cache=True, inline="always")

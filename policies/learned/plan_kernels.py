@@ -22,14 +22,15 @@ import math
 import numba
 import numpy as np
 
-from riskflow_env.compiled_kernels import _cell
+from riskflow_env.compiled_kernels import _cell, _turn_bounded
 
 _jit = numba.njit(cache=True, nogil=True)
 _inline = numba.njit(cache=True, inline="always")
 
-# SHA-256 of riskflow_env/compiled_kernels.py, whose SDF cell lookup these kernels call:
-# numba's cache checks only this file's source, so editing that file must edit this one.
-KERNELS_DIGEST = "36bb7e14467147486b7f0f53fe14b5bafcfc216bdad24aabb1069961fffcda57"
+# SHA-256 of riskflow_env/compiled_kernels.py, whose SDF cell lookup and turning bound
+# these kernels call: numba's cache checks only this file's source, so editing that file
+# must edit this one.
+KERNELS_DIGEST = "bda33b1eda98d9ce616e123c93745c16a56ae50c54c7be3887b33c37a95fb7a8"
 
 
 @_inline
@@ -73,13 +74,7 @@ def _rollout(state, actions, params, clip, out, saved):
         above_max = max(above_max, above)
         both = lower - max(above_max, 0.0)
         speed = min(max(both, speed_min), speed_max)
-        side = 0.0
-        if radius > 0.0:  # dynamics._turn_bounded
-            reach = (speed_before + speed) * (0.5 / radius)
-            if yaw_rate > reach:
-                yaw_rate, side = reach, 1.0
-            elif yaw_rate < -reach:
-                yaw_rate, side = -reach, -1.0
+        yaw_rate, side = _turn_bounded(yaw_rate, speed_before, speed, radius)
         sum_yaw_rate += yaw_rate
         yaw = psi0 + dt * sum_yaw_rate
         cos_before, sin_before = math.cos(yaw_before), math.sin(yaw_before)
