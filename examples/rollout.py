@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from policies import harness
+from policies.cli_inputs import check_device
 from policies.dataclass_cli import run_main
 from policies.harness import METRICS, ClosedLoop
 from policies.learned.adversary_config import AdversaryConfig
@@ -43,6 +44,7 @@ from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
 from riskflow_env.agents import ReplayPolicy
 from riskflow_env.config import EnvConfig
+from riskflow_env.folder_lock import make_output_folder
 from riskflow_env.scenarios import Scenario, load_scenario, shipped_bank
 from riskflow_env.scenarios.scenarionet import load_scenarionet
 
@@ -104,6 +106,9 @@ class Options:
             )
         if self.steps < 1:
             raise ValueError(f"--steps must be >= 1, got {self.steps}")
+        if self.seed < 0:
+            raise ValueError(f"--seed must be >= 0, got {self.seed}")
+        check_device(self.device)
         if not 0 <= self.lambda_map < float("inf"):
             raise ValueError(f"--lambda-map must be finite and >= 0, got {self.lambda_map}")
         if self.avoid_steps < 0 or not 0 <= self.hold_distance < float("inf"):
@@ -199,8 +204,7 @@ def main(options: Options) -> dict[str, Any]:
     """Run the episode, print it, write the outputs; returns the metrics."""
     scenario = load_scene(options.scenario)
     traffic = make_traffic(options)
-    out = options.out
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_output_folder(options.out, "--out")
     video = None if options.video == "none" else out / f"rollout.{options.video}"
     config = EnvConfig(episode_steps=options.steps)
     print(f"scene {scenario.name!r} ({scenario.num_agents} vehicles), traffic: {options.traffic}")

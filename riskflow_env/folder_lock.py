@@ -6,7 +6,8 @@ pid into it. A second process gets :class:`FolderLocked` naming the holder's pid
 operating system drops the lock when the holder ends, ``kill -9`` included, so a killed
 run never blocks its own resume; the file itself stays (deleting it could race).
 Used by ``riskflow-eval`` (results folders) and ``riskflow-data generate`` (banks).
-:func:`check_output_folder` checks such a folder before anything is written.
+:func:`check_output_folder` checks such a folder before anything is written, and
+:func:`make_output_folder` creates it, each with an error naming the option.
 """
 
 from __future__ import annotations
@@ -31,6 +32,21 @@ def check_output_folder(folder: str | os.PathLike, option: str = "--out") -> Non
             if not existing.is_dir():
                 raise ValueError(f"{option}: {existing} exists and is not a folder")
             return
+
+
+def make_output_folder(folder: str | os.PathLike, option: str = "--out") -> Path:
+    """Create ``folder`` and its parents (:func:`check_output_folder` first); ValueError
+    naming ``option`` when the system refuses (a read-only or virtual file system, no
+    permission)."""
+    check_output_folder(folder, option)
+    path = Path(folder)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(
+            f"{option}: cannot make the folder {path} ({err.strerror or err})"
+        ) from None
+    return path
 
 
 def _try_lock(file: IO[Any]) -> bool:

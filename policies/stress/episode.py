@@ -26,6 +26,7 @@ import torch
 
 from policies.harness import ClosedLoop
 from policies.learned.checkpoint import DEFAULT_NAME
+from policies.learned.guidance_losses import TARGETS
 from policies.planners import EgoPlanner
 from policies.riskflow import RiskFlowAdversary
 from policies.stress.failures import analyse
@@ -57,14 +58,16 @@ class EpisodeSetup:
     def __post_init__(self) -> None:
         k = str(self.k)
         if not (k == "all" or k.isdigit()):
-            raise ValueError(f"k must be an int >= 0 or 'all', got {self.k!r}")
+            raise ValueError(f"--k must be an int >= 0 or 'all', got {self.k!r}")
         object.__setattr__(self, "k", k)
+        if self.target not in TARGETS:
+            raise ValueError(f"--target must be one of {TARGETS}, got {self.target!r}")
         if isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 1:
-            raise ValueError(f"steps must be an int >= 1 [steps of 0.1 s], got {self.steps!r}")
+            raise ValueError(f"--steps must be an int >= 1 [steps of 0.1 s], got {self.steps!r}")
         if self.checkpoint is not None:
             object.__setattr__(self, "checkpoint", Path(self.checkpoint))
             if not self.checkpoint.is_file():
-                raise ValueError(f"checkpoint: no such file {str(self.checkpoint)!r}")
+                raise ValueError(f"--checkpoint: no such file {str(self.checkpoint)!r}")
 
     def adversary(self, seed: int = 0) -> RiskFlowAdversary:
         """The RiskFlow adversary of this setup, with noise seed ``seed``."""

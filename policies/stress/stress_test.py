@@ -45,6 +45,7 @@ from policies.stress.replay import rerun, save_replay
 from policies.stress.report import write_reports
 from policies.stress.runner import Episode, Scenes, StressOptions, resolve_planner, run_jobs
 from policies.stress.summary import attacked_steps, headline, slow_ego_steps, stress_summary
+from riskflow_env.folder_lock import make_output_folder
 from riskflow_env.scenarios import Scenario
 
 
@@ -185,7 +186,7 @@ class _Writer:
         self.duplicates = {name for name in names if names.count(name) > 1}
         if folder is None:
             return
-        folder.mkdir(parents=True, exist_ok=True)
+        make_output_folder(folder, "--out")
         for old in (
             *folder.glob("failures/*.npz"), *folder.glob("gifs/*.gif"),
             *(folder / name for name in ("episodes.jsonl", "summary.json", "report.md",

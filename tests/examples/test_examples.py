@@ -102,6 +102,8 @@ def test_rollout_warm_up_leaves_the_episode_as_it_is(checkpoint, tmp_path, monke
         (["--planning-interval", "0"], "from 0.1 to 5.2 s (the plans' horizon), got 0.0"),
         (["--planning-interval", "-0.5"], "from 0.1 to 5.2 s (the plans' horizon), got -0.5"),
         (["--planning-interval", "10"], "from 0.1 to 5.2 s (the plans' horizon), got 10.0"),
+        (["--seed", "-1"], "--seed must be >= 0, got -1"),
+        (["--device", "cdua"], "--device: 'cdua' is not a torch device"),
     ],
 )
 def test_rollout_rejects_bad_options(argv, message, monkeypatch, capsys):

@@ -1,12 +1,14 @@
-"""FolderLock: one writer per folder, the holder's pid in the message (issue 19 item 5)."""
+"""FolderLock: one writer per folder, the holder's pid in the message; output folders made
+with an error naming the option."""
 
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import pytest
 
-from riskflow_env.folder_lock import LOCK_NAME, FolderLock, FolderLocked
+from riskflow_env.folder_lock import LOCK_NAME, FolderLock, FolderLocked, make_output_folder
 
 pytestmark = pytest.mark.reliability  # docs/reference/reliability.md
 
@@ -26,3 +28,18 @@ def test_second_lock_is_refused_until_the_first_is_released(tmp_path):
 
 def test_release_without_acquire_is_a_no_op(tmp_path):
     FolderLock(tmp_path).release()
+
+
+def test_an_output_folder_the_system_refuses_names_the_option(tmp_path, monkeypatch):
+    assert make_output_folder(tmp_path / "a" / "b", "--out").is_dir()
+    (tmp_path / "file").write_text("")
+    with pytest.raises(ValueError, match="--out: .*file exists and is not a folder"):
+        make_output_folder(tmp_path / "file" / "x", "--out")
+
+    def refuse(self, *args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(self))
+
+    monkeypatch.setattr(Path, "mkdir", refuse)
+    refused = r"--folder: cannot make the folder .*\(Permission denied\)"
+    with pytest.raises(ValueError, match=refused):
+        make_output_folder(tmp_path / "c", "--folder")

@@ -163,6 +163,21 @@ def test_bad_planner_errors_name_the_argument(spec, message, planner_file, tmp_p
     assert f"--planner {spec!r}" in error and message in error
 
 
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--target", "ego2"], "--target must be one of ('others', 'ego'), got 'ego2'"),
+        (["--k", "al"], "--k must be an int >= 0 or 'all', got 'al'"),
+        (["--steps", "0"], "--steps must be an int >= 1"),
+        (["--checkpoint", "nowhere.pt"], "--checkpoint: no such file 'nowhere.pt'"),
+    ],
+)
+def test_bad_options_name_the_argument(argv, message, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
+
+
 def test_compare_two_planners_paired(scenes_dir, planner_file, tmp_path, capsys):
     main([
         "compare", f"{planner_file}:reckless", "constant_velocity", "--data", str(scenes_dir),
