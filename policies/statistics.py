@@ -6,7 +6,7 @@
 * :func:`mean_interval`: a mean (time to collision, distance) with a seeded percentile
   bootstrap interval;
 * :func:`paired_difference`: two policies on the same episodes: the difference of their
-  rates with a Wald interval on the discordant pairs and McNemar's exact test
+  rates with Agresti and Min's interval for matched pairs and McNemar's exact test
   (``scipy.stats.binomtest`` on the discordant pairs).
 """
 
@@ -68,31 +68,37 @@ def _entry(value: float, low: float, high: float, count: int) -> dict[str, Any]:
 def paired_difference(counts: dict[str, int], confidence: float = 0.95) -> dict[str, Any]:
     """Trained minus untrained rate on paired episodes, with its interval and test.
 
-    The interval is the Wald interval of a difference of paired proportions,
-    ``d +- z sqrt((b + c - n d^2) / n^2)`` with ``b``, ``c`` the discordant counts
-    (Agresti, *Categorical Data Analysis*, 3rd ed., section 11.1); the p-value is the
-    exact two-sided McNemar test (a binomial test of ``b`` out of ``b + c`` at 1/2;
-    McNemar 1947). Pairing removes the between-scene variance that unpaired intervals
-    carry, so it detects a change that two overlapping Wilson intervals cannot.
+    The interval is Agresti and Min's: the Wald interval of a difference of paired
+    proportions after adding 1/2 to each cell of the 2x2 table, ``d* +- z sqrt((b + c + 1 -
+    (b - c)^2 / n*) / n*^2)`` with ``n* = n + 2``, ``d* = (b - c) / n*`` and ``b``, ``c`` the
+    discordant counts, clipped to [-1, 1] (A. Agresti and Y. Min, "Simple improved
+    confidence intervals for comparing matched proportions", Statistics in Medicine 24,
+    2005). Unlike the plain Wald interval it does not shrink to a point when no pair is
+    discordant, and it keeps its coverage at the few discordant pairs of a small run. The
+    p-value is the exact two-sided McNemar test (a binomial test of ``b`` out of ``b + c``
+    at 1/2; McNemar 1947). Pairing removes the between-scene variance that unpaired
+    intervals carry, so it detects a change that two overlapping Wilson intervals cannot.
 
     Args:
         counts: :func:`paired_counts` (or their sums over runs).
         confidence: level of the interval.
 
     Returns:
-        ``counts`` plus ``difference``, ``low``, ``high`` and ``p_value``.
+        ``counts`` plus ``difference`` (the observed ``(b - c) / n``), ``low``, ``high``
+        and ``p_value``.
     """
     n, b, c = counts["n"], counts["trained_only"], counts["untrained_only"]
     if n == 0:
         return {**counts, "difference": None, "low": None, "high": None, "p_value": None}
-    difference = (b - c) / n
     z = stats.norm.ppf(0.5 + confidence / 2)
-    half = z * np.sqrt(max(b + c - n * difference**2, 0.0)) / n
+    total = n + 2  # the table with 1/2 added to each of its four cells
+    centre = (b - c) / total
+    half = z * np.sqrt(b + c + 1 - (b - c) ** 2 / total) / total
     p_value = stats.binomtest(b, b + c, 0.5).pvalue if b + c else 1.0
     return {
         **counts,
-        "difference": difference,
-        "low": difference - half,
-        "high": difference + half,
+        "difference": (b - c) / n,
+        "low": max(centre - half, -1.0),
+        "high": min(centre + half, 1.0),
         "p_value": float(p_value),
     }

@@ -3,8 +3,8 @@
 Both planners face every (scene, seed) episode (a full stress test each, in
 ``<out>/a-<name>/`` and ``<out>/b-<name>/``); an episode's outcome for A and for B is one
 pair. Per outcome (an ego collision; an ego collision shown avoidable) the table gives each
-planner's rate, the difference A - B with the Wald interval of paired proportions and the
-exact McNemar test on the discordant pairs (:func:`policies.statistics.paired_difference`):
+planner's rate, the difference A - B with Agresti and Min's interval for matched pairs and
+the exact McNemar test on the discordant pairs (:func:`policies.statistics.paired_difference`):
 pairing removes the between-scene variance, so it separates planners that two overlapping
 Wilson intervals cannot. The ego's progress is the counter-metric (a planner that stands
 still is rarely hit). ``compare.json`` and ``compare.md`` hold the table.

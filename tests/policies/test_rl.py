@@ -344,8 +344,13 @@ def test_paired_counts_and_difference():
     assert (failures["trained"], failures["untrained"]) == (4, 8)
     d = paired_difference(counts)
     assert d["difference"] == pytest.approx(-0.3)
-    half = stats.norm.ppf(0.975) * np.sqrt(1 + 4 - 10 * 0.09) / 10
-    assert (d["low"], d["high"]) == pytest.approx((-0.3 - half, -0.3 + half))
+    # Agresti-Min: 1/2 added to each cell, n* = 12, centre (1 - 4) / 12
+    half = stats.norm.ppf(0.975) * np.sqrt(1 + 4 + 1 - 9 / 12) / 12
+    assert (d["low"], d["high"]) == pytest.approx((-0.25 - half, -0.25 + half))
+    none_discordant = paired_difference({**counts, "trained_only": 0, "untrained_only": 0})
+    assert none_discordant["low"] < 0 < none_discordant["high"]  # not shrunk to a point
+    all_one_way = paired_difference({**counts, "n": 2, "trained_only": 2, "untrained_only": 0})
+    assert all_one_way["difference"] == 1 and all_one_way["high"] == 1  # clipped to [-1, 1]
     assert d["p_value"] == pytest.approx(stats.binomtest(1, 5, 0.5).pvalue)
     assert paired_difference({**counts, "trained_only": 0, "untrained_only": 0})["p_value"] == 1
     with pytest.raises(ValueError, match="metric"):
