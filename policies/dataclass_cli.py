@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import copy
 import dataclasses
 import inspect
 import sys
@@ -81,7 +82,7 @@ def dataclass_parser(
     ``--recipe`` with ``recipes``; ``--debug`` with ``debug``: see
     :mod:`riskflow_env.cli_errors`)."""
     parser = argparse.ArgumentParser(
-        prog=prog, description=description, formatter_class=argparse.ArgumentDefaultsHelpFormatter
+        prog=prog, description=description, formatter_class=_DefaultsAsTyped
     )
     hints, docs = typing.get_type_hints(cls), field_docs(cls)
     for field in dataclasses.fields(cls):
@@ -112,6 +113,17 @@ def dataclass_parser(
     if debug:
         add_debug_flag(parser)
     return parser
+
+
+class _DefaultsAsTyped(argparse.ArgumentDefaultsHelpFormatter):
+    """Each option's default in its help, a tuple's values as one types them: ``(default:
+    0 1 2)``, not ``(default: (0, 1, 2))``."""
+
+    def _expand_help(self, action: argparse.Action) -> str:
+        if isinstance(action.default, tuple):
+            action = copy.copy(action)
+            action.default = " ".join(str(value) for value in action.default) or "none"
+        return super()._expand_help(action)
 
 
 class _Several(argparse.Action):

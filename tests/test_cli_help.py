@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -90,3 +91,16 @@ def test_script_options_have_help_and_defaults(relative, monkeypatch):
 )
 def test_console_script_options_have_help_and_defaults(build):
     _check(build())
+
+
+@dataclass(frozen=True)
+class _Several:
+    seeds: tuple[int, ...] = (0, 1, 2)
+    """noise seeds"""
+    formats: tuple[str, ...] = ()
+    """formats"""
+
+
+def test_a_tuple_default_shows_as_typed():
+    shown = " ".join(dataclass_parser(_Several, "prog").format_help().split())
+    assert "noise seeds (default: 0 1 2)" in shown and "formats (default: none)" in shown

@@ -9,8 +9,8 @@
     riskflow-stress --export scenarionet,openscenario,commonroad ...   # failures in other formats
     riskflow-stress compare idm sampling_mpc --scenes 20 --out outputs/compare
 
-``--planner`` takes a built-in name (idm, sampling_mpc, constant_velocity, lane_keeping),
-``package.module:object`` or ``path/to/file.py:object``
+``--planner`` takes a built-in name (idm, sampling_mpc, constant_velocity, lane_keeping,
+replay: the logged ego), ``package.module:object`` or ``path/to/file.py:object``
 (:mod:`policies.stress.planner_spec`). The options of a run are :class:`RunOptions` (one
 flag per field, its docstring as help); bad arguments exit with a usage error naming the
 argument.
@@ -40,8 +40,9 @@ class RunOptions(StressOptions):
 
     planner: str = "idm"
     """the planner under test: a built-in name (idm, sampling_mpc, constant_velocity,
-    lane_keeping), package.module:object or path/to/file.py:object (a planner callable
-    (observation, view) -> action, or a class or factory called with no argument)"""
+    lane_keeping, replay: the logged ego), package.module:object or path/to/file.py:object
+    (a planner callable (observation, view) -> action, or a class or factory called with no
+    argument)"""
     export: tuple[str, ...] = ()
     """also write every saved failure (the executed episode) beside its replay file in
     these formats: scenarionet, openscenario, commonroad, comma- or space-separated

@@ -70,7 +70,9 @@ def load_planner(
         return make_planner(spec, dynamics)
     location, colon, name = spec.rpartition(":")
     if not colon or not location or not name.isidentifier():
-        raise PlannerSpecError(argument, spec, f"expected {_forms()}")
+        close = difflib.get_close_matches(spec, list(PLANNERS), n=1)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        raise PlannerSpecError(argument, spec, f"expected {_forms()}{hint}")
     if location.endswith(".py") or "/" in location or "\\" in location:
         module = _module_from_file(Path(location), spec, argument)
     else:

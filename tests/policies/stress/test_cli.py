@@ -150,6 +150,7 @@ def test_planner_by_import_path_and_name(tmp_path, monkeypatch):
         ("json:dumps", "cannot be called as planner(observation, view)"),
         ("nowhere/planner.py:plan", "no such file"),
         ("just_a_name", "expected a built-in name"),
+        ("imd", "did you mean idm"),
     ],
 )
 def test_bad_planner_errors_name_the_argument(spec, message, planner_file, tmp_path, capsys):
