@@ -14,16 +14,20 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from policies.learned.ranking import MIN_ATTACK_SPEED
+
 METRIC_LABELS = {
     "ego_collision_rate": "ego collision rate",
     "ego_offroad_rate": "ego off-road rate",
     "ego_failure_rate": "collision or off-road",
     "avoidable_failure_rate": "avoidable collision",
     "progress": "progress [m]",
+    "slow_ego_share": f"ego steps below {MIN_ATTACK_SPEED:g} m/s",
     "time_to_first_ego_collision": "time to 1st ego collision [s]",
 }
 
 COUNTS = ("n", "trained", "untrained", "trained_only", "untrained_only")
+MISSING = {"value": None}  # a metric a summary lacks (one combined from an older results.json)
 
 Summaries = Mapping[tuple[str, str], Mapping[str, Mapping[str, Any]]]
 
@@ -47,7 +51,7 @@ def markdown_table(summaries: Summaries, metrics: tuple[str, ...] = tuple(METRIC
     lines = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
     for (planner, traffic), summary in summaries.items():
         digits = {"progress": 1, "time_to_first_ego_collision": 2}
-        cells = [format_entry(summary[m], digits.get(m, 3)) for m in metrics]
+        cells = [format_entry(summary.get(m, MISSING), digits.get(m, 3)) for m in metrics]
         count = summary[metrics[0]]["n"]
         lines.append("| " + " | ".join([planner, traffic, *cells, str(count)]) + " |")
     return "\n".join(lines)

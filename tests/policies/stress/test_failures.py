@@ -167,6 +167,20 @@ def test_the_rl_evaluation_reports_the_avoidable_failure_rate():
     summary = summarize_ego([avoidable, clear])
     assert summary["avoidable_failure_rate"]["value"] == 0.5
     assert summary["ego_collision_rate"]["value"] == 0.5
+    assert summary["slow_ego_share"]["value"] == 0.0  # the ego drives at 8 m/s throughout
+
+
+def test_the_rl_table_shows_the_slow_ego_share_and_reads_older_summaries():
+    from policies.rl.report import markdown_table
+
+    entry = {"value": 0.5, "low": 0.1, "high": 0.9, "n": 4}
+    new = {"ego_collision_rate": entry, "slow_ego_share": entry | {"value": 0.678}}
+    old = {"ego_collision_rate": entry}  # a results.json written before the column existed
+    table = markdown_table({("ppo", "K=5"): new, ("idm", "K=5"): old},
+                           ("ego_collision_rate", "slow_ego_share"))  # fmt: skip
+    header, _, ppo, idm = table.splitlines()
+    assert "ego steps below 2 m/s" in header
+    assert "0.678 [0.100, 0.900]" in ppo and idm.endswith("| – | 4 |")
 
 
 def test_a_bound_held_exactly_is_within_it():
