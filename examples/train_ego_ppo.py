@@ -21,11 +21,9 @@ predictions of the others (``--maneuver-features``; :mod:`policies.rl.features`)
 policy (normalised (accel, yaw rate), 0 = keep speed and heading), with
 ``--base-planner none`` (the policy drives), ``idm`` (a residual over IDM) or ``lane``.
 
-Reward: the env's (``RewardConfig``: speed, collision, off-road, TTC risk, comfort) with
-the collision and off-road weights doubled to -10 (the library default is -5): the speed
-term pays at most 0.1 per step, so -10 makes avoiding one collision worth 100 steps of
-full speed, and off-road equal to collision means that leaving the road is never a
-cheaper way out of a crash than the crash itself (both end the episode).
+Reward: the env's (``RewardConfig``) with collision and off-road at -10 (the library's -5):
+the speed term pays at most 0.1 per step, so avoiding one collision is worth 100 steps of
+full speed; off-road equal to collision is never a cheaper way out of a crash.
 
 The adversary plans on the CPU; that is the cost of a step. Training uses the evaluation's
 adversary (``guidance_steps`` 30, a re-plan every 0.5 s): over four seeds its egos collide
@@ -166,6 +164,10 @@ class Options:
     """curriculum: guidance target from half-way through the ramp"""
     ramp_fraction: float = 0.2
     """share of training the curriculum ramp takes (0: no curriculum)"""
+    speed_reward: float = 0.1
+    """weight of the speed term, ``speed_reward * min(v, target_speed) / target_speed``"""
+    target_speed: float = 25.0
+    """speed at which the speed term saturates [m/s]"""
     collision_reward: float = -10.0
     """reward when the ego collides [per step]"""
     offroad_reward: float = -10.0
@@ -206,15 +208,8 @@ class Options:
             raise ValueError("--use-sde needs continuous actions: drop --maneuver-actions")
         if self.vec_env not in VEC_ENVS:
             raise ValueError(f"--vec-env must be one of {VEC_ENVS}, got {self.vec_env!r}")
-        for name in (
-            "total_timesteps",
-            "num_envs",
-            "n_steps",
-            "batch_size",
-            "n_epochs",
-            "action_repeat",
-            "shards",
-        ):
+        counts = ("total_timesteps", "num_envs", "n_steps", "batch_size", "n_epochs")
+        for name in (*counts, "action_repeat", "shards"):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
         if self.shards > 1 and self.vec_env != "batched":
@@ -226,6 +221,8 @@ class Options:
             raise ValueError(
                 f"--maneuver-set must be one of {MANEUVER_SETS}, got {self.maneuver_set!r}"
             )
+        if not self.target_speed > 0:
+            raise ValueError(f"--target-speed must be > 0 m/s, got {self.target_speed}")
         if self.checkpoint_every < 0:
             raise ValueError(f"--checkpoint-every must be >= 0, got {self.checkpoint_every}")
         if self.traffic not in TRAFFICS:
@@ -235,6 +232,8 @@ class Options:
 def env_config(options: Options) -> EgoEnvConfig:
     """The workers' env: training bank, cheaper adversary, reward weights of the options."""
     reward = RewardConfig(
+        target_speed=options.target_speed,
+        speed=options.speed_reward,
         collision=options.collision_reward,
         offroad=options.offroad_reward,
         risk=options.risk_reward,

@@ -163,14 +163,26 @@ def fake_run(folder: Path, model: bytes = b"not a pickle") -> Path:
     return folder
 
 
+def example(name: str):
+    """``examples/<name>.py`` imported in this process (as module ``name``)."""
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, ROOT / "examples" / f"{name}.py")
+        sys.modules[name] = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(sys.modules[name])
+    return sys.modules[name]
+
+
 def evaluate_main():
-    """``examples/evaluate_ego.py``'s ``main``, imported in this process (as ``evaluate_ego``)."""
-    if "evaluate_ego" not in sys.modules:
-        path = ROOT / "examples" / "evaluate_ego.py"
-        spec = importlib.util.spec_from_file_location("evaluate_ego", path)
-        sys.modules["evaluate_ego"] = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(sys.modules["evaluate_ego"])
-    return sys.modules["evaluate_ego"].main
+    """``examples/evaluate_ego.py``'s ``main``."""
+    return example("evaluate_ego").main
+
+
+def test_reward_options_reach_the_env():
+    train = example("train_ego_ppo")
+    reward = train.env_config(train.Options(speed_reward=0.2, target_speed=10.0)).env.reward
+    assert (reward.speed, reward.target_speed, reward.collision) == (0.2, 10.0, -10.0)
+    with pytest.raises(ValueError, match="--target-speed must be > 0 m/s, got 0.0"):
+        train.Options(target_speed=0.0)
 
 
 def test_find_model_takes_folders_and_files_with_or_without_zip(tmp_path):
