@@ -1,7 +1,6 @@
 """Train an ego with Stable-Baselines3 PPO against the RiskFlow adversary (``rl`` extra).
 
     python examples/train_ego_ppo.py --seed 0 --vec-env dummy --out runs/ego_maneuver/seed0
-    python examples/train_ego_ppo.py --help
 
 Results, budget and the commands of the documented runs: docs/tutorials/rl-ego.md.
 
@@ -25,10 +24,8 @@ Reward: the env's (``RewardConfig``) with collision and off-road at -10 (the lib
 the speed term pays at most 0.1 per step, so avoiding one collision is worth 100 steps of
 full speed; off-road equal to collision is never a cheaper way out of a crash.
 
-The adversary plans on the CPU; that is the cost of a step. Training uses the evaluation's
-adversary (``guidance_steps`` 30, a re-plan every 0.5 s): over four seeds its egos collide
-in 0.119 of 420 paired episodes against 0.195 with a cheaper one (10 steps, 1 s); an
-80k-decision run took 27 to 54 minutes on a 2-core CPU (docs/explanation/rl-results.md).
+The adversary plans on the CPU, the cost of a step; training uses the evaluation's (30
+guidance steps, a re-plan every 0.5 s; docs/explanation/rl-results.md has runs and times).
 
 Writes to ``--out`` (:mod:`policies.rl.runs`): ``options.json``; ``initial_model.zip``
 (the untrained policy) and ``final_model.zip``, each with its ``*_vecnormalize.pkl``
@@ -37,9 +34,8 @@ the end; ``progress.csv`` (SB3's CSV log: returns, losses, ``rollout/ego_collisi
 ``curriculum/*``), ``training.png`` (the curves) and TensorBoard files with ``--tensorboard``.
 
 Ctrl-C or SIGTERM saves a checkpoint as of the last update and exits with one line (status
-130 / 143); ``--resume RUN`` goes on from a run's latest checkpoint, bit for bit from the
-checkpoint except for the episodes in flight, which start afresh
-(:mod:`policies.rl.checkpoints`).
+130 / 143); ``--resume RUN`` goes on from it, bit for bit but for the episodes in flight,
+which start afresh (:mod:`policies.rl.checkpoints`).
 """
 
 from __future__ import annotations
@@ -87,6 +83,7 @@ from policies.rl.runs import (
 )
 from policies.rl.sb3_shards import ShardedEgoVecEnv
 from policies.rl.sb3_vec_env import sb3_ego_vec_env
+from policies.rl.scoring import sb3_policy
 from policies.rl.signals import StopSignals, exit_stopped
 from policies.rl.vector_env import build_vector_env
 from riskflow_env.config import EnvConfig, RewardConfig
@@ -137,9 +134,11 @@ class Options:
     """discrete actions: choose one of the 15 maneuvers of policies.rl.features.maneuvers
     (brake / hold / accelerate x straight / lane change / turn) every --action-repeat steps
     (--log-std-init and gSDE do not apply)"""
+    policy: str = "mlp"
+    """'mlp' (SB3's MlpPolicy) or 'scoring' (one network scores every maneuver from its
+    features: policies.rl.scoring; needs --maneuver-actions and --maneuver-features)"""
     use_sde: bool = False
-    """generalized state-dependent exploration (gSDE; Raffin et al. 2022): noise that is
-    constant over ``sde_sample_freq`` steps instead of fresh every step"""
+    """gSDE (Raffin et al. 2022): exploration noise held for ``sde_sample_freq`` steps"""
     sde_sample_freq: int = -1
     """resample the gSDE noise every N decisions (-1: once per rollout)"""
     traffic: str = "riskflow"
@@ -206,6 +205,7 @@ class Options:
     def __post_init__(self) -> None:
         if self.maneuver_actions and self.use_sde:
             raise ValueError("--use-sde needs continuous actions: drop --maneuver-actions")
+        sb3_policy(self)  # checks --policy
         if self.vec_env not in VEC_ENVS:
             raise ValueError(f"--vec-env must be one of {VEC_ENVS}, got {self.vec_env!r}")
         counts = ("total_timesteps", "num_envs", "n_steps", "batch_size", "n_epochs")
@@ -274,15 +274,16 @@ def new_model(options: Options, env: VecEnv) -> PPO:
     """An untrained PPO of the options."""
     if options.normalize:
         env = VecNormalize(env, norm_obs=True, norm_reward=True, clip_obs=10.0)
+    policy, policy_kwargs = sb3_policy(options)
     return PPO(
-        "MlpPolicy",
+        policy,
         env,
         n_steps=options.n_steps,
         batch_size=options.batch_size,
         n_epochs=options.n_epochs,
         learning_rate=options.learning_rate,
         gamma=options.gamma,
-        policy_kwargs={} if options.maneuver_actions else {"log_std_init": options.log_std_init},
+        policy_kwargs=policy_kwargs,
         use_sde=options.use_sde,
         sde_sample_freq=options.sde_sample_freq,
         seed=options.seed,
