@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from riskflow_env.cli_errors import add_debug_flag, user_errors
-from riskflow_env.folder_lock import FolderLock, FolderLocked, check_output_folder
+from riskflow_env.folder_lock import FolderLock, FolderLocked, make_output_folder
 from riskflow_env.maps import FAMILIES
 from riskflow_env.processes import exit_with_parent
 from riskflow_env.scenarios._npz import check_npz_sizes
@@ -289,6 +289,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def output_folder(parser: argparse.ArgumentParser, folder: Path) -> None:
+    """Make ``--out`` (and its parents), or exit with a usage error naming it."""
+    try:
+        make_output_folder(folder, "--out")
+    except ValueError as err:
+        parser.error(str(err))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``riskflow-data`` console script."""
     parser = build_parser()
@@ -306,17 +314,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                 require_format(fmt)
             except ImportError as err:
                 parser.error(f"--format {fmt}: {err}")
+        output_folder(parser, args.out)
         with user_errors(f"{parser.prog} export", args.debug):
             written = export_files(args.files, formats, args.out)
         print(f"riskflow-data: wrote {len(written)} file(s) into {args.out}")
         return 0
-    try:
-        check_output_folder(args.out, "--out")
-    except ValueError as err:
-        parser.error(str(err))
     # every field of GenerateOptions is the `generate` argument of the same name
     parsed = {field.name: getattr(args, field.name) for field in fields(GenerateOptions)}
     options = GenerateOptions(**parsed | {"families": tuple(dict.fromkeys(args.families))})
+    output_folder(parser, args.out)
     with user_errors(f"{parser.prog} generate", args.debug):
         generate(options)
     return 0

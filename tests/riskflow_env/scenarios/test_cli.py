@@ -126,6 +126,24 @@ def test_out_that_is_a_file_is_a_usage_error(tmp_path, capsys):
 
 
 @pytest.mark.reliability
+@pytest.mark.parametrize("command", ["generate", "export"])
+def test_out_the_system_refuses_is_a_usage_error(command, tmp_path, monkeypatch, capsys):
+    """A read-only or virtual file system (``--out /proc/bank``): one line naming --out."""
+
+    def refuse(self, *args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(self))
+
+    monkeypatch.setattr(Path, "mkdir", refuse)
+    args = ["--families", "u-turn", "--scenes", "1"] if command == "generate" else [
+        str(tmp_path / "scene.npz"), "--format", "scenarionet"
+    ]  # fmt: skip
+    with pytest.raises(SystemExit) as exit_info:
+        main([command, *args, "--out", str(tmp_path / "out")])
+    assert exit_info.value.code == 2
+    assert "--out: cannot make the folder" in capsys.readouterr().err
+
+
+@pytest.mark.reliability
 @pytest.mark.parametrize(
     ("changes", "message"),
     [
