@@ -4,8 +4,6 @@ that shows its default."""
 from __future__ import annotations
 
 import argparse
-import importlib.util
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +17,7 @@ from policies.stress.cli import parser as stress_parser
 from policies.stress.cli import replay_parser as stress_replay_parser
 from policies.train import parser as train_parser
 from riskflow_env.scenarios.cli import build_parser as data_parser
+from tests.scripts import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 HELPERS = ("benchmarks/methods.py", "benchmarks/timing.py")  # imported by the scripts
@@ -30,18 +29,13 @@ NEEDS_RL = ("examples/train_ego_ppo.py", "examples/train_adversaries_marl.py")
 NEEDS_TORCHRL = ("examples/train_ego_torchrl.py",)
 
 
-def _script_parser(relative: str, monkeypatch) -> argparse.ArgumentParser:
+def _script_parser(relative: str) -> argparse.ArgumentParser:
     if relative in NEEDS_RL:
         pytest.importorskip("stable_baselines3", reason="the rl extra is not installed")
     if relative in NEEDS_TORCHRL:
         pytest.importorskip("torchrl", reason="the torchrl extra is not installed")
-    path = ROOT / relative
-    spec = importlib.util.spec_from_file_location(f"cli_help_{path.stem}", path)
-    module = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, spec.name, module)  # dataclasses look their module up
-    monkeypatch.syspath_prepend(str(path.parent))  # as when run: its folder's helpers
-    spec.loader.exec_module(module)
-    return dataclass_parser(module.Options, path.name)
+    module = load_script(relative)
+    return dataclass_parser(module.Options, Path(relative).name)
 
 
 def _actions(parser: argparse.ArgumentParser):
@@ -64,8 +58,8 @@ def _check(parser: argparse.ArgumentParser) -> None:
 
 
 @pytest.mark.parametrize("relative", SCRIPTS)
-def test_script_options_have_help_and_defaults(relative, monkeypatch):
-    _check(_script_parser(relative, monkeypatch))
+def test_script_options_have_help_and_defaults(relative):
+    _check(_script_parser(relative))
 
 
 @pytest.mark.parametrize(

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import runpy
 import subprocess
@@ -19,6 +18,7 @@ from policies.learned.data import ActionNormalizer
 from policies.learned.generator import RiskFlowGenerator
 from riskflow_env.scenarios import load_scenario
 from riskflow_env.wrappers import read_event_log
+from tests.scripts import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "examples"
@@ -71,7 +71,7 @@ def test_rollout(checkpoint, tmp_path):
 def test_rollout_warm_up_leaves_the_episode_as_it_is(checkpoint, tmp_path, monkeypatch):
     """The untimed warm-up step runs a throwaway adversary: the episode's events and
     metrics (all but the wall times) are those of a run without it."""
-    rollout = _example("rollout", monkeypatch)
+    rollout = load_script("examples/rollout.py")
     runs = {}
     for warm in (True, False):
         if not warm:
@@ -139,13 +139,8 @@ def test_stress_test_writes_the_report_and_replay_files(checkpoint, tmp_path):
             assert "closed-loop" in out
 
 
-def test_my_planner_returns_bounded_actions(monkeypatch):
-    spec = importlib.util.spec_from_file_location(
-        "stress_test", EXAMPLES / "stress_test_planner.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, spec.name, module)  # dataclasses look their module up
-    spec.loader.exec_module(module)
+def test_my_planner_returns_bounded_actions():
+    module = load_script("examples/stress_test_planner.py")
     rng = np.random.default_rng(0)
     for _ in range(20):
         observation = rng.normal(0.0, 5.0, 142).astype(np.float32)
@@ -154,17 +149,8 @@ def test_my_planner_returns_bounded_actions(monkeypatch):
         assert -8.0 <= accel <= 5.0 and abs(yaw_rate) <= 1.0
 
 
-def _example(name: str, monkeypatch):
-    """Import ``examples/<name>.py`` as a module (its dataclasses find their module)."""
-    spec = importlib.util.spec_from_file_location(f"example_{name}", EXAMPLES / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, spec.name, module)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_rollout_scenario_formats(monkeypatch, tmp_path):
-    rollout = _example("rollout", monkeypatch)
+    rollout = load_script("examples/rollout.py")
     pickled = tmp_path / "toy.pkl"
     pickled.write_bytes(b"")
     monkeypatch.setattr(rollout, "load_scenarionet", lambda path: ("scenarionet", path))

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from tests.samples import SCENARIONET_DIR, require_samples
+from tests.scripts import load_script
 
 pytest.importorskip("stable_baselines3", reason="the rl extra is not installed")
 
@@ -87,15 +88,20 @@ def test_pipeline_trains_three_egos_evaluates_them_and_reuses_its_work(tmp_path)
     assert json.loads((out / "transfer.json").read_text()) == report
 
 
-def test_options_are_checked_before_anything_runs(tmp_path):
-    """Each wrong option is refused with its name, before a folder is made."""
-    wrong = {
-        "--seeds must be distinct comma-separated integers": ("--seeds", "1,1"),
-        "--eval-seeds must be distinct comma-separated integers": ("--eval-seeds", "a"),
-        "--train-args may not set ['--traffic']": ("--train-args", "--traffic riskflow"),
-        "--train-args: No closing quotation": ("--train-args", "--n-steps '8"),
-    }
-    for message, args in wrong.items():
-        done = run("--out", tmp_path / "transfer", *args)
-        assert done.returncode == 2 and message in done.stderr, (args, done.stderr)
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (("--seeds", "1,1"), "--seeds must be distinct comma-separated integers"),
+        (("--eval-seeds", "a"), "--eval-seeds must be distinct comma-separated integers"),
+        (("--train-args", "--traffic riskflow"), "--train-args may not set ['--traffic']"),
+        (("--train-args", "--n-steps '8"), "--train-args: No closing quotation"),
+    ],
+)
+def test_options_are_checked_before_anything_runs(args, message, tmp_path, capsys):
+    """Each wrong option is refused with its name, before a folder is made (``main`` in
+    this process: the subprocess test above runs the script as a user does)."""
+    script = load_script("examples/transfer_experiment.py")
+    with pytest.raises(SystemExit) as exit_info:
+        script.main(["--out", str(tmp_path / "transfer"), *args])
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
     assert not (tmp_path / "transfer").exists()

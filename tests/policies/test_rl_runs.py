@@ -9,7 +9,6 @@ Needs the ``rl`` extra; tiny budgets, a 2-guidance-step adversary, no timing ass
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
 import os
 import signal
@@ -26,6 +25,7 @@ pytest.importorskip(
 )
 
 from policies.rl.runs import RunError, find_model  # noqa: E402
+from tests.scripts import load_script  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ("--n-steps", "32", "--batch-size", "64", "--n-epochs", "1", "--num-envs", "2",
@@ -163,22 +163,13 @@ def fake_run(folder: Path, model: bytes = b"not a pickle") -> Path:
     return folder
 
 
-def example(name: str):
-    """``examples/<name>.py`` imported in this process (as module ``name``)."""
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, ROOT / "examples" / f"{name}.py")
-        sys.modules[name] = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(sys.modules[name])
-    return sys.modules[name]
-
-
 def evaluate_main():
     """``examples/evaluate_ego.py``'s ``main``."""
-    return example("evaluate_ego").main
+    return load_script("examples/evaluate_ego.py").main
 
 
 def test_reward_options_reach_the_env():
-    train = example("train_ego_ppo")
+    train = load_script("examples/train_ego_ppo.py")
     reward = train.env_config(train.Options(speed_reward=0.2, target_speed=10.0)).env.reward
     assert (reward.speed, reward.target_speed, reward.collision) == (0.2, 10.0, -10.0)
     with pytest.raises(ValueError, match="--target-speed must be > 0 m/s, got 0.0"):

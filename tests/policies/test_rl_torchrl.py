@@ -48,14 +48,9 @@ def test_trains_checkpoints_and_resumes(tmp_path):
 
 
 def test_sampled_maneuvers_respect_the_action_mask():
-    import importlib.util
+    from tests.scripts import load_script
 
-    spec = importlib.util.spec_from_file_location(
-        "train_ego_torchrl", ROOT / "examples" / "train_ego_torchrl.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["train_ego_torchrl"] = module
-    spec.loader.exec_module(module)
+    module = load_script("examples/train_ego_torchrl.py")
     options = module.Options(scenes=2, episode_steps=20, guidance_steps=2)
     env = module.make_env(options, seed=0)
     actor, _ = module.make_modules(env)

@@ -17,16 +17,10 @@ def test_ppo_model_needs_trusted(tmp_path):
     assert not marker.exists()
 
 
-def test_evaluate_ego_runs_needs_trust_model(monkeypatch):
-    import importlib.util
-    from pathlib import Path
+def test_evaluate_ego_runs_needs_trust_model():
+    from tests.scripts import load_script
 
-    spec = importlib.util.spec_from_file_location(
-        "evaluate_ego", Path(__file__).parents[2] / "examples" / "evaluate_ego.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(__import__("sys").modules, "evaluate_ego", module)
-    spec.loader.exec_module(module)
+    module = load_script("examples/evaluate_ego.py")
     with pytest.raises(ValueError, match="--trust-model"):
         module.Options(runs="runs/x")
     assert module.Options(runs="runs/x", trust_model=True).trust_model
