@@ -54,6 +54,7 @@ ROWS = (  # (label, summary key, scale, unit)
     ("into a wreck", "wreck_share", 100, "%"),
     ("non-ego in contact", "non_ego_contact_share", 100, "%"),
     ("ego progress [m]", "progress", 1, ""),
+    ("ego collisions per km", "ego_collisions_per_km", 1, ""),
     ("episodes attacked", "attacked_rate", 100, "%"),
     ("ego steps below 2 m/s", "slow_ego_share", 100, "%"),
 )

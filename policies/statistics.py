@@ -3,6 +3,7 @@
 * :func:`wilson_interval`: a rate (collisions per episode) with its Wilson score interval;
   :func:`rate` the same as a report entry ``{"value", "low", "high", "n"}``;
 * :func:`mean_summary`: a mean with its bootstrap interval, as such an entry;
+* :func:`per_km`: events per kilometre driven, with the exact Poisson interval;
 * :func:`mean_interval`: a mean (time to collision, distance) with a seeded percentile
   bootstrap interval;
 * :func:`paired_difference`: two policies on the same episodes: the difference of their
@@ -34,6 +35,20 @@ def rate(hits: int, trials: int, confidence: float = 0.95) -> dict[str, Any]:
         return {"value": None, "low": None, "high": None, "n": 0}
     low, high = wilson_interval(hits, trials, confidence)
     return {"value": hits / trials, "low": low, "high": high, "n": trials}
+
+
+def per_km(events: int, metres: float, confidence: float = 0.95) -> dict[str, Any]:
+    """``{"value", "low", "high", "n"}`` of an event rate per kilometre driven (``n``: the
+    events), with the exact Poisson interval for a count over an exposure (Garwood 1936:
+    ``chi2(a/2; 2k) / 2`` and ``chi2(1 - a/2; 2k + 2) / 2`` events, over the distance). The
+    counter-metric of a per-episode rate: an ego that crawls collides in few episodes but
+    not in fewer per kilometre. None without distance."""
+    if not metres > 0:
+        return {"value": None, "low": None, "high": None, "n": events}
+    km, alpha = metres / 1000.0, 1.0 - confidence
+    low = stats.chi2.ppf(alpha / 2, 2 * events) / 2 if events else 0.0
+    high = stats.chi2.ppf(1 - alpha / 2, 2 * events + 2) / 2
+    return {"value": events / km, "low": float(low) / km, "high": float(high) / km, "n": events}
 
 
 def mean_interval(

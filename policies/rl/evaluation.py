@@ -21,7 +21,7 @@ import torch
 from policies.harness import ClosedLoop, EpisodeRecord, summarize
 from policies.rl.adversary import ScenePolicyConfig, make_traffic
 from policies.rl.envs import EgoInterface
-from policies.statistics import mean_interval, mean_summary, rate
+from policies.statistics import mean_interval, mean_summary, per_km, rate
 from policies.stress.failures import analyse
 from policies.stress.summary import progress, slow_ego_steps
 from riskflow_env.config import DynamicsConfig, EnvConfig
@@ -230,6 +230,8 @@ def summarize_ego(records: Sequence[EpisodeRecord]) -> dict[str, dict[str, Any]]
     * ``avoidable_failure_rate``: share with an ego collision the ego could have avoided
       (:mod:`policies.stress.failures`: a hindsight escape search found a witness);
     * ``progress`` [m]: distance driven by the ego (bootstrap);
+    * ``ego_collisions_per_km``: episodes with an ego collision per kilometre the ego drove
+      (exact Poisson interval): the rate of an ego that crawls is not lower per km;
     * ``slow_ego_share``: mean share of the ego's steps below ``MIN_ATTACK_SPEED``, where
       the adversary starts no attack (bootstrap): an ego that crawls is spared, so read
       the rates next to it and to progress;
@@ -249,6 +251,9 @@ def summarize_ego(records: Sequence[EpisodeRecord]) -> dict[str, dict[str, Any]]
         "ego_failure_rate": _entry(failures / max(len(records), 1), low, high, len(records)),
         "avoidable_failure_rate": rate(avoidable, len(records)),
         "progress": _entry(float(np.mean(distances)), d_low, d_high, len(distances)),
+        "ego_collisions_per_km": per_km(
+            sum(bool(r.metrics["ego_collided"]) for r in records), float(np.sum(distances))
+        ),
         "slow_ego_share": mean_summary(
             [slow_ego_steps(r) / (r.states.shape[1] - 1) for r in records if r.states.shape[1] > 1]
         ),

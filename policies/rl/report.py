@@ -22,6 +22,7 @@ METRIC_LABELS = {
     "ego_failure_rate": "collision or off-road",
     "avoidable_failure_rate": "avoidable collision",
     "progress": "progress [m]",
+    "ego_collisions_per_km": "ego collisions per km",
     "slow_ego_share": f"ego steps below {MIN_ATTACK_SPEED:g} m/s",
     "time_to_first_ego_collision": "time to 1st ego collision [s]",
 }
@@ -50,7 +51,7 @@ def markdown_table(summaries: Summaries, metrics: tuple[str, ...] = tuple(METRIC
     header = ["ego planner", "traffic", *(METRIC_LABELS[m] for m in metrics), "episodes"]
     lines = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
     for (planner, traffic), summary in summaries.items():
-        digits = {"progress": 1, "time_to_first_ego_collision": 2}
+        digits = {"progress": 1, "ego_collisions_per_km": 2, "time_to_first_ego_collision": 2}
         cells = [format_entry(summary.get(m, MISSING), digits.get(m, 3)) for m in metrics]
         count = summary[metrics[0]]["n"]
         lines.append("| " + " | ".join([planner, traffic, *cells, str(count)]) + " |")

@@ -6,8 +6,9 @@ pair. Per outcome (an ego collision; an ego collision shown avoidable) the table
 planner's rate, the difference A - B with Agresti and Min's interval for matched pairs and
 the exact McNemar test on the discordant pairs (:func:`policies.statistics.paired_difference`):
 pairing removes the between-scene variance, so it separates planners that two overlapping
-Wilson intervals cannot. The ego's progress is the counter-metric (a planner that stands
-still is rarely hit). ``compare.json`` and ``compare.md`` hold the table.
+Wilson intervals cannot. The ego's progress and its collisions per kilometre are the
+counter-metrics (a planner that stands still is rarely hit). ``compare.json`` and
+``compare.md`` hold the table.
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ def compare(
 
     Returns:
         ``{"a", "b", "episodes", "rows"}``: the two planners' names, the number of paired
-        episodes, and a row per outcome (:data:`OUTCOMES`) and for the progress.
+        episodes, and a row per outcome (:data:`OUTCOMES`) and per counter-metric.
     """
     folder = None if out is None else Path(out)
     runs = []
@@ -96,13 +97,10 @@ def paired_table(a: StressResult, b: StressResult) -> dict[str, Any]:
                 "p_value": test["p_value"],
             }
         )
-    rows.append(
-        {
-            "outcome": "ego progress [m] (counter-metric)",
-            "a": a.summary["progress"],
-            "b": b.summary["progress"],
-        }
-    )
+    for key, label, digits in COUNTER_METRICS:
+        if key in a.summary and key in b.summary:  # older summaries lack the rate per km
+            row = {"outcome": label, "a": a.summary[key], "b": b.summary[key], "digits": digits}
+            rows.append(row)
     return {
         "a": a.summary["planner"],
         "b": b.summary["planner"],
@@ -112,6 +110,10 @@ def paired_table(a: StressResult, b: StressResult) -> dict[str, Any]:
 
 
 _SUMMARY = {"ego_collided": "ego_collision_rate", "avoidable_failure": "avoidable_failure_rate"}
+COUNTER_METRICS = (
+    ("progress", "ego progress [m] (counter-metric)", 1),
+    ("ego_collisions_per_km", "ego collisions per km (counter-metric)", 2),
+)
 
 
 def markdown(table: dict[str, Any]) -> str:
@@ -124,7 +126,7 @@ def markdown(table: dict[str, Any]) -> str:
     ]
     for row in table["rows"]:
         percent = "difference" in row
-        a, b = (_value(row[side], percent) for side in ("a", "b"))
+        a, b = (_value(row[side], percent, row.get("digits", 1)) for side in ("a", "b"))
         if not percent:
             lines.append(f"| {row['outcome']} | {a} | {b} | | | |")
             continue
@@ -141,11 +143,11 @@ def markdown(table: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _value(entry: dict[str, Any], percent: bool) -> str:
+def _value(entry: dict[str, Any], percent: bool, digits: int = 1) -> str:
     value = entry["value"]
     if value is None:
         return "n/a"
-    return f"{100 * value:.1f}%" if percent else f"{value:.1f}"
+    return f"{100 * value:.1f}%" if percent else f"{value:.{digits}f}"
 
 
 def _label(planner: str | EgoPlanner) -> str:

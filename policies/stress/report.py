@@ -32,6 +32,7 @@ RATES = (
     ("ego_offroad_rate", "ego off the road (episodes)", "%"),
     ("attackers_at_impact", "guided vehicles within 5 m of the ego at impact", ""),
     ("progress", "distance the ego drove [m]", ""),
+    ("ego_collisions_per_km", "ego collisions per km driven (episodes with one)", ""),
     ("attacked_rate", "episodes with a guided vehicle (target ego: an attacker)", "%"),
     ("slow_ego_share", "share of the ego's steps below 2 m/s (no new attack)", "%"),
     ("time_to_first_ego_collision", "time to the first ego collision [s]", ""),

@@ -18,6 +18,9 @@ carry Wilson 95% intervals, means a bootstrap interval (:mod:`policies.statistic
 ``non_ego_contact_share``  non-ego vehicles in a collision that does not involve the ego
 ``progress``               mean distance the ego drove [m] (the counter-metric: a
                            planner that stands still is rarely to blame)
+``ego_collisions_per_km``  episodes with an ego collision per kilometre the ego drove,
+                           with the exact Poisson interval: a planner that crawls
+                           collides in few episodes, not in fewer per kilometre
 ``attacked_rate``          episodes in which a vehicle was guided at some step: with
                            target ``"ego"``, the episodes that put the planner under
                            attack (with ``"others"``, guided toward any vehicle)
@@ -45,7 +48,7 @@ import numpy as np
 
 from policies.harness import EGO, EpisodeRecord, mean_summary
 from policies.learned.ranking import MIN_ATTACK_SPEED
-from policies.statistics import rate
+from policies.statistics import per_km, rate
 from policies.stress.failures import FAILURE_TYPES, Failure
 from riskflow_env.dynamics import SPEED
 
@@ -146,6 +149,9 @@ def stress_summary(
             int(contacts[:, 0].sum()), int(contacts[:, 1].sum()), confidence
         ),
         "progress": mean_summary([o["progress"] for o in outcomes], confidence),
+        "ego_collisions_per_km": per_km(
+            sum(collided), sum(o["progress"] for o in outcomes), confidence
+        ),
     }
     # coverage; results files written before these fields existed lack them
     covered = [o for o in outcomes if o.get("attacked_steps") is not None]

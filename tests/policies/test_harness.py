@@ -113,6 +113,18 @@ def test_intervals():
     assert low < values.mean() < high and high - low == pytest.approx(0.28, abs=0.05)
 
 
+def test_events_per_km_with_the_exact_poisson_interval():
+    from policies.statistics import per_km
+
+    none = per_km(0, 1000.0)  # no event in 1 km: [0, 3.69] (the "rule of three", exact)
+    assert (none["value"], none["low"], none["n"]) == (0.0, 0.0, 0)
+    assert none["high"] == pytest.approx(3.689, abs=1e-3)
+    four = per_km(4, 2000.0)  # Garwood's interval of 4 events: [1.090, 10.242], over 2 km
+    assert four["value"] == 2.0
+    assert (four["low"], four["high"]) == pytest.approx((0.545, 5.121), abs=1e-3)
+    assert per_km(3, 0.0) == {"value": None, "low": None, "high": None, "n": 3}
+
+
 def test_summarize(record):
     summary = summarize([record, record])
     assert summary["ego_collision_rate"]["n"] == 2
