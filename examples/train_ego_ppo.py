@@ -1,6 +1,7 @@
 """Train an ego with Stable-Baselines3 PPO against the RiskFlow adversary (``rl`` extra).
 
     python examples/train_ego_ppo.py --seed 0 --vec-env dummy --out runs/ego_maneuver/seed0
+    python examples/train_ego_ppo.py --help
 
 Results, budget and the commands of the documented runs: docs/tutorials/rl-ego.md.
 
@@ -83,7 +84,6 @@ from policies.rl.runs import (
 )
 from policies.rl.sb3_shards import ShardedEgoVecEnv
 from policies.rl.sb3_vec_env import sb3_ego_vec_env
-from policies.rl.scoring import sb3_policy
 from policies.rl.signals import StopSignals, exit_stopped
 from policies.rl.vector_env import build_vector_env
 from riskflow_env.config import EnvConfig, RewardConfig
@@ -134,11 +134,9 @@ class Options:
     """discrete actions: choose one of the 15 maneuvers of policies.rl.features.maneuvers
     (brake / hold / accelerate x straight / lane change / turn) every --action-repeat steps
     (--log-std-init and gSDE do not apply)"""
-    policy: str = "mlp"
-    """'mlp' (SB3's MlpPolicy) or 'scoring' (one network scores every maneuver from its
-    features: policies.rl.scoring; needs --maneuver-actions and --maneuver-features)"""
     use_sde: bool = False
-    """gSDE (Raffin et al. 2022): exploration noise held for ``sde_sample_freq`` steps"""
+    """generalized state-dependent exploration (gSDE; Raffin et al. 2022): noise that is
+    constant over ``sde_sample_freq`` steps instead of fresh every step"""
     sde_sample_freq: int = -1
     """resample the gSDE noise every N decisions (-1: once per rollout)"""
     traffic: str = "riskflow"
@@ -205,7 +203,6 @@ class Options:
     def __post_init__(self) -> None:
         if self.maneuver_actions and self.use_sde:
             raise ValueError("--use-sde needs continuous actions: drop --maneuver-actions")
-        sb3_policy(self)  # checks --policy
         if self.vec_env not in VEC_ENVS:
             raise ValueError(f"--vec-env must be one of {VEC_ENVS}, got {self.vec_env!r}")
         counts = ("total_timesteps", "num_envs", "n_steps", "batch_size", "n_epochs")
@@ -274,16 +271,15 @@ def new_model(options: Options, env: VecEnv) -> PPO:
     """An untrained PPO of the options."""
     if options.normalize:
         env = VecNormalize(env, norm_obs=True, norm_reward=True, clip_obs=10.0)
-    policy, policy_kwargs = sb3_policy(options)
     return PPO(
-        policy,
+        "MlpPolicy",
         env,
         n_steps=options.n_steps,
         batch_size=options.batch_size,
         n_epochs=options.n_epochs,
         learning_rate=options.learning_rate,
         gamma=options.gamma,
-        policy_kwargs=policy_kwargs,
+        policy_kwargs={} if options.maneuver_actions else {"log_std_init": options.log_std_init},
         use_sde=options.use_sde,
         sde_sample_freq=options.sde_sample_freq,
         seed=options.seed,

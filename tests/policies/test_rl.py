@@ -282,8 +282,7 @@ def test_train_then_evaluate_tiny_budget(tmp_path):
         "train_ego_ppo.py", "--total-timesteps", "256", "--n-steps", "64", "--batch-size", "64",
         "--n-epochs", "1", "--num-envs", "2", "--vec-env", "dummy", "--scenes", "3",
         "--episode-steps", "20", "--guidance-steps", "2", "--checkpoint-every", "128",
-        "--seed", "3", "--base-planner", "lane", "--risk-reward", "-0.5", "--policy", "scoring",
-        "--out", run_dir,
+        "--seed", "3", "--base-planner", "lane", "--risk-reward", "-0.5", "--out", run_dir,
     )  # fmt: skip
     assert "final model" in out
     for name in ("initial_model", "final_model"):
@@ -296,7 +295,6 @@ def test_train_then_evaluate_tiny_budget(tmp_path):
     assert "curriculum/k" in header and "rollout/ego_collision_rate" in header
     options = json.loads((run_dir / "options.json").read_text())
     assert options["base_planner"] == "lane" and options["risk_reward"] == -0.5
-    assert options["policy"] == "scoring"  # evaluated below like any SB3 policy
 
     eval_dir = tmp_path / "eval"
     out = run(
