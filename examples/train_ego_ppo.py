@@ -21,9 +21,12 @@ predictions of the others (``--maneuver-features``; :mod:`policies.rl.features`)
 policy (normalised (accel, yaw rate), 0 = keep speed and heading), with
 ``--base-planner none`` (the policy drives), ``idm`` (a residual over IDM) or ``lane``.
 
-Reward: the env's (``RewardConfig``) with collision and off-road at -10 (the library's -5):
-the speed term pays at most 0.1 per step, so avoiding one collision is worth 100 steps of
-full speed; off-road equal to collision is never a cheaper way out of a crash.
+Reward: the env's (``RewardConfig``: speed, collision, off-road, TTC risk, comfort) with
+the collision and off-road weights doubled to -10 (the library default is -5): the speed
+term pays at most 0.1 per step (``--speed-reward``, reached at ``--target-speed`` 25 m/s),
+so -10 makes avoiding one collision worth 100 steps of full speed, and off-road equal to
+collision means that leaving the road is never a cheaper way out of a crash than the
+crash itself (both end the episode).
 
 The adversary plans on the CPU, the cost of a step; training uses the evaluation's (30
 guidance steps, a re-plan every 0.5 s; docs/explanation/rl-results.md has runs and times).

@@ -190,5 +190,8 @@ def test_compare_two_planners_paired(scenes_dir, planner_file, tmp_path, capsys)
     collisions = table["rows"][0]
     assert collisions["outcome"] == "ego collision rate" and 0 <= collisions["p_value"] <= 1
     assert collisions["a_only"] >= 1, "the reckless planner fails where constant velocity does not"
+    assert [row["outcome"] for row in table["rows"][-2:]] == [
+        "ego progress [m] (counter-metric)", "ego collisions per km (counter-metric)"
+    ]  # fmt: skip
     assert "McNemar" in capsys.readouterr().out
     assert (tmp_path / "a-reckless" / "report.html").is_file()

@@ -215,3 +215,7 @@ def test_coverage_counts_the_attacked_episodes_and_the_slow_ego_steps():
     del old["attacked_steps"], old["slow_ego_steps"]
     summary = stress_summary([old])
     assert summary["attacked_rate"]["n"] == 0 and summary["slow_ego_share"]["n"] == 0
+    # collisions per km: over the distance of every episode (here 2 km, no collision)
+    per_km = stress_summary([{**old, "progress": 500.0}, {**old, "progress": 1500.0}])
+    entry = per_km["ego_collisions_per_km"]
+    assert entry["value"] == 0.0 and entry["high"] == pytest.approx(3.689 / 2, abs=1e-3)
