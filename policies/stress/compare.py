@@ -97,10 +97,9 @@ def paired_table(a: StressResult, b: StressResult) -> dict[str, Any]:
                 "p_value": test["p_value"],
             }
         )
-    for key, label, digits in COUNTER_METRICS:
+    for key, label in COUNTER_METRICS.items():
         if key in a.summary and key in b.summary:  # older summaries lack the rate per km
-            row = {"outcome": label, "a": a.summary[key], "b": b.summary[key], "digits": digits}
-            rows.append(row)
+            rows.append({"outcome": label, "a": a.summary[key], "b": b.summary[key]})
     return {
         "a": a.summary["planner"],
         "b": b.summary["planner"],
@@ -110,10 +109,11 @@ def paired_table(a: StressResult, b: StressResult) -> dict[str, Any]:
 
 
 _SUMMARY = {"ego_collided": "ego_collision_rate", "avoidable_failure": "avoidable_failure_rate"}
-COUNTER_METRICS = (
-    ("progress", "ego progress [m] (counter-metric)", 1),
-    ("ego_collisions_per_km", "ego collisions per km (counter-metric)", 2),
-)
+COUNTER_METRICS = {
+    "progress": "ego progress [m] (counter-metric)",
+    "ego_collisions_per_km": "ego collisions per km (counter-metric)",
+}
+_DIGITS = {COUNTER_METRICS["ego_collisions_per_km"]: 2}  # other values: 1 decimal
 
 
 def markdown(table: dict[str, Any]) -> str:
@@ -126,7 +126,8 @@ def markdown(table: dict[str, Any]) -> str:
     ]
     for row in table["rows"]:
         percent = "difference" in row
-        a, b = (_value(row[side], percent, row.get("digits", 1)) for side in ("a", "b"))
+        digits = _DIGITS.get(row["outcome"], 1)
+        a, b = (_value(row[side], percent, digits) for side in ("a", "b"))
         if not percent:
             lines.append(f"| {row['outcome']} | {a} | {b} | | | |")
             continue
