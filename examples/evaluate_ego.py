@@ -39,8 +39,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from policies.cli_inputs import open_data
-from policies.dataclass_cli import parse_dataclass
+from policies.cli_inputs import check_planning_interval, open_data
+from policies.dataclass_cli import check_at_least, check_choices, parse_dataclass
 from policies.planners import OraclePlanner, make_planner
 from policies.rl.adversary import TARGETS, AdversaryStage, ScenePolicyConfig
 from policies.rl.envs import interface_options
@@ -50,6 +50,7 @@ from policies.rl.report import markdown_table, paired_table, plot_summaries, plo
 from policies.rl.runs import INITIAL, RunError, RunModel, check_model_file, find_model, read_options
 from policies.statistics import wilson_interval
 from riskflow_env.config import EnvConfig
+from riskflow_env.folder_lock import check_output_folder
 from riskflow_env.scenarios import shipped_bank
 
 NOMINAL = ("generator", "idm", "replay")
@@ -135,15 +136,25 @@ class Options:
                 "--runs loads stable-baselines3 model files, which are pickles that can run "
                 "arbitrary code: add --trust-model if you trust them (docs/reference/security.md)"
             )
-        if self.target not in TARGETS:
-            raise ValueError(f"--target must be one of {TARGETS}, got {self.target!r}")
+        check_choices(self, {"target": TARGETS})
         unknown = sorted(set(self.planner_names()) - set(BASELINES))
         if unknown:
             raise ValueError(
                 f"--planners: unknown baseline(s) {unknown}; expected names of {list(BASELINES)}"
             )
-        if self.scenes < 1 or self.episodes_per_run < 1:
-            raise ValueError("--scenes and --episodes-per-run must be >= 1")
+        lows = {"scenes": 1, "episodes_per_run": 1, "episode_steps": 1, "k": 0}
+        check_at_least(self, {**lows, "guidance_steps": 0})
+        check_planning_interval(self.planning_interval)
+        self.seed_list()  # checks --seeds
+
+    def seed_list(self) -> list[int]:
+        """The baselines' seeds of ``--seeds`` (comma- or space-separated ints >= 0)."""
+        words = self.seeds.replace(",", " ").split()
+        if not words or not all(w.isascii() and w.isdigit() for w in words):
+            raise ValueError(
+                f"--seeds must be comma-separated ints >= 0 (e.g. 0,1,2), got {self.seeds!r}"
+            )
+        return [int(word) for word in words]
 
     def nominal_names(self) -> list[str]:
         """The nominal traffics of ``--nominal``, in order, each once."""
@@ -272,9 +283,10 @@ def pool(first: dict, second: dict) -> dict:
 def main(argv: list[str] | None = None) -> None:
     options = parse_dataclass(Options, argv, prog="evaluate_ego.py", description=__doc__)
     try:
+        check_output_folder(options.out)  # before any episode runs
         runs = find_runs(options)
         combined = load_results(options.combine) if options.combine else None
-    except RunError as error:
+    except ValueError as error:  # RunError included
         print(f"evaluate_ego.py: error: {error}", file=sys.stderr)
         sys.exit(2)
     if combined is not None:
@@ -307,7 +319,7 @@ def main(argv: list[str] | None = None) -> None:
     baselines = {name: BASELINES[name] for name in names}
     if options.oracle:
         baselines["oracle"] = lambda seed: OraclePlanner()
-    baseline_seeds = [int(s) for s in options.seeds.split(",") if s]
+    baseline_seeds = options.seed_list()
     run_episodes = len(baseline_seeds) if options.paired else options.episodes_per_run
     episodes = (
         len(traffics)

@@ -27,19 +27,17 @@ off-road; a legend on the frame), ``events.jsonl`` (the event log,
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from policies import harness
-from policies.cli_inputs import check_device
+from policies.cli_inputs import check_device, check_planning_interval
 from policies.dataclass_cli import run_main
 from policies.harness import METRICS, ClosedLoop
 from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.checkpoint import CheckpointError
 from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
-from policies.learned.windows import WindowConfig
 from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
 from riskflow_env.agents import ReplayPolicy
@@ -50,8 +48,6 @@ from riskflow_env.scenarios.scenarionet import load_scenarionet
 
 VIDEO_FORMATS = ("gif", "mp4", "none")
 TRAFFIC = ("riskflow", "replay")
-DT = EnvConfig().dynamics.dt  # [s] the env's time step
-HORIZON = WindowConfig().future_steps  # [steps] of the shipped generator's plans
 
 
 @dataclass(frozen=True)
@@ -96,14 +92,7 @@ class Options:
             raise ValueError(f"--target must be 'others' or 'ego', got {self.target!r}")
         if not (self.k == "all" or (self.k.isdigit())):
             raise ValueError(f"--k must be an int >= 0 or 'all', got {self.k!r}")
-        steps = self.planning_interval / DT
-        if not (math.isfinite(steps) and math.isclose(steps, round(steps))) or not (
-            1 <= round(steps) <= HORIZON
-        ):
-            raise ValueError(
-                f"--planning-interval must be a multiple of {DT} s from {DT} to "
-                f"{HORIZON * DT:.1f} s (the plans' horizon), got {self.planning_interval}"
-            )
+        check_planning_interval(self.planning_interval)
         if self.steps < 1:
             raise ValueError(f"--steps must be >= 1, got {self.steps}")
         if self.seed < 0:

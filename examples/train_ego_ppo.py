@@ -21,15 +21,12 @@ predictions of the others (``--maneuver-features``; :mod:`policies.rl.features`)
 policy (normalised (accel, yaw rate), 0 = keep speed and heading), with
 ``--base-planner none`` (the policy drives), ``idm`` (a residual over IDM) or ``lane``.
 
-Reward: the env's (``RewardConfig``: speed, collision, off-road, TTC risk, comfort) with
-the collision and off-road weights doubled to -10 (the library default is -5): the speed
-term pays at most 0.1 per step (``--speed-reward``, reached at ``--target-speed`` 25 m/s),
-so -10 makes avoiding one collision worth 100 steps of full speed, and off-road equal to
-collision means that leaving the road is never a cheaper way out of a crash than the
-crash itself (both end the episode).
+Reward: the env's (``RewardConfig``) with collision and off-road at -10 (library: -5): the
+speed term pays at most 0.1 per step (``--speed-reward``, at ``--target-speed`` 25 m/s), so
+avoiding one collision is worth 100 steps at full speed, and leaving the road is never a
+cheaper way out of a crash than the crash (both end the episode).
 
-The adversary plans on the CPU, the cost of a step; training uses the evaluation's (30
-guidance steps, a re-plan every 0.5 s; docs/explanation/rl-results.md has runs and times).
+The adversary (the evaluation's: 30 guidance steps, a re-plan every 0.5 s) plans on the CPU.
 
 Writes to ``--out`` (:mod:`policies.rl.runs`): ``options.json``; ``initial_model.zip``
 (the untrained policy) and ``final_model.zip``, each with its ``*_vecnormalize.pkl``
@@ -63,8 +60,9 @@ from stable_baselines3.common.vec_env import (
     VecNormalize,
 )
 
-from policies.evaluation.options import check_device
-from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
+from policies.cli_inputs import check_device, check_planning_interval
+from policies.dataclass_cli import check_at_least, check_choices
+from policies.rl.adversary import TARGETS, AdversaryStage, ScenePolicyConfig
 from policies.rl.checkpoints import (
     RunCheckpoints,
     keep_progress_rows,
@@ -73,7 +71,7 @@ from policies.rl.checkpoints import (
     save_model,
 )
 from policies.rl.curriculum import CurriculumCallback, LinearCurriculum, OutcomeCallback
-from policies.rl.envs import EgoEnvConfig, interface_options, make_env
+from policies.rl.envs import BASE_PLANNERS, EgoEnvConfig, interface_options, make_env
 from policies.rl.features import MANEUVER_SETS
 from policies.rl.progress import StepProgressBar
 from policies.rl.report import plot_training
@@ -83,6 +81,7 @@ from policies.rl.runs import (
     checkpoint_files,
     final_from_checkpoint,
     latest_checkpoint,
+    make_run_folder,
     parse_resumable,
 )
 from policies.rl.sb3_shards import ShardedEgoVecEnv
@@ -90,6 +89,7 @@ from policies.rl.sb3_vec_env import sb3_ego_vec_env
 from policies.rl.signals import StopSignals, exit_stopped
 from policies.rl.vector_env import build_vector_env
 from riskflow_env.config import EnvConfig, RewardConfig
+from riskflow_env.scenarios import SPLITS, shipped_bank
 
 VEC_ENVS = ("subproc", "dummy", "batched")
 RESUMABLE = ("total_timesteps", "checkpoint_every")  # what --resume lets change
@@ -206,27 +206,27 @@ class Options:
     def __post_init__(self) -> None:
         if self.maneuver_actions and self.use_sde:
             raise ValueError("--use-sde needs continuous actions: drop --maneuver-actions")
-        if self.vec_env not in VEC_ENVS:
-            raise ValueError(f"--vec-env must be one of {VEC_ENVS}, got {self.vec_env!r}")
+        check_choices(self, {"vec_env": VEC_ENVS, "maneuver_set": MANEUVER_SETS, "split": SPLITS})
+        check_choices(self, {"traffic": TRAFFICS, "base_planner": BASE_PLANNERS})
+        check_choices(self, {"target_start": TARGETS, "target_end": TARGETS})
         counts = ("total_timesteps", "num_envs", "n_steps", "batch_size", "n_epochs")
-        for name in (*counts, "action_repeat", "shards"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
+        counts += ("action_repeat", "shards", "episode_steps", "scenes")  # scenes: None too
+        nonnegative = ("k_start", "k_end", "guidance_steps", "checkpoint_every")
+        check_at_least(self, dict.fromkeys(counts, 1) | dict.fromkeys(nonnegative, 0))
+        if (self.scenes or 0) > (bank := len(shipped_bank(self.split))):
+            raise ValueError(f"--scenes: {self.split} has {bank} scenes, got {self.scenes}")
+        check_planning_interval(self.planning_interval)
         if self.shards > 1 and self.vec_env != "batched":
             raise ValueError(f"--shards {self.shards} needs --vec-env batched")
         if self.shards > self.num_envs:
             raise ValueError(f"--shards must be <= --num-envs ({self.num_envs}), got {self.shards}")
         check_device(self.device)
-        if self.maneuver_set not in MANEUVER_SETS:
-            raise ValueError(
-                f"--maneuver-set must be one of {MANEUVER_SETS}, got {self.maneuver_set!r}"
-            )
         if not self.target_speed > 0:
             raise ValueError(f"--target-speed must be > 0 m/s, got {self.target_speed}")
-        if self.checkpoint_every < 0:
-            raise ValueError(f"--checkpoint-every must be >= 0, got {self.checkpoint_every}")
-        if self.traffic not in TRAFFICS:
-            raise ValueError(f"--traffic must be one of {TRAFFICS}, got {self.traffic!r}")
+        if not (self.lambda_adv_start >= 0 and self.lambda_adv_end >= 0):
+            raise ValueError("--lambda-adv-start and --lambda-adv-end must be >= 0")
+        if not 0 <= self.ramp_fraction <= 1:
+            raise ValueError(f"--ramp-fraction must be in [0, 1], got {self.ramp_fraction}")
 
 
 def env_config(options: Options) -> EgoEnvConfig:
@@ -321,9 +321,10 @@ def train(options: Options) -> Path:
     if checkpoint is not None and checkpoint.decisions >= options.total_timesteps:
         print(f"{out} has trained {checkpoint.decisions} decisions (raise --total-timesteps)")
         return final_from_checkpoint(out, checkpoint)
-    if options.resume is not None and checkpoint is None:
+    if options.resume is None:
+        make_run_folder(out)
+    elif checkpoint is None:
         print(f"{out} has no checkpoint yet: training from the start")
-    out.mkdir(parents=True, exist_ok=True)
     (out / "options.json").write_text(json.dumps(dataclasses.asdict(options), default=str))
     set_random_seed(options.seed)
     config = env_config(options)

@@ -154,7 +154,7 @@ def train(options: Options, name: str, seed: int) -> Path:
     if final.is_file():
         return run
     script = str(HERE / "train_ego_ppo.py")
-    if started:
+    if started or (run / "options.json").is_file():  # begun: goes on from its checkpoint
         command = [sys.executable, script, "--resume", str(run)]
     else:
         extra = (*shlex.split(options.train_args), *TRAINED_AGAINST[name])

@@ -1,16 +1,22 @@
 """Checks of the inputs the command-line tools share (``riskflow-eval``, ``riskflow-stress``,
-the examples): the scene source ``--data`` and the torch ``--device``, each with an error
-that names the argument."""
+the examples): the scene source ``--data``, the torch ``--device`` and a re-planning
+interval, each with an error that names the argument."""
 
 from __future__ import annotations
 
+import math
+
 import torch
 
+from policies.learned.windows import WindowConfig
+from riskflow_env.config import DynamicsConfig
 from riskflow_env.scenarios import ScenarioBank, shipped_bank
 from riskflow_env.scenarios.folders import open_scenes
 from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
 SHIPPED = "shipped:eval"  # the data source name of the shipped evaluation scenes
+DT = DynamicsConfig().dt  # [s] the env's time step
+HORIZON_S = WindowConfig().future_steps * DT  # [s] the shipped generator's plans
 
 
 def open_data(data: str | None) -> ScenarioBank | ScenarioNetDataset:
@@ -47,3 +53,23 @@ def check_device(device: str) -> None:
 
 
 __all__ = ["SHIPPED", "check_device", "open_data"]
+
+
+def check_interval(
+    interval: float, dt: float, horizon_s: float | None, option: str = "--interval"
+) -> float:
+    """A re-planning interval: a positive multiple of ``dt`` [s] within the plan horizon
+    ``horizon_s`` [s] (None: no bound); returns it rounded to the step, or a ValueError
+    naming ``option``."""
+    steps = interval / dt
+    if not (math.isfinite(steps) and steps > 0 and math.isclose(steps, round(steps), rel_tol=1e-6)):
+        raise ValueError(f"{option}: {interval} s is not a positive multiple of dt = {dt} s")
+    if horizon_s is not None and interval > horizon_s + 1e-9:
+        raise ValueError(f"{option}: {interval} s exceeds the plan horizon {horizon_s} s")
+    return round(steps) * dt
+
+
+def check_planning_interval(interval: float, option: str = "--planning-interval") -> float:
+    """:func:`check_interval` of an adversary's re-planning interval: the env's time step,
+    the shipped generator's plan horizon."""
+    return check_interval(interval, DT, HORIZON_S, option)

@@ -14,7 +14,8 @@ attribute docstring (the string literal written under it), followed by the defau
 
     options = parse_dataclass(Options, ["--steps", "5"], prog="tool")
 
-A ``ValueError`` from the dataclass's ``__post_init__`` becomes a usage error (exit 2).
+A ``ValueError`` from the dataclass's ``__post_init__`` becomes a usage error (exit 2);
+:func:`check_at_least` and :func:`check_choices` write the common ones, naming the flag.
 
 With ``recipes`` (:class:`Recipes`), the command also takes ``--recipe NAME_OR_PATH``: a
 file of field values (JSON types: numbers, strings for paths, lists for tuples, null for
@@ -100,7 +101,7 @@ def dataclass_parser(
             kwargs["type"] = next(
                 a for a in typing.get_args(hint) or (hint,) if a is not type(None)
             )
-        flag = field.metadata.get("flag", "--" + field.name.replace("_", "-"))
+        flag = field.metadata.get("flag", flag_of(field.name))
         parser.add_argument(flag, **kwargs)
     if recipes is not None:
         shipped = f" (shipped: {', '.join(recipes.names)})" if recipes.names else ""
@@ -135,6 +136,31 @@ class _Several(argparse.Action):
         before = list(getattr(namespace, self.dest)) if repeated else []
         setattr(namespace, self.dest, before + list(values))
         self.parsing = namespace
+
+
+def flag_of(name: str) -> str:
+    """The flag of the field ``name`` (``--field-name``)."""
+    return "--" + name.replace("_", "-")
+
+
+def check_at_least(options: Any, lows: Mapping[str, int]) -> None:
+    """ValueError naming the flag of the first field of ``options`` in ``lows`` that is not
+    an int at least its bound (a field that is None, "not given", passes)."""
+    for name, low in lows.items():
+        value = getattr(options, name)
+        if value is not None and (
+            isinstance(value, bool) or not isinstance(value, int) or value < low
+        ):
+            raise ValueError(f"{flag_of(name)} must be an int >= {low}, got {value!r}")
+
+
+def check_choices(options: Any, choices: Mapping[str, Sequence[str]]) -> None:
+    """ValueError naming the flag of the first field of ``options`` in ``choices`` whose
+    value is not one of its choices."""
+    for name, allowed in choices.items():
+        value = getattr(options, name)
+        if value not in allowed:
+            raise ValueError(f"{flag_of(name)} must be one of {tuple(allowed)}, got {value!r}")
 
 
 def field_values(cls: type, values: Mapping[str, Any]) -> dict[str, Any]:

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import math
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -20,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from policies.cli_inputs import SHIPPED, check_device, open_data
+from policies.cli_inputs import SHIPPED, check_device, check_interval, open_data
 from policies.dataclass_cli import from_fields
 from policies.learned.guidance_losses import TARGETS
 from policies.planners import PLANNERS
@@ -148,16 +147,6 @@ def parse_k(text: str) -> int | str:
     return value
 
 
-def check_interval(interval: float, dt: float, horizon_s: float | None) -> float:
-    """A ``--interval`` value: a positive multiple of ``dt`` within the plan horizon."""
-    steps = interval / dt
-    if not (interval > 0 and math.isclose(steps, round(steps), rel_tol=1e-6)):
-        raise ValueError(f"--interval: {interval} s is not a positive multiple of dt = {dt} s")
-    if horizon_s is not None and interval > horizon_s + 1e-9:
-        raise ValueError(f"--interval: {interval} s exceeds the plan horizon {horizon_s} s")
-    return round(steps) * dt
-
-
 @dataclass(frozen=True)
 class RunConfig:
     """The run-level settings of a rollout: what every row of one results file shares
@@ -251,9 +240,7 @@ def check_options(options: EvalOptions, dt: float = DynamicsConfig().dt) -> None
         raise ValueError(f"--ego must be one of {tuple(PLANNERS)}, got {options.ego!r}")
     if options.target not in TARGETS:
         raise ValueError(f"--target must be one of {TARGETS}, got {options.target!r}")
-    steps = options.duration / dt
-    if not (options.duration > 0 and math.isclose(steps, round(steps), rel_tol=1e-6)):
-        raise ValueError(f"--duration: {options.duration} s is not a positive multiple of {dt} s")
+    check_interval(options.duration, dt, None, "--duration")
     if options.diffusion_steps is not None and options.diffusion_steps < 1:
         raise ValueError(f"--diffusion-steps must be >= 1, got {options.diffusion_steps}")
     if not options.seeds:

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from policies.dataclass_cli import dataclass_parser, field_values
+from riskflow_env.folder_lock import make_output_folder
 
 OPTIONS = "options.json"
 FINAL = "final_model"
@@ -89,10 +90,28 @@ def checkpoints(run: Path) -> list[Checkpoint]:
     return sorted(found, key=lambda checkpoint: checkpoint.decisions)
 
 
+def make_run_folder(out: Path) -> None:
+    """Make the folder of a new run, or a :class:`RunError` naming ``--out`` when it holds
+    a run already (its checkpoints would mix with the new run's: ``--resume`` continues
+    it) or cannot be a folder."""
+    held = [name for name in (OPTIONS, CHECKPOINTS, f"{FINAL}.zip") if (out / name).exists()]
+    if held:
+        raise RunError(
+            f"--out {out} holds a run already ({', '.join(held)}): continue it with --resume "
+            f"{out}, or choose another --out"
+        )
+    try:
+        make_output_folder(out, "--out")
+    except ValueError as error:
+        raise RunError(str(error)) from None
+
+
 def read_options(run: Path, argument: str = "--runs") -> dict[str, Any]:
     """The run's ``options.json`` as a dict; a :class:`RunError` naming ``argument`` when
     ``run`` is not a run folder."""
     run = Path(run)
+    if run.is_file():
+        raise RunError(f"{argument} {run}: a file, not a run folder")
     if not run.is_dir():
         raise RunError(f"{argument} {run}: no such run folder")
     path = run / OPTIONS

@@ -15,6 +15,7 @@
 
 from riskflow_env.scenarios._npz import ScenarioFormatError
 from riskflow_env.scenarios.io import (
+    SPLITS,
     list_scenarios,
     load_bank,
     load_map,
@@ -42,6 +43,7 @@ __all__ = [
     "ScenarioFormatError",
     "ScenarioSource",
     "SceneConfig",
+    "SPLITS",
     "TrafficConfig",
     "as_source",
     "cut_scenario",

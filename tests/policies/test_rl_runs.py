@@ -147,10 +147,79 @@ def test_resume_refuses_changed_options_and_bad_paths(tmp_path):
         missing.stderr.strip()
         == f"train_ego_ppo.py: error: --resume {tmp_path / 'nope'}: no such run folder"
     )
+    (tmp_path / "afile").write_text("")
+    a_file = subprocess.run(script("train_ego_ppo.py", "--resume", tmp_path / "afile"),
+                            capture_output=True, text=True, cwd=ROOT, timeout=120)  # fmt: skip
+    assert a_file.returncode == 2 and "a file, not a run folder" in a_file.stderr
     run_dir = fake_run(tmp_path / "run")
     changed = subprocess.run(script("train_ego_ppo.py", "--resume", run_dir, "--n-steps", "7"),
                              capture_output=True, text=True, cwd=ROOT, timeout=120)  # fmt: skip
     assert changed.returncode == 2 and "--n-steps 7 (the run's: 512)" in changed.stderr
+
+
+def test_training_refuses_a_folder_that_holds_a_run(tmp_path):
+    """A second run into the same --out would mix its checkpoints with the first's (and
+    --resume would then go on from the wrong weights): refused, with the way out."""
+    run_dir = fake_run(tmp_path / "run")
+    before = (run_dir / "options.json").read_text()
+    again = subprocess.run(script("train_ego_ppo.py", *TINY, "--out", run_dir),
+                           capture_output=True, text=True, cwd=ROOT, timeout=120)  # fmt: skip
+    assert again.returncode == 2
+    assert again.stderr.strip() == (
+        f"train_ego_ppo.py: error: --out {run_dir} holds a run already (options.json, "
+        f"final_model.zip): continue it with --resume {run_dir}, or choose another --out"
+    )
+    assert (run_dir / "options.json").read_text() == before
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--episode-steps", "-1"], "--episode-steps must be an int >= 1, got -1"),
+        (["--scenes", "-4"], "--scenes must be an int >= 1, got -4"),
+        (["--scenes", "40"], "--scenes: train has 35 scenes, got 40"),
+        (["--base-planner", "lan"], "--base-planner must be one of ('none', 'idm', 'lane')"),
+        (["--split", "test"], "--split must be one of ('eval', 'train'), got 'test'"),
+        (["--target-end", "all"], "--target-end must be one of ('others', 'ego')"),
+        (["--k-start", "-1"], "--k-start must be an int >= 0, got -1"),
+        (["--guidance-steps", "-2"], "--guidance-steps must be an int >= 0, got -2"),
+        (["--planning-interval", "0.25"], "--planning-interval: 0.25 s is not a positive"),
+        (["--lambda-adv-end", "-1"], "--lambda-adv-start and --lambda-adv-end must be >= 0"),
+        (["--ramp-fraction", "2"], "--ramp-fraction must be in [0, 1], got 2.0"),
+    ],
+)
+def test_bad_training_options_are_one_line_naming_the_flag(argv, message, tmp_path, capsys):
+    """Checked before anything is written: no run folder is left behind."""
+    train = load_script("examples/train_ego_ppo.py")
+    with pytest.raises(SystemExit) as exit_info:
+        train.main([*argv, "--out", str(tmp_path / "run")])
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err.strip().splitlines()[-1]
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--seeds", "0,x"], "--seeds must be comma-separated ints >= 0 (e.g. 0,1,2), got '0,x'"),
+        (["--seeds", "-1"], "--seeds must be comma-separated ints >= 0"),
+        (["--episode-steps", "-5"], "--episode-steps must be an int >= 1, got -5"),
+        (["--scenes", "0"], "--scenes must be an int >= 1, got 0"),
+        (["--k", "-1"], "--k must be an int >= 0, got -1"),
+        (["--guidance-steps", "-1"], "--guidance-steps must be an int >= 0, got -1"),
+        (["--planning-interval", "9"], "--planning-interval: 9.0 s exceeds the plan horizon"),
+    ],
+)
+def test_bad_evaluation_options_are_one_line_naming_the_flag(argv, message, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        evaluate_main()(argv)
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err.strip().splitlines()[-1]
+
+
+def test_evaluation_seeds_take_commas_or_spaces():
+    options = load_script("examples/evaluate_ego.py").Options
+    assert options(seeds="0,1, 2").seed_list() == options(seeds="0 1 2").seed_list() == [0, 1, 2]
 
 
 def fake_run(folder: Path, model: bytes = b"not a pickle") -> Path:
@@ -210,19 +279,20 @@ def test_find_model_takes_folders_and_files_with_or_without_zip(tmp_path):
         ("loose", ["--runs", "{tmp}/loose.zip"], "no options.json beside the model"),
         (None, ["--combine", "{tmp}/results.json"], "--combine {tmp}/results.json: no such file"),
         (None, ["--data", "{tmp}/scenes"], "--data: "),
+        ("file", ["--out", "{tmp}/afile"], "--out: {tmp}/afile exists and is not a folder"),
     ],
 )  # fmt: skip
 def test_every_wrong_path_is_one_line_naming_the_argument(tmp_path, capsys, make, args, message):
+    """Before any episode runs: an ``--out`` that cannot be a folder is refused up front."""
     if make == "run":
         fake_run(tmp_path / "run")
+    elif make == "file":
+        (tmp_path / "afile").write_text("")
     elif make == "loose":
         with zipfile.ZipFile(tmp_path / "loose.zip", "w") as archive:
             archive.writestr("data", b"{}")
-    argv = [arg.format(tmp=tmp_path) for arg in args] + [
-        "--trust-model",
-        "--out",
-        str(tmp_path / "out"),
-    ]
+    argv = ["--trust-model", "--out", str(tmp_path / "out")]
+    argv += [arg.format(tmp=tmp_path) for arg in args]
     with pytest.raises(SystemExit) as exit_info:
         evaluate_main()(argv)
     assert exit_info.value.code == 2
