@@ -127,6 +127,11 @@ def main(argv: Sequence[str] | None = None) -> None:
         _replay(argv[1:])
     elif argv[:1] == ["compare"]:
         _compare(argv[1:])
+    elif argv and not argv[0].startswith("-"):  # a run takes no positional argument
+        parser().error(
+            f"unknown command {argv[0]!r}: expected 'replay FILE', 'compare A B' or the "
+            "options of a run (--planner ...)"
+        )
     else:
         _run(argv)
 
@@ -203,9 +208,15 @@ def _compare(argv: list[str]) -> None:
 def _replay(argv: list[str]) -> None:
     from policies.stress.planner_spec import PlannerSpecError, load_planner
     from policies.stress.replay import load_replay, replay
+    from riskflow_env.wrappers.video import check_video_path
 
     usage = replay_parser()
     args = usage.parse_args(argv)
+    try:
+        if args.video is not None:
+            check_video_path(args.video, "--video")
+    except ValueError as err:
+        usage.error(str(err))
     try:
         saved = load_replay(args.file)
     except (OSError, ValueError) as err:

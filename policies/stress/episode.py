@@ -24,8 +24,9 @@ from typing import Any
 
 import torch
 
+from policies.cli_inputs import check_planning_interval
 from policies.harness import ClosedLoop
-from policies.learned.checkpoint import DEFAULT_NAME
+from policies.learned.checkpoint import DEFAULT_NAME, load_checkpoint
 from policies.learned.guidance_losses import TARGETS
 from policies.planners import EgoPlanner
 from policies.riskflow import RiskFlowAdversary
@@ -64,10 +65,23 @@ class EpisodeSetup:
             raise ValueError(f"--target must be one of {TARGETS}, got {self.target!r}")
         if isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 1:
             raise ValueError(f"--steps must be an int >= 1 [steps of 0.1 s], got {self.steps!r}")
+        check_planning_interval(self.planning_interval)
         if self.checkpoint is not None:
             object.__setattr__(self, "checkpoint", Path(self.checkpoint))
+            if self.checkpoint.is_dir():
+                raise ValueError(f"--checkpoint: {str(self.checkpoint)!r} is a folder, not a file")
             if not self.checkpoint.is_file():
                 raise ValueError(f"--checkpoint: no such file {str(self.checkpoint)!r}")
+
+    def check_checkpoint(self) -> None:
+        """Read ``checkpoint`` once (the shipped one is not read); a ValueError naming
+        ``--checkpoint`` when it is not a generator checkpoint."""
+        if self.checkpoint is None:
+            return
+        try:
+            load_checkpoint(self.checkpoint)
+        except ValueError as err:  # CheckpointError included
+            raise ValueError(f"--checkpoint: {err}") from None
 
     def adversary(self, seed: int = 0) -> RiskFlowAdversary:
         """The RiskFlow adversary of this setup, with noise seed ``seed``."""

@@ -163,6 +163,8 @@ def _jsonable(value: Any) -> Any:
 def load_replay(path: str | os.PathLike) -> Replay:
     """Read a replay file; ValueError naming the file when it is not one."""
     path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{str(path)!r} is a folder, not a replay file (failures/*.npz)")
     if not path.is_file():
         raise FileNotFoundError(f"replay file {str(path)!r} not found")
     scenario = load_scenario(path)

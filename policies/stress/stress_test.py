@@ -119,6 +119,7 @@ def riskflow_stress(
         out=Path("outputs/stress") if out is None else out, gifs=gifs, progress=progress,
     )  # fmt: skip
     setup = options.setup()
+    setup.check_checkpoint()  # before any worker or progress bar
     source = Scenes.of(scenes, options.data)
     label = spec_of(planner) or _name(planner)
     local = resolve_planner(planner, setup)  # a bad spec fails here, before any worker

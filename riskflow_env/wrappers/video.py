@@ -18,10 +18,23 @@ from typing import Any
 import numpy as np
 from pettingzoo.utils import BaseParallelWrapper
 
+from riskflow_env.folder_lock import check_output_folder
 from riskflow_env.render import RenderConfig, SceneRenderer
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".avi")
 SUFFIXES = (".gif", *VIDEO_SUFFIXES)
+
+
+def check_video_path(path: str | os.PathLike, option: str = "path") -> Path:
+    """``path`` as a video file to write: a suffix of :data:`SUFFIXES`, not a folder, in a
+    folder that can be made; otherwise a ValueError naming ``option``."""
+    path = Path(path)
+    if path.suffix.lower() not in SUFFIXES:
+        raise ValueError(f"{option} must end in one of {SUFFIXES}, got {str(path)!r}")
+    if path.is_dir():
+        raise ValueError(f"{option}: {path} is a folder, not a video file")
+    check_output_folder(path.parent, option)
+    return path
 
 
 class FrameWriter:
@@ -33,10 +46,8 @@ class FrameWriter:
     """
 
     def __init__(self, path: str | os.PathLike, fps: float) -> None:
-        self.path = Path(path)
+        self.path = check_video_path(path)
         suffix = self.path.suffix.lower()
-        if suffix not in SUFFIXES:
-            raise ValueError(f"video path must end in one of {SUFFIXES}, got {str(path)!r}")
         if not fps > 0:
             raise ValueError(f"fps must be > 0 [frames/s], got {fps!r}")
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -100,9 +111,7 @@ class VideoRecorder(BaseParallelWrapper):
         episode_trigger: Callable[[int], bool] | None = None,
     ) -> None:
         super().__init__(env)
-        self.path_template = str(path)
-        if Path(self.path_template).suffix.lower() not in SUFFIXES:
-            raise ValueError(f"path must end in one of {SUFFIXES}, got {self.path_template!r}")
+        self.path_template = str(check_video_path(path))
         self.per_episode = "{episode" in self.path_template
         self.fps = float(fps if fps is not None else env.metadata.get("render_fps", 10))
         self.renderer = SceneRenderer("rgb_array", config)

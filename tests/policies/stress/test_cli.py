@@ -171,12 +171,26 @@ def test_bad_planner_errors_name_the_argument(spec, message, planner_file, tmp_p
         (["--k", "al"], "--k must be an int >= 0 or 'all', got 'al'"),
         (["--steps", "0"], "--steps must be an int >= 1"),
         (["--checkpoint", "nowhere.pt"], "--checkpoint: no such file 'nowhere.pt'"),
+        (["--checkpoint", "TMP"], "--checkpoint: 'TMP' is a folder, not a file"),
+        (["--checkpoint", "TMP/empty.pt"], "--checkpoint: cannot read generator checkpoint "
+         "TMP/empty.pt: the file is empty or truncated (EOFError)"),
+        (["--planning-interval", "-0.5"], "--planning-interval: -0.5 s is not a positive"),
+        (["comparee", "idm", "idm"], "unknown command 'comparee': expected 'replay FILE'"),
+        (["replay", "TMP"], "file: 'TMP' is a folder, not a replay file"),
+        (["replay", "x.npz", "--video", "TMP"], "--video must end in one of ('.gif', "),
+        (["replay", "x.npz", "--video", "TMP/empty.pt/x.gif"],
+         "--video: TMP/empty.pt exists and is not a folder"),
     ],
-)
-def test_bad_options_name_the_argument(argv, message, capsys):
+)  # fmt: skip
+def test_bad_options_name_the_argument(argv, message, tmp_path, capsys):
+    """One line naming the argument, before any episode runs (no progress bar)."""
+    (tmp_path / "empty.pt").write_bytes(b"")
+    argv = [arg.replace("TMP", str(tmp_path)) for arg in argv]
     with pytest.raises(SystemExit) as exit_info:
-        main(argv)
-    assert exit_info.value.code == 2 and message in capsys.readouterr().err
+        main([*argv, "--out", str(tmp_path / "out")] if argv[0] != "replay" else argv)
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err
+    assert message.replace("TMP", str(tmp_path)) in error and "episode" not in error
 
 
 def test_compare_two_planners_paired(scenes_dir, planner_file, tmp_path, capsys):
