@@ -36,7 +36,7 @@ from torchrl.modules import MLP, MaskedCategorical, ProbabilisticActor, ValueOpe
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from policies.dataclass_cli import parse_dataclass
+from policies.dataclass_cli import check_at_least, parse_dataclass
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.envs import EgoEnvConfig, build_env
 from policies.rl.signals import StopSignals, exit_stopped
@@ -80,9 +80,8 @@ class Options:
     """output folder"""
 
     def __post_init__(self) -> None:
-        for name in ("iterations", "frames_per_batch", "epochs", "minibatch", "episode_steps"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
+        counts = ("iterations", "frames_per_batch", "epochs", "minibatch", "episode_steps")
+        check_at_least(self, dict.fromkeys(counts, 1))
         if self.minibatch > self.frames_per_batch:
             raise ValueError("--minibatch must be <= --frames-per-batch")
         if self.checkpoint_every < 0:

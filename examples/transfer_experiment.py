@@ -54,7 +54,7 @@ from evaluate_ego import ppo_factory, run_options, spread_scenes
 from tqdm import tqdm
 
 from policies.cli_inputs import open_data
-from policies.dataclass_cli import parse_dataclass
+from policies.dataclass_cli import check_at_least, parse_dataclass
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.evaluation import evaluate
 from policies.rl.paired import outcome_counts
@@ -124,8 +124,7 @@ class Options:
                 raise ValueError(
                     f"--{flag} must be distinct comma-separated integers, got {value!r}"
                 )
-        if self.scenes < 1 or self.data_scenes < 1 or self.episode_steps < 1:
-            raise ValueError("--scenes, --data-scenes and --episode-steps must be >= 1")
+        check_at_least(self, dict.fromkeys(("scenes", "data_scenes", "episode_steps"), 1))
         try:
             extra = shlex.split(self.train_args)
         except ValueError as error:

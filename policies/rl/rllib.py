@@ -22,6 +22,7 @@ from typing import Any
 
 from tqdm import tqdm
 
+from policies.dataclass_cli import check_at_least
 from policies.rl.signals import StopSignals, exit_stopped
 
 CHECKPOINT = "checkpoint"  # <out>/checkpoint: the algorithm (RLlib's save_to_path)
@@ -58,11 +59,8 @@ class RLlibOptions:
     """continue the run in --out from its checkpoint and progress.json, up to --iterations"""
 
     def __post_init__(self) -> None:
-        for name in ("iterations", "episode_steps", "train_batch", "minibatch", "epochs"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
-        if self.num_env_runners < 0:
-            raise ValueError("--num-env-runners must be >= 0")
+        counts = ("iterations", "episode_steps", "train_batch", "minibatch", "epochs")
+        check_at_least(self, dict.fromkeys(counts, 1) | {"num_env_runners": 0})
         if self.minibatch > self.train_batch:
             raise ValueError("--minibatch must be <= --train-batch")
         if self.checkpoint_every < 0:

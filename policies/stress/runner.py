@@ -20,6 +20,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from policies.cli_inputs import check_device, open_data
+from policies.dataclass_cli import check_at_least
 from policies.planners import EgoPlanner
 from policies.stress.episode import EpisodeRunner, EpisodeSetup
 from policies.stress.planner_spec import load_planner
@@ -49,10 +50,7 @@ class StressOptions(EpisodeSetup):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        for name, low in (("scenes", 1), ("workers", 1), ("gifs", 0)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(f"--{name} must be an int >= {low}, got {value!r}")
+        check_at_least(self, {"scenes": 1, "workers": 1, "gifs": 0})
         seeds = tuple(self.seeds)
         if not seeds or any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in seeds):
             raise ValueError(f"--seeds must be one or more ints >= 0, got {list(self.seeds)}")

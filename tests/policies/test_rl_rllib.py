@@ -25,8 +25,8 @@ needs_ray = pytest.mark.skipif(
 @pytest.mark.parametrize(
     ("changes", "message"),
     [
-        ({"iterations": 0}, "--iterations must be >= 1"),
-        ({"num_env_runners": -1}, "--num-env-runners must be >= 0"),
+        ({"iterations": 0}, "--iterations must be an int >= 1, got 0"),
+        ({"num_env_runners": -1}, "--num-env-runners must be an int >= 0, got -1"),
         ({"train_batch": 10, "minibatch": 20}, "--minibatch must be <= --train-batch"),
         ({"checkpoint_every": -1}, "--checkpoint-every must be >= 0"),
         ({"resume": True, "out": Path("/nonexistent/run")}, "--resume: no checkpoint in"),
