@@ -173,48 +173,36 @@ def test_training_refuses_a_folder_that_holds_a_run(tmp_path):
 
 
 @pytest.mark.parametrize(
-    ("argv", "message"),
+    ("script", "argv", "message"),
     [
-        (["--episode-steps", "-1"], "--episode-steps must be an int >= 1, got -1"),
-        (["--scenes", "-4"], "--scenes must be an int >= 1, got -4"),
-        (["--scenes", "40"], "--scenes: train has 35 scenes, got 40"),
-        (["--base-planner", "lan"], "--base-planner must be one of ('none', 'idm', 'lane')"),
-        (["--split", "test"], "--split must be one of ('eval', 'train'), got 'test'"),
-        (["--target-end", "all"], "--target-end must be one of ('others', 'ego')"),
-        (["--k-start", "-1"], "--k-start must be an int >= 0, got -1"),
-        (["--guidance-steps", "-2"], "--guidance-steps must be an int >= 0, got -2"),
-        (["--planning-interval", "0.25"], "--planning-interval: 0.25 s is not a positive"),
-        (["--lambda-adv-end", "-1"], "--lambda-adv-start and --lambda-adv-end must be >= 0"),
-        (["--ramp-fraction", "2"], "--ramp-fraction must be in [0, 1], got 2.0"),
+        ("train", "--episode-steps -1", "--episode-steps must be an int >= 1, got -1"),
+        ("train", "--scenes -4", "--scenes must be an int >= 1, got -4"),
+        ("train", "--scenes 40", "--scenes: train has 35 scenes, got 40"),
+        ("train", "--base-planner lan", "--base-planner must be one of ('none', 'idm', 'lane')"),
+        ("train", "--split test", "--split must be one of ('eval', 'train'), got 'test'"),
+        ("train", "--target-end all", "--target-end must be one of ('others', 'ego')"),
+        ("train", "--k-start -1", "--k-start must be an int >= 0, got -1"),
+        ("train", "--guidance-steps -2", "--guidance-steps must be an int >= 0, got -2"),
+        ("train", "--planning-interval 0.25", "--planning-interval: 0.25 s is not a positive"),
+        ("train", "--lambda-adv-end -1", "--lambda-adv-start and --lambda-adv-end must be >= 0"),
+        ("train", "--ramp-fraction 2", "--ramp-fraction must be in [0, 1], got 2.0"),
+        ("evaluate", "--seeds 0,x", "--seeds must be comma-separated ints >= 0 (e.g. 0,1,2)"),
+        ("evaluate", "--seeds -1", "--seeds must be comma-separated ints >= 0"),
+        ("evaluate", "--episode-steps -5", "--episode-steps must be an int >= 1, got -5"),
+        ("evaluate", "--scenes 0", "--scenes must be an int >= 1, got 0"),
+        ("evaluate", "--k -1", "--k must be an int >= 0, got -1"),
+        ("evaluate", "--guidance-steps -1", "--guidance-steps must be an int >= 0, got -1"),
+        ("evaluate", "--planning-interval 9", "--planning-interval: 9.0 s exceeds the plan"),
     ],
 )
-def test_bad_training_options_are_one_line_naming_the_flag(argv, message, tmp_path, capsys):
-    """Checked before anything is written: no run folder is left behind."""
-    train = load_script("examples/train_ego_ppo.py")
+def test_bad_options_are_one_line_naming_the_flag(script, argv, message, tmp_path, capsys):
+    """Checked before anything runs or is written: no output folder is left behind."""
+    name = "train_ego_ppo" if script == "train" else "evaluate_ego"
     with pytest.raises(SystemExit) as exit_info:
-        train.main([*argv, "--out", str(tmp_path / "run")])
+        load_script(f"examples/{name}.py").main([*argv.split(), "--out", str(tmp_path / "o")])
     assert exit_info.value.code == 2
     assert message in capsys.readouterr().err.strip().splitlines()[-1]
-    assert not (tmp_path / "run").exists()
-
-
-@pytest.mark.parametrize(
-    ("argv", "message"),
-    [
-        (["--seeds", "0,x"], "--seeds must be comma-separated ints >= 0 (e.g. 0,1,2), got '0,x'"),
-        (["--seeds", "-1"], "--seeds must be comma-separated ints >= 0"),
-        (["--episode-steps", "-5"], "--episode-steps must be an int >= 1, got -5"),
-        (["--scenes", "0"], "--scenes must be an int >= 1, got 0"),
-        (["--k", "-1"], "--k must be an int >= 0, got -1"),
-        (["--guidance-steps", "-1"], "--guidance-steps must be an int >= 0, got -1"),
-        (["--planning-interval", "9"], "--planning-interval: 9.0 s exceeds the plan horizon"),
-    ],
-)
-def test_bad_evaluation_options_are_one_line_naming_the_flag(argv, message, capsys):
-    with pytest.raises(SystemExit) as exit_info:
-        evaluate_main()(argv)
-    assert exit_info.value.code == 2
-    assert message in capsys.readouterr().err.strip().splitlines()[-1]
+    assert not (tmp_path / "o").exists()
 
 
 def test_evaluation_seeds_take_commas_or_spaces():
