@@ -50,8 +50,8 @@ from policies.rl.report import markdown_table, paired_table, plot_summaries, plo
 from policies.rl.runs import INITIAL, RunError, RunModel, check_model_file, find_model, read_options
 from policies.statistics import wilson_interval
 from riskflow_env.config import EnvConfig
-from riskflow_env.folder_lock import check_output_folder
-from riskflow_env.scenarios import shipped_bank
+from riskflow_env.folder_lock import make_output_folder
+from riskflow_env.scenarios import SPLITS, shipped_bank
 
 NOMINAL = ("generator", "idm", "replay")
 BASELINES = {
@@ -136,7 +136,7 @@ class Options:
                 "--runs loads stable-baselines3 model files, which are pickles that can run "
                 "arbitrary code: add --trust-model if you trust them (docs/reference/security.md)"
             )
-        check_choices(self, {"target": TARGETS})
+        check_choices(self, {"target": TARGETS, "split": SPLITS})
         unknown = sorted(set(self.planner_names()) - set(BASELINES))
         if unknown:
             raise ValueError(
@@ -283,9 +283,11 @@ def pool(first: dict, second: dict) -> dict:
 def main(argv: list[str] | None = None) -> None:
     options = parse_dataclass(Options, argv, prog="evaluate_ego.py", description=__doc__)
     try:
-        check_output_folder(options.out)  # before any episode runs
         runs = find_runs(options)
         combined = load_results(options.combine) if options.combine else None
+        if combined is None:
+            bank = shipped_bank(options.split) if options.data is None else open_data(options.data)
+        make_output_folder(options.out)  # before any episode runs
     except ValueError as error:  # RunError included
         print(f"evaluate_ego.py: error: {error}", file=sys.stderr)
         sys.exit(2)
@@ -295,11 +297,6 @@ def main(argv: list[str] | None = None) -> None:
         adversarial_label = ScenePolicyConfig(stage=stage).label
         write_report(summaries, per_run, paired, adversarial_label, options.out, mask_actions)
         return
-    try:
-        bank = shipped_bank(options.split) if options.data is None else open_data(options.data)
-    except ValueError as error:
-        print(f"evaluate_ego.py: error: {error}", file=sys.stderr)
-        sys.exit(2)
     scenes = spread_scenes(bank, options.scenes)
     config = EnvConfig(episode_steps=options.episode_steps)
     adversarial = ScenePolicyConfig(

@@ -33,7 +33,7 @@ from typing import Any
 
 from policies import harness
 from policies.cli_inputs import check_device, check_planning_interval
-from policies.dataclass_cli import run_main
+from policies.dataclass_cli import check_at_least, run_main
 from policies.harness import METRICS, ClosedLoop
 from policies.learned.adversary_config import AdversaryConfig
 from policies.learned.checkpoint import CheckpointError
@@ -93,10 +93,7 @@ class Options:
         if not (self.k == "all" or (self.k.isdigit())):
             raise ValueError(f"--k must be an int >= 0 or 'all', got {self.k!r}")
         check_planning_interval(self.planning_interval)
-        if self.steps < 1:
-            raise ValueError(f"--steps must be >= 1, got {self.steps}")
-        if self.seed < 0:
-            raise ValueError(f"--seed must be >= 0, got {self.seed}")
+        check_at_least(self, {"steps": 1, "seed": 0})
         check_device(self.device)
         if not 0 <= self.lambda_map < float("inf"):
             raise ValueError(f"--lambda-map must be finite and >= 0, got {self.lambda_map}")

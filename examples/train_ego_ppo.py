@@ -3,7 +3,9 @@
     python examples/train_ego_ppo.py --seed 0 --vec-env dummy --out runs/ego_maneuver/seed0
     python examples/train_ego_ppo.py --help
 
-Results, budget and the commands of the documented runs: docs/tutorials/rl-ego.md.
+Results, budget and the commands of the documented runs: docs/tutorials/rl-ego.md and
+docs/explanation/rl-results.md. The adversary is the evaluation's (30 guidance steps, a
+re-plan every 0.5 s); its planning is most of a step's cost.
 
 The ego drives ``RiskFlowEgo-v0`` (:class:`~policies.rl.envs.EgoTrainingEnv`); the RiskFlow
 adversary drives every other vehicle, with a curriculum that ramps ``k`` and the guidance
@@ -11,11 +13,10 @@ weight ``lambda_adv`` (and optionally switches the target) over the first
 ``ramp_fraction`` of training (:mod:`policies.rl.curriculum`). Episodes come from the
 shipped *training* bank; evaluate on the evaluation bank with ``examples/evaluate_ego.py``.
 
-The defaults are the recipe that learns within the budget of docs/tutorials/rl-ego.md: every 0.2 s
-(``--action-repeat 2``) the policy chooses one of 15 fixed maneuvers (brake / hold /
-accelerate, each straight, as a lane change or as a turn to either side;
-``--maneuver-actions``), added to lane keeping (``--base-planner lane``), and it sees,
-besides the env's observation, what each maneuver would lead to under constant-velocity
+The defaults: every 0.2 s (``--action-repeat 2``) the policy picks one of 15 maneuvers
+(brake / hold / accelerate, each straight, as a lane change or a turn either way;
+``--maneuver-actions``), added to lane keeping (``--base-planner lane``), seeing besides
+the env's observation what each maneuver would lead to under constant-velocity
 predictions of the others (``--maneuver-features``; :mod:`policies.rl.features`).
 ``--no-maneuver-actions --no-maneuver-features --action-repeat 1`` gives the continuous
 policy (normalised (accel, yaw rate), 0 = keep speed and heading), with
@@ -25,8 +26,6 @@ Reward: the env's (``RewardConfig``) with collision and off-road at -10 (library
 speed term pays at most 0.1 per step (``--speed-reward``, at ``--target-speed`` 25 m/s), so
 avoiding one collision is worth 100 steps at full speed, and leaving the road is never a
 cheaper way out of a crash than the crash (both end the episode).
-
-The adversary (the evaluation's: 30 guidance steps, a re-plan every 0.5 s) plans on the CPU.
 
 Writes to ``--out`` (:mod:`policies.rl.runs`): ``options.json``; ``initial_model.zip``
 (the untrained policy) and ``final_model.zip``, each with its ``*_vecnormalize.pkl``
@@ -209,17 +208,17 @@ class Options:
         check_choices(self, {"vec_env": VEC_ENVS, "maneuver_set": MANEUVER_SETS, "split": SPLITS})
         check_choices(self, {"traffic": TRAFFICS, "base_planner": BASE_PLANNERS})
         check_choices(self, {"target_start": TARGETS, "target_end": TARGETS})
-        counts = ("total_timesteps", "num_envs", "n_steps", "batch_size", "n_epochs")
-        counts += ("action_repeat", "shards", "episode_steps", "scenes")  # scenes: None too
-        nonnegative = ("k_start", "k_end", "guidance_steps", "checkpoint_every")
-        check_at_least(self, dict.fromkeys(counts, 1) | dict.fromkeys(nonnegative, 0))
+        counts = ("total_timesteps", "num_envs", "n_steps", "n_epochs", "action_repeat", "shards")
+        nonnegative = ("seed", "k_start", "k_end", "guidance_steps", "checkpoint_every")
+        lows = dict.fromkeys((*counts, "episode_steps", "scenes"), 1) | {"batch_size": 2}
+        check_at_least(self, lows | dict.fromkeys(nonnegative, 0), optional=("scenes",))
+        if self.n_steps * self.num_envs < 2 or self.seed >= 2**32:  # SB3's own bounds
+            raise ValueError("--n-steps x --num-envs must be >= 2 and --seed < 2**32")
         if (self.scenes or 0) > (bank := len(shipped_bank(self.split))):
             raise ValueError(f"--scenes: {self.split} has {bank} scenes, got {self.scenes}")
         check_planning_interval(self.planning_interval)
-        if self.shards > 1 and self.vec_env != "batched":
-            raise ValueError(f"--shards {self.shards} needs --vec-env batched")
-        if self.shards > self.num_envs:
-            raise ValueError(f"--shards must be <= --num-envs ({self.num_envs}), got {self.shards}")
+        if self.shards > 1 and self.vec_env != "batched" or self.shards > self.num_envs:
+            raise ValueError(f"--shards {self.shards} needs --vec-env batched, as many --num-envs")
         check_device(self.device)
         if not self.target_speed > 0:
             raise ValueError(f"--target-speed must be > 0 m/s, got {self.target_speed}")

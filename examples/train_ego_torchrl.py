@@ -81,13 +81,16 @@ class Options:
 
     def __post_init__(self) -> None:
         counts = ("iterations", "frames_per_batch", "epochs", "minibatch", "episode_steps")
-        check_at_least(self, dict.fromkeys(counts, 1))
+        check_at_least(self, dict.fromkeys(counts, 1) | {"checkpoint_every": 0})
         if self.minibatch > self.frames_per_batch:
             raise ValueError("--minibatch must be <= --frames-per-batch")
-        if self.checkpoint_every < 0:
-            raise ValueError("--checkpoint-every must be >= 0")
         if self.resume and not (self.out / "checkpoint.pt").is_file():
             raise ValueError(f"--resume: no checkpoint in {self.out / 'checkpoint.pt'}")
+        if not self.resume and (self.out / "checkpoint.pt").is_file():
+            raise ValueError(
+                f"--out {self.out} holds a run already: continue it with --resume, or choose "
+                "another --out"
+            )
 
 
 def make_env(options: Options, seed: int) -> TransformedEnv:

@@ -59,6 +59,7 @@ from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.evaluation import evaluate
 from policies.rl.paired import outcome_counts
 from policies.rl.report import markdown_table
+from policies.rl.runs import run_begun
 from policies.statistics import mean_summary, paired_difference, rate
 from policies.stress.summary import progress
 from riskflow_env.config import EnvConfig
@@ -143,8 +144,8 @@ def train(options: Options, name: str, seed: int) -> Path:
     resumed or reused (which needs ``--trust-model``)."""
     run = options.out / name / f"seed{seed}"
     final = run / "final_model.zip"
-    started = (run / "checkpoints").is_dir() and any((run / "checkpoints").iterdir())
-    if (final.is_file() or started) and not options.trust_model:
+    started = run_begun(run)  # a checkpoint or the final model
+    if started and not options.trust_model:
         _fail(
             f"{run} has {'a trained model' if final.is_file() else 'checkpoints'}: add "
             "--trust-model to load its model files (pickles that can run code; "
@@ -153,7 +154,7 @@ def train(options: Options, name: str, seed: int) -> Path:
     if final.is_file():
         return run
     script = str(HERE / "train_ego_ppo.py")
-    if started or (run / "options.json").is_file():  # begun: goes on from its checkpoint
+    if started:
         command = [sys.executable, script, "--resume", str(run)]
     else:
         extra = (*shlex.split(options.train_args), *TRAINED_AGAINST[name])

@@ -52,9 +52,6 @@ def check_device(device: str) -> None:
         raise ValueError(f"--device: {device!r} is not supported (expected cpu, cuda or mps)")
 
 
-__all__ = ["SHIPPED", "check_device", "open_data"]
-
-
 def check_interval(
     interval: float, dt: float, horizon_s: float | None, option: str = "--interval"
 ) -> float:
@@ -64,8 +61,8 @@ def check_interval(
     steps = interval / dt
     if not (math.isfinite(steps) and steps > 0 and math.isclose(steps, round(steps), rel_tol=1e-6)):
         raise ValueError(f"{option}: {interval} s is not a positive multiple of dt = {dt} s")
-    if horizon_s is not None and interval > horizon_s + 1e-9:
-        raise ValueError(f"{option}: {interval} s exceeds the plan horizon {horizon_s} s")
+    if horizon_s is not None and round(steps) > round(horizon_s / dt):
+        raise ValueError(f"{option}: {interval} s exceeds the plan horizon {horizon_s:g} s")
     return round(steps) * dt
 
 
@@ -73,3 +70,14 @@ def check_planning_interval(interval: float, option: str = "--planning-interval"
     """:func:`check_interval` of an adversary's re-planning interval: the env's time step,
     the shipped generator's plan horizon."""
     return check_interval(interval, DT, HORIZON_S, option)
+
+
+__all__ = [
+    "DT",
+    "HORIZON_S",
+    "SHIPPED",
+    "check_device",
+    "check_interval",
+    "check_planning_interval",
+    "open_data",
+]

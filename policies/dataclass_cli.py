@@ -143,14 +143,15 @@ def flag_of(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
-def check_at_least(options: Any, lows: Mapping[str, int]) -> None:
+def check_at_least(options: Any, lows: Mapping[str, int], optional: Sequence[str] = ()) -> None:
     """ValueError naming the flag of the first field of ``options`` in ``lows`` that is not
-    an int at least its bound (a field that is None, "not given", passes)."""
+    an int at least its bound; the fields named in ``optional`` may also be None ("not
+    given")."""
     for name, low in lows.items():
         value = getattr(options, name)
-        if value is not None and (
-            isinstance(value, bool) or not isinstance(value, int) or value < low
-        ):
+        if value is None and name in optional:
+            continue
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise ValueError(f"{flag_of(name)} must be an int >= {low}, got {value!r}")
 
 

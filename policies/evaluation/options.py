@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from policies.cli_inputs import SHIPPED, check_device, check_interval, open_data
-from policies.dataclass_cli import from_fields
+from policies.dataclass_cli import check_at_least, check_choices, from_fields
 from policies.learned.guidance_losses import TARGETS
 from policies.planners import PLANNERS
 from policies.registry import method_options, method_spec
@@ -230,19 +230,13 @@ def check_options(options: EvalOptions, dt: float = DynamicsConfig().dt) -> None
         method_spec(name)
     if len(set(options.methods)) != len(options.methods):
         raise ValueError(f"--methods: repeated method in {options.methods}")
-    if options.scenes is not None and options.scenes < 1:
-        raise ValueError(f"--scenes must be >= 1, got {options.scenes}")
+    check_at_least(options, {"scenes": 1, "diffusion_steps": 1}, ("scenes", "diffusion_steps"))
     if not 1 <= options.workers <= MAX_WORKERS:
         raise ValueError(f"--workers must be in [1, {MAX_WORKERS}], got {options.workers}")
     check_batch_scenes(options.batch_scenes, options.backend)
     check_backend(options.backend, options.address)
-    if options.ego not in PLANNERS:
-        raise ValueError(f"--ego must be one of {tuple(PLANNERS)}, got {options.ego!r}")
-    if options.target not in TARGETS:
-        raise ValueError(f"--target must be one of {TARGETS}, got {options.target!r}")
+    check_choices(options, {"ego": tuple(PLANNERS), "target": TARGETS})
     check_interval(options.duration, dt, None, "--duration")
-    if options.diffusion_steps is not None and options.diffusion_steps < 1:
-        raise ValueError(f"--diffusion-steps must be >= 1, got {options.diffusion_steps}")
     if not options.seeds:
         raise ValueError("--seeds: give at least one seed")
     bad_seeds = [seed for seed in options.seeds if seed < 0]

@@ -193,8 +193,8 @@ def load_failure(error: Exception) -> str:
     advises loading the file unsafely or allowlisting what it holds, which a generator
     checkpoint never calls for, so only what it refused is kept."""
     text = " ".join(str(error).split())
-    if not text:  # an empty or cut-off file: EOFError without a message
-        return f"the file is empty or truncated ({type(error).__name__})"
+    if isinstance(error, EOFError) and not text:  # an empty or cut-off file
+        return "the file is empty or truncated (EOFError)"
     if "Weights only load failed" not in text and "WeightsUnpickler error" not in text:
         return text[:300]
     refused = re.search(r"Unsupported global: GLOBAL (\S+)", text)

@@ -60,13 +60,18 @@ class RLlibOptions:
 
     def __post_init__(self) -> None:
         counts = ("iterations", "episode_steps", "train_batch", "minibatch", "epochs")
-        check_at_least(self, dict.fromkeys(counts, 1) | {"num_env_runners": 0})
+        check_at_least(
+            self, dict.fromkeys(counts, 1) | {"num_env_runners": 0, "checkpoint_every": 0}
+        )
         if self.minibatch > self.train_batch:
             raise ValueError("--minibatch must be <= --train-batch")
-        if self.checkpoint_every < 0:
-            raise ValueError("--checkpoint-every must be >= 0")
         if self.resume and not (Path(self.out) / CHECKPOINT).is_dir():
             raise ValueError(f"--resume: no checkpoint in {Path(self.out) / CHECKPOINT}")
+        if not self.resume and (Path(self.out) / CHECKPOINT).is_dir():
+            raise ValueError(
+                f"--out {self.out} holds a run already: continue it with --resume, or choose "
+                "another --out"
+            )
 
 
 def ego_vs_riskflow_env(env_config: Mapping[str, Any]):

@@ -90,15 +90,21 @@ def checkpoints(run: Path) -> list[Checkpoint]:
     return sorted(found, key=lambda checkpoint: checkpoint.decisions)
 
 
+def run_begun(run: Path) -> bool:
+    """Whether ``run`` holds trained weights: a checkpoint or a final model."""
+    checkpoints = run / CHECKPOINTS
+    return (run / f"{FINAL}.zip").exists() or (checkpoints.is_dir() and any(checkpoints.iterdir()))
+
+
 def make_run_folder(out: Path) -> None:
     """Make the folder of a new run, or a :class:`RunError` naming ``--out`` when it holds
-    a run already (its checkpoints would mix with the new run's: ``--resume`` continues
-    it) or cannot be a folder."""
-    held = [name for name in (OPTIONS, CHECKPOINTS, f"{FINAL}.zip") if (out / name).exists()]
-    if held:
+    a begun run (:func:`run_begun`: its checkpoints would mix with the new run's) or
+    cannot be a folder. A folder whose run never trained (``options.json`` alone) is
+    reused."""
+    if out.is_dir() and run_begun(out):
+        way_out = f"continue it with --resume {out}" if (out / OPTIONS).is_file() else "remove it"
         raise RunError(
-            f"--out {out} holds a run already ({', '.join(held)}): continue it with --resume "
-            f"{out}, or choose another --out"
+            f"--out {out} holds a trained run already: {way_out}, or choose another --out"
         )
     try:
         make_output_folder(out, "--out")

@@ -24,7 +24,7 @@ from typing import Any
 
 import torch
 
-from policies.cli_inputs import check_planning_interval
+from policies.cli_inputs import DT, HORIZON_S, check_interval
 from policies.harness import ClosedLoop
 from policies.learned.checkpoint import DEFAULT_NAME, load_checkpoint
 from policies.learned.guidance_losses import TARGETS
@@ -65,7 +65,8 @@ class EpisodeSetup:
             raise ValueError(f"--target must be one of {TARGETS}, got {self.target!r}")
         if isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 1:
             raise ValueError(f"--steps must be an int >= 1 [steps of 0.1 s], got {self.steps!r}")
-        check_planning_interval(self.planning_interval)
+        horizon = HORIZON_S if self.checkpoint is None else None  # another's: when read
+        check_interval(self.planning_interval, DT, horizon, "--planning-interval")
         if self.checkpoint is not None:
             object.__setattr__(self, "checkpoint", Path(self.checkpoint))
             if self.checkpoint.is_dir():
@@ -75,13 +76,17 @@ class EpisodeSetup:
 
     def check_checkpoint(self) -> None:
         """Read ``checkpoint`` once (the shipped one is not read); a ValueError naming
-        ``--checkpoint`` when it is not a generator checkpoint."""
+        ``--checkpoint`` when it is not a generator checkpoint, or ``--planning-interval``
+        when the interval exceeds its plans' horizon."""
         if self.checkpoint is None:
             return
         try:
-            load_checkpoint(self.checkpoint)
+            config = load_checkpoint(self.checkpoint).get("config")
         except ValueError as err:  # CheckpointError included
             raise ValueError(f"--checkpoint: {err}") from None
+        steps = config.get("future_steps") if isinstance(config, dict) else None
+        if isinstance(steps, int):
+            check_interval(self.planning_interval, DT, steps * DT, "--planning-interval")
 
     def adversary(self, seed: int = 0) -> RiskFlowAdversary:
         """The RiskFlow adversary of this setup, with noise seed ``seed``."""

@@ -161,7 +161,8 @@ def _jsonable(value: Any) -> Any:
 
 
 def load_replay(path: str | os.PathLike) -> Replay:
-    """Read a replay file; ValueError naming the file when it is not one."""
+    """Read a replay file; FileNotFoundError or IsADirectoryError when there is no file at
+    ``path``, ValueError naming the file when it is not a replay file."""
     path = Path(path)
     if path.is_dir():
         raise IsADirectoryError(f"{str(path)!r} is a folder, not a replay file (failures/*.npz)")

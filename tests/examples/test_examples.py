@@ -103,7 +103,7 @@ def test_rollout_warm_up_leaves_the_episode_as_it_is(checkpoint, tmp_path, monke
         (["--planning-interval", "6"], "--planning-interval: 6.0 s exceeds the plan horizon"),
         (["--planning-interval", "-0.5"], "--planning-interval: -0.5 s is not a positive"),
         (["--planning-interval", "inf"], "--planning-interval: inf s is not a positive"),
-        (["--seed", "-1"], "--seed must be >= 0, got -1"),
+        (["--seed", "-1"], "--seed must be an int >= 0, got -1"),
         (["--device", "cdua"], "--device: 'cdua' is not a torch device"),
     ],
 )

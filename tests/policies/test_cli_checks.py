@@ -19,9 +19,10 @@ class Flags:
     mode: str = "fast"
 
 
-def test_at_least_names_the_flag_and_lets_none_pass():
-    check_at_least(Flags(scenes=None), {"scenes": 1, "k": 0})
+def test_at_least_names_the_flag_and_lets_none_pass_where_optional():
+    check_at_least(Flags(scenes=None), {"scenes": 1, "k": 0}, optional=("scenes",))
     for flags, message in (
+        (Flags(scenes=None), "--scenes must be an int >= 1, got None"),
         (Flags(scenes=0), "--scenes must be an int >= 1, got 0"),
         (Flags(k=-1), "--k must be an int >= 0, got -1"),
         (Flags(k=True), "--k must be an int >= 0, got True"),

@@ -199,7 +199,7 @@ def test_report_command(tiny_run, capsys):
         (["--ego", "pilot"], "--ego must be one of"),
         (["--target", "all"], "--target must be one of"),
         (["--duration", "1.05"], "--duration"),
-        (["--scenes", "0"], "--scenes must be >= 1"),
+        (["--scenes", "0"], "--scenes must be an int >= 1, got 0"),
         (["--set", "riskflow.warp=3"], "'warp' is not an option of riskflow"),
         (["--set", "guidance_steps"], "--set: expected key=value"),
         (["--set", "ctg.guidance_steps=3"], "'guidance_steps' is not an option of ctg"),

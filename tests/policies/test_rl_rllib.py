@@ -28,13 +28,20 @@ needs_ray = pytest.mark.skipif(
         ({"iterations": 0}, "--iterations must be an int >= 1, got 0"),
         ({"num_env_runners": -1}, "--num-env-runners must be an int >= 0, got -1"),
         ({"train_batch": 10, "minibatch": 20}, "--minibatch must be <= --train-batch"),
-        ({"checkpoint_every": -1}, "--checkpoint-every must be >= 0"),
+        ({"checkpoint_every": -1}, "--checkpoint-every must be an int >= 0, got -1"),
         ({"resume": True, "out": Path("/nonexistent/run")}, "--resume: no checkpoint in"),
     ],
 )
 def test_bad_options_name_the_argument(changes, message):
     with pytest.raises(ValueError, match=message):
         RLlibOptions(**changes)
+
+
+def test_a_new_run_refuses_a_folder_that_holds_one(tmp_path):
+    (tmp_path / "checkpoint").mkdir()
+    with pytest.raises(ValueError, match="holds a run already: continue it with --resume"):
+        RLlibOptions(out=tmp_path)
+    assert RLlibOptions(out=tmp_path, resume=True).resume
 
 
 def run(script: str, out: Path, *args: str) -> list[dict]:

@@ -24,7 +24,7 @@ pytest.importorskip(
     "stable_baselines3", reason="stable-baselines3 is not installed (pip install -e '.[rl]')"
 )
 
-from policies.rl.runs import RunError, find_model  # noqa: E402
+from policies.rl.runs import RunError, find_model, make_run_folder, run_begun  # noqa: E402
 from tests.scripts import load_script  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -166,10 +166,27 @@ def test_training_refuses_a_folder_that_holds_a_run(tmp_path):
                            capture_output=True, text=True, cwd=ROOT, timeout=120)  # fmt: skip
     assert again.returncode == 2
     assert again.stderr.strip() == (
-        f"train_ego_ppo.py: error: --out {run_dir} holds a run already (options.json, "
-        f"final_model.zip): continue it with --resume {run_dir}, or choose another --out"
+        f"train_ego_ppo.py: error: --out {run_dir} holds a trained run already: continue it "
+        f"with --resume {run_dir}, or choose another --out"
     )
     assert (run_dir / "options.json").read_text() == before
+
+
+def test_a_run_that_never_trained_is_not_a_run(tmp_path):
+    """A start that failed before its first checkpoint (options.json alone) does not block
+    the next try; an empty checkpoints folder neither; a folder with checkpoints but no
+    options.json cannot be resumed, and the refusal says so."""
+    (tmp_path / "a" / "checkpoints").mkdir(parents=True)
+    (tmp_path / "a" / "options.json").write_text("{}")
+    assert not run_begun(tmp_path / "a")
+    make_run_folder(tmp_path / "a")
+    (tmp_path / "a" / "checkpoints" / "ppo_64_steps.zip").write_bytes(b"")
+    assert run_begun(tmp_path / "a")
+    with pytest.raises(RunError, match="continue it with --resume"):
+        make_run_folder(tmp_path / "a")
+    (tmp_path / "a" / "options.json").unlink()
+    with pytest.raises(RunError, match="trained run already: remove it, or choose another"):
+        make_run_folder(tmp_path / "a")
 
 
 @pytest.mark.parametrize(

@@ -45,6 +45,9 @@ def test_trains_checkpoints_and_resumes(tmp_path):
     assert "resuming" in resumed.stdout and "iteration 3: 192 decisions" in resumed.stdout
     rows = json.loads((tmp_path / "progress.json").read_text())
     assert [row["iteration"] for row in rows] == [1, 2, 3]
+    again = subprocess.run(command(tmp_path, "--iterations", "1"), capture_output=True,
+                           text=True, cwd=ROOT, timeout=300)  # fmt: skip
+    assert again.returncode == 2 and "holds a run already" in again.stderr
 
 
 def test_sampled_maneuvers_respect_the_action_mask():
