@@ -48,7 +48,7 @@ def check_methods(jobs: list[Job], dt: float = DynamicsConfig().dt) -> None:
                 method, job.options, k=job.k, planning_interval=job.interval,
                 target=job.run.target, seed=0, device=job.run.device,
             )  # fmt: skip
-        except (TypeError, ValueError) as err:
+        except (OSError, TypeError, ValueError) as err:  # OSError: a checkpoint not found
             given = ", ".join(f"{k}={v!r}" for k, v in job.options.items()) or "defaults"
             raise ValueError(f"--methods {method} (options: {given}): {err}") from err
         horizon = getattr(policy, "horizon", None)

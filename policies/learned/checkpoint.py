@@ -166,6 +166,8 @@ def load_checkpoint(path: str | os.PathLike, device: torch.device | str = "cpu")
             checks fails (the message names the file and the tensor).
     """
     path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{path} is a folder, not a generator checkpoint file")
     if not path.is_file():
         raise FileNotFoundError(f"no generator checkpoint at {path}")
     try:
@@ -195,6 +197,8 @@ def load_failure(error: Exception) -> str:
     text = " ".join(str(error).split())
     if isinstance(error, EOFError) and not text:  # an empty or cut-off file
         return "the file is empty or truncated (EOFError)"
+    if isinstance(error, KeyError):  # the legacy reader's magic number: not torch.save's
+        return "not a file written by torch.save"
     if "Weights only load failed" not in text and "WeightsUnpickler error" not in text:
         return text[:300]
     refused = re.search(r"Unsupported global: GLOBAL (\S+)", text)

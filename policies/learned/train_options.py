@@ -10,8 +10,11 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from policies.cli_inputs import check_device
+from policies.dataclass_cli import check_at_least
 from policies.learned.config import ModelConfig
 from policies.learned.recovery import RecoveryConfig
+from riskflow_env.folder_lock import check_output_folder
 
 LR_SCHEDULES = ("constant", "cosine")
 
@@ -106,11 +109,10 @@ class LoopOptions:
 
     def rules(self) -> dict[str, bool]:
         """``{rule: holds}`` of the option checks (subclasses add theirs)."""
-        counts = (self.steps, self.batch_size, self.stride, self.bucket, self.eval_every)
         return {
-            "--steps, --batch-size, --stride, --bucket, --eval-every, --log-every, "
-            "--num-samples >= 1": min(*counts, self.log_every, self.num_samples) >= 1,
-            "--lr > 0": self.lr > 0,
+            "--lr finite and > 0": math.isfinite(self.lr) and self.lr > 0,
+            "--time-budget-min finite and >= 0 (0: no limit)": math.isfinite(self.time_budget_min)
+            and self.time_budget_min >= 0,
             f"--lr-schedule in {LR_SCHEDULES}": self.lr_schedule in LR_SCHEDULES,
             "0 <= --warmup-steps < --steps": 0 <= self.warmup_steps < self.steps,
             "0 <= --stop-step <= --steps": 0 <= self.stop_step <= self.steps,
@@ -160,6 +162,10 @@ class LoopOptions:
             object.__setattr__(self, "data", (Path(self.data),))
         object.__setattr__(self, "data", tuple(Path(folder) for folder in self.data))
         object.__setattr__(self, "data_weights", tuple(map(float, self.data_weights)))
+        counts = ("steps", "batch_size", "stride", "bucket", "eval_every", "log_every")
+        check_at_least(self, dict.fromkeys((*counts, "num_samples"), 1))
+        check_device(self.device)
+        check_output_folder(self.out)
         broken = [rule for rule, holds in self.rules().items() if not holds]
         if broken:
             raise ValueError(f"riskflow-train needs {'; '.join(broken)}")

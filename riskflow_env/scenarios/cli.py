@@ -43,7 +43,12 @@ from pathlib import Path
 import numpy as np
 
 from riskflow_env.cli_errors import add_debug_flag, user_errors
-from riskflow_env.folder_lock import FolderLock, FolderLocked, make_output_folder
+from riskflow_env.folder_lock import (
+    FolderLock,
+    FolderLocked,
+    check_output_folder,
+    make_output_folder,
+)
 from riskflow_env.maps import FAMILIES
 from riskflow_env.processes import exit_with_parent
 from riskflow_env.scenarios._npz import check_npz_sizes
@@ -77,7 +82,7 @@ class GenerateOptions:
     """probability per recorded vehicle that it stops once in its lane (DriverConfig)"""
 
     def __post_init__(self) -> None:
-        for name, minimum in (("scenes", 0), ("seed", 0), ("workers", 1), ("future_steps", 1)):
+        for name, minimum in (("scenes", 1), ("seed", 0), ("workers", 1), ("future_steps", 1)):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
                 raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}")
@@ -255,7 +260,7 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--out", type=Path, required=True, help="folder of the bank (scenes, maps/)")
     gen.add_argument("--families", nargs="+", choices=FAMILIES, default=list(FAMILIES),
                      help="road families, assigned round-robin to scene indices")  # fmt: skip
-    gen.add_argument("--scenes", type=int_at_least(0), default=100,
+    gen.add_argument("--scenes", type=int_at_least(1), default=100,
                      help="number of scenes in the bank (indices 0 .. N-1, generated "
                      "procedurally: any N is made in full)")  # fmt: skip
     gen.add_argument("--seed", type=int_at_least(0), default=0, help="root seed (an int >= 0)")
@@ -314,7 +319,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                 require_format(fmt)
             except ImportError as err:
                 parser.error(f"--format {fmt}: {err}")
-        output_folder(parser, args.out)
+        try:
+            check_output_folder(args.out, "--out")  # made once every input is read
+        except ValueError as err:
+            parser.error(str(err))
         with user_errors(f"{parser.prog} export", args.debug):
             written = export_files(args.files, formats, args.out)
         print(f"riskflow-data: wrote {len(written)} file(s) into {args.out}")

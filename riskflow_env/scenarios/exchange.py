@@ -98,10 +98,12 @@ def read_scene(path: str | os.PathLike) -> Scenario:
     ``.pkl`` or a CommonRoad ``.xml``.
 
     Raises:
-        FileNotFoundError: no such file.
+        FileNotFoundError, IsADirectoryError: no such file, or a folder.
         ValueError: naming the file, for another suffix or a malformed file.
     """
     path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{str(path)!r} is a folder: give its scene files")
     if not path.is_file():
         raise FileNotFoundError(f"no such scene file {str(path)!r}")
     if path.suffix == ".npz":
@@ -139,9 +141,10 @@ def export_files(
                 raise ValueError(f"{path}: its {fmt} export would overwrite {inputs[target]}")
             if targets.setdefault(target, Path(path)) != Path(path):
                 raise ValueError(f"{targets[target]} and {path} would both be exported as {target}")
+    scenarios = [read_scene(path) for path in files]  # every input read before any write
+    Path(out).mkdir(parents=True, exist_ok=True)
     written = []
-    for path in files:
-        scenario = read_scene(path)
+    for path, scenario in zip(files, scenarios, strict=True):
         for fmt in formats:
             written += export_scenario(scenario, Path(out) / Path(path).name, fmt)
     return written

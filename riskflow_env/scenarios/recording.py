@@ -10,7 +10,10 @@ step. The IDM/MOBIL commands move the vehicles through the simulator's own unicy
 (:func:`~riskflow_env.scenarios.road_stepper.move_unicycle`), not highway-env's
 bicycle, so the heading is the direction of travel and every recorded track, rolled out
 from its logged actions, reproduces itself: the generator's training targets are
-reachable by the dynamics it plans with.
+reachable by the dynamics it plans with. The recorder's unicycle has no turning radius
+(``DynamicsConfig.turn_radius_min = 0``), as when the shipped banks were recorded, so
+that ``riskflow-data generate`` makes them again; about 2% of their logged steps turn
+tighter than the simulator's 5 m radius allows (slow vehicles in curves).
 
 Per recording it draws a traffic density; per vehicle a kind (car, or truck in
 ``TRUCK_FAMILIES``) and size, a desired speed and its IDM/MOBIL parameters (ranges in

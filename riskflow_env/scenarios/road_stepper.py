@@ -252,9 +252,12 @@ def move_unicycle(vehicles: list, dt: float) -> None:
 
 @functools.lru_cache(maxsize=4)
 def _dynamics_config(dt: float):
+    """The recorder's unicycle: the simulator's bounds without the turning radius, with
+    which the shipped banks were recorded (``riskflow-data generate`` makes them again).
+    Recorded highway-env traffic turns only while it drives, so the radius rarely binds."""
     from riskflow_env.config import DynamicsConfig
 
-    return DynamicsConfig(dt=dt)
+    return DynamicsConfig(dt=dt, turn_radius_min=0.0)
 
 
 @functools.cache

@@ -105,6 +105,18 @@ def test_a_file_the_safe_loader_refuses_is_named_in_one_short_line(tmp_path):
         load_checkpoint(module)
 
 
+def test_empty_text_and_folder_checkpoints_say_what_they_are(tmp_path):
+    (tmp_path / "empty.pt").write_bytes(b"")
+    (tmp_path / "hello.pt").write_text("hello\n")
+    (tmp_path / "folder.pt").mkdir()
+    with pytest.raises(CheckpointError, match="empty.pt: the file is empty or truncated"):
+        load_checkpoint(tmp_path / "empty.pt")
+    with pytest.raises(CheckpointError, match="hello.pt: not a file written by torch.save$"):
+        load_checkpoint(tmp_path / "hello.pt")
+    with pytest.raises(IsADirectoryError, match="folder.pt is a folder, not a generator"):
+        load_checkpoint(tmp_path / "folder.pt")
+
+
 def test_save_is_atomic(tmp_path, make_model, normalizer, tiny_config, monkeypatch):
     model = make_model(tiny_config)
     path = _write(tmp_path / "g.pt", model, normalizer)

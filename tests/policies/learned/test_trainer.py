@@ -278,6 +278,25 @@ def test_realism_penalties_reach_the_loss_and_bad_weights_name_the_option(
         TrainOptions(data=Path("d"), jerk_weight=-1.0)
 
 
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"steps": 0}, "--steps must be an int >= 1, got 0"),
+        ({"log_every": -1}, "--log-every must be an int >= 1, got -1"),
+        ({"lr": math.inf}, "--lr finite and > 0"),
+        ({"lr": math.nan}, "--lr finite and > 0"),
+        ({"time_budget_min": math.nan}, "--time-budget-min finite and >= 0"),
+        ({"device": "gpu"}, "--device: 'gpu' is not a torch device"),
+        ({"out": "FILE"}, "--out: .*FILE exists and is not a folder"),
+    ],
+)
+def test_bad_options_name_the_flag_before_any_data_is_read(changes, message, tmp_path):
+    (tmp_path / "FILE").write_text("")
+    changes = {k: tmp_path / v if v == "FILE" else v for k, v in changes.items()}
+    with pytest.raises(ValueError, match=message):
+        TrainOptions(data=Path("d"), **changes)
+
+
 def test_one_step_share_trains_at_the_samplers_call_and_bad_shares_name_the_option(
     banks, tmp_path, tiny_config
 ):

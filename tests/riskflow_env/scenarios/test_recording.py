@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import inverse, rollout
 from riskflow_env.geometry import footprint_points
 from riskflow_env.maps import FAMILIES
@@ -69,17 +70,19 @@ def test_recorded_motion_is_plausible(merge_recording):
 
 @pytest.mark.parametrize("family", ["roundabout", "racetrack"])
 def test_recorded_tracks_reproduce_themselves_through_the_unicycle(family):
-    """Vehicles move as the simulator's unicycle (heading = direction of travel), so
-    the logged actions, rolled out from a logged state, give back the logged positions:
-    training targets that the generator can match. (Recorded with highway-env's
-    bicycle, these missed by up to 2 m over 5 s on curved roads.)"""
+    """Vehicles move as the simulator's unicycle (heading = direction of travel; without
+    the turning radius, as the shipped banks were recorded), so the logged actions, rolled
+    out from a logged state, give back the logged positions: training targets that the
+    generator can match. (Recorded with highway-env's bicycle, these missed by up to 2 m
+    over 5 s on curved roads.)"""
     recording = record_traffic(family, np.random.default_rng(5), steps=60, warmup_steps=10)
     rows = recording.valid.all(axis=1)
     assert rows.sum() >= 3
     states = recording.states[rows]
-    actions = inverse(states)
+    plain = DynamicsConfig(turn_radius_min=0.0)
+    actions = inverse(states, plain)
     assert np.all(np.abs(actions[..., 1]) <= MAX_YAW_RATE + 1e-9)
-    rolled = rollout(states[:, 0], actions)
+    rolled = rollout(states[:, 0], actions, plain)
     # float64 arithmetic of the same formulas in a different order: 1e-6 m over 6 s.
     np.testing.assert_allclose(rolled[..., :2], states[:, 1:, :2], atol=1e-6)
 
