@@ -39,8 +39,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from policies.cli_inputs import check_planning_interval, open_data
+from policies.cli_inputs import open_data
 from policies.dataclass_cli import check_at_least, check_choices, parse_dataclass
+from policies.learned.adversary_config import check_planning_interval
 from policies.planners import OraclePlanner, make_planner
 from policies.rl.adversary import TARGETS, AdversaryStage, ScenePolicyConfig
 from policies.rl.envs import interface_options

@@ -32,10 +32,10 @@ from pathlib import Path
 from typing import Any
 
 from policies import harness
-from policies.cli_inputs import check_device, check_planning_interval
+from policies.cli_inputs import check_device
 from policies.dataclass_cli import check_at_least, run_main
 from policies.harness import METRICS, ClosedLoop
-from policies.learned.adversary_config import AdversaryConfig
+from policies.learned.adversary_config import AdversaryConfig, check_planning_interval
 from policies.learned.checkpoint import CheckpointError
 from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
 from policies.planners import IDMPlanner

@@ -59,8 +59,9 @@ from stable_baselines3.common.vec_env import (
     VecNormalize,
 )
 
-from policies.cli_inputs import check_device, check_planning_interval
+from policies.cli_inputs import check_device
 from policies.dataclass_cli import check_at_least, check_choices
+from policies.learned.adversary_config import check_planning_interval
 from policies.rl.adversary import TARGETS, AdversaryStage, ScenePolicyConfig
 from policies.rl.checkpoints import (
     RunCheckpoints,

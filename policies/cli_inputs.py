@@ -8,7 +8,6 @@ import math
 
 import torch
 
-from policies.learned.windows import WindowConfig
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.scenarios import ScenarioBank, shipped_bank
 from riskflow_env.scenarios.folders import open_scenes
@@ -16,7 +15,6 @@ from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
 SHIPPED = "shipped:eval"  # the data source name of the shipped evaluation scenes
 DT = DynamicsConfig().dt  # [s] the env's time step
-HORIZON_S = WindowConfig().future_steps * DT  # [s] the shipped generator's plans
 
 
 def open_data(data: str | None) -> ScenarioBank | ScenarioNetDataset:
@@ -66,18 +64,10 @@ def check_interval(
     return round(steps) * dt
 
 
-def check_planning_interval(interval: float, option: str = "--planning-interval") -> float:
-    """:func:`check_interval` of an adversary's re-planning interval: the env's time step,
-    the shipped generator's plan horizon."""
-    return check_interval(interval, DT, HORIZON_S, option)
-
-
 __all__ = [
     "DT",
-    "HORIZON_S",
     "SHIPPED",
     "check_device",
     "check_interval",
-    "check_planning_interval",
     "open_data",
 ]

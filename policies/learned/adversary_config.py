@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from policies.cli_inputs import DT, check_interval
 from policies.learned.config import ModelConfig
 from policies.learned.guidance_losses import TARGETS, ObjectiveConfig
 from policies.learned.plan_stitching import DEFAULT_HOLD_DISTANCE
@@ -187,4 +188,20 @@ def check_model_pair(model: object, normalizer: object, name: str) -> None:
         raise ValueError(f"a {name} needs the normalizer it was trained with")
 
 
-__all__ = ["AdversaryConfig", "check_model_pair", "default_window_config", "option_names"]
+HORIZON_S = WindowConfig().future_steps * DT  # [s] the shipped generator's plans
+
+
+def check_planning_interval(interval: float, option: str = "--planning-interval") -> float:
+    """:func:`~policies.cli_inputs.check_interval` of an adversary's re-planning interval:
+    the env's time step, the shipped generator's plan horizon (``HORIZON_S``)."""
+    return check_interval(interval, DT, HORIZON_S, option)
+
+
+__all__ = [
+    "HORIZON_S",
+    "AdversaryConfig",
+    "check_model_pair",
+    "check_planning_interval",
+    "default_window_config",
+    "option_names",
+]

@@ -150,8 +150,10 @@ class ObjectiveConfig:
 
     def __post_init__(self) -> None:
         for ok, message in self.checks():
-            if not ok:
-                raise ValueError(f"{type(self).__name__}: {message}; got {self}")
+            if not ok:  # the value of the field the rule names, or every field
+                name = message.split()[0]
+                got = f"{name}={getattr(self, name)!r}" if hasattr(self, name) else str(self)
+                raise ValueError(f"{type(self).__name__}: {message}; got {got}")
 
 
 def target_rows(present: Tensor, controllable: Tensor, ego: int, target: str) -> Tensor:

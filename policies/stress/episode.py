@@ -24,8 +24,9 @@ from typing import Any
 
 import torch
 
-from policies.cli_inputs import DT, HORIZON_S, check_interval
+from policies.cli_inputs import DT, check_interval
 from policies.harness import ClosedLoop
+from policies.learned.adversary_config import HORIZON_S
 from policies.learned.checkpoint import DEFAULT_NAME, load_checkpoint
 from policies.learned.guidance_losses import TARGETS
 from policies.planners import EgoPlanner

@@ -7,8 +7,9 @@ from dataclasses import dataclass
 
 import pytest
 
-from policies.cli_inputs import HORIZON_S, check_interval, check_planning_interval
+from policies.cli_inputs import check_interval
 from policies.dataclass_cli import check_at_least, check_choices
+from policies.learned.adversary_config import HORIZON_S, check_planning_interval
 from riskflow_env.wrappers.video import check_video_path
 
 
