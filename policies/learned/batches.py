@@ -104,7 +104,8 @@ def load_splits(
     count = round(val_fraction * len(scenes))
     if not 0 < count < len(scenes):
         raise ValueError(
-            f"a validation fraction {val_fraction} leaves {count} of {len(scenes)} scenes"
+            f"--val-fraction {val_fraction} of the {len(scenes)} scene(s) of {data} puts "
+            f"{count} in validation: give more scenes, another --val-fraction or --val-data"
         )
     order = np.random.default_rng(0).permutation(len(scenes))
     datasets = []
