@@ -189,7 +189,7 @@ class _Writer:
             return
         make_output_folder(folder, "--out")
         for old in (
-            *folder.glob("failures/*.npz"), *folder.glob("gifs/*.gif"),
+            *folder.glob("failures/*-seed*.npz"), *folder.glob("gifs/*-seed*.gif"),
             *(folder / name for name in ("episodes.jsonl", "summary.json", "report.md",
                                          "report.html")),
         ):  # fmt: skip

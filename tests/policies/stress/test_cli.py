@@ -106,6 +106,19 @@ def test_two_workers_give_the_results_of_one(run, planner_file, scenes_dir):
     assert one.summary["ego_collision_rate"] == two["ego_collision_rate"]
 
 
+def test_a_run_replaces_its_own_files_and_nothing_else(planner_file, scenes_dir, tmp_path):
+    """docs/reference/formats.md: a previous run's failures go, a user's file stays."""
+    (tmp_path / "failures").mkdir()
+    (tmp_path / "failures" / "old_scene-seed3.npz").write_bytes(b"a previous run's")
+    (tmp_path / "failures" / "important.npz").write_bytes(b"the user's")
+    riskflow_stress(
+        f"{planner_file}:reckless", 1, (0,), data=scenes_dir, steps=STEPS, gifs=0,
+        progress=False, out=tmp_path,
+    )  # fmt: skip
+    assert not (tmp_path / "failures" / "old_scene-seed3.npz").exists()
+    assert (tmp_path / "failures" / "important.npz").read_bytes() == b"the user's"
+
+
 def test_replay_puts_the_user_planner_back_bit_for_bit(run, planner_file, capsys):
     summary = json.loads((run / "summary.json").read_text())
     file = run / next(row["replay"] for row in summary["per_episode"] if row["replay"])
