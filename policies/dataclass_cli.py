@@ -39,7 +39,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
-from riskflow_env.cli_errors import add_debug_flag, run_script
+from riskflow_env.cli_errors import CommandLineParser, add_debug_flag, run_script
 
 T = TypeVar("T")
 
@@ -82,9 +82,7 @@ def dataclass_parser(
     """An ``ArgumentParser`` with one option per field of the dataclass ``cls`` (and
     ``--recipe`` with ``recipes``; ``--debug`` with ``debug``: see
     :mod:`riskflow_env.cli_errors`)."""
-    parser = argparse.ArgumentParser(
-        prog=prog, description=description, formatter_class=_DefaultsAsTyped
-    )
+    parser = CommandLineParser(prog=prog, description=description, formatter_class=_DefaultsAsTyped)
     hints, docs = typing.get_type_hints(cls), field_docs(cls)
     for field in dataclasses.fields(cls):
         hint = hints[field.name]

@@ -18,12 +18,22 @@ import argparse
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from typing import Any
+from typing import Any, NoReturn
 
 from riskflow_env.untrusted import error_text
 
 USER_ERRORS = (OSError, ValueError)
 MAX_LINE = 1000  # [characters] of an error message printed
+
+
+class CommandLineParser(argparse.ArgumentParser):
+    """argparse's parser with a short usage error: ``usage: <prog> [options] ...`` and the
+    error line, where argparse prints the whole usage first (over 30 lines for a command
+    with 40 options); ``--help`` still lists every option."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"usage: {self.prog} [options] (--help lists them)\n"
+                     f"{self.prog}: error: {message}\n")  # fmt: skip
 
 
 def add_debug_flag(parser: argparse.ArgumentParser) -> None:

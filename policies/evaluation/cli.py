@@ -23,7 +23,7 @@ from collections.abc import Sequence
 from policies.dataclass_cli import dataclass_parser
 from policies.evaluation.options import EvalOptions
 from policies.registry import method_list
-from riskflow_env.cli_errors import add_debug_flag, user_errors
+from riskflow_env.cli_errors import CommandLineParser, add_debug_flag, user_errors
 
 PROG = "riskflow-eval"
 
@@ -41,7 +41,7 @@ def parser() -> argparse.ArgumentParser:
 
 def report_parser() -> argparse.ArgumentParser:
     """The parser of ``riskflow-eval report``."""
-    report = argparse.ArgumentParser(
+    report = CommandLineParser(
         prog=f"{PROG} report", formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
     report.add_argument("--out", required=True, help="results folder of a riskflow-eval run")

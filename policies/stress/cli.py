@@ -28,7 +28,7 @@ from typing import Any
 
 from policies.dataclass_cli import dataclass_parser
 from policies.stress.runner import StressOptions
-from riskflow_env.cli_errors import add_debug_flag, user_errors
+from riskflow_env.cli_errors import CommandLineParser, add_debug_flag, user_errors
 
 PROG = "riskflow-stress"
 FORMS = "a built-in name, package.module:object or path/to/file.py:object, as --planner"
@@ -103,7 +103,7 @@ def compare_parser() -> argparse.ArgumentParser:
 
 def replay_parser() -> argparse.ArgumentParser:
     """The parser of ``riskflow-stress replay FILE``."""
-    replay = argparse.ArgumentParser(
+    replay = CommandLineParser(
         prog=f"{PROG} replay",
         description="Re-run a saved failure (closed loop: the same scene, adversary seed and "
         "options) with a planner, and say whether the failure recurs.",

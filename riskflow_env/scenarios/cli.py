@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from riskflow_env.cli_errors import add_debug_flag, user_errors
+from riskflow_env.cli_errors import CommandLineParser, add_debug_flag, user_errors
 from riskflow_env.folder_lock import (
     FolderLock,
     FolderLocked,
@@ -250,7 +250,7 @@ def share(text: str) -> float:
 def build_parser() -> argparse.ArgumentParser:
     """The ``riskflow-data`` parser (subcommands ``generate``, ``info`` and ``export``)."""
     formatter = argparse.ArgumentDefaultsHelpFormatter
-    parser = argparse.ArgumentParser(
+    parser = CommandLineParser(
         prog="riskflow-data", description=__doc__.split("\n")[0], formatter_class=formatter
     )
     commands = parser.add_subparsers(dest="command", required=True)
