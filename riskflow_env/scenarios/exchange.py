@@ -19,6 +19,7 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
+from riskflow_env.folder_lock import make_output_folder
 from riskflow_env.scenarios.scenario import Scenario
 
 FORMATS = ("scenarionet", "openscenario", "commonroad")
@@ -142,7 +143,7 @@ def export_files(
             if targets.setdefault(target, Path(path)) != Path(path):
                 raise ValueError(f"{targets[target]} and {path} would both be exported as {target}")
     scenarios = [read_scene(path) for path in files]  # every input read before any write
-    Path(out).mkdir(parents=True, exist_ok=True)
+    make_output_folder(out, "--out")
     written = []
     for path, scenario in zip(files, scenarios, strict=True):
         for fmt in formats:

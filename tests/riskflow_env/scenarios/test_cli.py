@@ -149,6 +149,10 @@ def test_out_the_system_refuses_is_a_usage_error(command, tmp_path, monkeypatch,
     def refuse(self, *args, **kwargs):
         raise PermissionError(13, "Permission denied", str(self))
 
+    if command == "export":  # a readable input: export reads every input before --out
+        from riskflow_env.scenarios import save_scenario, shipped_bank
+
+        save_scenario(shipped_bank("eval")[0], tmp_path / "scene.npz")
     monkeypatch.setattr(Path, "mkdir", refuse)
     args = ["--families", "u-turn", "--scenes", "1"] if command == "generate" else [
         str(tmp_path / "scene.npz"), "--format", "scenarionet"
