@@ -39,6 +39,7 @@ from torchrl.objectives.value import GAE
 from policies.dataclass_cli import check_at_least, parse_dataclass
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.envs import EgoEnvConfig, build_env
+from policies.rl.runs import check_resume
 from policies.rl.signals import StopSignals, exit_stopped
 from riskflow_env.config import EnvConfig
 
@@ -84,13 +85,7 @@ class Options:
         check_at_least(self, dict.fromkeys(counts, 1) | {"checkpoint_every": 0})
         if self.minibatch > self.frames_per_batch:
             raise ValueError("--minibatch must be <= --frames-per-batch")
-        if self.resume and not (self.out / "checkpoint.pt").is_file():
-            raise ValueError(f"--resume: no checkpoint in {self.out / 'checkpoint.pt'}")
-        if not self.resume and (self.out / "checkpoint.pt").is_file():
-            raise ValueError(
-                f"--out {self.out} holds a run already: continue it with --resume, or choose "
-                "another --out"
-            )
+        check_resume(self.out / "checkpoint.pt", self.resume)
 
 
 def make_env(options: Options, seed: int) -> TransformedEnv:

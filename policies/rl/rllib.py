@@ -23,6 +23,7 @@ from typing import Any
 from tqdm import tqdm
 
 from policies.dataclass_cli import check_at_least
+from policies.rl.runs import check_resume
 from policies.rl.signals import StopSignals, exit_stopped
 
 CHECKPOINT = "checkpoint"  # <out>/checkpoint: the algorithm (RLlib's save_to_path)
@@ -65,13 +66,7 @@ class RLlibOptions:
         )
         if self.minibatch > self.train_batch:
             raise ValueError("--minibatch must be <= --train-batch")
-        if self.resume and not (Path(self.out) / CHECKPOINT).is_dir():
-            raise ValueError(f"--resume: no checkpoint in {Path(self.out) / CHECKPOINT}")
-        if not self.resume and (Path(self.out) / CHECKPOINT).is_dir():
-            raise ValueError(
-                f"--out {self.out} holds a run already: continue it with --resume, or choose "
-                "another --out"
-            )
+        check_resume(Path(self.out) / CHECKPOINT, self.resume)
 
 
 def ego_vs_riskflow_env(env_config: Mapping[str, Any]):

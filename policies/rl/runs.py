@@ -112,6 +112,18 @@ def make_run_folder(out: Path) -> None:
         raise RunError(str(error)) from None
 
 
+def check_resume(saved: Path, resume: bool) -> None:
+    """For a training script whose run is the file or folder ``saved`` in ``--out``: a
+    ValueError for ``--resume`` without it, or for a new run that would overwrite it."""
+    if resume and not saved.exists():
+        raise ValueError(f"--resume: no checkpoint in {saved}")
+    if not resume and saved.exists():
+        raise ValueError(
+            f"--out {saved.parent} holds a run already: continue it with --resume, or choose "
+            "another --out"
+        )
+
+
 def read_options(run: Path, argument: str = "--runs") -> dict[str, Any]:
     """The run's ``options.json`` as a dict; a :class:`RunError` naming ``argument`` when
     ``run`` is not a run folder."""
