@@ -39,7 +39,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from policies.cli_inputs import open_data
+from policies.cli_inputs import open_data, parse_seeds
 from policies.dataclass_cli import check_at_least, check_choices, parse_dataclass
 from policies.learned.adversary_config import check_planning_interval
 from policies.planners import OraclePlanner, make_planner
@@ -149,13 +149,8 @@ class Options:
         self.seed_list()  # checks --seeds
 
     def seed_list(self) -> list[int]:
-        """The baselines' seeds of ``--seeds`` (comma- or space-separated ints >= 0)."""
-        words = self.seeds.replace(",", " ").split()
-        if not words or not all(w.isascii() and w.isdigit() for w in words):
-            raise ValueError(
-                f"--seeds must be comma-separated ints >= 0 (e.g. 0,1,2), got {self.seeds!r}"
-            )
-        return [int(word) for word in words]
+        """The baselines' seeds of ``--seeds`` (comma- or space-separated distinct ints >= 0)."""
+        return list(parse_seeds(self.seeds))
 
     def nominal_names(self) -> list[str]:
         """The nominal traffics of ``--nominal``, in order, each once."""

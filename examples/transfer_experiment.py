@@ -53,7 +53,7 @@ import numpy as np
 from evaluate_ego import ppo_factory, run_options, spread_scenes
 from tqdm import tqdm
 
-from policies.cli_inputs import open_data
+from policies.cli_inputs import open_data, parse_seeds
 from policies.dataclass_cli import check_at_least, parse_dataclass
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.evaluation import evaluate
@@ -116,15 +116,7 @@ class Options:
 
     def __post_init__(self) -> None:
         for name in ("seeds", "eval_seeds"):
-            flag, value = name.replace("_", "-"), getattr(self, name)
-            try:
-                values = _integers(value)
-            except ValueError:
-                values = []
-            if not values or len(set(values)) != len(values):
-                raise ValueError(
-                    f"--{flag} must be distinct comma-separated integers, got {value!r}"
-                )
+            parse_seeds(getattr(self, name), "--" + name.replace("_", "-"))
         check_at_least(self, dict.fromkeys(("scenes", "data_scenes", "episode_steps"), 1))
         try:
             extra = shlex.split(self.train_args)
@@ -133,10 +125,6 @@ class Options:
         taken = sorted({arg.split("=")[0] for arg in extra} & set(EXPERIMENT_OPTIONS))
         if taken:
             raise ValueError(f"--train-args may not set {taken}: the experiment sets them")
-
-
-def _integers(text: str) -> list[int]:
-    return [int(value) for value in text.split(",") if value.strip()]
 
 
 def train(options: Options, name: str, seed: int) -> Path:
@@ -175,7 +163,7 @@ def settings(options: Options, scenes: dict) -> dict:
     other settings is run again)."""
     return {
         "scenes": {source: [scene.name for scene in chosen] for source, chosen in scenes.items()},
-        "eval_seeds": _integers(options.eval_seeds),
+        "eval_seeds": list(parse_seeds(options.eval_seeds)),
         "episode_steps": options.episode_steps,
         "mask_actions": options.mask_actions,
     }
@@ -281,7 +269,7 @@ def main(argv: list[str] | None = None) -> None:
         "data": [data[i] for i in range(min(options.data_scenes, len(data)))],
     }
     runs = {(name, seed): train(options, name, seed)
-            for seed in _integers(options.seeds) for name in TRAINED_AGAINST}  # fmt: skip
+            for seed in parse_seeds(options.seeds) for name in TRAINED_AGAINST}  # fmt: skip
     results: dict[str, dict[str, list]] = {}
     for (name, _), run in runs.items():  # seeds in order: episodes line up across egos
         for traffic, episodes in outcomes(options, name, run, scenes).items():

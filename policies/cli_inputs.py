@@ -1,10 +1,11 @@
 """Checks of the inputs the command-line tools share (``riskflow-eval``, ``riskflow-stress``,
-the examples): the scene source ``--data``, the torch ``--device`` and a re-planning
-interval, each with an error that names the argument."""
+the examples): the scene source ``--data``, the torch ``--device``, a re-planning
+interval and a list of seeds, each with an error that names the argument."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 
@@ -15,6 +16,7 @@ from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
 SHIPPED = "shipped:eval"  # the data source name of the shipped evaluation scenes
 DT = DynamicsConfig().dt  # [s] the env's time step
+SEED_LIMIT = 2**32  # seeds are below this: numpy's and Stable-Baselines3's bound
 
 
 def open_data(data: str | None) -> ScenarioBank | ScenarioNetDataset:
@@ -64,10 +66,35 @@ def check_interval(
     return round(steps) * dt
 
 
+def check_seeds(seeds: Sequence[int], option: str = "--seeds") -> tuple[int, ...]:
+    """``seeds`` as a tuple: one or more distinct ints in ``[0, 2**32)``, or a ValueError
+    naming ``option`` (a repeated seed would run and count the same episodes twice)."""
+    values = tuple(seeds)
+    if not values or any(
+        isinstance(s, bool) or not isinstance(s, int) or not 0 <= s < SEED_LIMIT for s in values
+    ):
+        raise ValueError(f"{option} must be one or more ints in [0, 2**32), got {list(values)}")
+    if len(set(values)) != len(values):
+        raise ValueError(f"{option} must be distinct, got {list(values)}")
+    return values
+
+
+def parse_seeds(text: str, option: str = "--seeds") -> tuple[int, ...]:
+    """The seeds of a comma- or space-separated list (``"0,1,2"``), checked as
+    :func:`check_seeds`; a ValueError naming ``option`` otherwise."""
+    words = text.replace(",", " ").split()
+    if not words or not all(word.isascii() and word.isdigit() for word in words):
+        raise ValueError(f"{option} must be comma-separated ints >= 0 (e.g. 0,1,2), got {text!r}")
+    return check_seeds([int(word) for word in words], option)
+
+
 __all__ = [
     "DT",
+    "SEED_LIMIT",
     "SHIPPED",
     "check_device",
     "check_interval",
+    "check_seeds",
     "open_data",
+    "parse_seeds",
 ]

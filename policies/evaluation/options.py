@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from policies.cli_inputs import SHIPPED, check_device, check_interval, open_data
+from policies.cli_inputs import SHIPPED, check_device, check_interval, check_seeds, open_data
 from policies.dataclass_cli import check_at_least, check_choices, from_fields
 from policies.learned.guidance_losses import TARGETS
 from policies.planners import PLANNERS
@@ -49,7 +49,7 @@ class EvalOptions:
     """scene folder: riskflow-data output (.npz) or a ScenarioNet dataset (dataset_summary.pkl,
     read scene by scene); default: the shipped evaluation scenes"""
     seeds: tuple[int, ...] = (0,)
-    """rollout seeds, ints >= 0 (one rollout per scene and seed)"""
+    """rollout seeds, distinct ints >= 0 (one rollout per scene and seed)"""
     ego: str = "idm"
     """ego planner under test, a name of policies.planners.PLANNERS (idm, sampling_mpc...)"""
     target: str = "others"
@@ -237,11 +237,7 @@ def check_options(options: EvalOptions, dt: float = DynamicsConfig().dt) -> None
     check_backend(options.backend, options.address)
     check_choices(options, {"ego": tuple(PLANNERS), "target": TARGETS})
     check_interval(options.duration, dt, None, "--duration")
-    if not options.seeds:
-        raise ValueError("--seeds: give at least one seed")
-    bad_seeds = [seed for seed in options.seeds if seed < 0]
-    if bad_seeds:
-        raise ValueError(f"--seeds must be ints >= 0, got {bad_seeds[0]}")
+    check_seeds(options.seeds)
     check_device(options.device)
     check_output_folder(options.out, "--out")
 

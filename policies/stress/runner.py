@@ -19,7 +19,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from policies.cli_inputs import check_device, open_data
+from policies.cli_inputs import check_device, check_seeds, open_data
 from policies.dataclass_cli import check_at_least
 from policies.planners import EgoPlanner
 from policies.stress.episode import EpisodeRunner, EpisodeSetup
@@ -51,12 +51,7 @@ class StressOptions(EpisodeSetup):
     def __post_init__(self) -> None:
         super().__post_init__()
         check_at_least(self, {"scenes": 1, "workers": 1, "gifs": 0})
-        seeds = tuple(self.seeds)
-        if not seeds or any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in seeds):
-            raise ValueError(f"--seeds must be one or more ints >= 0, got {list(self.seeds)}")
-        if len(set(seeds)) != len(seeds):
-            raise ValueError(f"seeds must be distinct, got {self.seeds!r}")
-        object.__setattr__(self, "seeds", seeds)
+        object.__setattr__(self, "seeds", check_seeds(self.seeds))
         if self.data is not None:
             object.__setattr__(self, "data", Path(self.data))
         object.__setattr__(self, "out", Path(self.out))

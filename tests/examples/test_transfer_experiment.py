@@ -91,8 +91,9 @@ def test_pipeline_trains_three_egos_evaluates_them_and_reuses_its_work(tmp_path)
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (("--seeds", "1,1"), "--seeds must be distinct comma-separated integers"),
-        (("--eval-seeds", "a"), "--eval-seeds must be distinct comma-separated integers"),
+        (("--seeds", "1,1"), "--seeds must be distinct, got [1, 1]"),
+        (("--seeds", "-1"), "--seeds must be comma-separated ints >= 0"),
+        (("--eval-seeds", "a"), "--eval-seeds must be comma-separated ints >= 0"),
         (("--train-args", "--traffic riskflow"), "--train-args may not set ['--traffic']"),
         (("--train-args", "--n-steps '8"), "--train-args: No closing quotation"),
     ],

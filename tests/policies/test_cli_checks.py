@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import pytest
 
-from policies.cli_inputs import check_interval
+from policies.cli_inputs import check_interval, check_seeds, parse_seeds
 from policies.dataclass_cli import check_at_least, check_choices
 from policies.learned.adversary_config import HORIZON_S, check_planning_interval
 from riskflow_env.wrappers.video import check_video_path
@@ -63,3 +63,22 @@ def test_video_path_names_the_option(tmp_path):
     ):
         with pytest.raises(ValueError, match=message):
             check_video_path(path, "--video")
+
+
+def test_seeds_one_parser_for_every_tool():
+    assert parse_seeds("0,1, 2") == parse_seeds("0 1 2") == check_seeds([0, 1, 2]) == (0, 1, 2)
+    assert parse_seeds(str(2**32 - 1)) == (2**32 - 1,)
+    for text, message in (
+        ("", "--seeds must be comma-separated ints >= 0 (e.g. 0,1,2), got ''"),
+        ("0,-1", "--seeds must be comma-separated ints >= 0 (e.g. 0,1,2), got '0,-1'"),
+        ("1.5", "--seeds must be comma-separated ints >= 0"),
+        ("\u0661", "--seeds must be comma-separated ints >= 0"),  # a non-ASCII digit
+        (str(2**32), "--seeds must be one or more ints in [0, 2**32), got [4294967296]"),
+        ("3,3", "--seeds must be distinct, got [3, 3]"),
+    ):
+        with pytest.raises(ValueError) as error:
+            parse_seeds(text)
+        assert str(error.value).startswith(message)
+    for seeds in ((), (True,), (1.0,), (-1,)):
+        with pytest.raises(ValueError, match="--train-seeds must be one or more ints"):
+            check_seeds(seeds, "--train-seeds")

@@ -205,6 +205,7 @@ def test_a_run_that_never_trained_is_not_a_run(tmp_path):
         ("train", "--ramp-fraction 2", "--ramp-fraction must be in [0, 1], got 2.0"),
         ("evaluate", "--seeds 0,x", "--seeds must be comma-separated ints >= 0 (e.g. 0,1,2)"),
         ("evaluate", "--seeds -1", "--seeds must be comma-separated ints >= 0"),
+        ("evaluate", "--seeds 0,0", "--seeds must be distinct, got [0, 0]"),
         ("evaluate", "--episode-steps -5", "--episode-steps must be an int >= 1, got -5"),
         ("evaluate", "--scenes 0", "--scenes must be an int >= 1, got 0"),
         ("evaluate", "--k -1", "--k must be an int >= 0, got -1"),

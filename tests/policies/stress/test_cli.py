@@ -183,6 +183,8 @@ def test_bad_planner_errors_name_the_argument(spec, message, planner_file, tmp_p
         (["--target", "ego2"], "--target must be one of ('others', 'ego'), got 'ego2'"),
         (["--k", "al"], "--k must be an int >= 0 or 'all', got 'al'"),
         (["--steps", "0"], "--steps must be an int >= 1"),
+        (["--seeds", "0", "0"], "--seeds must be distinct, got [0, 0]"),
+        (["--seeds", "-1"], "--seeds must be one or more ints in [0, 2**32), got [-1]"),
         (["--checkpoint", "nowhere.pt"], "--checkpoint: no such file 'nowhere.pt'"),
         (["--checkpoint", "TMP"], "--checkpoint: 'TMP' is a folder, not a file"),
         (["--checkpoint", "TMP/empty.pt"], "--checkpoint: cannot read generator checkpoint "
