@@ -52,7 +52,7 @@ from riskflow_env.folder_lock import (
 from riskflow_env.maps import FAMILIES
 from riskflow_env.processes import exit_with_parent
 from riskflow_env.scenarios._npz import check_npz_sizes
-from riskflow_env.scenarios.io import list_scenarios, save_scenario
+from riskflow_env.scenarios.io import require_scenarios, save_scenario
 from riskflow_env.scenarios.naturalistic import SOURCE, SceneConfig, generate_scenario
 from riskflow_env.scenarios.recording import DriverConfig
 
@@ -196,10 +196,11 @@ def _write_missing(options: GenerateOptions) -> dict:
 
 
 def info(directory: Path) -> dict[str, int]:
-    """Print and return the number of scenes per family in ``directory``."""
+    """Print and return the number of scenes per family in ``directory`` (FileNotFoundError
+    when it holds no scene file)."""
     counts: Counter[str] = Counter()
     agents: Counter[str] = Counter()
-    for path in list_scenarios(directory):
+    for path in require_scenarios(directory):
         check_npz_sizes(path)  # sizes from the headers before anything is read
         with np.load(path, allow_pickle=False) as data:  # reads only the members used
             family = str(data["family"])

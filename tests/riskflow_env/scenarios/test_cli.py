@@ -131,6 +131,17 @@ def test_bad_numbers_are_usage_errors_before_anything_is_written(args, message, 
 
 
 @pytest.mark.reliability
+def test_info_of_a_folder_without_scenes_is_an_error(tmp_path, capsys):
+    """`info` of an empty folder (or a ScenarioNet one) printed "0 scenes" and exited 0."""
+    (tmp_path / "sd_a.pkl").write_bytes(b"")
+    with pytest.raises(SystemExit) as exit_info:
+        main(["info", str(tmp_path)])
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err
+    assert f"no scenario files (*.npz) in {tmp_path}: it holds ScenarioNet pickles" in error
+
+
+@pytest.mark.reliability
 def test_out_that_is_a_file_is_a_usage_error(tmp_path, capsys):
     existing = tmp_path / "bank.txt"
     existing.write_text("keep me")
