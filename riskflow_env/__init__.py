@@ -13,6 +13,7 @@ import dataclasses
 from importlib.metadata import PackageNotFoundError, version
 
 import gymnasium
+from pettingzoo.utils.conversions import parallel_to_aec_wrapper
 
 from riskflow_env.config import DynamicsConfig, EnvConfig, ObservationConfig, RewardConfig
 from riskflow_env.env import RiskFlowParallelEnv
@@ -49,14 +50,25 @@ def parallel_env(*, max_cycles: int | None = None, **kwargs) -> RiskFlowParallel
     return RiskFlowParallelEnv(**kwargs)
 
 
-def env(*, max_cycles: int | None = None, **kwargs):
-    """The AEC (turn-by-turn) view of :func:`parallel_env`, for AEC-only libraries."""
-    from pettingzoo.utils.conversions import parallel_to_aec
+class AECView(parallel_to_aec_wrapper):
+    """:func:`env`'s AEC view: PettingZoo's conversion of the parallel env, which checks
+    each action as it is given (an error naming the agent), not when the last agent of
+    the cycle steps the parallel env."""
 
-    return parallel_to_aec(parallel_env(max_cycles=max_cycles, **kwargs))
+    def step(self, action) -> None:
+        agent = self.agent_selection
+        if not (self.terminations[agent] or self.truncations[agent]):
+            self.env.action_input.check(agent, action)
+        super().step(action)
+
+
+def env(*, max_cycles: int | None = None, **kwargs) -> AECView:
+    """The AEC (turn-by-turn) view of :func:`parallel_env`, for AEC-only libraries."""
+    return AECView(parallel_env(max_cycles=max_cycles, **kwargs))
 
 
 __all__ = [
+    "AECView",
     "DynamicsConfig",
     "EnvConfig",
     "ObservationConfig",

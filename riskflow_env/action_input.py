@@ -85,35 +85,46 @@ class ActionInput:
             raise ValueError(f"actions missing for live agents: {missing}")
         array = np.zeros((len(self.slot), 2))
         for agent, action in actions.items():
-            try:
-                raw = np.asarray(action)
-            except (ValueError, TypeError, RuntimeError) as error:
-                raise ValueError(
-                    f"actions[{agent!r}] must be a real (accel, yaw_rate) pair: {error}"
-                ) from None
-            if raw.dtype.kind not in "fiu":
-                raise ValueError(
-                    f"actions[{agent!r}] must hold real numbers, got dtype {raw.dtype} "
-                    f"({action!r:.60})"
-                )
-            value = raw.astype(np.float64)
-            if value.shape != (2,):
-                raise ValueError(
-                    f"actions[{agent!r}] must have shape (2,) = (accel, yaw_rate), "
-                    f"got shape {value.shape}"
-                )
-            array[self.slot[agent]] = value
+            array[self.slot[agent]] = self.check(agent, action, bounds=False)
         if not np.all(np.isfinite(array)):
             bad = [agent for agent in actions if not np.all(np.isfinite(array[self.slot[agent]]))]
             raise ValueError(f"actions must be finite; got NaN or inf for {bad}")
         if not self.clip:
             outside = self._out_of_bounds(array)
             if np.any(outside):
-                bad = [agent for agent in actions if outside[self.slot[agent]]]
-                raise ValueError(
-                    f"actions out of bounds for {bad}: accel must be in "
-                    f"[{self.low[0]}, {self.high[0]}] m/s^2 and yaw rate in "
-                    f"[{self.low[1]}, {self.high[1]}] rad/s "
-                    "(EnvConfig(clip_actions=True) clips instead)"
-                )
+                raise self._bounds_error([agent for agent in actions if outside[self.slot[agent]]])
         return array
+
+    def check(self, agent: str, action: Any, bounds: bool = True) -> np.ndarray:
+        """One agent's action as a (2,) float64 array, or a ValueError naming the agent: not
+        real numbers, not of shape (2,), and (``bounds``) NaN/inf or out of bounds when
+        clipping is off. The AEC view checks each action with it as it is given."""
+        try:
+            raw = np.asarray(action)
+        except (ValueError, TypeError, RuntimeError) as error:
+            raise ValueError(
+                f"actions[{agent!r}] must be a real (accel, yaw_rate) pair: {error}"
+            ) from None
+        if raw.dtype.kind not in "fiu":
+            raise ValueError(
+                f"actions[{agent!r}] must hold real numbers, got dtype {raw.dtype} ({action!r:.60})"
+            )
+        value = raw.astype(np.float64)
+        if value.shape != (2,):
+            raise ValueError(
+                f"actions[{agent!r}] must have shape (2,) = (accel, yaw_rate), "
+                f"got shape {value.shape}"
+            )
+        if bounds and not np.all(np.isfinite(value)):
+            raise ValueError(f"actions must be finite; got NaN or inf for {[agent]}")
+        if bounds and not self.clip and self._out_of_bounds(value):
+            raise self._bounds_error([agent])
+        return value
+
+    def _bounds_error(self, agents: list[str]) -> ValueError:
+        return ValueError(
+            f"actions out of bounds for {agents}: accel must be in "
+            f"[{self.low[0]}, {self.high[0]}] m/s^2 and yaw rate in "
+            f"[{self.low[1]}, {self.high[1]}] rad/s "
+            "(EnvConfig(clip_actions=True) clips instead)"
+        )

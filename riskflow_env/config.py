@@ -210,15 +210,17 @@ class EnvConfig:
         names = set(agent_names(self.max_agents))
         for option in ("terminate_on_collision", "terminate_on_offroad"):
             value = getattr(self, option)
+            expected = f"EnvConfig.{option} must be one of {AGENT_GROUPS} or a tuple of agent names"
             if isinstance(value, str):
-                _require(
-                    value in AGENT_GROUPS,
-                    f"EnvConfig.{option} must be one of {AGENT_GROUPS} or a tuple of agent "
-                    f"names, got {value!r}",
-                )
-            else:
-                unknown = sorted(set(value) - names)
-                _require(not unknown, f"EnvConfig.{option} names unknown agents {unknown}")
+                _require(value in AGENT_GROUPS, f"{expected}, got {value!r}")
+                continue
+            _require(
+                isinstance(value, (tuple, list)) and all(isinstance(v, str) for v in value),
+                f"{expected}, got {value!r}",
+            )
+            object.__setattr__(self, option, tuple(value))  # a list: hashable as a tuple
+            unknown = sorted(set(value) - names)
+            _require(not unknown, f"EnvConfig.{option} names unknown agents {unknown}")
 
     @property
     def agent_names(self) -> tuple[str, ...]:

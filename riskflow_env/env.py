@@ -51,6 +51,7 @@ Version history:
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -122,7 +123,7 @@ class RiskFlowParallelEnv(ParallelEnv):
             )
             for agent in self.possible_agents
         }
-        self._action_input = ActionInput(
+        self.action_input = ActionInput(
             self.possible_agents, self._action_low, self._action_high, self.config.clip_actions
         )
         self.state_space = gymnasium.spaces.Box(
@@ -209,6 +210,12 @@ class RiskFlowParallelEnv(ParallelEnv):
                 "reset(options={'scenario': ...}) needs a Scenario, "
                 f"got {type(scenario).__name__}"
             )
+        if not math.isclose(scenario.dt, self.config.dynamics.dt, rel_tol=1e-9):
+            raise ValueError(
+                f"scenario {scenario.name!r} is logged at dt = {scenario.dt} s but the env "
+                f"steps dt = {self.config.dynamics.dt} s (EnvConfig.dynamics.dt): give both "
+                "the same time step"
+            )
         self._scenario = scenario
         rows = simulator.select_agents(scenario, self.config.max_agents)
         self._scenario_rows = np.full(self.config.max_agents, -1)
@@ -234,7 +241,7 @@ class RiskFlowParallelEnv(ParallelEnv):
             raise RuntimeError("step() called before reset(): call reset() first")
         if not self.agents:
             raise RuntimeError("step() called after the episode ended: call reset() first")
-        action_array = self._action_input.to_array(actions, self.agents)
+        action_array = self.action_input.to_array(actions, self.agents)
         self._scene, transition = simulator.transition(
             self._scene,
             action_array,
@@ -301,7 +308,7 @@ class RiskFlowParallelEnv(ParallelEnv):
     # --------------------------------------------------------------- internals
     def _check_agent(self, agent: str) -> str:
         if agent not in self._slot:
-            raise self._action_input.unknown_agent_error(agent)
+            raise self.action_input.unknown_agent_error(agent)
         return agent
 
     def _agent_dicts(

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from riskflow_env.config import _require
+from riskflow_env.config import _finite, _integer, _require
 from riskflow_env.geometry import footprint_points, pairwise_overlap
 from riskflow_env.maps import FAMILIES, DrivableMap, from_highway_env
 from riskflow_env.scenarios.scenario import Scenario
@@ -58,18 +58,27 @@ class TrafficConfig:
             len(self.families) > 0 and not unknown,
             f"TrafficConfig.families must be a non-empty subset of {FAMILIES}, got {self.families}",
         )
-        low, high = self.num_vehicles
-        _require(
-            1 <= low <= high, f"TrafficConfig.num_vehicles must be 1 <= min <= max, got {low, high}"
-        )
-        for name in ("speed_fraction", "length_range", "width_range"):
-            lo, hi = getattr(self, name)
+        for name in ("num_vehicles", "speed_fraction", "length_range", "width_range"):
+            pair = getattr(self, name)
+            field = f"TrafficConfig.{name}"
             _require(
-                0 < lo <= hi, f"TrafficConfig.{name} must satisfy 0 < min <= max, got {lo, hi}"
+                isinstance(pair, (tuple, list)) and len(pair) == 2,
+                f"{field} must be a pair (min, max), got {pair!r}",
+            )
+            for value in pair:
+                if name == "num_vehicles":
+                    _integer(field, value, 1)
+                else:
+                    _finite(field, value)
+            _require(
+                (pair[0] >= 1 if name == "num_vehicles" else pair[0] > 0) and pair[0] <= pair[1],
+                f"{field} must satisfy {'1 <=' if name == 'num_vehicles' else '0 <'} min <= max,"
+                f" got {tuple(pair)}",
             )
         for name in ("time_headway", "min_gap", "radius", "map_resolution", "dt"):
+            _finite(f"TrafficConfig.{name}", getattr(self, name))
             _require(getattr(self, name) > 0, f"TrafficConfig.{name} must be > 0")
-        _require(self.future_steps >= 1, "TrafficConfig.future_steps must be >= 1")
+        _integer("TrafficConfig.future_steps", self.future_steps, 1)
 
 
 class HighwayTrafficSource:

@@ -41,6 +41,65 @@ def test_env_config_types(kwargs, field):
         EnvConfig(**kwargs)
 
 
+def test_termination_options_name_the_field_and_lists_become_tuples():
+    for value in (5, None, ("ego", 3)):
+        with pytest.raises(ValueError, match="EnvConfig.terminate_on_collision must be one of"):
+            EnvConfig(terminate_on_collision=value)
+    config = EnvConfig(terminate_on_collision=["ego"])
+    assert config.terminate_on_collision == ("ego",) and hash(config) == hash(
+        EnvConfig(terminate_on_collision=("ego",))
+    )
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"num_vehicles": 5}, "TrafficConfig.num_vehicles must be a pair (min, max), got 5"),
+        ({"num_vehicles": (3, 2)}, "TrafficConfig.num_vehicles must satisfy 1 <= min <= max"),
+        ({"num_vehicles": (1.5, 3)}, "TrafficConfig.num_vehicles must be an int in [1, "),
+        ({"length_range": (4.0, "x")}, "TrafficConfig.length_range must be a finite number"),
+        ({"dt": float("inf")}, "TrafficConfig.dt must be a finite number"),
+        ({"future_steps": 2.0}, "TrafficConfig.future_steps must be an int in [1, "),
+    ],
+)
+def test_traffic_config_values(kwargs, message):
+    from riskflow_env.scenarios.traffic import TrafficConfig
+
+    with pytest.raises(ValueError) as error:
+        TrafficConfig(**kwargs)
+    assert str(error.value).startswith(message)
+
+
+def test_a_scene_at_another_time_step_is_refused_at_reset():
+    import riskflow_env
+    from riskflow_env.scenarios import shipped_bank
+
+    scene = shipped_bank("eval")[0]
+    env = riskflow_env.parallel_env(config=EnvConfig(dynamics=DynamicsConfig(dt=0.2)))
+    with pytest.raises(ValueError, match=r"logged at dt = 0.1 s but the env steps dt = 0.2 s"):
+        env.reset(options={"scenario": scene})
+
+
+@pytest.mark.parametrize(
+    ("action", "message"),
+    [
+        (np.array([np.nan, 0.0]), r"actions must be finite; got NaN or inf for \['ego'\]"),
+        (np.zeros(3), r"actions\['ego'\] must have shape \(2,\)"),
+        ("ab", r"actions\['ego'\] must hold real numbers"),
+        (np.array([50.0, 0.0]), r"actions out of bounds for \['ego'\]"),
+    ],
+)
+def test_the_aec_view_checks_each_action_as_it_is_given(action, message):
+    import riskflow_env
+
+    aec = riskflow_env.env(max_cycles=5, config=EnvConfig(clip_actions=False))
+    aec.reset(seed=0)
+    with pytest.raises(ValueError, match=message):
+        aec.step(action)
+    aec.step(np.zeros(2))  # the refused action was not taken: the ego steps again
+    assert aec.agent_selection != "ego"
+
+
 @pytest.mark.parametrize(
     ("kwargs", "field"),
     [
