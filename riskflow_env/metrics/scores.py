@@ -10,8 +10,9 @@ min-max normalisation of metric ``m`` across the methods,
 
 Degenerate case: when all methods have the same value of a metric (``max == min``, one
 method included), its normalised value is 0 for every method, so the metric neither
-lowers RS nor raises CS. A NaN metric value is left out of the min and max and gives a
-NaN normalised value (and score) for its method. Always report the raw metrics next to
+lowers RS nor raises CS. A NaN or infinite metric value is left out of the min and max
+and gives a NaN normalised value (and score) for its method: an infinite value would make
+every other method's normalised value 0 (or NaN). Always report the raw metrics next to
 CS and RS: the scores change when a method is added to or removed from the table.
 """
 
@@ -29,15 +30,15 @@ def min_max_normalise(values: Mapping[str, float]) -> dict[str, float]:
 
     Returns:
         ``{method: (v - min) / (max - min)}`` over the finite values; 0 for all when
-        ``max == min``; NaN for a NaN value.
+        ``max == min``; NaN for a NaN or infinite value.
     """
-    finite = [v for v in values.values() if not math.isnan(v)]
+    finite = [v for v in values.values() if math.isfinite(v)]
     if not finite:
         return {method: float("nan") for method in values}
     low, high = min(finite), max(finite)
     span = high - low
     return {
-        method: float("nan") if math.isnan(v) else (0.0 if span == 0 else (v - low) / span)
+        method: float("nan") if not math.isfinite(v) else (0.0 if span == 0 else (v - low) / span)
         for method, v in values.items()
     }
 
@@ -57,7 +58,8 @@ def safety_realism_scores(
             ADE, FDE, KDD).
 
     Returns:
-        ``{method: {"cs": ..., "rs": ...}}``, both in [0, 1] (NaN where an input is NaN).
+        ``{method: {"cs": ..., "rs": ...}}``, both in [0, 1] (NaN where an input is NaN or
+        infinite).
     """
     if not table:
         return {}

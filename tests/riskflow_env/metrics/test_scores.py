@@ -40,6 +40,10 @@ def test_nan_and_missing_metrics():
     with_nan = dict(TABLE, d={**TABLE["a"], "kdd": float("nan")})
     assert math.isnan(safety_realism_scores(with_nan)["d"]["rs"])
     assert safety_realism_scores(with_nan)["a"]["rs"] == pytest.approx(1 - 2.5 / 4)
+    for bad in (float("inf"), float("-inf")):  # left out as NaN is: the others keep their span
+        with_inf = dict(TABLE, d={**TABLE["a"], "kdd": bad})
+        assert math.isnan(safety_realism_scores(with_inf)["d"]["rs"])
+        assert safety_realism_scores(with_inf)["a"]["rs"] == pytest.approx(1 - 2.5 / 4)
     with pytest.raises(ValueError, match="lacks"):
         safety_realism_scores({"a": {"scr": 0.1}})
     assert safety_realism_scores({}) == {}
