@@ -50,6 +50,7 @@ from policies.rl.paired import PAIRED_OUTCOMES, paired_counts
 from policies.rl.report import markdown_table, paired_table, plot_summaries, plot_training
 from policies.rl.runs import INITIAL, RunError, RunModel, check_model_file, find_model, read_options
 from policies.statistics import wilson_interval
+from riskflow_env.atomic_files import write_text
 from riskflow_env.config import EnvConfig
 from riskflow_env.folder_lock import make_output_folder
 from riskflow_env.scenarios import SPLITS, shipped_bank
@@ -377,12 +378,12 @@ def write_report(
         sections.append("Per run:\n\n" + markdown_table(per_run))
     text = "\n\n".join(sections)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "results.md").write_text(text + "\n")
+    write_text(out / "results.md", text + "\n")
     plot_summaries(summaries, out / "results.png")
     rows = [{"planner": p, "traffic": t, **s} for (p, t), s in summaries.items()]
     runs = [{"planner": p, "traffic": t, **s} for (p, t), s in per_run.items()]
     content = {"summary": rows, "per_run": runs, "paired": paired, "mask_actions": mask_actions}
-    (out / "results.json").write_text(json.dumps(content, indent=1))
+    write_text(out / "results.json", json.dumps(content, indent=1))
     print(text)
     print(f"\nwritten: {out / 'results.md'}, {out / 'results.png'}, {out / 'results.json'}")
 

@@ -41,6 +41,7 @@ from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
 from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
 from riskflow_env.agents import ReplayPolicy
+from riskflow_env.atomic_files import write_text
 from riskflow_env.config import EnvConfig
 from riskflow_env.folder_lock import make_output_folder
 from riskflow_env.scenarios import Scenario, load_scenario, shipped_bank
@@ -204,7 +205,7 @@ def main(options: Options) -> dict[str, Any]:
         video=video,
     ) as loop:
         record = loop.run(scenario)
-    (out / "metrics.json").write_text(json.dumps(record.metrics, indent=2) + "\n")
+    write_text(out / "metrics.json", json.dumps(record.metrics, indent=2) + "\n")
     print("events:")
     for event in record.events[:-1]:
         print(describe(event))

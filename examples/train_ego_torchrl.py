@@ -41,6 +41,7 @@ from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.envs import EgoEnvConfig, build_env
 from policies.rl.runs import check_resume
 from policies.rl.signals import StopSignals, exit_stopped
+from riskflow_env.atomic_files import atomic_file, write_text
 from riskflow_env.config import EnvConfig
 
 
@@ -144,8 +145,9 @@ def save(path: Path, modules: dict[str, nn.Module], optimiser, history: list[dic
     path.mkdir(parents=True, exist_ok=True)
     state = {name: module.state_dict() for name, module in modules.items()}
     state |= {"optimiser": optimiser.state_dict(), "iteration": torch.tensor(len(history))}
-    torch.save(state, path / "checkpoint.pt")
-    (path / "progress.json").write_text(json.dumps(history, indent=1))
+    with atomic_file(path / "checkpoint.pt") as file:
+        torch.save(state, file)
+    write_text(path / "progress.json", json.dumps(history, indent=1))
 
 
 def train(options: Options) -> list[dict]:

@@ -62,6 +62,7 @@ from policies.rl.report import markdown_table
 from policies.rl.runs import run_begun
 from policies.statistics import mean_summary, paired_difference, rate
 from policies.stress.summary import progress
+from riskflow_env.atomic_files import write_text
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
 
@@ -200,7 +201,7 @@ def outcomes(options: Options, name: str, run: Path, scenes: dict) -> dict[str, 
                 for (seed, scene), r in zip(keys, records[name, traffic.label], strict=True)
             ]  # fmt: skip
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({"settings": wanted, "episodes": result}))
+    write_text(path, json.dumps({"settings": wanted, "episodes": result}))
     return result
 
 
@@ -275,8 +276,8 @@ def main(argv: list[str] | None = None) -> None:
         for traffic, episodes in outcomes(options, name, run, scenes).items():
             results.setdefault(name, {}).setdefault(traffic, []).extend(episodes)
     text, content = report(results)
-    (options.out / "transfer.md").write_text(text + "\n")
-    (options.out / "transfer.json").write_text(json.dumps(content, indent=1))
+    write_text(options.out / "transfer.md", text + "\n")
+    write_text(options.out / "transfer.json", json.dumps(content, indent=1))
     print(text)
     print(f"\nwritten: {options.out / 'transfer.md'}, {options.out / 'transfer.json'}")
 

@@ -29,6 +29,7 @@ from policies.evaluation.results import ResultsStore
 from policies.evaluation.rollout import HISTORY
 from policies.evaluation.table import Table
 from policies.registry import METHODS
+from riskflow_env.atomic_files import write_text
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.metrics import ROLLOUT_KEYS, method_metrics, safety_realism_scores
 
@@ -251,5 +252,5 @@ def write_report(out: str | Path, plots: bool = True) -> Path:
         files = write_plots(tables, store.out)
         lines += ["", "## Plots", ""] + [f"![{f.stem}]({f.name})" for f in files]
     path = store.out / "report.md"
-    path.write_text("\n".join(lines) + "\n")
+    write_text(path, "\n".join(lines) + "\n")
     return path

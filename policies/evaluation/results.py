@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from riskflow_env.atomic_files import write_bytes
 from riskflow_env.folder_lock import FolderLock, FolderLocked
 from riskflow_env.metrics import KinematicSamples
 
@@ -81,7 +82,7 @@ class ResultsStore:
         """Write ``config.json`` if absent; ConfigMismatch naming the settings that differ."""
         self.lock()
         if not self.config_file.exists():
-            _write_atomic(self.config_file, json.dumps(config, indent=1, sort_keys=True).encode())
+            write_bytes(self.config_file, json.dumps(config, indent=1, sort_keys=True).encode())
             return
         stored = json.loads(self.config_file.read_text())
         differ = sorted(k for k in set(stored) | set(config) if stored.get(k) != config.get(k))
@@ -134,7 +135,7 @@ class ResultsStore:
         buffer = io.BytesIO()
         np.savez_compressed(buffer, **{k: np.asarray(v, np.float32) for k, v in samples.items()})
         (self.out / SAMPLES).mkdir(parents=True, exist_ok=True)
-        _write_atomic(self.out / SAMPLES / f"{name}.npz", buffer.getvalue())
+        write_bytes(self.out / SAMPLES / f"{name}.npz", buffer.getvalue())
         row = {**row, "samples": f"{SAMPLES}/{name}.npz"}
         line = json.dumps(row, sort_keys=True, allow_nan=False).encode() + b"\n"
         with open(self.results, "ab") as file:
@@ -154,12 +155,3 @@ def _ends_with_newline(path: Path) -> bool:
     with open(path, "rb") as file:
         file.seek(-1, os.SEEK_END)
         return file.read(1) == b"\n"
-
-
-def _write_atomic(path: Path, data: bytes) -> None:
-    temporary = path.with_name(path.name + ".tmp")
-    with open(temporary, "wb") as file:
-        file.write(data)
-        file.flush()
-        os.fsync(file.fileno())
-    os.replace(temporary, path)

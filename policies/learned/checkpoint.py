@@ -34,7 +34,6 @@ import hashlib
 import os
 import re
 import subprocess
-import tempfile
 import threading
 import warnings
 from collections.abc import Mapping
@@ -49,6 +48,7 @@ from policies.learned.checkpoint_tensors import check_finite, check_tensor_layou
 from policies.learned.config import ModelConfig
 from policies.learned.data import ActionNormalizer
 from policies.learned.generator import CheckpointError, RiskFlowGenerator
+from riskflow_env.atomic_files import atomic_file
 
 DEFAULT_NAME = "riskflow_default.pt"
 METADATA_KEYS = ("version", "train_config", "step", "metrics")
@@ -129,7 +129,7 @@ def checkpoint_kind(checkpoint: Mapping[str, Any]) -> str:
 
 
 def save_checkpoint(checkpoint: Mapping[str, Any], path: str | os.PathLike) -> Path:
-    """``torch.save`` to a temporary file beside ``path``, then rename it (atomic).
+    """``torch.save`` to ``path``, atomically (:mod:`riskflow_env.atomic_files`).
 
     A checkpoint with a ``state_dict`` gets ``kind`` and ``weights_sha256`` added."""
     checkpoint = dict(checkpoint)
@@ -138,17 +138,8 @@ def save_checkpoint(checkpoint: Mapping[str, Any], path: str | os.PathLike) -> P
         checkpoint["weights_sha256"] = weights_digest(checkpoint["state_dict"])
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(handle, "wb") as file:
-            torch.save(dict(checkpoint), file)
-            file.flush()
-            os.fsync(file.fileno())
-        os.chmod(temporary, 0o644)  # mkstemp makes it private
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
+    with atomic_file(path) as file:
+        torch.save(dict(checkpoint), file)
     return path
 
 

@@ -19,6 +19,8 @@ import itertools
 import json
 import math
 import os
+import warnings
+import zipfile
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +36,7 @@ from policies.learned.recovery import RecoveryConfig, perturb_tracks
 from policies.learned.window_types import AGENT_FIELDS, PAIR_FIELDS, Window
 from policies.learned.windows import WindowConfig, select_rows, window_from_scenario
 from riskflow_env._array import Array, asarray_like
+from riskflow_env.atomic_files import atomic_file, write_text
 from riskflow_env.dynamics import ACTION_DIM
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
@@ -166,7 +169,8 @@ class WindowDataset(Dataset):
         if packed is None:
             packed = self._build(scenes)
             if cache_path is not None:
-                np.savez(Path(cache_path), fingerprint=np.array(fingerprint), **packed)
+                with atomic_file(cache_path) as file:  # np.savez would append ".npz" to a path
+                    np.savez(file, fingerprint=np.array(fingerprint), **packed)
         self.index = packed.pop("index")
         self._agent_offsets = packed.pop("agent_offsets")
         self._pair_offsets = packed.pop("pair_offsets")
@@ -236,13 +240,23 @@ class WindowDataset(Dataset):
 
 
 def _load_cache(path: str | os.PathLike, fingerprint: str) -> dict[str, np.ndarray] | None:
+    """The packed windows of the cache file, or None: no file, another fingerprint, or a
+    file that cannot be read (a warning; the windows are rebuilt and the file rewritten)."""
     path = Path(path)
     if not path.is_file():
         return None
-    with np.load(path, allow_pickle=False) as data:
-        if "fingerprint" not in data or str(data["fingerprint"]) != fingerprint:
-            return None
-        return {key: data[key] for key in data.files if key != "fingerprint"}
+    try:
+        with open(path, "rb") as handle, np.load(handle, allow_pickle=False) as data:
+            if "fingerprint" not in data or str(data["fingerprint"]) != fingerprint:
+                return None
+            return {key: data[key] for key in data.files if key != "fingerprint"}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
+        warnings.warn(
+            f"window cache {path} cannot be read ({type(error).__name__}: {error}); rebuilding it",
+            UserWarning,
+            stacklevel=3,
+        )
+        return None
 
 
 class Normalizer(Protocol):
@@ -309,7 +323,7 @@ class ActionNormalizer:
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the statistics as JSON."""
-        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+        write_text(path, json.dumps(self.to_dict(), indent=2) + "\n")
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> ActionNormalizer:

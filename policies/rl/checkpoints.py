@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import base64
 import json
-import os
 import pickle
 import random
 from pathlib import Path
@@ -36,6 +35,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 from policies.rl.runs import Checkpoint, checkpoint_files
 from policies.rl.signals import StopSignals
+from riskflow_env.atomic_files import atomic_path, write_bytes, write_text
 
 
 def save_model(model: Any, path: Path) -> None:
@@ -130,20 +130,12 @@ class RunCheckpoints(BaseCallback):
         # then renamed): a save cut short by a second signal leaves no checkpoint that
         # lacks its statistics or state.
         if learner["stats"] is not None:
-            _write_atomic(stats_path, learner["stats"])
+            write_bytes(stats_path, learner["stats"])
         state = {"decisions": decisions, "rng": learner["rng"]}
-        _write_atomic(state_path, json.dumps(state).encode("utf-8"))
-        aside = model_path.with_name(f".{model_path.stem}.partial.zip")  # not a checkpoint name
-        self.model.save(aside)
-        os.replace(aside, model_path)
+        write_text(state_path, json.dumps(state))
+        with atomic_path(model_path, suffix=".zip") as aside:  # ".ppo_...": not a checkpoint name
+            self.model.save(aside)
         self.saved, self.next_due = decisions, self._after(decisions)
-
-
-def _write_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a file beside it, renamed into place."""
-    aside = path.with_name(f".{path.name}.partial")
-    aside.write_bytes(data)
-    os.replace(aside, path)
 
 
 def resume(model: Any, checkpoint: Checkpoint, seed: int) -> None:

@@ -25,6 +25,7 @@ from tqdm import tqdm
 from policies.dataclass_cli import check_at_least
 from policies.rl.runs import check_resume
 from policies.rl.signals import StopSignals, exit_stopped
+from riskflow_env.atomic_files import write_text
 
 CHECKPOINT = "checkpoint"  # <out>/checkpoint: the algorithm (RLlib's save_to_path)
 
@@ -216,4 +217,4 @@ def _save(algorithm, out: Path, history: list[dict[str, float]]) -> None:
     """The algorithm in ``<out>/checkpoint`` and the rows so far in ``<out>/progress.json``."""
     out.mkdir(parents=True, exist_ok=True)
     algorithm.save_to_path(str((out / CHECKPOINT).resolve()))
-    (out / "progress.json").write_text(json.dumps(history, indent=1))
+    write_text(out / "progress.json", json.dumps(history, indent=1))

@@ -25,6 +25,7 @@ import numpy as np
 from policies.planners import EgoPlanner
 from policies.statistics import paired_difference
 from policies.stress.stress_test import StressResult, riskflow_stress
+from riskflow_env.atomic_files import write_text
 from riskflow_env.scenarios import Scenario
 
 OUTCOMES = {
@@ -61,8 +62,8 @@ def compare(
         runs.append(riskflow_stress(planner, scenes, seeds, out=sub, **options))
     table = paired_table(*runs)
     if folder is not None:
-        (folder / "compare.json").write_text(json.dumps(table, indent=2) + "\n", encoding="utf-8")
-        (folder / "compare.md").write_text(markdown(table) + "\n", encoding="utf-8")
+        write_text(folder / "compare.json", json.dumps(table, indent=2) + "\n")
+        write_text(folder / "compare.md", markdown(table) + "\n")
     return table
 
 

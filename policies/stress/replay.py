@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import json
 import os
-import secrets
 import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -36,6 +35,7 @@ from policies.harness import EpisodeRecord
 from policies.planners import EgoPlanner
 from policies.stress.episode import EpisodeRunner, EpisodeSetup
 from policies.stress.summary import Analysed
+from riskflow_env.atomic_files import atomic_path
 from riskflow_env.render import RenderConfig
 from riskflow_env.scenarios import Scenario, load_scenario, save_scenario
 
@@ -129,8 +129,7 @@ def save_replay(
         "events": event_rows(record),
         "failures": [failure.to_dict() for failure in analysed.failures],
     }
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp.npz")
-    try:
+    with atomic_path(path, suffix=".tmp.npz") as temporary:
         save_scenario(record.scenario, temporary, include_sdf=True)
         extra = {
             # UTF-8 bytes, not a str array: scenario files cap their strings at 1,024 chars
@@ -144,9 +143,6 @@ def save_replay(
                 info.compress_type = zipfile.ZIP_DEFLATED
                 with archive.open(info, "w", force_zip64=True) as handle:
                     np.lib.format.write_array(handle, value, allow_pickle=False)
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
     return path
 
 

@@ -18,6 +18,7 @@ from typing import Any
 
 from policies.stress.replay import describe_failure
 from policies.stress.summary import headline
+from riskflow_env.atomic_files import write_text
 
 Table = tuple[str, list[str], list[list[str]]]  # title, header, rows
 
@@ -176,8 +177,8 @@ def _reproduced(row: dict[str, Any]) -> str:
 
 def write_reports(folder: Path, summary: dict[str, Any], gifs: list[dict[str, Any]]) -> None:
     """Write ``report.md`` and ``report.html`` into ``folder``."""
-    (folder / "report.md").write_text(markdown(summary, gifs), encoding="utf-8")
-    (folder / "report.html").write_text(page(summary, gifs, folder), encoding="utf-8")
+    write_text(folder / "report.md", markdown(summary, gifs))
+    write_text(folder / "report.html", page(summary, gifs, folder))
 
 
 STYLE = (

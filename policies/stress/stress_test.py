@@ -45,6 +45,7 @@ from policies.stress.replay import rerun, save_replay
 from policies.stress.report import write_reports
 from policies.stress.runner import Episode, Scenes, StressOptions, resolve_planner, run_jobs
 from policies.stress.summary import attacked_steps, headline, slow_ego_steps, stress_summary
+from riskflow_env.atomic_files import write_text
 from riskflow_env.folder_lock import make_output_folder
 from riskflow_env.scenarios import Scenario
 
@@ -265,10 +266,8 @@ def _name(planner: object) -> str:
 
 
 def _write_json(path: Path, value: Any) -> None:
-    """``value`` as JSON at ``path``, atomically (a temporary file renamed over it)."""
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    temporary.write_text(json.dumps(value, indent=2, default=str) + "\n", encoding="utf-8")
-    os.replace(temporary, path)
+    """``value`` as JSON at ``path``, atomically."""
+    write_text(path, json.dumps(value, indent=2, default=str) + "\n")
 
 
 __all__ = ["StressResult", "riskflow_stress", "severity", "summary_of"]

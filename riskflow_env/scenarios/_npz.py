@@ -10,15 +10,15 @@ decompress or allocate more than the limits allow. Then :func:`read_npz` loads t
 
 from __future__ import annotations
 
-import os
 import re
-import secrets
 import zipfile
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
+
+from riskflow_env.atomic_files import atomic_path
 
 VERSION = 1
 MAX_MEMBER_ELEMENTS = 50_000_000  # [-] largest array in a scenario / map file (= maps.MAX_PIXELS)
@@ -41,20 +41,15 @@ class ScenarioFormatError(ValueError):
 
 
 def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """``np.savez_compressed`` with fixed zip timestamps, written to a temporary name of
-    its own (process id and a random token: concurrent writers never share one) and
-    renamed over ``path`` (atomic: a reader sees the old file or the whole new one)."""
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
-    try:
+    """``np.savez_compressed`` with fixed zip timestamps, written atomically
+    (:func:`riskflow_env.atomic_files.atomic_path`)."""
+    with atomic_path(path) as temporary:
         with zipfile.ZipFile(temporary, "w", compression=zipfile.ZIP_DEFLATED) as archive:
             for key, value in arrays.items():
                 info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
                 info.compress_type = zipfile.ZIP_DEFLATED
                 with archive.open(info, "w", force_zip64=True) as handle:
                     np.lib.format.write_array(handle, np.asanyarray(value), allow_pickle=False)
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
 
 
 class Member(NamedTuple):

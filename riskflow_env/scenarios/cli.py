@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from riskflow_env.atomic_files import write_text
 from riskflow_env.cli_errors import CommandLineParser, add_debug_flag, user_errors
 from riskflow_env.folder_lock import (
     FolderLock,
@@ -156,7 +157,7 @@ def _write_missing(options: GenerateOptions) -> dict:
                 f"not {options.settings()}; use another --out or the same settings"
             )
     else:
-        manifest.write_text(json.dumps(options.settings(), indent=2) + "\n")
+        write_text(manifest, json.dumps(options.settings(), indent=2) + "\n")
     for stale in [*out.glob(".*.tmp"), *(out / "maps").glob(".*.tmp")]:
         stale.unlink(missing_ok=True)  # left by an interrupted run
     todo = [

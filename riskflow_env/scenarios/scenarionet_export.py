@@ -40,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from riskflow_env.atomic_files import atomic_file
 from riskflow_env.scenarios.map_outline import outline_rings
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.scenarios.scenarionet_limits import MAX_FEATURE_POINTS
@@ -161,13 +162,8 @@ def save_scenarionet(scenario: Scenario, path: str | os.PathLike) -> Path:
     path = Path(path)
     description = to_description(scenario)
     path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with temporary.open("wb") as handle:
-            pickle.dump(description, handle, protocol=4)
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
+    with atomic_file(path) as handle:
+        pickle.dump(description, handle, protocol=4)
     return path
 
 

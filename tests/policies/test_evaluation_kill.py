@@ -22,7 +22,7 @@ import os, signal, sys
 from policies.evaluation import results
 from policies.evaluation.cli import main
 
-real_write, written = results._write_atomic, []
+real_write, written = results.write_bytes, []
 
 
 def write_then_die(path, data):  # config.json, then each rollout's samples file
@@ -34,7 +34,7 @@ def write_then_die(path, data):  # config.json, then each rollout's samples file
         os.kill(os.getpid(), signal.SIGKILL)
 
 
-results._write_atomic = write_then_die
+results.write_bytes = write_then_die
 main(["--out", sys.argv[1], *sys.argv[2:]])
 """
 

@@ -113,6 +113,24 @@ def test_cache_round_trip(tmp_path, scenarios, dataset):
     assert len(other) < len(loaded)
 
 
+@pytest.mark.parametrize("name", ["wcache", "windows.npz"])
+def test_cache_at_any_name_and_an_unreadable_cache_is_rebuilt(name, tmp_path, scenarios, dataset):
+    """The cache is the file named, with or without ``.npz`` (np.savez used to append it and
+    the next run missed the cache); a torn or foreign file is rebuilt with a warning."""
+    path = tmp_path / name
+    WindowDataset(scenarios, stride=STRIDE, cache_path=path)
+    assert [p.name for p in tmp_path.iterdir()] == [name]
+    stamp = path.stat().st_mtime_ns
+    WindowDataset(scenarios, stride=STRIDE, cache_path=path)
+    assert path.stat().st_mtime_ns == stamp  # read, not rewritten
+    for unreadable in (path.read_bytes()[:100], b"not a cache"):
+        path.write_bytes(unreadable)
+        with pytest.warns(UserWarning, match=f"window cache {path} cannot be read"):
+            rebuilt = WindowDataset(scenarios, stride=STRIDE, cache_path=path)
+        np.testing.assert_array_equal(rebuilt.index, dataset.index)
+        WindowDataset(scenarios, stride=STRIDE, cache_path=path)  # rewritten whole: no warning
+
+
 def test_normalizer_round_trip_numpy_and_torch(dataset):
     normalizer = compute_action_stats(dataset)
     actions = dataset.valid_actions()
