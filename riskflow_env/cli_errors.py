@@ -5,7 +5,8 @@ a value the code refuses (``ValueError``, which :class:`ScenarioFormatError` and
 argument checks raise, naming the file or the argument and what was expected).
 :func:`user_errors` prints such an error as ``<prog>: error: <message>`` on stderr and
 exits with status 2, as argparse does for a bad flag; ``--debug`` (declared by
-:func:`add_debug_flag`) re-raises it instead, with its traceback. Any other exception is a
+:func:`add_debug_flag`) re-raises it instead, with its traceback. Ctrl-C is one line and
+status 130, saying what the command kept on disk. Any other exception is a
 bug and keeps its traceback. The console scripts (``riskflow-data``, ``riskflow-eval``,
 ``riskflow-stress``, ``riskflow-train``) run their work inside it, and so do the examples
 and benchmarks that read files or planner specs (:func:`run_script`,
@@ -62,10 +63,16 @@ def message(error: BaseException) -> str:
     return " ".join(text.split())  # one line
 
 
+INTERRUPTED = 130  # the exit status of a command stopped by Ctrl-C (128 + SIGINT)
+
+
 @contextmanager
-def user_errors(prog: str, debug: bool = False) -> Iterator[None]:
+def user_errors(prog: str, debug: bool = False, kept: str = "") -> Iterator[None]:
     """Run the body; a user error (``USER_ERRORS``) becomes one line on stderr and exit
-    status 2, or propagates with its traceback when ``debug``."""
+    status 2, or propagates with its traceback when ``debug``. Ctrl-C
+    (``KeyboardInterrupt``) becomes one line too, ``<prog>: interrupted`` with the
+    interrupt's own message (what was done) and ``kept`` (what is on disk and how to go
+    on), and exit status 130."""
     try:
         yield
     except USER_ERRORS as error:
@@ -73,6 +80,14 @@ def user_errors(prog: str, debug: bool = False) -> Iterator[None]:
             raise
         print(f"{prog}: error: {message(error)} (--debug shows the traceback)", file=sys.stderr)
         raise SystemExit(2) from None
+    except (KeyboardInterrupt, SystemError) as error:
+        # Ctrl-C inside a compiled (numba) function surfaces as a SystemError around it
+        interrupt = error if isinstance(error, KeyboardInterrupt) else error.__context__
+        if debug or not isinstance(interrupt, KeyboardInterrupt):
+            raise
+        said = "; ".join(part for part in (str(interrupt), kept) if part)
+        print(f"\n{prog}: interrupted" + (f": {said}" if said else ""), file=sys.stderr)
+        raise SystemExit(INTERRUPTED) from None
 
 
 def run_script(prog: str, main: Callable[[], Any], argv: Sequence[str] | None = None) -> None:

@@ -12,6 +12,11 @@ daemon thread that ends the worker (``os._exit``) as soon as the parent is gone:
   another process on POSIX).
 
 Both are portable; no ``prctl(PR_SET_PDEATHSIG)`` (Linux only).
+
+:func:`pool_worker`, the initializer of the library's worker pools, also leaves Ctrl-C to
+the parent: a terminal sends SIGINT to every process of the foreground group, and workers
+that raised ``KeyboardInterrupt`` each printed a traceback while the parent, which keeps
+what is finished and ends the pool (``Pool.terminate``), printed one line.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ from __future__ import annotations
 import multiprocessing
 import multiprocessing.connection
 import os
+import signal
 import threading
 import time
 
@@ -49,3 +55,10 @@ def exit_with_parent(poll_s: float = 1.0) -> None:
         daemon=True,
     )
     watcher.start()
+
+
+def pool_worker() -> None:
+    """A pool's ``initializer``: :func:`exit_with_parent`, and SIGINT ignored (module
+    docstring)."""
+    exit_with_parent()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)

@@ -32,6 +32,23 @@ def test_debug_keeps_the_traceback_and_bugs_always_do():
         raise KeyError("a bug, not a user error")
 
 
+def test_ctrl_c_is_one_line_saying_what_is_kept_and_status_130(capsys):
+    with pytest.raises(SystemExit) as exit_info, user_errors("prog", kept="the same run resumes"):
+        raise KeyboardInterrupt("3 of 8 done")
+    assert exit_info.value.code == 130
+    assert capsys.readouterr().err == "\nprog: interrupted: 3 of 8 done; the same run resumes\n"
+    with pytest.raises(SystemExit) as exit_info, user_errors("prog"):
+        try:  # Ctrl-C inside a numba function: a SystemError raised while handling it
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise SystemError("CPUDispatcher returned a result with an exception set") from None
+    assert exit_info.value.code == 130 and capsys.readouterr().err == "\nprog: interrupted\n"
+    with pytest.raises(KeyboardInterrupt), user_errors("prog", debug=True):
+        raise KeyboardInterrupt
+    with pytest.raises(SystemError), user_errors("prog"):
+        raise SystemError("a bug, not an interrupt")
+
+
 def test_messages_are_bounded_and_name_the_os_error():
     assert message(FileNotFoundError(2, "No such file", "a.npz")).startswith("FileNotFoundError")
     assert len(message(ValueError("x" * 10**6))) < 1100

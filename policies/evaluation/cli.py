@@ -74,7 +74,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         prepared = prepare(options)
     except ValueError as err:
         run_parser.error(str(err))
-    with user_errors(PROG, debug):
+    kept = f"the rollouts in {options.out}/results.jsonl are kept: the same command resumes"
+    with user_errors(PROG, debug, kept):
         summary = run_evaluation(options, prepared=prepared)
         print(
             f"{summary['ran']} rollouts run in {summary['wall_s']:.1f} s "

@@ -30,7 +30,7 @@ from policies.evaluation.results import ResultsStore
 from policies.evaluation.rollout import run_job
 from policies.registry import build_policy
 from riskflow_env.config import DynamicsConfig
-from riskflow_env.processes import exit_with_parent
+from riskflow_env.processes import pool_worker
 
 
 def check_methods(jobs: list[Job], dt: float = DynamicsConfig().dt) -> None:
@@ -62,7 +62,7 @@ def check_methods(jobs: list[Job], dt: float = DynamicsConfig().dt) -> None:
 
 def _init_worker() -> None:
     torch.set_num_threads(1)
-    exit_with_parent()  # a killed riskflow-eval leaves no worker behind
+    pool_worker()  # a killed riskflow-eval leaves no worker behind; Ctrl-C is the parent's
 
 
 def _results(jobs: list[Job], options: EvalOptions) -> Iterator[tuple[dict, dict[str, np.ndarray]]]:

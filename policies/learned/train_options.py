@@ -163,8 +163,10 @@ class LoopOptions:
         object.__setattr__(self, "data", tuple(Path(folder) for folder in self.data))
         object.__setattr__(self, "data_weights", tuple(map(float, self.data_weights)))
         counts = ("steps", "batch_size", "stride", "bucket", "eval_every", "log_every")
-        check_at_least(self, dict.fromkeys((*counts, "num_samples"), 1))
+        check_at_least(self, {**dict.fromkeys((*counts, "num_samples"), 1), "threads": 0})
         check_device(self.device)
+        if self.model:
+            model_config(self.model)  # a bad --model is refused before any data is read
         check_output_folder(self.out)
         broken = [rule for rule, holds in self.rules().items() if not holds]
         if broken:
@@ -187,6 +189,10 @@ def model_config(text: str) -> ModelConfig:
     """``TrainOptions.model`` -> :class:`ModelConfig` (JSON text or a JSON file)."""
     if not text:
         return ModelConfig()
-    return ModelConfig.from_dict(
-        json.loads(Path(text).read_text() if text.endswith(".json") else text)
-    )
+    try:
+        fields = json.loads(Path(text).read_text() if text.endswith(".json") else text)
+        if not isinstance(fields, dict):
+            raise ValueError(f"expected a JSON object of ModelConfig fields, got {text!r:.60}")
+        return ModelConfig.from_dict(fields)
+    except (OSError, ValueError, TypeError) as error:  # a missing file, bad JSON, bad fields
+        raise ValueError(f"--model: {error}") from None

@@ -109,17 +109,17 @@ class Objective(Protocol):
 def _initial(
     options: LoopOptions, objective: Objective
 ) -> tuple[RiskFlowGenerator, ActionNormalizer]:
-    """``--init``'s model and action statistics (SystemExit naming what does not fit)."""
+    """``--init``'s model and action statistics (ValueError naming what does not fit)."""
     try:
         state = load_checkpoint(options.init)
         expected = model_config(options.model) if options.model else None
         model = RiskFlowGenerator.from_checkpoint(state, expected)
         normalizer = normalizer_of(state)
     except (OSError, ValueError) as err:  # missing file, CheckpointError (a ValueError)
-        raise SystemExit(f"riskflow-train: --init: {err}") from None
+        raise ValueError(f"--init: {err}") from None
     if checkpoint_kind(state) != objective.kind:
-        raise SystemExit(
-            f"riskflow-train: --init: {options.init} holds a {checkpoint_kind(state)} "
+        raise ValueError(
+            f"--init: {options.init} holds a {checkpoint_kind(state)} "
             f"generator, not {objective.kind}"
         )
     return model, normalizer
@@ -133,21 +133,16 @@ def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
 
 
 def _fit(options: LoopOptions, objective: Objective, ranks: Ranks) -> dict[str, Any]:
-    try:
-        device = process_device(options.device, ranks)
-    except ValueError as err:
-        raise SystemExit(f"riskflow-train: {err}") from None
+    device = process_device(options.device, ranks)
     if options.batch_size < ranks.world:
-        raise SystemExit(
-            f"riskflow-train: --batch-size {options.batch_size} < {ranks.world} processes"
-        )
+        raise ValueError(f"--batch-size {options.batch_size} < {ranks.world} processes")
     torch.manual_seed(options.seed)
     np.random.seed(options.seed)  # noqa: NPY002 (not used by training; seeded for callers)
     if options.threads > 0:
         torch.set_num_threads(options.threads)
     out = Path(options.out)
     if options.resume and not (out / CHECKPOINT).is_file():
-        raise SystemExit(f"riskflow-train: --resume: no checkpoint at {out / CHECKPOINT}")
+        raise ValueError(f"--resume: no checkpoint at {out / CHECKPOINT}")
     start = None if options.resume or options.init is None else _initial(options, objective)
     folders = [("--data", folder) for folder in options.data] + [("--val-data", options.val_data)]
     for flag, folder in folders:
@@ -155,7 +150,7 @@ def _fit(options: LoopOptions, objective: Objective, ranks: Ranks) -> dict[str, 
             if folder is not None:
                 scene_files(folder)
         except (OSError, ValueError) as err:  # missing, a file, no scenes, a bad index
-            raise SystemExit(f"riskflow-train: {flag}: {err}") from None
+            raise ValueError(f"{flag}: {err}") from None
     state = load_checkpoint(out / CHECKPOINT, device) if options.resume else {}
     if start is not None:
         config = start[0].config
@@ -163,16 +158,13 @@ def _fit(options: LoopOptions, objective: Objective, ranks: Ranks) -> dict[str, 
         config = ModelConfig.from_dict(state["config"])
     else:
         config = model_config(options.model)
-    try:
-        splits = (options.data, options.val_data, options.val_fraction, options.stride)
-        window = default_window_config(config)  # the crops the model reads
-        with main_first(ranks):  # rank 0 writes the window caches, the others read them
-            train_set, val_set = load_splits(*splits, recovery=options.recovery(), window=window)
-            normalizer = initial_normalizer(options, state, start, train_set)
-        weights = options.data_weights  # (): every folder its share of the windows
-        shares = FolderShares.of(train_set, options.data, weights) if weights else None
-    except ValueError as err:
-        raise SystemExit(f"riskflow-train: {err}") from None
+    splits = (options.data, options.val_data, options.val_fraction, options.stride)
+    window = default_window_config(config)  # the crops the model reads
+    with main_first(ranks):  # rank 0 writes the window caches, the others read them
+        train_set, val_set = load_splits(*splits, recovery=options.recovery(), window=window)
+        normalizer = initial_normalizer(options, state, start, train_set)
+    weights = options.data_weights  # (): every folder its share of the windows
+    shares = FolderShares.of(train_set, options.data, weights) if weights else None
     model = RiskFlowGenerator(config).to(device)
     if start is not None:
         model.load_state_dict(start[0].state_dict())
@@ -182,10 +174,10 @@ def _fit(options: LoopOptions, objective: Objective, ranks: Ranks) -> dict[str, 
     step, elapsed, metrics = 0, 0.0, {}
     if options.resume:
         if "training" not in state:
-            raise SystemExit(f"riskflow-train: {out / CHECKPOINT} holds no training state")
+            raise ValueError(f"{out / CHECKPOINT} holds no training state")
         trained = state.get("train_config", {}).get("generator", "meanflow")
         if trained != objective.kind:
-            raise SystemExit(f"riskflow-train: --resume: {out} trained --generator {trained}")
+            raise ValueError(f"--resume: {out} trained --generator {trained}")
         ema.model.load_state_dict(RiskFlowGenerator.from_checkpoint(state, config).state_dict())
         model.load_checkpoint_state(state["training"]["raw_state_dict"])
         optimizer.load_state_dict(state["training"]["optimizer"])
@@ -195,7 +187,7 @@ def _fit(options: LoopOptions, objective: Objective, ranks: Ranks) -> dict[str, 
     agents = train_set.agent_counts()
     per_epoch = len(agents) // options.batch_size
     if per_epoch == 0:
-        raise SystemExit(f"riskflow-train: {len(agents)} training windows < --batch-size")
+        raise ValueError(f"{len(agents)} training windows < --batch-size")
     val_indices = np.arange(len(val_set))
     if 0 < options.val_windows < len(val_set):
         val_indices = np.sort(

@@ -103,9 +103,11 @@ def title(summary: dict[str, Any]) -> tuple[str, str]:
     """(title, the options in one line)."""
     o = summary["options"]
     seeds = ", ".join(str(s) for s in o["seeds"])
+    stopped = summary.get("interrupted")
+    done = f" (interrupted: {stopped['episodes']} of {stopped['planned']})" if stopped else ""
     return (
         f"Stress test of {summary['planner']}",
-        f"{summary['episodes']} episodes: {o['scenes']} scenes x seeds {seeds}; RiskFlow "
+        f"{summary['episodes']} episodes{done}: {o['scenes']} scenes x seeds {seeds}; RiskFlow "
         f"K={o['k']}, target {o['target']}, re-plan every {o['planning_interval']} s, "
         f"{o['steps']} steps of 0.1 s",
     )

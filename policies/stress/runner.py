@@ -25,7 +25,7 @@ from policies.planners import EgoPlanner
 from policies.stress.episode import EpisodeRunner, EpisodeSetup
 from policies.stress.planner_spec import load_planner
 from policies.stress.summary import Analysed
-from riskflow_env.processes import exit_with_parent
+from riskflow_env.processes import pool_worker
 from riskflow_env.scenarios import Scenario
 
 
@@ -137,7 +137,7 @@ _WORKER: _Worker | None = None
 
 def _init_worker(worker: _Worker) -> None:
     global _WORKER
-    exit_with_parent()  # a killed run leaves no worker behind
+    pool_worker()  # a killed run leaves no worker behind; Ctrl-C is the parent's
     _WORKER = worker
 
 
@@ -182,7 +182,7 @@ def run_jobs(
     worker = _Worker(portable_planner(planner, workers), setup, scenes)
     bar = tqdm(total=len(jobs), desc="episodes", unit="episode", disable=not progress)
     done: list[Episode] = []
-    failed = 0
+    failed, interrupted = 0, False
     try:
         for episode in _episodes(worker, jobs, workers):
             done.append(episode)
@@ -191,12 +191,26 @@ def run_jobs(
                 on_episode(episode)
             bar.set_postfix_str(f"ego collisions {failed}", refresh=False)
             bar.update()
+    except KeyboardInterrupt:
+        interrupted = True
     finally:
         bar.close()
         if worker.runner is not None:
             worker.runner.close()
     order = {job: position for position, job in enumerate(jobs)}
-    return sorted(done, key=lambda e: order[(e.index, e.seed)])
+    done.sort(key=lambda e: order[(e.index, e.seed)])
+    if interrupted:
+        raise StressInterrupted(done, len(jobs))
+    return done
+
+
+class StressInterrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`run_jobs`: ``episodes`` are those that finished, in job order,
+    of ``planned``."""
+
+    def __init__(self, episodes: list[Episode], planned: int) -> None:
+        super().__init__(f"{len(episodes)} of {planned} episodes finished")
+        self.episodes, self.planned = episodes, planned
 
 
 def _episodes(worker: _Worker, jobs: list[tuple[int, int]], workers: int) -> Iterator[Episode]:
@@ -213,6 +227,7 @@ __all__ = [
     "Episode",
     "SceneSourceError",
     "Scenes",
+    "StressInterrupted",
     "StressOptions",
     "portable_planner",
     "resolve_planner",

@@ -43,7 +43,14 @@ from policies.planners import EgoPlanner
 from policies.stress.planner_spec import spec_of
 from policies.stress.replay import rerun, save_replay
 from policies.stress.report import write_reports
-from policies.stress.runner import Episode, Scenes, StressOptions, resolve_planner, run_jobs
+from policies.stress.runner import (
+    Episode,
+    Scenes,
+    StressInterrupted,
+    StressOptions,
+    resolve_planner,
+    run_jobs,
+)
 from policies.stress.summary import attacked_steps, headline, slow_ego_steps, stress_summary
 from riskflow_env.atomic_files import write_text
 from riskflow_env.folder_lock import make_output_folder
@@ -126,10 +133,15 @@ def riskflow_stress(
     local = resolve_planner(planner, setup)  # a bad spec fails here, before any worker
     folder = None if out is None else options.out
     writer = _Writer(folder, setup, label, source)
-    episodes = run_jobs(
-        planner if isinstance(planner, str) and workers > 1 else local,
-        setup, source, options.seeds, workers, progress, writer.episode_done,
-    )  # fmt: skip
+    try:
+        episodes, stopped = run_jobs(
+            planner if isinstance(planner, str) and workers > 1 else local,
+            setup, source, options.seeds, workers, progress, writer.episode_done,
+        ), None  # fmt: skip
+    except StressInterrupted as interrupt:  # Ctrl-C: report the episodes that finished
+        if not interrupt.episodes or folder is None:
+            raise
+        episodes, stopped = interrupt.episodes, interrupt
     episodes = [
         Episode(e.index, e.seed, e.analysed, writer.replays.get((e.index, e.seed)))
         for e in episodes
@@ -144,13 +156,19 @@ def riskflow_stress(
         },
         "per_episode": [writer.row(e) for e in episodes],
     }  # fmt: skip
+    if stopped is not None:
+        summary["interrupted"] = {"episodes": len(episodes), "planned": stopped.planned}
     if folder is not None:
-        gif_rows = writer.draw_worst(episodes, local, gifs)
+        gif_rows = writer.draw_worst(episodes, local, 0 if stopped else gifs)
         summary["gifs"] = [
             {key: row[key] for key in ("scene", "seed", "gif", "reproduced")} for row in gif_rows
         ]
         _write_json(folder / "summary.json", summary)
         write_reports(folder, summary, gif_rows)
+    if stopped is not None:
+        raise KeyboardInterrupt(
+            f"{stopped}; {folder}/summary.json and the reports cover them (no GIF)"
+        )
     return StressResult(summary, tuple(episodes), folder)
 
 

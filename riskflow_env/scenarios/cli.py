@@ -29,7 +29,7 @@ is refused. Scenes per minute are printed at the end.
 from __future__ import annotations
 
 import argparse
-import concurrent.futures
+import functools
 import json
 import multiprocessing
 import os
@@ -51,7 +51,7 @@ from riskflow_env.folder_lock import (
     make_output_folder,
 )
 from riskflow_env.maps import FAMILIES
-from riskflow_env.processes import exit_with_parent
+from riskflow_env.processes import pool_worker
 from riskflow_env.scenarios._npz import check_npz_sizes
 from riskflow_env.scenarios.io import require_scenarios, save_scenario
 from riskflow_env.scenarios.naturalistic import SOURCE, SceneConfig, generate_scenario
@@ -167,26 +167,16 @@ def _write_missing(options: GenerateOptions) -> dict:
     ]
     skipped = options.scenes - len(todo)
     start = time.perf_counter()
-    bar = tqdm(total=len(todo), desc="scenes", unit="scene", disable=not todo)
-    if options.workers <= 1:
-        for index in todo:
-            make_scene(options, index)
-            bar.update()
-    else:
-        context = multiprocessing.get_context("spawn")
-        with concurrent.futures.ProcessPoolExecutor(
-            options.workers, mp_context=context, initializer=exit_with_parent
-        ) as pool:
-            futures = [pool.submit(make_scene, options, index) for index in todo]
-            try:
-                for future in concurrent.futures.as_completed(futures):
-                    future.result()
+    with tqdm(total=len(todo), desc="scenes", unit="scene", disable=not todo) as bar:
+        if options.workers <= 1:
+            for index in todo:
+                make_scene(options, index)
+                bar.update()
+        else:
+            context = multiprocessing.get_context("spawn")
+            with context.Pool(options.workers, initializer=pool_worker) as pool:  # exit: ends it
+                for _ in pool.imap_unordered(functools.partial(make_scene, options), todo):
                     bar.update()
-            except BaseException:
-                for future in futures:
-                    future.cancel()
-                raise
-    bar.close()
     seconds = time.perf_counter() - start
     rate = 60.0 * len(todo) / seconds if todo else 0.0
     print(
@@ -333,7 +323,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parsed = {field.name: getattr(args, field.name) for field in fields(GenerateOptions)}
     options = GenerateOptions(**parsed | {"families": tuple(dict.fromkeys(args.families))})
     output_folder(parser, args.out)
-    with user_errors(f"{parser.prog} generate", args.debug):
+    kept = f"the scenes in {args.out} are kept: the same command resumes"
+    with user_errors(f"{parser.prog} generate", args.debug, kept):
         generate(options)
     return 0
 

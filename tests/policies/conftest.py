@@ -10,6 +10,9 @@ adaLN-Zero head starts as ``u = 0``), so plans depend on the noise and on the sc
 
 from __future__ import annotations
 
+import contextlib
+import re
+
 import pytest
 import torch
 
@@ -116,3 +119,19 @@ def scenarionet_toy(tmp_path, monkeypatch):
     folder = tmp_path / "sd_toy"
     write_dataset(folder, toy_descriptions(4))
     return folder
+
+
+@pytest.fixture
+def refused(capsys):
+    """``with refused(pattern): main(...)``: the command exits with status 2 and its one
+    error line on stderr matches ``pattern`` (a regular expression)."""
+
+    @contextlib.contextmanager
+    def check(pattern: str):
+        with pytest.raises(SystemExit) as exit_info:
+            yield
+        assert exit_info.value.code == 2
+        error = capsys.readouterr().err
+        assert re.search(pattern, error), error
+
+    return check

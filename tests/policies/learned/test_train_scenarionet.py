@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import pytest
 
 from policies.learned.data import WindowDataset
 from policies.train import GENERATOR
@@ -51,10 +50,10 @@ def test_train_on_a_dataset_folder_then_from_the_window_cache(
     assert train_main(_args(scenarionet_toy, tmp_path / "again", tiny_config)) == 0
 
 
-def test_bad_dataset_folder_names_the_argument(scenarionet_toy, tmp_path, tiny_config):
+def test_bad_dataset_folder_names_the_argument(scenarionet_toy, tmp_path, tiny_config, refused):
     next(scenarionet_toy.glob("*/*toy-2.pkl")).unlink()
-    with pytest.raises(SystemExit, match=r"riskflow-train: --data: .*1 scenario file\(s\) listed"):
+    with refused(r"riskflow-train: error: --data: .*1 scenario file\(s\) listed"):
         train_main(_args(scenarionet_toy, tmp_path / "run", tiny_config))
     (scenarionet_toy / "dataset_summary.pkl").write_bytes(b"\x80\x04N.")
-    with pytest.raises(SystemExit, match=r"--data: .*dataset_summary.pkl: expected a dict"):
+    with refused(r"--data: .*dataset_summary.pkl: expected a dict"):
         train_main(_args(scenarionet_toy, tmp_path / "run", tiny_config))

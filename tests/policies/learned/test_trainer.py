@@ -109,7 +109,9 @@ def test_resume_gives_the_uninterrupted_result(
     torch.testing.assert_close(a["training"]["rng"]["noise"], b["training"]["rng"]["noise"])
 
 
-def test_resume_with_another_architecture_names_the_mismatch(banks, tmp_path, tiny_config, capsys):
+def test_resume_with_another_architecture_names_the_mismatch(
+    banks, tmp_path, tiny_config, capsys, refused
+):
     out = tmp_path / "run"
     train_main(tiny_args(banks, out, tiny_config, steps=1))
     wider = dataclasses.replace(tiny_config, head_dim=64)
@@ -120,11 +122,11 @@ def test_resume_with_another_architecture_names_the_mismatch(banks, tmp_path, ti
     assert "riskflow-train: error: " in error and "head_dim" in error
     with pytest.raises(CheckpointError, match="head_dim"):
         train_main(tiny_args(banks, out, wider, "--resume", "--debug"))
-    with pytest.raises(SystemExit, match="--resume: no checkpoint"):
+    with refused("--resume: no checkpoint"):
         train_main(tiny_args(banks, tmp_path / "empty", tiny_config, "--resume"))
 
 
-def test_init_fine_tunes_from_a_checkpoint_and_resumes(banks, tmp_path, tiny_config):
+def test_init_fine_tunes_from_a_checkpoint_and_resumes(banks, tmp_path, tiny_config, refused):
     """--init starts from the weights and statistics of a generator file; a fine-tune
     with recovery windows resumes like any run; a wrong --init names the problem."""
     base = tmp_path / "base"
@@ -142,13 +144,13 @@ def test_init_fine_tunes_from_a_checkpoint_and_resumes(banks, tmp_path, tiny_con
     assert any(name.startswith("windows-stride16-recovery-") for name in cached)
     train_main(tiny_args(banks, tune, tiny_config, *args, "--resume", steps=2))
     assert load_checkpoint(tune / CHECKPOINT)["step"] == 2
-    with pytest.raises(SystemExit, match="--init: no generator checkpoint"):
+    with refused("--init: no generator checkpoint"):
         train_main(tiny_args(banks, tmp_path / "x", tiny_config, "--init", str(tmp_path / "no.pt")))
     wider = dataclasses.replace(tiny_config, head_dim=64)
-    with pytest.raises(SystemExit, match="--init: .*head_dim"):
+    with refused("--init: .*head_dim"):
         train_main(tiny_args(banks, tmp_path / "y", wider, "--init", str(base / GENERATOR)))
-    with pytest.raises(SystemExit, match="--init: .* meanflow generator, not diffusion"):
-        diffusion = ("--init", str(base / GENERATOR), "--generator", "diffusion")
+    diffusion = ("--init", str(base / GENERATOR), "--generator", "diffusion")
+    with refused("--init: .* meanflow generator, not diffusion"):
         train_main(tiny_args(banks, tmp_path / "z", tiny_config, *diffusion))
 
 
@@ -288,6 +290,11 @@ def test_realism_penalties_reach_the_loss_and_bad_weights_name_the_option(
         ({"time_budget_min": math.nan}, "--time-budget-min finite and >= 0"),
         ({"device": "gpu"}, "--device: 'gpu' is not a torch device"),
         ({"out": "FILE"}, "--out: .*FILE exists and is not a folder"),
+        ({"threads": -1}, "--threads must be an int >= 0, got -1"),
+        ({"model": "{bad"}, "--model: Expecting property name"),
+        ({"model": "[1]"}, "--model: expected a JSON object of ModelConfig fields"),
+        ({"model": '{"head_dim": "x"}'}, "--model: ModelConfig.head_dim must be"),
+        ({"model": "nowhere.json"}, "--model: .*No such file"),
     ],
 )
 def test_bad_options_name_the_flag_before_any_data_is_read(changes, message, tmp_path):
@@ -327,16 +334,16 @@ def test_batch_order_is_seeded_and_buckets_agent_counts():
     assert spread < 0.5 * plain, (spread, plain)
 
 
-def test_bad_data_folders_name_the_argument(banks, tmp_path, tiny_config):
+def test_bad_data_folders_name_the_argument(banks, tmp_path, tiny_config, refused):
     pickled = tmp_path / "scene.pkl"
     pickled.write_bytes(b"")
     args = tiny_args(banks, tmp_path / "run", tiny_config)
     args[args.index("--data") + 1] = str(pickled)
-    with pytest.raises(SystemExit, match=r"--data: .*is a file.*load_scenarionet"):
+    with refused(r"--data: .*is a file.*load_scenarionet"):
         train_main(args)
     args = tiny_args(banks, tmp_path / "run", tiny_config)
     args[args.index("--val-data") + 1] = str(tmp_path / "missing")
-    with pytest.raises(SystemExit, match=r"--val-data: .*does not exist"):
+    with refused(r"--val-data: .*does not exist"):
         train_main(args)
 
 

@@ -224,3 +224,41 @@ def test_compare_two_planners_paired(scenes_dir, planner_file, tmp_path, capsys)
     ]  # fmt: skip
     assert "McNemar" in capsys.readouterr().out
     assert (tmp_path / "a-reckless" / "report.html").is_file()
+
+
+def test_compare_checks_both_planners_before_running_either(scenes_dir, tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["compare", "idm", "nosuch", "--data", str(scenes_dir), "--out", str(tmp_path)])
+    assert exit_info.value.code == 2
+    assert "b 'nosuch': expected a built-in name" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # no episode of a ran
+
+
+def test_ctrl_c_reports_the_episodes_that_finished(scenes_dir, tmp_path, monkeypatch, capsys):
+    """Ctrl-C after the first episode: summary.json and the reports cover it, marked as
+    interrupted, and the command ends with one line and status 130."""
+    from policies.stress import runner
+
+    real = runner._episodes
+
+    def interrupted_after_one(*args):
+        episodes = real(*args)
+        yield next(episodes)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(runner, "_episodes", interrupted_after_one)
+    with pytest.raises(SystemExit) as exit_info:
+        main([
+            "--planner", "idm", "--data", str(scenes_dir), "--scenes", "2",
+            "--steps", str(STEPS), "--no-progress", "--out", str(tmp_path),
+        ])  # fmt: skip
+    assert exit_info.value.code == 130
+    error = capsys.readouterr().err
+    assert error.endswith(
+        f"riskflow-stress: interrupted: 1 of 2 episodes finished; {tmp_path}/summary.json "
+        "and the reports cover them (no GIF)\n"
+    )
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["interrupted"] == {"episodes": 1, "planned": 2} and summary["episodes"] == 1
+    assert "1 episodes (interrupted: 1 of 2)" in (tmp_path / "report.md").read_text()
+    assert len((tmp_path / "episodes.jsonl").read_text().splitlines()) == 1
