@@ -123,10 +123,7 @@ class LoopOptions:
             if len(self.data) > 1
             else "--data: at least one folder": len(self.data) == 1
             or (len(self.data) > 1 and self.val_data is not None),
-            "--data-weights: none, or one finite weight > 0 per --data folder when there are "
-            f"several (got {len(self.data_weights)} weights for {len(self.data)} folders)": not (
-                self.data_weights
-            )
+            _weights_rule(self.data_weights, len(self.data)): not self.data_weights
             or (
                 len(self.data_weights) == len(self.data) > 1
                 and all(math.isfinite(w) and w > 0 for w in self.data_weights)
@@ -171,6 +168,15 @@ class LoopOptions:
         broken = [rule for rule, holds in self.rules().items() if not holds]
         if broken:
             raise ValueError(f"riskflow-train needs {'; '.join(broken)}")
+
+
+def _weights_rule(weights: tuple[float, ...], folders: int) -> str:
+    """What ``--data-weights`` needs, said for the case at hand."""
+    if weights and folders == 1:
+        return "--data-weights only with several --data folders (one folder has every window)"
+    if len(weights) != folders:
+        return f"--data-weights: one weight per --data folder (got {len(weights)} for {folders})"
+    return f"--data-weights finite and > 0 (got {list(weights)})"
 
 
 def learning_rate(options: LoopOptions, step: int) -> float:

@@ -227,6 +227,13 @@ def _fit(options: LoopOptions, objective: Objective, ranks: Ranks) -> dict[str, 
     started = time.perf_counter()
     budget = 60.0 * options.time_budget_min if options.time_budget_min > 0 else math.inf
     end = options.stop_step or options.steps  # --stop-step: early, on --steps' schedule
+    if step >= end and ranks.main:
+        flag = "--stop-step" if options.stop_step else "--steps"
+        print(
+            f"riskflow-train: {out / CHECKPOINT} is at step {step}, {flag} is {end}: nothing "
+            f"left to train (raise {flag} to go on)",
+            file=sys.stderr,
+        )
     interval = 0.5 if sys.stderr.isatty() else 30.0  # [s]: a log file gets few lines
     bar = tqdm(
         total=end, desc="riskflow-train", initial=step, unit="step", mininterval=interval,

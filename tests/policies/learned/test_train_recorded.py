@@ -35,12 +35,16 @@ def test_shares_give_each_folder_its_weight_of_an_epoch():
 
 
 @pytest.mark.parametrize(
-    ("weights", "data"),
-    [((1.0,), ("a",)), ((1.0, 2.0, 3.0), ("a", "b")), ((1.0, 0.0), ("a", "b"))],
+    ("weights", "data", "message"),
+    [
+        ((1.0,), ("a",), "--data-weights only with several --data folders"),
+        ((1.0, 2.0, 3.0), ("a", "b"), r"--data-weights: one weight per --data folder \(got 3"),
+        ((1.0, 0.0), ("a", "b"), r"--data-weights finite and > 0 \(got \[1.0, 0.0\]"),
+    ],
     ids=["one-folder", "count", "zero"],
 )
-def test_bad_data_weights_name_the_option(weights, data):
-    with pytest.raises(ValueError, match="--data-weights: none, or one finite weight > 0"):
+def test_bad_data_weights_name_the_option(weights, data, message):
+    with pytest.raises(ValueError, match=message):
         TrainOptions(data=tuple(map(Path, data)), val_data=Path("v"), data_weights=weights)
 
 

@@ -126,7 +126,9 @@ def test_resume_with_another_architecture_names_the_mismatch(
         train_main(tiny_args(banks, tmp_path / "empty", tiny_config, "--resume"))
 
 
-def test_init_fine_tunes_from_a_checkpoint_and_resumes(banks, tmp_path, tiny_config, refused):
+def test_init_fine_tunes_from_a_checkpoint_and_resumes(
+    banks, tmp_path, tiny_config, refused, capsys
+):
     """--init starts from the weights and statistics of a generator file; a fine-tune
     with recovery windows resumes like any run; a wrong --init names the problem."""
     base = tmp_path / "base"
@@ -144,6 +146,9 @@ def test_init_fine_tunes_from_a_checkpoint_and_resumes(banks, tmp_path, tiny_con
     assert any(name.startswith("windows-stride16-recovery-") for name in cached)
     train_main(tiny_args(banks, tune, tiny_config, *args, "--resume", steps=2))
     assert load_checkpoint(tune / CHECKPOINT)["step"] == 2
+    capsys.readouterr()
+    train_main(tiny_args(banks, tune, tiny_config, *args, "--resume", steps=2))
+    assert "is at step 2, --steps is 2: nothing left to train" in capsys.readouterr().err
     with refused("--init: no generator checkpoint"):
         train_main(tiny_args(banks, tmp_path / "x", tiny_config, "--init", str(tmp_path / "no.pt")))
     wider = dataclasses.replace(tiny_config, head_dim=64)
