@@ -26,6 +26,7 @@ import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from numbers import Integral
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -251,6 +252,8 @@ def window_from_scenario(
     _check_dt(scenario.dt, config, "scenario")
     if current_index is None:
         current_index = scenario.current_index
+    if isinstance(current_index, (bool, np.bool_)) or not isinstance(current_index, Integral):
+        raise ValueError(f"current_index must be an int step index, got {current_index!r}")
     if not 0 <= current_index < scenario.states.shape[1]:
         raise ValueError(
             f"current_index must be in [0, {scenario.states.shape[1]}), got {current_index}"

@@ -17,6 +17,7 @@ arithmetic on them never raises floating-point warnings.
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -105,6 +106,12 @@ class RolloutRecord:
             values[~observed] = 0.0
         if not (np.all(arrays["length"] >= 0) and np.all(arrays["width"] >= 0)):
             raise ValueError("RolloutRecord.length and width must be >= 0 m")
+        for name, kind in (("dt", numbers.Real), ("num_context", numbers.Integral),
+                           ("ego_index", numbers.Integral)):  # fmt: skip
+            value = getattr(self, name)
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, kind):
+                expected = "a number" if kind is numbers.Real else "an int"
+                raise ValueError(f"RolloutRecord.{name} must be {expected}, got {value!r}")
         if not (np.isfinite(self.dt) and self.dt > 0):
             raise ValueError(f"RolloutRecord.dt must be a finite time step > 0 s, got {self.dt}")
         if not 0 <= self.num_context < num_steps:

@@ -56,6 +56,7 @@ from typing import Any
 
 import numpy as np
 
+from riskflow_env.config import _finite, _integer, _require
 from riskflow_env.scenarios.logged_surface import logged_boxes
 from riskflow_env.scenarios.map_cache import MapCache, file_digest
 from riskflow_env.scenarios.safe_pickle import (
@@ -176,6 +177,7 @@ def scenario_from_description(
     """:func:`load_scenarionet` for an already loaded description dict (every failure a
     ``ValueError`` naming ``source``); the map goes through ``map_cache`` when both it
     and ``file_digest`` (the content hash of the description's file) are given."""
+    _check_arguments(resolution, current_index, min_future_steps, margin, crop_margin)
     cache = (map_cache, file_digest) if map_cache is not None and file_digest else None
     with errors_name_the_file(source, "a readable ScenarioNet scenario"):
         return _scenario(
@@ -191,6 +193,26 @@ def scenario_from_description(
             cache,
             logged_ground,
         )
+
+
+def _check_arguments(
+    resolution: float,
+    current_index: int | None,
+    min_future_steps: int,
+    margin: float,
+    crop_margin: float | None,
+) -> None:
+    """ValueError naming the loader's argument that is out of its range."""
+    _finite("resolution", resolution)
+    _require(resolution > 0, f"resolution must be > 0 [m/px], got {resolution!r}")
+    if current_index is not None:
+        _integer("current_index", current_index, 0)
+    _integer("min_future_steps", min_future_steps, 0)
+    _finite("margin", margin)
+    _require(margin >= 0, f"margin must be >= 0 [m], got {margin!r}")
+    if crop_margin is not None:
+        _finite("crop_margin", crop_margin)
+        _require(crop_margin > 0, f"crop_margin must be > 0 [m], got {crop_margin!r}")
 
 
 def _scenario(
@@ -314,8 +336,6 @@ def _crop_region(
     if crop_margin is None:
         reach = ROLLOUT_SECONDS * float(np.percentile(speed, 95)) if speed.size else 0.0
         crop_margin = float(np.clip(reach, *CROP_MARGIN_RANGE))
-    elif not (np.isfinite(crop_margin) and crop_margin > 0):
-        raise ValueError(f"crop_margin must be a finite number > 0 [m], got {crop_margin!r}")
     low, high = xy.min(axis=0) - crop_margin, xy.max(axis=0) + crop_margin
     return float(low[0]), float(low[1]), float(high[0]), float(high[1])
 

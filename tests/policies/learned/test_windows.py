@@ -157,6 +157,9 @@ def test_bad_inputs_are_named(scenario):
         window_from_scenario(holed, 40)
     with pytest.raises(ValueError, match="current_index"):
         window_from_scenario(scenario, scenario.states.shape[1])
+    for index in (1.5, "3", True):
+        with pytest.raises(ValueError, match="current_index must be an int step index"):
+            window_from_scenario(scenario, index)
     with pytest.raises(ValueError, match="dt"):
         window_from_scenario(scenario, config=WindowConfig(dynamics=DynamicsConfig(dt=0.2)))
     with pytest.raises(ValueError, match="max_agents"):

@@ -34,6 +34,15 @@ def test_validation_messages_name_the_field():
         RolloutRecord(**fields(), num_context=6)
     with pytest.raises(ValueError, match="ego_index"):
         RolloutRecord(**fields(), ego_index=2)
+    for changes, message in (
+        ({"dt": "a"}, "RolloutRecord.dt must be a number, got 'a'"),
+        ({"num_context": 1.5}, "RolloutRecord.num_context must be an int, got 1.5"),
+        ({"ego_index": True}, "RolloutRecord.ego_index must be an int, got True"),
+    ):
+        with pytest.raises(ValueError) as error:
+            RolloutRecord(**fields(), **changes)
+        assert str(error.value) == message
+    assert RolloutRecord(**fields(), dt=np.float32(0.1), ego_index=np.int64(1)).ego_index == 1
     bad = fields()
     bad["states"][0, 0, 0] = np.nan
     with pytest.raises(ValueError, match="NaN"):

@@ -273,7 +273,7 @@ real_replace, renamed = os.replace, []
 
 
 def replace(source, target):  # kill -9 just before the third scene file appears
-    if os.path.dirname(target) == sys.argv[1]:
+    if os.path.dirname(target) == sys.argv[1] and str(target).endswith(".npz"):  # no manifest
         renamed.append(target)
         if len(renamed) == 3:
             os.kill(os.getpid(), signal.SIGKILL)

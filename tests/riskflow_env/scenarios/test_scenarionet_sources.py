@@ -162,3 +162,13 @@ def test_crop_drops_far_lanes_and_checks_the_margin():
     for bad in (-1.0, 0.0, float("nan")):
         with pytest.raises(ValueError, match="crop_margin"):
             scenario_from_description(data, crop_margin=bad)
+    for changes, message in (  # the loader's own arguments, named before the file is read
+        ({"min_future_steps": -3}, "min_future_steps must be an int in [0, "),
+        ({"resolution": float("nan")}, "resolution must be a finite number"),
+        ({"resolution": 0.0}, "resolution must be > 0 [m/px], got 0.0"),
+        ({"current_index": 1.5}, "current_index must be an int in [0, "),
+        ({"margin": -1.0}, "margin must be >= 0 [m], got -1.0"),
+    ):
+        with pytest.raises(ValueError) as error:
+            scenario_from_description(data, **changes)
+        assert str(error.value).startswith(message)
