@@ -40,7 +40,7 @@ class DynamicsConfig:
         accel_min: strongest braking allowed [m/s^2] (negative).
         accel_max: strongest acceleration allowed [m/s^2].
         yaw_rate_max: bound on |yaw rate| [rad/s].
-        speed_min: lowest speed [m/s]; 0 means vehicles never reverse.
+        speed_min: lowest speed [m/s], >= 0 (vehicles never reverse); above 0 they never stop.
         speed_max: highest speed [m/s].
         turn_radius_min: tightest turn [m]: over each step ``|yaw rate| <= v_mean /
             turn_radius_min`` (``v_mean`` the step's mean speed), the bound of a
@@ -129,6 +129,8 @@ class RewardConfig:
     reward = speed * min(v, target_speed) / target_speed
            + collision * [in collision] + offroad * [footprint off the road]
            + risk * max_j risk_ij + comfort * ((a / accel_max)^2 + (omega / yaw_rate_max)^2)
+
+    Any finite weight is taken; "(negative)" marks the terms that are penalties by default.
 
     Attributes:
         target_speed: speed at which the speed term saturates [m/s].
