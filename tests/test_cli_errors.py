@@ -64,6 +64,11 @@ def test_riskflow_eval_report_on_a_missing_folder(tmp_path, capsys):
     assert "Traceback" not in error
     with pytest.raises(FileNotFoundError):
         eval_main(["report", "--out", str(missing), "--debug"])
+    a_file = tmp_path / "results.txt"
+    a_file.write_text("")
+    with pytest.raises(SystemExit):
+        eval_main(["report", "--out", str(a_file)])
+    assert f"--out {a_file} is a file, not a results folder" in capsys.readouterr().err
 
 
 def test_riskflow_data_info_on_a_broken_bank(tmp_path, capsys):

@@ -219,6 +219,8 @@ def timing_markdown(table: Table) -> str:
 
 def write_report(out: str | Path, plots: bool = True) -> Path:
     """Write ``report.md`` (and the PNG plots) into the results folder ``out``."""
+    if Path(out).exists() and not Path(out).is_dir():
+        raise NotADirectoryError(f"--out {out} is a file, not a results folder")
     store = ResultsStore(out)
     rows = store.rows()
     if not rows:
