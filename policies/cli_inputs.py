@@ -32,24 +32,24 @@ def open_data(data: str | None) -> ScenarioBank | ScenarioNetDataset:
         raise ValueError(f"--data: {err}") from err
 
 
-def check_device(device: str) -> None:
-    """ValueError naming ``--device`` unless ``device`` is a torch device this machine has."""
+def check_device(device: str | torch.device, option: str = "--device") -> None:
+    """ValueError naming ``option`` unless ``device`` is a torch device this machine has."""
     try:
         parsed = torch.device(device)
     except (RuntimeError, TypeError, ValueError):
         raise ValueError(
-            f"--device: {device!r} is not a torch device (expected e.g. 'cpu', 'cuda', 'cuda:0')"
+            f"{option}: {device!r} is not a torch device (expected e.g. 'cpu', 'cuda', 'cuda:0')"
         ) from None
     if parsed.type == "cuda":
         count = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if count == 0:
-            raise ValueError(f"--device {device}: CUDA is not available on this machine")
+            raise ValueError(f"{option} {device}: CUDA is not available on this machine")
         if parsed.index is not None and parsed.index >= count:
-            raise ValueError(f"--device {device}: this machine has {count} CUDA device(s)")
+            raise ValueError(f"{option} {device}: this machine has {count} CUDA device(s)")
     elif parsed.type == "mps" and not torch.backends.mps.is_available():
-        raise ValueError(f"--device {device}: MPS is not available on this machine")
+        raise ValueError(f"{option} {device}: MPS is not available on this machine")
     elif parsed.type not in ("cpu", "cuda", "mps"):
-        raise ValueError(f"--device: {device!r} is not supported (expected cpu, cuda or mps)")
+        raise ValueError(f"{option}: {device!r} is not supported (expected cpu, cuda or mps)")
 
 
 def check_interval(

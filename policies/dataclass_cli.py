@@ -15,7 +15,8 @@ attribute docstring (the string literal written under it), followed by the defau
     options = parse_dataclass(Options, ["--steps", "5"], prog="tool")
 
 A ``ValueError`` from the dataclass's ``__post_init__`` becomes a usage error (exit 2);
-:func:`check_at_least` and :func:`check_choices` write the common ones, naming the flag.
+:func:`check_at_least` and :func:`check_choices` write the common ones, naming the flag
+(or ``Owner.field``, for a configuration dataclass that is no command's options).
 
 With ``recipes`` (:class:`Recipes`), the command also takes ``--recipe NAME_OR_PATH``: a
 file of field values (JSON types: numbers, strings for paths, lists for tuples, null for
@@ -141,25 +142,39 @@ def flag_of(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
-def check_at_least(options: Any, lows: Mapping[str, int], optional: Sequence[str] = ()) -> None:
+def _named(name: str, owner: str | None) -> str:
+    """How a check names the field ``name``: its flag, or ``owner.name`` with an owner."""
+    return flag_of(name) if owner is None else f"{owner}.{name}"
+
+
+def check_at_least(
+    options: Any,
+    lows: Mapping[str, int],
+    optional: Sequence[str] = (),
+    owner: str | None = None,
+) -> None:
     """ValueError naming the flag of the first field of ``options`` in ``lows`` that is not
     an int at least its bound; the fields named in ``optional`` may also be None ("not
-    given")."""
+    given"). With ``owner`` (a class name), the field is named ``owner.field`` instead."""
     for name, low in lows.items():
         value = getattr(options, name)
         if value is None and name in optional:
             continue
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
-            raise ValueError(f"{flag_of(name)} must be an int >= {low}, got {value!r}")
+            raise ValueError(f"{_named(name, owner)} must be an int >= {low}, got {value!r}")
 
 
-def check_choices(options: Any, choices: Mapping[str, Sequence[str]]) -> None:
-    """ValueError naming the flag of the first field of ``options`` in ``choices`` whose
-    value is not one of its choices."""
+def check_choices(
+    options: Any, choices: Mapping[str, Sequence[str]], owner: str | None = None
+) -> None:
+    """ValueError naming the flag (or ``owner.field``, as :func:`check_at_least`) of the
+    first field of ``options`` in ``choices`` whose value is not one of its choices."""
     for name, allowed in choices.items():
         value = getattr(options, name)
         if value not in allowed:
-            raise ValueError(f"{flag_of(name)} must be one of {tuple(allowed)}, got {value!r}")
+            raise ValueError(
+                f"{_named(name, owner)} must be one of {tuple(allowed)}, got {value!r}"
+            )
 
 
 def field_values(cls: type, values: Mapping[str, Any]) -> dict[str, Any]:

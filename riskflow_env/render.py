@@ -28,8 +28,10 @@ from typing import Any
 
 import numpy as np
 
+from riskflow_env.config import DynamicsConfig, _finite, _integer, _require
 from riskflow_env.events import contact_pairs
 from riskflow_env.geometry import FRONT, LEFT, RIGHT, box_corners, footprint_points
+from riskflow_env.state import HISTORY_STEPS
 
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
 import pygame  # noqa: E402  (after silencing its banner)
@@ -47,6 +49,7 @@ OFFROAD_MARK: Color = (255, 215, 0)
 PLAN: Color = (205, 90, 255)  # default overlay colour
 TEXT: Color = (245, 245, 245)
 HALO_MARGIN = 0.7  # [m] halo around highlighted agents
+MAX_TRAIL_S = round((HISTORY_STEPS - 1) * DynamicsConfig().dt, 6)  # [s] the history kept
 
 
 @dataclass(frozen=True)
@@ -75,12 +78,16 @@ class RenderConfig:
 
     def __post_init__(self) -> None:
         for name in ("width_px", "height_px"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 16:
-                raise ValueError(f"RenderConfig.{name} must be an int >= 16 [px], got {value!r}")
-        for name, low in (("view_width", 1e-3), ("trail_seconds", 0.0)):
-            if not low <= getattr(self, name) < np.inf:
-                raise ValueError(f"RenderConfig.{name} must be finite and >= {low}")
+            _integer(f"RenderConfig.{name}", getattr(self, name), 16)
+        for name in ("view_width", "trail_seconds"):
+            _finite(f"RenderConfig.{name}", getattr(self, name))
+        width, trail = self.view_width, self.trail_seconds
+        _require(width >= 1e-3, f"RenderConfig.view_width must be >= 0.001 m, got {width}")
+        _require(
+            0 <= trail <= MAX_TRAIL_S,
+            f"RenderConfig.trail_seconds must be in [0, {MAX_TRAIL_S:g}] s (the history kept), "
+            f"got {trail}",
+        )
 
 
 @dataclass(frozen=True)

@@ -67,10 +67,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     if args.pop("list"):
         print(method_list())
         return
-    options = EvalOptions(**{k: tuple(v) if isinstance(v, list) else v for k, v in args.items()})
     from policies.evaluation.runner import prepare, run_evaluation
 
-    try:
+    values = {k: tuple(v) if isinstance(v, list) else v for k, v in args.items()}
+    try:  # the values, then the scenes and the output folder
+        options = EvalOptions(**values)
         prepared = prepare(options)
     except ValueError as err:
         run_parser.error(str(err))

@@ -1,11 +1,12 @@
 """``riskflow-eval`` options (a typed dataclass) and the grid of rollouts they ask for.
 
-:class:`EvalOptions` is what the command line fills; :func:`plan_jobs` checks it (every
-error names its argument) and expands it into :class:`Job` s, one per (method, K,
-planning interval, scene, seed). A method without K (or without a planning interval)
-gets one job per scene and seed for all K (or intervals): its key has ``k`` (or
-``interval``) None. The run-level settings (:class:`RunConfig`) must be the same for
-every row of a results file; the per-job ones are in each row's key.
+:class:`EvalOptions` is what the command line fills, its values checked when it is built
+(every error names its argument); :func:`plan_jobs` checks the output folder and expands
+it into :class:`Job` s, one per (method, K, planning interval, scene, seed). A method
+without K (or without a planning interval) gets one job per scene and seed for all K (or
+intervals): its key has ``k`` (or ``interval``) None. The run-level settings
+(:class:`RunConfig`) must be the same for every row of a results file; the per-job ones
+are in each row's key.
 """
 
 from __future__ import annotations
@@ -19,12 +20,19 @@ from typing import Any
 
 import numpy as np
 
-from policies.cli_inputs import SHIPPED, check_device, check_interval, check_seeds, open_data
+from policies.cli_inputs import (
+    DT,
+    SHIPPED,
+    check_device,
+    check_interval,
+    check_seeds,
+    open_data,
+)
 from policies.dataclass_cli import check_at_least, check_choices, from_fields
 from policies.learned.guidance_losses import TARGETS
 from policies.planners import PLANNERS
 from policies.registry import method_options, method_spec
-from riskflow_env.config import DynamicsConfig, EnvConfig
+from riskflow_env.config import EnvConfig
 from riskflow_env.folder_lock import check_output_folder
 from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
@@ -87,6 +95,35 @@ class EvalOptions:
     """output directory (results.jsonl, samples/, report.md, plots)"""
     report: bool = True
     """write the report when the runs are done"""
+
+    def __post_init__(self) -> None:
+        """ValueError naming the argument for a bad value (the values alone: the scene
+        source and the output folder are read when the run is prepared, :func:`plan_jobs`;
+        the method options ``--set``, which import the methods, there too)."""
+        if not self.methods:
+            raise ValueError("--methods: give at least one method")
+        for name in self.methods:
+            method_spec(name)
+        if len(set(self.methods)) != len(self.methods):
+            raise ValueError(f"--methods: repeated method in {self.methods}")
+        for name in ("k", "interval"):
+            if not getattr(self, name):
+                raise ValueError(f"--{name}: give at least one value")
+        for text in self.k:
+            parse_k(text)
+        for interval in self.interval:
+            check_interval(interval, DT, None)
+        check_at_least(self, {"scenes": 1, "diffusion_steps": 1}, ("scenes", "diffusion_steps"))
+        workers = self.workers
+        whole = isinstance(workers, int) and not isinstance(workers, bool)
+        if not (whole and 1 <= workers <= MAX_WORKERS):
+            raise ValueError(f"--workers must be in [1, {MAX_WORKERS}], got {workers!r}")
+        check_batch_scenes(self.batch_scenes, self.backend)
+        check_backend(self.backend, self.address)
+        check_choices(self, {"ego": tuple(PLANNERS), "target": TARGETS})
+        check_interval(self.duration, DT, None, "--duration")
+        object.__setattr__(self, "seeds", check_seeds(self.seeds))
+        check_device(self.device)
 
 
 @dataclass(frozen=True)
@@ -222,23 +259,10 @@ def scene_names(data: str | None, count: int | None = None) -> list[str]:
     return list(scenes.names[:count])
 
 
-def check_options(options: EvalOptions, dt: float = DynamicsConfig().dt) -> None:
-    """ValueError naming the argument for a bad scalar option."""
-    if not options.methods:
-        raise ValueError("--methods: give at least one method")
-    for name in options.methods:
-        method_spec(name)
-    if len(set(options.methods)) != len(options.methods):
-        raise ValueError(f"--methods: repeated method in {options.methods}")
-    check_at_least(options, {"scenes": 1, "diffusion_steps": 1}, ("scenes", "diffusion_steps"))
-    if not 1 <= options.workers <= MAX_WORKERS:
-        raise ValueError(f"--workers must be in [1, {MAX_WORKERS}], got {options.workers}")
-    check_batch_scenes(options.batch_scenes, options.backend)
-    check_backend(options.backend, options.address)
-    check_choices(options, {"ego": tuple(PLANNERS), "target": TARGETS})
-    check_interval(options.duration, dt, None, "--duration")
-    check_seeds(options.seeds)
-    check_device(options.device)
+def check_options(options: EvalOptions) -> None:
+    """ValueError naming ``--out`` when it cannot be made a folder: checked when the run
+    is prepared, as the disk may change after the options are built (their values were
+    checked then, by :class:`EvalOptions`)."""
     check_output_folder(options.out, "--out")
 
 
@@ -270,10 +294,9 @@ def check_batch_scenes(batch_scenes: int, backend: str) -> None:
 def plan_jobs(options: EvalOptions, scenes: Sequence[str]) -> list[Job]:
     """Every rollout the options ask for, in a fixed order (ValueError on bad arguments);
     ``scenes``: the names of the scenes (:func:`scene_names`), in order."""
-    dt = DynamicsConfig().dt
-    check_options(options, dt)
+    check_options(options)
     ks = list(dict.fromkeys(parse_k(text) for text in options.k))
-    intervals = list(dict.fromkeys(check_interval(t, dt, None) for t in options.interval))
+    intervals = list(dict.fromkeys(check_interval(t, DT, None) for t in options.interval))
     per_method = method_options(options.methods, options.overrides, options.diffusion_steps)
     run = RunConfig.from_options(options)
     jobs = []

@@ -21,12 +21,14 @@ import inspect
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
+from numbers import Real
 from typing import Any
 
 import numpy as np
 import torch
 
-from policies.cli_inputs import DT, check_interval
+from policies.cli_inputs import DT, check_device, check_interval
+from policies.dataclass_cli import check_at_least, check_choices
 from policies.learned.config import ModelConfig
 from policies.learned.guidance_losses import TARGETS, ObjectiveConfig
 from policies.learned.plan_stitching import DEFAULT_HOLD_DISTANCE
@@ -84,32 +86,52 @@ class AdversaryConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "k", check_k(self.k))
+        window = self.window_config
+        if window is not None and not isinstance(window, WindowConfig):
+            raise TypeError(
+                f"AdversaryConfig.window_config must be None or a WindowConfig, "
+                f"got {type(window).__name__}"
+            )
         interval = self.planning_interval
-        if not (isinstance(interval, (int, float)) and interval > 0):
-            raise ValueError(f"planning_interval must be > 0 [s], got {interval!r}")
-        threads = self.threads
-        if threads is not None and (not isinstance(threads, int) or threads < 1):
-            raise ValueError(f"threads must be None or an int >= 1, got {threads!r}")
-        if self.target not in TARGETS:
-            raise ValueError(f"target must be one of {TARGETS}, got {self.target!r}")
-        threshold = self.rank_threshold
-        if not (isinstance(threshold, (int, float)) and math.isfinite(threshold)):
-            raise ValueError(f"rank_threshold must be a finite number, got {threshold!r}")
+        if isinstance(interval, bool) or not isinstance(interval, Real):
+            raise ValueError(
+                f"AdversaryConfig.planning_interval must be a number [s], got {interval!r}"
+            )
+        # a multiple of the env's dt; the plan horizon is the model's, checked at reset
+        dt = DT if window is None else window.dynamics.dt
+        check_interval(interval, dt, None, "AdversaryConfig.planning_interval")
+        owner = "AdversaryConfig"
+        check_at_least(
+            self, {"guidance_horizon": 1, "threads": 1}, ("guidance_horizon", "threads"), owner
+        )
+        check_choices(self, {"target": TARGETS}, owner)
+        for name in ("lambda_adv", "lambda_map", "rank_threshold"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, Real) or not math.isfinite(value):
+                raise ValueError(f"AdversaryConfig.{name} must be a finite number, got {value!r}")
+        if self.lambda_map < 0:
+            raise ValueError(
+                f"AdversaryConfig.lambda_map must be >= 0 [1/m^2], got {self.lambda_map!r}"
+            )
         hold = self.hold_distance
         if isinstance(hold, bool) or not isinstance(hold, (int, float)) or not 0 <= hold < math.inf:
-            raise ValueError(f"hold_distance must be a finite number >= 0 [m], got {hold!r}")
+            raise ValueError(
+                f"AdversaryConfig.hold_distance must be a finite number >= 0 [m], got {hold!r}"
+            )
         object.__setattr__(self, "hold_distance", float(hold))
         stitch = self.stitch_steps
         if stitch is not None:
             if isinstance(stitch, bool) or not isinstance(stitch, (int, np.integer)) or stitch < 0:
                 raise ValueError(
-                    f"stitch_steps must be None or an int >= 0 [steps], got {stitch!r}"
+                    f"AdversaryConfig.stitch_steps must be None or an int >= 0 [steps], "
+                    f"got {stitch!r}"
                 )
             object.__setattr__(self, "stitch_steps", int(stitch))
         seed = self.seed
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-            raise ValueError(f"seed must be an int >= 0, got {seed!r}")
+            raise ValueError(f"AdversaryConfig.seed must be an int >= 0, got {seed!r}")
         object.__setattr__(self, "seed", int(seed))
+        check_device(self.device, "AdversaryConfig.device")
 
     @classmethod
     def field_names(cls) -> tuple[str, ...]:

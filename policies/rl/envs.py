@@ -39,8 +39,10 @@ from typing import Any
 import gymnasium
 import numpy as np
 
+from policies.dataclass_cli import check_at_least, check_choices
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig, apply_stage, make_traffic
 from riskflow_env.config import DynamicsConfig, EnvConfig
+from riskflow_env.scenarios import SPLITS
 from riskflow_env.view import SceneView
 from riskflow_env.wrappers import EgoEnv
 
@@ -264,6 +266,21 @@ class EgoEnvConfig:
     maneuver_features: bool = False
     maneuver_actions: bool = False
     maneuver_set: str = "compact"
+
+    def __post_init__(self) -> None:
+        from policies.rl.features import MANEUVER_SETS
+
+        for name, kind in (("env", EnvConfig), ("traffic", ScenePolicyConfig)):
+            value = getattr(self, name)
+            if not isinstance(value, kind):
+                expected = f"EgoEnvConfig.{name} must be of type {kind.__name__}"
+                raise TypeError(f"{expected}, got {type(value).__name__}")
+        choices = {"split": SPLITS, "base_planner": BASE_PLANNERS, "maneuver_set": MANEUVER_SETS}
+        check_choices(self, choices, owner="EgoEnvConfig")
+        check_at_least(self, {"scenes": 1, "action_repeat": 1}, ("scenes",), owner="EgoEnvConfig")
+        for name in ("maneuver_features", "maneuver_actions"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"EgoEnvConfig.{name} must be a bool, got {getattr(self, name)!r}")
 
 
 class EgoTrainingEnv(gymnasium.Wrapper):

@@ -18,14 +18,14 @@ agents at once, by truncation, and the vector env resets them.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
 from pettingzoo import ParallelEnv
 
 from policies.planners.base import EgoPlanner, as_action, reset_planner
-from riskflow_env.config import EnvConfig
+from riskflow_env.config import EnvConfig, _finite
 from riskflow_env.env import RiskFlowParallelEnv
 from riskflow_env.wrappers.vector import sb3_vec_env
 
@@ -58,6 +58,8 @@ class AdversaryRewardConfig:
     offroad: float = -1.0
 
     def __post_init__(self) -> None:
+        for field in fields(self):  # every term a finite number
+            _finite(f"AdversaryRewardConfig.{field.name}", getattr(self, field.name))
         if not self.closeness_radius > 0:
             raise ValueError(
                 f"AdversaryRewardConfig.closeness_radius must be > 0 m, got {self.closeness_radius}"

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from policies.dataclass_cli import dataclass_parser
+from policies.stress.planner_spec import check_spec
 from policies.stress.runner import StressOptions
 from riskflow_env.cli_errors import CommandLineParser, add_debug_flag, user_errors
 
@@ -50,6 +51,7 @@ class RunOptions(StressOptions):
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        check_spec(self.planner, "--planner")  # its form: the planner is loaded by the run
         object.__setattr__(self, "export", export_formats(self.export))
 
 
@@ -157,16 +159,11 @@ def _run(argv: list[str]) -> None:
     usage = parser()
     values = vars(usage.parse_args(argv))
     debug = values.pop("debug")
-    planner = values.pop("planner")
-    try:
-        formats = export_formats(values.pop("export"))
-    except ValueError as err:
-        usage.error(str(err))
-    options = _options(StressOptions, values, usage)
+    options = _options(RunOptions, values, usage)
     with user_errors(PROG, debug):  # the usage errors below first
         try:
             result = riskflow_stress(
-                planner, options.scenes, options.seeds, **stress_kwargs(options)
+                options.planner, options.scenes, options.seeds, **stress_kwargs(options)
             )
         except PlannerSpecError as err:
             usage.error(err.named("--planner"))
@@ -179,6 +176,7 @@ def _run(argv: list[str]) -> None:
         else "no failure, no replay file"
     )
     print(f"wrote {result.out}/report.html, report.md, summary.json; {replays}")
+    formats = options.export
     if formats and result.replays:
         with user_errors(PROG, debug):
             exported = export_failures(result, formats)

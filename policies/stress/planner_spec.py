@@ -64,15 +64,10 @@ def load_planner(
             not exist, an attribute that is not there, or an object that is not callable
             (or whose factory does not return a callable).
     """
-    if not isinstance(spec, str) or not spec.strip():
-        raise PlannerSpecError(argument, spec, f"expected {_forms()}")
-    if spec in PLANNERS:
+    parts = check_spec(spec, argument)
+    if parts is None:  # a built-in
         return make_planner(spec, dynamics)
-    location, colon, name = spec.rpartition(":")
-    if not colon or not location or not name.isidentifier():
-        close = difflib.get_close_matches(spec, list(PLANNERS), n=1)
-        hint = f" (did you mean {close[0]}?)" if close else ""
-        raise PlannerSpecError(argument, spec, f"expected {_forms()}{hint}")
+    location, name = parts
     if location.endswith(".py") or "/" in location or "\\" in location:
         module = _module_from_file(Path(location), spec, argument)
     else:
@@ -82,6 +77,22 @@ def load_planner(
             argument, spec, f"{location} has no attribute {name!r}{_close_names(module, name)}"
         )
     return _as_planner(getattr(module, name), spec, argument)
+
+
+def check_spec(spec: object, argument: str = "--planner") -> tuple[str, str] | None:
+    """``(location, object)`` of a spec of one of the forms (module docstring), None for a
+    built-in name; :class:`PlannerSpecError` naming ``argument`` for any other value. Reads
+    the value alone: no module is imported, no file read (:func:`load_planner` does)."""
+    if not isinstance(spec, str) or not spec.strip():
+        raise PlannerSpecError(argument, spec, f"expected {_forms()}")
+    if spec in PLANNERS:
+        return None
+    location, colon, name = spec.rpartition(":")
+    if not colon or not location or not name.isidentifier():
+        close = difflib.get_close_matches(spec, list(PLANNERS), n=1)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        raise PlannerSpecError(argument, spec, f"expected {_forms()}{hint}")
+    return location, name
 
 
 def spec_of(planner: object) -> str | None:

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from riskflow_env.config import _finite, _integer, _require
 from riskflow_env.metrics.rollout import RolloutRecord
 from riskflow_env.metrics.wosac_features import WOSAC_FEATURES, wosac_features
 
@@ -56,6 +57,22 @@ class FeatureConfig:
     max_val: float = 1.0
     num_bins: int = 0
     pseudocount: float = 0.001
+
+    def __post_init__(self) -> None:
+        for name in ("weight", "min_val", "max_val", "pseudocount"):
+            _finite(f"FeatureConfig.{name}", getattr(self, name))
+        _require(self.weight >= 0, f"FeatureConfig.weight must be >= 0, got {self.weight}")
+        _integer("FeatureConfig.num_bins", self.num_bins, 0)
+        _require(
+            self.min_val < self.max_val,
+            "FeatureConfig needs min_val < max_val, "
+            f"got min_val={self.min_val}, max_val={self.max_val}",
+        )
+        _require(
+            self.pseudocount > 0,
+            f"FeatureConfig.pseudocount must be > 0 (an empty bin would score log 0), "
+            f"got {self.pseudocount}",
+        )
 
     @property
     def bernoulli(self) -> bool:

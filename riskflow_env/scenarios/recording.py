@@ -34,10 +34,11 @@ recorded step. Speeds stay >= 0 and yaw rates within 1 rad/s
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
+from riskflow_env.config import _finite, _require
 from riskflow_env.geometry import pairwise_overlap
 from riskflow_env.maps import DrivableMap, RoadFamily, from_highway_env, road_family
 from riskflow_env.maps.highway import ENV_IDS
@@ -50,6 +51,9 @@ CLEARANCE_WIDTH = 0.4  # [m] extra width of the boxes that must not overlap at p
 TRUCK_FAMILIES = ("highway", "merge", "exit")  # trucks do not fit the tight curves of others
 REGULATED_FAMILIES = ("intersection", "roundabout")  # right of way at crossings / entries
 STANDING_SPEED = 0.05  # [m/s] a stopping vehicle at or below this counts as standing
+# DriverConfig's (min, max) ranges whose min must be > 0 (the others' >= 0)
+POSITIVE_RANGES = ("speed_fraction", "comfort_accel", "comfort_decel", "delta")
+POSITIVE_RANGES += ("car_length", "car_width", "truck_length", "truck_width")
 
 
 @dataclass(frozen=True)
@@ -103,12 +107,29 @@ class DriverConfig:
     stop_duration: tuple[float, float] = (3.0, 20.0)
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.stop_share <= 1.0:
-            raise ValueError(f"DriverConfig.stop_share must be in [0, 1], got {self.stop_share}")
-        for name in ("stop_start", "stop_duration"):
-            low, high = getattr(self, name)
-            if not 0.0 <= low <= high:
-                raise ValueError(f"DriverConfig.{name}: need 0 <= min <= max [s], got {low, high}")
+        for field in fields(self):
+            name, value = field.name, getattr(self, field.name)
+            if not isinstance(field.default, tuple):  # a number
+                _finite(f"DriverConfig.{name}", value)
+                continue
+            if isinstance(value, list):  # e.g. read from JSON
+                object.__setattr__(self, name, value := tuple(value))
+            pair = isinstance(value, tuple) and len(value) == 2
+            _require(pair, f"DriverConfig.{name} must be a (min, max) pair, got {value!r}")
+            for bound in value:
+                _finite(f"DriverConfig.{name}", bound)
+            low, high = value
+            positive = name in POSITIVE_RANGES
+            _require(
+                (low > 0 if positive else low >= 0) and low <= high,
+                f"DriverConfig.{name}: need 0 {'<' if positive else '<='} min <= max, got {value}",
+            )
+        for name in ("truck_fraction", "stop_share"):
+            share = getattr(self, name)
+            _require(0 <= share <= 1, f"DriverConfig.{name} must be in [0, 1], got {share}")
+        for name in ("truck_speed_factor", "default_speed_limit"):
+            value = getattr(self, name)
+            _require(value > 0, f"DriverConfig.{name} must be > 0, got {value}")
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import pytest
 
-from policies.cli_inputs import check_interval, check_seeds, parse_seeds
+from policies.cli_inputs import check_device, check_interval, check_seeds, parse_seeds
 from policies.dataclass_cli import check_at_least, check_choices
 from policies.learned.adversary_config import HORIZON_S, check_planning_interval
 from riskflow_env.wrappers.video import check_video_path
@@ -37,6 +37,15 @@ def test_choices_name_the_flag():
     check_choices(Flags(), {"mode": ("fast", "slow")})
     with pytest.raises(ValueError, match=r"^--mode must be one of \('slow',\), got 'fast'$"):
         check_choices(Flags(), {"mode": ("slow",)})
+
+
+def test_a_configuration_names_its_field_instead_of_a_flag():
+    with pytest.raises(ValueError, match=r"^Flags.scenes must be an int >= 1, got 0$"):
+        check_at_least(Flags(scenes=0), {"scenes": 1}, owner="Flags")
+    with pytest.raises(ValueError, match=r"^Flags.mode must be one of \('slow',\), got 'fast'$"):
+        check_choices(Flags(), {"mode": ("slow",)}, owner="Flags")
+    with pytest.raises(ValueError, match=r"^Flags.device: 'nope' is not a torch device"):
+        check_device("nope", "Flags.device")
 
 
 @pytest.mark.parametrize("interval", [0.0, -0.5, 0.25, math.nan, math.inf, -math.inf, 1e-9])

@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import re
 from dataclasses import replace
 
 import pytest
@@ -234,6 +235,34 @@ def test_bad_arguments_write_nothing(argv, tmp_path, capsys):
     assert exit_info.value.code == 2
     assert argv[0] in capsys.readouterr().err
     assert not out.exists()
+
+
+@pytest.mark.reliability
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"workers": 0}, "--workers must be in [1, 256], got 0"),
+        ({"workers": 2.0}, "--workers must be in [1, 256], got 2.0"),
+        ({"duration": -1.0}, "--duration: -1.0 s is not a positive multiple of dt = 0.1 s"),
+        ({"seeds": (-1,)}, "--seeds must be one or more ints in [0, 2**32), got [-1]"),
+        ({"methods": ()}, "--methods: give at least one method"),
+        ({"methods": ("idm", "idm")}, "--methods: repeated method in ('idm', 'idm')"),
+        ({"k": ()}, "--k: give at least one value"),
+        ({"k": ("two",)}, "--k: expected an int >= 0 or 'all', got 'two'"),
+        ({"interval": (0.55,)}, "--interval: 0.55 s is not a positive multiple of dt"),
+        ({"scenes": 0}, "--scenes must be an int >= 1, got 0"),
+        ({"diffusion_steps": 0}, "--diffusion-steps must be an int >= 1, got 0"),
+        ({"batch_scenes": 0}, "--batch-scenes must be an int >= 1, got 0"),
+        ({"backend": "dask"}, "--backend must be one of ('local', 'ray'), got 'dask'"),
+        ({"ego": "pilot"}, "--ego must be one of"),
+        ({"target": "all"}, "--target must be one of ('others', 'ego'), got 'all'"),
+        ({"device": "nope"}, "--device: 'nope' is not a torch device"),
+    ],
+)
+def test_bad_values_are_refused_when_the_options_are_built(changes, message):
+    """Every value is checked by ``EvalOptions`` itself, not first when the run starts."""
+    with pytest.raises(ValueError, match="^" + re.escape(message)):
+        EvalOptions(**changes)
 
 
 @pytest.mark.reliability

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -114,6 +115,29 @@ def test_action_repeat_holds_the_policy_action():
     planner.reset(None)
     accels = [planner(np.zeros(3))[0] for _ in range(7)]
     np.testing.assert_allclose(accels, [0.5, 0.5, 0.5, 1.0, 1.0, 1.0, 1.5])
+
+
+@pytest.mark.parametrize(
+    ("changes", "error", "message"),
+    [
+        ({"action_repeat": 0}, ValueError, "EgoEnvConfig.action_repeat must be an int >= 1, got 0"),
+        ({"split": "x"}, ValueError, "EgoEnvConfig.split must be one of ('eval', 'train')"),
+        ({"base_planner": "x"}, ValueError, "EgoEnvConfig.base_planner must be one of ('none',"),
+        ({"maneuver_set": "x"}, ValueError, "EgoEnvConfig.maneuver_set must be one of"),
+        ({"scenes": 0}, ValueError, "EgoEnvConfig.scenes must be an int >= 1, got 0"),
+        ({"maneuver_actions": 1}, TypeError, "EgoEnvConfig.maneuver_actions must be a bool"),
+        ({"env": None}, TypeError, "EgoEnvConfig.env must be of type EnvConfig, got NoneType"),
+        ({"traffic": "idm"}, TypeError, "EgoEnvConfig.traffic must be of type ScenePolicyConfig"),
+        ({"ego_collision": np.nan}, ValueError, "AdversaryRewardConfig.ego_collision must be a"),
+        ({"offroad": -np.inf}, ValueError, "AdversaryRewardConfig.offroad must be a finite number"),
+        ({"closeness": "0.1"}, ValueError, "AdversaryRewardConfig.closeness must be a finite"),
+        ({"closeness_radius": 0.0}, ValueError, "AdversaryRewardConfig.closeness_radius must be >"),
+    ],
+)  # fmt: skip
+def test_configs_refuse_bad_values_when_built(changes, error, message):
+    config = {"EgoEnvConfig": EgoEnvConfig, "AdversaryRewardConfig": AdversaryRewardConfig}
+    with pytest.raises(error, match="^" + re.escape(message)):
+        config[message.split(".")[0]](**changes)  # the class the message names
 
 
 def test_maneuver_features_in_training_and_evaluation_agree():

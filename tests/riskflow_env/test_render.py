@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import shapely
@@ -108,6 +110,23 @@ def test_whole_map_view_and_config():
         RenderConfig(width_px=0)
     with pytest.raises(ValueError, match="render_mode"):
         SceneRenderer("ansi")
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"width_px": 0}, "RenderConfig.width_px must be an int in [16, 1000000]"),
+        ({"height_px": 64.0}, "RenderConfig.height_px must be an int in [16, 1000000]"),
+        ({"view_width": 0.0}, "RenderConfig.view_width must be >= 0.001 m, got 0.0"),
+        ({"view_width": np.nan}, "RenderConfig.view_width must be a finite number"),
+        ({"trail_seconds": 10.0}, "RenderConfig.trail_seconds must be in [0, 3] s"),
+        ({"trail_seconds": -0.1}, "RenderConfig.trail_seconds must be in [0, 3] s"),
+    ],
+)
+def test_render_config_refuses_bad_values_when_built(changes, message):
+    with pytest.raises(ValueError, match="^" + re.escape(message)):
+        RenderConfig(**changes)
+    assert RenderConfig(trail_seconds=3.0).trail_seconds == 3.0  # the whole history
 
 
 def test_human_mode_opens_a_window_and_closes_it():

@@ -5,6 +5,7 @@ errors, a failure replayed bit for bit with the user's planner, and ``compare``.
 from __future__ import annotations
 
 import json
+import re
 import textwrap
 
 import numpy as np
@@ -12,7 +13,7 @@ import pytest
 
 from policies.planners import ConstantVelocityPlanner, IDMPlanner
 from policies.stress import load_planner, load_replay, replay, riskflow_stress
-from policies.stress.cli import main
+from policies.stress.cli import RunOptions, main
 from policies.stress.planner_spec import PlannerSpecError, spec_of
 from riskflow_env.scenarios import load_scenario, save_scenario, shipped_bank
 from tests.policies.stress.planner_sources import RECKLESS
@@ -175,6 +176,23 @@ def test_bad_planner_errors_name_the_argument(spec, message, planner_file, tmp_p
     assert exit_info.value.code == 2
     error = capsys.readouterr().err
     assert f"--planner {spec!r}" in error and message in error
+
+
+@pytest.mark.parametrize(
+    ("planner", "message"),
+    [
+        ("nope", "--planner 'nope': expected a built-in name (idm, "),
+        ("", "--planner '': expected a built-in name"),
+        (None, "--planner None: expected a built-in name"),
+        ("module:", "--planner 'module:': expected a built-in name"),
+        ("imd", "--planner 'imd': expected a built-in name"),
+    ],
+)
+def test_run_options_refuse_a_planner_of_no_form_when_built(planner, message):
+    """The form alone (no import, no file read: the run loads the planner)."""
+    with pytest.raises(PlannerSpecError, match="^" + re.escape(message)):
+        RunOptions(planner=planner)
+    assert RunOptions(planner="no_such_pkg.planners:plan").planner == "no_such_pkg.planners:plan"
 
 
 @pytest.mark.parametrize(

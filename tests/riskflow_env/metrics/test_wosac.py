@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -153,6 +154,23 @@ def test_histogram_and_bernoulli_estimators():
     np.testing.assert_allclose(np.exp(log_lik), [[7 / 8, 1 / 8]])
     flags = np.array([[True], [False], [False], [False]])
     np.testing.assert_allclose(np.exp(bernoulli_log_likelihood(np.array([True]), flags, 0.0)), 0.25)
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"weight": -1.0}, "FeatureConfig.weight must be >= 0, got -1.0"),
+        ({"weight": math.nan}, "FeatureConfig.weight must be a finite number"),
+        ({"num_bins": -2}, "FeatureConfig.num_bins must be an int in [0, 1000000]"),
+        ({"num_bins": 2.0}, "FeatureConfig.num_bins must be an int in [0, 1000000]"),
+        ({"min_val": 5.0, "max_val": 1.0}, "FeatureConfig needs min_val < max_val, got min_val=5"),
+        ({"max_val": math.inf}, "FeatureConfig.max_val must be a finite number"),
+        ({"pseudocount": 0.0}, "FeatureConfig.pseudocount must be > 0"),
+    ],
+)
+def test_feature_config_refuses_bad_values_when_built(changes, message):
+    with pytest.raises(ValueError, match="^" + re.escape(message)):
+        FeatureConfig(**({"weight": 1.0, "num_bins": 10} | changes))
 
 
 def scene(road, sims, log):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -117,11 +119,26 @@ def test_a_halting_vehicle_brakes_at_its_comfortable_rate_easing_near_rest():
     assert -0.2 < vehicle.acceleration(vehicle) < 0.0
 
 
-def test_driver_config_is_validated():
-    with pytest.raises(ValueError, match="stop_share must be in"):
-        DriverConfig(stop_share=1.5)
-    with pytest.raises(ValueError, match="stop_duration"):
-        DriverConfig(stop_duration=(5.0, 1.0))
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"stop_share": 1.5}, "DriverConfig.stop_share must be in [0, 1], got 1.5"),
+        ({"stop_duration": (5.0, 1.0)}, "DriverConfig.stop_duration: need 0 <= min <= max"),
+        ({"time_gap": (2.0, 1.0)}, "DriverConfig.time_gap: need 0 <= min <= max, got (2.0, 1.0)"),
+        ({"extra_headway": (-1.0, 1.0)}, "DriverConfig.extra_headway: need 0 <= min <= max"),
+        ({"car_length": (0.0, 4.0)}, "DriverConfig.car_length: need 0 < min <= max"),
+        ({"delta": (4.0,)}, "DriverConfig.delta must be a (min, max) pair, got (4.0,)"),
+        ({"time_gap": 1.5}, "DriverConfig.time_gap must be a (min, max) pair, got 1.5"),
+        ({"politeness": (0.0, np.nan)}, "DriverConfig.politeness must be a finite number"),
+        ({"truck_fraction": -0.1}, "DriverConfig.truck_fraction must be in [0, 1], got -0.1"),
+        ({"truck_speed_factor": 0.0}, "DriverConfig.truck_speed_factor must be > 0, got 0.0"),
+        ({"default_speed_limit": np.inf}, "DriverConfig.default_speed_limit must be a finite"),
+    ],
+)
+def test_driver_config_is_validated(changes, message):
+    with pytest.raises(ValueError, match="^" + re.escape(message)):
+        DriverConfig(**changes)
+    assert DriverConfig(politeness=[0.1, 0.2]).politeness == (0.1, 0.2)  # a list, as from JSON
 
 
 def test_same_generator_state_same_recording():
