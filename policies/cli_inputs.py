@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from numbers import Integral
 
+import numpy as np
 import torch
 
 from riskflow_env.config import DynamicsConfig
@@ -67,13 +69,16 @@ def check_interval(
 
 
 def check_seeds(seeds: Sequence[int], option: str = "--seeds") -> tuple[int, ...]:
-    """``seeds`` as a tuple: one or more distinct ints in ``[0, 2**32)``, or a ValueError
-    naming ``option`` (a repeated seed would run and count the same episodes twice)."""
+    """``seeds`` as a tuple of ints (numpy integers taken): one or more distinct ints in
+    ``[0, 2**32)``, or a ValueError naming ``option`` (a repeated seed would run and count
+    the same episodes twice)."""
     values = tuple(seeds)
     if not values or any(
-        isinstance(s, bool) or not isinstance(s, int) or not 0 <= s < SEED_LIMIT for s in values
+        isinstance(s, (bool, np.bool_)) or not isinstance(s, Integral) or not 0 <= s < SEED_LIMIT
+        for s in values
     ):
         raise ValueError(f"{option} must be one or more ints in [0, 2**32), got {list(values)}")
+    values = tuple(int(s) for s in values)
     if len(set(values)) != len(values):
         raise ValueError(f"{option} must be distinct, got {list(values)}")
     return values

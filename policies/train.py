@@ -128,7 +128,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``riskflow-train`` console script."""
     argv = sys.argv[1:] if argv is None else list(argv)
     options = parse_options(argv)
-    kept = f"--resume goes on from the last checkpoint in {options.out} (one every --eval-every)"
+    kept = f"--resume goes on from the last checkpoint in {options.out}, if one was written"
     with user_errors(PROG, debug_requested(argv), kept):
         train(options)
     return 0

@@ -14,6 +14,7 @@ from importlib.metadata import PackageNotFoundError, version
 
 import gymnasium
 from pettingzoo.utils.conversions import parallel_to_aec_wrapper
+from pettingzoo.utils.wrappers import OrderEnforcingWrapper
 
 from riskflow_env.config import DynamicsConfig, EnvConfig, ObservationConfig, RewardConfig
 from riskflow_env.env import RiskFlowParallelEnv
@@ -62,9 +63,10 @@ class AECView(parallel_to_aec_wrapper):
         super().step(action)
 
 
-def env(*, max_cycles: int | None = None, **kwargs) -> AECView:
-    """The AEC (turn-by-turn) view of :func:`parallel_env`, for AEC-only libraries."""
-    return AECView(parallel_env(max_cycles=max_cycles, **kwargs))
+def env(*, max_cycles: int | None = None, **kwargs) -> OrderEnforcingWrapper:
+    """The AEC (turn-by-turn) view of :func:`parallel_env`, for AEC-only libraries
+    (:class:`AECView`, inside PettingZoo's check that ``reset`` comes first)."""
+    return OrderEnforcingWrapper(AECView(parallel_env(max_cycles=max_cycles, **kwargs)))
 
 
 __all__ = [

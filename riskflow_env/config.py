@@ -217,10 +217,12 @@ class EnvConfig:
                 _require(value in AGENT_GROUPS, f"{expected}, got {value!r}")
                 continue
             _require(
-                isinstance(value, (tuple, list)) and all(isinstance(v, str) for v in value),
+                isinstance(value, (tuple, list, set, frozenset))
+                and all(isinstance(v, str) for v in value),
                 f"{expected}, got {value!r}",
-            )
-            object.__setattr__(self, option, tuple(value))  # a list: hashable as a tuple
+            )  # stored as a tuple (hashable); a set in sorted order
+            ordered = tuple(value) if isinstance(value, (tuple, list)) else tuple(sorted(value))
+            object.__setattr__(self, option, ordered)
             unknown = sorted(set(value) - names)
             _require(not unknown, f"EnvConfig.{option} names unknown agents {unknown}")
 

@@ -60,5 +60,5 @@ def exit_with_parent(poll_s: float = 1.0) -> None:
 def pool_worker() -> None:
     """A pool's ``initializer``: :func:`exit_with_parent`, and SIGINT ignored (module
     docstring)."""
-    exit_with_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    exit_with_parent()

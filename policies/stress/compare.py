@@ -24,7 +24,7 @@ import numpy as np
 
 from policies.planners import EgoPlanner
 from policies.statistics import paired_difference
-from policies.stress.planner_spec import load_planner
+from policies.stress.planner_spec import check_spec
 from policies.stress.stress_test import StressResult, riskflow_stress
 from riskflow_env.atomic_files import write_text
 from riskflow_env.scenarios import Scenario
@@ -57,9 +57,9 @@ def compare(
         episodes, and a row per outcome (:data:`OUTCOMES`) and per counter-metric.
     """
     folder = None if out is None else Path(out)
-    for letter, planner in (("a", a), ("b", b)):  # a bad spec of b fails before a's run
+    for letter, planner in (("a", a), ("b", b)):  # a malformed b fails before a's run
         if isinstance(planner, str):
-            load_planner(planner, argument=letter)
+            check_spec(planner, letter)
     runs = []
     for letter, planner in (("a", a), ("b", b)):
         sub = None if folder is None else folder / f"{letter}-{_safe(_label(planner))}"

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import pytest
 
 from policies.cli_inputs import check_device, check_interval, check_seeds, parse_seeds
@@ -77,6 +78,8 @@ def test_video_path_names_the_option(tmp_path):
 def test_seeds_one_parser_for_every_tool():
     assert parse_seeds("0,1, 2") == parse_seeds("0 1 2") == check_seeds([0, 1, 2]) == (0, 1, 2)
     assert parse_seeds(str(2**32 - 1)) == (2**32 - 1,)
+    taken = check_seeds([np.int64(3), 4])
+    assert taken == (3, 4) and all(type(seed) is int for seed in taken)
     for text, message in (
         ("", "--seeds must be comma-separated ints >= 0 (e.g. 0,1,2), got ''"),
         ("0,-1", "--seeds must be comma-separated ints >= 0 (e.g. 0,1,2), got '0,-1'"),

@@ -49,6 +49,8 @@ def test_termination_options_name_the_field_and_lists_become_tuples():
     assert config.terminate_on_collision == ("ego",) and hash(config) == hash(
         EnvConfig(terminate_on_collision=("ego",))
     )
+    names = EnvConfig(terminate_on_collision={"ego", "agent_1"}).terminate_on_collision
+    assert names == ("agent_1", "ego")
 
 
 @pytest.mark.parametrize(
@@ -98,6 +100,8 @@ def test_the_aec_view_checks_each_action_as_it_is_given(action, message):
         aec.step(action)
     aec.step(np.zeros(2))  # the refused action was not taken: the ego steps again
     assert aec.agent_selection != "ego"
+    with pytest.raises(AssertionError, match="reset"):  # PettingZoo's order check
+        riskflow_env.env().step(np.zeros(2))
 
 
 @pytest.mark.parametrize(
