@@ -160,15 +160,14 @@ def avoid_overlaps(
     variable = agent_mask & (state[..., SPEED] > REST_SPEED)
     variable[:, ego] = False
     rows = torch.nonzero(variable.flatten()).flatten()  # flat (scene, agent) indices
+    variables = rows
     u = u0.detach().clone()
+    # every row's plan, decoded once: only the variables' rows change below
+    actions, trajectories = decode_plans(eps + u0, state, agent_mask, normalizer, dynamics)
     if steps > 0 and rows.numel() > 0:
         with torch.no_grad():
             # every row's plan over the scored steps; the variables' are replaced each step
-            _, joint = decode_plans(
-                eps[..., :horizon, :] + u0[..., :horizon, :], state, agent_mask, normalizer,
-                dynamics,
-            )  # fmt: skip
-            obstacles = joint  # (B, A, H, 4)
+            obstacles = trajectories[..., :horizon, :].clone()  # (B, A, H, 4)
             _assume_slow_ego_stands(obstacles, state, ego)
             # the pairs that can change: scored, with at least one variable
             pairs = scored_pairs(length, width, agent_mask, state)
@@ -238,7 +237,11 @@ def avoid_overlaps(
                     delta = delta - adam.step(gradient)
                 else:
                     u_rows[rows, :horizon] += share * delta
-    actions, trajectories = decode_plans(eps + u, state, agent_mask, normalizer, dynamics)
+        # the variables' rows decoded again (each row's decoding is its own)
+        flat = [t.flatten(0, 1)[variables] for t in (eps, u, state, agent_mask)]
+        decoded = decode_plans(flat[0] + flat[1], *flat[2:], normalizer, dynamics)
+        for plan, new_rows in zip((actions, trajectories), decoded, strict=True):
+            plan.view(-1, *plan.shape[2:])[variables] = new_rows
     if brake and steps > 0 and rows.numel() > 0:
         with torch.no_grad():
             may_brake = variable if guided is None else variable & ~guided.bool()
