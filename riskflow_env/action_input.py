@@ -1,16 +1,39 @@
 """The env's action input: ``{agent: (accel, yaw_rate)}`` -> one (A, 2) array, validated.
 
 Errors name the agent and what is wrong (unknown or finished agent, missing action,
-wrong shape, NaN/inf, out of bounds when clipping is off). The common case (exactly the
-live agents, each a finite (2,) action) takes a vectorised path.
+wrong shape, not real numbers (bools included: a bool array, or a Python/numpy bool in a
+list or tuple), NaN/inf, out of bounds when clipping is off). The common case (exactly the
+live agents, each a finite (2,) action) takes a vectorised path; anything it does not take
+goes agent by agent, so both refuse the same actions.
 """
 
 from __future__ import annotations
 
+import operator
 from collections.abc import Mapping, Sequence
+from itertools import chain
 from typing import Any
 
 import numpy as np
+
+_BOOLS = frozenset((bool, np.bool_))
+_DTYPE = operator.attrgetter("dtype")
+
+
+def _holds_bool(values: list[Any]) -> bool:
+    """Whether the actions ``values`` (of an array of int/float dtype, so each an int/float
+    or bool array or sequence) may hold a bool, so the checked path must look.
+
+    Numpy arrays: True unless every distinct dtype is a numpy int/float one; arrays of
+    another library (torch tensors): True. Lists and tuples: True if an element's type is
+    bool or numpy bool. Both gather the dtypes or types with ``map``, no Python code per
+    action.
+    """
+    try:
+        dtypes = set(map(_DTYPE, values))
+    except AttributeError:  # lists, tuples: the elements' types
+        return not _BOOLS.isdisjoint(map(type, chain.from_iterable(values)))
+    return not all(isinstance(dtype, np.dtype) and dtype.kind in "fiu" for dtype in dtypes)
 
 
 class ActionInput:
@@ -47,8 +70,9 @@ class ActionInput:
         if isinstance(actions, Mapping) and len(actions) == len(live):
             try:  # fast path: exactly the live agents, each a finite (2,) action
                 slots = [self.slot[agent] for agent in actions]
-                values = np.array(list(actions.values()))
-                if values.dtype.kind not in "fiu":  # complex, str, object...: checked path
+                raw = list(actions.values())
+                values = np.array(raw)
+                if values.dtype.kind not in "fiu" or _holds_bool(raw):  # bool, str...: checked
                     raise TypeError(values.dtype)
                 values = values.astype(np.float64, copy=False)
             except (KeyError, ValueError, TypeError, RuntimeError):
@@ -97,8 +121,9 @@ class ActionInput:
 
     def check(self, agent: str, action: Any, bounds: bool = True) -> np.ndarray:
         """One agent's action as a (2,) float64 array, or a ValueError naming the agent: not
-        real numbers, not of shape (2,), and (``bounds``) NaN/inf or out of bounds when
-        clipping is off. The AEC view checks each action with it as it is given."""
+        real numbers (a bool array, or a list/tuple holding a Python/numpy bool, included),
+        not of shape (2,), and (``bounds``) NaN/inf or out of bounds when clipping is off.
+        The AEC view checks each action with it as it is given."""
         try:
             raw = np.asarray(action)
         except (ValueError, TypeError, RuntimeError) as error:
@@ -108,6 +133,10 @@ class ActionInput:
         if raw.dtype.kind not in "fiu":
             raise ValueError(
                 f"actions[{agent!r}] must hold real numbers, got dtype {raw.dtype} ({action!r:.60})"
+            )
+        if not hasattr(action, "dtype") and _holds_bool([action]):  # e.g. (True, 0.5)
+            raise ValueError(
+                f"actions[{agent!r}] must hold real numbers, got a bool in {action!r:.60}"
             )
         value = raw.astype(np.float64)
         if value.shape != (2,):

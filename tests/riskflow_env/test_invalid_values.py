@@ -192,6 +192,32 @@ def test_bad_actions_name_the_agent(action):
         env.step(actions)
 
 
+@pytest.mark.parametrize(
+    "action",
+    [
+        np.array([True, False]),
+        [True, False],
+        (True, 0.5),
+        (np.bool_(False), 0.0),
+        [0.1, np.True_],
+    ],
+)
+def test_bool_actions_are_refused_naming_the_agent(action):
+    """A bool action among float ones was taken as 1.0/0.0 on the vectorised path (and a
+    bool in a tuple on both paths); both paths refuse it alike."""
+    env = _env.make_env()
+    env.reset(seed=0)
+    actions = {agent: np.zeros(2) for agent in env.agents}
+    agent = env.agents[-1]
+    actions[agent] = action
+    message = rf"actions\['{agent}'\] must hold real numbers, got (dtype bool|a bool)"
+    with pytest.raises(ValueError, match=message):
+        env.step(actions)
+    with pytest.raises(ValueError, match=message):
+        env.action_input.check(agent, action)
+    env.step({agent: [0.0, np.float32(0.0)] for agent in env.agents})  # numbers still go
+
+
 def test_tensor_with_grad_names_the_agent():
     torch = pytest.importorskip("torch")
     env = _env.make_env()
