@@ -40,6 +40,14 @@ def _stack(values: np.ndarray | Sequence[np.ndarray], name: str) -> np.ndarray:
     return np.stack(steps, axis=1)
 
 
+def _check_bools(value: object, name: str) -> None:
+    """A ValueError naming ``name`` unless ``value`` is a bool or an array of bools (numpy
+    bool dtype; 0/1 ints and floats such as 0.5 are refused, not read as True/False)."""
+    dtype = np.asarray(value).dtype
+    if dtype != np.bool_:
+        raise ValueError(f"{name} must hold bools (a bool array), got dtype {dtype}")
+
+
 @dataclass(frozen=True, eq=False)
 class RolloutRecord:
     """One rollout of ``A`` agent slots over ``T`` steps, with its logged reference.
@@ -48,7 +56,8 @@ class RolloutRecord:
 
     Attributes:
         states: (A, T, 4) simulated (x [m], y [m], v [m/s], psi [rad]).
-        valid: (A, T) bool, the slot holds a vehicle at that step.
+        valid: (A, T) bool, the slot holds a vehicle at that step. The masks (``valid``,
+            ``reference_valid``, ``evaluated``) must hold bools: other dtypes are refused.
         length: (A,) vehicle lengths [m].
         width: (A,) vehicle widths [m].
         reference: (A, T, 4) logged states of the same slots at the same steps.
@@ -95,6 +104,8 @@ class RolloutRecord:
             value = getattr(self, name)
             if value is None and name == "evaluated":
                 value = np.ones(num_agents, dtype=bool)
+            if dtype is np.bool_:
+                _check_bools(value, f"RolloutRecord.{name}")
             value = np.array(value, dtype=dtype)
             if value.shape != shape:
                 raise ValueError(f"RolloutRecord.{name} must have shape {shape}, got {value.shape}")
@@ -176,7 +187,8 @@ class RolloutRecord:
                 after reset and after each env step): ``states[:, 0]`` is the state at
                 the scenario's current step, ``states[:, k]`` the state ``k`` steps later.
             valid: (A, T) bool, T per-step (A,) arrays (e.g. ``SceneState.present``),
-                or one (A,) array for every step; default: the slots that hold a row.
+                or one (A,) array for every step, of bools (other dtypes are refused);
+                default: the slots that hold a row.
             rows: (n,) scenario row of slots 0..n-1, n <= A, -1 for an empty slot (as
                 :func:`riskflow_env.simulator.reset` fills them, or the harness's
                 ``scenario_rows``); default :func:`riskflow_env.simulator.select_agents`
@@ -200,7 +212,9 @@ class RolloutRecord:
         if valid is None:
             valid = np.zeros(num_agents, dtype=bool)
             valid[slots] = True
-        valid = _stack(valid, "valid").astype(bool)
+        valid = _stack(valid, "valid")
+        _check_bools(valid, "valid")
+        valid = valid.astype(bool)
         if valid.shape == (num_agents,):
             valid = np.repeat(valid[:, None], num_steps, axis=1)
         if history < 0:

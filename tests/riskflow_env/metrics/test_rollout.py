@@ -49,6 +49,19 @@ def test_validation_messages_name_the_field():
         RolloutRecord(**bad)
 
 
+@pytest.mark.reliability
+@pytest.mark.parametrize("name", ["valid", "reference_valid", "evaluated"])
+@pytest.mark.parametrize("fill", [0.5, 1.0, 1])
+def test_masks_must_hold_bools(name, fill):
+    """valid=0.5 was read as True; the masks take bools only, naming the field."""
+    raw = fields()
+    raw[name] = np.full(raw["valid"].shape if name != "evaluated" else 2, fill)
+    with pytest.raises(ValueError, match=rf"RolloutRecord\.{name} must hold bools.*got dtype"):
+        RolloutRecord(**raw)
+    raw[name] = raw[name].astype(bool).tolist()  # a list of bools is taken
+    assert RolloutRecord(**raw).valid.dtype == np.bool_
+
+
 def test_invalid_values_are_zeroed_and_arrays_read_only():
     raw = fields()
     raw["reference"][1, 3] = np.nan
@@ -99,6 +112,13 @@ def test_from_scenario_pads_beyond_the_log(road):
     assert not record.reference_valid[:, 0].any()  # before the log starts
     assert not record.reference_valid[:, -4:].any() and record.reference_valid[:2, -5].all()
     assert record.valid[:2, HISTORY + 1 :].all() and not record.valid[:2, 0].any()
+
+
+@pytest.mark.reliability
+def test_from_scenario_valid_must_hold_bools(road):
+    scenario = straight_scenario(road)
+    with pytest.raises(ValueError, match=r"^valid must hold bools.*got dtype float64"):
+        RolloutRecord.from_scenario(scenario, np.zeros((3, 4, 4)), np.full(3, 0.5))
 
 
 def test_from_scenario_takes_harness_rows_with_empty_slots(road):
