@@ -21,8 +21,10 @@ arrays only) and turns it into a :class:`Scenario`:
   ``min_future_steps`` (100, one default episode) with invalid steps; a
   ``current_index`` below 30 pads the history the same way. Invalid steps hold the
   nearest valid state (never NaN), with ``valid`` False.
-* Sizes: median length and width over the valid steps; swapped when the length is the
-  smaller (the nuScenes converter stores the SDC's that way).
+* Sizes: median length and width over the valid steps; 0 and NaN count as not given
+  (4.5 x 2.0 m when a track gives none), a negative or infinite size is refused
+  (ValueError naming the file, track and field); swapped when the length is the smaller
+  (the nuScenes converter stores the SDC's that way).
 * Map: :func:`~riskflow_env.scenarios.scenarionet_map.build_map` (every converter's
   lane widths and surfaces, lane centrelines with successors and speed limits), cropped
   to the box of the logged vehicle positions plus a margin that leaves room for a 10 s

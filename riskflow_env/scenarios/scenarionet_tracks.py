@@ -7,8 +7,9 @@ of a description before it cuts the scenario window:
   ``valid`` and size stacked into (N, T, ...) arrays, each field checked (a step is
   valid only with finite position and heading; N x T and each field's size against
   :mod:`~riskflow_env.scenarios.scenarionet_limits` before it is converted); sizes are
-  the median over the valid steps (:data:`DEFAULT_SIZE` when a track gives none), the
-  length the larger;
+  the median over the valid steps, 0 and NaN counting as not given (:data:`DEFAULT_SIZE`
+  when a track gives none; a negative or infinite size is a ValueError), the length the
+  larger;
 * :func:`time_stamps`: the recorded steps' times (``metadata["ts"]`` or
   ``sample_rate``), finite and increasing;
 * :func:`resample`: tracks on the 10 Hz grid (linear in position and velocity,
@@ -72,8 +73,7 @@ def stack_tracks(states: list, ids: list[str], source: str) -> tuple:
         for column, key in enumerate(("length", "width")):
             values = _read(state.get(key, ()), f"{what} {key}", limit).reshape(-1)
             values = values[valid] if values.shape == (steps,) else values
-            values = values[np.isfinite(values) & (values > 0)]
-            size[row, column] = np.median(values) if values.size else DEFAULT_SIZE[column]
+            size[row, column] = _median_size(values, f"{what} {key}", DEFAULT_SIZE[column])
     size = np.where(size[:, :1] < size[:, 1:], size[:, ::-1], size)  # length is the larger
     velocities = fields["velocity"]
     velocity = None if any(v is None for v in velocities) else np.stack(velocities)
@@ -81,6 +81,19 @@ def stack_tracks(states: list, ids: list[str], source: str) -> tuple:
         velocity = np.where(np.isfinite(velocity), velocity, 0.0)
     xy = np.stack(fields["position"])
     return xy, np.stack(fields["heading"]), velocity, np.stack(fields["valid"]), size
+
+
+def _median_size(values: np.ndarray, what: str, default: float) -> float:
+    """The median of a track's sizes ``values`` [m] at its valid steps; 0 and NaN mean not
+    given and are left out (``default`` when none is given). A negative or infinite size
+    is not a missing one: ValueError naming ``what`` (the file, track and field)."""
+    given = values[~np.isnan(values) & (values != 0)]
+    bad = given[~np.isfinite(given) | (given < 0)]
+    if bad.size:
+        raise ValueError(
+            f"{what} must be > 0 m (0 or NaN: not given) at the valid steps, got {bad[0]:g}"
+        )
+    return float(np.median(given)) if given.size else default
 
 
 def _read(value: object, what: str, limit: int) -> np.ndarray:

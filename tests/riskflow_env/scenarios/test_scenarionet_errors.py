@@ -150,3 +150,32 @@ def test_complex_numbers_are_refused_not_cast(label, description, tmp_path):
         warnings.simplefilter("error")  # no ComplexWarning on the way
         with pytest.raises(ValueError, match=rf"{re.escape(str(path))}: .*{field}.* complex"):
             load_scenarionet(path)
+
+
+@pytest.mark.parametrize("key", ["length", "width"])
+@pytest.mark.parametrize("bad", [-4.0, -np.inf, np.inf])
+def test_negative_or_infinite_sizes_are_refused(key, bad, tmp_path):
+    """A negative length was dropped like a missing one and the track got another size;
+    now it is an error naming the file, the track and the field."""
+    description = _tests._description()
+    description["tracks"]["car"]["state"][key][4:] = bad
+    path = tmp_path / "scene.pkl"
+    path.write_bytes(pickle.dumps(description))
+    message = rf"{re.escape(str(path))}: track 'car' {key} must be > 0 m .* got {bad:g}"
+    with pytest.raises(ValueError, match=message):
+        load_scenarionet(path)
+
+
+def test_missing_sizes_are_repaired_and_invalid_steps_ignored(tmp_path):
+    """0 and NaN mean "not given": the median of the given sizes, else 4.5 x 2.0 m; a size
+    at an invalid step (Waymo writes -1 there) is not read."""
+    description = _tests._description()
+    car, ego = description["tracks"]["car"]["state"], description["tracks"]["ego"]["state"]
+    car["length"][:5], car["length"][5:8] = 0.0, np.nan  # some steps give none
+    car["length"][-3:] = -1.0  # the car's invalid steps
+    car["width"] = car["width"].reshape(-1)  # (T,) as the Waymo converter writes them
+    car["width"][-3:] = -1.0
+    ego["length"][:], ego["width"][:] = np.nan, 0.0  # no size at all
+    scenario = scenarionet.scenario_from_description(description)
+    np.testing.assert_allclose(scenario.length, [4.5, 4.0])
+    np.testing.assert_allclose(scenario.width, [2.0, 2.0])
