@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+
+import numpy as np
 
 
 def _require(condition: bool, message: str) -> None:
@@ -14,14 +17,42 @@ def _require(condition: bool, message: str) -> None:
 MAX_MAGNITUDE = 1e6  # largest |value| of a real-valued config field (float32-safe)
 
 
-def _finite(name: str, value: float) -> None:
-    _require(
-        isinstance(value, (int, float))
-        and not isinstance(value, bool)
-        and math.isfinite(value)
-        and abs(value) <= MAX_MAGNITUDE,
+def _is_number(value: object) -> bool:
+    """A real number: a Python int or float, or a numpy integer or float scalar of any
+    dtype (``np.float32(0.1)``); bools (Python and numpy) are not numbers."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+        value, (bool, np.bool_)
+    )
+
+
+def _plain(value: float) -> float:
+    """A number as a Python one: numpy integers -> int, numpy float scalars -> float; a
+    float16/float32 one by its shortest decimal (``np.float32(0.1)`` -> 0.1, not
+    0.10000000149011612, so that it matches a float64 0.1, e.g. a scenario's ``dt``)."""
+    if isinstance(value, (np.float16, np.float32)):
+        return float(str(value))
+    if isinstance(value, np.floating):
+        return float(value)
+    return int(value) if isinstance(value, np.integer) else value
+
+
+def _finite(name: str, value: float) -> float:
+    """``value`` as a Python number (:func:`_plain`), or a ValueError naming ``name``
+    unless it is a finite number (:func:`_is_number`) within +-``MAX_MAGNITUDE``."""
+    number = _plain(value) if _is_number(value) else None
+    _require(  # NaN and inf fail the comparison; a huge int compares without overflow
+        number is not None and abs(number) <= MAX_MAGNITUDE,
         f"{name} must be a finite number within +-{MAX_MAGNITUDE:g}, got {value!r}",
     )
+    return number
+
+
+def _set_finite(config: object, names: Iterable[str]) -> None:
+    """Checks the fields ``names`` of the frozen dataclass ``config`` with :func:`_finite`
+    (errors name ``Class.field``) and stores them as Python numbers."""
+    for name in names:
+        value = _finite(f"{type(config).__name__}.{name}", getattr(config, name))
+        object.__setattr__(config, name, value)
 
 
 def _integer(name: str, value: int, minimum: int, maximum: int = 1_000_000) -> None:
@@ -57,11 +88,10 @@ class DynamicsConfig:
     turn_radius_min: float = 5.0
 
     def __post_init__(self) -> None:
-        for name in (
+        _set_finite(self, (
             "dt", "accel_min", "accel_max", "yaw_rate_max", "speed_min", "speed_max",
             "turn_radius_min",
-        ):  # fmt: skip
-            _finite(f"DynamicsConfig.{name}", getattr(self, name))
+        ))  # fmt: skip
         _require(self.dt > 0, f"DynamicsConfig.dt must be > 0 s, got {self.dt}")
         _require(
             self.accel_min < 0 < self.accel_max,
@@ -111,15 +141,13 @@ class ObservationConfig:
             isinstance(self.ray_distances, tuple)
             and len(self.ray_distances) <= 1024
             and all(
-                isinstance(d, (int, float))
-                and not isinstance(d, bool)
-                and math.isfinite(d)
-                and 0 < d <= MAX_RAY_DISTANCE
+                _is_number(d) and math.isfinite(d) and 0 < d <= MAX_RAY_DISTANCE
                 for d in self.ray_distances
             ),
             "ObservationConfig.ray_distances must be a tuple of positive metres <= "
             f"{MAX_RAY_DISTANCE:g}, got {self.ray_distances!r}",
         )
+        object.__setattr__(self, "ray_distances", tuple(map(_plain, self.ray_distances)))
 
 
 @dataclass(frozen=True)
@@ -149,8 +177,7 @@ class RewardConfig:
     comfort: float = -0.01
 
     def __post_init__(self) -> None:
-        for name in ("target_speed", "speed", "collision", "offroad", "risk", "comfort"):
-            _finite(f"RewardConfig.{name}", getattr(self, name))
+        _set_finite(self, ("target_speed", "speed", "collision", "offroad", "risk", "comfort"))
         _require(self.target_speed > 0, "RewardConfig.target_speed must be > 0 m/s")
 
 

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from riskflow_env.config import DynamicsConfig, _finite, _integer, _require
+from riskflow_env.config import DynamicsConfig, _integer, _require, _set_finite
 from riskflow_env.events import contact_pairs
 from riskflow_env.geometry import FRONT, LEFT, RIGHT, box_corners, footprint_points
 from riskflow_env.state import HISTORY_STEPS
@@ -79,8 +79,7 @@ class RenderConfig:
     def __post_init__(self) -> None:
         for name in ("width_px", "height_px"):
             _integer(f"RenderConfig.{name}", getattr(self, name), 16)
-        for name in ("view_width", "trail_seconds"):
-            _finite(f"RenderConfig.{name}", getattr(self, name))
+        _set_finite(self, ("view_width", "trail_seconds"))
         width, trail = self.view_width, self.trail_seconds
         _require(width >= 1e-3, f"RenderConfig.view_width must be >= 0.001 m, got {width}")
         _require(

@@ -25,7 +25,7 @@ import numpy as np
 from pettingzoo import ParallelEnv
 
 from policies.planners.base import EgoPlanner, as_action, reset_planner
-from riskflow_env.config import EnvConfig, _finite
+from riskflow_env.config import EnvConfig, _set_finite
 from riskflow_env.env import RiskFlowParallelEnv
 from riskflow_env.wrappers.vector import sb3_vec_env
 
@@ -58,8 +58,7 @@ class AdversaryRewardConfig:
     offroad: float = -1.0
 
     def __post_init__(self) -> None:
-        for field in fields(self):  # every term a finite number
-            _finite(f"AdversaryRewardConfig.{field.name}", getattr(self, field.name))
+        _set_finite(self, (field.name for field in fields(self)))  # every term a number
         if not self.closeness_radius > 0:
             raise ValueError(
                 f"AdversaryRewardConfig.closeness_radius must be > 0 m, got {self.closeness_radius}"

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from riskflow_env.config import _finite, _integer, _require
+from riskflow_env.config import _integer, _require, _set_finite
 from riskflow_env.metrics.rollout import RolloutRecord
 from riskflow_env.metrics.wosac_features import WOSAC_FEATURES, wosac_features
 
@@ -59,8 +59,7 @@ class FeatureConfig:
     pseudocount: float = 0.001
 
     def __post_init__(self) -> None:
-        for name in ("weight", "min_val", "max_val", "pseudocount"):
-            _finite(f"FeatureConfig.{name}", getattr(self, name))
+        _set_finite(self, ("weight", "min_val", "max_val", "pseudocount"))
         _require(self.weight >= 0, f"FeatureConfig.weight must be >= 0, got {self.weight}")
         _integer("FeatureConfig.num_bins", self.num_bins, 0)
         _require(

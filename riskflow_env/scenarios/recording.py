@@ -110,15 +110,14 @@ class DriverConfig:
         for field in fields(self):
             name, value = field.name, getattr(self, field.name)
             if not isinstance(field.default, tuple):  # a number
-                _finite(f"DriverConfig.{name}", value)
+                object.__setattr__(self, name, _finite(f"DriverConfig.{name}", value))
                 continue
             if isinstance(value, list):  # e.g. read from JSON
                 object.__setattr__(self, name, value := tuple(value))
             pair = isinstance(value, tuple) and len(value) == 2
             _require(pair, f"DriverConfig.{name} must be a (min, max) pair, got {value!r}")
-            for bound in value:
-                _finite(f"DriverConfig.{name}", bound)
-            low, high = value
+            low, high = (_finite(f"DriverConfig.{name}", bound) for bound in value)
+            object.__setattr__(self, name, value := (low, high))
             positive = name in POSITIVE_RANGES
             _require(
                 (low > 0 if positive else low >= 0) and low <= high,

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from riskflow_env.config import _is_number, _plain
 from riskflow_env.dynamics import STATE_DIM
 from riskflow_env.maps import DrivableMap
 from riskflow_env.state import HISTORY_STEPS
@@ -41,7 +42,8 @@ class Scenario:
         ego_index: row of ``states`` that is the ego (the agent under test).
         agent_ids: (N,) names of the agents in the source data (for traceability).
         name: a short identifier of the scene (source, family, seed...).
-        dt: track time step [s], in ``DT_RANGE``.
+        dt: track time step [s], in ``DT_RANGE``: a number (a numpy int or float scalar
+            too, not a bool), stored as a Python float.
         history_steps: number of history states, the current one included.
         kinds: (N,) agent categories (e.g. ``"car"``, ``"truck"``), or empty when unknown.
         source: where the scene comes from (e.g. ``"highway-env-idm"``, a dataset name).
@@ -122,14 +124,11 @@ class Scenario:
                     f"{size[bad[0]]!r} for agent {bad[0]} ({bad.size} agent(s) out of range)"
                 )
         dt = self.dt
-        if (
-            isinstance(dt, bool)
-            or not isinstance(dt, (int, float, np.floating, np.integer))
-            or not DT_RANGE[0] <= dt <= DT_RANGE[1]
-        ):
+        if not _is_number(dt) or not DT_RANGE[0] <= _plain(dt) <= DT_RANGE[1]:
             raise ValueError(
                 f"Scenario.dt must be a number in [{DT_RANGE[0]:g}, {DT_RANGE[1]:g}] s, got {dt!r}"
             )
+        object.__setattr__(self, "dt", float(_plain(dt)))
         if self.agent_ids and len(self.agent_ids) != num_agents:
             raise ValueError(
                 f"Scenario.agent_ids must name all {num_agents} agents, got {len(self.agent_ids)}"

@@ -179,7 +179,9 @@ def scenario_from_description(
     """:func:`load_scenarionet` for an already loaded description dict (every failure a
     ``ValueError`` naming ``source``); the map goes through ``map_cache`` when both it
     and ``file_digest`` (the content hash of the description's file) are given."""
-    _check_arguments(resolution, current_index, min_future_steps, margin, crop_margin)
+    resolution, margin, crop_margin = _check_arguments(
+        resolution, current_index, min_future_steps, margin, crop_margin
+    )
     cache = (map_cache, file_digest) if map_cache is not None and file_digest else None
     with errors_name_the_file(source, "a readable ScenarioNet scenario"):
         return _scenario(
@@ -203,18 +205,20 @@ def _check_arguments(
     min_future_steps: int,
     margin: float,
     crop_margin: float | None,
-) -> None:
-    """ValueError naming the loader's argument that is out of its range."""
-    _finite("resolution", resolution)
+) -> tuple[float, float, float | None]:
+    """``(resolution, margin, crop_margin)`` as Python numbers (numpy scalars taken), or a
+    ValueError naming the loader's argument that is out of its range."""
+    resolution = _finite("resolution", resolution)
     _require(resolution > 0, f"resolution must be > 0 [m/px], got {resolution!r}")
     if current_index is not None:
         _integer("current_index", current_index, 0)
     _integer("min_future_steps", min_future_steps, 0)
-    _finite("margin", margin)
+    margin = _finite("margin", margin)
     _require(margin >= 0, f"margin must be >= 0 [m], got {margin!r}")
     if crop_margin is not None:
-        _finite("crop_margin", crop_margin)
+        crop_margin = _finite("crop_margin", crop_margin)
         _require(crop_margin > 0, f"crop_margin must be > 0 [m], got {crop_margin!r}")
+    return resolution, margin, crop_margin
 
 
 def _scenario(

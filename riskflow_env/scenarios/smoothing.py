@@ -27,6 +27,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.signal import savgol_filter
 
+from riskflow_env.config import MAX_MAGNITUDE, _is_number, _plain
 from riskflow_env.dynamics import wrap_angle
 
 WINDOW_STEPS = 21  # [steps] Savitzky-Golay window (2.1 s at 10 Hz: four nuScenes keyframes), odd
@@ -46,7 +47,8 @@ def smooth_tracks(
     Args:
         states: (N, T, 4) (x [m], y [m], v [m/s], psi [rad]), psi unwrapped along time.
         valid: (N, T) bool.
-        dt: time step [s], > 0.
+        dt: time step [s], in (0, ``MAX_MAGNITUDE``]: a number (numpy scalars too), not
+            a bool.
         window: window length [steps], odd, > ``polyorder``.
         polyorder: degree of the local polynomial, >= 1.
 
@@ -63,8 +65,9 @@ def smooth_tracks(
         raise ValueError(f"polyorder must be an int >= 1, got {polyorder!r}")
     if not (isinstance(window, int) and window % 2 == 1 and window > polyorder):
         raise ValueError(f"window must be an odd int > polyorder = {polyorder}, got {window!r}")
-    if not (np.isfinite(dt) and dt > 0):
+    if not (_is_number(dt) and 0 < _plain(dt) <= MAX_MAGNITUDE):  # bools, NaN are refused
         raise ValueError(f"dt must be a finite number > 0 [s], got {dt!r}")
+    dt = float(_plain(dt))
     out = states.copy()
     for agent, start, stop in _runs(valid):  # load time: a loop over track segments
         length = stop - start

@@ -72,6 +72,42 @@ def test_traffic_config_values(kwargs, message):
     assert str(error.value).startswith(message)
 
 
+@pytest.mark.parametrize("number", [np.float32(0.1), np.float16(0.1), np.float64(0.1)])
+def test_numpy_float_scalars_are_numbers(number):
+    """np.float32(0.1) was refused as dt ("must be a finite number"); numpy float scalars
+    of any dtype are numbers, stored as Python floats (float32 0.1 as 0.1)."""
+    from riskflow_env.config import RewardConfig, _is_number
+    from riskflow_env.scenarios.traffic import TrafficConfig
+
+    values = [
+        DynamicsConfig(dt=number).dt,
+        TrafficConfig(dt=number, length_range=(4.0, number * 50)).dt,
+        TrafficConfig(length_range=(number * 40, 5.0)).length_range[0] / 40,
+        RewardConfig(speed=number).speed,
+        ObservationConfig(ray_distances=(number, 5.0)).ray_distances[0],
+        _io._scenario(dt=number).dt,
+    ]
+    assert all(type(value) is float and value == pytest.approx(0.1, abs=1e-15) for value in values)
+    assert DynamicsConfig(dt=np.float32(0.1)) == DynamicsConfig(dt=0.1)
+    assert _is_number(np.int64(3)) and not _is_number(np.bool_(True))
+
+
+@pytest.mark.parametrize("flag", [True, np.bool_(True)])
+def test_bools_are_not_numbers(flag):
+    from riskflow_env.config import RewardConfig
+    from riskflow_env.scenarios.traffic import TrafficConfig
+
+    for build, field in (
+        (lambda: DynamicsConfig(dt=flag), "DynamicsConfig.dt"),
+        (lambda: TrafficConfig(dt=flag), "TrafficConfig.dt"),
+        (lambda: RewardConfig(speed=flag), "RewardConfig.speed"),
+        (lambda: ObservationConfig(ray_distances=(flag,)), "ObservationConfig.ray_distances"),
+        (lambda: _io._scenario(dt=flag), "Scenario.dt"),
+    ):
+        with pytest.raises(ValueError, match=field):
+            build()
+
+
 def test_a_scene_at_another_time_step_is_refused_at_reset():
     import riskflow_env
     from riskflow_env.scenarios import shipped_bank

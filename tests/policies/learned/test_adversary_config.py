@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import re
 
+import numpy as np
 import pytest
 
 from policies.learned.adversary_config import AdversaryConfig
@@ -29,11 +30,17 @@ from riskflow_env.config import DynamicsConfig
         ({"threads": 0}, "AdversaryConfig.threads must be an int >= 1, got 0"),
         ({"target": "all"}, "AdversaryConfig.target must be one of ('others', 'ego'), got 'all'"),
         ({"seed": -1}, "AdversaryConfig.seed must be an int >= 0, got -1"),
+        ({"hold_distance": True}, "AdversaryConfig.hold_distance must be a finite number >= 0"),
     ],
 )
 def test_bad_values_are_refused_when_built(changes, message):
     with pytest.raises(ValueError, match="^" + re.escape(message)):
         AdversaryConfig(**changes)
+
+
+def test_numpy_float_hold_distance_is_a_number():
+    hold = AdversaryConfig(hold_distance=np.float32(0.1)).hold_distance
+    assert type(hold) is float and hold == 0.1
 
 
 def test_planning_interval_is_a_multiple_of_the_windows_time_step():

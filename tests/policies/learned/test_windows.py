@@ -166,6 +166,15 @@ def test_bad_inputs_are_named(scenario):
         WindowConfig(max_agents=0)
 
 
+@pytest.mark.parametrize("name", ["crop_resolution", "sdf_clip", "max_distance"])
+def test_window_config_numbers(name):
+    """A bool was taken as 1 m and np.float32 refused; now the other way round."""
+    with pytest.raises(ValueError, match=f"WindowConfig.{name} must be a number > 0, got True"):
+        WindowConfig(**{name: True})
+    value = getattr(WindowConfig(**{name: np.float32(0.5)}), name)
+    assert type(value) is float and value == 0.5
+
+
 def test_view_window_equals_scenario_window_at_the_episode_start(scenario):
     env = riskflow_env.parallel_env()
     env.reset(seed=0, options={"scenario": scenario})

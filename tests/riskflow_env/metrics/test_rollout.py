@@ -43,6 +43,8 @@ def test_validation_messages_name_the_field():
             RolloutRecord(**fields(), **changes)
         assert str(error.value) == message
     assert RolloutRecord(**fields(), dt=np.float32(0.1), ego_index=np.int64(1)).ego_index == 1
+    assert type(RolloutRecord(**fields(), dt=np.float32(0.1)).dt) is float  # 0.1, not 0.1000...1
+    assert RolloutRecord(**fields(), dt=np.float32(0.1)).dt == 0.1
     bad = fields()
     bad["states"][0, 0, 0] = np.nan
     with pytest.raises(ValueError, match="NaN"):

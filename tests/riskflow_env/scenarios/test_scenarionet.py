@@ -127,6 +127,15 @@ def test_malformed_descriptions(change, message):
         scenario_from_description(description)
 
 
+def test_numpy_float_arguments_are_numbers():
+    scenario = scenario_from_description(
+        _description(), resolution=np.float32(0.5), margin=np.float16(5), crop_margin=np.float32(60)
+    )
+    assert type(scenario.map.resolution) is float and scenario.map.resolution == 0.5
+    with pytest.raises(ValueError, match="resolution must be a finite number"):
+        scenario_from_description(_description(), resolution=np.bool_(True))
+
+
 def test_road_edge_fallback():
     xy = np.array([[1.0, 1.0], [5.0, 5.0]])
     square = np.array([[0.0, 0], [10, 0], [10, 10], [0, 10], [0, 0]])

@@ -101,3 +101,12 @@ def test_loader_option_keeps_validity_and_stays_close():
     assert gap[straight].max() < 1e-6  # constant velocity: reproduced
     assert gap.max() < 1.0  # the parker's path has sharp corners: the fit rounds them
     assert np.all(np.isfinite(smooth.states))
+
+
+@pytest.mark.reliability
+def test_dt_is_a_number_not_a_bool():
+    states, valid = np.zeros((1, 9, 4)), np.ones((1, 9), bool)
+    for dt in (True, np.bool_(True), "0.1", 10**400, float("nan")):
+        with pytest.raises(ValueError, match=r"dt must be a finite number > 0 \[s\]"):
+            smooth_tracks(states, valid, dt)
+    np.testing.assert_array_equal(smooth_tracks(states, valid, np.float32(0.1)), states)
