@@ -17,7 +17,7 @@ def _require(condition: bool, message: str) -> None:
 MAX_MAGNITUDE = 1e6  # largest |value| of a real-valued config field (float32-safe)
 
 
-def _is_number(value: object) -> bool:
+def is_number(value: object) -> bool:
     """A real number: a Python int or float, or a numpy integer or float scalar of any
     dtype (``np.float32(0.1)``); bools (Python and numpy) are not numbers."""
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
@@ -25,7 +25,7 @@ def _is_number(value: object) -> bool:
     )
 
 
-def _plain(value: float) -> float:
+def plain_number(value: float) -> float:
     """A number as a Python one: numpy integers -> int, numpy float scalars -> float; a
     float16/float32 one by its shortest decimal (``np.float32(0.1)`` -> 0.1, not
     0.10000000149011612, so that it matches a float64 0.1, e.g. a scenario's ``dt``)."""
@@ -37,9 +37,9 @@ def _plain(value: float) -> float:
 
 
 def _finite(name: str, value: float) -> float:
-    """``value`` as a Python number (:func:`_plain`), or a ValueError naming ``name``
-    unless it is a finite number (:func:`_is_number`) within +-``MAX_MAGNITUDE``."""
-    number = _plain(value) if _is_number(value) else None
+    """``value`` as a Python number (:func:`plain_number`), or a ValueError naming ``name``
+    unless it is a finite number (:func:`is_number`) within +-``MAX_MAGNITUDE``."""
+    number = plain_number(value) if is_number(value) else None
     _require(  # NaN and inf fail the comparison; a huge int compares without overflow
         number is not None and abs(number) <= MAX_MAGNITUDE,
         f"{name} must be a finite number within +-{MAX_MAGNITUDE:g}, got {value!r}",
@@ -141,13 +141,13 @@ class ObservationConfig:
             isinstance(self.ray_distances, tuple)
             and len(self.ray_distances) <= 1024
             and all(
-                _is_number(d) and math.isfinite(d) and 0 < d <= MAX_RAY_DISTANCE
+                is_number(d) and math.isfinite(d) and 0 < d <= MAX_RAY_DISTANCE
                 for d in self.ray_distances
             ),
             "ObservationConfig.ray_distances must be a tuple of positive metres <= "
             f"{MAX_RAY_DISTANCE:g}, got {self.ray_distances!r}",
         )
-        object.__setattr__(self, "ray_distances", tuple(map(_plain, self.ray_distances)))
+        object.__setattr__(self, "ray_distances", tuple(map(plain_number, self.ray_distances)))
 
 
 @dataclass(frozen=True)

@@ -50,6 +50,7 @@ from policies.riskflow.guidance import (
 )
 from policies.riskflow.policy import PHASES, GeneratorPolicy
 from riskflow_env._array import attach_gradient
+from riskflow_env.config import is_number
 
 DEFAULT_LAMBDA_PRIOR = 1.0  # weight of ||eps_c||^2 / 2 [per unit of normalised noise^2]
 # Adam's learning rate on the latent [normalised noise units per step]: STRIVE-style's best
@@ -178,7 +179,7 @@ class StriveAdversary(GeneratorPolicy):
         avoid_step_size: float = 0.1,
         **options: Any,
     ) -> None:
-        if not (isinstance(lambda_prior, (int, float)) and 0 <= lambda_prior < float("inf")):
+        if not (is_number(lambda_prior) and 0 <= lambda_prior < float("inf")):
             raise ValueError(f"lambda_prior must be a finite number >= 0, got {lambda_prior!r}")
         if generator == "diffusion" or "sampling_steps" in options:
             raise ValueError(_NOT_DIFFUSION)

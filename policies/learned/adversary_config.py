@@ -34,7 +34,7 @@ from policies.learned.guidance_losses import TARGETS, ObjectiveConfig
 from policies.learned.plan_stitching import DEFAULT_HOLD_DISTANCE
 from policies.learned.ranking import DEFAULT_THRESHOLD, check_k
 from policies.learned.windows import WindowConfig
-from riskflow_env.config import _is_number, _plain
+from riskflow_env.config import is_number, plain_number
 
 
 @dataclass(frozen=True)
@@ -115,11 +115,11 @@ class AdversaryConfig:
                 f"AdversaryConfig.lambda_map must be >= 0 [1/m^2], got {self.lambda_map!r}"
             )
         hold = self.hold_distance
-        if not _is_number(hold) or not 0 <= hold < math.inf:  # numpy scalars too, no bools
+        if not is_number(hold) or not 0 <= hold < math.inf:  # numpy scalars too, no bools
             raise ValueError(
                 f"AdversaryConfig.hold_distance must be a finite number >= 0 [m], got {hold!r}"
             )
-        object.__setattr__(self, "hold_distance", float(_plain(hold)))
+        object.__setattr__(self, "hold_distance", float(plain_number(hold)))
         stitch = self.stitch_steps
         if stitch is not None:
             if isinstance(stitch, bool) or not isinstance(stitch, (int, np.integer)) or stitch < 0:

@@ -33,7 +33,7 @@ import numpy as np
 
 from policies.learned.window_types import Window, WindowBatch, collate_windows
 from riskflow_env import dynamics
-from riskflow_env.config import DynamicsConfig, _is_number, _plain
+from riskflow_env.config import DynamicsConfig, is_number, plain_number
 from riskflow_env.dynamics import SPEED, YAW
 from riskflow_env.geometry import to_frame
 from riskflow_env.maps import DrivableMap
@@ -85,9 +85,9 @@ class WindowConfig:
                 raise ValueError(f"WindowConfig.{name} must be an int >= 1, got {value!r}")
         for name in ("crop_resolution", "sdf_clip", "max_distance", "interaction_distance"):
             value = getattr(self, name)  # numpy scalars too, stored as Python numbers; no bools
-            if not _is_number(value) or math.isnan(value) or value <= 0:
+            if not is_number(value) or math.isnan(value) or value <= 0:
                 raise ValueError(f"WindowConfig.{name} must be a number > 0, got {value!r}")
-            object.__setattr__(self, name, _plain(value))
+            object.__setattr__(self, name, plain_number(value))
 
 
 def build_window(

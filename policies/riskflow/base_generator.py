@@ -26,6 +26,7 @@ import torch
 from policies.learned.checkpoint import checkpoint_kind, load_checkpoint
 from policies.learned.data import ActionNormalizer
 from policies.learned.generator import RiskFlowGenerator
+from riskflow_env.config import is_number
 
 GENERATOR_KINDS = ("meanflow", "diffusion")
 DEFAULT_SAMPLING_STEPS = 10  # DDIM levels of a diffusion base generator (its validation's)
@@ -129,9 +130,7 @@ def resolve_avoid_steps(avoid_steps: int | None, avoid_step_size: float, kind: s
         isinstance(avoid_steps, bool) or not isinstance(avoid_steps, int) or avoid_steps < 0
     ):
         raise ValueError(f"avoid_steps must be None or an int >= 0, got {avoid_steps!r}")
-    if isinstance(avoid_step_size, bool) or not (
-        isinstance(avoid_step_size, (int, float)) and 0 < avoid_step_size < float("inf")
-    ):
+    if not (is_number(avoid_step_size) and 0 < avoid_step_size < float("inf")):
         raise ValueError(f"avoid_step_size must be a finite number > 0, got {avoid_step_size!r}")
     if avoid_steps is None:
         return DEFAULT_AVOID_STEPS if kind == "meanflow" else 0

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from riskflow_env.config import _plain
+from riskflow_env.config import plain_number
 from riskflow_env.dynamics import STATE_DIM
 from riskflow_env.maps import DrivableMap
 from riskflow_env.scenarios.scenario import Scenario
@@ -140,7 +140,7 @@ class RolloutRecord:
         for name, value in arrays.items():
             value.setflags(write=False)
             object.__setattr__(self, name, value)
-        object.__setattr__(self, "dt", float(_plain(self.dt)))  # np.float32(0.1) -> 0.1
+        object.__setattr__(self, "dt", float(plain_number(self.dt)))  # np.float32(0.1) -> 0.1
         object.__setattr__(self, "ego_index", int(self.ego_index))
         object.__setattr__(self, "num_context", int(self.num_context))
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from riskflow_env.config import _is_number, _plain
+from riskflow_env.config import is_number, plain_number
 from riskflow_env.dynamics import STATE_DIM
 from riskflow_env.maps import DrivableMap
 from riskflow_env.state import HISTORY_STEPS
@@ -124,11 +124,11 @@ class Scenario:
                     f"{size[bad[0]]!r} for agent {bad[0]} ({bad.size} agent(s) out of range)"
                 )
         dt = self.dt
-        if not _is_number(dt) or not DT_RANGE[0] <= _plain(dt) <= DT_RANGE[1]:
+        if not is_number(dt) or not DT_RANGE[0] <= plain_number(dt) <= DT_RANGE[1]:
             raise ValueError(
                 f"Scenario.dt must be a number in [{DT_RANGE[0]:g}, {DT_RANGE[1]:g}] s, got {dt!r}"
             )
-        object.__setattr__(self, "dt", float(_plain(dt)))
+        object.__setattr__(self, "dt", float(plain_number(dt)))
         if self.agent_ids and len(self.agent_ids) != num_agents:
             raise ValueError(
                 f"Scenario.agent_ids must name all {num_agents} agents, got {len(self.agent_ids)}"

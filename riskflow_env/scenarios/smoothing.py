@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.signal import savgol_filter
 
-from riskflow_env.config import MAX_MAGNITUDE, _is_number, _plain
+from riskflow_env.config import MAX_MAGNITUDE, is_number, plain_number
 from riskflow_env.dynamics import wrap_angle
 
 WINDOW_STEPS = 21  # [steps] Savitzky-Golay window (2.1 s at 10 Hz: four nuScenes keyframes), odd
@@ -65,9 +65,9 @@ def smooth_tracks(
         raise ValueError(f"polyorder must be an int >= 1, got {polyorder!r}")
     if not (isinstance(window, int) and window % 2 == 1 and window > polyorder):
         raise ValueError(f"window must be an odd int > polyorder = {polyorder}, got {window!r}")
-    if not (_is_number(dt) and 0 < _plain(dt) <= MAX_MAGNITUDE):  # bools, NaN are refused
+    if not (is_number(dt) and 0 < plain_number(dt) <= MAX_MAGNITUDE):  # bools, NaN are refused
         raise ValueError(f"dt must be a finite number > 0 [s], got {dt!r}")
-    dt = float(_plain(dt))
+    dt = float(plain_number(dt))
     out = states.copy()
     for agent, start, stop in _runs(valid):  # load time: a loop over track segments
         length = stop - start

@@ -76,7 +76,7 @@ def test_traffic_config_values(kwargs, message):
 def test_numpy_float_scalars_are_numbers(number):
     """np.float32(0.1) was refused as dt ("must be a finite number"); numpy float scalars
     of any dtype are numbers, stored as Python floats (float32 0.1 as 0.1)."""
-    from riskflow_env.config import RewardConfig, _is_number
+    from riskflow_env.config import RewardConfig, is_number
     from riskflow_env.scenarios.traffic import TrafficConfig
 
     values = [
@@ -89,7 +89,7 @@ def test_numpy_float_scalars_are_numbers(number):
     ]
     assert all(type(value) is float and value == pytest.approx(0.1, abs=1e-15) for value in values)
     assert DynamicsConfig(dt=np.float32(0.1)) == DynamicsConfig(dt=0.1)
-    assert _is_number(np.int64(3)) and not _is_number(np.bool_(True))
+    assert is_number(np.int64(3)) and not is_number(np.bool_(True))
 
 
 @pytest.mark.parametrize("flag", [True, np.bool_(True)])

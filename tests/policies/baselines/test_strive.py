@@ -113,6 +113,7 @@ def test_bad_options(strive, tiny_denoiser, tiny_normalizer, tiny_meanflow):
     for kwargs, match in (
         ({"lambda_prior": -1.0}, "lambda_prior"),
         ({"lambda_prior": float("nan")}, "lambda_prior"),
+        ({"lambda_prior": True}, "lambda_prior"),
         ({"k": -1}, "k must be"),
         ({"planning_interval": 0.0}, "planning_interval"),
         ({"target": "everyone"}, "target must be one of"),
@@ -122,6 +123,7 @@ def test_bad_options(strive, tiny_denoiser, tiny_normalizer, tiny_meanflow):
         with pytest.raises(ValueError, match=match):
             strive(**kwargs)
     assert strive(guidance_horizon=7).guidance.horizon == 7  # the shared objective
+    assert strive(lambda_prior=np.float32(0.5)).lambda_prior == 0.5
     with pytest.raises(ValueError, match="diffusion"):
         StriveAdversary(generator="diffusion")
     with pytest.raises(ValueError, match="diffusion"):

@@ -210,12 +210,19 @@ def test_nothing_to_correct_stops_after_the_first_gradient(monkeypatch):
         ({"avoid_steps": True}, "avoid_steps"),
         ({"avoid_step_size": 0.0}, "avoid_step_size"),
         ({"avoid_step_size": float("nan")}, "avoid_step_size"),
+        ({"avoid_step_size": True}, "avoid_step_size"),
     ],
 )
 def test_options_are_checked(tiny_meanflow, tiny_normalizer, options, match):
     models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
     with pytest.raises(ValueError, match=match):
         RiskFlowAdversary(k=0, **models, **options)
+
+
+def test_a_numpy_float_step_size_is_taken(tiny_meanflow, tiny_normalizer):
+    models = {"generator": tiny_meanflow, "normalizer": tiny_normalizer}
+    policy = RiskFlowAdversary(k=0, avoid_step_size=np.float32(0.25), **models)
+    assert policy.avoid_step_size == 0.25 and type(policy.avoid_step_size) is float
 
 
 def test_the_diffusion_generator_refuses_it(tiny_denoiser, tiny_normalizer):
