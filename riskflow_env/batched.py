@@ -23,7 +23,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from riskflow_env import simulator
-from riskflow_env._array import Array
+from riskflow_env._array import Array, namespace
 from riskflow_env.config import EnvConfig
 from riskflow_env.maps import DrivableMap
 from riskflow_env.scenarios.scenario import Scenario
@@ -71,4 +71,6 @@ def step_batch(
     expected = (*state.current.shape[:-1], 2)
     if tuple(actions.shape) != expected:
         raise ValueError(f"actions must have shape (B, A, 2) = {expected}, got {actions.shape}")
+    if not namespace(actions).isdtype(actions.dtype, ("real floating", "integral")):
+        raise ValueError(f"actions must hold real numbers, got dtype {actions.dtype}")
     return simulator.transition(state, actions, drivable_map, config, observations=observations)

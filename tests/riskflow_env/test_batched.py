@@ -113,6 +113,8 @@ def test_errors():
     state = batched.reset_batch(scenarios[:1], SLOTS)
     with pytest.raises(ValueError, match=r"\(B, A, 2\)"):
         batched.step_batch(state, np.zeros((1, SLOTS)), scenarios[0].map, CONFIG)
+    with pytest.raises(ValueError, match="actions must hold real numbers, got dtype bool"):
+        batched.step_batch(state, np.zeros((1, SLOTS, 2), bool), scenarios[0].map, CONFIG)
     with pytest.raises(ValueError, match="must be a batch"):
         batched.step_batch(env_state(scenarios[0]), np.zeros((SLOTS, 2)), scenarios[0].map, CONFIG)
     with pytest.raises(ValueError, match="history must have shape"):
