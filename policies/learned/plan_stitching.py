@@ -55,7 +55,7 @@ import torch
 
 from policies.learned.data import Normalizer
 from riskflow_env.config import DynamicsConfig
-from riskflow_env.dynamics import SPEED, inverse, rollout
+from riskflow_env.dynamics import SPEED, rollout
 from riskflow_env.view import SceneView
 
 PlannerState = Any  # policies.pipeline.state.PlannerState (the pipeline layer sits above)
@@ -86,6 +86,7 @@ def replace_plans(
     state.plans[rows] = rollout(view.current[rows], actions, dynamics)
     unguided = rows[~state.controllable[rows]]
     state.base_plans[unguided] = state.plans[unguided]
+    state.base_actions[unguided] = actions[~state.controllable[rows]]
 
 
 def hold_at_rest(
@@ -205,13 +206,13 @@ def stitch_after(
     state.plan_actions[rows] = blend(state.plan_actions[rows], old)
     state.plans[rows] = rollout(current, state.plan_actions[rows], dynamics)
     # The unguided alternative is stitched alike: the same plans where nothing was
-    # guided; for A_c its own actions (inverse dynamics of the base plan), blended.
+    # guided; for A_c its own actions, blended.
     guided = state.controllable[rows]
     state.base_plans[rows[~guided]] = state.plans[rows[~guided]]
+    state.base_actions[rows[~guided]] = state.plan_actions[rows[~guided]]
     if guided.any():
-        start = current[guided][:, None]
-        base = inverse(np.concatenate([start, state.base_plans[rows[guided]]], axis=1))
-        base = blend(base, old[guided])
+        base = blend(state.base_actions[rows[guided]], old[guided])
+        state.base_actions[rows[guided]] = base
         state.base_plans[rows[guided]] = rollout(current[guided], base, dynamics)
 
 

@@ -209,6 +209,8 @@ def emit(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
         rows = slice(0, len(slots))
         plan_actions = np.zeros((num, policy.horizon, 2))
         plan_actions[slots] = actions[index, rows].cpu().numpy()
+        base_actions = np.zeros((num, policy.horizon, 2))
+        base_actions[slots] = plans.base_actions[index, rows].cpu().numpy()
         plan_mask = np.zeros(num, dtype=bool)
         plan_mask[slots] = True
         chosen = np.zeros(num, dtype=bool)
@@ -222,6 +224,7 @@ def emit(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
                 base_plans=world_plans(
                     plans.base_trajectories[index, rows].cpu().numpy(), slots, num, frame
                 ),
+                base_actions=base_actions,
                 plan_mask=plan_mask,
                 controllable=chosen,
                 names=view.agent_names,

@@ -35,6 +35,8 @@ class PlannerState:
             plan step; NaN rows for slots without a plan (None: no plan yet).
         base_plans: (A, T, 4) the unguided alternative of ``plans`` (the same rows
             outside ``A_c``).
+        base_actions: (A, T, 2) the actions of ``base_plans`` (zeros for slots without a
+            plan; None: no plan yet).
         plan_mask: (A,) bool, the slots with a plan.
         controllable: (A,) bool, ``A_c`` of the last cycle (target ``"ego"``: the
             attacker, kept by the next cycle while it is eligible).
@@ -54,6 +56,7 @@ class PlannerState:
     plan_actions: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 2)))
     plans: np.ndarray | None = None
     base_plans: np.ndarray | None = None
+    base_actions: np.ndarray | None = None
     plan_mask: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     controllable: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     names: tuple[str, ...] = ()

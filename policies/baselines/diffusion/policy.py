@@ -208,8 +208,9 @@ def chain(policy: DiffusionAdversary, plans: PlanSet) -> PlanSet:
     # (levels + 1, A_w, T, 2) per scene: chain start, then each transition
     kept = [noise[:, index, :count] for index, count in enumerate(counts)]
     return plans.replace(
-        base_trajectories=result.base_trajectories, actions=result.actions,
-        trajectories=result.trajectories, losses=result.losses, noise=kept,
+        base_actions=result.base_actions, base_trajectories=result.base_trajectories,
+        actions=result.actions, trajectories=result.trajectories, losses=result.losses,
+        noise=kept,
     )  # fmt: skip
 
 
