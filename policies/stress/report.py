@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from policies.stress.replay import describe_failure
-from policies.stress.summary import headline
+from policies.stress.summary import counted, headline
 from riskflow_env.atomic_files import write_text
 
 Table = tuple[str, list[str], list[list[str]]]  # title, header, rows
@@ -107,17 +107,20 @@ def title(summary: dict[str, Any]) -> tuple[str, str]:
     done = f" (interrupted: {stopped['episodes']} of {stopped['planned']})" if stopped else ""
     return (
         f"Stress test of {summary['planner']}",
-        f"{summary['episodes']} episodes{done}: {o['scenes']} scenes x seeds {seeds}; RiskFlow "
+        f"{counted(summary['episodes'], 'episode')}{done}: {o['scenes']} scenes x seeds "
+        f"{seeds}; RiskFlow "
         f"K={o['k']}, target {o['target']}, re-plan every {o['planning_interval']} s, "
         f"{o['steps']} steps of 0.1 s",
     )
 
 
-def replay_command(row: dict[str, Any], planner: str) -> str:
-    return f"riskflow-stress replay {row['replay']} --planner {planner}"
+def replay_command(row: dict[str, Any], planner: str, folder: Path) -> str:
+    """The command that replays ``row``'s failure, to run where the stress test ran (the
+    replay file under the output ``folder`` as it was given, like the ``planner`` spec)."""
+    return f"riskflow-stress replay {folder / row['replay']} --planner {planner}"
 
 
-def markdown(summary: dict[str, Any], gifs: list[dict[str, Any]]) -> str:
+def markdown(summary: dict[str, Any], gifs: list[dict[str, Any]], folder: Path) -> str:
     """``report.md``."""
     heading, options = title(summary)
     lines = [f"# {heading}", "", options, "", f"**{headline(summary)}**", ""]
@@ -132,7 +135,7 @@ def markdown(summary: dict[str, Any], gifs: list[dict[str, Any]]) -> str:
         lines += [f"### {row['scene']}, seed {row['seed']}", ""]
         lines += [f"- {describe_failure(f)}" for f in row["failures"]]
         lines += ["", _reproduced(row), "", f"![{row['scene']}]({row['gif']})", ""]
-        lines += ["```", replay_command(row, summary["planner"]), "```", ""]
+        lines += ["```", replay_command(row, summary["planner"], folder), "```", ""]
     return "\n".join(lines)
 
 
@@ -162,7 +165,7 @@ def page(summary: dict[str, Any], gifs: list[dict[str, Any]], folder: Path) -> s
             f"<h3>{esc(row['scene'])}, seed {row['seed']}</h3><ul>{items}</ul>",
             f"<p>{esc(_reproduced(row))}</p>",
             f"<img alt='{esc(row['scene'])}' src='data:image/gif;base64,{data}'>",
-            f"<pre>{esc(replay_command(row, summary['planner']))}</pre>",
+            f"<pre>{esc(replay_command(row, summary['planner'], folder))}</pre>",
         ]
     parts.append("</body></html>")
     return "\n".join(parts)
@@ -179,7 +182,7 @@ def _reproduced(row: dict[str, Any]) -> str:
 
 def write_reports(folder: Path, summary: dict[str, Any], gifs: list[dict[str, Any]]) -> None:
     """Write ``report.md`` and ``report.html`` into ``folder``."""
-    write_text(folder / "report.md", markdown(summary, gifs))
+    write_text(folder / "report.md", markdown(summary, gifs, folder))
     write_text(folder / "report.html", page(summary, gifs, folder))
 
 

@@ -16,9 +16,10 @@ The output folder (``out``; None writes nothing):
                        written as it returns
 ``summary.json``       :func:`~policies.stress.summary.stress_summary`'s dict, the time to
                        collision, ``planner``, ``options`` and ``per_episode`` (the rows of
-                       ``episodes.jsonl`` in job order); written atomically at the end
-``report.md``,         the report (:mod:`policies.stress.report`); the HTML page embeds the
-``report.html``        GIFs
+                       ``episodes.jsonl`` in job order); written atomically when the
+                       episodes are done, and again with the GIFs
+``report.md``,         the report (:mod:`policies.stress.report`), written with it; the HTML
+``report.html``        page embeds the GIFs
 ``gifs/*.gif``         the ``gifs`` worst failures (avoidable first, then by impact speed),
                        re-run with the attacker marked and the witness drawn
 =====================  ====================================================================
@@ -37,6 +38,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from policies.harness import mean_summary, summarize
 from policies.planners import EgoPlanner
@@ -51,7 +53,13 @@ from policies.stress.runner import (
     resolve_planner,
     run_jobs,
 )
-from policies.stress.summary import attacked_steps, headline, slow_ego_steps, stress_summary
+from policies.stress.summary import (
+    attacked_steps,
+    counted,
+    headline,
+    slow_ego_steps,
+    stress_summary,
+)
 from riskflow_env.atomic_files import write_text
 from riskflow_env.folder_lock import make_output_folder
 from riskflow_env.scenarios import Scenario
@@ -159,16 +167,18 @@ def riskflow_stress(
     if stopped is not None:
         summary["interrupted"] = {"episodes": len(episodes), "planned": stopped.planned}
     if folder is not None:
-        gif_rows = writer.draw_worst(episodes, local, 0 if stopped else gifs)
-        summary["gifs"] = [
-            {key: row[key] for key in ("scene", "seed", "gif", "reproduced")} for row in gif_rows
-        ]
-        _write_json(folder / "summary.json", summary)
-        write_reports(folder, summary, gif_rows)
-    if stopped is not None:
-        raise KeyboardInterrupt(
-            f"{stopped}; {folder}/summary.json and the reports cover them (no GIF)"
-        )
+        writer.report(summary, [])  # first without GIFs: Ctrl-C while drawing keeps them
+        if stopped is not None:
+            raise KeyboardInterrupt(
+                f"{stopped}; {folder}/summary.json and the reports cover them (no GIF)"
+            )
+        try:
+            writer.report(summary, writer.draw_worst(episodes, local, gifs, progress))
+        except KeyboardInterrupt:
+            raise KeyboardInterrupt(
+                f"while drawing the GIFs; {folder}/summary.json and the reports cover all "
+                f"{counted(len(episodes), 'episode')} (no GIF)"
+            ) from None
     return StressResult(summary, tuple(episodes), folder)
 
 
@@ -261,14 +271,24 @@ class _Writer:
             "slow_ego_steps": slow_ego_steps(record),
         }
 
+    def report(self, summary: dict[str, Any], gif_rows: list[dict[str, Any]]) -> None:
+        """``summary.json`` (with ``summary["gifs"]``, set here) and the reports, atomically."""
+        summary["gifs"] = [
+            {key: row[key] for key in ("scene", "seed", "gif", "reproduced")} for row in gif_rows
+        ]
+        _write_json(self.folder / "summary.json", summary)
+        write_reports(self.folder, summary, gif_rows)
+
     def draw_worst(
-        self, episodes: Sequence[Episode], planner: EgoPlanner, count: int
+        self, episodes: Sequence[Episode], planner: EgoPlanner, count: int, progress: bool
     ) -> list[dict[str, Any]]:
         """GIFs of the ``count`` worst failed episodes (:func:`severity`), each re-run with
-        ``planner``; the rows the report shows them with."""
+        ``planner`` (a progress bar with ``progress``); the rows the report shows them
+        with."""
         failed = sorted((e for e in episodes if e.analysed.failures), key=severity)
         rows = []
-        for episode in failed[:count]:
+        bar = tqdm(failed[:count], "drawing GIFs", unit="gif", disable=not progress, leave=False)
+        for episode in bar:
             gif = self.folder / "gifs" / f"{self.stem(episode)}.gif"
             failures = [f.to_dict() for f in episode.analysed.failures]
             again = rerun(

@@ -176,6 +176,11 @@ def stress_summary(
     return summary
 
 
+def counted(count: int, noun: str) -> str:
+    """``"1 episode"``, ``"2 episodes"``."""
+    return f"{count} {noun}{'' if count == 1 else 's'}"
+
+
 def headline(summary: dict[str, Any]) -> str:
     """One line: the avoidable-failure rate with its interval, and the counter-metrics."""
 
@@ -188,7 +193,8 @@ def headline(summary: dict[str, Any]) -> str:
 
     return (
         f"avoidable failures {fmt(summary['avoidable_failure_rate'])} of "
-        f"{summary['episodes']} episodes; ego collisions {fmt(summary['ego_collision_rate'])}, "
+        f"{counted(summary['episodes'], 'episode')}; ego collisions "
+        f"{fmt(summary['ego_collision_rate'])}, "
         f"{fmt(summary['avoidable_share'])} of them avoidable; ego progress "
         f"{fmt(summary['progress'], 1.0, ' m')}"
     )
@@ -197,6 +203,7 @@ def headline(summary: dict[str, Any]) -> str:
 __all__ = [
     "Analysed",
     "attacked_steps",
+    "counted",
     "slow_ego_steps",
     "episode_outcome",
     "headline",

@@ -93,6 +93,12 @@ def test_end_to_end_writes_summary_reports_and_replays(run):
     page = (run / "report.html").read_text()
     assert page.count("data:image/gif;base64,") == 1 and len(summary["gifs"]) == 1
     assert summary["gifs"][0]["reproduced"]
+    # the report's replay command runs as printed, where the stress test ran
+    command = next(line for line in report.splitlines() if line.startswith("riskflow-stress "))
+    assert command.split()[2] == str(run / summary["gifs"][0]["gif"]).replace(
+        "gifs/", "failures/"
+    ).replace(".gif", ".npz")
+    main(command.split()[1:])
 
 
 def test_two_workers_give_the_results_of_one(run, planner_file, scenes_dir):
@@ -278,5 +284,31 @@ def test_ctrl_c_reports_the_episodes_that_finished(scenes_dir, tmp_path, monkeyp
     )
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["interrupted"] == {"episodes": 1, "planned": 2} and summary["episodes"] == 1
-    assert "1 episodes (interrupted: 1 of 2)" in (tmp_path / "report.md").read_text()
+    assert "1 episode (interrupted: 1 of 2)" in (tmp_path / "report.md").read_text()
     assert len((tmp_path / "episodes.jsonl").read_text().splitlines()) == 1
+
+
+def test_ctrl_c_while_drawing_the_gifs_keeps_the_reports(
+    scenes_dir, tmp_path, monkeypatch, capsys
+):
+    """Ctrl-C after the last episode, while the worst failures are re-run for their GIFs:
+    summary.json and the reports, written before the GIFs, cover every episode."""
+    from policies.stress import stress_test
+
+    def interrupted(*args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(stress_test._Writer, "draw_worst", interrupted)
+    with pytest.raises(SystemExit) as exit_info:
+        main([
+            "--planner", "idm", "--data", str(scenes_dir), "--scenes", "2",
+            "--steps", str(STEPS), "--no-progress", "--out", str(tmp_path),
+        ])  # fmt: skip
+    assert exit_info.value.code == 130
+    assert capsys.readouterr().err.endswith(
+        f"riskflow-stress: interrupted: while drawing the GIFs; {tmp_path}/summary.json and "
+        "the reports cover all 2 episodes (no GIF)\n"
+    )
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["episodes"] == 2 and summary["gifs"] == [] and "interrupted" not in summary
+    assert (tmp_path / "report.md").is_file() and (tmp_path / "report.html").is_file()
