@@ -1,6 +1,6 @@
 """Train an ego with Stable-Baselines3 PPO against the RiskFlow adversary (``rl`` extra).
 
-    python examples/train_ego_ppo.py --seed 0 --vec-env dummy --out runs/ego_maneuver/seed0
+    python examples/train_ego_ppo.py --seed 0 --vec-env dummy --out runs/ego_ppo/seed0
     python examples/train_ego_ppo.py --help
 
 Results, budget and the commands of the documented runs: docs/tutorials/rl-ego.md and

@@ -115,9 +115,12 @@ def dataclass_parser(
     return parser
 
 
-class _DefaultsAsTyped(argparse.ArgumentDefaultsHelpFormatter):
+class _DefaultsAsTyped(
+    argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter
+):
     """Each option's default in its help, a tuple's values as one types them: ``(default:
-    0 1 2)``, not ``(default: (0, 1, 2))``."""
+    0 1 2)``, not ``(default: (0, 1, 2))``; the description as written (a script's
+    docstring keeps its lines and its indented command examples)."""
 
     def _expand_help(self, action: argparse.Action) -> str:
         if isinstance(action.default, tuple):

@@ -98,8 +98,8 @@ def compare_parser() -> argparse.ArgumentParser:
     compare = dataclass_parser(
         StressOptions, f"{PROG} compare", "Two planners, paired.", debug=True
     )
-    compare.add_argument("a", help=f"planner A: {FORMS}")
-    compare.add_argument("b", help="planner B, in the same forms")
+    compare.add_argument("a", metavar="PLANNER_A", help=f"planner A: {FORMS}")
+    compare.add_argument("b", metavar="PLANNER_B", help="planner B, in the same forms")
     return compare
 
 

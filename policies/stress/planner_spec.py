@@ -91,6 +91,8 @@ def check_spec(spec: object, argument: str = "--planner") -> tuple[str, str] | N
     if not colon or not location or not name.isidentifier():
         close = difflib.get_close_matches(spec, list(PLANNERS), n=1)
         hint = f" (did you mean {close[0]}?)" if close else ""
+        if not colon and spec.endswith(".py"):  # a file without the object to take from it
+            hint = f" (name the planner in it: {spec}:OBJECT, e.g. {spec}:plan)"
         raise PlannerSpecError(argument, spec, f"expected {_forms()}{hint}")
     return location, name
 

@@ -171,6 +171,7 @@ def test_planner_by_import_path_and_name(tmp_path, monkeypatch):
         ("nowhere/planner.py:plan", "no such file"),
         ("just_a_name", "expected a built-in name"),
         ("imd", "did you mean idm"),
+        ("my_planner.py", "name the planner in it: my_planner.py:OBJECT, e.g. my_planner.py:plan"),
     ],
 )
 def test_bad_planner_errors_name_the_argument(spec, message, planner_file, tmp_path, capsys):
@@ -256,6 +257,10 @@ def test_compare_checks_both_planners_before_running_either(scenes_dir, tmp_path
     assert exit_info.value.code == 2
     assert "b 'nosuch': expected a built-in name" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # no episode of a ran
+    with pytest.raises(SystemExit) as exit_info:
+        main(["compare", "idm"])
+    assert exit_info.value.code == 2
+    assert "the following arguments are required: PLANNER_B" in capsys.readouterr().err
 
 
 def test_ctrl_c_reports_the_episodes_that_finished(scenes_dir, tmp_path, monkeypatch, capsys):
