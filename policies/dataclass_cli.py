@@ -32,6 +32,7 @@ import ast
 import copy
 import dataclasses
 import inspect
+import re
 import sys
 import textwrap
 import typing
@@ -115,12 +116,20 @@ def dataclass_parser(
     return parser
 
 
-class _DefaultsAsTyped(
-    argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter
-):
+class _DefaultsAsTyped(argparse.ArgumentDefaultsHelpFormatter):
     """Each option's default in its help, a tuple's values as one types them: ``(default:
-    0 1 2)``, not ``(default: (0, 1, 2))``; the description as written (a script's
-    docstring keeps its lines and its indented command examples)."""
+    0 1 2)``, not ``(default: (0, 1, 2))``. The description keeps its paragraphs and its
+    indented blocks (a script's docstring: its command examples); prose is wrapped to the
+    terminal."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        blocks = re.split(r"\n\s*\n", text.strip("\n"))
+        return "\n\n".join(
+            "\n".join(indent + line for line in block.splitlines())
+            if any(line[:1].isspace() for line in block.splitlines())
+            else super(_DefaultsAsTyped, self)._fill_text(block, width, indent)
+            for block in blocks
+        )
 
     def _expand_help(self, action: argparse.Action) -> str:
         if isinstance(action.default, tuple):

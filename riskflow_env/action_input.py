@@ -24,8 +24,8 @@ def _holds_bool(values: list[Any]) -> bool:
     """Whether the actions ``values`` (of an array of int/float dtype, so each an int/float
     or bool array or sequence) may hold a bool, so the checked path must look.
 
-    Numpy arrays: True unless every distinct dtype is a numpy int/float one; arrays of
-    another library (torch tensors): True. Lists and tuples: True if an element's type is
+    Arrays: True if a distinct dtype is not a numpy int/float one, or (another library's,
+    e.g. torch's) is named bool or complex. Lists and tuples: True if an element's type is
     bool or numpy bool. Both gather the dtypes or types with ``map``, no Python code per
     action.
     """
@@ -33,7 +33,15 @@ def _holds_bool(values: list[Any]) -> bool:
         dtypes = set(map(_DTYPE, values))
     except AttributeError:  # lists, tuples: the elements' types
         return not _BOOLS.isdisjoint(map(type, chain.from_iterable(values)))
-    return not all(isinstance(dtype, np.dtype) and dtype.kind in "fiu" for dtype in dtypes)
+    return not all(map(_real_dtype, dtypes))
+
+
+def _real_dtype(dtype: Any) -> bool:
+    """A numpy int/float dtype, or another library's dtype not named bool or complex."""
+    if isinstance(dtype, np.dtype):
+        return dtype.kind in "fiu"
+    name = str(dtype)
+    return "bool" not in name and "complex" not in name
 
 
 class ActionInput:
@@ -134,7 +142,7 @@ class ActionInput:
             raise ValueError(
                 f"actions[{agent!r}] must hold real numbers, got dtype {raw.dtype} ({action!r:.60})"
             )
-        if not hasattr(action, "dtype") and _holds_bool([action]):  # e.g. (True, 0.5)
+        if isinstance(action, (list, tuple)) and _holds_bool([action]):  # e.g. (True, 0.5)
             raise ValueError(
                 f"actions[{agent!r}] must hold real numbers, got a bool in {action!r:.60}"
             )

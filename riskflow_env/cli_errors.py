@@ -66,6 +66,18 @@ def message(error: BaseException) -> str:
 INTERRUPTED = 130  # the exit status of a command stopped by Ctrl-C (128 + SIGINT)
 
 
+def interrupt_of(error: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C behind ``error``: itself, or the ``KeyboardInterrupt`` that a
+    ``SystemError`` surfaced around (Ctrl-C inside a compiled numba function); None for
+    any other error."""
+    interrupt = error if isinstance(error, KeyboardInterrupt) else error.__context__
+    if isinstance(error, (KeyboardInterrupt, SystemError)) and isinstance(
+        interrupt, KeyboardInterrupt
+    ):
+        return interrupt
+    return None
+
+
 @contextmanager
 def user_errors(prog: str, debug: bool = False, kept: str = "") -> Iterator[None]:
     """Run the body; a user error (``USER_ERRORS``) becomes one line on stderr and exit
@@ -81,9 +93,8 @@ def user_errors(prog: str, debug: bool = False, kept: str = "") -> Iterator[None
         print(f"{prog}: error: {message(error)} (--debug shows the traceback)", file=sys.stderr)
         raise SystemExit(2) from None
     except (KeyboardInterrupt, SystemError) as error:
-        # Ctrl-C inside a compiled (numba) function surfaces as a SystemError around it
-        interrupt = error if isinstance(error, KeyboardInterrupt) else error.__context__
-        if debug or not isinstance(interrupt, KeyboardInterrupt):
+        interrupt = interrupt_of(error)
+        if debug or interrupt is None:
             raise
         said = "; ".join(part for part in (str(interrupt), kept) if part)
         print(f"\n{prog}: interrupted" + (f": {said}" if said else ""), file=sys.stderr)

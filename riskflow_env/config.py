@@ -29,8 +29,8 @@ def plain_number(value: float) -> float:
     """A number as a Python one: numpy integers -> int, numpy float scalars -> float; a
     float16/float32 one by its shortest decimal (``np.float32(0.1)`` -> 0.1, not
     0.10000000149011612, so that it matches a float64 0.1, e.g. a scenario's ``dt``)."""
-    if isinstance(value, (np.float16, np.float32)):
-        return float(str(value))
+    if isinstance(value, (np.float16, np.float32)):  # numpy's print options do not matter
+        return float(np.format_float_scientific(value, unique=True))
     if isinstance(value, np.floating):
         return float(value)
     return int(value) if isinstance(value, np.integer) else value

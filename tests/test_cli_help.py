@@ -98,3 +98,23 @@ class _Several:
 def test_a_tuple_default_shows_as_typed():
     shown = " ".join(dataclass_parser(_Several, "prog").format_help().split())
     assert "noise seeds (default: 0 1 2)" in shown and "formats (default: none)" in shown
+
+
+def test_a_description_keeps_its_command_examples_and_wraps_its_prose(monkeypatch):
+    """A script's docstring as ``--help``'s description: paragraphs and indented command
+    lines as written, prose wrapped to the terminal."""
+
+    @dataclass(frozen=True)
+    class Options:
+        seed: int = 0
+        """a seed"""
+
+    monkeypatch.setenv("COLUMNS", "60")
+    prose = "word " * 30
+    command = "python run.py --seed 1 --out a/very/long/folder/name/of/a/run"
+    doc = f"Title line.\n\n    {command}\n\n{prose}\n"
+    text = dataclass_parser(Options, "run.py", doc).format_help()
+    assert f"\n    {command}\n" in text
+    body = text.split("Title line.")[1].split("options:")[0]
+    prose_lines = [line for line in body.splitlines() if line.startswith("word")]
+    assert len(prose_lines) > 1 and all(len(line) <= 60 for line in prose_lines)

@@ -50,7 +50,7 @@ from policies.riskflow.guidance import (
 )
 from policies.riskflow.policy import PHASES, GeneratorPolicy
 from riskflow_env._array import attach_gradient
-from riskflow_env.config import is_number
+from riskflow_env.config import is_number, plain_number
 
 DEFAULT_LAMBDA_PRIOR = 1.0  # weight of ||eps_c||^2 / 2 [per unit of normalised noise^2]
 # Adam's learning rate on the latent [normalised noise units per step]: STRIVE-style's best
@@ -184,7 +184,7 @@ class StriveAdversary(GeneratorPolicy):
         if generator == "diffusion" or "sampling_steps" in options:
             raise ValueError(_NOT_DIFFUSION)
         config = AdversaryConfig.resolve(config, options, type(self).__name__)
-        self.lambda_prior = float(lambda_prior)
+        self.lambda_prior = float(plain_number(lambda_prior))
         guidance = GuidanceConfig.of(config, guidance_steps, step_size, optimizer, lambda_sep)
         super().__init__(
             config, guidance, optimise_latent, generator, normalizer, checkpoint, None,

@@ -68,6 +68,7 @@ from policies.pipeline import stages
 from policies.pipeline.policy import BASE_COLOR, GUIDED_COLOR, PipelinePolicy, Stage
 from policies.riskflow.base_generator import resolve_avoid_steps, resolve_generator
 from policies.riskflow.guidance import GuidanceConfig, guide_outputs
+from riskflow_env.config import plain_number
 
 if TYPE_CHECKING:
     from policies.baselines.diffusion.sampling import OneCallSampler
@@ -134,7 +135,7 @@ class GeneratorPolicy(PipelinePolicy):
             generator, normalizer, checkpoint, sampling_steps, torch.device(config.device)
         )
         self.avoid_steps = resolve_avoid_steps(avoid_steps, avoid_step_size, self.generator_kind)
-        self.avoid_step_size = float(avoid_step_size)
+        self.avoid_step_size = float(plain_number(avoid_step_size))
         model_config = self.model.config
         super().__init__(
             config,

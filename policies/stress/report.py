@@ -13,6 +13,7 @@ from __future__ import annotations
 import base64
 import html
 import math
+import shlex
 from pathlib import Path
 from typing import Any
 
@@ -117,7 +118,8 @@ def title(summary: dict[str, Any]) -> tuple[str, str]:
 def replay_command(row: dict[str, Any], planner: str, folder: Path) -> str:
     """The command that replays ``row``'s failure, to run where the stress test ran (the
     replay file under the output ``folder`` as it was given, like the ``planner`` spec)."""
-    return f"riskflow-stress replay {folder / row['replay']} --planner {planner}"
+    replay = shlex.quote(str(folder / row["replay"]))
+    return f"riskflow-stress replay {replay} --planner {shlex.quote(planner)}"
 
 
 def markdown(summary: dict[str, Any], gifs: list[dict[str, Any]], folder: Path) -> str:

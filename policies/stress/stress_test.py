@@ -61,6 +61,7 @@ from policies.stress.summary import (
     stress_summary,
 )
 from riskflow_env.atomic_files import write_text
+from riskflow_env.cli_errors import interrupt_of
 from riskflow_env.folder_lock import make_output_folder
 from riskflow_env.scenarios import Scenario
 
@@ -173,12 +174,16 @@ def riskflow_stress(
                 f"{stopped}; {folder}/summary.json and the reports cover them (no GIF)"
             )
         try:
-            writer.report(summary, writer.draw_worst(episodes, local, gifs, progress))
-        except KeyboardInterrupt:
+            gif_rows = writer.draw_worst(episodes, local, gifs, progress)
+        except (KeyboardInterrupt, SystemError) as error:  # SystemError: Ctrl-C in numba
+            if interrupt_of(error) is None:
+                raise
             raise KeyboardInterrupt(
                 f"while drawing the GIFs; {folder}/summary.json and the reports cover all "
                 f"{counted(len(episodes), 'episode')} (no GIF)"
             ) from None
+        if gif_rows:
+            writer.report(summary, gif_rows)
     return StressResult(summary, tuple(episodes), folder)
 
 

@@ -216,6 +216,8 @@ def test_map_ref_must_stay_in_the_folder(tmp_path, ref):
         "ab",
         {"a": 1},
         np.array([np.nan, 0.0]),
+        0.5,
+        1,
     ],
 )
 def test_bad_actions_name_the_agent(action):
@@ -252,6 +254,30 @@ def test_bool_actions_are_refused_naming_the_agent(action):
     with pytest.raises(ValueError, match=message):
         env.action_input.check(agent, action)
     env.step({agent: [0.0, np.float32(0.0)] for agent in env.agents})  # numbers still go
+
+
+def test_torch_actions_take_the_vectorised_path_and_bool_tensors_are_refused(monkeypatch):
+    torch = pytest.importorskip("torch")
+    env = _env.make_env()
+    env.reset(seed=0)
+    checked = []
+    check = env.action_input.check
+    monkeypatch.setattr(
+        env.action_input, "check", lambda *a, **k: checked.append(a) or check(*a, **k)
+    )
+    env.step({agent: torch.zeros(2) for agent in env.agents})
+    assert not checked  # float tensors: no agent-by-agent check
+    actions = {agent: torch.zeros(2) for agent in env.agents}
+    actions[env.agents[0]] = torch.tensor([True, False])
+    with pytest.raises(ValueError, match="must hold real numbers, got dtype bool"):
+        env.step(actions)
+
+
+def test_plain_number_ignores_numpy_print_options():
+    from riskflow_env.config import RewardConfig
+
+    with np.printoptions(legacy="1.13"):
+        assert RewardConfig(speed=np.float32(0.1234567)).speed == 0.1234567
 
 
 def test_tensor_with_grad_names_the_agent():

@@ -123,7 +123,7 @@ def test_bad_options(strive, tiny_denoiser, tiny_normalizer, tiny_meanflow):
         with pytest.raises(ValueError, match=match):
             strive(**kwargs)
     assert strive(guidance_horizon=7).guidance.horizon == 7  # the shared objective
-    assert strive(lambda_prior=np.float32(0.5)).lambda_prior == 0.5
+    assert strive(lambda_prior=np.float32(0.1)).lambda_prior == 0.1
     with pytest.raises(ValueError, match="diffusion"):
         StriveAdversary(generator="diffusion")
     with pytest.raises(ValueError, match="diffusion"):
