@@ -98,7 +98,6 @@ class PipelinePolicy:
     cycles = property(lambda self: self.state.cycles, doc="planning cycles this episode")
     plans = property(lambda self: self.state.plans, doc="(A, T, 4) world-frame plans")
     base_plans = property(lambda self: self.state.base_plans, doc="(A, T, 4) unguided plans")
-    base_actions = property(lambda self: self.state.base_actions, doc="(A, T, 2) their actions")
     plan_actions = property(lambda self: self.state.plan_actions, doc="(A, T, 2) plan buffer")
     plan_mask = property(lambda self: self.state.plan_mask, doc="(A,) slots with a plan")
     controllable = property(lambda self: self.state.controllable, doc="(A,) A_c")

@@ -87,17 +87,17 @@ def test_replan_blends_into_the_executed_plan(tiny_meanflow, tiny_normalizer, cl
     )
     unguided = rows[~policy.controllable[rows]]
     np.testing.assert_array_equal(policy.base_plans[unguided], policy.plans[unguided])
-    np.testing.assert_array_equal(policy.base_actions[unguided], policy.plan_actions[unguided])
+    base_actions = policy.state.base_actions
+    np.testing.assert_array_equal(base_actions[unguided], policy.plan_actions[unguided])
     # every row's unguided alternative is what its actions do (the guided rows' blended
     # from their own base actions)
     np.testing.assert_array_equal(
-        policy.base_plans[rows],
-        rollout(view.current[rows], policy.base_actions[rows], policy.dynamics),
+        policy.base_plans[rows], rollout(view.current[rows], base_actions[rows], policy.dynamics)
     )
     guided = rows[policy.controllable[rows]]
     if k > 0:
         assert guided.size > 0
-        assert not np.allclose(policy.base_actions[guided], policy.plan_actions[guided])
+        assert not np.allclose(base_actions[guided], policy.plan_actions[guided])
 
 
 def test_blending_first_blends_the_base_plans_into_the_executed_ones(

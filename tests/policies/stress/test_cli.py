@@ -276,12 +276,7 @@ def test_ctrl_c_reports_the_episodes_that_finished(scenes_dir, tmp_path, monkeyp
         raise KeyboardInterrupt
 
     monkeypatch.setattr(runner, "_episodes", interrupted_after_one)
-    with pytest.raises(SystemExit) as exit_info:
-        main([
-            "--planner", "idm", "--data", str(scenes_dir), "--scenes", "2",
-            "--steps", str(STEPS), "--no-progress", "--out", str(tmp_path),
-        ])  # fmt: skip
-    assert exit_info.value.code == 130
+    _interrupted_idm_run(scenes_dir, tmp_path)
     error = capsys.readouterr().err
     assert error.endswith(
         f"riskflow-stress: interrupted: 1 of 2 episodes finished; {tmp_path}/summary.json "
@@ -304,12 +299,7 @@ def test_ctrl_c_while_drawing_the_gifs_keeps_the_reports(
         raise KeyboardInterrupt
 
     monkeypatch.setattr(stress_test._Writer, "draw_worst", interrupted)
-    with pytest.raises(SystemExit) as exit_info:
-        main([
-            "--planner", "idm", "--data", str(scenes_dir), "--scenes", "2",
-            "--steps", str(STEPS), "--no-progress", "--out", str(tmp_path),
-        ])  # fmt: skip
-    assert exit_info.value.code == 130
+    _interrupted_idm_run(scenes_dir, tmp_path)
     assert capsys.readouterr().err.endswith(
         f"riskflow-stress: interrupted: while drawing the GIFs; {tmp_path}/summary.json and "
         "the reports cover all 2 episodes (no GIF)\n"
@@ -317,3 +307,14 @@ def test_ctrl_c_while_drawing_the_gifs_keeps_the_reports(
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["episodes"] == 2 and summary["gifs"] == [] and "interrupted" not in summary
     assert (tmp_path / "report.md").is_file() and (tmp_path / "report.html").is_file()
+
+
+def _interrupted_idm_run(scenes_dir, out) -> None:
+    """``riskflow-stress`` with the IDM planner on two scenes, which must end as a Ctrl-C
+    does (status 130)."""
+    with pytest.raises(SystemExit) as exit_info:
+        main([
+            "--planner", "idm", "--data", str(scenes_dir), "--scenes", "2",
+            "--steps", str(STEPS), "--no-progress", "--out", str(out),
+        ])  # fmt: skip
+    assert exit_info.value.code == 130
