@@ -13,8 +13,9 @@ policy for one rollout.
 
 from __future__ import annotations
 
+import difflib
 import importlib
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -198,8 +199,17 @@ METHODS: dict[str, MethodSpec] = {
 def method_spec(name: str) -> MethodSpec:
     """The spec of ``name``; ValueError listing the known methods otherwise."""
     if name not in METHODS:
-        raise ValueError(f"--methods: unknown method {name!r}; known: {', '.join(METHODS)}")
+        raise ValueError(
+            f"--methods: unknown method {name!r}{_did_you_mean(name, METHODS)}; known: "
+            f"{', '.join(METHODS)}"
+        )
     return METHODS[name]
+
+
+def _did_you_mean(name: str, known: Iterable[str]) -> str:
+    """`` (did you mean X?)`` for the closest of ``known`` to ``name``, or ``""``."""
+    close = difflib.get_close_matches(str(name), list(known), n=1)
+    return f" (did you mean {close[0]}?)" if close else ""
 
 
 def method_list() -> str:
@@ -246,12 +256,22 @@ def method_options(
             raise ValueError(f"--set: expected key=value or method.key=value, got {item!r}")
         scope, dot, key = key.rpartition(".")
         if dot and scope not in METHODS:
-            raise ValueError(f"--set {item!r}: unknown method {scope!r}")
+            raise ValueError(
+                f"--set {item!r}: unknown method {scope!r}{_did_you_mean(scope, METHODS)}"
+            )
         # a method.key item for a method not in --methods is checked, then unused
         targets = [scope] if dot else [m for m in methods if key in METHODS[m].option_names()]
         if not targets or key not in METHODS[targets[0]].option_names():
             where = scope if dot else "any of --methods"
-            raise ValueError(f"--set {item!r}: {key!r} is not an option of {where}")
+            names = sorted(
+                METHODS[scope].option_names() if dot else
+                {option for m in methods for option in METHODS[m].option_names()}
+            )  # fmt: skip
+            raise ValueError(
+                f"--set {item!r}: {key!r} is not an option of {where}"
+                f"{_did_you_mean(key, names)}; {'its' if dot else 'their'} options: "
+                f"{', '.join(names)}"
+            )
         for name in targets:
             if name in options:
                 options[name][key] = parse_value(value)

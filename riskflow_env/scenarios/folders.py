@@ -42,7 +42,15 @@ def open_scenes(folder: str | os.PathLike) -> ScenarioBank | ScenarioNetDataset:
             return ScenarioBank([load_commonroad(path) for path in commonroad])
         except ImportError as err:  # a user error here: say which folder needs the extra
             raise ValueError(f"{folder} holds CommonRoad scenarios: {err}") from None
+    if Path(folder).is_dir() and not any(Path(folder).glob("*.npz")):
+        raise FileNotFoundError(f"no scenes in {folder}: expected {FOLDER_KINDS}")
     return load_bank(folder)
+
+
+FOLDER_KINDS = (
+    "a folder of .npz scenes (riskflow-data generate), a ScenarioNet dataset folder (.pkl "
+    "scenario files, with or without its index files) or CommonRoad .xml scenarios"
+)
 
 
 def commonroad_files(folder: str | os.PathLike) -> list[Path]:

@@ -193,6 +193,7 @@ def test_report_command(tiny_run, capsys):
     ("argv", "message"),
     [
         (["--methods", "nope"], "--methods: unknown method 'nope'"),
+        (["--methods", "riskflw"], "unknown method 'riskflw' (did you mean riskflow?); known:"),
         (["--k", "-1"], "--k: expected an int >= 0"),
         (["--k", "two"], "--k: expected an int >= 0"),
         (["--interval", "0.55"], "--interval: 0.55 s is not a positive multiple"),
@@ -205,6 +206,11 @@ def test_report_command(tiny_run, capsys):
         (["--set", "guidance_steps"], "--set: expected key=value"),
         (["--set", "ctg.guidance_steps=3"], "'guidance_steps' is not an option of ctg"),
         (["--set", "nope.steps=3"], "unknown method 'nope'"),
+        (
+            ["--set", "riskflow.stepsize=0.1"],
+            "'stepsize' is not an option of riskflow (did you mean step_size?); its options: ",
+        ),
+        (["--set", "stepsize=0.1"], "(did you mean step_size?); their options: avoid_step_size"),
         (["--set", "riskflow.lambda_map=-1"], "--methods riskflow"),
         (["--data", "/nonexistent/dir"], "--data"),
         (["--seeds", "0", "-1"], "--seeds must be one or more ints in [0, 2**32), got [0, -1]"),

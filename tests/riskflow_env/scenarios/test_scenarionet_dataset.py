@@ -112,6 +112,9 @@ def test_parallel_env_takes_the_folder(toy, monkeypatch, tmp_path):
     assert any((tmp_path / "user-cache" / "maps").glob("*.npz"))  # the default map cache
     assert isinstance(open_scenes(toy), ScenarioNetDataset)
     assert isinstance(open_scenes(riskflow_env.scenarios.io.ASSETS / "eval"), ScenarioBank)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="no scenes in .*empty: expected a folder of .npz"):
+        open_scenes(tmp_path / "empty")
 
 
 def test_second_load_hits_the_map_cache(toy, cache, monkeypatch):
