@@ -234,6 +234,7 @@ def _fit(options: LoopOptions, objective: Objective, ranks: Ranks) -> dict[str, 
             f"left to train (raise {flag} to go on)",
             file=sys.stderr,
         )
+    first = step
     interval = 0.5 if sys.stderr.isatty() else 30.0  # [s]: a log file gets few lines
     bar = tqdm(
         total=end, desc="riskflow-train", initial=step, unit="step", mininterval=interval,
@@ -299,4 +300,10 @@ def _fit(options: LoopOptions, objective: Objective, ranks: Ranks) -> dict[str, 
                     bar.write(f"riskflow-train: time budget reached at step {step}; saved")
                 break
     bar.close()
+    if ranks.main and step > first:  # steps were trained, and saved
+        print(
+            f"riskflow-train: wrote {out / GENERATOR} (to plan with), {out / CHECKPOINT} "
+            f"(--resume) and {out / METRICS_LOG}",
+            file=sys.stderr,
+        )
     return metrics

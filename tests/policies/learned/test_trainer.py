@@ -144,11 +144,13 @@ def test_init_fine_tunes_from_a_checkpoint_and_resumes(
         torch.testing.assert_close(tuned["state_dict"][key], value, rtol=0, atol=1e-6)
     cached = {p.name for p in (banks[0] / "cache").iterdir()}
     assert any(name.startswith("windows-stride16-recovery-") for name in cached)
-    train_main(tiny_args(banks, tune, tiny_config, *args, "--resume", steps=2))
-    assert load_checkpoint(tune / CHECKPOINT)["step"] == 2
     capsys.readouterr()
     train_main(tiny_args(banks, tune, tiny_config, *args, "--resume", steps=2))
-    assert "is at step 2, --steps is 2: nothing left to train" in capsys.readouterr().err
+    assert load_checkpoint(tune / CHECKPOINT)["step"] == 2
+    assert f"riskflow-train: wrote {tune / GENERATOR} (to plan with)" in capsys.readouterr().err
+    train_main(tiny_args(banks, tune, tiny_config, *args, "--resume", steps=2))
+    error = capsys.readouterr().err
+    assert "is at step 2, --steps is 2: nothing left to train" in error and "wrote" not in error
     with refused("--init: no generator checkpoint"):
         train_main(tiny_args(banks, tmp_path / "x", tiny_config, "--init", str(tmp_path / "no.pt")))
     wider = dataclasses.replace(tiny_config, head_dim=64)
