@@ -4,8 +4,9 @@ interval and a list of seeds, each with an error that names the argument."""
 
 from __future__ import annotations
 
+import difflib
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from numbers import Integral
 
 import numpy as np
@@ -93,6 +94,12 @@ def parse_seeds(text: str, option: str = "--seeds") -> tuple[int, ...]:
     return check_seeds([int(word) for word in words], option)
 
 
+def did_you_mean(name: object, known: Iterable[str]) -> str:
+    """`` (did you mean X?)`` for the closest of ``known`` to ``name``, or ``""``."""
+    close = difflib.get_close_matches(str(name), list(known), n=1)
+    return f" (did you mean {close[0]}?)" if close else ""
+
+
 __all__ = [
     "DT",
     "SEED_LIMIT",
@@ -100,6 +107,7 @@ __all__ = [
     "check_device",
     "check_interval",
     "check_seeds",
+    "did_you_mean",
     "open_data",
     "parse_seeds",
 ]

@@ -13,12 +13,12 @@ policy for one rollout.
 
 from __future__ import annotations
 
-import difflib
 import importlib
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from policies.cli_inputs import did_you_mean
 from policies.learned.adversary_config import option_names
 from riskflow_env.view import ScenePolicy
 
@@ -200,16 +200,10 @@ def method_spec(name: str) -> MethodSpec:
     """The spec of ``name``; ValueError listing the known methods otherwise."""
     if name not in METHODS:
         raise ValueError(
-            f"--methods: unknown method {name!r}{_did_you_mean(name, METHODS)}; known: "
+            f"--methods: unknown method {name!r}{did_you_mean(name, METHODS)}; known: "
             f"{', '.join(METHODS)}"
         )
     return METHODS[name]
-
-
-def _did_you_mean(name: str, known: Iterable[str]) -> str:
-    """`` (did you mean X?)`` for the closest of ``known`` to ``name``, or ``""``."""
-    close = difflib.get_close_matches(str(name), list(known), n=1)
-    return f" (did you mean {close[0]}?)" if close else ""
 
 
 def method_list() -> str:
@@ -257,7 +251,7 @@ def method_options(
         scope, dot, key = key.rpartition(".")
         if dot and scope not in METHODS:
             raise ValueError(
-                f"--set {item!r}: unknown method {scope!r}{_did_you_mean(scope, METHODS)}"
+                f"--set {item!r}: unknown method {scope!r}{did_you_mean(scope, METHODS)}"
             )
         # a method.key item for a method not in --methods is checked, then unused
         targets = [scope] if dot else [m for m in methods if key in METHODS[m].option_names()]
@@ -269,7 +263,7 @@ def method_options(
             )  # fmt: skip
             raise ValueError(
                 f"--set {item!r}: {key!r} is not an option of {where}"
-                f"{_did_you_mean(key, names)}; {'its' if dot else 'their'} options: "
+                f"{did_you_mean(key, names)}; {'its' if dot else 'their'} options: "
                 f"{', '.join(names)}"
             )
         for name in targets:

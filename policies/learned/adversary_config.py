@@ -110,6 +110,7 @@ class AdversaryConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, Real) or not math.isfinite(value):
                 raise ValueError(f"AdversaryConfig.{name} must be a finite number, got {value!r}")
+            object.__setattr__(self, name, plain_number(value))  # numpy scalars as Python
         if self.lambda_map < 0:
             raise ValueError(
                 f"AdversaryConfig.lambda_map must be >= 0 [1/m^2], got {self.lambda_map!r}"

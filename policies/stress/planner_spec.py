@@ -30,6 +30,7 @@ import inspect
 import sys
 from pathlib import Path
 
+from policies.cli_inputs import did_you_mean
 from policies.planners import PLANNERS, EgoPlanner, make_planner
 from riskflow_env.config import DynamicsConfig
 
@@ -89,8 +90,7 @@ def check_spec(spec: object, argument: str = "--planner") -> tuple[str, str] | N
         return None
     location, colon, name = spec.rpartition(":")
     if not colon or not location or not name.isidentifier():
-        close = difflib.get_close_matches(spec, list(PLANNERS), n=1)
-        hint = f" (did you mean {close[0]}?)" if close else ""
+        hint = did_you_mean(spec, PLANNERS)
         if not colon and spec.endswith(".py"):  # a file without the object to take from it
             hint = f" (name the planner in it: {spec}:OBJECT, e.g. {spec}:plan)"
         raise PlannerSpecError(argument, spec, f"expected {_forms()}{hint}")

@@ -25,6 +25,7 @@ from policies.planners import EgoPlanner
 from policies.stress.episode import EpisodeRunner, EpisodeSetup
 from policies.stress.planner_spec import load_planner
 from policies.stress.summary import Analysed
+from riskflow_env.cli_errors import interrupt_of
 from riskflow_env.processes import pool_worker
 from riskflow_env.scenarios import Scenario
 
@@ -191,7 +192,9 @@ def run_jobs(
                 on_episode(episode)
             bar.set_postfix_str(f"ego collisions {failed}", refresh=False)
             bar.update()
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, SystemError) as error:  # SystemError: Ctrl-C inside numba
+        if interrupt_of(error) is None:
+            raise
         interrupted = True
     finally:
         bar.close()

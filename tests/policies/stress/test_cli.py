@@ -288,6 +288,29 @@ def test_ctrl_c_reports_the_episodes_that_finished(scenes_dir, tmp_path, monkeyp
     assert len((tmp_path / "episodes.jsonl").read_text().splitlines()) == 1
 
 
+def test_ctrl_c_inside_compiled_code_reports_the_episodes_that_finished(
+    scenes_dir, tmp_path, monkeypatch, capsys
+):
+    """Ctrl-C inside a numba kernel surfaces as a SystemError around the KeyboardInterrupt:
+    the episodes that finished are reported as for a plain Ctrl-C."""
+    from policies.stress import runner
+
+    real = runner._episodes
+
+    def interrupted_in_numba(*args):
+        episodes = real(*args)
+        yield next(episodes)
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise SystemError("compiled function raised") from None
+
+    monkeypatch.setattr(runner, "_episodes", interrupted_in_numba)
+    _interrupted_idm_run(scenes_dir, tmp_path)
+    assert "interrupted: 1 of 2 episodes finished" in capsys.readouterr().err
+    assert json.loads((tmp_path / "summary.json").read_text())["episodes"] == 1
+
+
 def test_ctrl_c_while_drawing_the_gifs_keeps_the_reports(
     scenes_dir, tmp_path, monkeypatch, capsys
 ):
