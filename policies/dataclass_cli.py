@@ -42,6 +42,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from riskflow_env.cli_errors import CommandLineParser, add_debug_flag, run_script
+from riskflow_env.config import is_integer
 
 T = TypeVar("T")
 
@@ -167,13 +168,15 @@ def check_at_least(
 ) -> None:
     """ValueError naming the flag of the first field of ``options`` in ``lows`` that is not
     an int at least its bound; the fields named in ``optional`` may also be None ("not
-    given"). With ``owner`` (a class name), the field is named ``owner.field`` instead."""
+    given"). With ``owner`` (a class name), the field is named ``owner.field`` instead.
+    A numpy integer is accepted and stored as a Python int (bools are not ints)."""
     for name, low in lows.items():
         value = getattr(options, name)
         if value is None and name in optional:
             continue
-        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        if not is_integer(value) or value < low:
             raise ValueError(f"{_named(name, owner)} must be an int >= {low}, got {value!r}")
+        object.__setattr__(options, name, int(value))
 
 
 def check_choices(

@@ -16,7 +16,13 @@ import gymnasium
 from pettingzoo.utils.conversions import parallel_to_aec_wrapper
 from pettingzoo.utils.wrappers import OrderEnforcingWrapper
 
-from riskflow_env.config import DynamicsConfig, EnvConfig, ObservationConfig, RewardConfig
+from riskflow_env.config import (
+    DynamicsConfig,
+    EnvConfig,
+    ObservationConfig,
+    RewardConfig,
+    is_integer,
+)
 from riskflow_env.env import RiskFlowParallelEnv
 
 try:
@@ -45,7 +51,7 @@ def parallel_env(*, max_cycles: int | None = None, **kwargs) -> RiskFlowParallel
         config = kwargs.get("config") or EnvConfig()
         if not isinstance(config, EnvConfig):
             raise TypeError(f"config must be an EnvConfig, got {type(config).__name__}")
-        if isinstance(max_cycles, bool) or not isinstance(max_cycles, int) or max_cycles < 1:
+        if not is_integer(max_cycles) or max_cycles < 1:
             raise ValueError(f"max_cycles must be an int >= 1 (steps), got {max_cycles!r}")
         kwargs["config"] = dataclasses.replace(config, episode_steps=max_cycles)
     return RiskFlowParallelEnv(**kwargs)

@@ -25,6 +25,11 @@ def is_number(value: object) -> bool:
     )
 
 
+def is_integer(value: object) -> bool:
+    """An integer: a Python int or a numpy integer scalar; bools are not integers."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
 def plain_number(value: float) -> float:
     """A number as a Python one: numpy integers -> int, numpy float scalars -> float; a
     float16/float32 one by its shortest decimal (``np.float32(0.1)`` -> 0.1, not
@@ -55,11 +60,21 @@ def _set_finite(config: object, names: Iterable[str]) -> None:
         object.__setattr__(config, name, value)
 
 
-def _integer(name: str, value: int, minimum: int, maximum: int = 1_000_000) -> None:
+def _integer(name: str, value: int, minimum: int, maximum: int = 1_000_000) -> int:
+    """``value`` as a Python int, or a ValueError naming ``name`` unless it is an int
+    (Python or numpy; bools are not ints) in [minimum, maximum]."""
     _require(
-        isinstance(value, int) and not isinstance(value, bool) and minimum <= value <= maximum,
+        is_integer(value) and minimum <= value <= maximum,
         f"{name} must be an int in [{minimum}, {maximum}] (booleans are not ints), got {value!r}",
     )
+    return int(value)
+
+
+def _set_integer(config: object, name: str, minimum: int, maximum: int = 1_000_000) -> None:
+    """Checks the field ``name`` of the frozen dataclass ``config`` with :func:`_integer`
+    (the error names ``Class.field``) and stores it as a Python int."""
+    value = _integer(f"{type(config).__name__}.{name}", getattr(config, name), minimum, maximum)
+    object.__setattr__(config, name, value)
 
 
 @dataclass(frozen=True)
@@ -133,8 +148,8 @@ class ObservationConfig:
     ray_distances: tuple[float, ...] = (2.0, 5.0, 10.0, 20.0)
 
     def __post_init__(self) -> None:
-        _integer("ObservationConfig.num_neighbors", self.num_neighbors, 0, 1024)
-        _integer("ObservationConfig.ray_directions", self.ray_directions, 0, 1024)
+        _set_integer(self, "num_neighbors", 0, 1024)
+        _set_integer(self, "ray_directions", 0, 1024)
         if isinstance(self.ray_distances, list):
             object.__setattr__(self, "ray_distances", tuple(self.ray_distances))
         _require(
@@ -219,8 +234,8 @@ class EnvConfig:
     reward: RewardConfig = field(default_factory=RewardConfig)
 
     def __post_init__(self) -> None:
-        _integer("EnvConfig.max_agents", self.max_agents, 1, MAX_AGENTS)
-        _integer("EnvConfig.episode_steps", self.episode_steps, 1, 10_000_000)
+        _set_integer(self, "max_agents", 1, MAX_AGENTS)
+        _set_integer(self, "episode_steps", 1, 10_000_000)
         for name in ("end_with_ego", "leave_when_log_ends", "clip_actions"):
             _require(
                 isinstance(getattr(self, name), bool),

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from riskflow_env.config import DynamicsConfig, _integer, _require, _set_finite
+from riskflow_env.config import DynamicsConfig, _require, _set_finite, _set_integer, is_integer
 from riskflow_env.events import contact_pairs
 from riskflow_env.geometry import FRONT, LEFT, RIGHT, box_corners, footprint_points
 from riskflow_env.state import HISTORY_STEPS
@@ -78,7 +78,7 @@ class RenderConfig:
 
     def __post_init__(self) -> None:
         for name in ("width_px", "height_px"):
-            _integer(f"RenderConfig.{name}", getattr(self, name), 16)
+            _set_integer(self, name, 16)
         _set_finite(self, ("view_width", "trail_seconds"))
         width, trail = self.view_width, self.trail_seconds
         _require(width >= 1e-3, f"RenderConfig.view_width must be >= 0.001 m, got {width}")
@@ -176,10 +176,10 @@ class SceneRenderer:
             colors = np.repeat(colors[None], points.shape[0], axis=0)
         if colors.shape != (points.shape[0], 3) or np.any((colors < 0) | (colors > 255)):
             raise ValueError(f"color must be (3,) or (A, 3) ints in [0, 255], got {colors!r}")
-        if isinstance(width, bool) or not isinstance(width, int) or width < 1:
+        if not is_integer(width) or width < 1:
             raise ValueError(f"width must be an int >= 1 [px], got {width!r}")
         colors = colors.astype(np.uint8)
-        self.overlays[name] = Overlay(points, valid, colors, (*highlight,), width, label)
+        self.overlays[name] = Overlay(points, valid, colors, (*highlight,), int(width), label)
 
     def clear_overlay(self, name: str | None = None) -> None:
         """Remove overlay ``name``, or all overlays when None."""

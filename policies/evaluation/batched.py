@@ -61,7 +61,7 @@ from policies.pipeline.batched import BatchedAdversary
 from policies.planners import make_planner
 from policies.planners.base import EgoPlanner, as_action, reset_planner
 from policies.rl.vector_traffic import SceneLoop, batched_traffic
-from riskflow_env.config import EnvConfig
+from riskflow_env.config import EnvConfig, is_integer
 from riskflow_env.events import FrameEvents
 from riskflow_env.scenarios import Scenario
 from riskflow_env.scene_batch import SceneBatch
@@ -75,7 +75,7 @@ def _group_key(job: Job) -> tuple:
 def group_jobs(jobs: Sequence[Job], size: int) -> list[list[Job]]:
     """``jobs`` in groups of at most ``size`` consecutive jobs of one method, options, K,
     interval and run settings (module docstring)."""
-    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+    if not is_integer(size) or size < 1:
         raise ValueError(f"--batch-scenes must be an int >= 1, got {size!r}")
     groups: list[list[Job]] = []
     for job in jobs:

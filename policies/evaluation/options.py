@@ -32,7 +32,7 @@ from policies.dataclass_cli import check_at_least, check_choices, from_fields
 from policies.learned.guidance_losses import TARGETS
 from policies.planners import PLANNERS
 from policies.registry import method_options, method_spec
-from riskflow_env.config import EnvConfig
+from riskflow_env.config import EnvConfig, is_integer
 from riskflow_env.folder_lock import check_output_folder
 from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
@@ -115,8 +115,7 @@ class EvalOptions:
             check_interval(interval, DT, None)
         check_at_least(self, {"scenes": 1, "diffusion_steps": 1}, ("scenes", "diffusion_steps"))
         workers = self.workers
-        whole = isinstance(workers, int) and not isinstance(workers, bool)
-        if not (whole and 1 <= workers <= MAX_WORKERS):
+        if not (is_integer(workers) and 1 <= workers <= MAX_WORKERS):
             raise ValueError(f"--workers must be in [1, {MAX_WORKERS}], got {workers!r}")
         check_batch_scenes(self.batch_scenes, self.backend)
         check_backend(self.backend, self.address)
@@ -282,7 +281,7 @@ def check_backend(backend: str, address: str | None) -> None:
 
 def check_batch_scenes(batch_scenes: int, backend: str) -> None:
     """ValueError naming ``--batch-scenes`` unless it is an int >= 1, and 1 with Ray."""
-    if isinstance(batch_scenes, bool) or not isinstance(batch_scenes, int) or batch_scenes < 1:
+    if not is_integer(batch_scenes) or batch_scenes < 1:
         raise ValueError(f"--batch-scenes must be an int >= 1, got {batch_scenes!r}")
     if batch_scenes > 1 and backend == "ray":
         raise ValueError(

@@ -35,6 +35,7 @@ import numpy as np
 
 from policies.pipeline.policy import PipelinePolicy
 from policies.pipeline.stages import plan_scenes, prepare_maps
+from riskflow_env.config import is_integer
 from riskflow_env.view import SceneView
 
 
@@ -55,7 +56,7 @@ class BatchedAdversary:
             raise TypeError(
                 f"policy must be a learned adversary (a PipelinePolicy), got {type(policy)}"
             )
-        if isinstance(num_scenes, bool) or not isinstance(num_scenes, int) or num_scenes < 1:
+        if not is_integer(num_scenes) or num_scenes < 1:
             raise ValueError(f"num_scenes must be an int >= 1, got {num_scenes!r}")
         if seeds is None:
             seeds = [policy.seed + index for index in range(num_scenes)]

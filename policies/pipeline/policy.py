@@ -43,6 +43,7 @@ from policies.pipeline.plan_set import PlanSet
 from policies.pipeline.stages import plan_scenes
 from policies.pipeline.state import PlannerState
 from riskflow_env.agents.base import actions_dict, controlled_mask
+from riskflow_env.config import is_integer
 from riskflow_env.maps import MapStack
 from riskflow_env.view import SceneView
 
@@ -202,7 +203,7 @@ class PipelinePolicy:
         state = self.state
         if state.plans is None or state.plan_step is None:
             raise RuntimeError("no plans yet: call act(view) before predicted_states(view)")
-        if not (isinstance(steps, int) and steps >= 1):
+        if not (is_integer(steps) and steps >= 1):
             raise ValueError(f"steps must be an int >= 1, got {steps!r}")
         elapsed = view.step - state.plan_step
         index = np.minimum(np.arange(elapsed, elapsed + steps), state.plans.shape[1] - 1)

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from riskflow_env import dynamics as unicycle
-from riskflow_env.config import DynamicsConfig
+from riskflow_env.config import DynamicsConfig, is_integer
 from riskflow_env.geometry import footprint_points, separation
 from riskflow_env.view import SceneView
 
@@ -114,7 +114,7 @@ class SamplingMPCPlanner:
         clearance_cap: float = 5.0,
         candidates: np.ndarray | None = None,
     ) -> None:
-        if not (isinstance(horizon, int) and horizon >= 1):
+        if not (is_integer(horizon) and horizon >= 1):
             raise ValueError(f"horizon must be an int >= 1 [steps], got {horizon!r}")
         if not 0.0 < gamma <= 1.0:
             raise ValueError(f"gamma must be in (0, 1], got {gamma!r}")

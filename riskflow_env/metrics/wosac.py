@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from riskflow_env.config import _integer, _require, _set_finite
+from riskflow_env.config import _require, _set_finite, _set_integer
 from riskflow_env.metrics.rollout import RolloutRecord
 from riskflow_env.metrics.wosac_features import WOSAC_FEATURES, wosac_features
 
@@ -61,7 +61,7 @@ class FeatureConfig:
     def __post_init__(self) -> None:
         _set_finite(self, ("weight", "min_val", "max_val", "pseudocount"))
         _require(self.weight >= 0, f"FeatureConfig.weight must be >= 0, got {self.weight}")
-        _integer("FeatureConfig.num_bins", self.num_bins, 0)
+        _set_integer(self, "num_bins", 0)
         _require(
             self.min_val < self.max_val,
             "FeatureConfig needs min_val < max_val, "

@@ -44,6 +44,7 @@ import numpy as np
 
 from riskflow_env.atomic_files import write_text
 from riskflow_env.cli_errors import CommandLineParser, add_debug_flag, user_errors
+from riskflow_env.config import is_integer
 from riskflow_env.folder_lock import (
     FolderLock,
     FolderLocked,
@@ -85,8 +86,9 @@ class GenerateOptions:
     def __post_init__(self) -> None:
         for name, minimum in (("scenes", 1), ("seed", 0), ("workers", 1), ("future_steps", 1)):
             value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
+            if not is_integer(value) or value < minimum:
                 raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}")
+            object.__setattr__(self, name, int(value))  # a numpy int as a Python one
         if not isinstance(self.stop_share, float | int) or not 0.0 <= self.stop_share <= 1.0:
             raise ValueError(f"stop_share must be a number in [0, 1], got {self.stop_share!r}")
         if self.split not in SPLIT_KEYS:

@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from riskflow_env.config import is_integer
 from riskflow_env.scenarios.map_cache import MapCache
 from riskflow_env.scenarios.safe_pickle import load_data_pickle
 from riskflow_env.scenarios.scenario import Scenario
@@ -125,7 +126,7 @@ class ScenarioNetDataset:
             )
         if not folder.is_dir():
             raise FileNotFoundError(f"ScenarioNet dataset folder {folder} does not exist")
-        if isinstance(keep, bool) or not isinstance(keep, int) or keep < 0:
+        if not is_integer(keep) or keep < 0:
             raise ValueError(f"keep must be an int >= 0 [scenes], got {keep!r}")
         if not isinstance(map_cache, (bool, MapCache)):
             raise TypeError(f"map_cache must be a bool or a MapCache, got {map_cache!r}")

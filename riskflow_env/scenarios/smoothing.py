@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.signal import savgol_filter
 
-from riskflow_env.config import MAX_MAGNITUDE, is_number, plain_number
+from riskflow_env.config import MAX_MAGNITUDE, is_integer, is_number, plain_number
 from riskflow_env.dynamics import wrap_angle
 
 WINDOW_STEPS = 21  # [steps] Savitzky-Golay window (2.1 s at 10 Hz: four nuScenes keyframes), odd
@@ -61,9 +61,9 @@ def smooth_tracks(
         raise ValueError(
             f"states must be (N, T, 4) and valid (N, T), got {states.shape} and {valid.shape}"
         )
-    if not (isinstance(polyorder, int) and polyorder >= 1):
+    if not (is_integer(polyorder) and polyorder >= 1):
         raise ValueError(f"polyorder must be an int >= 1, got {polyorder!r}")
-    if not (isinstance(window, int) and window % 2 == 1 and window > polyorder):
+    if not (is_integer(window) and window % 2 == 1 and window > polyorder):
         raise ValueError(f"window must be an odd int > polyorder = {polyorder}, got {window!r}")
     if not (is_number(dt) and 0 < plain_number(dt) <= MAX_MAGNITUDE):  # bools, NaN are refused
         raise ValueError(f"dt must be a finite number > 0 [s], got {dt!r}")

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from riskflow_env.config import _finite, _integer, _require, _set_finite
+from riskflow_env.config import _finite, _integer, _require, _set_finite, _set_integer
 from riskflow_env.geometry import footprint_points, pairwise_overlap
 from riskflow_env.maps import FAMILIES, DrivableMap, from_highway_env
 from riskflow_env.scenarios.scenario import Scenario
@@ -65,11 +65,11 @@ class TrafficConfig:
                 isinstance(pair, (tuple, list)) and len(pair) == 2,
                 f"{field} must be a pair (min, max), got {pair!r}",
             )
-            if name == "num_vehicles":
-                for value in pair:
-                    _integer(field, value, 1)
-            else:  # numbers, stored as Python floats
-                object.__setattr__(self, name, pair := tuple(_finite(field, v) for v in pair))
+            if name == "num_vehicles":  # stored as Python numbers
+                pair = tuple(_integer(field, value, 1) for value in pair)
+            else:
+                pair = tuple(_finite(field, value) for value in pair)
+            object.__setattr__(self, name, pair)
             _require(
                 (pair[0] >= 1 if name == "num_vehicles" else pair[0] > 0) and pair[0] <= pair[1],
                 f"{field} must satisfy {'1 <=' if name == 'num_vehicles' else '0 <'} min <= max,"
@@ -79,7 +79,7 @@ class TrafficConfig:
         _set_finite(self, positive)
         for name in positive:
             _require(getattr(self, name) > 0, f"TrafficConfig.{name} must be > 0")
-        _integer("TrafficConfig.future_steps", self.future_steps, 1)
+        _set_integer(self, "future_steps", 1)
 
 
 class HighwayTrafficSource:

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from riskflow_env.config import is_integer
+
 
 def sb3_vec_env(env: Any, num_envs: int = 1, num_cpus: int = 0) -> Any:
     """An SB3 ``VecEnv`` of ``num_envs`` copies of ``env`` x its ``possible_agents`` rows.
@@ -36,7 +38,7 @@ def sb3_vec_env(env: Any, num_envs: int = 1, num_cpus: int = 0) -> Any:
     if not isinstance(env, ParallelEnv):
         raise TypeError(f"env must be a PettingZoo ParallelEnv, got {type(env).__name__}")
     for name, value, minimum in (("num_envs", num_envs, 1), ("num_cpus", num_cpus, 0)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        if not is_integer(value) or value < minimum:
             raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}")
     try:
         import supersuit

@@ -92,6 +92,39 @@ def test_numpy_float_scalars_are_numbers(number):
     assert is_number(np.int64(3)) and not is_number(np.bool_(True))
 
 
+def test_numpy_integers_are_ints():
+    """np.int64(8) was refused where a config or an argument takes an int; numpy integers
+    are ints, stored as Python ints; numpy bools are still refused."""
+    from policies.baselines.diffusion.schedule import ScheduleConfig
+    from policies.dataclass_cli import check_at_least
+    from policies.stress.escape import EscapeSearch
+    from riskflow_env.config import is_integer
+    from riskflow_env.render import RenderConfig
+    from riskflow_env.scenarios.traffic import TrafficConfig
+
+    values = [
+        EnvConfig(max_agents=np.int64(8)).max_agents,
+        EnvConfig(episode_steps=np.int32(8)).episode_steps,
+        ObservationConfig(num_neighbors=np.int16(8)).num_neighbors,
+        TrafficConfig(num_vehicles=(np.int64(8), 9)).num_vehicles[0],
+        TrafficConfig(future_steps=np.uint8(8)).future_steps,
+        RenderConfig(width_px=np.int64(8 * 16)).width_px // 16,
+        ScheduleConfig(num_steps=np.int64(8)).num_steps,
+        EscapeSearch(samples=np.int64(8)).samples,
+    ]
+    assert all(type(value) is int and value == 8 for value in values)
+
+    class Options:
+        workers = np.int64(2)
+
+    options = Options()
+    check_at_least(options, {"workers": 1})
+    assert type(options.workers) is int and options.workers == 2
+    assert not is_integer(np.bool_(True)) and not is_integer(2.0)
+    with pytest.raises(ValueError, match="EnvConfig.max_agents"):
+        EnvConfig(max_agents=np.bool_(True))
+
+
 @pytest.mark.parametrize("flag", [True, np.bool_(True)])
 def test_bools_are_not_numbers(flag):
     from riskflow_env.config import RewardConfig

@@ -73,7 +73,7 @@ from policies.learned.plan_overlap import separation_term
 from policies.learned.sampler import decode_plans
 from policies.pipeline.stages import stand_still
 from riskflow_env._array import attach_gradient
-from riskflow_env.config import DynamicsConfig
+from riskflow_env.config import DynamicsConfig, is_integer
 from riskflow_env.dynamics import DEFAULT_CONFIG, rollout
 from riskflow_env.maps import DrivableMap, MapStack
 
@@ -102,7 +102,7 @@ class DiffusionGuidanceConfig(ObjectiveConfig):
 
     def checks(self) -> list[tuple[bool, str]]:
         """The objective's rules and the sampler's."""
-        inner_ok = isinstance(self.inner_steps, int) and self.inner_steps >= 1
+        inner_ok = is_integer(self.inner_steps) and self.inner_steps >= 1
         return super().checks() + [
             (self.gradient in GRADIENTS, f"gradient must be one of {GRADIENTS}"),
             (inner_ok, "inner_steps must be >= 1"),

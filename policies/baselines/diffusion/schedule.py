@@ -30,6 +30,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from riskflow_env.config import is_integer
+
 SCHEDULES = ("cosine", "linear")
 COSINE_OFFSET = 0.008  # s of the cosine schedule (Nichol & Dhariwal 2021)
 MAX_BETA = 0.999  # betas are clipped here (the cosine schedule's last level)
@@ -53,8 +55,9 @@ class ScheduleConfig:
     beta_end: float = 0.02
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.num_steps, int) and self.num_steps >= 1):
+        if not (is_integer(self.num_steps) and self.num_steps >= 1):
             raise ValueError(f"ScheduleConfig.num_steps must be an int >= 1, got {self.num_steps}")
+        object.__setattr__(self, "num_steps", int(self.num_steps))  # a numpy int as a Python one
         if self.kind not in SCHEDULES:
             raise ValueError(f"ScheduleConfig.kind must be one of {SCHEDULES}, got {self.kind!r}")
         if not 0 < self.beta_start <= self.beta_end < 1:
@@ -157,7 +160,7 @@ class DiffusionSchedule:
                 spaced levels ``round(linspace(K - 1, 0, S))``.
         """
         steps = self.num_steps if sampling_steps is None else sampling_steps
-        if not (isinstance(steps, int) and 1 <= steps <= self.num_steps):
+        if not (is_integer(steps) and 1 <= steps <= self.num_steps):
             raise ValueError(f"sampling_steps must be an int in [1, {self.num_steps}], got {steps}")
         ks = torch.linspace(self.num_steps - 1, 0, steps, dtype=torch.float64).round().long()
         ks = [int(k) for k in ks]
