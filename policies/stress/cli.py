@@ -200,7 +200,8 @@ def _compare(argv: list[str]) -> None:
         except SceneSourceError as err:
             usage.error(str(err))
     print(markdown(table))
-    print(f"wrote {options.out}/compare.md, compare.json and both runs' reports")
+    runs = " and ".join(f"{options.out}/{name}/" for name in table["folders"].values())
+    print(f"wrote {options.out}/compare.md, compare.json and the runs' reports in {runs}")
 
 
 def _replay(argv: list[str]) -> None:

@@ -54,18 +54,23 @@ def compare(
 
     Returns:
         ``{"a", "b", "episodes", "rows"}``: the two planners' names, the number of paired
-        episodes, and a row per outcome (:data:`OUTCOMES`) and per counter-metric.
+        episodes, and a row per outcome (:data:`OUTCOMES`) and per counter-metric; with
+        ``out``, also ``"folders"``: the runs' sub-folders of ``out`` (``{"a": "a-idm",
+        ...}``; the sub-folders of earlier comparisons in the same ``out`` are left as they
+        are).
     """
     folder = None if out is None else Path(out)
     for letter, planner in (("a", a), ("b", b)):  # a malformed b fails before a's run
         if isinstance(planner, str):
             check_spec(planner, letter)
-    runs = []
+    runs, names = [], {}
     for letter, planner in (("a", a), ("b", b)):
-        sub = None if folder is None else folder / f"{letter}-{_safe(_label(planner))}"
+        names[letter] = f"{letter}-{_safe(_label(planner))}"
+        sub = None if folder is None else folder / names[letter]
         runs.append(riskflow_stress(planner, scenes, seeds, out=sub, **options))
     table = paired_table(*runs)
-    if folder is not None:
+    if folder is not None:  # which sub-folders are this comparison's, in a reused --out
+        table["folders"] = names
         write_text(folder / "compare.json", json.dumps(table, indent=2) + "\n")
         write_text(folder / "compare.md", markdown(table) + "\n")
     return table
@@ -123,8 +128,10 @@ _DIGITS = {COUNTER_METRICS["ego_collisions_per_km"]: 2}  # other values: 1 decim
 
 def markdown(table: dict[str, Any]) -> str:
     """The table in Markdown (``compare.md``, and what the command prints)."""
+    folders = table.get("folders")
     lines = [
         f"A = {table['a']}, B = {table['b']}, {table['episodes']} paired episodes",
+        *([f"runs: {folders['a']}/, {folders['b']}/"] if folders else []),
         "",
         "| outcome | A | B | A - B [95% CI] | A only / B only | McNemar p |",
         "|---|---|---|---|---|---|",

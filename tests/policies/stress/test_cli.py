@@ -247,8 +247,11 @@ def test_compare_two_planners_paired(scenes_dir, planner_file, tmp_path, capsys)
     assert [row["outcome"] for row in table["rows"][-2:]] == [
         "ego progress [m] (counter-metric)", "ego collisions per km (counter-metric)"
     ]  # fmt: skip
-    assert "McNemar" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "McNemar" in printed and "runs: a-reckless/, b-constant_velocity/" in printed
+    assert table["folders"] == {"a": "a-reckless", "b": "b-constant_velocity"}
     assert (tmp_path / "a-reckless" / "report.html").is_file()
+    assert f"{tmp_path}/b-constant_velocity/" in printed  # the closing line names the runs
 
 
 def test_compare_checks_both_planners_before_running_either(scenes_dir, tmp_path, capsys):
