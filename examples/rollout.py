@@ -2,8 +2,9 @@
 
     python examples/rollout.py                          # shipped scene 0, K = 5, target ego
     python examples/rollout.py --scenario 12 --k all --target others --video mp4
-    python examples/rollout.py --scenario outputs/stress_test/worst/00-merge-eval-s0-00001.npz \\
-        --traffic replay                                # watch a saved scenario again
+    python examples/rollout.py --scenario sd_scene.pkl --traffic replay   # a recorded log
+    python examples/rollout.py --scenario outputs/stress/failures/<scene>-seed0.npz \\
+        --traffic replay --replay-mode open_loop        # a failure's scene, its own future
 
 The ego follows its lane with IDM (``policies.planners.IDMPlanner``); every other vehicle
 is driven by ``RiskFlowAdversary`` (the shipped checkpoint unless ``--checkpoint``): one
@@ -14,10 +15,12 @@ steps pull the base plans apart and onto the road, parked cars within 4 m of res
 standing, new plans blended into the executed ones first) with the map term weighted 20
 (the guided vehicles keep to the road while they attack); ``--avoid-steps 0
 --hold-distance 0`` is the raw generator. With
-``--traffic replay`` the others replay the scenario's reference future instead
-(``ReplayPolicy``'s position tracking: within about 0.1 m of a simulated future, 0.5 m of
-a recorded one at 99% of the steps; the others do not react to the ego: a scenario saved by
-``stress_test_planner.py`` replays what happened).
+``--traffic replay`` the others replay the scenario's reference future instead, without
+reacting to the ego: ``--replay-mode tracking`` (the default, ``ReplayPolicy``'s) steers
+them onto the logged positions, which a recorded log (not drawn from these dynamics) needs
+(inverse dynamics drift recorded vehicles off the road); ``--replay-mode open_loop``
+reproduces a future that this env simulated (an exported episode) exactly, where
+tracking is off by up to about 2 m on tight curves.
 
 Prints the events (collisions, off-road excursions) and the metrics; writes to ``--out``
 (default ``outputs/rollout/``): ``rollout.gif`` (or ``.mp4``) with the plans drawn (cyan:
@@ -51,6 +54,7 @@ from riskflow_env.scenarios.scenarionet import load_scenarionet
 
 VIDEO_FORMATS = ("gif", "mp4", "none")
 TRAFFIC = ("riskflow", "replay")
+REPLAY_MODES = ("tracking", "open_loop")  # ReplayPolicy's modes
 
 
 @dataclass(frozen=True)
@@ -79,6 +83,10 @@ class Options:
     """episode length [steps of 0.1 s]"""
     traffic: str = "riskflow"
     """who drives the other vehicles: 'riskflow' or 'replay' (the scenario's future)"""
+    replay_mode: str = "tracking"
+    """with --traffic replay: 'tracking' (position feedback: stays on a recorded log's
+    positions) or 'open_loop' (inverse dynamics: reproduces a future this env simulated,
+    such as an exported episode, exactly)"""
     avoid_steps: int = DEFAULT_AVOID_STEPS
     """avoidance steps on the base plans (RiskFlowAdversary avoid_steps; 0: off)"""
     hold_distance: float = AdversaryConfig.hold_distance
@@ -91,6 +99,10 @@ class Options:
             raise ValueError(f"--video must be one of {VIDEO_FORMATS}, got {self.video!r}")
         if self.traffic not in TRAFFIC:
             raise ValueError(f"--traffic must be one of {TRAFFIC}, got {self.traffic!r}")
+        if self.replay_mode not in REPLAY_MODES:
+            raise ValueError(
+                f"--replay-mode must be one of {REPLAY_MODES}, got {self.replay_mode!r}"
+            )
         if self.target not in ("others", "ego"):
             raise ValueError(f"--target must be 'others' or 'ego', got {self.target!r}")
         if not (self.k == "all" or (self.k.isdigit())):
@@ -140,7 +152,7 @@ def load_scene(spec: str) -> Scenario:
 def make_traffic(options: Options) -> RiskFlowAdversary | ReplayPolicy:
     """The scene policy of every vehicle but the ego."""
     if options.traffic == "replay":
-        return ReplayPolicy(controlled="others")  # tracking: stays on the logged positions
+        return ReplayPolicy(controlled="others", mode=options.replay_mode)
     try:
         return RiskFlowAdversary(
             k=options.controllable,

@@ -105,6 +105,7 @@ def test_rollout_warm_up_leaves_the_episode_as_it_is(checkpoint, tmp_path, monke
         (["--planning-interval", "inf"], "--planning-interval: inf s is not a positive"),
         (["--seed", "-1"], "--seed must be an int >= 0, got -1"),
         (["--device", "cdua"], "--device: 'cdua' is not a torch device"),
+        (["--replay-mode", "open-loop"], "--replay-mode must be one of ('tracking', 'open_loop')"),
     ],
 )
 def test_rollout_rejects_bad_options(argv, message, monkeypatch, capsys):
@@ -116,6 +117,16 @@ def test_rollout_rejects_bad_options(argv, message, monkeypatch, capsys):
     with pytest.raises(SystemExit) as exit_:
         runpy.run_path(str(script), run_name="__main__")
     assert exit_.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_rollout_replay_tracks_the_log_unless_told_otherwise():
+    """Replay steers onto the logged positions by default (inverse dynamics alone drift a
+    recorded log's vehicles off the road); ``--replay-mode open_loop`` is ReplayPolicy's
+    exact replay of a future these dynamics produced."""
+    rollout = load_script("examples/rollout.py")
+    assert rollout.make_traffic(rollout.Options(traffic="replay")).mode == "tracking"
+    exact = rollout.Options(traffic="replay", replay_mode="open_loop")
+    assert rollout.make_traffic(exact).mode == "open_loop"
 
 
 @pytest.mark.skipif(not SHIPPED.is_file(), reason="the shipped checkpoint is not trained yet")
