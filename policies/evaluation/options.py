@@ -117,7 +117,9 @@ class EvalOptions:
         workers = self.workers
         if not (is_integer(workers) and 1 <= workers <= MAX_WORKERS):
             raise ValueError(f"--workers must be in [1, {MAX_WORKERS}], got {workers!r}")
+        object.__setattr__(self, "workers", int(workers))  # a numpy int as a Python one
         check_batch_scenes(self.batch_scenes, self.backend)
+        object.__setattr__(self, "batch_scenes", int(self.batch_scenes))
         check_backend(self.backend, self.address)
         check_choices(self, {"ego": tuple(PLANNERS), "target": TARGETS})
         check_interval(self.duration, DT, None, "--duration")

@@ -17,6 +17,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from riskflow_env.config import is_integer
+
 # Feature layout of the per-agent history tokens (encoder.py), in the agent's own frame.
 HISTORY_FEATURES = ("x", "y", "cos_dpsi", "sin_dpsi", "speed", "valid", "length", "width")
 # A field of earlier versions: the crop's centre that far ahead of the agent [m].
@@ -85,9 +87,10 @@ class ModelConfig:
         for name in ints:
             value = getattr(self, name)
             _require(
-                isinstance(value, int) and not isinstance(value, bool) and value > 0,
+                is_integer(value) and value > 0,
                 f"ModelConfig.{name} must be a positive int, got {value!r}",
             )
+            object.__setattr__(self, name, int(value))  # a numpy int as a Python one
         _require(
             self.future_steps % self.plan_patch == 0,
             f"ModelConfig.plan_patch ({self.plan_patch}) must divide future_steps "
@@ -100,9 +103,10 @@ class ModelConfig:
                 f"num_heads ({self.num_heads})",
             )
         _require(
-            len(self.map_widths) > 0 and all(isinstance(w, int) for w in self.map_widths),
+            len(self.map_widths) > 0 and all(is_integer(w) for w in self.map_widths),
             f"ModelConfig.map_widths must be a non-empty tuple of ints, got {self.map_widths!r}",
         )
+        object.__setattr__(self, "map_widths", tuple(int(w) for w in self.map_widths))
         _require(self.time_scale > 0, f"ModelConfig.time_scale must be > 0, got {self.time_scale}")
         for name, size in (
             ("map_widths", None),

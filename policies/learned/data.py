@@ -37,6 +37,7 @@ from policies.learned.window_types import AGENT_FIELDS, PAIR_FIELDS, Window
 from policies.learned.windows import WindowConfig, select_rows, window_from_scenario
 from riskflow_env._array import Array, asarray_like
 from riskflow_env.atomic_files import atomic_file, write_text
+from riskflow_env.config import is_integer
 from riskflow_env.dynamics import ACTION_DIM
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
@@ -153,7 +154,7 @@ class WindowDataset(Dataset):
         cache_path: str | os.PathLike | None = None,
         recovery: RecoveryConfig | None = None,
     ) -> None:
-        if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+        if not is_integer(stride) or stride < 1:
             raise ValueError(f"stride must be an int >= 1 [steps], got {stride!r}")
         if recovery is not None and not isinstance(recovery, RecoveryConfig):
             raise TypeError(f"recovery must be a RecoveryConfig or None, got {recovery!r}")

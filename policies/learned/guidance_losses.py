@@ -14,10 +14,12 @@ comparison between them is a comparison of how they guide, not of what they opti
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from enum import Enum
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -28,6 +30,7 @@ from policies.learned.adversarial_term import (
 )
 from policies.learned.ranking import MIN_ATTACK_SPEED
 from riskflow_env._array import attach_gradient, requires_grad
+from riskflow_env.config import is_integer
 from riskflow_env.geometry import footprint_points
 from riskflow_env.maps import DrivableMap, MapStack
 
@@ -130,11 +133,7 @@ class ObjectiveConfig:
 
     def checks(self) -> list[tuple[bool, str]]:
         """``(holds, message)`` of every option rule (subclasses add theirs)."""
-        horizon_ok = (
-            self.horizon is None
-            or (isinstance(self.horizon, int) and not isinstance(self.horizon, bool))
-            and self.horizon >= 1
-        )
+        horizon_ok = self.horizon is None or (is_integer(self.horizon) and self.horizon >= 1)
         reals = ("lambda_adv", "lambda_map", "map_margin", "map_decay")
         return [
             (horizon_ok, "horizon must be None or an int >= 1"),
@@ -154,6 +153,10 @@ class ObjectiveConfig:
                 name = message.split()[0]
                 got = f"{name}={getattr(self, name)!r}" if hasattr(self, name) else str(self)
                 raise ValueError(f"{type(self).__name__}: {message}; got {got}")
+        for field in dataclasses.fields(self):  # numpy integers as Python ints
+            value = getattr(self, field.name)
+            if isinstance(value, np.integer):
+                object.__setattr__(self, field.name, int(value))
 
 
 def target_rows(present: Tensor, controllable: Tensor, ego: int, target: str) -> Tensor:

@@ -118,7 +118,7 @@ class SamplingMPCPlanner:
             raise ValueError(f"horizon must be an int >= 1 [steps], got {horizon!r}")
         if not 0.0 < gamma <= 1.0:
             raise ValueError(f"gamma must be in (0, 1], got {gamma!r}")
-        self.horizon, self.dynamics = horizon, dynamics or DynamicsConfig()
+        self.horizon, self.dynamics = int(horizon), dynamics or DynamicsConfig()
         self.prediction = prediction
         if prediction is None:
             self.prediction = ConstantVelocityPrediction(self.dynamics)

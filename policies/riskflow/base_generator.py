@@ -26,7 +26,7 @@ import torch
 from policies.learned.checkpoint import checkpoint_kind, load_checkpoint
 from policies.learned.data import ActionNormalizer
 from policies.learned.generator import RiskFlowGenerator
-from riskflow_env.config import is_number
+from riskflow_env.config import is_integer, is_number
 
 GENERATOR_KINDS = ("meanflow", "diffusion")
 DEFAULT_SAMPLING_STEPS = 10  # DDIM levels of a diffusion base generator (its validation's)
@@ -127,7 +127,7 @@ def resolve_avoid_steps(avoid_steps: int | None, avoid_step_size: float, kind: s
     from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
 
     if avoid_steps is not None and (
-        isinstance(avoid_steps, bool) or not isinstance(avoid_steps, int) or avoid_steps < 0
+        not is_integer(avoid_steps) or avoid_steps < 0
     ):
         raise ValueError(f"avoid_steps must be None or an int >= 0, got {avoid_steps!r}")
     if not (is_number(avoid_step_size) and 0 < avoid_step_size < float("inf")):
@@ -136,7 +136,7 @@ def resolve_avoid_steps(avoid_steps: int | None, avoid_step_size: float, kind: s
         return DEFAULT_AVOID_STEPS if kind == "meanflow" else 0
     if avoid_steps > 0 and kind != "meanflow":
         raise ValueError(f"avoid_steps > 0 needs the MeanFlow generator, got {kind!r}")
-    return avoid_steps
+    return int(avoid_steps)
 
 
 __all__ = [

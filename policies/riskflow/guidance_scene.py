@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from torch import Tensor
 
 from policies.learned.guidance_losses import ObjectiveConfig
+from riskflow_env.config import is_integer
 from riskflow_env.maps import DrivableMap
 
 
@@ -117,7 +118,7 @@ class GuidanceConfig(ObjectiveConfig):
 
     def checks(self) -> list[tuple[bool, str]]:
         """The objective's rules and the optimiser's."""
-        steps_ok = isinstance(self.steps, int) and not isinstance(self.steps, bool)
+        steps_ok = is_integer(self.steps)
         return super().checks() + [
             (
                 steps_ok and 0 <= self.steps <= MAX_STEPS,

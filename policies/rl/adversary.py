@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 from policies.learned.guidance_losses import TARGETS
 from policies.learned.ranking import check_k
+from riskflow_env.config import is_integer
 from riskflow_env.view import ScenePolicy
 
 TRAFFIC_KINDS = ("riskflow", "idm", "replay")
@@ -71,10 +72,11 @@ class ScenePolicyConfig:
             raise ValueError(
                 f"ScenePolicyConfig.kind must be one of {TRAFFIC_KINDS}, got {self.kind!r}"
             )
-        if not (isinstance(self.guidance_steps, int) and self.guidance_steps >= 0):
+        if not (is_integer(self.guidance_steps) and self.guidance_steps >= 0):
             raise ValueError(
                 f"ScenePolicyConfig.guidance_steps must be an int >= 0, got {self.guidance_steps!r}"
             )
+        object.__setattr__(self, "guidance_steps", int(self.guidance_steps))
         if not self.planning_interval > 0:
             raise ValueError(
                 f"ScenePolicyConfig.planning_interval must be > 0 s, got {self.planning_interval}"

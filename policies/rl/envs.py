@@ -41,7 +41,7 @@ import numpy as np
 
 from policies.dataclass_cli import check_at_least, check_choices
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig, apply_stage, make_traffic
-from riskflow_env.config import DynamicsConfig, EnvConfig
+from riskflow_env.config import DynamicsConfig, EnvConfig, is_integer
 from riskflow_env.scenarios import SPLITS
 from riskflow_env.view import SceneView
 from riskflow_env.wrappers import EgoEnv
@@ -148,11 +148,11 @@ class EgoInterface:
         maneuver_set: str = "compact",
         normalize_actions: bool = True,
     ) -> None:
-        if not (isinstance(action_repeat, int) and action_repeat >= 1):
+        if not (is_integer(action_repeat) and action_repeat >= 1):
             raise ValueError(f"action_repeat must be an int >= 1, got {action_repeat!r}")
         from policies.rl.features import ManeuverFeatures, maneuvers
 
-        self.dynamics, self.action_repeat = dynamics, action_repeat
+        self.dynamics, self.action_repeat = dynamics, int(action_repeat)
         self.normalize_actions = bool(normalize_actions)
         self.base = make_base_planner(base_planner, dynamics)
         chosen = maneuvers(maneuver_set=maneuver_set)  # checks the name

@@ -33,7 +33,7 @@ from policies.planners import EgoPlanner
 from policies.riskflow import RiskFlowAdversary
 from policies.stress.failures import analyse
 from policies.stress.summary import Analysed
-from riskflow_env.config import EnvConfig
+from riskflow_env.config import EnvConfig, is_integer
 from riskflow_env.scenarios import Scenario
 from riskflow_env.view import ScenePolicy
 
@@ -64,8 +64,9 @@ class EpisodeSetup:
         object.__setattr__(self, "k", k)
         if self.target not in TARGETS:
             raise ValueError(f"--target must be one of {TARGETS}, got {self.target!r}")
-        if isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 1:
+        if not is_integer(self.steps) or self.steps < 1:
             raise ValueError(f"--steps must be an int >= 1 [steps of 0.1 s], got {self.steps!r}")
+        object.__setattr__(self, "steps", int(self.steps))  # a numpy int as a Python one
         horizon = HORIZON_S if self.checkpoint is None else None  # another's: when read
         check_interval(self.planning_interval, DT, horizon, "--planning-interval")
         if self.checkpoint is not None:

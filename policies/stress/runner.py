@@ -26,6 +26,7 @@ from policies.stress.episode import EpisodeRunner, EpisodeSetup
 from policies.stress.planner_spec import load_planner
 from policies.stress.summary import Analysed
 from riskflow_env.cli_errors import interrupt_of
+from riskflow_env.config import is_integer
 from riskflow_env.processes import pool_worker
 from riskflow_env.scenarios import Scenario
 
@@ -100,7 +101,7 @@ class Scenes:
         """``scenes`` (a count of ``data``'s first scenes, or the scenarios);
         :class:`SceneSourceError` naming ``--scenes`` when the source holds fewer, or
         ``--data`` when it is not a folder of scenes."""
-        if not isinstance(scenes, int):
+        if not is_integer(scenes):
             scenarios = tuple(scenes)
             if not scenarios or not all(isinstance(s, Scenario) for s in scenarios):
                 raise SceneSourceError("scenes must be an int >= 1 or a list of Scenario")

@@ -62,6 +62,7 @@ from policies.stress.summary import (
 )
 from riskflow_env.atomic_files import write_text
 from riskflow_env.cli_errors import interrupt_of
+from riskflow_env.config import is_integer
 from riskflow_env.folder_lock import make_output_folder
 from riskflow_env.scenarios import Scenario
 
@@ -131,13 +132,13 @@ def riskflow_stress(
     options = StressOptions(
         k=str(k), target=target, planning_interval=planning_interval, steps=steps,
         device=device, checkpoint=checkpoint,
-        scenes=scenes if isinstance(scenes, int) else max(len(scenes), 1),
+        scenes=scenes if isinstance(scenes, (int, np.integer)) else max(len(scenes), 1),
         data=data, seeds=tuple(seeds), workers=workers,
         out=Path("outputs/stress") if out is None else out, gifs=gifs, progress=progress,
     )  # fmt: skip
     setup = options.setup()
     setup.check_checkpoint()  # before any worker or progress bar
-    source = Scenes.of(scenes, options.data)
+    source = Scenes.of(options.scenes if is_integer(scenes) else scenes, options.data)
     label = spec_of(planner) or _name(planner)
     local = resolve_planner(planner, setup)  # a bad spec fails here, before any worker
     folder = None if out is None else options.out

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from riskflow_env.config import is_integer
 from riskflow_env.scenarios.recording import DriverConfig, Recording, record_traffic
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.state import HISTORY_STEPS
@@ -62,8 +63,10 @@ class SceneConfig:
 
     def __post_init__(self) -> None:
         for name in ("history_steps", "future_steps", "candidate_windows", "max_attempts"):
-            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
-                raise ValueError(f"SceneConfig.{name} must be an int >= 1")
+            value = getattr(self, name)
+            if not is_integer(value) or value < 1:
+                raise ValueError(f"SceneConfig.{name} must be an int >= 1, got {value!r}")
+            object.__setattr__(self, name, int(value))  # a numpy int as a Python one
         if not 0 <= self.warmup[0] <= self.warmup[1]:
             raise ValueError(f"SceneConfig.warmup must be 0 <= min <= max, got {self.warmup}")
         if self.window_stride < 1 or self.max_agents < 1 or not 0 < self.ego_top <= 1:

@@ -133,7 +133,7 @@ class ScenarioNetDataset:
         self.folder = folder
         self.options = _load_options(options)
         self.map_cache = MapCache() if map_cache is True else (map_cache or None)
-        self.keep = keep
+        self.keep = int(keep)
         summary, mapping = read_index(folder)
         self.files = tuple(summary)
         self.summaries = tuple(

@@ -97,9 +97,15 @@ def test_numpy_integers_are_ints():
     are ints, stored as Python ints; numpy bools are still refused."""
     from policies.baselines.diffusion.schedule import ScheduleConfig
     from policies.dataclass_cli import check_at_least
+    from policies.learned.config import ModelConfig
+    from policies.learned.windows import WindowConfig
+    from policies.riskflow.guidance_scene import GuidanceConfig
+    from policies.stress.episode import EpisodeSetup
     from policies.stress.escape import EscapeSearch
+    from policies.stress.runner import StressOptions
     from riskflow_env.config import is_integer
     from riskflow_env.render import RenderConfig
+    from riskflow_env.scenarios.naturalistic import SceneConfig
     from riskflow_env.scenarios.traffic import TrafficConfig
 
     values = [
@@ -111,6 +117,12 @@ def test_numpy_integers_are_ints():
         RenderConfig(width_px=np.int64(8 * 16)).width_px // 16,
         ScheduleConfig(num_steps=np.int64(8)).num_steps,
         EscapeSearch(samples=np.int64(8)).samples,
+        EpisodeSetup(steps=np.int64(8)).steps,
+        StressOptions(scenes=np.int64(8)).scenes,  # check_at_least on a frozen dataclass
+        WindowConfig(max_agents=np.int64(8)).max_agents,
+        GuidanceConfig(steps=np.int64(8)).steps,
+        ModelConfig(map_widths=(np.int64(8),)).map_widths[0],
+        SceneConfig(future_steps=np.int64(8)).future_steps,
     ]
     assert all(type(value) is int and value == 8 for value in values)
 
