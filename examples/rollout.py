@@ -133,6 +133,8 @@ def load_scene(spec: str) -> Scenario:
             raise ValueError(f"--scenario {spec}: the shipped bank has scenes 0-{len(bank) - 1}")
         return bank[index]
     path = Path(spec)
+    if not spec.strip():
+        raise ValueError("--scenario is empty: give a shipped bank index or a scenario file")
     if path.is_dir():
         raise ValueError(f"--scenario {spec!r} is a folder; give one scenario file or a bank index")
     if not path.is_file():

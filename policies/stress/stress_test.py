@@ -116,7 +116,7 @@ def riskflow_stress(
             ``"file.py:object"``: :func:`~policies.stress.planner_spec.load_planner`).
             With ``workers > 1`` an object must pickle; a spec is loaded in each worker.
         scenes: the first N scenes of ``data``, or the scenarios themselves.
-        seeds: adversary noise seeds; each scene runs once per seed.
+        seeds: adversary noise seeds (or one seed); each scene runs once per seed.
         data: a folder of ``.npz`` scenes or a ScenarioNet dataset; None: the shipped
             evaluation bank.
         k, target, planning_interval, steps, device, checkpoint: the adversary and the
@@ -133,7 +133,8 @@ def riskflow_stress(
         k=str(k), target=target, planning_interval=planning_interval, steps=steps,
         device=device, checkpoint=checkpoint,
         scenes=scenes if isinstance(scenes, (int, np.integer)) else max(len(scenes), 1),
-        data=data, seeds=tuple(seeds), workers=workers,
+        data=data, seeds=(seeds,) if isinstance(seeds, (int, np.integer)) else tuple(seeds),
+        workers=workers,
         out=Path("outputs/stress") if out is None else out, gifs=gifs, progress=progress,
     )  # fmt: skip
     setup = options.setup()

@@ -34,6 +34,8 @@ def open_scenes(folder: str | os.PathLike) -> ScenarioBank | ScenarioNetDataset:
         ValueError: naming the file, for a malformed index or scene file; naming the folder,
             for CommonRoad scenarios without commonroad-io.
     """
+    if Path(folder).is_file():  # one scene file given where a folder of them goes
+        raise NotADirectoryError(f"{folder} is a file; expected {FOLDER_KINDS}")
     if is_scenarionet_folder(folder):
         return ScenarioNetDataset(folder)
     commonroad = commonroad_files(folder)

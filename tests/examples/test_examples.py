@@ -106,6 +106,7 @@ def test_rollout_warm_up_leaves_the_episode_as_it_is(checkpoint, tmp_path, monke
         (["--seed", "-1"], "--seed must be an int >= 0, got -1"),
         (["--device", "cdua"], "--device: 'cdua' is not a torch device"),
         (["--replay-mode", "open-loop"], "--replay-mode must be one of ('tracking', 'open_loop')"),
+        (["--scenario", ""], "--scenario is empty: give a shipped bank index or a scenario file"),
     ],
 )
 def test_rollout_rejects_bad_options(argv, message, monkeypatch, capsys):

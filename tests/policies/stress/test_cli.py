@@ -103,8 +103,8 @@ def test_end_to_end_writes_summary_reports_and_replays(run):
 
 def test_two_workers_give_the_results_of_one(run, planner_file, scenes_dir):
     loaded = load_planner(f"{planner_file}:reckless")
-    one = riskflow_stress(  # numpy ints, as from a user's loop, are counts too
-        loaded, np.int64(2), (0,), data=scenes_dir, steps=np.int64(STEPS), workers=1,
+    one = riskflow_stress(  # numpy ints, as from a user's loop, are counts; one seed an int
+        loaded, np.int64(2), 0, data=scenes_dir, steps=np.int64(STEPS), workers=1,
         progress=False,
     )  # fmt: skip
     two = json.loads((run / "summary.json").read_text())

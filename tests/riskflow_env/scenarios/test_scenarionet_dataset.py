@@ -115,6 +115,9 @@ def test_parallel_env_takes_the_folder(toy, monkeypatch, tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(FileNotFoundError, match="no scenes in .*empty: expected a folder of .npz"):
         open_scenes(tmp_path / "empty")
+    (tmp_path / "notes.md").write_text("not a folder")
+    with pytest.raises(NotADirectoryError, match="notes.md is a file; expected a folder of"):
+        open_scenes(tmp_path / "notes.md")  # one file where the folder goes names the kinds
 
 
 def test_second_load_hits_the_map_cache(toy, cache, monkeypatch):
