@@ -20,7 +20,7 @@ import os
 from pathlib import Path
 
 from riskflow_env.scenarios.commonroad_import import is_commonroad_file, load_commonroad
-from riskflow_env.scenarios.io import load_bank, require_scenarios
+from riskflow_env.scenarios.io import ONE_FILE, load_bank, require_scenarios
 from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset, is_scenarionet_folder
 from riskflow_env.scenarios.sources import ScenarioBank
 
@@ -35,7 +35,7 @@ def open_scenes(folder: str | os.PathLike) -> ScenarioBank | ScenarioNetDataset:
             for CommonRoad scenarios without commonroad-io.
     """
     if Path(folder).is_file():  # one scene file given where a folder of them goes
-        raise NotADirectoryError(f"{folder} is a file; expected {FOLDER_KINDS}")
+        raise NotADirectoryError(f"{folder} is a file; expected {FOLDER_KINDS}; {ONE_FILE}")
     if is_scenarionet_folder(folder):
         return ScenarioNetDataset(folder)
     commonroad = commonroad_files(folder)

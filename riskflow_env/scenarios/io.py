@@ -236,7 +236,7 @@ def list_scenarios(directory: str | os.PathLike) -> list[Path]:
     if directory.is_file():
         raise NotADirectoryError(
             f"{directory} is a file, not a scenario directory (a folder of .npz scene files "
-            f"written by riskflow-data generate); {_ONE_FILE}"
+            f"written by riskflow-data generate); {ONE_FILE}"
         )
     if not directory.is_dir():
         raise FileNotFoundError(f"scenario directory {directory} does not exist")
@@ -249,7 +249,7 @@ def require_scenarios(directory: str | os.PathLike) -> list[Path]:
     paths = list_scenarios(directory)
     if not paths:
         pickles = any(Path(directory).glob("*.pkl"))
-        hint = f": it holds ScenarioNet pickles (*.pkl); {_ONE_FILE}" if pickles else ""
+        hint = f": it holds ScenarioNet pickles (*.pkl); {ONE_FILE}" if pickles else ""
         raise FileNotFoundError(f"no scenario files (*.npz) in {directory}{hint}")
     return paths
 
@@ -259,7 +259,7 @@ def load_bank(directory: str | os.PathLike) -> ScenarioBank:
     return ScenarioBank([load_scenario(path) for path in require_scenarios(directory)])
 
 
-_ONE_FILE = (
+ONE_FILE = (  # how to load one scene, for errors where a folder was expected
     "load one scene with riskflow_env.scenarios.load_scenario (.npz) or "
     "riskflow_env.scenarios.scenarionet.load_scenarionet (ScenarioNet .pkl)"
 )
