@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-import os
-
-import pytest
-
 from policies.learned.batches import load_splits
 from policies.learned.data import STATS_FILENAME, load_or_compute_stats
 from policies.learned.data_cache import CACHE_ENV, derived_dir
@@ -35,8 +31,9 @@ def test_user_folders_keep_their_files_beside_the_data(monkeypatch, tmp_path):
     assert derived_dir(data) == data.resolve()
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
 def test_read_only_folders_use_the_user_cache(monkeypatch, tmp_path):
+    """Also for root, whom the permission check lets write anywhere: a folder without write
+    bits is left as it is."""
     monkeypatch.setenv(CACHE_ENV, str(tmp_path / "user-cache"))
     data = tmp_path / "data"
     data.mkdir()
