@@ -46,6 +46,7 @@ from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
 from policies.planners import IDMPlanner
 from policies.riskflow import RiskFlowAdversary
 from riskflow_env.agents import ReplayPolicy
+from riskflow_env.agents.replay import REPLAY_MODES
 from riskflow_env.atomic_files import write_text
 from riskflow_env.config import EnvConfig
 from riskflow_env.folder_lock import make_output_folder
@@ -54,7 +55,6 @@ from riskflow_env.scenarios.scenarionet import load_scenarionet
 
 VIDEO_FORMATS = ("gif", "mp4", "none")
 TRAFFIC = ("riskflow", "replay")
-REPLAY_MODES = ("tracking", "open_loop")  # ReplayPolicy's modes
 
 
 @dataclass(frozen=True)

@@ -159,7 +159,7 @@ class WindowDataset(Dataset):
         if recovery is not None and not isinstance(recovery, RecoveryConfig):
             raise TypeError(f"recovery must be a RecoveryConfig or None, got {recovery!r}")
         self.config = config or WindowConfig()
-        self.stride = stride
+        self.stride = stride = int(stride)  # a numpy int as a Python one (the fingerprint)
         self.recovery = recovery if recovery is not None and recovery.copies else None
         parts, scenes = _scenes(source, cache_path)
         settings = [_CACHE_VERSION, dataclasses.asdict(self.config), stride, parts]

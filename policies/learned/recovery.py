@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from riskflow_env.config import is_integer
+from policies.dataclass_cli import check_at_least
 from riskflow_env.dynamics import SPEED, YAW, wrap_angle
 from riskflow_env.geometry import from_frame
 
@@ -75,11 +75,7 @@ class RecoveryConfig:
     parked_jitter: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("copies", "parked"):
-            value = getattr(self, name)
-            if not is_integer(value) or value < 0:
-                raise ValueError(f"RecoveryConfig.{name} must be an int >= 0, got {value!r}")
-            object.__setattr__(self, name, int(value))  # a numpy int as a Python one
+        check_at_least(self, {"copies": 0, "parked": 0}, owner="RecoveryConfig")
         if not 0.0 <= self.share <= 1.0:
             raise ValueError(f"RecoveryConfig.share must be in [0, 1], got {self.share!r}")
         if not 0.0 <= self.parked_turn <= 1.0:

@@ -31,9 +31,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from policies.dataclass_cli import check_at_least
 from policies.learned.window_types import Window, WindowBatch, collate_windows
 from riskflow_env import dynamics
-from riskflow_env.config import DynamicsConfig, is_integer, is_number, plain_number
+from riskflow_env.config import DynamicsConfig, is_number, plain_number
 from riskflow_env.dynamics import SPEED, YAW
 from riskflow_env.geometry import to_frame
 from riskflow_env.maps import DrivableMap
@@ -79,11 +80,8 @@ class WindowConfig:
     dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
 
     def __post_init__(self) -> None:
-        for name in ("history_steps", "future_steps", "crop_size", "max_agents"):
-            value = getattr(self, name)
-            if not is_integer(value) or value < 1:
-                raise ValueError(f"WindowConfig.{name} must be an int >= 1, got {value!r}")
-            object.__setattr__(self, name, int(value))  # a numpy int as a Python one
+        counts = ("history_steps", "future_steps", "crop_size", "max_agents")
+        check_at_least(self, dict.fromkeys(counts, 1), owner="WindowConfig")
         for name in ("crop_resolution", "sdf_clip", "max_distance", "interaction_distance"):
             value = getattr(self, name)  # numpy scalars too, stored as Python numbers; no bools
             if not is_number(value) or math.isnan(value) or value <= 0:

@@ -14,9 +14,9 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+from policies.dataclass_cli import check_at_least
 from policies.learned.guidance_losses import TARGETS
 from policies.learned.ranking import check_k
-from riskflow_env.config import is_integer
 from riskflow_env.view import ScenePolicy
 
 TRAFFIC_KINDS = ("riskflow", "idm", "replay")
@@ -72,11 +72,7 @@ class ScenePolicyConfig:
             raise ValueError(
                 f"ScenePolicyConfig.kind must be one of {TRAFFIC_KINDS}, got {self.kind!r}"
             )
-        if not (is_integer(self.guidance_steps) and self.guidance_steps >= 0):
-            raise ValueError(
-                f"ScenePolicyConfig.guidance_steps must be an int >= 0, got {self.guidance_steps!r}"
-            )
-        object.__setattr__(self, "guidance_steps", int(self.guidance_steps))
+        check_at_least(self, {"guidance_steps": 0}, owner="ScenePolicyConfig")
         if not self.planning_interval > 0:
             raise ValueError(
                 f"ScenePolicyConfig.planning_interval must be > 0 s, got {self.planning_interval}"

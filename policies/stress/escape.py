@@ -42,8 +42,9 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from policies.dataclass_cli import check_at_least
 from riskflow_env.compiled import _dynamics_params, _map_tables
-from riskflow_env.config import DynamicsConfig, is_integer
+from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import rollout
 from riskflow_env.geometry import _ACROSS, _ALONG, footprint_points, separation
 from riskflow_env.kernel_loading import optional_kernels
@@ -77,11 +78,7 @@ class EscapeSearch:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("samples", "refine", "steps"):
-            value = getattr(self, name)
-            if not is_integer(value) or value < 1:
-                raise ValueError(f"EscapeSearch.{name} must be an int >= 1, got {value!r}")
-            object.__setattr__(self, name, int(value))  # a numpy int as a Python one
+        check_at_least(self, dict.fromkeys(("samples", "refine", "steps"), 1), owner="EscapeSearch")
         for name in ("knot_interval", "learning_rate", "margin"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"EscapeSearch.{name} must be > 0, got {getattr(self, name)}")

@@ -40,6 +40,7 @@ from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.view import SceneView
 
 ReplayMode = Literal["tracking", "open_loop"]
+REPLAY_MODES: tuple[ReplayMode, ...] = ("tracking", "open_loop")
 AIM_DISTANCE = 1.0  # [m] closer reference points give no reliable direction to aim at
 SPEED_PREVIEW = 3  # [steps] reference step whose position the speed aims to reach
 AIM_STEPS = 10  # reference steps searched for an aim point
@@ -60,7 +61,7 @@ class ReplayPolicy:
         mode: ReplayMode = "tracking",
         dynamics: DynamicsConfig | None = None,
     ) -> None:
-        if mode not in ("tracking", "open_loop"):
+        if mode not in REPLAY_MODES:
             raise ValueError(f"mode must be 'tracking' or 'open_loop', got {mode!r}")
         self.controlled = controlled
         self.mode = mode
