@@ -41,12 +41,14 @@ def _stack(values: np.ndarray | Sequence[np.ndarray], name: str) -> np.ndarray:
     return np.stack(steps, axis=1)
 
 
-def _check_bools(value: object, name: str) -> None:
-    """A ValueError naming ``name`` unless ``value`` is a bool or an array of bools (numpy
-    bool dtype; 0/1 ints and floats such as 0.5 are refused, not read as True/False)."""
-    dtype = np.asarray(value).dtype
-    if dtype != np.bool_:
-        raise ValueError(f"{name} must hold bools (a bool array), got dtype {dtype}")
+def _bools(value: object, name: str) -> np.ndarray:
+    """``value`` as a numpy bool array (not copied if it is one); a ValueError naming
+    ``name`` unless it holds bools (0/1 ints and floats such as 0.5 are refused, not read
+    as True/False)."""
+    array = np.asarray(value)
+    if array.dtype != np.bool_:
+        raise ValueError(f"{name} must hold bools (a bool array), got dtype {array.dtype}")
+    return array
 
 
 @dataclass(frozen=True, eq=False)
@@ -106,7 +108,7 @@ class RolloutRecord:
             if value is None and name == "evaluated":
                 value = np.ones(num_agents, dtype=bool)
             if dtype is np.bool_:
-                _check_bools(value, f"RolloutRecord.{name}")
+                value = _bools(value, f"RolloutRecord.{name}")
             value = np.array(value, dtype=dtype)
             if value.shape != shape:
                 raise ValueError(f"RolloutRecord.{name} must have shape {shape}, got {value.shape}")
@@ -213,9 +215,7 @@ class RolloutRecord:
         if valid is None:
             valid = np.zeros(num_agents, dtype=bool)
             valid[slots] = True
-        valid = _stack(valid, "valid")
-        _check_bools(valid, "valid")
-        valid = valid.astype(bool)
+        valid = _bools(_stack(valid, "valid"), "valid")
         if valid.shape == (num_agents,):
             valid = np.repeat(valid[:, None], num_steps, axis=1)
         if history < 0:
