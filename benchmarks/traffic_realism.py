@@ -11,7 +11,9 @@ the numbers are :mod:`riskflow_env.metrics`'s. Columns (the controlled vehicles 
 non-ego ones):
 
 * ``veh_coll``: share of non-ego vehicles that overlap another non-ego vehicle at some
-  step (:func:`~riskflow_env.metrics.collision_involvement`);
+  step (:func:`~riskflow_env.metrics.collision_involvement`); ``log_veh_coll``: the same
+  share in the log itself, its boxes at the same slots and steps (recorded boxes can
+  overlap: the floor of a model that keeps them where the log has them);
 * ``scr_nonego``: share of rollouts with a non-ego pair overlap; ``ego_coll``: share of
   rollouts where the ego is hit;
 * ``orr`` / ``orr_fp``: off-road share of agent-steps by centroid / by footprint;
@@ -83,6 +85,7 @@ BASELINES = ("idm", "replay")
 STILL_RADIUS = 2.0  # [m] a vehicle that stands still in the log may drift this far
 COLUMNS = (  # (key, header, format)
     ("veh_coll", "veh. in coll.", "{:.3f}"),
+    ("log_veh_coll", "log veh. in coll.", "{:.3f}"),
     ("scr_nonego", "SCR non-ego", "{:.2f}"),
     ("ego_coll", "ego coll.", "{:.2f}"),
     ("orr", "ORR centroid", "{:.4f}"),
@@ -193,6 +196,9 @@ def measure(item: RealismJob) -> dict[str, Any]:
     _, record, _ = rollout_episode(item.job)
     hit = collisions(record)
     involved = collision_involvement(hit.pairs, record.ego_index) & record.evaluated
+    logged = dataclasses.replace(record, states=record.reference, valid=record.reference_valid)
+    log_hit = collisions(logged).pairs
+    log_involved = collision_involvement(log_hit, record.ego_index) & record.evaluated
     jerk, step = jerk_steps(record)
     still, drift = standstill_drift(record)
     moving = progress(record)
@@ -201,6 +207,7 @@ def measure(item: RealismJob) -> dict[str, Any]:
         "metrics": rollout_metrics(record),
         "vehicles": int(record.evaluated.sum()),
         "involved": int(involved.sum()),
+        "log_involved": int(log_involved.sum()),
         "nonego_collision": bool(involved.any()),
         "still": int(still.sum()),
         "still_kept": int((drift[still] <= STILL_RADIUS).sum()),
@@ -228,13 +235,18 @@ def summarise(label: str, results: list[dict[str, Any]]) -> dict[str, Any]:
     period = results[0]["period"]
     phase = np.where(step > 0, step % period, -1)  # step 0 follows the log: no re-plan
     vehicles = sum(r["vehicles"] for r in results)
+
+    def share(key: str) -> float:  # of the non-ego vehicles
+        return sum(r[key] for r in results) / vehicles if vehicles else float("nan")
+
     still, nan = sum(r["still"] for r in results), float("nan")
     ratios = np.concatenate([r["progress"] for r in results])
     return {
         "label": label,
         "rollouts": len(results),
         "vehicles": vehicles,
-        "veh_coll": sum(r["involved"] for r in results) / vehicles if vehicles else float("nan"),
+        "veh_coll": share("involved"),
+        "log_veh_coll": share("log_involved"),
         "scr_nonego": float(np.mean([r["nonego_collision"] for r in results])),
         "ego_coll": agg["ego_collision_rate"],
         "scr": agg["scr"],

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from riskflow_env.metrics import RolloutRecord
 from tests.benchmarks.scripts import load_benchmark
 
 
@@ -25,6 +26,7 @@ def test_one_scene_rows_with_every_column(tmp_path, capsys):
         assert keys <= set(row)
         assert row["rollouts"] == 1 and len(row["jerk_p95_by_phase"]) == 5
         assert 0.0 <= row["veh_coll"] <= 1.0 and 0.0 <= row["orr_fp"] <= 1.0
+        assert row["log_veh_coll"] == 0.0  # the shipped bank's recorded boxes never overlap
         assert np.isfinite(row["jerk_p95"]) and np.isfinite(row["wosac"])
     written = json.loads(out.read_text())
     assert written["rows"][0]["label"] == "bits"
@@ -53,6 +55,25 @@ def test_raw_and_checkpoint_rows(capsys):
     labels = ["bits riskflow_default.pt", "bits-raw riskflow_default.pt", "replay"]
     assert [row["label"] for row in rows] == labels
     assert "| bits-raw riskflow_default.pt |" in capsys.readouterr().out
+
+
+def test_log_contacts_count_the_logged_boxes(monkeypatch):
+    """log_veh_coll counts the vehicles whose logged boxes overlap another's, whatever the
+    simulation did: here two of three logged vehicles share a place at one step."""
+    bench = _module()
+    states = np.zeros((3, 4, 4))
+    states[:, :, 0] = np.array([0.0, 20.0, 40.0])[:, None]  # simulated: far apart
+    reference = states.copy()
+    reference[1, 2, 0] = 1.0  # logged: vehicle 1 on vehicle 0 at step 2
+    record = RolloutRecord(
+        states=states, valid=np.ones((3, 4), bool), length=np.full(3, 4.0),
+        width=np.full(3, 2.0), reference=reference, reference_valid=np.ones((3, 4), bool),
+        ego_index=2, evaluated=np.array([True, True, False]),
+    )  # fmt: skip
+    monkeypatch.setattr(bench, "rollout_episode", lambda job: (None, record, None))
+    monkeypatch.setattr(bench, "wosac_scene", lambda records: {"metametric": 0.0})
+    row = bench.measure(bench.RealismJob(job=None, label="x", period=5))
+    assert (row["involved"], row["log_involved"], row["vehicles"]) == (0, 2, 2)
 
 
 @pytest.mark.parametrize(
