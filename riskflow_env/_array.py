@@ -316,8 +316,9 @@ def device(x: Array) -> Any:
 
 
 def asarray_like(value: Any, like: Array) -> Array:
-    """``value`` as an array of ``like``'s backend, dtype and device."""
-    if type(like) is np.ndarray:
+    """``value`` as an array of ``like``'s backend, dtype and device (a numpy scalar, such
+    as one element of an array, is numpy's)."""
+    if type(like) is np.ndarray or isinstance(like, np.generic):
         return np.asarray(value, dtype=like.dtype)
     xp = namespace(like)
     return xp.asarray(value, dtype=like.dtype, device=array_api_compat.device(like))

@@ -131,6 +131,14 @@ def test_footprint_broadcasts_scalars_and_batches():
     np.testing.assert_array_equal(points[1, 2, LEFT], [0.0, 1.0])
 
 
+def test_footprint_of_one_state_read_from_an_array():
+    """A heading read out of a state array is a numpy scalar, not an array: accepted."""
+    states = np.array([[1.0, 2.0, 5.0, 0.3]])
+    one = footprint_points(states[0, :2], states[0, 3], 4.0, 2.0)
+    np.testing.assert_array_equal(one, footprint_points(states[0, :2], states[0, 3:4], 4.0, 2.0)[0])
+    assert box_corners(states[0, :2], states[0, 3], np.float64(4.0), 2.0).shape == (4, 2)
+
+
 # --- overlap against shapely ----------------------------------------------------
 
 
