@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 
 from riskflow_env.config import is_integer
+from riskflow_env.scenarios import smoothing
 from riskflow_env.scenarios.map_cache import MapCache
 from riskflow_env.scenarios.safe_pickle import load_data_pickle
 from riskflow_env.scenarios.scenario import Scenario
@@ -227,6 +228,8 @@ class ScenarioNetDataset:
         """What the scenes' content depends on: the load options and each file's
         (name, size, modification time); FileNotFoundError naming a missing file."""
         parts: list[Any] = [sorted((k, repr(v)) for k, v in self.options.items())]
+        if self.options.get("smooth"):  # unsmoothed scenes keep their fingerprint
+            parts.append(["smoothing", smoothing.VERSION])
         for index in range(len(self)):
             path = self.path(index)
             try:

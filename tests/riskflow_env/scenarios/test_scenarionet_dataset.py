@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import riskflow_env
-from riskflow_env.scenarios import scenarionet
+from riskflow_env.scenarios import scenarionet, smoothing
 from riskflow_env.scenarios.folders import open_scenes
 from riskflow_env.scenarios.map_cache import MapCache
 from riskflow_env.scenarios.scenarionet import load_scenarionet
@@ -188,6 +188,14 @@ def test_subset_and_pickling(toy, cache):
     assert len(dataset.fingerprint()) == 1 + len(dataset)
     with pytest.raises(ValueError, match="at least one scene"):
         dataset.subset([])
+
+
+def test_fingerprint_follows_the_smoothing_filter(toy, cache, monkeypatch):
+    """Caches cut from smoothed scenes are rebuilt when the filter changes; others stay."""
+    plain, smoothed = _dataset(toy, cache), _dataset(toy, cache, smooth=True)
+    before = (plain.fingerprint(), smoothed.fingerprint())
+    monkeypatch.setattr(smoothing, "VERSION", smoothing.VERSION + 1)
+    assert plain.fingerprint() == before[0] and smoothed.fingerprint() != before[1]
 
 
 def test_scenarionet_reader_fallbacks(toy, cache, tmp_path):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from riskflow_env.dynamics import inverse, rollout
 from riskflow_env.metrics.kinematics import kinematic_p95
 from riskflow_env.scenarios.scenarionet import scenario_from_description
 from riskflow_env.scenarios.smoothing import POLY_ORDER, smooth_tracks
@@ -29,8 +30,23 @@ def test_cubic_track_is_reproduced_with_its_exact_derivative():
     np.testing.assert_allclose(smooth[0, :, :2], xy, atol=1e-9)
     velocity = np.stack([8 + t - 0.15 * t**2, 2 + 0.2 * t], axis=1)  # closed form
     np.testing.assert_allclose(smooth[0, :, 2], np.linalg.norm(velocity, axis=1), atol=1e-9)
-    heading = np.arctan2(velocity[:, 1], velocity[:, 0])
-    np.testing.assert_allclose(smooth[0, :, 3], heading, atol=1e-9)
+    chord = np.diff(xy, axis=0)  # heading along each step's motion
+    np.testing.assert_allclose(smooth[0, :-1, 3], np.arctan2(chord[:, 1], chord[:, 0]), atol=1e-9)
+
+
+def test_curved_track_rolls_out_into_itself():
+    """Headings along each step's motion: a 33 m circle at 10 m/s, rolled out from its own
+    actions over a 5.2 s plan, stays on itself (the tangent heading drifted 0.7 m)."""
+    t = np.arange(80) * DT
+    radius, rate = 10.0 / 0.3, 0.3
+    xy = np.stack([radius * np.sin(rate * t), radius * (1 - np.cos(rate * t))], axis=1)
+    states = np.concatenate([xy, np.full((80, 1), 10.0), (rate * t)[:, None]], axis=1)[None]
+    smooth = smooth_tracks(states, np.ones((1, 80), bool))[0]
+    for plan in (smooth[10:63], smooth[27:]):  # one that ends with the track
+        replayed = rollout(plan[0], inverse(plan))
+        assert np.abs(replayed[:, :2] - plan[1:, :2]).max() < 0.01
+    yaw_rate = inverse(smooth)[:, 1]  # the edge windows' cubic bends a circle a little
+    np.testing.assert_allclose(yaw_rate, rate, atol=0.02)  # the last step's too, not halved
 
 
 def test_interpolated_keyframes_lose_their_jerk():
