@@ -25,12 +25,15 @@ class FolderLocked(ValueError):
 
 def check_output_folder(folder: str | os.PathLike, option: str = "--out") -> None:
     """ValueError naming ``option`` when ``folder``, or its nearest existing parent, is
-    not a folder (an existing file would make the writer's ``mkdir`` fail)."""
+    not a folder (an existing file would make the writer's ``mkdir`` fail) or is one this
+    process may not write in (checked before a run, not after it)."""
     path = Path(folder)
     for existing in (path, *path.parents):
         if existing.exists():
             if not existing.is_dir():
                 raise ValueError(f"{option}: {existing} exists and is not a folder")
+            if not os.access(existing, os.W_OK | os.X_OK):
+                raise ValueError(f"{option}: cannot write in the folder {existing}")
             return
 
 

@@ -51,9 +51,16 @@ import numpy as np
 from pettingzoo.utils import BaseParallelWrapper
 
 from riskflow_env.dynamics import SPEED, YAW
+from riskflow_env.env import RiskFlowParallelEnv
 from riskflow_env.events import contact_pairs
+from riskflow_env.folder_lock import make_output_folder
 from riskflow_env.wrappers.event_contact import contact_kind, contact_point
-from riskflow_env.wrappers.event_log_file import drop_torn_tail, last_episode, read_event_log
+from riskflow_env.wrappers.event_log_file import (
+    check_event_log,
+    drop_torn_tail,
+    last_episode,
+    read_event_log,
+)
 
 
 def _round(value: Any) -> Any:
@@ -82,6 +89,11 @@ class EventRecorder:
         append: bool = False,
         overwrite: bool = False,
     ) -> None:
+        if path is not None and not isinstance(path, (str, os.PathLike)):
+            raise ValueError(f"path must be a file path (str or os.PathLike) or None, got {path!r}")
+        for name, flag in (("append", append), ("overwrite", overwrite)):
+            if not isinstance(flag, bool):
+                raise ValueError(f"{name} must be True or False, got {flag!r}")
         self.path = None if path is None else Path(path)
         self.events: list[dict[str, Any]] = []
         self._file = None
@@ -89,7 +101,9 @@ class EventRecorder:
         if append and overwrite:
             raise ValueError("EventRecorder: append and overwrite exclude each other")
         if self.path is not None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
+            if self.path.is_dir():
+                raise ValueError(f"path: {self.path} is a folder, not an event log file")
+            make_output_folder(self.path.parent, "path")
             exists = self.path.is_file() and self.path.stat().st_size > 0
             if exists and not (append or overwrite):
                 raise FileExistsError(
@@ -97,6 +111,7 @@ class EventRecorder:
                     "pass append=True to continue it or overwrite=True to replace it"
                 )
             if exists and append:
+                check_event_log(self.path)
                 drop_torn_tail(self.path)
                 self._episode = last_episode(self.path)  # a resumed log keeps counting
             mode = "a" if append else "w"
@@ -246,6 +261,15 @@ class EventRecorder:
         )
 
 
+def require_riskflow_env(env: Any, owner: str) -> None:
+    """TypeError naming ``owner`` unless ``env`` is a ``riskflow_v0`` env or wraps one."""
+    if not isinstance(getattr(env, "unwrapped", None), RiskFlowParallelEnv):
+        raise TypeError(
+            f"{owner}: env must be a riskflow_v0 env (riskflow_env.parallel_env()) or a "
+            f"wrapper of one, got {type(env).__name__}"
+        )
+
+
 class EventLogWrapper(BaseParallelWrapper):
     """Records collision and off-road events of a ``riskflow_v0`` env (see module doc).
 
@@ -269,6 +293,7 @@ class EventLogWrapper(BaseParallelWrapper):
         append: bool = False,
         overwrite: bool = False,
     ) -> None:
+        require_riskflow_env(env, "EventLogWrapper")
         super().__init__(env)
         self.recorder = EventRecorder(path, append, overwrite)
         self._finalizer = weakref.finalize(self, self.recorder.close, "exit")

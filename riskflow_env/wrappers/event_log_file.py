@@ -20,9 +20,15 @@ def read_event_log(path: str | os.PathLike) -> list[dict[str, Any]]:
     """The events of a JSON Lines log, in order (blank lines skipped).
 
     A torn final line (a run killed mid-write: no newline at the end and not valid JSON)
-    is skipped with a warning; a bad line anywhere else raises ValueError naming it."""
-    with open(path, encoding="utf-8") as file:
-        lines = file.read().split("\n")
+    is skipped with a warning; a bad line anywhere else raises ValueError naming it, and so
+    does a file that is not text."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"path must be a file path (str or os.PathLike), got {path!r}")
+    try:
+        with open(path, encoding="utf-8") as file:
+            lines = file.read().split("\n")
+    except UnicodeDecodeError:
+        raise ValueError(f"{path} is not an event log (JSON Lines text): not UTF-8") from None
     events = []
     for number, line in enumerate(lines, 1):
         if not line.strip():
@@ -39,6 +45,22 @@ def read_event_log(path: str | os.PathLike) -> list[dict[str, Any]]:
                 break
             raise ValueError(f"{path}: line {number} is not valid JSON ({error})") from None
     return events
+
+
+def check_event_log(path: Path) -> None:
+    """ValueError naming ``path`` unless its first line is an event row (a JSON object
+    with an ``event`` field): appending must not truncate or extend another file."""
+    with open(path, "rb") as file:
+        first = file.readline(1 << 16).strip()
+    try:
+        row = json.loads(first)
+    except ValueError:
+        row = None
+    if not (isinstance(row, dict) and "event" in row):
+        raise ValueError(
+            f"{path} is not an event log (its first line is not an event row): refusing to "
+            "append to it"
+        )
 
 
 def drop_torn_tail(path: Path) -> None:
@@ -76,4 +98,4 @@ def last_episode(path: Path) -> int:
     return episode if isinstance(episode, int) and not isinstance(episode, bool) else -1
 
 
-__all__ = ["drop_torn_tail", "last_episode", "read_event_log"]
+__all__ = ["check_event_log", "drop_torn_tail", "last_episode", "read_event_log"]

@@ -10,6 +10,7 @@ are streamed to ffmpeg as they come; GIF frames are held by pillow until the fil
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -18,8 +19,10 @@ from typing import Any
 import numpy as np
 from pettingzoo.utils import BaseParallelWrapper
 
+from riskflow_env.config import is_number, plain_number
 from riskflow_env.folder_lock import check_output_folder
 from riskflow_env.render import RenderConfig, SceneRenderer
+from riskflow_env.wrappers.event_log import require_riskflow_env
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".avi")
 SUFFIXES = (".gif", *VIDEO_SUFFIXES)
@@ -48,8 +51,7 @@ class FrameWriter:
     def __init__(self, path: str | os.PathLike, fps: float) -> None:
         self.path = check_video_path(path)
         suffix = self.path.suffix.lower()
-        if not fps > 0:
-            raise ValueError(f"fps must be > 0 [frames/s], got {fps!r}")
+        fps = check_fps(fps)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.frames = 0
         self._gif = suffix == ".gif"
@@ -72,17 +74,33 @@ class FrameWriter:
 
     def append(self, frame: np.ndarray) -> None:
         """Add one (H, W, 3) uint8 frame."""
-        if self._gif:
-            self._writer.write(frame, duration=self._duration_ms, loop=0)
-        else:
-            self._writer.append_data(frame)
+        try:
+            if self._gif:
+                self._writer.write(frame, duration=self._duration_ms, loop=0)
+            else:
+                self._writer.append_data(frame)
+        except OSError as err:  # ffmpeg cannot write the file: a broken pipe
+            raise self._failed(err) from None
         self.frames += 1
 
     def close(self) -> None:
         """Finish the file (idempotent)."""
         if self._writer is not None:
-            self._writer.close()
-            self._writer = None
+            writer, self._writer = self._writer, None
+            try:
+                writer.close()
+            except OSError as err:  # pillow writes a GIF only now
+                raise self._failed(err) from None
+
+    def _failed(self, err: OSError) -> OSError:
+        return OSError(f"cannot write the video {self.path}: {err.strerror or err}")
+
+
+def check_fps(fps: object) -> float:
+    """``fps`` as a float; a ValueError unless it is a finite number > 0 (not a bool)."""
+    if not (is_number(fps) and math.isfinite(plain_number(fps)) and plain_number(fps) > 0):
+        raise ValueError(f"fps must be a finite number > 0 [frames/s], got {fps!r}")
+    return float(plain_number(fps))
 
 
 class VideoRecorder(BaseParallelWrapper):
@@ -110,10 +128,26 @@ class VideoRecorder(BaseParallelWrapper):
         config: RenderConfig | None = None,
         episode_trigger: Callable[[int], bool] | None = None,
     ) -> None:
+        require_riskflow_env(env, "VideoRecorder")
         super().__init__(env)
+        if not isinstance(path, (str, os.PathLike)):
+            raise ValueError(f"path must be a file path (str or os.PathLike), got {path!r}")
         self.path_template = str(check_video_path(path))
-        self.per_episode = "{episode" in self.path_template
-        self.fps = float(fps if fps is not None else env.metadata.get("render_fps", 10))
+        try:  # the only field a path may hold is {episode}
+            first = self.path_template.format(episode=0)
+        except (KeyError, IndexError, ValueError, AttributeError) as err:
+            raise ValueError(
+                f"path may hold one field, {{episode}} (e.g. {{episode:03d}}), got "
+                f"{self.path_template!r} ({type(err).__name__}: {err})"
+            ) from None
+        check_output_folder(Path(first).parent, "path")
+        self.per_episode = first != self.path_template
+        self.fps = check_fps(fps if fps is not None else env.metadata.get("render_fps", 10))
+        if episode_trigger is not None and not callable(episode_trigger):
+            raise ValueError(
+                "episode_trigger must be a function of the episode index that returns a bool "
+                f"(e.g. lambda episode: episode % 10 == 0), got {episode_trigger!r}"
+            )
         self.renderer = SceneRenderer("rgb_array", config)
         self.episode_trigger = episode_trigger or (lambda episode: True)
         self.paths: list[Path] = []

@@ -67,3 +67,45 @@ def test_append_after_a_torn_line_drops_it(tmp_path):
         _episode(path, append=True)
     events = read_event_log(path)
     assert events[0] == {"event": "a"} and len(events) > 1
+
+
+def test_append_refuses_a_file_that_is_not_an_event_log(tmp_path):
+    """Appending first drops a torn tail: another file would be truncated, so it is refused."""
+    path = tmp_path / "notes.txt"
+    path.write_text("my notes\nsecond line without newline")
+    with pytest.raises(ValueError, match="is not an event log .* refusing to append"):
+        EventLogWrapper(make_env(VEHICLES), path, append=True)
+    assert path.read_text() == "my notes\nsecond line without newline"
+
+
+def test_a_binary_file_read_as_a_log_is_named(tmp_path):
+    path = tmp_path / "scene.npz"
+    path.write_bytes(b"PK\x03\x04\xff\xfe\x00binary")
+    with pytest.raises(ValueError, match="scene.npz is not an event log"):
+        read_event_log(path)
+    with pytest.raises(ValueError, match="path must be a file path"):
+        read_event_log(3)  # not a file descriptor
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "message"),
+    [
+        ({"path": 123}, ValueError, "path must be a file path"),
+        ({"append": "yes"}, ValueError, "append must be True or False"),
+        ({"overwrite": 1}, ValueError, "overwrite must be True or False"),
+    ],
+)
+def test_bad_arguments(tmp_path, kwargs, error, message):
+    kwargs = {"path": tmp_path / "e.jsonl", **kwargs}
+    with pytest.raises(error, match=message):
+        EventLogWrapper(make_env(VEHICLES), **kwargs)
+
+
+def test_output_paths_that_cannot_be_logs(tmp_path):
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(ValueError, match="afile exists and is not a folder"):
+        EventLogWrapper(make_env(VEHICLES), tmp_path / "afile" / "e.jsonl")
+    with pytest.raises(ValueError, match="is a folder, not an event log file"):
+        EventLogWrapper(make_env(VEHICLES), tmp_path)
+    with pytest.raises(TypeError, match="EventLogWrapper: env must be a riskflow_v0 env"):
+        EventLogWrapper({"not": "an env"}, tmp_path / "e.jsonl")

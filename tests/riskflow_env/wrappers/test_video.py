@@ -74,3 +74,37 @@ def test_frames_match_the_renderer(tmp_path):
 def test_bad_suffix():
     with pytest.raises(ValueError, match="path must end in one of"):
         VideoRecorder(make_env(), "video.txt")
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"path": "v_{ep}.mp4"}, r"path may hold one field, \{episode\}"),
+        ({"path": "v_{}.mp4"}, r"path may hold one field"),
+        ({"path": None}, "path must be a file path"),
+        ({"fps": "10"}, "fps must be a finite number > 0"),
+        ({"fps": 0}, "fps must be a finite number > 0"),
+        ({"fps": float("nan")}, "fps must be a finite number > 0"),
+        ({"fps": True}, "fps must be a finite number > 0"),
+        ({"episode_trigger": 5}, "episode_trigger must be a function"),
+    ],
+)
+def test_bad_arguments_are_refused_when_built(tmp_path, kwargs, message):
+    """Each mistake is named when the recorder is made, not at the first reset."""
+    kwargs = {"path": tmp_path / "v.gif", **kwargs}
+    with pytest.raises(ValueError, match=message):
+        VideoRecorder(make_env(), **kwargs)
+
+
+def test_not_an_env_and_an_unwritable_folder(tmp_path, monkeypatch):
+    with pytest.raises(TypeError, match="VideoRecorder: env must be a riskflow_v0 env"):
+        VideoRecorder("env", tmp_path / "v.gif")
+    monkeypatch.setattr("os.access", lambda path, mode: False)  # as for a read-only folder
+    with pytest.raises(ValueError, match="path: cannot write in the folder"):
+        VideoRecorder(make_env(), tmp_path / "videos" / "v_{episode}.gif")
+
+
+def test_numpy_fps_and_a_path_object(tmp_path):
+    recorder = VideoRecorder(make_env(), tmp_path / "run.gif", fps=np.float64(5))
+    assert recorder.fps == 5.0 and type(recorder.fps) is float and not recorder.per_episode
+    recorder.close()
