@@ -52,6 +52,17 @@ def make_output_folder(folder: str | os.PathLike, option: str = "--out") -> Path
     return path
 
 
+def make_output_file(path: str | os.PathLike, option: str = "path") -> Path:
+    """``path`` as a ``Path`` to write, its folder made (:func:`make_output_folder`); a
+    ValueError naming ``option`` when it is a folder or its folder cannot be made or
+    written in."""
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{option}: {path} is a folder, not a file")
+    make_output_folder(path.parent, option)
+    return path
+
+
 def _try_lock(file: IO[Any]) -> bool:
     """Take an exclusive, non-blocking lock on ``file``; False if another process has it."""
     try:

@@ -49,6 +49,7 @@ from policies.learned.config import ModelConfig
 from policies.learned.data import ActionNormalizer
 from policies.learned.generator import CheckpointError, RiskFlowGenerator
 from riskflow_env.atomic_files import atomic_file
+from riskflow_env.folder_lock import make_output_file
 
 DEFAULT_NAME = "riskflow_default.pt"
 METADATA_KEYS = ("version", "train_config", "step", "metrics")
@@ -136,8 +137,7 @@ def save_checkpoint(checkpoint: Mapping[str, Any], path: str | os.PathLike) -> P
     if isinstance(checkpoint.get("state_dict"), Mapping):
         checkpoint["kind"] = checkpoint_kind(checkpoint)
         checkpoint["weights_sha256"] = weights_digest(checkpoint["state_dict"])
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path = make_output_file(path)
     with atomic_file(path) as file:
         torch.save(dict(checkpoint), file)
     return path

@@ -39,6 +39,7 @@ from riskflow_env._array import Array, asarray_like
 from riskflow_env.atomic_files import atomic_file, write_text
 from riskflow_env.config import is_integer
 from riskflow_env.dynamics import ACTION_DIM
+from riskflow_env.folder_lock import make_output_file
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
@@ -371,8 +372,7 @@ def load_or_compute_stats(
     if path.is_file():
         return ActionNormalizer.load(path)
     normalizer = compute_action_stats(dataset)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    normalizer.save(path)
+    normalizer.save(make_output_file(path))
     return normalizer
 
 

@@ -226,6 +226,19 @@ def select_rows(scenario: Scenario, current_index: int, config: WindowConfig) ->
     return rows[distance <= config.max_distance].astype(np.int64)
 
 
+def _config(config: object) -> WindowConfig:
+    """``config``, or the default for None; a TypeError for anything else (a dict of
+    options goes through ``WindowConfig(**options)``)."""
+    if config is None:
+        return WindowConfig()
+    if not isinstance(config, WindowConfig):
+        raise TypeError(
+            f"config must be a WindowConfig or None, got {type(config).__name__} "
+            "(options as a dict: WindowConfig(**options))"
+        )
+    return config
+
+
 def _check_dt(dt: float, config: WindowConfig, what: str) -> None:
     if not math.isclose(dt, config.dynamics.dt, rel_tol=1e-9):
         raise ValueError(
@@ -248,7 +261,9 @@ def window_from_scenario(
         the window (docs/how-to/windows.md) with the future fields; ``agent_index`` holds
         scenario rows.
     """
-    config = config or WindowConfig()
+    if not isinstance(scenario, Scenario):
+        raise TypeError(f"scenario must be a Scenario, got {type(scenario).__name__}")
+    config = _config(config)
     _check_dt(scenario.dt, config, "scenario")
     if current_index is None:
         current_index = scenario.current_index
@@ -285,7 +300,7 @@ def window_from_view(view: SceneView, config: WindowConfig | None = None) -> Win
         view: the env's read-only scene view.
         config: window options; default :class:`WindowConfig`.
     """
-    config = config or WindowConfig()
+    config = _config(config)
     _check_dt(view.dt, config, "view")
     valid = view.history_valid & view.present[:, None]
     # The view as a scene whose current step is its last one, so agents are chosen by the

@@ -126,9 +126,7 @@ def resolve_avoid_steps(avoid_steps: int | None, avoid_step_size: float, kind: s
     on). ValueError naming the argument for a bad value."""
     from policies.learned.plan_avoidance import DEFAULT_AVOID_STEPS
 
-    if avoid_steps is not None and (
-        not is_integer(avoid_steps) or avoid_steps < 0
-    ):
+    if avoid_steps is not None and (not is_integer(avoid_steps) or avoid_steps < 0):
         raise ValueError(f"avoid_steps must be None or an int >= 0, got {avoid_steps!r}")
     if not (is_number(avoid_step_size) and 0 < avoid_step_size < float("inf")):
         raise ValueError(f"avoid_step_size must be a finite number > 0, got {avoid_step_size!r}")

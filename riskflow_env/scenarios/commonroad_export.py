@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import shapely
 
+from riskflow_env.folder_lock import make_output_file
 from riskflow_env.maps import lane_polygon
 from riskflow_env.scenarios.commonroad_import import VEHICLE_TYPES, commonroad_io
 from riskflow_env.scenarios.map_outline import drivable_outline
@@ -78,8 +79,7 @@ def save_commonroad(scenario: Scenario, path: str | os.PathLike) -> Path:
     ego = _state(scenario.states[scenario.ego_index, now], 0, InitialState)
     goal = GoalRegion([CustomState(time_step=Interval(0, max(last, 1)))])
     problems = PlanningProblemSet([PlanningProblem(ids[scenario.ego_index], ego, goal)])
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path = make_output_file(path)
     writer = CommonRoadFileWriter(document, problems, author="riskflow-env", affiliation="",
                                   source=scenario.source or "riskflow-env", tags=set(),
                                   decimal_precision=DECIMALS)  # fmt: skip

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from riskflow_env.folder_lock import make_output_file
 from riskflow_env.scenarios._npz import (
     VERSION,
     ScenarioFormatError,
@@ -104,8 +105,9 @@ def save_scenario(
         include_sdf: also store the map's SDF (float32, compresses poorly) instead of
             recomputing it from the raster on load.
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if not isinstance(scenario, Scenario):
+        raise TypeError(f"scenario must be a Scenario, got {type(scenario).__name__}")
+    path = make_output_file(_file_path(path))
     arrays: dict[str, np.ndarray] = {"schema": np.array(SCHEMA), "version": np.array(VERSION)}
     states = np.where(scenario.valid[..., None], scenario.states, 0.0)  # 0 where invalid
     lossless32 = np.array_equal(states.astype(np.float32).astype(np.float64), states)
@@ -154,7 +156,7 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
             A ``.pkl`` file (a ScenarioNet pickle) is refused with a pointer to
             :func:`riskflow_env.scenarios.scenarionet.load_scenarionet`.
     """
-    path = Path(path)
+    path = _file_path(path)
     if path.suffix.lower() == ".pkl":
         raise ScenarioFormatError(
             f"{path}: load_scenario reads RiskFlow .npz scenario files; for a ScenarioNet "
@@ -194,6 +196,13 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
         )
     except (ValueError, TypeError) as error:
         raise ScenarioFormatError(f"{path}: {error}") from None
+
+
+def _file_path(path: object) -> Path:
+    """``path`` as a ``Path``; a ValueError unless it is a str or an ``os.PathLike``."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"path must be a file path (str or os.PathLike), got {path!r}")
+    return Path(path)
 
 
 def _check_scene_members(path: Path, members) -> None:

@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from riskflow_env.folder_lock import make_output_file
 from riskflow_env.maps import FAMILIES, DrivableMap
 from riskflow_env.maps.highway import highway_env_network
 
@@ -109,8 +110,7 @@ def save_opendrive(drivable_map: DrivableMap, path: str | os.PathLike) -> Path:
         road.add_elevation(0.0, 0.0, 0.0, 0.0, 0.0)
         planview.adjust_geometries()
         opendrive.add_road(road)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path = make_output_file(path)
     opendrive.write_xml(str(path))
     return path
 

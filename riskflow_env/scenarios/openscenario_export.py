@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from riskflow_env.folder_lock import make_output_file
 from riskflow_env.scenarios.opendrive_export import is_highway_env_map, save_opendrive
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.scenarios.scenarionet_export import track_ids
@@ -57,8 +58,7 @@ def save_openscenario(scenario: Scenario, path: str | os.PathLike) -> list[Path]
     map, ``path`` with suffix ``.xodr``; returns the files written."""
     from scenariogeneration import xosc
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path = make_output_file(path)
     written = []
     road = xosc.RoadNetwork()
     if is_highway_env_map(scenario.map):

@@ -86,6 +86,8 @@ class Scenario:
             if not isinstance(value, np.ndarray) or value.shape != shape:
                 got = getattr(value, "shape", type(value).__name__)
                 raise ValueError(f"Scenario.{name} must have shape {shape}, got {got}")
+        if self.valid.dtype != np.bool_:  # 0/1 ints would index rows, not mask them
+            raise ValueError(f"Scenario.valid must be a bool array, got dtype {self.valid.dtype}")
         for name in ("ego_index", "history_steps"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)):

@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from riskflow_env.atomic_files import atomic_file
+from riskflow_env.folder_lock import make_output_file
 from riskflow_env.scenarios.map_outline import outline_rings
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.scenarios.scenarionet_limits import MAX_FEATURE_POINTS
@@ -161,7 +162,7 @@ def save_scenarionet(scenario: Scenario, path: str | os.PathLike) -> Path:
     """Write ``scenario`` as a ScenarioNet pickle (module docstring); returns the path."""
     path = Path(path)
     description = to_description(scenario)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path = make_output_file(path)
     with atomic_file(path) as handle:
         pickle.dump(description, handle, protocol=4)
     return path

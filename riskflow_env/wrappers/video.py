@@ -20,7 +20,7 @@ import numpy as np
 from pettingzoo.utils import BaseParallelWrapper
 
 from riskflow_env.config import is_number, plain_number
-from riskflow_env.folder_lock import check_output_folder
+from riskflow_env.folder_lock import check_output_folder, make_output_file
 from riskflow_env.render import RenderConfig, SceneRenderer
 from riskflow_env.wrappers.event_log import require_riskflow_env
 
@@ -52,7 +52,7 @@ class FrameWriter:
         self.path = check_video_path(path)
         suffix = self.path.suffix.lower()
         fps = check_fps(fps)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        make_output_file(self.path)
         self.frames = 0
         self._gif = suffix == ".gif"
         self._duration_ms = 1000.0 / fps

@@ -233,9 +233,12 @@ def _bad_states(kind):
         ({"states": "negative_speed"}, "speed"),
         ({"states": "huge"}, "position"),
         ({"ego_index": True}, "Scenario.ego_index"),
+        ({"valid": "ints"}, "Scenario.valid must be a bool array, got dtype int64"),
     ],
 )
 def test_scenario_invalid_values(changes, message):
+    if changes.get("valid") == "ints":  # 0/1 ints would index the states, not mask them
+        changes = {"valid": _io._scenario().valid.astype(np.int64)}
     if changes.get("states") in ("negative_speed", "huge"):
         changes = {"states": _bad_states(changes["states"])}
     with pytest.raises(ValueError, match=message):

@@ -164,6 +164,12 @@ def test_bad_inputs_are_named(scenario):
         window_from_scenario(scenario, config=WindowConfig(dynamics=DynamicsConfig(dt=0.2)))
     with pytest.raises(ValueError, match="max_agents"):
         WindowConfig(max_agents=0)
+    with pytest.raises(
+        TypeError, match=r"config must be a WindowConfig .*WindowConfig\(\*\*options"
+    ):
+        window_from_scenario(scenario, 30, {"max_agents": 4})
+    with pytest.raises(TypeError, match="scenario must be a Scenario, got str"):
+        window_from_scenario("scene-0061", 30)
 
 
 @pytest.mark.parametrize("name", ["crop_resolution", "sdf_clip", "max_distance"])

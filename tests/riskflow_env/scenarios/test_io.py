@@ -233,6 +233,19 @@ def test_missing_or_altered_map_file(tmp_path):
         load_map(map_path, expected_hash="0123456789abcdef")
 
 
+def test_paths_and_scenes_that_cannot_be_written_or_read(tmp_path):
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(ValueError, match="path: .*afile exists and is not a folder"):
+        save_scenario(_scenario(), tmp_path / "afile" / "s.npz")
+    with pytest.raises(ValueError, match="is a folder, not a file"):
+        save_scenario(_scenario(), tmp_path)
+    with pytest.raises(TypeError, match="scenario must be a Scenario, got str"):
+        save_scenario("scene", tmp_path / "s.npz")
+    for path in (123, None):
+        with pytest.raises(ValueError, match="path must be a file path"):
+            load_scenario(path)
+
+
 def test_pickle_points_to_load_scenarionet(tmp_path):
     path = tmp_path / "scene.pkl"
     path.write_bytes(b"\x80\x04N.")
