@@ -37,6 +37,7 @@ import numpy as np
 import shapely
 
 from riskflow_env.maps import Lane, from_polygons
+from riskflow_env.maps.drivable_map import MAX_MAP_COORDINATE
 from riskflow_env.maps.rasterize import RepairBudget, repair_polygon
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.scenarios.scenarionet_limits import MAX_STEPS, MAX_TRACK_STEPS, MAX_TRACKS
@@ -161,8 +162,13 @@ def _map(scenario: Any, path: Path, resolution: float, margin: float):
         if {kind.value for kind in lanelet.lanelet_type} & NOT_FOR_CARS:
             continue
         left, right = np.asarray(lanelet.left_vertices), np.asarray(lanelet.right_vertices)
-        outline = shapely.Polygon(np.concatenate([left, right[::-1]]))
         what = f"{path}: lanelet {lanelet.lanelet_id} polygon"
+        bound = np.concatenate([left, right, np.asarray(lanelet.center_vertices)])
+        if not (np.all(np.isfinite(bound)) and np.all(np.abs(bound) <= MAX_MAP_COORDINATE)):
+            raise ValueError(
+                f"{what} has vertices that are NaN, inf or beyond +-{MAX_MAP_COORDINATE:g} m"
+            )
+        outline = shapely.Polygon(np.concatenate([left, right[::-1]]))
         polygons.append(repair_polygon(outline, what, repairs))
         centre = np.asarray(lanelet.center_vertices, dtype=np.float64)
         if len(np.unique(centre, axis=0)) < 2:
@@ -180,7 +186,10 @@ def _map(scenario: Any, path: Path, resolution: float, margin: float):
         for lane in lanes
     ]  # fmt: skip
     name = f"commonroad/{scenario.scenario_id}"
-    return from_polygons(polygons, resolution=resolution, margin=margin, lanes=lanes, name=name)
+    try:
+        return from_polygons(polygons, resolution=resolution, margin=margin, lanes=lanes, name=name)
+    except ValueError as err:  # a raster over the size limits, a lane out of range
+        raise ValueError(f"{path}: {err}") from None
 
 
 def _size(obstacle: Any, path: Path) -> tuple[float, float]:

@@ -100,3 +100,16 @@ def test_time_steps_beyond_a_recorded_scene_are_refused_before_any_array(tmp_pat
     fine.write_text(text.replace('timeStepSize="0.1"', 'timeStepSize="0.001"', 1))
     with pytest.raises(ValueError, match="time step dt"):
         load_commonroad(fine)
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "1e12"])
+def test_lanelet_vertices_out_of_range_are_named(tmp_path, value):
+    """A lanelet point that is NaN, inf or far beyond any map is refused naming the file and
+    the lanelet, before shapely or the rasteriser sees it."""
+    source = next(path for path in require_commonroad() if "Peach" in path.name)
+    text = source.read_text()
+    start = text.index("<x>") + len("<x>")
+    bad = tmp_path / "bad.xml"
+    bad.write_text(text[:start] + value + text[text.index("</x>", start) :])
+    with pytest.raises(ValueError, match=r"bad.xml: lanelet \d+ polygon has vertices that are"):
+        load_commonroad(bad)
