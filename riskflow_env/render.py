@@ -49,6 +49,7 @@ OFFROAD_MARK: Color = (255, 215, 0)
 PLAN: Color = (205, 90, 255)  # default overlay colour
 TEXT: Color = (245, 245, 245)
 HALO_MARGIN = 0.7  # [m] halo around highlighted agents
+MAX_FRAME_PX = 8192  # [px] largest width or height of a frame
 MAX_TRAIL_S = round((HISTORY_STEPS - 1) * DynamicsConfig().dt, 6)  # [s] the history kept
 
 
@@ -77,8 +78,8 @@ class RenderConfig:
     show_text: bool = True
 
     def __post_init__(self) -> None:
-        for name in ("width_px", "height_px"):
-            _set_integer(self, name, 16)
+        for name in ("width_px", "height_px"):  # 8K at most: a frame is a few hundred MB
+            _set_integer(self, name, 16, MAX_FRAME_PX)
         _set_finite(self, ("view_width", "trail_seconds"))
         width, trail = self.view_width, self.trail_seconds
         _require(width >= 1e-3, f"RenderConfig.view_width must be >= 0.001 m, got {width}")

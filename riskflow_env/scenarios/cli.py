@@ -317,8 +317,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             check_output_folder(args.out, "--out")  # made once every input is read
         except ValueError as err:
             parser.error(str(err))
+        files = list(dict.fromkeys(Path(file) for file in args.files))  # each file once
         with user_errors(f"{parser.prog} export", args.debug):
-            written = export_files(args.files, formats, args.out)
+            written = export_files(files, formats, args.out)
         print(f"riskflow-data: wrote {len(written)} file(s) into {args.out}")
         return 0
     # every field of GenerateOptions is the `generate` argument of the same name

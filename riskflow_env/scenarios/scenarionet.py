@@ -141,6 +141,11 @@ def load_scenarionet(
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"load_scenarionet: no such file {path}")
+    if path.suffix.lower() == ".npz":
+        raise ValueError(
+            f"{path}: load_scenarionet reads ScenarioNet pickles; for a RiskFlow .npz scene "
+            "use riskflow_env.scenarios.load_scenario(path)"
+        )
     if map_cache is None:
         description, digest = load_data_pickle(path), None
     else:

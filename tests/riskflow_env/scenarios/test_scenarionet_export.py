@@ -182,8 +182,12 @@ def test_riskflow_data_export_writes_every_file(tmp_path, capsys):
 
     scene = tmp_path / "scene.npz"
     save_scenario(shipped_bank("eval")[1], scene)
-    assert main(["export", str(scene), "--format", "scenarionet", "--out", str(tmp_path)]) == 0
+    twice = ["export", str(scene), str(scene), "--format", "scenarionet", "--out", str(tmp_path)]
+    assert main(twice) == 0  # a file named twice is converted once
+    assert "wrote 1 file(s)" in capsys.readouterr().out
     back = load_scenarionet(tmp_path / "scene.pkl", min_future_steps=0, crop=False)
+    with pytest.raises(ValueError, match="for a RiskFlow .npz scene use .*load_scenario"):
+        load_scenarionet(scene)
     assert back.num_agents == shipped_bank("eval")[1].num_agents
     with pytest.raises(SystemExit):
         main(["export", str(tmp_path / "none.npz"), "--format", "scenarionet", "--out", "x"])
