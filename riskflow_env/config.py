@@ -87,7 +87,13 @@ class DynamicsConfig:
         accel_max: strongest acceleration allowed [m/s^2].
         yaw_rate_max: bound on |yaw rate| [rad/s].
         speed_min: lowest speed [m/s], >= 0 (vehicles never reverse); above 0 they never stop.
-        speed_max: highest speed [m/s].
+        speed_max: highest speed [m/s]. The env clamps the speed after every step; a
+            plan's rollout (:func:`riskflow_env.dynamics.rollout`, vectorised over time)
+            does the same exactly unless the plan reaches both speed bounds, which takes
+            at least ``(speed_max - speed_min) / max(-accel_min, accel_max)`` seconds
+            (5 s with these defaults, against 5.2 s plans whose first step would have to
+            push at ``speed_max``); then its speeds stay within the bounds but drift from
+            step-by-step clamping. Narrow the speed range with that in mind.
         turn_radius_min: tightest turn [m]: over each step ``|yaw rate| <= v_mean /
             turn_radius_min`` (``v_mean`` the step's mean speed), the bound of a
             kinematic bicycle at full lock, so a vehicle turns only while it rolls; 0
