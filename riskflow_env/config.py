@@ -92,7 +92,7 @@ class DynamicsConfig:
             does the same exactly unless the plan reaches both speed bounds, which takes
             at least ``(speed_max - speed_min) / max(-accel_min, accel_max)`` seconds
             (5 s with these defaults, against 5.2 s plans whose first step would have to
-            push at ``speed_max``); then its speeds stay within the bounds but drift from
+            push at ``speed_max``); then its speeds stay within the bounds but can drift from
             step-by-step clamping. Narrow the speed range with that in mind.
         turn_radius_min: tightest turn [m]: over each step ``|yaw rate| <= v_mean /
             turn_radius_min`` (``v_mean`` the step's mean speed), the bound of a
