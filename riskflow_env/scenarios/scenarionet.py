@@ -8,7 +8,8 @@ unpickler (:mod:`~riskflow_env.scenarios.safe_pickle`: builtin containers and nu
 arrays only) and turns it into a :class:`Scenario`:
 
 * Agents: the ``VEHICLE`` tracks; the SDC (``metadata["sdc_id"]``) is the ego, row 0.
-  Pedestrians, cyclists, cones and barriers are dropped. Tracks never valid in the
+  Pedestrians, cyclists, cones and barriers are dropped. A step whose position or
+  heading is NaN or inf is read as unobserved (invalid); tracks never valid in the
   window are dropped.
 * Time: resampled to 10 Hz when the file's rate differs (linear in position and
   velocity, shortest-arc in heading; a resampled step is valid when both recorded
