@@ -120,7 +120,7 @@ class ActionInput:
             array[self.slot[agent]] = self.check(agent, action, bounds=False)
         if not np.all(np.isfinite(array)):
             bad = [agent for agent in actions if not np.all(np.isfinite(array[self.slot[agent]]))]
-            raise ValueError(f"actions must be finite; got NaN or inf for {bad}")
+            raise ValueError(f"actions must be finite; got NaN or inf for {_names(bad)}")
         if not self.clip:
             outside = self._out_of_bounds(array)
             if np.any(outside):
@@ -160,8 +160,14 @@ class ActionInput:
 
     def _bounds_error(self, agents: list[str]) -> ValueError:
         return ValueError(
-            f"actions out of bounds for {agents}: accel must be in "
+            f"actions out of bounds for {_names(agents)}: accel must be in "
             f"[{self.low[0]}, {self.high[0]}] m/s^2 and yaw rate in "
             f"[{self.low[1]}, {self.high[1]}] rad/s "
             "(EnvConfig(clip_actions=True) clips instead)"
         )
+
+
+def _names(agents: list[str], shown: int = 5) -> str:
+    """The first ``shown`` agent names of ``agents``, and how many more."""
+    more = len(agents) - shown
+    return str(agents[:shown]) + (f" and {more} more" if more > 0 else "")

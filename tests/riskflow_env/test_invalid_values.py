@@ -364,3 +364,15 @@ def test_numpy_integer_seed_is_the_same_seed():
     second = _env.make_env().reset(seed=3)[0]
     assert first.keys() == second.keys()
     assert all(np.array_equal(first[agent], second[agent]) for agent in first)
+
+
+def test_an_action_error_names_a_few_agents_and_counts_the_rest():
+    import riskflow_env
+
+    env = riskflow_env.parallel_env(config=EnvConfig(clip_actions=False))
+    env.reset(seed=0)
+    count = len(env.agents)
+    with pytest.raises(ValueError, match=rf"\['ego', .*'agent_4'\] and {count - 5} more$"):
+        env.step({agent: np.array([np.nan, 0.0]) for agent in env.agents})
+    with pytest.raises(ValueError, match=rf"bounds for \[.*\] and {count - 5} more: accel"):
+        env.step({agent: np.array([50.0, 0.0]) for agent in env.agents})
