@@ -51,6 +51,7 @@ from policies.rl.report import markdown_table, paired_table, plot_summaries, plo
 from policies.rl.runs import INITIAL, RunError, RunModel, check_model_file, find_model, read_options
 from policies.statistics import wilson_interval
 from riskflow_env.atomic_files import write_text
+from riskflow_env.cli_errors import debug_requested, user_errors
 from riskflow_env.config import EnvConfig
 from riskflow_env.folder_lock import make_output_folder
 from riskflow_env.scenarios import SPLITS, shipped_bank
@@ -278,9 +279,11 @@ def pool(first: dict, second: dict) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    options = parse_dataclass(Options, argv, prog="evaluate_ego.py", description=__doc__)
+    options = parse_dataclass(Options, argv, prog=PROG, description=__doc__, debug=True)
     try:
         runs = find_runs(options)
+        if not (runs or options.combine or options.oracle or options.baselines):
+            raise ValueError("nothing to evaluate: give --runs or --oracle, or drop --no-baselines")
         combined = load_results(options.combine) if options.combine else None
         if combined is None:
             bank = shipped_bank(options.split) if options.data is None else open_data(options.data)
@@ -388,5 +391,9 @@ def write_report(
     print(f"\nwritten: {out / 'results.md'}, {out / 'results.png'}, {out / 'results.json'}")
 
 
+PROG = "evaluate_ego.py"
+KEPT = "nothing written: the tables need every episode (fewer --scenes or --seeds run shorter)"
+
 if __name__ == "__main__":
-    main()
+    with user_errors(PROG, debug_requested(sys.argv[1:]), kept=KEPT):  # Ctrl-C: one line
+        main()

@@ -60,7 +60,7 @@ from stable_baselines3.common.vec_env import (
 )
 
 from policies.cli_inputs import check_device
-from policies.dataclass_cli import check_at_least, check_choices
+from policies.dataclass_cli import check_at_least, check_between, check_choices
 from policies.learned.adversary_config import check_planning_interval
 from policies.rl.adversary import TARGETS, AdversaryStage, ScenePolicyConfig
 from policies.rl.checkpoints import (
@@ -221,8 +221,8 @@ class Options:
         if self.shards > 1 and self.vec_env != "batched" or self.shards > self.num_envs:
             raise ValueError(f"--shards {self.shards} needs --vec-env batched, as many --num-envs")
         check_device(self.device)
-        if not self.target_speed > 0:
-            raise ValueError(f"--target-speed must be > 0 m/s, got {self.target_speed}")
+        up, al = (0.0, float("inf")), (-float("inf"), float("inf"))
+        check_between(self, dict(target_speed=up, learning_rate=up, gamma=(0, 1), log_std_init=al))
         if not (self.lambda_adv_start >= 0 and self.lambda_adv_end >= 0):
             raise ValueError("--lambda-adv-start and --lambda-adv-end must be >= 0")
         if not 0 <= self.ramp_fraction <= 1:

@@ -32,6 +32,7 @@ import ast
 import copy
 import dataclasses
 import inspect
+import math
 import re
 import sys
 import textwrap
@@ -42,7 +43,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from riskflow_env.cli_errors import CommandLineParser, add_debug_flag, run_script
-from riskflow_env.config import is_integer
+from riskflow_env.config import is_integer, is_number
 
 T = TypeVar("T")
 
@@ -177,6 +178,19 @@ def check_at_least(
         if not is_integer(value) or value < low:
             raise ValueError(f"{_named(name, owner)} must be an int >= {low}, got {value!r}")
         object.__setattr__(options, name, int(value))
+
+
+def check_between(
+    options: Any, bounds: Mapping[str, tuple[float, float]], owner: str | None = None
+) -> None:
+    """ValueError naming the flag (or ``owner.field``) of the first field of ``options`` in
+    ``bounds`` that is not a finite number with ``low < value <= high`` (an infinite bound
+    is no bound)."""
+    for name, (low, high) in bounds.items():
+        value = getattr(options, name)
+        if not (is_number(value) and math.isfinite(value) and low < value <= high):
+            span = "" if math.isinf(low) and math.isinf(high) else f" in ({low:g}, {high:g}]"
+            raise ValueError(f"{_named(name, owner)} must be a finite number{span}, got {value!r}")
 
 
 def check_choices(

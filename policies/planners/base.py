@@ -42,7 +42,13 @@ def reset_planner(planner: EgoPlanner, view: SceneView) -> None:
 
 def as_action(action: object, name: str = "planner") -> np.ndarray:
     """``action`` as a (2,) float64 array; ValueError naming ``name`` if it is not one."""
-    array = np.asarray(action, dtype=np.float64)
+    try:
+        array = np.asarray(action, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"{name} must return an action of two numbers (accel [m/s^2], yaw rate "
+            f"[rad/s]), got {action!r:.60}"
+        ) from None
     if array.shape != (2,):
         raise ValueError(
             f"{name} must return an action of shape (2,) (accel [m/s^2], yaw rate [rad/s]), "

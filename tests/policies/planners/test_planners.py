@@ -100,3 +100,13 @@ def test_a_plain_function_is_a_planner_and_bad_actions_are_named():
     assert as_action(planner(None, None)).shape == (2,)
     with pytest.raises(ValueError, match=r"shape \(2,\).*got shape \(3,\)"):
         as_action([1.0, 0.0, 0.0], "my planner")
+
+
+def test_an_action_that_is_not_two_numbers_names_the_planner():
+    from policies.planners.base import as_action
+
+    np.testing.assert_array_equal(as_action([1, 0.5]), [1.0, 0.5])
+    with pytest.raises(ValueError, match="my planner must return an action of two numbers"):
+        as_action("fast", "my planner")
+    with pytest.raises(ValueError, match=r"of shape \(2,\)"):
+        as_action([1.0, 2.0, 3.0])
