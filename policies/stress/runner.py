@@ -16,12 +16,13 @@ import pickle
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from tqdm import tqdm
 
 from policies.cli_inputs import check_device, check_seeds, open_data
 from policies.dataclass_cli import check_at_least
-from policies.planners import EgoPlanner
+from policies.planners import EgoPlanner, reset_planner
 from policies.stress.episode import EpisodeRunner, EpisodeSetup
 from policies.stress.planner_spec import load_planner
 from policies.stress.summary import Analysed
@@ -125,13 +126,43 @@ class _Worker:
     scenes: Scenes
     runner: EpisodeRunner | None = None
     opened: Sequence[Scenario] = field(default_factory=tuple)
+    guarded: GuardedPlanner | None = None
 
     def __call__(self, job: tuple[int, int]) -> Episode:
         if self.runner is None:
-            self.runner = EpisodeRunner(resolve_planner(self.planner, self.setup), self.setup)
+            self.guarded = GuardedPlanner(resolve_planner(self.planner, self.setup))
+            self.runner = EpisodeRunner(self.guarded, self.setup)
             self.opened = self.scenes.open()
         index, seed = job
+        self.guarded.where = f"scene {index} ({self.opened[index].name}), seed {seed}"
         return Episode(index, seed, self.runner(self.opened[index], seed))
+
+
+class PlannerError(ValueError):
+    """The planner under test raised; the message says what, in which episode and step."""
+
+
+class GuardedPlanner:
+    """The planner under test, its exceptions turned into a :class:`PlannerError` that
+    names the episode (``where``) and the step."""
+
+    def __init__(self, planner: EgoPlanner) -> None:
+        self.planner, self.where = planner, ""
+
+    def reset(self, view: Any) -> None:
+        self._guard(reset_planner, self.planner, view)
+
+    def __call__(self, observation: Any, view: Any) -> Any:
+        return self._guard(self.planner, observation, view)
+
+    def _guard(self, call: Callable[..., Any], *args: Any) -> Any:
+        try:
+            return call(*args)
+        except Exception as err:
+            step = getattr(args[-1], "step", "?")
+            raise PlannerError(
+                f"the planner raised {type(err).__name__}: {err} ({self.where}, step {step})"
+            ) from err
 
 
 _WORKER: _Worker | None = None
@@ -184,7 +215,7 @@ def run_jobs(
     worker = _Worker(portable_planner(planner, workers), setup, scenes)
     bar = tqdm(total=len(jobs), desc="episodes", unit="episode", disable=not progress)
     done: list[Episode] = []
-    failed, interrupted = 0, False
+    failed, interrupted, error = 0, False, None
     try:
         for episode in _episodes(worker, jobs, workers):
             done.append(episode)
@@ -193,10 +224,12 @@ def run_jobs(
                 on_episode(episode)
             bar.set_postfix_str(f"ego collisions {failed}", refresh=False)
             bar.update()
-    except (KeyboardInterrupt, SystemError) as error:  # SystemError: Ctrl-C inside numba
-        if interrupt_of(error) is None:
+    except (KeyboardInterrupt, SystemError) as stop:  # SystemError: Ctrl-C inside numba
+        if interrupt_of(stop) is None:
             raise
         interrupted = True
+    except PlannerError as raised:
+        error = raised
     finally:
         bar.close()
         if worker.runner is not None:
@@ -205,7 +238,18 @@ def run_jobs(
     done.sort(key=lambda e: order[(e.index, e.seed)])
     if interrupted:
         raise StressInterrupted(done, len(jobs))
+    if error is not None:
+        raise PlannerFailed(str(error), done, len(jobs)) from error
     return done
+
+
+class PlannerFailed(PlannerError):
+    """A :class:`PlannerError` during :func:`run_jobs`, with the ``episodes`` that finished
+    before it, in job order, of ``planned``."""
+
+    def __init__(self, message: str, episodes: list[Episode], planned: int) -> None:
+        super().__init__(message)
+        self.episodes, self.planned = episodes, planned
 
 
 class StressInterrupted(KeyboardInterrupt):
@@ -229,6 +273,9 @@ def _episodes(worker: _Worker, jobs: list[tuple[int, int]], workers: int) -> Ite
 
 __all__ = [
     "Episode",
+    "GuardedPlanner",
+    "PlannerError",
+    "PlannerFailed",
     "SceneSourceError",
     "Scenes",
     "StressInterrupted",

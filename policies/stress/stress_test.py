@@ -47,6 +47,9 @@ from policies.stress.replay import rerun, save_replay
 from policies.stress.report import write_reports
 from policies.stress.runner import (
     Episode,
+    GuardedPlanner,
+    PlannerError,
+    PlannerFailed,
     Scenes,
     StressInterrupted,
     StressOptions,
@@ -149,10 +152,10 @@ def riskflow_stress(
             planner if isinstance(planner, str) and workers > 1 else local,
             setup, source, options.seeds, workers, progress, writer.episode_done,
         ), None  # fmt: skip
-    except StressInterrupted as interrupt:  # Ctrl-C: report the episodes that finished
-        if not interrupt.episodes or folder is None:
+    except (StressInterrupted, PlannerFailed) as stop:  # report the episodes that finished
+        if not stop.episodes or folder is None:
             raise
-        episodes, stopped = interrupt.episodes, interrupt
+        episodes, stopped = stop.episodes, stop
     episodes = [
         Episode(e.index, e.seed, e.analysed, writer.replays.get((e.index, e.seed)))
         for e in episodes
@@ -172,11 +175,20 @@ def riskflow_stress(
     if folder is not None:
         writer.report(summary, [])  # first without GIFs: Ctrl-C while drawing keeps them
         if stopped is not None:
-            raise KeyboardInterrupt(
-                f"{stopped}; {folder}/summary.json and the reports cover them (no GIF)"
-            )
+            kept = f"{folder}/summary.json and the reports cover them (no GIF)"
+            if isinstance(stopped, PlannerFailed):
+                raise PlannerFailed(
+                    f"{stopped}; {len(episodes)} of {stopped.planned} episodes finished "
+                    f"before it: {kept}", episodes, stopped.planned,
+                )  # fmt: skip
+            raise KeyboardInterrupt(f"{stopped}; {kept}")
         try:
             gif_rows = writer.draw_worst(episodes, local, gifs, progress)
+        except PlannerError as error:
+            raise PlannerError(
+                f"{error}; {folder}/summary.json and the reports cover all "
+                f"{counted(len(episodes), 'episode')} (no GIF)"
+            ) from error
         except (KeyboardInterrupt, SystemError) as error:  # SystemError: Ctrl-C in numba
             if interrupt_of(error) is None:
                 raise
@@ -295,11 +307,13 @@ class _Writer:
         failed = sorted((e for e in episodes if e.analysed.failures), key=severity)
         rows = []
         bar = tqdm(failed[:count], "drawing GIFs", unit="gif", disable=not progress, leave=False)
+        guarded = GuardedPlanner(planner)
         for episode in bar:
             gif = self.folder / "gifs" / f"{self.stem(episode)}.gif"
             failures = [f.to_dict() for f in episode.analysed.failures]
+            guarded.where = f"re-running scene {episode.index}, seed {episode.seed} for its GIF"
             again = rerun(
-                episode.analysed.record.scenario, episode.seed, self.setup, planner, gif, failures
+                episode.analysed.record.scenario, episode.seed, self.setup, guarded, gif, failures
             )
             same = np.array_equal(again.record.states, episode.analysed.record.states)
             rows.append({**self.row(episode), "gif": f"gifs/{gif.name}", "reproduced": same})
