@@ -44,12 +44,12 @@ from policies.dataclass_cli import check_at_least, check_choices, parse_dataclas
 from policies.learned.adversary_config import check_planning_interval
 from policies.planners import OraclePlanner, make_planner
 from policies.rl.adversary import TARGETS, AdversaryStage, ScenePolicyConfig
+from policies.rl.combine import load_results
 from policies.rl.envs import interface_options
 from policies.rl.evaluation import RandomPlanner, evaluate, load_ppo_planner, summarize_ego
 from policies.rl.paired import PAIRED_OUTCOMES, paired_counts
 from policies.rl.report import markdown_table, paired_table, plot_summaries, plot_training
 from policies.rl.runs import INITIAL, RunError, RunModel, check_model_file, find_model, read_options
-from policies.statistics import wilson_interval
 from riskflow_env.atomic_files import write_text
 from riskflow_env.cli_errors import debug_requested, user_errors
 from riskflow_env.config import EnvConfig
@@ -211,71 +211,6 @@ def find_runs(options: Options) -> list[tuple[RunModel, Path]]:
                 ) from None
         found.append((chosen, initial))
     return found
-
-
-RATES = ("ego_collision_rate", "ego_offroad_rate", "ego_failure_rate")
-
-
-def load_results(paths: str) -> tuple[dict, dict, list, bool | None]:
-    """Summaries, per-run summaries, paired counts and the PPO egos' ``mask_actions`` (None:
-    not recorded) of earlier ``results.json`` files, merged; a RunError if the files' PPO
-    egos chose their maneuvers differently (with and without the action mask).
-
-    A (planner, traffic) row found in several files (e.g. PPO runs evaluated in separate
-    processes) is pooled: rates exactly (Wilson interval of the summed counts), means as
-    the episode-weighted mean without an interval (the episodes are not in the files).
-    """
-    summaries, per_run, paired, masks = {}, {}, [], {}
-    for path in [Path(p) for p in paths.split(",") if p]:
-        content = read_results(path)
-        masks[path] = content.get("mask_actions")  # None: no PPO rows, or written before it
-        paired.extend(content.get("paired", []))
-        for target, rows in ((summaries, content["summary"]), (per_run, content["per_run"])):
-            for row in rows:
-                row = dict(row)
-                key = row.pop("planner"), row.pop("traffic")
-                target[key] = pool(target[key], row) if key in target else row
-    settings = {mask for mask in masks.values() if mask is not None}
-    if len(settings) > 1:
-        raise RunError(
-            "--combine: the files' PPO egos were evaluated with and without the action mask "
-            f"(mask_actions: {', '.join(f'{path}: {mask}' for path, mask in masks.items())})"
-        )
-    return summaries, per_run, paired, settings.pop() if settings else None
-
-
-def read_results(path: Path) -> dict:
-    """An earlier ``results.json``, or a RunError naming ``--combine`` and the file."""
-    if not path.is_file():
-        raise RunError(f"--combine {path}: no such file (an evaluate_ego.py results.json)")
-    try:
-        content = json.loads(path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise RunError(f"--combine {path}: not valid JSON ({error})") from None
-    if not isinstance(content, dict) or not {"summary", "per_run"} <= set(content):
-        raise RunError(f"--combine {path}: not an evaluate_ego.py results.json")
-    return content
-
-
-def pool(first: dict, second: dict) -> dict:
-    """Two summaries of disjoint episodes of one (planner, traffic) row as one."""
-    pooled = {}
-    for metric, a in first.items():
-        b = second[metric]
-        count = a["n"] + b["n"]
-        weighted = [e["value"] * e["n"] for e in (a, b) if e["value"] is not None and e["n"]]
-        value = (
-            sum(weighted) / sum(e["n"] for e in (a, b) if e["value"] is not None)
-            if weighted
-            else None
-        )
-        if metric in RATES:
-            hits = round(a["value"] * a["n"] + b["value"] * b["n"])
-            low, high = wilson_interval(hits, count)
-            pooled[metric] = {"value": hits / count, "low": low, "high": high, "n": count}
-        else:
-            pooled[metric] = {"value": value, "low": None, "high": None, "n": count}
-    return pooled
 
 
 def main(argv: list[str] | None = None) -> None:
