@@ -16,7 +16,9 @@ and benchmarks that read files or planner specs (:func:`run_script`,
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any, NoReturn
@@ -67,24 +69,22 @@ INTERRUPTED = 130  # the exit status of a command stopped by Ctrl-C (128 + SIGIN
 
 
 def interrupt_of(error: BaseException) -> KeyboardInterrupt | None:
-    """The Ctrl-C behind ``error``: itself, or the ``KeyboardInterrupt`` that a
+    """The Ctrl-C behind ``error``: itself, or the ``KeyboardInterrupt`` that one or more
     ``SystemError`` surfaced around (Ctrl-C inside a compiled numba function); None for
     any other error."""
-    interrupt = error if isinstance(error, KeyboardInterrupt) else error.__context__
-    if isinstance(error, (KeyboardInterrupt, SystemError)) and isinstance(
-        interrupt, KeyboardInterrupt
-    ):
-        return interrupt
-    return None
+    while isinstance(error, SystemError):  # numba may wrap it more than once
+        error = error.__cause__ or error.__context__
+    return error if isinstance(error, KeyboardInterrupt) else None
 
 
 @contextmanager
 def user_errors(prog: str, debug: bool = False, kept: str = "") -> Iterator[None]:
     """Run the body; a user error (``USER_ERRORS``) becomes one line on stderr and exit
     status 2, or propagates with its traceback when ``debug``. Ctrl-C
-    (``KeyboardInterrupt``) becomes one line too, ``<prog>: interrupted`` with the
-    interrupt's own message (what was done) and ``kept`` (what is on disk and how to go
-    on), and exit status 130."""
+    (``KeyboardInterrupt``) and SIGTERM become one line too, ``<prog>: interrupted`` with
+    the interrupt's own message (what was done) and ``kept`` (what is on disk and how to
+    go on), and exit status 130."""
+    previous = _stop_on_sigterm()
     try:
         yield
     except USER_ERRORS as error:
@@ -99,6 +99,22 @@ def user_errors(prog: str, debug: bool = False, kept: str = "") -> Iterator[None
         said = "; ".join(part for part in (str(interrupt), kept) if part)
         print(f"\n{prog}: interrupted" + (f": {said}" if said else ""), file=sys.stderr)
         raise SystemExit(INTERRUPTED) from None
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+def _stop_on_sigterm() -> Any:
+    """In the main thread, make SIGTERM (what a scheduler or ``kill`` sends) stop the
+    command as Ctrl-C does, keeping what is finished; returns the previous handler (None
+    elsewhere, where signals cannot be handled)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, _interrupt)
 
 
 def run_script(prog: str, main: Callable[[], Any], argv: Sequence[str] | None = None) -> None:

@@ -3,14 +3,23 @@ shows the traceback instead (riskflow_env.cli_errors)."""
 
 from __future__ import annotations
 
+import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 
 from policies.evaluation.cli import main as eval_main
-from riskflow_env.cli_errors import debug_requested, message, run_script, user_errors
+from riskflow_env.cli_errors import (
+    debug_requested,
+    interrupt_of,
+    message,
+    run_script,
+    user_errors,
+)
 from riskflow_env.scenarios._npz import ScenarioFormatError
 from riskflow_env.scenarios.cli import main as data_main
 
@@ -47,6 +56,24 @@ def test_ctrl_c_is_one_line_saying_what_is_kept_and_status_130(capsys):
         raise KeyboardInterrupt
     with pytest.raises(SystemError), user_errors("prog"):
         raise SystemError("a bug, not an interrupt")
+
+
+def test_sigterm_stops_as_ctrl_c_does_and_the_handler_comes_back(capsys):
+    """What a scheduler or ``kill`` sends: one line, status 130, the body's own Ctrl-C
+    handling (what is finished is kept); numba may wrap the interrupt twice."""
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(SystemExit) as exit_info, user_errors("prog", kept="reports kept"):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the signal arrives before this ends
+    assert exit_info.value.code == 130
+    assert capsys.readouterr().err == "\nprog: interrupted: reports kept\n"
+    assert signal.getsignal(signal.SIGTERM) is before
+    interrupt = KeyboardInterrupt()
+    inner = SystemError("returned a result with an exception set")
+    inner.__cause__ = interrupt
+    outer = SystemError("returned a result with an exception set")
+    outer.__cause__ = inner
+    assert interrupt_of(outer) is interrupt and interrupt_of(SystemError("bug")) is None
 
 
 def test_messages_are_bounded_and_name_the_os_error():
