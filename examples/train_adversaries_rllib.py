@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 from policies.dataclass_cli import parse_dataclass
 from policies.rl.rllib import RLlibOptions, adversaries_env, build_ppo, train
+from riskflow_env.cli_errors import require_extra
 
 
 @dataclass(frozen=True)
@@ -42,4 +43,5 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
+    require_extra("train_adversaries_rllib.py", "rllib", "ray")
     main()

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 from policies.dataclass_cli import parse_dataclass
 from policies.rl.rllib import RLlibOptions, build_ppo, ego_vs_riskflow_env, train
+from riskflow_env.cli_errors import require_extra
 
 
 @dataclass(frozen=True)
@@ -50,4 +51,5 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
+    require_extra("train_ego_rllib.py", "rllib", "ray")
     main()

@@ -26,15 +26,21 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from tensordict.nn import TensorDictModule
 from torch import nn
-from torchrl.collectors import Collector
-from torchrl.data import Binary, LazyTensorStorage, ReplayBuffer, SamplerWithoutReplacement
-from torchrl.envs import ActionMask, Compose, GymWrapper, RewardSum, TransformedEnv, VecNormV2
-from torchrl.envs.libs.gym import default_info_dict_reader
-from torchrl.modules import MLP, MaskedCategorical, ProbabilisticActor, ValueOperator
-from torchrl.objectives import ClipPPOLoss
-from torchrl.objectives.value import GAE
+
+from riskflow_env.cli_errors import missing_extra
+
+try:  # the torchrl extra
+    from tensordict.nn import TensorDictModule
+    from torchrl.collectors import Collector
+    from torchrl.data import Binary, LazyTensorStorage, ReplayBuffer, SamplerWithoutReplacement
+    from torchrl.envs import ActionMask, Compose, GymWrapper, RewardSum, TransformedEnv, VecNormV2
+    from torchrl.envs.libs.gym import default_info_dict_reader
+    from torchrl.modules import MLP, MaskedCategorical, ProbabilisticActor, ValueOperator
+    from torchrl.objectives import ClipPPOLoss
+    from torchrl.objectives.value import GAE
+except ModuleNotFoundError as error:
+    raise SystemExit(missing_extra("train_ego_torchrl.py", "torchrl", error.name)) from None
 
 from policies.dataclass_cli import check_at_least, parse_dataclass
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig

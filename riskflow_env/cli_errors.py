@@ -16,6 +16,7 @@ and benchmarks that read files or planner specs (:func:`run_script`,
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import signal
 import sys
 import threading
@@ -66,6 +67,20 @@ def message(error: BaseException) -> str:
 
 
 INTERRUPTED = 130  # the exit status of a command stopped by Ctrl-C (128 + SIGINT)
+
+
+def missing_extra(prog: str, extra: str, module: str) -> str:
+    """The one line of a script that needs ``module``, of the ``extra`` extra, without it."""
+    return f"{prog}: error: needs the {extra} extra ({module} is not installed): " + (
+        f"pip install -e '.[{extra}]'"
+    )
+
+
+def require_extra(prog: str, extra: str, module: str) -> None:
+    """Exit with :func:`missing_extra`'s line (status 1) unless ``module`` can be imported,
+    before a script sets anything up."""
+    if importlib.util.find_spec(module) is None:
+        raise SystemExit(missing_extra(prog, extra, module))
 
 
 def interrupt_of(error: BaseException) -> KeyboardInterrupt | None:
