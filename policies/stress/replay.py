@@ -34,6 +34,7 @@ import numpy as np
 from policies.harness import EpisodeRecord
 from policies.planners import EgoPlanner
 from policies.stress.episode import EpisodeRunner, EpisodeSetup
+from policies.stress.planner_spec import load_planner
 from policies.stress.summary import Analysed
 from riskflow_env.atomic_files import atomic_path
 from riskflow_env.render import RenderConfig
@@ -184,18 +185,21 @@ def load_replay(path: str | os.PathLike) -> Replay:
 
 def replay(
     path: str | os.PathLike | Replay,
-    planner: EgoPlanner,
+    planner: EgoPlanner | str,
     video: str | os.PathLike | None = None,
 ) -> ReplayResult:
     """Put ``planner`` back into the situation of a replay file (module docstring).
 
     Args:
         path: the replay file (or a :class:`Replay` read already).
-        planner: the planner to test: the one that failed, or a fixed version of it.
+        planner: the planner to test: the one that failed, or a fixed version of it (an
+            object, or a spec as :func:`riskflow_stress` takes: ``"idm"``, ``"file.py:obj"``).
         video: a ``.gif`` / ``.mp4`` of the new episode, the saved attacker marked and the
             saved escape (witness) drawn; None: no video.
     """
     saved = path if isinstance(path, Replay) else load_replay(path)
+    if isinstance(planner, str):  # a spec, as riskflow_stress takes
+        planner = load_planner(planner, saved.setup.env_config().dynamics, argument="planner")
     failures = saved.meta["failures"]
     analysed = rerun(saved.scenario, saved.seed, saved.setup, planner, video, failures)
     record = analysed.record

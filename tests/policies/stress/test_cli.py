@@ -132,7 +132,7 @@ def test_replay_puts_the_user_planner_back_bit_for_bit(run, planner_file, capsys
     file = run / next(row["replay"] for row in summary["per_episode"] if row["replay"])
     saved = load_replay(file)
     assert saved.meta["planner"] == f"{planner_file}:reckless" and saved.seed == 0
-    again = replay(file, load_planner(f"{planner_file}:reckless"))
+    again = replay(file, f"{planner_file}:reckless")  # a spec, as riskflow_stress takes
     assert again.recurred and again.identical and again.checkpoint_matches
     np.testing.assert_array_equal(again.analysed.record.states, saved.states)
     main(["replay", str(file)])  # the saved planner by default
