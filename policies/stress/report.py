@@ -105,7 +105,8 @@ def title(summary: dict[str, Any]) -> tuple[str, str]:
     o = summary["options"]
     seeds = ", ".join(str(s) for s in o["seeds"])
     stopped = summary.get("interrupted")
-    done = f" (interrupted: {stopped['episodes']} of {stopped['planned']})" if stopped else ""
+    cause = stopped.get("cause", "interrupted") if stopped else ""
+    done = f" ({cause}: {stopped['episodes']} of {stopped['planned']})" if stopped else ""
     return (
         f"Stress test of {summary['planner']}",
         f"{counted(summary['episodes'], 'episode')}{done}: {o['scenes']} scenes x seeds "

@@ -23,6 +23,7 @@ from tqdm import tqdm
 from policies.cli_inputs import check_device, check_seeds, open_data
 from policies.dataclass_cli import check_at_least
 from policies.planners import EgoPlanner, reset_planner
+from policies.planners.base import as_action
 from policies.stress.episode import EpisodeRunner, EpisodeSetup
 from policies.stress.planner_spec import load_planner
 from policies.stress.summary import Analysed
@@ -149,17 +150,19 @@ class GuardedPlanner:
     def __init__(self, planner: EgoPlanner) -> None:
         self.planner, self.where = planner, ""
 
-    def reset(self, view: Any) -> None:
-        self._guard(reset_planner, self.planner, view)
-
     def __call__(self, observation: Any, view: Any) -> Any:
-        return self._guard(self.planner, observation, view)
+        return self._guard(lambda: as_action(self.planner(observation, view)), view)
 
-    def _guard(self, call: Callable[..., Any], *args: Any) -> Any:
+    def reset(self, view: Any) -> None:
+        self._guard(lambda: reset_planner(self.planner, view), view)
+
+    def _guard(self, call: Callable[[], Any], view: Any) -> Any:
         try:
-            return call(*args)
+            return call()
         except Exception as err:
-            step = getattr(args[-1], "step", "?")
+            if interrupt_of(err) is not None:  # Ctrl-C inside a compiled planner
+                raise
+            step = getattr(view, "step", "?")
             raise PlannerError(
                 f"the planner raised {type(err).__name__}: {err} ({self.where}, step {step})"
             ) from err
@@ -251,6 +254,9 @@ class PlannerFailed(PlannerError):
         super().__init__(message)
         self.episodes, self.planned = episodes, planned
 
+    def __reduce__(self) -> tuple:  # picklable, e.g. out of a user's worker process
+        return type(self), (self.args[0], self.episodes, self.planned)
+
 
 class StressInterrupted(KeyboardInterrupt):
     """Ctrl-C during :func:`run_jobs`: ``episodes`` are those that finished, in job order,
@@ -259,6 +265,9 @@ class StressInterrupted(KeyboardInterrupt):
     def __init__(self, episodes: list[Episode], planned: int) -> None:
         super().__init__(f"{len(episodes)} of {planned} episodes finished")
         self.episodes, self.planned = episodes, planned
+
+    def __reduce__(self) -> tuple:
+        return type(self), (self.episodes, self.planned)
 
 
 def _episodes(worker: _Worker, jobs: list[tuple[int, int]], workers: int) -> Iterator[Episode]:

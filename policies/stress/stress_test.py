@@ -171,7 +171,12 @@ def riskflow_stress(
         "per_episode": [writer.row(e) for e in episodes],
     }  # fmt: skip
     if stopped is not None:
-        summary["interrupted"] = {"episodes": len(episodes), "planned": stopped.planned}
+        cause = "the planner raised" if isinstance(stopped, PlannerFailed) else "interrupted"
+        summary["interrupted"] = {
+            "episodes": len(episodes),
+            "planned": stopped.planned,
+            "cause": cause,
+        }
     if folder is not None:
         writer.report(summary, [])  # first without GIFs: Ctrl-C while drawing keeps them
         if stopped is not None:
@@ -179,8 +184,10 @@ def riskflow_stress(
             if isinstance(stopped, PlannerFailed):
                 raise PlannerFailed(
                     f"{stopped}; {len(episodes)} of {stopped.planned} episodes finished "
-                    f"before it: {kept}", episodes, stopped.planned,
-                )  # fmt: skip
+                    f"before it: {kept}",
+                    episodes,
+                    stopped.planned,
+                ) from stopped.__cause__  # the planner's own traceback under --debug
             raise KeyboardInterrupt(f"{stopped}; {kept}")
         try:
             gif_rows = writer.draw_worst(episodes, local, gifs, progress)

@@ -287,7 +287,8 @@ def test_ctrl_c_reports_the_episodes_that_finished(scenes_dir, tmp_path, monkeyp
         "and the reports cover them (no GIF)\n"
     )
     summary = json.loads((tmp_path / "summary.json").read_text())
-    assert summary["interrupted"] == {"episodes": 1, "planned": 2} and summary["episodes"] == 1
+    assert summary["interrupted"] == {"episodes": 1, "planned": 2, "cause": "interrupted"}
+    assert summary["episodes"] == 1
     assert "1 episode (interrupted: 1 of 2)" in (tmp_path / "report.md").read_text()
     assert len((tmp_path / "episodes.jsonl").read_text().splitlines()) == 1
 
@@ -315,9 +316,7 @@ def test_ctrl_c_inside_compiled_code_reports_the_episodes_that_finished(
     assert json.loads((tmp_path / "summary.json").read_text())["episodes"] == 1
 
 
-def test_ctrl_c_while_drawing_the_gifs_keeps_the_reports(
-    scenes_dir, tmp_path, monkeypatch, capsys
-):
+def test_ctrl_c_while_drawing_the_gifs_keeps_the_reports(scenes_dir, tmp_path, monkeypatch, capsys):
     """Ctrl-C after the last episode, while the worst failures are re-run for their GIFs:
     summary.json and the reports, written before the GIFs, cover every episode."""
     from policies.stress import stress_test
