@@ -6,7 +6,7 @@ argument checks raise, naming the file or the argument and what was expected).
 :func:`user_errors` prints such an error as ``<prog>: error: <message>`` on stderr and
 exits with status 2, as argparse does for a bad flag; ``--debug`` (declared by
 :func:`add_debug_flag`) re-raises it instead, with its traceback. Ctrl-C is one line and
-status 130, saying what the command kept on disk. Any other exception is a
+status 130, saying what the command kept on disk; SIGTERM the same, status 143. Any other exception is a
 bug and keeps its traceback. The console scripts (``riskflow-data``, ``riskflow-eval``,
 ``riskflow-stress``, ``riskflow-train``) run their work inside it, and so do the examples
 and benchmarks that read files or planner specs (:func:`run_script`,
@@ -96,10 +96,13 @@ def interrupt_of(error: BaseException) -> KeyboardInterrupt | None:
 def user_errors(prog: str, debug: bool = False, kept: str = "") -> Iterator[None]:
     """Run the body; a user error (``USER_ERRORS``) becomes one line on stderr and exit
     status 2, or propagates with its traceback when ``debug``. Ctrl-C
-    (``KeyboardInterrupt``) and SIGTERM become one line too, ``<prog>: interrupted`` with
-    the interrupt's own message (what was done) and ``kept`` (what is on disk and how to
-    go on), and exit status 130."""
-    previous = _stop_on_sigterm()
+    (``KeyboardInterrupt``) and SIGTERM (what a scheduler or ``kill`` sends) become one
+    line too, ``<prog>: interrupted`` with the interrupt's own message (what was done) and
+    ``kept`` (what is on disk and how to go on), and the shell's status for the signal:
+    130 for Ctrl-C, 143 for SIGTERM. SIGTERM raises ``KeyboardInterrupt`` in the main
+    thread while the body runs, so the body keeps what is finished as on Ctrl-C; a SIGTERM
+    that the process was started to ignore stays ignored."""
+    sigterm = _SigTerm()
     try:
         yield
     except USER_ERRORS as error:
@@ -113,23 +116,33 @@ def user_errors(prog: str, debug: bool = False, kept: str = "") -> Iterator[None
             raise
         said = "; ".join(part for part in (str(interrupt), kept) if part)
         print(f"\n{prog}: interrupted" + (f": {said}" if said else ""), file=sys.stderr)
-        raise SystemExit(INTERRUPTED) from None
+        raise SystemExit(128 + signal.SIGTERM if sigterm.received else INTERRUPTED) from None
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        sigterm.restore()
 
 
-def _interrupt(signum: int, frame: Any) -> None:
-    raise KeyboardInterrupt
+class _SigTerm:
+    """SIGTERM raising ``KeyboardInterrupt`` in the main thread until :meth:`restore`;
+    ``received`` says whether it came. Nothing is installed outside the main thread
+    (signals cannot be handled there) or when SIGTERM is ignored."""
 
+    def __init__(self) -> None:
+        self.received, self.installed = False, False
+        if threading.current_thread() is not threading.main_thread():
+            return
+        if signal.getsignal(signal.SIGTERM) is signal.SIG_IGN:
+            return
+        self.previous = signal.signal(signal.SIGTERM, self._handle)
+        self.installed = True
 
-def _stop_on_sigterm() -> Any:
-    """In the main thread, make SIGTERM (what a scheduler or ``kill`` sends) stop the
-    command as Ctrl-C does, keeping what is finished; returns the previous handler (None
-    elsewhere, where signals cannot be handled)."""
-    if threading.current_thread() is not threading.main_thread():
-        return None
-    return signal.signal(signal.SIGTERM, _interrupt)
+    def _handle(self, signum: int, frame: Any) -> None:
+        self.received = True
+        raise KeyboardInterrupt
+
+    def restore(self) -> None:
+        if self.installed:
+            signal.signal(signal.SIGTERM, self.previous)
+            self.installed = False
 
 
 def run_script(prog: str, main: Callable[[], Any], argv: Sequence[str] | None = None) -> None:
