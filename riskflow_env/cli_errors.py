@@ -6,10 +6,10 @@ argument checks raise, naming the file or the argument and what was expected).
 :func:`user_errors` prints such an error as ``<prog>: error: <message>`` on stderr and
 exits with status 2, as argparse does for a bad flag; ``--debug`` (declared by
 :func:`add_debug_flag`) re-raises it instead, with its traceback. Ctrl-C is one line and
-status 130, saying what the command kept on disk; SIGTERM the same, status 143. Any other exception is a
-bug and keeps its traceback. The console scripts (``riskflow-data``, ``riskflow-eval``,
-``riskflow-stress``, ``riskflow-train``) run their work inside it, and so do the examples
-and benchmarks that read files or planner specs (:func:`run_script`,
+status 130, saying what the command kept on disk; SIGTERM the same, status 143. Any
+other exception is a bug and keeps its traceback. The console scripts (``riskflow-data``,
+``riskflow-eval``, ``riskflow-stress``, ``riskflow-train``) run their work inside it, and
+so do the examples and benchmarks that read files or planner specs (:func:`run_script`,
 :func:`policies.dataclass_cli.run_main`).
 """
 

@@ -32,9 +32,16 @@ def check_output_folder(folder: str | os.PathLike, option: str = "--out") -> Non
         if existing.exists():
             if not existing.is_dir():
                 raise ValueError(f"{option}: {existing} exists and is not a folder")
-            if not os.access(existing, os.W_OK | os.X_OK):
+            if not writable_folder(existing):
                 raise ValueError(f"{option}: cannot write in the folder {existing}")
             return
+
+
+def writable_folder(folder: str | os.PathLike) -> bool:
+    """This process may create files in ``folder``, and its mode grants writing to someone:
+    a folder made read-only (``chmod a-w``) counts as read-only also for root, whom
+    ``os.access`` lets write anywhere."""
+    return os.access(folder, os.W_OK | os.X_OK) and bool(os.stat(folder).st_mode & 0o222)
 
 
 def make_output_folder(folder: str | os.PathLike, option: str = "--out") -> Path:
@@ -52,14 +59,16 @@ def make_output_folder(folder: str | os.PathLike, option: str = "--out") -> Path
     return path
 
 
-def make_output_file(path: str | os.PathLike, option: str = "path") -> Path:
+def make_output_file(path: str | os.PathLike, option: str = "path", in_place: bool = False) -> Path:
     """``path`` as a ``Path`` to write, its folder made (:func:`make_output_folder`); a
     ValueError naming ``option`` when it is a folder or its folder cannot be made or
-    written in."""
+    written in. ``in_place``: the writer opens ``path`` itself (no temporary file beside
+    it), so an existing file this process may write is enough, whatever its folder."""
     path = Path(path)
     if path.is_dir():
         raise ValueError(f"{option}: {path} is a folder, not a file")
-    make_output_folder(path.parent, option)
+    if not (in_place and path.is_file() and os.access(path, os.W_OK)):
+        make_output_folder(path.parent, option)
     return path
 
 

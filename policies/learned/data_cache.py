@@ -23,6 +23,7 @@ from pathlib import Path
 
 import policies
 import riskflow_env
+from riskflow_env.folder_lock import writable_folder
 from riskflow_env.user_cache import CACHE_ENV, user_cache
 
 PACKAGE_DIRS = tuple(
@@ -34,16 +35,10 @@ def derived_dir(folder: str | os.PathLike) -> Path:
     """The folder that receives the files derived from scene folder ``folder``."""
     folder = Path(folder).resolve()
     inside = any(folder.is_relative_to(package) for package in PACKAGE_DIRS)
-    if not inside and _writable(folder):
+    if not inside and writable_folder(folder):
         return folder
     key = hashlib.sha256(f"{folder}\n{contents_signature(folder)}".encode()).hexdigest()[:16]
     return user_cache() / "data" / f"{folder.name}-{key}"
-
-
-def _writable(folder: Path) -> bool:
-    """We may write into ``folder``, and its mode grants writing to someone: a folder made
-    read-only (``chmod a-w``) stays untouched also for root, whom ``os.access`` lets write."""
-    return os.access(folder, os.W_OK) and bool(folder.stat().st_mode & 0o222)
 
 
 def contents_signature(folder: Path) -> str:

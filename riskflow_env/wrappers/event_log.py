@@ -53,7 +53,7 @@ from pettingzoo.utils import BaseParallelWrapper
 from riskflow_env.dynamics import SPEED, YAW
 from riskflow_env.env import RiskFlowParallelEnv
 from riskflow_env.events import contact_pairs
-from riskflow_env.folder_lock import make_output_folder
+from riskflow_env.folder_lock import make_output_file
 from riskflow_env.wrappers.event_contact import contact_kind, contact_point
 from riskflow_env.wrappers.event_log_file import (
     check_event_log,
@@ -101,9 +101,7 @@ class EventRecorder:
         if append and overwrite:
             raise ValueError("EventRecorder: append and overwrite exclude each other")
         if self.path is not None:
-            if self.path.is_dir():
-                raise ValueError(f"path: {self.path} is a folder, not an event log file")
-            make_output_folder(self.path.parent, "path")
+            make_output_file(self.path, "path", in_place=True)  # appends or writes in place
             exists = self.path.is_file() and self.path.stat().st_size > 0
             if exists and not (append or overwrite):
                 raise FileExistsError(

@@ -51,11 +51,13 @@ def check_event_log(path: Path) -> None:
     """ValueError naming ``path`` unless its first line is an event row (a JSON object
     with an ``event`` field): appending must not truncate or extend another file."""
     with open(path, "rb") as file:
-        first = file.readline(1 << 16).strip()
+        first = b""
+        while not first and (line := file.readline(1 << 16)):  # blank lines skipped
+            first = line.strip()
     try:
         row = json.loads(first)
-    except ValueError:
-        row = None
+    except ValueError:  # a first row torn by a kill: every row starts with its event
+        row = {"event": None} if first.startswith(b'{"event": ') else None
     if not (isinstance(row, dict) and "event" in row):
         raise ValueError(
             f"{path} is not an event log (its first line is not an event row): refusing to "

@@ -52,7 +52,7 @@ class FrameWriter:
         self.path = check_video_path(path)
         suffix = self.path.suffix.lower()
         fps = check_fps(fps)
-        make_output_file(self.path)
+        make_output_file(self.path, in_place=True)  # ffmpeg and pillow write it in place
         self.frames = 0
         self._gif = suffix == ".gif"
         self._duration_ms = 1000.0 / fps

@@ -8,7 +8,15 @@ from pathlib import Path
 
 import pytest
 
-from riskflow_env.folder_lock import LOCK_NAME, FolderLock, FolderLocked, make_output_folder
+from riskflow_env.folder_lock import (
+    LOCK_NAME,
+    FolderLock,
+    FolderLocked,
+    check_output_folder,
+    make_output_file,
+    make_output_folder,
+    writable_folder,
+)
 
 pytestmark = pytest.mark.reliability  # docs/reference/reliability.md
 
@@ -43,3 +51,22 @@ def test_an_output_folder_the_system_refuses_names_the_option(tmp_path, monkeypa
     refused = r"--folder: cannot make the folder .*\(Permission denied\)"
     with pytest.raises(ValueError, match=refused):
         make_output_folder(tmp_path / "c", "--folder")
+
+
+def test_a_read_only_folder_is_refused_also_for_root_and_a_writable_file_in_it_is_kept(tmp_path):
+    """``chmod a-w``: refused before a run, whoever runs it (os.access lets root write);
+    an existing writable file in it may still be written in place (a log appended to)."""
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    log = folder / "events.jsonl"
+    log.write_text("")
+    folder.chmod(0o555)
+    try:
+        assert not writable_folder(folder)
+        with pytest.raises(ValueError, match="--out: cannot write in the folder .*ro"):
+            check_output_folder(folder / "run", "--out")
+        with pytest.raises(ValueError, match="path: cannot write in the folder"):
+            make_output_file(folder / "scene.npz")
+        assert make_output_file(log, in_place=True) == log
+    finally:
+        folder.chmod(0o755)

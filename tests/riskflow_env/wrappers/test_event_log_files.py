@@ -105,7 +105,17 @@ def test_output_paths_that_cannot_be_logs(tmp_path):
     (tmp_path / "afile").write_text("x")
     with pytest.raises(ValueError, match="afile exists and is not a folder"):
         EventLogWrapper(make_env(VEHICLES), tmp_path / "afile" / "e.jsonl")
-    with pytest.raises(ValueError, match="is a folder, not an event log file"):
+    with pytest.raises(ValueError, match="is a folder, not a file"):
         EventLogWrapper(make_env(VEHICLES), tmp_path)
     with pytest.raises(TypeError, match="EventLogWrapper: env must be a riskflow_v0 env"):
         EventLogWrapper({"not": "an env"}, tmp_path / "e.jsonl")
+
+
+def test_append_after_a_torn_first_row_starts_the_log_again(tmp_path):
+    """A run killed while writing its first row leaves a torn line: an event log still."""
+    path = tmp_path / "events.jsonl"
+    path.write_text('\n{"event": "collision_start", "epi')
+    with pytest.warns(UserWarning, match="dropping a torn last line"):
+        _episode(path, append=True)
+    events = read_event_log(path)
+    assert events[0]["episode"] == 0 and events[-1]["event"] == "episode_summary"
