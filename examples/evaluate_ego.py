@@ -232,10 +232,10 @@ def main(argv: list[str] | None = None) -> None:
         print(f"evaluate_ego.py: error: {error}", file=sys.stderr)
         sys.exit(2)
     if combined is not None:
-        summaries, per_run, paired, mask_actions = combined
+        summaries, per_run, paired, mask_actions, episodes = combined
         stage = AdversaryStage(k=options.k, target=options.target)
-        adversarial_label = ScenePolicyConfig(stage=stage).label
-        write_report(summaries, per_run, paired, adversarial_label, options.out, mask_actions)
+        label = ScenePolicyConfig(stage=stage).label
+        write_report(summaries, per_run, paired, label, options.out, mask_actions, episodes)
         return
     scenes = spread_scenes(bank, options.scenes)
     config = EnvConfig(episode_steps=options.episode_steps)
@@ -270,7 +270,7 @@ def main(argv: list[str] | None = None) -> None:
         bar.set_postfix_str(label, refresh=False)
         bar.update()
 
-    results, per_run, paired = {}, {}, []
+    results, per_run, paired, seeds_of = {}, {}, [], {}
     for chosen, initial in runs:
         seed, policy = run_options(chosen.run)
         seeds = [seed * 100 + i for i in range(options.episodes_per_run)]
@@ -283,6 +283,7 @@ def main(argv: list[str] | None = None) -> None:
         for (name, traffic), episodes in records.items():
             results.setdefault((name, traffic), []).extend(episodes)
             per_run[f"{name} (seed {seed})", traffic] = summarize_ego(episodes)
+            seeds_of[f"{name} (seed {seed})"] = seeds
         for traffic in traffics:
             trained, untrained = (records[name, traffic.label] for name in planners)
             for metric in PAIRED_OUTCOMES:
@@ -291,11 +292,14 @@ def main(argv: list[str] | None = None) -> None:
                 paired.append(row | {"metric": metric, **counts})
     if baselines:
         results |= evaluate(baselines, traffics, scenes, baseline_seeds, config, progress=advance)
+        seeds_of |= dict.fromkeys(baselines, baseline_seeds)
     bar.close()
 
     summaries = {key: summarize_ego(episodes) for key, episodes in results.items()}
     mask_actions = options.mask_actions if runs else None
-    write_report(summaries, per_run, paired, adversarial.label, options.out, mask_actions)
+    episodes = {"scenes": [scene.name for scene in scenes], "seeds": seeds_of}
+    label = adversarial.label
+    write_report(summaries, per_run, paired, label, options.out, mask_actions, episodes)
     curves = {f"seed {run_options(chosen.run)[0]}": chosen.run for chosen, _ in runs}
     if curves:
         plot_training(curves, options.out / "training.png")
@@ -309,9 +313,11 @@ def write_report(
     adversarial_label: str,
     out: Path,
     mask_actions: bool | None = None,
+    episodes: dict | None = None,
 ) -> None:
     """results.md (printed), results.png and results.json; adversarial rows first;
-    ``mask_actions``: how the PPO egos chose their maneuvers (None: no PPO rows)."""
+    ``mask_actions``: how the PPO egos chose their maneuvers (None: no PPO rows);
+    ``episodes``: the scenes and each row's seeds (what ``--combine`` checks for overlap)."""
     order = sorted(summaries, key=lambda key: (key[1] != adversarial_label, key[1]))
     summaries = {key: summaries[key] for key in order}
     sections = [markdown_table(summaries)]
@@ -326,6 +332,7 @@ def write_report(
     rows = [{"planner": p, "traffic": t, **s} for (p, t), s in summaries.items()]
     runs = [{"planner": p, "traffic": t, **s} for (p, t), s in per_run.items()]
     content = {"summary": rows, "per_run": runs, "paired": paired, "mask_actions": mask_actions}
+    content["episodes"] = episodes
     write_text(out / "results.json", json.dumps(content, indent=1))
     print(text)
     print(f"\nwritten: {out / 'results.md'}, {out / 'results.png'}, {out / 'results.json'}")

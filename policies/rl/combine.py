@@ -1,13 +1,15 @@
 """Merging the ``results.json`` of earlier ego evaluations (``evaluate_ego.py --combine``).
 
-Each file holds summary rows (planner, traffic), per-run rows (one trained run each) and
-paired counts. Files are merged when their episodes are disjoint, e.g. PPO runs evaluated
-in separate processes: a (planner, traffic) row found in several files is pooled, rates
-exactly (the Wilson interval of the summed counts), means as the episode-weighted mean
-without an interval (the episodes are not in the files). What would count episodes twice
-is refused with a :class:`~policies.rl.runs.RunError`: a file named twice, one run's rows
-in two files, and the rows of a planner without runs (a baseline, which every evaluation
-drives on the same seeds) in two files.
+Each file holds summary rows (planner, traffic), per-run rows (one trained run each),
+paired counts and the episodes it drove (``episodes``: the scene names, and the seeds of
+every per-run and baseline row). Files are merged when their episodes are disjoint, e.g.
+PPO runs evaluated in separate processes, or one baseline on other seeds: a (planner,
+traffic) row found in several files is pooled, rates exactly (the Wilson interval of the
+summed counts), means as the episode-weighted mean without an interval (the episodes are
+not in the files). What would count episodes twice is refused with a
+:class:`~policies.rl.runs.RunError`: a file named twice, and a row whose scenes and seeds
+overlap those of the same row in another file (files written before ``episodes`` was
+recorded are pooled as they are).
 """
 
 from __future__ import annotations
@@ -21,29 +23,27 @@ from policies.statistics import wilson_interval
 RATES = ("ego_collision_rate", "ego_offroad_rate", "ego_failure_rate")
 
 
-def load_results(paths: str) -> tuple[dict, dict, list, bool | None]:
-    """Summaries, per-run summaries, paired counts and the PPO egos' ``mask_actions`` (None:
-    not recorded) of the comma-separated ``results.json`` files ``paths``, merged (module
-    docstring); a RunError naming ``--combine`` for files that cannot be merged, or whose
-    PPO egos chose their maneuvers differently (with and without the action mask)."""
+def load_results(paths: str) -> tuple[dict, dict, list, bool | None, dict | None]:
+    """Summaries, per-run summaries, paired counts, the PPO egos' ``mask_actions`` (None:
+    not recorded) and the episodes (None: a file did not record them) of the
+    comma-separated ``results.json`` files ``paths``, merged (module docstring); a RunError
+    naming ``--combine`` for files that cannot be merged, or whose PPO egos chose their
+    maneuvers differently (with and without the action mask)."""
     summaries, per_run, paired, masks = {}, {}, [], {}
     files: dict[Path, dict] = {}
-    found_in: dict[tuple[str, str], list[Path]] = {}  # summary row -> the files holding it
     for path in [Path(p) for p in paths.split(",") if p]:
         if path.resolve() in files:
             raise RunError(f"--combine names {path} twice: its episodes would count twice")
-        content = files[path.resolve()] = read_results(path)
+        content = read_results(path)
+        for other, earlier in files.items():
+            _check_disjoint(path, content.get("episodes"), other, earlier.get("episodes"))
+        files[path.resolve()] = content
         masks[path] = content.get("mask_actions")  # None: no PPO rows, or written before it
         paired.extend(content.get("paired", []))
         for target, rows in ((summaries, content["summary"]), (per_run, content["per_run"])):
             for row in rows:
                 row = dict(row)
                 key = row.pop("planner"), row.pop("traffic")
-                if target is per_run and key in per_run:
-                    raise RunError(f"--combine: the rows of {key[0]} under {key[1]} are in two "
-                                   "files: one run's episodes would count twice")  # fmt: skip
-                if target is summaries:
-                    found_in.setdefault(key, []).append(path)
                 target[key] = pool(target[key], row) if key in target else row
     settings = {mask for mask in masks.values() if mask is not None}
     if len(settings) > 1:
@@ -51,15 +51,30 @@ def load_results(paths: str) -> tuple[dict, dict, list, bool | None]:
             "--combine: the files' PPO egos were evaluated with and without the action mask "
             f"(mask_actions: {', '.join(f'{path}: {mask}' for path, mask in masks.items())})"
         )
-    trained = {planner.split(" (seed ")[0] for planner, _ in per_run}
-    for (planner, traffic), holders in found_in.items():
-        if len(holders) > 1 and planner.removesuffix("-initial") not in trained:
+    recorded = [content.get("episodes") for content in files.values()]
+    episodes = None
+    if all(recorded):
+        seeds: dict[str, list[int]] = {}
+        for record in recorded:
+            for planner, row_seeds in record["seeds"].items():
+                seeds.setdefault(planner, []).extend(row_seeds)
+        names = dict.fromkeys(name for record in recorded for name in record["scenes"])
+        episodes = {"scenes": list(names), "seeds": seeds}
+    return summaries, per_run, paired, settings.pop() if settings else None, episodes
+
+
+def _check_disjoint(path: Path, episodes: dict | None, other: Path, known: dict | None) -> None:
+    """RunError when a row of ``path`` drove episodes (a scene and a seed) that the same
+    row of ``other`` drove; nothing to check where either file did not record them."""
+    if not (episodes and known) or not set(episodes["scenes"]) & set(known["scenes"]):
+        return
+    for planner, seeds in episodes["seeds"].items():
+        shared = sorted(set(seeds) & set(known["seeds"].get(planner, ())))
+        if shared:
             raise RunError(
-                f"--combine: {planner} under {traffic} is in {holders[0]} and {holders[1]}: "
-                "a baseline drives the same episodes in every evaluation; evaluate it in one "
-                "of them (--no-baselines in the others)"
+                f"--combine: {planner} drove the same episodes in {other} and {path} (seeds "
+                f"{shared} on the same scenes): they would count twice"
             )
-    return summaries, per_run, paired, settings.pop() if settings else None
 
 
 def read_results(path: Path) -> dict:

@@ -347,9 +347,12 @@ def test_nominal_traffics_and_recorded_scenes(tmp_path, capsys):
          "--scenes", "2", "--seeds", "0", "--episode-steps", "5", "--guidance-steps", "2",
          "--target", "ego", "--out", str(out)]
     )  # fmt: skip
-    rows = json.loads((out / "results.json").read_text())["summary"]
+    content = json.loads((out / "results.json").read_text())
+    rows = content["summary"]
     assert [row["traffic"] for row in rows] == ["riskflow K=5 ego", "idm", "replay"]
     assert all(row["ego_collision_rate"]["n"] == 2 for row in rows)
+    assert len(content["episodes"]["scenes"]) == 2  # what --combine checks for overlap
+    assert content["episodes"]["seeds"] == {"lane_keeping": [0]}
 
 
 def test_combine_refuses_masked_and_raw_egos_together(tmp_path, capsys):
