@@ -208,7 +208,6 @@ def test_a_run_that_never_trained_is_not_a_run(tmp_path):
         ("train", "--log-std-init nan", "--log-std-init must be a finite number, got nan"),
         ("train", "--target-speed 0", "--target-speed must be a finite number in (0, inf]"),
         ("evaluate", "--no-baselines", "nothing to evaluate: give --runs or --oracle"),
-        ("evaluate", "--scenes 999", "--scenes 999: the scenes hold only 105"),
         ("evaluate", "--seeds 0,x", "--seeds must be comma-separated ints >= 0 (e.g. 0,1,2)"),
         ("evaluate", "--seeds -1", "--seeds must be comma-separated ints >= 0"),
         ("evaluate", "--seeds 0,0", "--seeds must be distinct, got [0, 0]"),
