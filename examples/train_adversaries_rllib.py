@@ -43,5 +43,5 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    require_extra("train_adversaries_rllib.py", "rllib", "ray")
+    require_extra("train_adversaries_rllib.py", "rllib", "ray.rllib")
     main()

@@ -51,5 +51,5 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    require_extra("train_ego_rllib.py", "rllib", "ray")
+    require_extra("train_ego_rllib.py", "rllib", "ray.rllib")
     main()

@@ -79,7 +79,11 @@ def missing_extra(prog: str, extra: str, module: str) -> str:
 def require_extra(prog: str, extra: str, module: str) -> None:
     """Exit with :func:`missing_extra`'s line (status 1) unless ``module`` can be imported,
     before a script sets anything up."""
-    if importlib.util.find_spec(module) is None:
+    try:
+        found = importlib.util.find_spec(module) is not None  # a.b imports a first
+    except ModuleNotFoundError:
+        found = False
+    if not found:
         raise SystemExit(missing_extra(prog, extra, module))
 
 

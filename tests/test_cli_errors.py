@@ -16,6 +16,7 @@ from riskflow_env.cli_errors import (
     debug_requested,
     interrupt_of,
     message,
+    require_extra,
     run_script,
     user_errors,
 )
@@ -168,3 +169,14 @@ def test_examples_and_benchmarks_name_a_bad_path_in_one_line(script, args, expec
     assert done.returncode == 2, done.stderr
     assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
     assert done.stderr.startswith(f"{Path(script).name}: error: ") and expected in done.stderr
+
+
+def test_a_missing_extra_is_one_line_naming_it():
+    require_extra("x.py", "rl", "numpy.linalg")  # installed: nothing happens
+    for module in ("no_such_package", "no_such_package.sub"):
+        with pytest.raises(SystemExit) as exit_info:
+            require_extra("x.py", "rllib", module)
+        assert str(exit_info.value) == (
+            f"x.py: error: needs the rllib extra ({module} is not installed): "
+            "pip install -e '.[rllib]'"
+        )
