@@ -317,7 +317,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             check_output_folder(args.out, "--out")  # made once every input is read
         except ValueError as err:
             parser.error(str(err))
-        files = list(dict.fromkeys(Path(file) for file in args.files))  # each file once
+        files = list(dict.fromkeys(Path(file).resolve() for file in args.files))  # each once
         with user_errors(f"{parser.prog} export", args.debug):
             written = export_files(files, formats, args.out)
         print(f"riskflow-data: wrote {len(written)} file(s) into {args.out}")

@@ -135,13 +135,13 @@ class VideoRecorder(BaseParallelWrapper):
         self.path_template = str(check_video_path(path))
         try:  # the only field a path may hold is {episode}
             first = self.path_template.format(episode=0)
-        except (KeyError, IndexError, ValueError, AttributeError) as err:
+        except (KeyError, IndexError, ValueError, AttributeError, TypeError) as err:
             raise ValueError(
                 f"path may hold one field, {{episode}} (e.g. {{episode:03d}}), got "
                 f"{self.path_template!r} ({type(err).__name__}: {err})"
             ) from None
         check_output_folder(Path(first).parent, "path")
-        self.per_episode = first != self.path_template
+        self.per_episode = first != self.path_template.format(episode=1)
         self.fps = check_fps(fps if fps is not None else env.metadata.get("render_fps", 10))
         if episode_trigger is not None and not callable(episode_trigger):
             raise ValueError(

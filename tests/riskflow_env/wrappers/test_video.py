@@ -81,6 +81,7 @@ def test_bad_suffix():
     [
         ({"path": "v_{ep}.mp4"}, r"path may hold one field, \{episode\}"),
         ({"path": "v_{}.mp4"}, r"path may hold one field"),
+        ({"path": "v_{episode[0]}.gif"}, r"path may hold one field"),
         ({"path": None}, "path must be a file path"),
         ({"fps": "10"}, "fps must be a finite number > 0"),
         ({"fps": 0}, "fps must be a finite number > 0"),
@@ -108,3 +109,6 @@ def test_numpy_fps_and_a_path_object(tmp_path):
     recorder = VideoRecorder(make_env(), tmp_path / "run.gif", fps=np.float64(5))
     assert recorder.fps == 5.0 and type(recorder.fps) is float and not recorder.per_episode
     recorder.close()
+    braces = VideoRecorder(make_env(), tmp_path / "v_{{x}}.gif")  # literal braces: one file
+    assert not braces.per_episode
+    braces.close()
