@@ -6,8 +6,10 @@ pid into it. A second process gets :class:`FolderLocked` naming the holder's pid
 operating system drops the lock when the holder ends, ``kill -9`` included, so a killed
 run never blocks its own resume; the file itself stays (deleting it could race).
 Used by ``riskflow-eval`` (results folders) and ``riskflow-data generate`` (banks).
-:func:`check_output_folder` checks such a folder before anything is written, and
-:func:`make_output_folder` creates it, each with an error naming the option.
+:func:`check_output_folder` checks such a folder before anything is written (not a file,
+and one this process may write in: :func:`writable_folder`), :func:`make_output_folder`
+creates it and :func:`make_output_file` prepares one output file, each with an error
+naming the option.
 """
 
 from __future__ import annotations

@@ -58,8 +58,8 @@ class RenderConfig:
     """What the renderer shows.
 
     Attributes:
-        width_px: image width [px].
-        height_px: image height [px].
+        width_px: image width [px], 16 to ``MAX_FRAME_PX`` (8192).
+        height_px: image height [px], 16 to ``MAX_FRAME_PX``.
         view_width: world width shown across ``width_px`` [m]; the height follows the
             aspect ratio. Ignored when ``follow_ego`` is False.
         follow_ego: centre the view on the ego; when False, fit the whole map.
