@@ -61,6 +61,14 @@ def make_output_folder(folder: str | os.PathLike, option: str = "--out") -> Path
     return path
 
 
+def file_path(path: object, option: str = "path") -> Path:
+    """``path`` as a ``Path``; a ValueError naming ``option`` unless it is a ``str`` or an
+    ``os.PathLike`` (an int would open a file descriptor, None the wrong file)."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"{option} must be a file path (str or os.PathLike), got {path!r}")
+    return Path(path)
+
+
 def make_output_file(path: str | os.PathLike, option: str = "path", in_place: bool = False) -> Path:
     """``path`` as a ``Path`` to write, its folder made (:func:`make_output_folder`); a
     ValueError naming ``option`` when it is a folder or its folder cannot be made or

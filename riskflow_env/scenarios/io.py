@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from riskflow_env.folder_lock import make_output_file
+from riskflow_env.folder_lock import file_path, make_output_file, make_output_folder
 from riskflow_env.scenarios._npz import (
     VERSION,
     ScenarioFormatError,
@@ -107,7 +107,7 @@ def save_scenario(
     """
     if not isinstance(scenario, Scenario):
         raise TypeError(f"scenario must be a Scenario, got {type(scenario).__name__}")
-    path = make_output_file(_file_path(path))
+    path = make_output_file(file_path(path))
     arrays: dict[str, np.ndarray] = {"schema": np.array(SCHEMA), "version": np.array(VERSION)}
     states = np.where(scenario.valid[..., None], scenario.states, 0.0)  # 0 where invalid
     lossless32 = np.array_equal(states.astype(np.float32).astype(np.float64), states)
@@ -133,7 +133,7 @@ def save_scenario(
         digest = map_hash(map_arrays)
         map_path = map_dir / f"{digest}.npz"
         if not map_path.exists():
-            map_dir.mkdir(parents=True, exist_ok=True)
+            make_output_folder(map_dir, "map_dir")
             write_map_arrays(map_path, map_arrays)
         arrays["map_ref"] = np.array(os.path.relpath(map_path, path.parent))
         arrays["map_hash"] = np.array(digest)
@@ -156,7 +156,7 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
             A ``.pkl`` file (a ScenarioNet pickle) is refused with a pointer to
             :func:`riskflow_env.scenarios.scenarionet.load_scenarionet`.
     """
-    path = _file_path(path)
+    path = file_path(path)
     if path.suffix.lower() == ".pkl":
         raise ScenarioFormatError(
             f"{path}: load_scenario reads RiskFlow .npz scenario files; for a ScenarioNet "
@@ -196,13 +196,6 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
         )
     except (ValueError, TypeError) as error:
         raise ScenarioFormatError(f"{path}: {error}") from None
-
-
-def _file_path(path: object) -> Path:
-    """``path`` as a ``Path``; a ValueError unless it is a str or an ``os.PathLike``."""
-    if not isinstance(path, (str, os.PathLike)):
-        raise ValueError(f"path must be a file path (str or os.PathLike), got {path!r}")
-    return Path(path)
 
 
 def _check_scene_members(path: Path, members) -> None:

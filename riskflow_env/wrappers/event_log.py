@@ -44,7 +44,6 @@ from __future__ import annotations
 import json
 import os
 import weakref
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -53,7 +52,7 @@ from pettingzoo.utils import BaseParallelWrapper
 from riskflow_env.dynamics import SPEED, YAW
 from riskflow_env.env import RiskFlowParallelEnv
 from riskflow_env.events import contact_pairs
-from riskflow_env.folder_lock import make_output_file
+from riskflow_env.folder_lock import file_path, make_output_file
 from riskflow_env.wrappers.event_contact import contact_kind, contact_point
 from riskflow_env.wrappers.event_log_file import (
     check_event_log,
@@ -89,12 +88,10 @@ class EventRecorder:
         append: bool = False,
         overwrite: bool = False,
     ) -> None:
-        if path is not None and not isinstance(path, (str, os.PathLike)):
-            raise ValueError(f"path must be a file path (str or os.PathLike) or None, got {path!r}")
         for name, flag in (("append", append), ("overwrite", overwrite)):
             if not isinstance(flag, bool):
                 raise ValueError(f"{name} must be True or False, got {flag!r}")
-        self.path = None if path is None else Path(path)
+        self.path = None if path is None else file_path(path)
         self.events: list[dict[str, Any]] = []
         self._file = None
         self._episode = -1  # the episode being recorded; begin() moves to the next

@@ -15,6 +15,8 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+from riskflow_env.folder_lock import file_path
+
 
 def read_event_log(path: str | os.PathLike) -> list[dict[str, Any]]:
     """The events of a JSON Lines log, in order (blank lines skipped).
@@ -22,8 +24,7 @@ def read_event_log(path: str | os.PathLike) -> list[dict[str, Any]]:
     A torn final line (a run killed mid-write: no newline at the end and not valid JSON)
     is skipped with a warning; a bad line anywhere else raises ValueError naming it, and so
     does a file that is not text."""
-    if not isinstance(path, (str, os.PathLike)):
-        raise ValueError(f"path must be a file path (str or os.PathLike), got {path!r}")
+    file_path(path)
     try:
         with open(path, encoding="utf-8") as file:
             lines = file.read().split("\n")

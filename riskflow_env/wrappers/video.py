@@ -20,7 +20,7 @@ import numpy as np
 from pettingzoo.utils import BaseParallelWrapper
 
 from riskflow_env.config import is_number, plain_number
-from riskflow_env.folder_lock import check_output_folder, make_output_file
+from riskflow_env.folder_lock import check_output_folder, file_path, make_output_file
 from riskflow_env.render import RenderConfig, SceneRenderer
 from riskflow_env.wrappers.event_log import require_riskflow_env
 
@@ -130,9 +130,7 @@ class VideoRecorder(BaseParallelWrapper):
     ) -> None:
         require_riskflow_env(env, "VideoRecorder")
         super().__init__(env)
-        if not isinstance(path, (str, os.PathLike)):
-            raise ValueError(f"path must be a file path (str or os.PathLike), got {path!r}")
-        self.path_template = str(check_video_path(path))
+        self.path_template = str(check_video_path(file_path(path)))
         try:  # the only field a path may hold is {episode}
             first = self.path_template.format(episode=0)
         except (KeyError, IndexError, ValueError, AttributeError, TypeError) as err:
