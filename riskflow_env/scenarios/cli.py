@@ -57,6 +57,10 @@ from riskflow_env.scenarios._npz import check_npz_sizes
 from riskflow_env.scenarios.io import require_scenarios, save_scenario
 from riskflow_env.scenarios.naturalistic import SOURCE, SceneConfig, generate_scenario
 from riskflow_env.scenarios.recording import DriverConfig
+from riskflow_env.scenarios.scenario import MAX_STEPS
+from riskflow_env.state import HISTORY_STEPS
+
+MAX_WORKERS = 256  # [-] largest --workers
 
 SPLIT_KEYS = {"train": 0, "eval": 1}  # spawn keys: train and eval scenes never share seeds
 MANIFEST = "riskflow-data.json"
@@ -77,17 +81,20 @@ class GenerateOptions:
     split: str = "train"
     """'train' or 'eval': separate seed streams"""
     workers: int = 1
-    """worker processes (results do not depend on it)"""
+    """worker processes (results do not depend on it), at most ``MAX_WORKERS``"""
     future_steps: int = 100
     """reference future per scene [steps of 0.1 s]"""
     stop_share: float = 0.0
     """probability per recorded vehicle that it stops once in its lane (DriverConfig)"""
 
     def __post_init__(self) -> None:
-        for name, minimum in (("scenes", 1), ("seed", 0), ("workers", 1), ("future_steps", 1)):
+        longest = MAX_STEPS - HISTORY_STEPS  # a scene's tracks hold at most MAX_STEPS
+        for name, low, high in (("scenes", 1, None), ("seed", 0, None), ("workers", 1, MAX_WORKERS),
+                                ("future_steps", 1, longest)):  # fmt: skip
             value = getattr(self, name)
-            if not is_integer(value) or value < minimum:
-                raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}")
+            if not is_integer(value) or value < low or (high is not None and value > high):
+                span = f">= {low}" if high is None else f"in [{low}, {high}]"
+                raise ValueError(f"{name} must be an int {span}, got {value!r}")
             object.__setattr__(self, name, int(value))  # a numpy int as a Python one
         if not isinstance(self.stop_share, float | int) or not 0.0 <= self.stop_share <= 1.0:
             raise ValueError(f"stop_share must be a number in [0, 1], got {self.stop_share!r}")
@@ -176,7 +183,8 @@ def _write_missing(options: GenerateOptions) -> dict:
                 bar.update()
         else:
             context = multiprocessing.get_context("spawn")
-            with context.Pool(options.workers, initializer=pool_worker) as pool:  # exit: ends it
+            processes = min(options.workers, len(todo))
+            with context.Pool(processes, initializer=pool_worker) as pool:  # exit: ends it
                 for _ in pool.imap_unordered(functools.partial(make_scene, options), todo):
                     bar.update()
     seconds = time.perf_counter() - start
@@ -324,7 +332,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     # every field of GenerateOptions is the `generate` argument of the same name
     parsed = {field.name: getattr(args, field.name) for field in fields(GenerateOptions)}
-    options = GenerateOptions(**parsed | {"families": tuple(dict.fromkeys(args.families))})
+    try:
+        options = GenerateOptions(**parsed | {"families": tuple(dict.fromkeys(args.families))})
+    except ValueError as err:  # a flag's bound: a usage error naming the flag
+        name = str(err).split(" ", 1)[0]
+        parser.error(f"--{name.replace('_', '-')}{str(err)[len(name):]}")
     output_folder(parser, args.out)
     kept = f"the scenes in {args.out} are kept: the same command resumes"
     with user_errors(f"{parser.prog} generate", args.debug, kept):

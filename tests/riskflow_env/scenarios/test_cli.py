@@ -118,6 +118,8 @@ def test_stop_share_is_recorded_only_when_used(tmp_path):
         (["--workers", "0"], "argument --workers: expected an int >= 1, got '0'"),
         (["--future-steps", "x"], "argument --future-steps: expected an int >= 1, got 'x'"),
         (["--stop-share", "1.5"], "argument --stop-share: expected a number in [0, 1], got '1.5'"),
+        (["--workers", "1000"], "--workers must be an int in [1, 256], got 1000"),  # no OOM
+        (["--future-steps", "100000000"], "--future-steps must be an int in [1, 19969]"),
     ],
 )
 def test_bad_numbers_are_usage_errors_before_anything_is_written(args, message, tmp_path, capsys):
