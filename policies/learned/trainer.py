@@ -125,6 +125,11 @@ def _initial(
     return model, normalizer
 
 
+class TrainingDiverged(ValueError):
+    """The loss or its gradient became NaN or inf: training stops before the step that
+    would write them into the weights."""
+
+
 def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
     """Train with ``objective`` (or, with ``options.resume``, continue); returns the last
     metrics logged (on every process of a ``torchrun`` launch: ``distributed``)."""
@@ -267,6 +272,13 @@ def _fit(options: LoopOptions, objective: Objective, ranks: Ranks) -> dict[str, 
             values["grad_norm"] = torch.nn.utils.clip_grad_norm_(
                 model.parameters(), options.grad_clip
             )
+            diverged = not (torch.isfinite(loss) and torch.isfinite(values["grad_norm"]))
+            if any_process(bool(diverged), ranks):  # before the step spoils the weights
+                raise TrainingDiverged(
+                    f"the loss or its gradient is not finite at step {step + 1} (lr "
+                    f"{values['lr']:.3g}): lower --lr or check the data; the weights of the "
+                    f"last save in {out} are kept"
+                )
             optimizer.step()
             ema.update(model)
             step += 1

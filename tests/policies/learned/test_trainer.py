@@ -368,3 +368,18 @@ def test_training_on_the_shipped_bank_writes_nothing_into_the_package(
     assert train_main([*args, "--stride", "80"]) == 0
     assert sorted(ASSETS.rglob("*")) == before
     assert list((tmp_path / "user-cache").rglob("norm_stats.json"))
+
+
+def test_a_loss_that_turns_nan_stops_training_with_one_line(banks, tmp_path, tiny_config, capsys):
+    """A learning rate far too large: the run stops at the first non-finite loss, before the
+    step writes NaN into the weights, with one line and status 2 (it went on and saved NaN
+    weights that every planner later refused)."""
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as exit_info:
+        train_main(tiny_args(banks, out, tiny_config, "--lr", "1e30", steps=6))
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "riskflow-train: error: the loss or its gradient is not finite at step" in error
+    if (out / GENERATOR).is_file():  # a save before the divergence: finite weights
+        model, _, _ = load_generator(out / GENERATOR)
+        assert all(torch.isfinite(p).all() for p in model.parameters())
