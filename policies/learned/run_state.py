@@ -28,6 +28,33 @@ def plain_options(options: LoopOptions) -> dict[str, Any]:
     return {key: plain(value) for key, value in vars(options).items()}
 
 
+# What a resumed run may change: how long it goes on, where it runs, how often it reports.
+# The data folders may have moved; everything else would be another training.
+RESUMABLE = frozenset({
+    "steps", "stop_step", "time_budget_min", "threads", "device", "resume", "out", "init",
+    "eval_every", "log_every", "val_windows", "num_samples", "data", "val_data", "processes",
+})  # fmt: skip
+
+
+def check_resume(options: Any, saved: dict[str, Any], kind: str) -> None:
+    """ValueError naming the flags of ``options`` that differ from the training state
+    ``saved`` (a checkpoint's ``train_config``) outside :data:`RESUMABLE`: a resumed run
+    goes on with the same training, or ``--resume``'s promise of the uninterrupted result
+    breaks silently. The model is the checkpoint's (its loader names an architecture that
+    differs)."""
+    now = plain_options(options) | {"generator": kind}
+    skip = RESUMABLE | {"model"}
+    changed = [key for key in now if key not in skip and key in saved and saved[key] != now[key]]
+    if changed:
+        flags = ", ".join(
+            f"--{key.replace('_', '-')} {saved[key]!r} there, {now[key]!r} now" for key in changed
+        )
+        raise ValueError(
+            f"--resume: {options.out} was trained with other options ({flags}); a resumed run "
+            "continues the same training: drop them, or train into another --out"
+        )
+
+
 def rng_state(noise: torch.Generator) -> dict[str, Any]:
     """The random state a resumed run restores: ``noise`` (the run's draws), torch's
     and numpy's global generators."""

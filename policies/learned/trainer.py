@@ -64,6 +64,7 @@ from policies.learned.distributed import (
 from policies.learned.ema import EMA
 from policies.learned.generator import RiskFlowGenerator
 from policies.learned.run_state import (
+    check_resume,
     initial_normalizer,
     plain_options,
     rng_state,
@@ -148,6 +149,11 @@ def _fit(options: LoopOptions, objective: Objective, ranks: Ranks) -> dict[str, 
     out = Path(options.out)
     if options.resume and not (out / CHECKPOINT).is_file():
         raise ValueError(f"--resume: no checkpoint at {out / CHECKPOINT}")
+    if not options.resume and (out / CHECKPOINT).is_file():
+        raise ValueError(
+            f"--out {out} holds a training run already ({CHECKPOINT}): continue it with "
+            "--resume, or choose another --out"
+        )
     start = None if options.resume or options.init is None else _initial(options, objective)
     folders = [("--data", folder) for folder in options.data] + [("--val-data", options.val_data)]
     for flag, folder in folders:
@@ -188,6 +194,7 @@ def _fit(options: LoopOptions, objective: Objective, ranks: Ranks) -> dict[str, 
         optimizer.load_state_dict(state["training"]["optimizer"])
         set_rng_state(noise, state["training"]["rng"])
         step, elapsed, metrics = state["step"], state["training"]["elapsed_s"], state["metrics"]
+        check_resume(options, state.get("train_config", {}), objective.kind)
     broadcast_parameters(model, ranks)  # the same start everywhere, whatever the machine
     agents = train_set.agent_counts()
     per_epoch = len(agents) // options.batch_size

@@ -383,3 +383,16 @@ def test_a_loss_that_turns_nan_stops_training_with_one_line(banks, tmp_path, tin
     if (out / GENERATOR).is_file():  # a save before the divergence: finite weights
         model, _, _ = load_generator(out / GENERATOR)
         assert all(torch.isfinite(p).all() for p in model.parameters())
+
+
+def test_a_run_folder_is_continued_or_left_alone(banks, tmp_path, tiny_config, refused):
+    """A new training into a finished run's folder would overwrite it and mix two runs in
+    its metrics log; a resume with other training options would silently be another run."""
+    out = tmp_path / "run"
+    train_main(tiny_args(banks, out, tiny_config, steps=2))
+    with refused("holds a training run already .* continue it with --resume"):
+        train_main(tiny_args(banks, out, tiny_config, steps=2))
+    changed = ("--resume", "--lr", "0.5", "--batch-size", "3")  # the last --batch-size wins
+    with refused(r"--batch-size 2 there, 3 now, --lr [0-9.e-]+ there, 0.5 now"):
+        train_main(tiny_args(banks, out, tiny_config, *changed, steps=4))
+    assert train_main(tiny_args(banks, out, tiny_config, "--resume", steps=3)) == 0  # longer
