@@ -100,6 +100,10 @@ def build_tables(store: ResultsStore) -> list[Table]:
             *({(r["scene"], r["seed"]) for r in v} for v in by_label.values())
         )
         metrics, timing = {}, {}
+        left_out = {
+            label: len(group) - sum((r["scene"], r["seed"]) in common for r in group)
+            for label, group in sorted(by_label.items())
+        }
         for label, group in sorted(by_label.items()):
             group = sorted((r for r in group if (r["scene"], r["seed"]) in common),
                            key=lambda r: (r["scene_index"], r["seed"]))  # fmt: skip
@@ -115,7 +119,10 @@ def build_tables(store: ResultsStore) -> list[Table]:
         for label, scores in safety_realism_scores(generators, safety).items():
             metrics[label].update(scores)
         _add_ratios(timing, _reference_label(by_label))
-        tables.append(Table(k, interval, len(common), metrics, timing, references, safety))
+        left_out = {label: n for label, n in left_out.items() if n}
+        tables.append(
+            Table(k, interval, len(common), metrics, timing, references, safety, left_out)
+        )
     return tables
 
 
@@ -247,6 +254,13 @@ def write_report(out: str | Path, plots: bool = True) -> Path:
     for table in tables:
         timing = f"Timing (rollouts of {duration} s; a cycle is one call that planned):"
         lines += ["", f"## {table.title} ({table.scenes} scenes x seeds)", ""]
+        if table.left_out:
+            counts = ", ".join(f"{label} {n}" for label, n in table.left_out.items())
+            lines += [
+                "Only the scenes and seeds every method ran are compared; rollouts left out "
+                f"(in results.jsonl still): {counts}.",
+                "",
+            ]
         lines += [metrics_markdown(table), "", timing, "", timing_markdown(table)]
     if plots:
         from policies.evaluation.plots import write_plots  # matplotlib only when plotting

@@ -17,6 +17,9 @@ class Table:
         timing: ``{label: {name: value}}`` (seconds, milliseconds as named).
         references: labels of reference methods (outside the CS / RS normalisation).
         safety_metric: the metric CS normalises (``"scr"`` or ``"ego_collision_rate"``).
+        left_out: ``{label: rows}`` of the rollouts left out because some other method of
+            the table has not run their (scene, seed) (an extension run on fewer scenes,
+            an interrupted one); empty when every method ran the same.
     """
 
     k: int | str | None
@@ -26,6 +29,7 @@ class Table:
     timing: dict[str, dict[str, float]]
     references: frozenset[str] = frozenset()
     safety_metric: str = "scr"
+    left_out: dict[str, int] | None = None
 
     @property
     def title(self) -> str:
