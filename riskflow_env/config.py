@@ -77,6 +77,8 @@ def _set_integer(config: object, name: str, minimum: int, maximum: int = 1_000_0
     object.__setattr__(config, name, value)
 
 
+MAX_EPISODE_STEPS = 10_000_000  # [-] longest episode (EnvConfig.episode_steps)
+
 @dataclass(frozen=True)
 class DynamicsConfig:
     """Unicycle model bounds and time step (docs/explanation/architecture.md).
@@ -241,7 +243,7 @@ class EnvConfig:
 
     def __post_init__(self) -> None:
         _set_integer(self, "max_agents", 1, MAX_AGENTS)
-        _set_integer(self, "episode_steps", 1, 10_000_000)
+        _set_integer(self, "episode_steps", 1, MAX_EPISODE_STEPS)
         for name in ("end_with_ego", "leave_when_log_ends", "clip_actions"):
             _require(
                 isinstance(getattr(self, name), bool),

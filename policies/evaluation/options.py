@@ -32,7 +32,7 @@ from policies.dataclass_cli import check_at_least, check_choices, from_fields
 from policies.learned.guidance_losses import TARGETS
 from policies.planners import PLANNERS
 from policies.registry import method_options, method_spec
-from riskflow_env.config import EnvConfig, is_integer
+from riskflow_env.config import MAX_EPISODE_STEPS, EnvConfig, is_integer
 from riskflow_env.folder_lock import check_output_folder
 from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
@@ -123,6 +123,11 @@ class EvalOptions:
         check_backend(self.backend, self.address)
         check_choices(self, {"ego": tuple(PLANNERS), "target": TARGETS})
         check_interval(self.duration, DT, None, "--duration")
+        if self.duration / DT > MAX_EPISODE_STEPS:  # checked before anything is written
+            raise ValueError(
+                f"--duration: {self.duration:g} s is over the longest episode, "
+                f"{MAX_EPISODE_STEPS * DT:g} s"
+            )
         object.__setattr__(self, "seeds", check_seeds(self.seeds))
         check_device(self.device)
 
