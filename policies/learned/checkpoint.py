@@ -188,7 +188,7 @@ def load_failure(error: Exception) -> str:
     text = " ".join(str(error).split())
     if isinstance(error, EOFError) and not text:  # an empty or cut-off file
         return "the file is empty or truncated (EOFError)"
-    if isinstance(error, KeyError):  # the legacy reader's magic number: not torch.save's
+    if isinstance(error, KeyError) or "inline_container" in text:  # a zip, not torch.save's
         return "not a file written by torch.save"
     if "Weights only load failed" not in text and "WeightsUnpickler error" not in text:
         return text[:300]

@@ -20,6 +20,7 @@ from policies.learned.checkpoint import (
 from policies.learned.generator import CheckpointError, RiskFlowGenerator
 from policies.learned.sampler import sample
 from policies.learned.synthetic import synthetic_batch
+from riskflow_env.scenarios import save_scenario, shipped_bank
 
 
 def _write(path, model, stats, **overrides):
@@ -113,6 +114,9 @@ def test_empty_text_and_folder_checkpoints_say_what_they_are(tmp_path):
         load_checkpoint(tmp_path / "empty.pt")
     with pytest.raises(CheckpointError, match="hello.pt: not a file written by torch.save$"):
         load_checkpoint(tmp_path / "hello.pt")
+    scene = save_scenario(shipped_bank("eval")[0], tmp_path / "scene.npz")  # a zip, not torch's
+    with pytest.raises(CheckpointError, match="scene.npz: not a file written by torch.save$"):
+        load_checkpoint(scene)
     with pytest.raises(IsADirectoryError, match="folder.pt is a folder, not a generator"):
         load_checkpoint(tmp_path / "folder.pt")
 
