@@ -74,6 +74,7 @@ from policies.learned.train_options import LoopOptions, learning_rate, model_con
 from policies.learned.trajectory_loss import LossWeights
 from policies.learned.validation import evaluate
 from policies.learned.window_types import WindowBatch
+from riskflow_env.atomic_files import write_text
 from riskflow_env.scenarios.folders import scene_files
 
 CHECKPOINT, GENERATOR, METRICS_LOG = "checkpoint.pt", "generator.pt", "metrics.jsonl"
@@ -129,6 +130,24 @@ def _initial(
 class TrainingDiverged(ValueError):
     """The loss or its gradient became NaN or inf: training stops before the step that
     would write them into the weights."""
+
+
+def _drop_rows_after(path: Path, step: int) -> None:
+    """Drop the rows of the metrics log after the checkpoint's ``step`` (logged by the run
+    that was interrupted; the resumed run logs those steps again)."""
+    if not path.is_file():
+        return
+    lines = path.read_text().splitlines(keepends=True)
+
+    def before(line: str) -> bool:
+        try:
+            return json.loads(line)["step"] <= step
+        except (ValueError, KeyError, TypeError):  # a line torn by a kill
+            return False
+
+    kept = [line for line in lines if before(line)]
+    if len(kept) < len(lines):
+        write_text(path, "".join(kept))
 
 
 def fit(options: LoopOptions, objective: Objective) -> dict[str, Any]:
@@ -195,6 +214,8 @@ def _fit(options: LoopOptions, objective: Objective, ranks: Ranks) -> dict[str, 
         set_rng_state(noise, state["training"]["rng"])
         step, elapsed, metrics = state["step"], state["training"]["elapsed_s"], state["metrics"]
         check_resume(options, state.get("train_config", {}), objective.kind)
+        if ranks.main:
+            _drop_rows_after(out / METRICS_LOG, step)
     broadcast_parameters(model, ranks)  # the same start everywhere, whatever the machine
     agents = train_set.agent_counts()
     per_epoch = len(agents) // options.batch_size
@@ -254,7 +275,8 @@ def _fit(options: LoopOptions, objective: Objective, ranks: Ranks) -> dict[str, 
     )  # fmt: skip
     sums: dict[str, list[float]] = {}
     epoch, batches = -1, np.zeros((0, options.batch_size), dtype=np.int64)
-    with (out / METRICS_LOG).open("a") if ranks.main else open(os.devnull, "w") as log:
+    log_file = (out / METRICS_LOG).open("a") if ranks.main else open(os.devnull, "w")
+    with bar, log_file as log:  # the bar closes before an interrupt's message is printed
         while step < end:
             tick = time.perf_counter()
             if step // per_epoch != epoch:
@@ -318,7 +340,6 @@ def _fit(options: LoopOptions, objective: Objective, ranks: Ranks) -> dict[str, 
                 if ranks.main:
                     bar.write(f"riskflow-train: time budget reached at step {step}; saved")
                 break
-    bar.close()
     if ranks.main and step > first:  # steps were trained, and saved
         print(
             f"riskflow-train: wrote {out / GENERATOR} (to plan with), {out / CHECKPOINT} "

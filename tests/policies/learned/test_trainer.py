@@ -396,3 +396,15 @@ def test_a_run_folder_is_continued_or_left_alone(banks, tmp_path, tiny_config, r
     with refused(r"--batch-size 2 there, 3 now, --lr [0-9.e-]+ there, 0.5 now"):
         train_main(tiny_args(banks, out, tiny_config, *changed, steps=4))
     assert train_main(tiny_args(banks, out, tiny_config, "--resume", steps=3)) == 0  # longer
+
+
+def test_a_resume_logs_each_step_once(banks, tmp_path, tiny_config):
+    """Rows an interrupted run logged after its last checkpoint (and a torn one) are
+    dropped: the resumed run logs those steps again."""
+    out = tmp_path / "run"
+    train_main(tiny_args(banks, out, tiny_config, steps=2))
+    with (out / METRICS_LOG).open("a") as log:
+        log.write(json.dumps({"step": 3, "train_loss": 1.0}) + "\n" + '{"step": 4, "tr')
+    train_main(tiny_args(banks, out, tiny_config, "--resume", steps=4))
+    steps = [json.loads(line)["step"] for line in (out / METRICS_LOG).read_text().splitlines()]
+    assert steps == [1, 2, 3, 4]
