@@ -160,10 +160,17 @@ def _write_missing(options: GenerateOptions) -> dict:
     manifest = out / MANIFEST
     if manifest.exists():
         recorded = json.loads(manifest.read_text())
-        if recorded != options.settings():
-            raise SystemExit(
-                f"riskflow-data: {out} holds a bank made with other settings:\n  {recorded}\n"
-                f"not {options.settings()}; use another --out or the same settings"
+        settings = options.settings()
+        if recorded != settings:
+            differ = sorted(
+                k for k in set(recorded) | set(settings) if recorded.get(k) != settings.get(k)
+            )
+            said = ", ".join(
+                f"{k}: {recorded.get(k)!r} there, {settings.get(k)!r} now" for k in differ
+            )
+            raise ValueError(
+                f"--out {out} holds a bank made with other settings ({said}): use another "
+                "--out or the same settings"
             )
     else:
         write_text(manifest, json.dumps(options.settings(), indent=2) + "\n")
@@ -336,7 +343,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         options = GenerateOptions(**parsed | {"families": tuple(dict.fromkeys(args.families))})
     except ValueError as err:  # a flag's bound: a usage error naming the flag
         name = str(err).split(" ", 1)[0]
-        parser.error(f"--{name.replace('_', '-')}{str(err)[len(name):]}")
+        parser.error(f"--{name.replace('_', '-')}{str(err)[len(name) :]}")
     output_folder(parser, args.out)
     kept = f"the scenes in {args.out} are kept: the same command resumes"
     with user_errors(f"{parser.prog} generate", args.debug, kept):

@@ -87,7 +87,7 @@ def test_resume_skips_complete_scenes_and_redoes_missing_ones(tmp_path):
 @pytest.mark.reliability
 def test_resume_with_other_settings_is_refused(tmp_path):
     generate(_tiny(tmp_path, scenes=1))
-    with pytest.raises(SystemExit, match="other settings"):
+    with pytest.raises(ValueError, match="other settings .seed: 7 there, 8 now.: use another"):
         generate(_tiny(tmp_path, scenes=1, seed=8))
 
 
@@ -182,7 +182,7 @@ def test_out_the_system_refuses_is_a_usage_error(command, tmp_path, monkeypatch,
     [
         ({"seed": -1}, "seed must be an int >= 0"),
         ({"scenes": True}, "scenes must be an int >= 1"),
-        ({"workers": 0}, "workers must be an int >= 1"),
+        ({"workers": 0}, "workers must be an int in \\[1, 256\\]"),
         ({"split": "test"}, "split must be one of"),
         ({"families": ("moon",)}, "families must be a non-empty subset"),
         ({"stop_share": -0.1}, "stop_share must be a number in"),
