@@ -26,6 +26,12 @@ SHARED = ("k", "planning_interval", "target", "seed", "device")
 DIFFUSION_STEPS_OPTION = "sampling_steps"  # the DiffusionAdversary argument --diffusion-steps sets
 
 
+# Options that riskflow-eval sets with flags of its own, for every method of a run.
+RUN_FLAGS = {
+    "k": "--k", "target": "--target", "planning_interval": "--interval", "seed": "--seeds",
+    "device": "--device",
+}  # fmt: skip
+
 def _class_loader(module: str, name: str) -> Callable[[], type]:
     """A loader that imports ``module`` when called and returns its class ``name`` (an
     ImportError naming the module when it or the class is missing)."""
@@ -255,6 +261,8 @@ def method_options(
             )
         # a method.key item for a method not in --methods is checked, then unused
         targets = [scope] if dot else [m for m in methods if key in METHODS[m].option_names()]
+        if key in RUN_FLAGS:  # the run's own flags, shared by every method
+            raise ValueError(f"--set {item!r}: {key} is set by {RUN_FLAGS[key]}, for every method")
         if not targets or key not in METHODS[targets[0]].option_names():
             where = scope if dot else "any of --methods"
             names = sorted(

@@ -218,6 +218,8 @@ def test_report_command(tiny_run, capsys):
         (["--set", "guidance_steps"], "--set: expected key=value"),
         (["--set", "ctg.guidance_steps=3"], "'guidance_steps' is not an option of ctg"),
         (["--set", "nope.steps=3"], "unknown method 'nope'"),
+        (["--set", "target=ego"], "--set 'target=ego': target is set by --target"),
+        (["--set", "riskflow.k=3"], "k is set by --k, for every method"),
         (
             ["--set", "riskflow.stepsize=0.1"],
             "'stepsize' is not an option of riskflow (did you mean step_size?); its options: ",
