@@ -86,18 +86,6 @@ def test_resume_skips_finished_rows_and_keeps_numbers(tiny_run, tmp_path):
     assert _numbers(out) == _numbers(full)  # nothing duplicated, same numbers
 
 
-def test_a_method_run_on_fewer_scenes_narrows_the_table_and_says_so(tmp_path):
-    """An extension run on fewer scenes: the table compares the scenes every method ran and
-    counts the rollouts it leaves out (it dropped them without a word)."""
-    out = tmp_path / "extended"
-    run_evaluation(replace(TINY, out=str(out), methods=("idm",)), progress=False)
-    run_evaluation(replace(TINY, out=str(out), methods=("replay",), scenes=1), progress=False)
-    (table,) = build_tables(ResultsStore(out))
-    assert table.scenes == 1 and table.left_out == {"idm": 1}
-    text = write_report(out, plots=False).read_text()
-    assert "rollouts left out (in results.jsonl still): idm 1." in text
-
-
 @pytest.mark.reliability
 def test_worker_count_does_not_change_results(tiny_run, tmp_path):
     full, _ = tiny_run
