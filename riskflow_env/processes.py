@@ -29,6 +29,7 @@ import threading
 import time
 
 PARENT_GONE_EXIT = 70  # exit status of a worker whose parent died
+MAX_WORKERS = 256  # [-] largest --workers of a command (processes or Ray CPUs)
 
 
 def _watch(sentinel: int | None, parent_pid: int, poll_s: float) -> None:

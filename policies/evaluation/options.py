@@ -34,10 +34,10 @@ from policies.planners import PLANNERS
 from policies.registry import method_options, method_spec
 from riskflow_env.config import MAX_EPISODE_STEPS, EnvConfig, is_integer
 from riskflow_env.folder_lock import check_output_folder
+from riskflow_env.processes import MAX_WORKERS
 from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset
 
 SCHEMA = 1  # results.jsonl row layout version
-MAX_WORKERS = 256  # [-] largest --workers (processes or Ray CPUs)
 
 
 @dataclass(frozen=True)

@@ -52,15 +52,13 @@ from riskflow_env.folder_lock import (
     make_output_folder,
 )
 from riskflow_env.maps import FAMILIES
-from riskflow_env.processes import pool_worker
+from riskflow_env.processes import MAX_WORKERS, pool_worker
 from riskflow_env.scenarios._npz import check_npz_sizes
 from riskflow_env.scenarios.io import require_scenarios, save_scenario
 from riskflow_env.scenarios.naturalistic import SOURCE, SceneConfig, generate_scenario
 from riskflow_env.scenarios.recording import DriverConfig
 from riskflow_env.scenarios.scenario import MAX_STEPS
 from riskflow_env.state import HISTORY_STEPS
-
-MAX_WORKERS = 256  # [-] largest --workers
 
 SPLIT_KEYS = {"train": 0, "eval": 1}  # spawn keys: train and eval scenes never share seeds
 MANIFEST = "riskflow-data.json"
