@@ -4,7 +4,8 @@ Writing is crash-safe and resumable:
 
 * ``config.json`` holds the run-level settings (:meth:`~.options.RunConfig.as_json`); a run
   with other settings into the same folder is refused (:class:`ConfigMismatch`), never
-  mixed in.
+  mixed in. It also records the weights of every checkpoint file a method was given
+  (``checkpoints``), so rows of a checkpoint retrained in place are never reused.
 * Each finished rollout first writes its KDD samples to ``samples/<id>.npz`` (temporary
   file, fsync, rename), then appends its row to ``results.jsonl`` and fsyncs. The row is
   the commit: a rollout interrupted before its row is written is simply run again.
@@ -37,6 +38,7 @@ from riskflow_env.metrics import KinematicSamples
 
 RESULTS = "results.jsonl"
 CONFIG = "config.json"
+CHECKPOINTS = "checkpoints"  # config.json: {checkpoint option as given: weights_sha256}
 SAMPLES = "samples"
 
 
@@ -78,13 +80,23 @@ class ResultsStore:
         """Release the writer lock (if held); the lock file stays."""
         self._lock.release()
 
-    def check_config(self, config: dict[str, Any]) -> None:
-        """Write ``config.json`` if absent; ConfigMismatch naming the settings that differ."""
+    def check_config(
+        self, config: dict[str, Any], checkpoints: dict[str, str] | None = None
+    ) -> None:
+        """Write ``config.json`` if absent; ConfigMismatch naming the settings that differ.
+
+        ``checkpoints`` maps each ``checkpoint`` option of the run's methods (the path as
+        given, as in the rows' keys) to its ``weights_sha256``. They are kept under
+        ``config.json``'s ``checkpoints``: a path new to the folder is added, and a path
+        whose weights changed since its rows were written (a checkpoint retrained in
+        place) is refused with ConfigMismatch, since its rows would otherwise be reused."""
         self.lock()
+        checkpoints = dict(checkpoints or {})
         if not self.config_file.exists():
-            write_bytes(self.config_file, json.dumps(config, indent=1, sort_keys=True).encode())
+            self._write_config({**config, **({CHECKPOINTS: checkpoints} if checkpoints else {})})
             return
-        stored = json.loads(self.config_file.read_text())
+        stored = self.config()
+        known = stored.pop(CHECKPOINTS, {})
         differ = sorted(k for k in set(stored) | set(config) if stored.get(k) != config.get(k))
         if differ:
             details = ", ".join(
@@ -94,6 +106,21 @@ class ResultsStore:
                 f"--out {self.out} holds results of another configuration ({details}); "
                 "use another --out, or the same settings to resume"
             )
+        changed = sorted(
+            path for path in checkpoints if known.get(path, checkpoints[path]) != checkpoints[path]
+        )
+        if changed:
+            path = changed[0]
+            raise ConfigMismatch(
+                f"--out {self.out} holds rows of checkpoint {path} with other weights "
+                f"(weights_sha256 {known[path][:12]} there, {checkpoints[path][:12]} now: "
+                "the file changed since); use another --out to evaluate the new weights"
+            )
+        if set(checkpoints) - set(known):
+            self._write_config({**stored, CHECKPOINTS: {**known, **checkpoints}})
+
+    def _write_config(self, config: dict[str, Any]) -> None:
+        write_bytes(self.config_file, json.dumps(config, indent=1, sort_keys=True).encode())
 
     def config(self) -> dict[str, Any]:
         """The stored run configuration ({} if none)."""

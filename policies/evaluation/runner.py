@@ -28,6 +28,7 @@ from policies.evaluation.batched import group_jobs, run_batch
 from policies.evaluation.options import EvalOptions, Job, RunConfig, plan_jobs, scene_names
 from policies.evaluation.results import ResultsStore
 from policies.evaluation.rollout import run_job
+from policies.learned.checkpoint import checkpoint_digest
 from policies.registry import build_policy
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.processes import pool_worker
@@ -58,6 +59,14 @@ def check_methods(jobs: list[Job], dt: float = DynamicsConfig().dt) -> None:
                     f"--interval: {interval} s exceeds the plan horizon of {method} "
                     f"({horizon} steps = {horizon * dt:.1f} s)"
                 )
+
+
+def checkpoint_digests(jobs: list[Job]) -> dict[str, str]:
+    """``weights_sha256`` of each ``checkpoint`` option of the jobs' methods, keyed by the
+    path as given (:meth:`~.results.ResultsStore.check_config`); read after
+    :func:`check_methods`, so every file is known to load."""
+    paths = {str(job.options["checkpoint"]) for job in jobs if job.options.get("checkpoint")}
+    return {path: checkpoint_digest(path) for path in sorted(paths)}
 
 
 def _init_worker() -> None:
@@ -110,7 +119,7 @@ def prepare(options: EvalOptions) -> tuple[ResultsStore, list[Job]]:
     check_methods(jobs)
     try:
         # takes the folder's writer lock
-        store.check_config(RunConfig.from_options(options).as_json())
+        store.check_config(RunConfig.from_options(options).as_json(), checkpoint_digests(jobs))
     except OSError as err:  # e.g. the folder cannot be created
         store.unlock()
         raise ValueError(f"--out: {err}") from err

@@ -326,6 +326,19 @@ def _read_once(path: Path) -> dict[str, Any]:
     }
 
 
+def checkpoint_digest(path: str | os.PathLike) -> str:
+    """The ``weights_sha256`` of the checkpoint file at ``path`` (computed for a file
+    written before digests were stored); read once per process while unchanged."""
+    checkpoint = _read_once(Path(path))
+    stored = checkpoint.get("weights_sha256")
+    if isinstance(stored, str):
+        return stored
+    state = checkpoint.get("state_dict")
+    if not isinstance(state, Mapping):
+        raise CheckpointError(f"{path} holds no state_dict")
+    return weights_digest(state)
+
+
 def frozen_generator(
     checkpoint: Mapping[str, Any], config: ModelConfig | None, device: torch.device | str
 ) -> tuple[RiskFlowGenerator, ActionNormalizer, dict[str, Any]]:
