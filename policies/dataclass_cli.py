@@ -166,17 +166,22 @@ def check_at_least(
     lows: Mapping[str, int],
     optional: Sequence[str] = (),
     owner: str | None = None,
+    highs: Mapping[str, int] | None = None,
 ) -> None:
     """ValueError naming the flag of the first field of ``options`` in ``lows`` that is not
-    an int at least its bound; the fields named in ``optional`` may also be None ("not
-    given"). With ``owner`` (a class name), the field is named ``owner.field`` instead.
-    A numpy integer is accepted and stored as a Python int (bools are not ints)."""
+    an int at least its bound (and at most its bound in ``highs``, where it has one); the
+    fields named in ``optional`` may also be None ("not given"). With ``owner`` (a class
+    name), the field is named ``owner.field`` instead. A numpy integer is accepted and
+    stored as a Python int (bools are not ints)."""
+    highs = highs or {}
     for name, low in lows.items():
         value = getattr(options, name)
         if value is None and name in optional:
             continue
-        if not is_integer(value) or value < low:
-            raise ValueError(f"{_named(name, owner)} must be an int >= {low}, got {value!r}")
+        high = highs.get(name)
+        if not is_integer(value) or value < low or (high is not None and value > high):
+            span = f">= {low}" if high is None else f"in [{low}, {high}]"
+            raise ValueError(f"{_named(name, owner)} must be an int {span}, got {value!r}")
         object.__setattr__(options, name, int(value))
 
 

@@ -30,6 +30,7 @@ import time
 
 PARENT_GONE_EXIT = 70  # exit status of a worker whose parent died
 MAX_WORKERS = 256  # [-] largest --workers of a command (processes or Ray CPUs)
+MAX_THREADS = 256  # [-] largest torch CPU thread count a command or policy accepts
 
 
 def _watch(sentinel: int | None, parent_pid: int, poll_s: float) -> None:

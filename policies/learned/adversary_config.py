@@ -35,6 +35,7 @@ from policies.learned.plan_stitching import DEFAULT_HOLD_DISTANCE
 from policies.learned.ranking import DEFAULT_THRESHOLD, check_k
 from policies.learned.windows import WindowConfig
 from riskflow_env.config import is_number, plain_number
+from riskflow_env.processes import MAX_THREADS
 
 
 @dataclass(frozen=True)
@@ -102,9 +103,9 @@ class AdversaryConfig:
         dt = DT if window is None else window.dynamics.dt
         check_interval(interval, dt, None, "AdversaryConfig.planning_interval")
         owner = "AdversaryConfig"
-        check_at_least(
-            self, {"guidance_horizon": 1, "threads": 1}, ("guidance_horizon", "threads"), owner
-        )
+        optional = ("guidance_horizon", "threads")
+        lows = {"guidance_horizon": 1, "threads": 1}
+        check_at_least(self, lows, optional, owner, highs={"threads": MAX_THREADS})
         check_choices(self, {"target": TARGETS}, owner)
         for name in ("lambda_adv", "lambda_map", "rank_threshold"):
             value = getattr(self, name)

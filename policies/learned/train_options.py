@@ -15,8 +15,10 @@ from policies.dataclass_cli import check_at_least
 from policies.learned.config import ModelConfig
 from policies.learned.recovery import RecoveryConfig
 from riskflow_env.folder_lock import check_output_folder
+from riskflow_env.processes import MAX_THREADS
 
 LR_SCHEDULES = ("constant", "cosine")
+MAX_STEPS = 10**8  # [-] largest --steps (the shipped recipe trains 8,000)
 
 
 @dataclass(frozen=True)
@@ -160,7 +162,11 @@ class LoopOptions:
         object.__setattr__(self, "data", tuple(Path(folder) for folder in self.data))
         object.__setattr__(self, "data_weights", tuple(map(float, self.data_weights)))
         counts = ("steps", "batch_size", "stride", "bucket", "eval_every", "log_every")
-        check_at_least(self, {**dict.fromkeys((*counts, "num_samples"), 1), "threads": 0})
+        check_at_least(
+            self,
+            {**dict.fromkeys((*counts, "num_samples"), 1), "threads": 0},
+            highs={"threads": MAX_THREADS, "steps": MAX_STEPS},
+        )
         check_device(self.device)
         if self.model:
             model_config(self.model)  # a bad --model is refused before any data is read

@@ -290,14 +290,16 @@ def test_realism_penalties_reach_the_loss_and_bad_weights_name_the_option(
 @pytest.mark.parametrize(
     ("changes", "message"),
     [
-        ({"steps": 0}, "--steps must be an int >= 1, got 0"),
+        ({"steps": 0}, r"--steps must be an int in \[1, 100000000\], got 0"),
+        ({"steps": 10**12}, r"--steps must be an int in \[1, 100000000\]"),
         ({"log_every": -1}, "--log-every must be an int >= 1, got -1"),
         ({"lr": math.inf}, "--lr finite and > 0"),
         ({"lr": math.nan}, "--lr finite and > 0"),
         ({"time_budget_min": math.nan}, "--time-budget-min finite and >= 0"),
         ({"device": "gpu"}, "--device: 'gpu' is not a torch device"),
         ({"out": "FILE"}, "--out: .*FILE exists and is not a folder"),
-        ({"threads": -1}, "--threads must be an int >= 0, got -1"),
+        ({"threads": -1}, r"--threads must be an int in \[0, 256\], got -1"),
+        ({"threads": 1000}, r"--threads must be an int in \[0, 256\], got 1000"),
         ({"model": "{bad"}, "--model: Expecting property name"),
         ({"model": "[1]"}, "--model: expected a JSON object of ModelConfig fields"),
         ({"model": '{"head_dim": "x"}'}, "--model: ModelConfig.head_dim must be"),
