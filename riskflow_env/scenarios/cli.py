@@ -54,10 +54,12 @@ from riskflow_env.folder_lock import (
 from riskflow_env.maps import FAMILIES
 from riskflow_env.processes import MAX_WORKERS, pool_worker
 from riskflow_env.scenarios._npz import check_npz_sizes
+from riskflow_env.scenarios.folders import commonroad_files, scenarionet_counts
 from riskflow_env.scenarios.io import require_scenarios, save_scenario
 from riskflow_env.scenarios.naturalistic import SOURCE, SceneConfig, generate_scenario
 from riskflow_env.scenarios.recording import DriverConfig
 from riskflow_env.scenarios.scenario import MAX_STEPS
+from riskflow_env.scenarios.scenarionet_dataset import is_scenarionet_folder
 from riskflow_env.state import HISTORY_STEPS
 
 SPLIT_KEYS = {"train": 0, "eval": 1}  # spawn keys: train and eval scenes never share seeds
@@ -203,7 +205,15 @@ def _write_missing(options: GenerateOptions) -> dict:
 
 def info(directory: Path) -> dict[str, int]:
     """Print and return the number of scenes per family in ``directory`` (FileNotFoundError
-    when it holds no scene file)."""
+    when it holds no scene file); per source dataset for a ScenarioNet folder
+    (:func:`scenarionet_info`), the file count for CommonRoad scenarios."""
+    if is_scenarionet_folder(directory):
+        return scenarionet_info(directory)
+    commonroad = commonroad_files(directory)
+    if commonroad:
+        size = sum(path.stat().st_size for path in commonroad)
+        print(f"{directory}: {len(commonroad)} CommonRoad scenarios (.xml), {size / 1e6:.1f} MB")
+        return {"commonroad": len(commonroad)}
     counts: Counter[str] = Counter()
     agents: Counter[str] = Counter()
     for path in require_scenarios(directory):
@@ -220,6 +230,17 @@ def info(directory: Path) -> dict[str, int]:
     print(f"  {'family':<14}{'scenes':>8}{'mean agents':>13}")
     for family in sorted(counts):
         print(f"  {family:<14}{counts[family]:>8}{agents[family] / counts[family]:>13.1f}")
+    return dict(counts)
+
+
+def scenarionet_info(directory: Path) -> dict[str, int]:
+    """:func:`info` of a ScenarioNet dataset folder (:func:`~.folders.scenarionet_counts`)."""
+    counts, objects, missing, size = scenarionet_counts(directory)
+    print(f"{directory}: {sum(counts.values())} ScenarioNet scenes, {size / 1e6:.1f} MB", end="")
+    print(f" ({missing} listed in its summary but missing)" if missing else "")
+    print(f"  {'dataset':<14}{'scenes':>8}{'mean objects':>14}")
+    for source in sorted(counts):
+        print(f"  {source:<14}{counts[source]:>8}{objects[source] / counts[source]:>14.1f}")
     return dict(counts)
 
 
@@ -282,7 +303,9 @@ def build_parser() -> argparse.ArgumentParser:
                      "breakdown, a drop-off): queues, vehicles passing standing ones")  # fmt: skip
     add_debug_flag(gen)
     show = commands.add_parser(
-        "info", help="count the scenes of a bank per family", formatter_class=formatter
+        "info",
+        help="count the scenes of a bank per family (of a ScenarioNet folder per dataset)",
+        formatter_class=formatter,
     )
     show.add_argument("directory", type=Path, help="folder of the bank")
     add_debug_flag(show)

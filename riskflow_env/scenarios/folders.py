@@ -17,10 +17,14 @@ scenes one at a time when it cuts their training windows).
 from __future__ import annotations
 
 import os
+from collections import Counter
+from collections.abc import Mapping
 from pathlib import Path
 
+from riskflow_env.config import is_integer
 from riskflow_env.scenarios.commonroad_import import is_commonroad_file, load_commonroad
 from riskflow_env.scenarios.io import ONE_FILE, load_bank, require_scenarios
+from riskflow_env.scenarios.safe_pickle import load_data_pickle
 from riskflow_env.scenarios.scenarionet_dataset import ScenarioNetDataset, is_scenarionet_folder
 from riskflow_env.scenarios.sources import ScenarioBank
 
@@ -82,3 +86,36 @@ def scene_files(folder: str | os.PathLike) -> list[Path] | ScenarioNetDataset:
             f"e.g. {missing[0]}"
         )
     return dataset
+
+
+def scenarionet_counts(folder: str | os.PathLike) -> tuple[Counter, Counter, int, int]:
+    """``(scenes, objects, missing, size)`` of a ScenarioNet dataset folder: scenes and
+    objects (every kind of traffic participant) per source dataset, from the summary's
+    metadata, or from each scenario file's own where the folder has no summary (every file
+    is read then; no map is converted); the files listed but missing; the bytes of those
+    present. ValueError naming a file that is not a readable data pickle."""
+    dataset = ScenarioNetDataset(folder, map_cache=False)
+    scenes: Counter[str] = Counter()
+    objects: Counter[str] = Counter()
+    missing, size = 0, 0
+    for index in range(len(dataset)):
+        path = dataset.path(index)
+        if not path.is_file():
+            missing += 1
+            continue
+        size += path.stat().st_size
+        metadata = dataset.summaries[index] or _file_metadata(path)
+        source = metadata.get("dataset")
+        source = source[:14] if isinstance(source, str) and source else "unknown"
+        numbers = metadata.get("number_summary")
+        count = numbers.get("num_objects") if isinstance(numbers, Mapping) else None
+        scenes[source] += 1
+        objects[source] += int(count) if is_integer(count) else 0
+    return scenes, objects, missing, size
+
+
+def _file_metadata(path: Path) -> Mapping:
+    """The ``metadata`` of a ScenarioNet scenario file ({} where it has none)."""
+    description = load_data_pickle(path)
+    metadata = description.get("metadata") if isinstance(description, Mapping) else None
+    return metadata if isinstance(metadata, Mapping) else {}

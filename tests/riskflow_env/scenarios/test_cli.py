@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -14,6 +16,8 @@ import pytest
 from riskflow_env.folder_lock import FolderLock
 from riskflow_env.scenarios import load_bank
 from riskflow_env.scenarios.cli import GenerateOptions, generate, main
+from tests.riskflow_env.scenarios.scenarionet_datasets import toy_descriptions, write_dataset
+from tests.samples import COMMONROAD_DIR, require_commonroad
 
 
 def _tiny(out, workers: int = 1, **changes) -> GenerateOptions:
@@ -134,13 +138,46 @@ def test_bad_numbers_are_usage_errors_before_anything_is_written(args, message, 
 
 @pytest.mark.reliability
 def test_info_of_a_folder_without_scenes_is_an_error(tmp_path, capsys):
-    """`info` of an empty folder (or a ScenarioNet one) printed "0 scenes" and exited 0."""
+    """`info` of an empty folder printed "0 scenes" and exited 0; of a ScenarioNet folder
+    with a broken scenario file it names the file."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(["info", str(tmp_path)])
+    assert exit_info.value.code == 2
+    assert f"no scenario files (*.npz) in {tmp_path}" in capsys.readouterr().err
     (tmp_path / "sd_a.pkl").write_bytes(b"")
     with pytest.raises(SystemExit) as exit_info:
         main(["info", str(tmp_path)])
     assert exit_info.value.code == 2
-    error = capsys.readouterr().err
-    assert f"no scenario files (*.npz) in {tmp_path}: it holds ScenarioNet pickles" in error
+    assert f"{tmp_path / 'sd_a.pkl'}: not a readable data pickle" in capsys.readouterr().err
+
+
+def test_info_of_scenarionet_folders(tmp_path, capsys):
+    """Per source dataset, from the summary or (no summary) from each file's metadata."""
+    indexed = tmp_path / "indexed"
+    names = write_dataset(indexed, toy_descriptions(3) + toy_descriptions(1, "waymo"))
+    assert main(["info", str(indexed)]) == 0
+    printed = capsys.readouterr().out
+    assert f"{indexed}: 4 ScenarioNet scenes" in printed
+    assert re.search(r"nuscenes +3 ", printed) and re.search(r"waymo +1 ", printed)
+    (indexed / f"{indexed.name}_0" / names[0]).unlink()
+    assert main(["info", str(indexed)]) == 0
+    assert "3 ScenarioNet scenes" in (out := capsys.readouterr().out) and "1 listed" in out
+
+    bare = tmp_path / "bare"  # the scenario files alone, as copied from a converter folder
+    bare.mkdir()
+    for path in (indexed / f"{indexed.name}_1").glob("sd_*.pkl"):
+        shutil.copy(path, bare / path.name)
+    assert main(["info", str(bare)]) == 0
+    printed = capsys.readouterr().out
+    assert f"{bare}: 2 ScenarioNet scenes" in printed
+
+
+def test_info_of_commonroad_scenarios(capsys):
+    """Counted without commonroad-io (the files are not parsed)."""
+    files = require_commonroad()
+    assert main(["info", str(COMMONROAD_DIR)]) == 0
+    printed = capsys.readouterr().out
+    assert f"{COMMONROAD_DIR}: {len(files)} CommonRoad scenarios (.xml)" in printed
 
 
 @pytest.mark.reliability
