@@ -59,9 +59,10 @@ def debug_requested(argv: Sequence[str]) -> bool:
 
 def message(error: BaseException) -> str:
     """The one-line text of ``error``: its message (no longer than ``MAX_LINE``), prefixed
-    with its type for an ``OSError`` (``FileNotFoundError: ...`` says what went wrong)."""
+    with its type for an ``OSError`` the system raised (``PermissionError: [Errno 13] ...``
+    says what went wrong; the library's own messages say it in words)."""
     text = error_text(error, limit=MAX_LINE)
-    if not isinstance(error, OSError):
+    if not (isinstance(error, OSError) and error.errno is not None):
         text = text.split(": ", 1)[-1]
     return " ".join(text.split())  # one line
 

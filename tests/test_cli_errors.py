@@ -133,9 +133,20 @@ def test_run_script_is_one_line_and_reads_debug_from_argv(capsys):
     with pytest.raises(SystemExit) as exit_info:
         run_script("rollout.py", main, ["--checkpoint", "/nope"])
     assert exit_info.value.code == 2
-    assert capsys.readouterr().err.startswith("rollout.py: error: FileNotFoundError: no gen")
+    assert capsys.readouterr().err.startswith("rollout.py: error: no generator checkpoint")
     with pytest.raises(FileNotFoundError):
         run_script("rollout.py", main, ["--checkpoint", "/nope", "--debug"])
+
+
+def test_a_system_error_keeps_its_type(tmp_path, capsys):
+    """The system's OSError (with an errno) is named; the library's own messages are not."""
+
+    def main():
+        open(tmp_path / "absent.txt")  # noqa: SIM115
+
+    with pytest.raises(SystemExit):
+        run_script("tool.py", main, [])
+    assert "tool.py: error: FileNotFoundError: [Errno 2]" in capsys.readouterr().err
 
 
 SCRIPTS_WITH_PATHS = [

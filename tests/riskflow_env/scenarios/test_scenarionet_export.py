@@ -191,7 +191,7 @@ def test_riskflow_data_export_writes_every_file(tmp_path, capsys):
     assert back.num_agents == shipped_bank("eval")[1].num_agents
     with pytest.raises(SystemExit):
         main(["export", str(tmp_path / "none.npz"), "--format", "scenarionet", "--out", "x"])
-    assert "error: FileNotFoundError: no such scene file" in capsys.readouterr().err
+    assert "error: no such scene file" in capsys.readouterr().err
 
 
 def test_export_names_keep_dotted_stems_and_never_overwrite_an_input(tmp_path):
