@@ -38,6 +38,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from policies.baselines.diffusion.model import PREDICTIONS
+from policies.baselines.diffusion.schedule import SCHEDULES
 from policies.baselines.diffusion.train import DiffusionObjective
 from policies.dataclass_cli import Recipes, dataclass_parser, parse_dataclass
 from policies.learned.train_options import LoopOptions
@@ -76,6 +78,8 @@ class TrainOptions(LoopOptions):
         """The loop's checks and the generator options'."""
         return super().rules() | {
             f"--generator in {GENERATORS}": self.generator in GENERATORS,
+            f"--diffusion-schedule in {SCHEDULES}": self.diffusion_schedule in SCHEDULES,
+            f"--diffusion-prediction in {PREDICTIONS}": self.diffusion_prediction in PREDICTIONS,
             "--flow-matching only with --generator meanflow": not (
                 self.flow_matching and self.generator != "meanflow"
             ),

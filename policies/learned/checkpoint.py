@@ -161,6 +161,12 @@ def load_checkpoint(path: str | os.PathLike, device: torch.device | str = "cpu")
         raise IsADirectoryError(f"{path} is a folder, not a generator checkpoint file")
     if not path.is_file():
         raise FileNotFoundError(f"no generator checkpoint at {path}")
+    with path.open("rb") as file:
+        head = file.read(4)
+    if head and not head.startswith((b"PK\x03\x04", b"\x80")):  # a zip, or a legacy pickle
+        raise CheckpointError(
+            f"cannot read generator checkpoint {path}: not a file written by torch.save"
+        )
     try:
         with warnings.catch_warnings():  # a foreign pickle's protocol: the error says enough
             warnings.filterwarnings("ignore", message="Detected pickle protocol")

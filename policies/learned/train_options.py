@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from policies.cli_inputs import check_device
-from policies.dataclass_cli import check_at_least
+from policies.dataclass_cli import check_at_least, check_field_types, flag_of
 from policies.learned.config import ModelConfig
 from policies.learned.recovery import RecoveryConfig
 from riskflow_env.folder_lock import check_output_folder
@@ -19,6 +19,10 @@ from riskflow_env.processes import MAX_THREADS
 
 LR_SCHEDULES = ("constant", "cosine")
 MAX_STEPS = 10**8  # [-] largest --steps (the shipped recipe trains 8,000)
+MAX_SEED = 2**32 - 1  # numpy's largest seed
+LOSS_WEIGHTS = (  # the weights of the loss's terms (each finite and >= 0)
+    "action_weight", "heading_weight", "collision_weight", "offroad_weight", "jerk_weight"
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -139,9 +143,9 @@ class LoopOptions:
                 self.recovery_parked_jitter
             )
             and self.recovery_parked_jitter >= 0,
-            "--collision-weight, --offroad-weight, --jerk-weight finite and >= 0": all(
-                math.isfinite(w) and w >= 0
-                for w in (self.collision_weight, self.offroad_weight, self.jerk_weight)
+            f"{', '.join(map(flag_of, LOSS_WEIGHTS))} finite and >= 0": all(
+                math.isfinite(getattr(self, name)) and getattr(self, name) >= 0
+                for name in LOSS_WEIGHTS
             ),
         }
 
@@ -161,12 +165,14 @@ class LoopOptions:
             object.__setattr__(self, "data", (Path(self.data),))
         object.__setattr__(self, "data", tuple(Path(folder) for folder in self.data))
         object.__setattr__(self, "data_weights", tuple(map(float, self.data_weights)))
+        check_field_types(self)
         counts = ("steps", "batch_size", "stride", "bucket", "eval_every", "log_every")
         check_at_least(
             self,
-            {**dict.fromkeys((*counts, "num_samples"), 1), "threads": 0},
+            {**dict.fromkeys((*counts, "num_samples"), 1), "threads": 0, "val_windows": 0},
             highs={"threads": MAX_THREADS, "steps": MAX_STEPS},
         )
+        check_at_least(self, {"seed": 0}, highs={"seed": MAX_SEED})
         check_device(self.device)
         if self.model:
             model_config(self.model)  # a bad --model is refused before any data is read

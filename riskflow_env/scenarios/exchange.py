@@ -100,7 +100,8 @@ def read_scene(path: str | os.PathLike) -> Scenario:
 
     Raises:
         FileNotFoundError, IsADirectoryError: no such file, or a folder.
-        ValueError: naming the file, for another suffix or a malformed file.
+        ValueError: naming the file, for another suffix or a malformed file, or a
+            CommonRoad file without commonroad-io (the ``[interop]`` extra).
     """
     path = Path(path)
     if path.is_dir():
@@ -118,7 +119,10 @@ def read_scene(path: str | os.PathLike) -> Scenario:
     if path.suffix == ".xml":
         from riskflow_env.scenarios.commonroad_import import load_commonroad
 
-        return load_commonroad(path)
+        try:
+            return load_commonroad(path)
+        except ImportError as err:  # a user error here: say which file needs the extra
+            raise ValueError(f"{path} is a CommonRoad scenario: {err}") from None
     raise ValueError(f"{path}: expected a .npz scene file, a ScenarioNet .pkl or a CommonRoad .xml")
 
 

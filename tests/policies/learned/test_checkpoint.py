@@ -94,7 +94,9 @@ def test_a_file_the_safe_loader_refuses_is_named_in_one_short_line(tmp_path):
     torch.save({"weights": np.zeros(3)}, with_numpy)
     module = tmp_path / "module.pt"
     torch.save(torch.nn.Linear(2, 2), module)
-    for path in (foreign, text, with_numpy, module):
+    with pytest.raises(CheckpointError, match="notes.pt: not a file written by torch.save$"):
+        load_checkpoint(text)  # neither a zip nor a pickle: not handed to the loader
+    for path in (foreign, with_numpy, module):
         with pytest.raises(CheckpointError) as raised:
             load_checkpoint(path)
         message = str(raised.value)
@@ -114,6 +116,10 @@ def test_empty_text_and_folder_checkpoints_say_what_they_are(tmp_path):
         load_checkpoint(tmp_path / "empty.pt")
     with pytest.raises(CheckpointError, match="hello.pt: not a file written by torch.save$"):
         load_checkpoint(tmp_path / "hello.pt")
+    # other text made torch's legacy reader fail with "list index out of range"
+    (tmp_path / "passwd.pt").write_text("root:x:0:0:root:/root:/bin/bash\n")
+    with pytest.raises(CheckpointError, match="passwd.pt: not a file written by torch.save$"):
+        load_checkpoint(tmp_path / "passwd.pt")
     scene = save_scenario(shipped_bank("eval")[0], tmp_path / "scene.npz")  # a zip, not torch's
     with pytest.raises(CheckpointError, match="scene.npz: not a file written by torch.save$"):
         load_checkpoint(scene)

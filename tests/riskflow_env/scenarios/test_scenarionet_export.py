@@ -194,6 +194,23 @@ def test_riskflow_data_export_writes_every_file(tmp_path, capsys):
     assert "error: no such scene file" in capsys.readouterr().err
 
 
+def test_export_of_commonroad_without_the_extra_is_one_line(tmp_path, capsys, monkeypatch):
+    """A CommonRoad input without commonroad-io: one line naming the file, exit 2."""
+    from riskflow_env.scenarios import commonroad_import
+    from riskflow_env.scenarios.cli import main
+
+    def missing():
+        raise ImportError("CommonRoad files need commonroad-io: pip install 'riskflow-env[interop]'")
+
+    monkeypatch.setattr(commonroad_import, "commonroad_io", missing)
+    xml = tmp_path / "scene.xml"
+    xml.write_text('<?xml version="1.0"?><commonRoad></commonRoad>')
+    with pytest.raises(SystemExit) as exit_info:
+        main(["export", str(xml), "--format", "scenarionet", "--out", str(tmp_path / "out")])
+    assert exit_info.value.code == 2
+    assert f"error: {xml} is a CommonRoad scenario: CommonRoad files need" in capsys.readouterr().err
+
+
 def test_export_names_keep_dotted_stems_and_never_overwrite_an_input(tmp_path):
     from riskflow_env.scenarios.exchange import export_files, output_path
 
