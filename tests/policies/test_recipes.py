@@ -100,7 +100,7 @@ def test_a_recipe_file_by_path_gives_the_required_options(tmp_path):
         ({"option": {"data": ["a"]}}, r"mine\.json: unknown key\(s\) \['option'\]"),
         ({"description": "no options"}, r"mine\.json: 'options' must be an object"),
         ([1, 2], r"mine\.json must hold a JSON object"),
-        ({"options": {"data": ["a"], "steps": 0}}, r"--steps must be an int in \[1, "),  # the options' own checks
+        ({"options": {"data": ["a"], "steps": 0}}, r"--steps must be an int in \[1, "),
     ],
 )
 def test_a_bad_recipe_is_a_usage_error_naming_it(recipe, message, tmp_path, capsys):

@@ -200,7 +200,7 @@ def test_export_of_commonroad_without_the_extra_is_one_line(tmp_path, capsys, mo
     from riskflow_env.scenarios.cli import main
 
     def missing():
-        raise ImportError("CommonRoad files need commonroad-io: pip install 'riskflow-env[interop]'")
+        raise ImportError("CommonRoad files need commonroad-io")
 
     monkeypatch.setattr(commonroad_import, "commonroad_io", missing)
     xml = tmp_path / "scene.xml"
@@ -208,7 +208,8 @@ def test_export_of_commonroad_without_the_extra_is_one_line(tmp_path, capsys, mo
     with pytest.raises(SystemExit) as exit_info:
         main(["export", str(xml), "--format", "scenarionet", "--out", str(tmp_path / "out")])
     assert exit_info.value.code == 2
-    assert f"error: {xml} is a CommonRoad scenario: CommonRoad files need" in capsys.readouterr().err
+    error = capsys.readouterr().err
+    assert f"error: {xml} is a CommonRoad scenario: CommonRoad files need" in error
 
 
 def test_export_names_keep_dotted_stems_and_never_overwrite_an_input(tmp_path):
