@@ -196,7 +196,7 @@ def _compare(argv: list[str]) -> None:
         try:
             table = compare(a, b, options.scenes, options.seeds, **stress_kwargs(options))
         except PlannerSpecError as err:
-            usage.error(err.named("a" if err.spec == a else "b"))
+            usage.error(err.named("PLANNER_A" if err.spec == a else "PLANNER_B"))
         except SceneSourceError as err:
             usage.error(str(err))
     print(markdown(table))

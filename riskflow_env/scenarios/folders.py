@@ -76,6 +76,11 @@ def scene_files(folder: str | os.PathLike) -> list[Path] | ScenarioNetDataset:
             a scenario file that the dataset's summary lists is missing (named).
         ValueError: naming the file, for a malformed ScenarioNet index file.
     """
+    if Path(folder).is_file():
+        raise NotADirectoryError(
+            f"{folder} is a file; expected a folder of .npz scenes (riskflow-data generate) or "
+            f"a ScenarioNet dataset folder; {ONE_FILE}"
+        )
     if not is_scenarionet_folder(folder):
         return require_scenarios(folder)
     dataset = ScenarioNetDataset(folder)

@@ -259,7 +259,7 @@ def test_compare_checks_both_planners_before_running_either(scenes_dir, tmp_path
     with pytest.raises(SystemExit) as exit_info:
         main(["compare", "idm", "nosuch", "--data", str(scenes_dir), "--out", str(tmp_path)])
     assert exit_info.value.code == 2
-    assert "b 'nosuch': expected a built-in name" in capsys.readouterr().err
+    assert "PLANNER_B 'nosuch': expected a built-in name" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # no episode of a ran
     with pytest.raises(SystemExit) as exit_info:
         main(["compare", "idm"])
