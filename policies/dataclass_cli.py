@@ -43,7 +43,8 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from riskflow_env.cli_errors import CommandLineParser, add_debug_flag, run_script
-from riskflow_env.config import is_integer, is_number, plain_number
+from riskflow_env.config import check_field_types as field_types
+from riskflow_env.config import is_integer, is_number
 
 T = TypeVar("T")
 
@@ -199,31 +200,9 @@ def check_between(
 
 
 def check_field_types(options: Any, owner: str | None = None) -> None:
-    """ValueError naming the flag (or ``owner.field``) of the first ``int``, ``float`` or
-    ``bool`` field of the dataclass ``options`` (``X | None`` ones may be None) whose value
-    is not of its type: an int for an int (numpy integers too), a number for a float (any
-    int or numpy scalar; bools are neither), a bool for a bool. Numbers are stored as
-    Python ones (:func:`~riskflow_env.config.plain_number`), floats as float."""
-    hints = typing.get_type_hints(type(options))
-    for field in dataclasses.fields(options):
-        hint, value = hints[field.name], getattr(options, field.name)
-        args = typing.get_args(hint)
-        if type(None) in args:
-            if value is None:
-                continue
-            hint = next((arg for arg in args if arg is not type(None)), hint)
-        if hint is bool:
-            fits = isinstance(value, bool)
-        elif hint is int:
-            fits = is_integer(value)
-        elif hint is float:
-            fits = is_number(value)
-        else:
-            continue
-        if not fits:
-            raise ValueError(f"{_named(field.name, owner)} must be {_KINDS[hint]}, got {value!r}")
-        if hint is not bool:
-            object.__setattr__(options, field.name, hint(plain_number(value)))
+    """:func:`riskflow_env.config.check_field_types`, the errors naming the flag (or
+    ``owner.field``, as :func:`check_at_least`)."""
+    field_types(options, lambda name: _named(name, owner))
 
 
 def check_choices(

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
-from dataclasses import dataclass, field
+import typing
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -77,7 +78,40 @@ def _set_integer(config: object, name: str, minimum: int, maximum: int = 1_000_0
     object.__setattr__(config, name, value)
 
 
+_KINDS = {bool: "true or false", int: "an int", float: "a number"}
+
+
+def _is_bool(value: object) -> bool:
+    return isinstance(value, (bool, np.bool_))
+
+
+_FITS = {bool: _is_bool, int: is_integer, float: is_number}
+
+
+def check_field_types(config: object, name_of: Callable[[str], str] | None = None) -> None:
+    """ValueError naming the first ``int``, ``float`` or ``bool`` field of the dataclass
+    ``config`` (``X | None`` ones may be None) whose value is not of its type: an int for an
+    int (numpy integers too), a number for a float (any int or numpy number; bools are
+    neither), a bool for a bool. Values are stored as Python ones (:func:`plain_number`),
+    a float field's as float. ``name_of(field)`` names a field (default ``Class.field``)."""
+    hints = typing.get_type_hints(type(config))
+    for item in fields(config):
+        hint, value = hints[item.name], getattr(config, item.name)
+        args = typing.get_args(hint)
+        if type(None) in args:
+            if value is None:
+                continue
+            hint = next((arg for arg in args if arg is not type(None)), hint)
+        if hint not in _FITS:
+            continue
+        if not _FITS[hint](value):
+            name = name_of(item.name) if name_of else f"{type(config).__name__}.{item.name}"
+            raise ValueError(f"{name} must be {_KINDS[hint]}, got {value!r}")
+        object.__setattr__(config, item.name, hint(value if hint is bool else plain_number(value)))
+
+
 MAX_EPISODE_STEPS = 10_000_000  # [-] longest episode (EnvConfig.episode_steps)
+
 
 @dataclass(frozen=True)
 class DynamicsConfig:

@@ -28,7 +28,14 @@ from typing import Any
 
 import numpy as np
 
-from riskflow_env.config import DynamicsConfig, _require, _set_finite, _set_integer, is_integer
+from riskflow_env.config import (
+    DynamicsConfig,
+    _require,
+    _set_finite,
+    _set_integer,
+    check_field_types,
+    is_integer,
+)
 from riskflow_env.events import contact_pairs
 from riskflow_env.geometry import FRONT, LEFT, RIGHT, box_corners, footprint_points
 from riskflow_env.state import HISTORY_STEPS
@@ -78,6 +85,7 @@ class RenderConfig:
     show_text: bool = True
 
     def __post_init__(self) -> None:
+        check_field_types(self)
         for name in ("width_px", "height_px"):  # 8K at most: a frame is a few hundred MB
             _set_integer(self, name, 16, MAX_FRAME_PX)
         _set_finite(self, ("view_width", "trail_seconds"))

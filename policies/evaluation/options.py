@@ -28,7 +28,7 @@ from policies.cli_inputs import (
     check_seeds,
     open_data,
 )
-from policies.dataclass_cli import check_at_least, check_choices, from_fields
+from policies.dataclass_cli import check_at_least, check_choices, check_field_types, from_fields
 from policies.learned.guidance_losses import TARGETS
 from policies.planners import PLANNERS
 from policies.registry import method_options, method_spec
@@ -100,6 +100,7 @@ class EvalOptions:
         """ValueError naming the argument for a bad value (the values alone: the scene
         source and the output folder are read when the run is prepared, :func:`plan_jobs`;
         the method options ``--set``, which import the methods, there too)."""
+        check_field_types(self)
         if not self.methods:
             raise ValueError("--methods: give at least one method")
         for name in self.methods:

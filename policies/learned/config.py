@@ -17,7 +17,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from riskflow_env.config import is_integer
+from riskflow_env.config import check_field_types, is_integer
 
 # Feature layout of the per-agent history tokens (encoder.py), in the agent's own frame.
 HISTORY_FEATURES = ("x", "y", "cos_dpsi", "sin_dpsi", "speed", "valid", "length", "width")
@@ -83,6 +83,7 @@ class ModelConfig:
     map_scale: tuple[float, ...] = (1.0, 5.0)
 
     def __post_init__(self) -> None:
+        check_field_types(self)
         ints = [f.name for f in dataclasses.fields(self) if f.type in ("int", int)]
         for name in ints:
             value = getattr(self, name)

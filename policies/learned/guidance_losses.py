@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from policies.dataclass_cli import check_field_types
 from policies.learned.adversarial_term import (
     adversarial_loss,
     adversarial_rows,
@@ -148,6 +149,7 @@ class ObjectiveConfig:
         ]
 
     def __post_init__(self) -> None:
+        check_field_types(self, type(self).__name__)
         for ok, message in self.checks():
             if not ok:  # the value of the field the rule names, or every field
                 name = message.split()[0]

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from policies.dataclass_cli import check_at_least
+from policies.dataclass_cli import check_at_least, check_field_types
 from riskflow_env.dynamics import SPEED, YAW, wrap_angle
 from riskflow_env.geometry import from_frame
 
@@ -75,6 +75,7 @@ class RecoveryConfig:
     parked_jitter: float = 0.0
 
     def __post_init__(self) -> None:
+        check_field_types(self, "RecoveryConfig")
         check_at_least(self, {"copies": 0, "parked": 0}, owner="RecoveryConfig")
         if not 0.0 <= self.share <= 1.0:
             raise ValueError(f"RecoveryConfig.share must be in [0, 1], got {self.share!r}")

@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from policies.dataclass_cli import check_at_least
+from policies.dataclass_cli import check_at_least, check_field_types
 from policies.learned.window_types import Window, WindowBatch, collate_windows
 from riskflow_env import dynamics
 from riskflow_env.config import DynamicsConfig, is_number, plain_number
@@ -80,6 +80,7 @@ class WindowConfig:
     dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
 
     def __post_init__(self) -> None:
+        check_field_types(self, "WindowConfig")
         counts = ("history_steps", "future_steps", "crop_size", "max_agents")
         check_at_least(self, dict.fromkeys(counts, 1), owner="WindowConfig")
         for name in ("crop_resolution", "sdf_clip", "max_distance", "interaction_distance"):

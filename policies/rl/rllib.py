@@ -22,7 +22,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from policies.dataclass_cli import check_at_least
+from policies.dataclass_cli import check_at_least, check_field_types
 from policies.rl.runs import check_resume
 from policies.rl.signals import StopSignals, exit_stopped
 from riskflow_env.atomic_files import write_text
@@ -61,6 +61,7 @@ class RLlibOptions:
     """continue the run in --out from its checkpoint and progress.json, up to --iterations"""
 
     def __post_init__(self) -> None:
+        check_field_types(self)
         counts = ("iterations", "episode_steps", "train_batch", "minibatch", "epochs")
         check_at_least(
             self, dict.fromkeys(counts, 1) | {"num_env_runners": 0, "checkpoint_every": 0}

@@ -44,7 +44,7 @@ import numpy as np
 
 from riskflow_env.atomic_files import write_text
 from riskflow_env.cli_errors import CommandLineParser, add_debug_flag, user_errors
-from riskflow_env.config import is_integer
+from riskflow_env.config import check_field_types, is_integer
 from riskflow_env.folder_lock import (
     FolderLock,
     FolderLocked,
@@ -88,6 +88,7 @@ class GenerateOptions:
     """probability per recorded vehicle that it stops once in its lane (DriverConfig)"""
 
     def __post_init__(self) -> None:
+        check_field_types(self, lambda name: name)
         longest = MAX_STEPS - HISTORY_STEPS  # a scene's tracks hold at most MAX_STEPS
         for name, low, high in (("scenes", 1, None), ("seed", 0, None), ("workers", 1, MAX_WORKERS),
                                 ("future_steps", 1, longest)):  # fmt: skip

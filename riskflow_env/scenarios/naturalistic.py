@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from riskflow_env.config import is_integer
+from riskflow_env.config import check_field_types, is_integer
 from riskflow_env.scenarios.recording import DriverConfig, Recording, record_traffic
 from riskflow_env.scenarios.scenario import Scenario
 from riskflow_env.state import HISTORY_STEPS
@@ -62,6 +62,7 @@ class SceneConfig:
     driver: DriverConfig = field(default_factory=DriverConfig)
 
     def __post_init__(self) -> None:
+        check_field_types(self)
         for name in ("history_steps", "future_steps", "candidate_windows", "max_attempts"):
             value = getattr(self, name)
             if not is_integer(value) or value < 1:

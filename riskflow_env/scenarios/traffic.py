@@ -12,7 +12,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from riskflow_env.config import _finite, _integer, _require, _set_finite, _set_integer
+from riskflow_env.config import (
+    _finite,
+    _integer,
+    _require,
+    _set_finite,
+    _set_integer,
+    check_field_types,
+)
 from riskflow_env.geometry import footprint_points, pairwise_overlap
 from riskflow_env.maps import FAMILIES, DrivableMap, from_highway_env
 from riskflow_env.scenarios.scenario import Scenario
@@ -53,6 +60,7 @@ class TrafficConfig:
     dt: float = 0.1
 
     def __post_init__(self) -> None:
+        check_field_types(self)
         unknown = sorted(set(self.families) - set(FAMILIES))
         _require(
             len(self.families) > 0 and not unknown,
