@@ -23,7 +23,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from policies.dataclass_cli import check_field_types
 from policies.learned.adversarial_term import (
     adversarial_loss,
     adversarial_rows,
@@ -31,7 +30,7 @@ from policies.learned.adversarial_term import (
 )
 from policies.learned.ranking import MIN_ATTACK_SPEED
 from riskflow_env._array import attach_gradient, requires_grad
-from riskflow_env.config import is_integer
+from riskflow_env.config import check_field_types, is_integer
 from riskflow_env.geometry import footprint_points
 from riskflow_env.maps import DrivableMap, MapStack
 
@@ -149,7 +148,7 @@ class ObjectiveConfig:
         ]
 
     def __post_init__(self) -> None:
-        check_field_types(self, type(self).__name__)
+        check_field_types(self, lambda name: f"{type(self).__name__}: {name}")
         for ok, message in self.checks():
             if not ok:  # the value of the field the rule names, or every field
                 name = message.split()[0]

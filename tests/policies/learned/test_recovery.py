@@ -116,7 +116,7 @@ def test_dataset_adds_copies_with_their_own_cache(scenes, tmp_path):
     ("field", "value", "match"),
     [
         ("copies", -1, "copies must be an int >= 0"),
-        ("parked", 1.5, "parked must be an int >= 0"),
+        ("parked", 1.5, "parked must be an int, got 1.5"),
         ("share", 1.5, r"share must be in \[0, 1\]"),
         ("offset", float("nan"), "offset must be a number >= 0"),
         ("duration", (2.0, 1.0), "duration must be"),
