@@ -1,11 +1,9 @@
 """Train an ego with Stable-Baselines3 PPO against the RiskFlow adversary (``rl`` extra).
 
     python examples/train_ego_ppo.py --seed 0 --vec-env dummy --out runs/ego_ppo/seed0
-    python examples/train_ego_ppo.py --help
 
-Results, budget and the commands of the documented runs: docs/tutorials/rl-ego.md and
-docs/explanation/rl-results.md. The adversary is the evaluation's (30 guidance steps, a
-re-plan every 0.5 s); its planning is most of a step's cost.
+Results and the documented runs: docs/tutorials/rl-ego.md, docs/explanation/rl-results.md.
+The adversary is the evaluation's (30 guidance steps, a re-plan every 0.5 s): most of a step.
 
 The ego drives ``RiskFlowEgo-v0`` (:class:`~policies.rl.envs.EgoTrainingEnv`); the RiskFlow
 adversary drives every other vehicle, with a curriculum that ramps ``k`` and the guidance
@@ -44,6 +42,7 @@ import dataclasses
 import json
 import signal
 import sys
+from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -223,6 +222,7 @@ class Options:
         check_device(self.device)
         up, al = (0.0, float("inf")), (-float("inf"), float("inf"))
         check_between(self, dict(target_speed=up, learning_rate=up, gamma=(0, 1), log_std_init=al))
+        check_between(self, {f"{n}_reward": al for n in ("speed", "collision", "offroad", "risk")})
         if not (self.lambda_adv_start >= 0 and self.lambda_adv_end >= 0):
             raise ValueError("--lambda-adv-start and --lambda-adv-end must be >= 0")
         if not 0 <= self.ramp_fraction <= 1:
@@ -328,38 +328,38 @@ def train(options: Options) -> Path:
     (out / "options.json").write_text(json.dumps(dataclasses.asdict(options), default=str))
     set_random_seed(options.seed)
     config = env_config(options)
-    env = build_vec_env(options, config)
     formats = ["csv", "stdout"] + (["tensorboard"] if options.tensorboard else [])
-    if checkpoint is None:
-        model = new_model(options, env)
-        model.set_logger(configure(str(out), formats))
-        save_model(model, out / "initial_model")
-    else:
-        model = resumed_model(options, env, checkpoint)
-        kept = keep_progress_rows(out / "progress.csv", checkpoint.decisions)
-        model.set_logger(configure(str(out), formats))
-        restore_progress_rows(model.logger, kept)
-        print(f"resuming {out} at {checkpoint.decisions} decisions ({checkpoint.model.name})")
+    # closed on every way out: workers ignore SIGTERM, so an open one would hang the exit
+    with closing(build_vec_env(options, config)) as env:
+        if checkpoint is None:
+            model = new_model(options, env)
+            model.set_logger(configure(str(out), formats))
+            save_model(model, out / "initial_model")
+        else:
+            model = resumed_model(options, env, checkpoint)
+            kept = keep_progress_rows(out / "progress.csv", checkpoint.decisions)
+            model.set_logger(configure(str(out), formats))
+            restore_progress_rows(model.logger, kept)
+            print(f"resuming {out} at {checkpoint.decisions} decisions ({checkpoint.model.name})")
 
-    curriculum = LinearCurriculum(
-        start=config.traffic.stage,
-        end=AdversaryStage(options.k_end, options.lambda_adv_end, options.target_end),
-        ramp_fraction=options.ramp_fraction,
-    )
-    with StopSignals() as stop:
-        checkpoints = RunCheckpoints(out / "checkpoints", options.checkpoint_every, stop)
-        ramp = [CurriculumCallback(curriculum, options.total_timesteps)]
-        callbacks = [
-            *(ramp if options.traffic == "riskflow" else []),  # IDM traffic has no stages
-            OutcomeCallback(),
-            StepProgressBar(options.total_timesteps, "PPO ego"),
-            checkpoints,
-        ]
-        remaining = options.total_timesteps - model.num_timesteps
-        model.learn(remaining, callback=CallbackList(callbacks), reset_num_timesteps=False)
-        if stop.received is None:
-            save_model(model, out / "final_model")
-        env.close()
+        curriculum = LinearCurriculum(
+            start=config.traffic.stage,
+            end=AdversaryStage(options.k_end, options.lambda_adv_end, options.target_end),
+            ramp_fraction=options.ramp_fraction,
+        )
+        with StopSignals() as stop:
+            checkpoints = RunCheckpoints(out / "checkpoints", options.checkpoint_every, stop)
+            ramp = [CurriculumCallback(curriculum, options.total_timesteps)]
+            callbacks = [
+                *(ramp if options.traffic == "riskflow" else []),  # IDM traffic has no stages
+                OutcomeCallback(),
+                StepProgressBar(options.total_timesteps, "PPO ego"),
+                checkpoints,
+            ]
+            remaining = options.total_timesteps - model.num_timesteps
+            model.learn(remaining, callback=CallbackList(callbacks), reset_num_timesteps=False)
+            if stop.received is None:
+                save_model(model, out / "final_model")
     plot_training({f"seed {options.seed}": out}, out / "training.png")
     if stop.received is not None:
         raise TrainingInterrupted(checkpoints_of(checkpoints), stop.received)

@@ -195,7 +195,15 @@ def check_between(
     for name, (low, high) in bounds.items():
         value = getattr(options, name)
         if not (is_number(value) and math.isfinite(value) and low < value <= high):
-            span = "" if math.isinf(low) and math.isinf(high) else f" in ({low:g}, {high:g}]"
+            span = (
+                f" in ({low:g}, {high:g}]"
+                if math.isfinite(low) and math.isfinite(high)
+                else f" > {low:g}"
+                if math.isfinite(low)
+                else f" <= {high:g}"
+                if math.isfinite(high)
+                else ""
+            )
             raise ValueError(f"{_named(name, owner)} must be a finite number{span}, got {value!r}")
 
 
