@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import typing
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, fields
+from typing import Any
 
 import numpy as np
+
+from riskflow_env.untrusted import brief
 
 
 def _require(condition: bool, message: str) -> None:
@@ -94,7 +98,7 @@ def check_field_types(config: object, name_of: Callable[[str], str] | None = Non
     int (numpy integers too), a number for a float (any int or numpy number; bools are
     neither), a bool for a bool. Values are stored as Python ones (:func:`plain_number`),
     a float field's as float. ``name_of(field)`` names a field (default ``Class.field``)."""
-    hints = typing.get_type_hints(type(config))
+    hints = _type_hints(type(config))
     for item in fields(config):
         hint, value = hints[item.name], getattr(config, item.name)
         args = typing.get_args(hint)
@@ -104,10 +108,22 @@ def check_field_types(config: object, name_of: Callable[[str], str] | None = Non
             hint = next((arg for arg in args if arg is not type(None)), hint)
         if hint not in _FITS:
             continue
-        if not _FITS[hint](value):
+        kind = _KINDS[hint]
+        try:
+            fits = _FITS[hint](value)
+            typed = hint(value if hint is bool else plain_number(value)) if fits else None
+        except OverflowError:  # a float field's int too large for a float (10**400)
+            fits, kind = False, "a finite number"
+        if not fits:
             name = name_of(item.name) if name_of else f"{type(config).__name__}.{item.name}"
-            raise ValueError(f"{name} must be {_KINDS[hint]}, got {value!r}")
-        object.__setattr__(config, item.name, hint(value if hint is bool else plain_number(value)))
+            raise ValueError(f"{name} must be {kind}, got {brief(value)}")
+        object.__setattr__(config, item.name, typed)
+
+
+@functools.cache
+def _type_hints(cls: type) -> dict[str, Any]:
+    """The resolved field annotations of a dataclass (read once per class)."""
+    return typing.get_type_hints(cls)
 
 
 MAX_EPISODE_STEPS = 10_000_000  # [-] longest episode (EnvConfig.episode_steps)

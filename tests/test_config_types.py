@@ -43,6 +43,10 @@ pytestmark = pytest.mark.reliability  # docs/reference/reliability.md
         (lambda: ModelConfig(time_scale=True), "ModelConfig.time_scale must be a number"),
         (lambda: TrainOptions(data="d", lr=True), "--lr must be a number"),
         (lambda: TrainOptions(data="d", resume=1), "--resume must be true or false"),
+        (lambda: TrainOptions(data="d", lr=10**400), "--lr must be a finite number, got an int"),
+        (lambda: RenderConfig(view_width=10**400), "RenderConfig.view_width must be a finite"),
+        (lambda: TrainOptions(data="d", diffusion_schedule="x"), "--diffusion-schedule in"),
+        (lambda: TrainOptions(data="d", diffusion_prediction="x"), "--diffusion-prediction in"),
     ],
 )
 def test_a_value_of_the_wrong_type_names_its_field(make, message):

@@ -145,6 +145,8 @@ class Job:
     scene_index: int
     seed: int
     run: RunConfig
+    checkpoint_sha256: str | None = None
+    """the weights of ``options["checkpoint"]`` when the run was prepared (not in the key)"""
 
     @property
     def key(self) -> str:

@@ -239,7 +239,12 @@ def write_report(out: str | Path, plots: bool = True) -> Path:
         "# riskflow-eval report",
         "",
         f"{len(rows)} rollouts in `{store.results.name}`. Run settings: "
-        + ", ".join(f"{k}={v}" for k, v in sorted(config.items())) + ".",
+        + ", ".join(f"{k}={v}" for k, v in sorted(config.items()) if k != "checkpoints")
+        + "".join(
+            f"; checkpoint {path} (weights_sha256 {digest[:12]})"
+            for path, digest in sorted(config.get("checkpoints", {}).items())
+        )
+        + ".",
         "",
         "SCR and ego SCR: shares of rollouts with a collision (any pair / the ego's). ORR: "
         "share of agent-steps off the road (centre; fp: footprint). ADE/FDE [m] and KDD "

@@ -87,9 +87,10 @@ class ResultsStore:
 
         ``checkpoints`` maps each ``checkpoint`` option of the run's methods (the path as
         given, as in the rows' keys) to its ``weights_sha256``. They are kept under
-        ``config.json``'s ``checkpoints``: a path new to the folder is added, and a path
-        whose weights changed since its rows were written (a checkpoint retrained in
-        place) is refused with ConfigMismatch, since its rows would otherwise be reused."""
+        ``config.json``'s ``checkpoints``: a path new to the folder (or with no row yet) is
+        recorded, and a path whose weights changed since its rows were written (a
+        checkpoint retrained in place) is refused with ConfigMismatch, since its rows
+        would otherwise be reused."""
         self.lock()
         checkpoints = dict(checkpoints or {})
         if not self.config_file.exists():
@@ -109,6 +110,8 @@ class ResultsStore:
         changed = sorted(
             path for path in checkpoints if known.get(path, checkpoints[path]) != checkpoints[path]
         )
+        used = {str(row["options"].get("checkpoint")) for row in self.rows() if row.get("options")}
+        changed = [path for path in changed if path in used]  # no row of it yet: record anew
         if changed:
             path = changed[0]
             raise ConfigMismatch(
@@ -116,7 +119,7 @@ class ResultsStore:
                 f"(weights_sha256 {known[path][:12]} there, {checkpoints[path][:12]} now: "
                 "the file changed since); use another --out to evaluate the new weights"
             )
-        if set(checkpoints) - set(known):
+        if any(known.get(path) != digest for path, digest in checkpoints.items()):
             self._write_config({**stored, CHECKPOINTS: {**known, **checkpoints}})
 
     def _write_config(self, config: dict[str, Any]) -> None:

@@ -24,6 +24,7 @@ import torch
 from policies import harness
 from policies.evaluation.options import Job, method_label, open_data
 from policies.harness import ClosedLoop, EpisodeRecord
+from policies.learned.checkpoint import checkpoint_digest
 from policies.planners import make_planner
 from policies.registry import build_policy
 from policies.stress.failures import analyse
@@ -63,7 +64,15 @@ def json_number(value: Any) -> Any:
 
 def job_policy(job: Job) -> ScenePolicy:
     """A fresh scene policy of the job's method, options, K and interval, its noise seeded
-    with the job's ``policy_seed``."""
+    with the job's ``policy_seed``; ValueError when its ``checkpoint`` file no longer holds
+    the weights the run recorded (``Job.checkpoint_sha256``: retrained during the run)."""
+    if job.checkpoint_sha256 is not None:
+        path = job.options["checkpoint"]
+        if checkpoint_digest(path) != job.checkpoint_sha256:
+            raise ValueError(
+                f"checkpoint {path} changed during the run (weights_sha256 "
+                f"{job.checkpoint_sha256[:12]} when it started); evaluate it into another --out"
+            )
     return build_policy(
         job.method, job.options, k=job.k, planning_interval=job.interval,
         target=job.run.target, seed=job.policy_seed, device=job.run.device,

@@ -18,6 +18,7 @@ from __future__ import annotations
 import multiprocessing
 import time
 from collections.abc import Iterator
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -117,9 +118,16 @@ def prepare(options: EvalOptions) -> tuple[ResultsStore, list[Job]]:
     store = ResultsStore(options.out)
     jobs = plan_jobs(options, scene_names(options.data, options.scenes))
     check_methods(jobs)
+    digests = checkpoint_digests(jobs)
+    jobs = [
+        replace(job, checkpoint_sha256=digests[str(job.options["checkpoint"])])
+        if job.options.get("checkpoint")
+        else job
+        for job in jobs
+    ]
     try:
         # takes the folder's writer lock
-        store.check_config(RunConfig.from_options(options).as_json(), checkpoint_digests(jobs))
+        store.check_config(RunConfig.from_options(options).as_json(), digests)
     except OSError as err:  # e.g. the folder cannot be created
         store.unlock()
         raise ValueError(f"--out: {err}") from err

@@ -241,7 +241,8 @@ def scenarionet_info(directory: Path) -> dict[str, int]:
     print(f" ({missing} listed in its summary but missing)" if missing else "")
     print(f"  {'dataset':<14}{'scenes':>8}{'mean objects':>14}")
     for source in sorted(counts):
-        print(f"  {source:<14}{counts[source]:>8}{objects[source] / counts[source]:>14.1f}")
+        name = source if len(source) <= 14 else source[:12] + ".."
+        print(f"  {name:<14}{counts[source]:>8}{objects[source] / counts[source]:>14.1f}")
     return dict(counts)
 
 

@@ -98,7 +98,8 @@ def scenarionet_counts(folder: str | os.PathLike) -> tuple[Counter, Counter, int
     objects (every kind of traffic participant) per source dataset, from the summary's
     metadata, or from each scenario file's own where the folder has no summary (every file
     is read then; no map is converted); the files listed but missing; the bytes of those
-    present. ValueError naming a file that is not a readable data pickle."""
+    present. ValueError naming a file that is not a readable data pickle; FileNotFoundError
+    when no listed file is present."""
     dataset = ScenarioNetDataset(folder, map_cache=False)
     scenes: Counter[str] = Counter()
     objects: Counter[str] = Counter()
@@ -111,11 +112,15 @@ def scenarionet_counts(folder: str | os.PathLike) -> tuple[Counter, Counter, int
         size += path.stat().st_size
         metadata = dataset.summaries[index] or _file_metadata(path)
         source = metadata.get("dataset")
-        source = source[:14] if isinstance(source, str) and source else "unknown"
+        source = source if isinstance(source, str) and source else "unknown"
         numbers = metadata.get("number_summary")
         count = numbers.get("num_objects") if isinstance(numbers, Mapping) else None
         scenes[source] += 1
         objects[source] += int(count) if is_integer(count) else 0
+    if not scenes:
+        raise FileNotFoundError(
+            f"{folder}: none of the {missing} scenario files its summary lists is present"
+        )
     return scenes, objects, missing, size
 
 

@@ -78,3 +78,61 @@ def test_a_new_checkpoint_joins_the_folder(tmp_path):
     recorded = json.loads((out / "config.json").read_text())["checkpoints"]
     assert sorted(recorded) == sorted([str(first), str(second)])
     assert len(set(recorded.values())) == 1  # copies of one file: the same weights
+
+
+def test_a_folder_from_before_digests_resumes_and_records_them(tmp_path):
+    """A config.json without ``checkpoints`` (written before they were recorded) resumes;
+    the digest is added then."""
+    generator = tmp_path / "g.pt"
+    with resources.as_file(SHIPPED) as shipped:
+        shutil.copyfile(shipped, generator)
+    out = tmp_path / "eval"
+    run_evaluation(_options(out, generator), progress=False)
+    config = json.loads((out / "config.json").read_text())
+    del config["checkpoints"]
+    (out / "config.json").write_text(json.dumps(config))
+    assert run_evaluation(_options(out, generator), progress=False)["ran"] == 0
+    assert str(generator) in json.loads((out / "config.json").read_text())["checkpoints"]
+
+
+def test_a_checkpoint_without_rows_yet_is_recorded_anew(tmp_path):
+    """A run stopped before its first row, then the checkpoint retrained: not refused."""
+    generator = tmp_path / "g.pt"
+    with resources.as_file(SHIPPED) as shipped:
+        shutil.copyfile(shipped, generator)
+    out = tmp_path / "eval"
+    run_evaluation(_options(out, generator), progress=False)
+    (out / "results.jsonl").unlink()
+    new_digest = _retrain_in_place(generator)
+    assert run_evaluation(_options(out, generator), progress=False)["ran"] == 1
+    recorded = json.loads((out / "config.json").read_text())["checkpoints"]
+    assert recorded == {str(generator): new_digest}
+
+
+def test_a_checkpoint_changed_during_the_run_stops_it(tmp_path):
+    """The workers check the weights the run recorded before each rollout."""
+    from policies.evaluation.options import plan_jobs, scene_names
+    from policies.evaluation.rollout import job_policy
+    from policies.evaluation.runner import checkpoint_digests
+
+    generator = tmp_path / "g.pt"
+    with resources.as_file(SHIPPED) as shipped:
+        shutil.copyfile(shipped, generator)
+    options = _options(tmp_path / "eval", generator)
+    jobs = plan_jobs(options, scene_names(options.data, 1))
+    digest = checkpoint_digests(jobs)[str(generator)]
+    job = replace(jobs[0], checkpoint_sha256=digest)
+    job_policy(job)  # unchanged: builds
+    _retrain_in_place(generator)
+    with pytest.raises(ValueError, match=r"checkpoint .*g\.pt changed during the run"):
+        job_policy(job)
+
+
+def test_the_digest_of_a_checkpoint_without_a_stored_one_is_computed(tmp_path):
+    checkpoint = load_checkpoint(SHIPPED)
+    old = {k: v for k, v in checkpoint.items() if k not in ("kind", "weights_sha256")}
+    torch.save(old, tmp_path / "old.pt")
+    from policies.learned.checkpoint import checkpoint_digest
+
+    with pytest.warns(UserWarning, match="no weights_sha256"):
+        assert checkpoint_digest(tmp_path / "old.pt") == checkpoint["weights_sha256"]

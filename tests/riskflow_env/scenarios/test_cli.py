@@ -171,6 +171,13 @@ def test_info_of_scenarionet_folders(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert f"{bare}: 2 ScenarioNet scenes" in printed
 
+    for name in names[1:]:  # none left: an error, not "0 scenes"
+        (indexed / f"{indexed.name}_{0 if name in names[:2] else 1}" / name).unlink()
+    with pytest.raises(SystemExit) as exit_info:
+        main(["info", str(indexed)])
+    assert exit_info.value.code == 2
+    assert "none of the 4 scenario files its summary lists is present" in capsys.readouterr().err
+
 
 def test_info_of_commonroad_scenarios(capsys):
     """Counted without commonroad-io (the files are not parsed)."""
