@@ -33,9 +33,11 @@ from typing import Any
 
 from tqdm import tqdm
 
-from policies.dataclass_cli import run_main
+from policies.cli_inputs import check_seeds
+from policies.dataclass_cli import check_at_least, check_choices, run_main
 from policies.harness import ClosedLoop
-from policies.planners import OraclePlanner, make_planner
+from policies.learned.guidance_losses import TARGETS
+from policies.planners import PLANNERS, OraclePlanner, make_planner
 from policies.registry import build_policy
 from policies.statistics import paired_difference
 from policies.stress import EscapeSearch, analyse, stress_summary
@@ -85,11 +87,54 @@ class Options:
     fresh: bool = False
     """start the results file over"""
 
+    def __post_init__(self) -> None:
+        check_at_least(self, {"scenes": 1, "k": 0, "steps": 1, "longer_search": 0})
+        object.__setattr__(self, "seeds", check_seeds(self.seeds))
+        check_choices(self, {"target": TARGETS})
+        unknown = [p for p in self.planners if p != "oracle" and p not in PLANNERS]
+        if unknown or not self.planners:
+            names = ("oracle", *PLANNERS)
+            raise ValueError(f"--planners: expected names of {names}, got {unknown}")
+        if self.out.is_dir():
+            raise ValueError(f"--out {self.out} is a folder; give a .jsonl file")
+
+    def settings(self) -> dict[str, Any]:
+        """What an episode's outcome depends on besides (planner, scene, seed): every row
+        records it, and a results file of other settings is not resumed."""
+        data = "shipped:eval" if self.data is None else str(self.data)
+        return {"data": data, "k": self.k, "target": self.target, "steps": self.steps,
+                "longer_search": self.longer_search}  # fmt: skip
+
 
 def scenes(options: Options) -> list:
-    """The scenes to run."""
+    """The scenes to run; ValueError naming ``--scenes`` when the source holds fewer."""
     source = shipped_bank("eval") if options.data is None else open_scenes(options.data)
-    return [source[index] for index in range(min(options.scenes, len(source)))]
+    if options.scenes > len(source):
+        where = "the shipped evaluation bank" if options.data is None else f"--data {options.data}"
+        raise ValueError(f"--scenes {options.scenes}: {where} holds only {len(source)} scenes")
+    return [source[index] for index in range(options.scenes)]
+
+
+def resumed(options: Options) -> dict[tuple, dict[str, Any]]:
+    """The episodes already in ``--out``; ValueError when they were run with other settings."""
+    done = {}
+    settings = options.settings()
+    lines = options.out.read_text().splitlines()
+    for number, line in enumerate(lines, 1):
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            if number == len(lines):
+                continue  # a line cut by an interrupted write: run that episode again
+            raise ValueError(f"--out {options.out}: line {number} is not JSON") from None
+        if row.get("settings") != settings:
+            there = row.get("settings") or "not recorded"
+            raise ValueError(
+                f"--out {options.out} holds episodes of other settings ({there} there, "
+                f"{settings} now); give another --out, or --fresh to start it over"
+            )
+        done[(row["planner"], row["scene"], row["seed"])] = row
+    return done
 
 
 def run_episode(planner_name: str, scenario, seed: int, options: Options) -> dict[str, Any]:
@@ -117,11 +162,7 @@ def main(options: Options) -> dict[str, Any]:
     if options.fresh and options.out.exists():
         options.out.unlink()
     options.out.parent.mkdir(parents=True, exist_ok=True)
-    done = {}
-    if options.out.exists():
-        for line in options.out.read_text().splitlines():
-            row = json.loads(line)
-            done[(row["planner"], row["scene"], row["seed"])] = row
+    done = resumed(options) if options.out.exists() else {}
     bank = scenes(options)
     jobs = [
         (planner, index, seed)
@@ -133,6 +174,7 @@ def main(options: Options) -> dict[str, Any]:
     with options.out.open("a") as results:
         for planner, index, seed in tqdm(jobs, desc="episodes"):
             row = {"planner": planner, "scene": index, "seed": seed}
+            row["settings"] = options.settings()
             row |= run_episode(planner, bank[index], seed, options)
             results.write(json.dumps(row) + "\n")
             results.flush()

@@ -34,3 +34,23 @@ def test_a_folder_with_fewer_scenes_than_asked_counts_the_scenes_it_has(
     )
     assert bench.main(options)["constant_velocity"]["episodes"] == 2
     assert "2 episodes per planner" in capsys.readouterr().out
+
+
+def test_a_results_file_of_other_settings_is_not_resumed(tmp_path):
+    """A rerun with another episode length or K reported the old episodes as its own."""
+    import dataclasses
+
+    import pytest
+
+    bench = load_benchmark("failures_that_matter")
+    out = tmp_path / "results.jsonl"
+    options = bench.Options(planners=("constant_velocity",), scenes=1, steps=10, out=out)
+    bench.main(options)
+    for changes in ({"steps": 20}, {"k": 0}, {"target": "others"}):
+        with pytest.raises(ValueError, match="holds episodes of other settings"):
+            bench.main(dataclasses.replace(options, **changes))
+    assert len(out.read_text().splitlines()) == 1
+    bench.main(dataclasses.replace(options, steps=20, fresh=True))  # --fresh starts over
+    assert '"steps": 20' in out.read_text()
+    with pytest.raises(ValueError, match="--scenes 500: the shipped evaluation bank holds"):
+        bench.scenes(bench.Options(scenes=500))
