@@ -39,6 +39,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NoReturn
 
 from policies.dataclass_cli import parse_dataclass
 from policies.evaluation import ResultsStore, build_tables
@@ -102,17 +103,26 @@ def _parse(argv: list[str] | None = None) -> Options:
     options = parse_dataclass(
         Options, argv, prog=PROG, description=__doc__.split("\n")[0], debug=True
     )
+    batches, out = options.batch, options.out
+    if any(batch < 2 for batch in batches) or len(set(batches)) < len(batches):
+        _usage(f"--batch: distinct values >= 2 (1 is the per-scene run), got {list(batches)}")
+    if out is not None and Path(out).is_dir() and any(Path(out).iterdir()):
+        _usage(f"--out {out} is not empty: every timed run starts in a new folder")
     if options.perturb is not None:
         from policies.registry import METHODS
 
         if not (math.isfinite(options.perturb) and options.perturb > 0):
-            raise SystemExit(f"--perturb must be a finite number > 0, got {options.perturb}")
+            _usage(f"--perturb must be a finite number > 0, got {options.perturb}")
         if options.workers != 1:
-            raise SystemExit(f"--perturb needs --workers 1 (one process), got {options.workers}")
+            _usage(f"--perturb needs --workers 1 (one process), got {options.workers}")
         diffusion = [name for name in options.methods if METHODS[name].diffusion]
         if diffusion:
-            raise SystemExit(f"--perturb takes MeanFlow methods only, got {diffusion}")
+            _usage(f"--perturb takes MeanFlow methods only, got {diffusion}")
     return options
+
+
+def _usage(message: str) -> NoReturn:
+    raise SystemExit(f"{PROG}: error: {message}")
 
 
 def run_eval(options: Options, batch: int, out: Path, perturb: float | None = None) -> dict:

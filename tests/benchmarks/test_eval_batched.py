@@ -74,3 +74,21 @@ def test_a_diffusion_baseline_with_fewer_levels(capsys):
     assert rows[1]["rows"] == 2 and rows[1]["outcome_differs"] == 0
     assert rows[1]["max_diff"] < 1e-4
     assert "--diffusion-steps 2" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--batch", "1"], "--batch: distinct values >= 2"),
+        (["--batch", "4", "4"], "--batch: distinct values >= 2"),
+        (["--out", "FULL"], "is not empty: every timed run starts in a new folder"),
+    ],
+)
+def test_runs_that_would_time_nothing_are_refused(argv, message, tmp_path):
+    """A second run into the same --out, or a 'batched' run of one scene, timed the rows of
+    an earlier run (0 rollouts, 0.0 s) or repeated the per-scene one."""
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "batch1").mkdir()
+    argv = [str(tmp_path / "full") if arg == "FULL" else arg for arg in argv]
+    with pytest.raises(SystemExit, match=message):
+        load_benchmark("eval_batched").main(["--scenes", "2", *argv])
