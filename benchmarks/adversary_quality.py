@@ -29,13 +29,14 @@ import numpy as np
 from methods import make_policy, with_raw
 from tqdm import tqdm
 
-from policies.dataclass_cli import parse_dataclass
-from policies.evaluation.options import parse_k
+from policies.dataclass_cli import check_at_least, parse_dataclass
+from policies.evaluation.options import parse_k, scene_names
 from policies.harness import ClosedLoop, EpisodeRecord, mean_summary, summarize
 from policies.planners import IDMPlanner
 from policies.registry import method_options
 from riskflow_env.cli_errors import run_script
 from riskflow_env.config import EnvConfig
+from riskflow_env.folder_lock import check_output_folder
 from riskflow_env.scenarios import shipped_bank
 from riskflow_env.view import ScenePolicy, SceneView
 
@@ -75,10 +76,12 @@ class Options:
     """output directory"""
 
     def __post_init__(self) -> None:
-        if self.scenes < 1:
-            raise ValueError(f"--scenes must be >= 1, got {self.scenes}")
-        for k in self.ks.split(","):
-            parse_k(k)
+        check_at_least(self, {"scenes": 1})
+        scene_names(None, self.scenes)  # --scenes beyond the shipped bank: named
+        check_output_folder(self.out, "--out")
+        ks = [parse_k(k) for k in self.ks.split(",")]
+        if len(set(ks)) < len(ks):
+            raise ValueError(f"--ks: each K once, got {self.ks}")
         method_options(with_raw((METHOD,), self.raw), self.overrides, None)
 
     @property

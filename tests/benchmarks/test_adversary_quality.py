@@ -44,7 +44,14 @@ def test_a_tiny_run_of_the_default_and_the_raw_generator(tmp_path, capsys):
 
 def test_bad_options_name_the_flag(capsys):
     bench = load_benchmark("adversary_quality")
-    for argv, flag in ((["--ks", "5,-1"], "--k"), (["--set", "nope=1"], "--set")):
+    cases = (
+        (["--ks", "5,-1"], "--k"),
+        (["--set", "nope=1"], "--set"),
+        (["--scenes", "500"], "--scenes 500: the shipped evaluation bank holds only"),
+        (["--ks", "5,5"], "--ks: each K once"),
+        (["--out", __file__], "--out: "),
+    )
+    for argv, flag in cases:
         with pytest.raises(SystemExit):
             bench.main(argv)
         assert flag in capsys.readouterr().err
