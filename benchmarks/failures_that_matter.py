@@ -2,7 +2,8 @@
 
 Runs the default RiskFlow adversary (``riskflow``, K=5, target ``ego``) closed loop for
 10 s against each planner of ``--planners`` on the first ``--scenes`` shipped evaluation
-scenes (or the scenes of ``--data``, a ScenarioNet or ``.npz`` folder) for every seed of
+scenes (100 by default; or the scenes of ``--data``, a ScenarioNet or ``.npz`` folder, all
+of them by default) for every seed of
 ``--seeds``, analyses every ego collision (:mod:`policies.stress.failures`) and prints
 one row per planner: the avoidable-failure rate (the headline), the ego collision rate,
 the share of ego collisions shown avoidable, strikes on a standing ego, guided vehicles
@@ -46,6 +47,7 @@ from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import shipped_bank
 from riskflow_env.scenarios.folders import open_scenes
 
+DEFAULT_SCENES = 100  # of the shipped evaluation bank
 ROWS = (  # (label, summary key, scale, unit)
     ("avoidable failures", "avoidable_failure_rate", 100, "%"),
     ("ego collisions", "ego_collision_rate", 100, "%"),
@@ -68,8 +70,9 @@ class Options:
 
     planners: tuple[str, ...] = ("oracle", "sampling_mpc", "idm", "constant_velocity")
     """ego planners, best expected first: oracle or names of policies.planners.PLANNERS"""
-    scenes: int = 100
-    """first N scenes of the shipped evaluation bank (or of --data)"""
+    scenes: int | None = None
+    """first N scenes of the shipped evaluation bank or of --data (default: 100 of the
+    shipped bank, every scene of --data)"""
     data: Path | None = None
     """a ScenarioNet or .npz scene folder instead of the shipped bank"""
     seeds: tuple[int, ...] = (0,)
@@ -88,7 +91,8 @@ class Options:
     """start the results file over"""
 
     def __post_init__(self) -> None:
-        check_at_least(self, {"scenes": 1, "k": 0, "steps": 1, "longer_search": 0})
+        lows = {"scenes": 1, "k": 0, "steps": 1, "longer_search": 0}
+        check_at_least(self, lows, optional=("scenes",))
         object.__setattr__(self, "seeds", check_seeds(self.seeds))
         check_choices(self, {"target": TARGETS})
         unknown = [p for p in self.planners if p != "oracle" and p not in PLANNERS]
@@ -109,10 +113,11 @@ class Options:
 def scenes(options: Options) -> list:
     """The scenes to run; ValueError naming ``--scenes`` when the source holds fewer."""
     source = shipped_bank("eval") if options.data is None else open_scenes(options.data)
-    if options.scenes > len(source):
+    count = options.scenes or (DEFAULT_SCENES if options.data is None else len(source))
+    if count > len(source):
         where = "the shipped evaluation bank" if options.data is None else f"--data {options.data}"
-        raise ValueError(f"--scenes {options.scenes}: {where} holds only {len(source)} scenes")
-    return [source[index] for index in range(options.scenes)]
+        raise ValueError(f"--scenes {count}: {where} holds only {len(source)} scenes")
+    return [source[index] for index in range(count)]
 
 
 def resumed(options: Options) -> dict[tuple, dict[str, Any]]:
@@ -183,8 +188,8 @@ def main(options: Options) -> dict[str, Any]:
 
 
 def report(done: dict, options: Options, num_scenes: int) -> dict[str, Any]:
-    """Print the table and the paired differences of the first ``num_scenes`` scenes (fewer
-    than ``options.scenes`` where the folder has fewer); returns the summaries."""
+    """Print the table and the paired differences of the first ``num_scenes`` scenes;
+    returns the summaries."""
     planners = list(options.planners)
     keys = [(index, seed) for index in range(num_scenes) for seed in list(options.seeds)]
     rows = {p: [done[(p, *key)] for key in keys if (p, *key) in done] for p in planners}

@@ -20,14 +20,17 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 from stable_baselines3 import PPO
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.utils import set_random_seed
 
-from policies.dataclass_cli import parse_dataclass
+from policies.dataclass_cli import check_at_least, check_between, parse_dataclass
 from policies.rl.marl import (
     AdversaryRewardConfig,
     FixedEgoParallelEnv,
@@ -36,7 +39,13 @@ from policies.rl.marl import (
     rollout_ego_collisions,
 )
 from policies.rl.progress import StepProgressBar
+from policies.rl.signals import StopSignals, exit_stopped
 from policies.statistics import wilson_interval
+from riskflow_env.cli_errors import debug_requested, user_errors
+from riskflow_env.folder_lock import check_output_folder
+
+PROG = "train_adversaries_marl.py"
+MAX_SLOTS = 20  # [vehicles] highway-env's highway holds 20 without a failed draw
 
 
 @dataclass(frozen=True)
@@ -67,8 +76,12 @@ class Options:
     """episodes of the before / after evaluation"""
 
     def __post_init__(self) -> None:
-        if self.slots < 2:
-            raise ValueError("--slots must be >= 2 (the ego and at least one adversary)")
+        counts = ("total_timesteps", "num_envs", "episode_steps", "eval_episodes")
+        lows = dict.fromkeys(counts, 1) | {"seed": 0, "slots": 2, "n_steps": 2, "batch_size": 2}
+        check_at_least(self, lows, highs={"seed": 2**32 - 1, "slots": MAX_SLOTS})
+        rewards = ("ego_collision_reward", "closeness_reward")
+        check_between(self, dict.fromkeys(rewards, (-math.inf, math.inf)))
+        check_output_folder(self.out, "--out")
 
 
 def ego_hit_rate(model: PPO, options: Options, reward: AdversaryRewardConfig) -> dict:
@@ -85,7 +98,14 @@ def ego_hit_rate(model: PPO, options: Options, reward: AdversaryRewardConfig) ->
 
 
 def main(argv: list[str] | None = None) -> None:
-    options = parse_dataclass(Options, argv, prog="train_adversaries_marl.py", description=__doc__)
+    options = parse_dataclass(Options, argv, prog=PROG, description=__doc__, debug=True)
+    with user_errors(PROG, debug_requested(argv or sys.argv[1:])):
+        train(options)
+
+
+def train(options: Options) -> None:
+    """Evaluate, train, save and evaluate again; Ctrl-C or SIGTERM during training saves
+    the model as trained so far and skips the second evaluation."""
     out = options.out
     out.mkdir(parents=True, exist_ok=True)
     (out / "options.json").write_text(json.dumps(dataclasses.asdict(options), default=str))
@@ -106,8 +126,17 @@ def main(argv: list[str] | None = None) -> None:
     )
     model.set_logger(configure(str(out), ["csv", "stdout"]))
     before = ego_hit_rate(model, options, reward)
-    model.learn(options.total_timesteps, callback=StepProgressBar(options.total_timesteps, "PPO"))
+    with StopSignals() as stop:
+        bar = StepProgressBar(options.total_timesteps, "PPO")
+        model.learn(options.total_timesteps, callback=[bar, StopOn(stop)])
     model.save(out / "model")
+    vec_env.close()
+    if stop.received is not None:
+        exit_stopped(
+            stop.received,
+            f"{PROG}: stopped by {{name}} after {model.num_timesteps} agent-steps; "
+            f"the model so far is {out / 'model.zip'} (not evaluated)",
+        )
     after = ego_hit_rate(model, options, reward)
     results = {"untrained": before, "trained": after}
     (out / "results.json").write_text(json.dumps(results, indent=1))
@@ -116,7 +145,17 @@ def main(argv: list[str] | None = None) -> None:
             f"{name}: adversaries hit the ego in {result['ego_hit_rate']:.2f} "
             f"[{result['low']:.2f}, {result['high']:.2f}] of {result['n']} episodes"
         )
-    vec_env.close()
+
+
+class StopOn(BaseCallback):
+    """Ends ``learn`` at the next step once ``stop`` received a signal."""
+
+    def __init__(self, stop: StopSignals) -> None:
+        super().__init__()
+        self.stop = stop
+
+    def _on_step(self) -> bool:
+        return self.stop.received is None
 
 
 if __name__ == "__main__":
