@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import json
 import shlex
+import signal
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -63,10 +64,13 @@ from policies.rl.runs import run_begun
 from policies.statistics import mean_summary, paired_difference, rate
 from policies.stress.summary import progress
 from riskflow_env.atomic_files import write_text
+from riskflow_env.cli_errors import user_errors
 from riskflow_env.config import EnvConfig
+from riskflow_env.folder_lock import check_output_folder
 from riskflow_env.scenarios import shipped_bank
 
 HERE = Path(__file__).resolve().parent
+STOPS = (signal.SIGINT, signal.SIGTERM)  # the training process stops on them, saving
 RECIPE = (
     "--vec-env", "batched", "--num-envs", "16", "--n-steps", "64", "--maneuver-set", "mpc",
     "--target-start", "ego", "--target-end", "ego", "--checkpoint-every", "10000",
@@ -119,6 +123,7 @@ class Options:
         for name in ("seeds", "eval_seeds"):
             parse_seeds(getattr(self, name), "--" + name.replace("_", "-"))
         check_at_least(self, dict.fromkeys(("scenes", "data_scenes", "episode_steps"), 1))
+        check_output_folder(self.out, "--out")
         try:
             extra = shlex.split(self.train_args)
         except ValueError as error:
@@ -149,9 +154,26 @@ def train(options: Options, name: str, seed: int) -> Path:
         extra = (*shlex.split(options.train_args), *TRAINED_AGAINST[name])
         command = [sys.executable, script, *RECIPE, *extra, "--seed", str(seed), "--out", str(run)]
     print("$ " + shlex.join(command), flush=True)
-    if subprocess.run(command).returncode != 0 or not final.is_file():
-        _fail(f"training {run} did not finish; run the same command again to resume it")
+    status = run_training(command)
+    if status in (128 + signal.SIGINT, 128 + signal.SIGTERM):
+        print(f"transfer_experiment.py: interrupted; {run} keeps its checkpoint: run the same "
+              "command again to resume", file=sys.stderr)  # fmt: skip
+        sys.exit(status)
+    if status != 0 or not final.is_file():
+        _fail(f"training {run} failed (status {status}, its error above)")
     return run
+
+
+def run_training(command: list[str]) -> int:
+    """Run ``command`` and return its exit status. Ctrl-C (a terminal signals the whole
+    process group) and a job's SIGTERM reach the training process itself, which saves a
+    checkpoint and stops; this process waits for it instead of dying first."""
+    previous = {signum: signal.signal(signum, signal.SIG_IGN) for signum in STOPS}
+    try:
+        return subprocess.run(command).returncode
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
 
 
 def _fail(message: str) -> None:
@@ -258,9 +280,15 @@ def _header(*names: str) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    options = parse_dataclass(
-        Options, argv, prog="transfer_experiment.py", description=__doc__.split("\n")[0]
-    )
+    description = " ".join(__doc__.split("\n\n")[0].split())
+    options = parse_dataclass(Options, argv, prog="transfer_experiment.py", description=description)
+    kept = "the trained egos and saved evaluations in --out are kept: the same command resumes"
+    with user_errors("transfer_experiment.py", kept=kept):
+        experiment(options)
+
+
+def experiment(options: Options) -> None:
+    """Train (or reuse) every ego, evaluate each, write and print the report."""
     try:
         data = open_data(options.data) if options.data is not None else []
     except ValueError as error:
