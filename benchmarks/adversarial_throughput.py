@@ -39,9 +39,12 @@ from methods import make_policy
 from tqdm import tqdm
 
 import riskflow_env
-from policies.dataclass_cli import parse_dataclass
+from policies.cli_inputs import check_device
+from policies.dataclass_cli import check_at_least, parse_dataclass
 from policies.pipeline.batched import BatchedAdversary
 from policies.registry import DIFFUSION_STEPS_OPTION, METHODS, method_spec
+from riskflow_env.cli_errors import run_script
+from riskflow_env.processes import MAX_THREADS
 from riskflow_env.scenarios import shipped_bank
 from riskflow_env.view import SceneView
 
@@ -77,6 +80,20 @@ class Options:
     """torch device of the one-scene-at-a-time loop (None: --device); today's loop runs on
     cpu, so ``--device cuda --loop-device cpu`` compares batched GPU planning with it"""
 
+    def __post_init__(self) -> None:
+        lows = {"k": 0, "guidance_steps": 0, "diffusion_steps": 1, "rounds": 1, "calls": 1,
+                "threads": 1, "batched_threads": 1}  # fmt: skip
+        optional = ("guidance_steps", "diffusion_steps", "batched_threads")
+        highs = {"threads": MAX_THREADS, "batched_threads": MAX_THREADS}
+        check_at_least(self, lows, optional, highs=highs)
+        for name in ("scenes",):
+            if not getattr(self, name) or min(getattr(self, name)) < 1:
+                raise ValueError(f"--{name.replace('_', '-')}: one or more ints >= 1, got "
+                                 f"{list(getattr(self, name))}")  # fmt: skip
+        check_device(self.device)
+        if self.loop_device is not None:
+            check_device(self.loop_device, "--loop-device")
+
 
 # the adversaries: methods with a controllable set (the reference traffic and the unguided
 # generators have none)
@@ -101,7 +118,11 @@ def build(options: Options, device: str, threads: int, like=None):
 
 def _parse(argv: list[str] | None = None) -> Options:
     return parse_dataclass(
-        Options, argv, prog="adversarial_throughput.py", description=__doc__.split("\n")[0]
+        Options,
+        argv,
+        prog="adversarial_throughput.py",
+        description=__doc__.split("\n")[0],
+        debug=True,
     )
 
 
@@ -210,4 +231,4 @@ def main(argv: list[str] | None = None) -> list[dict]:
 
 
 if __name__ == "__main__":
-    main()
+    run_script("adversarial_throughput.py", main)

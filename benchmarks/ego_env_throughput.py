@@ -30,12 +30,14 @@ import torch
 from methods import make_policy
 from tqdm import tqdm
 
-from policies.dataclass_cli import parse_dataclass
+from policies.cli_inputs import check_device
+from policies.dataclass_cli import check_at_least, check_choices, parse_dataclass
 from policies.registry import method_spec
 from policies.rl.envs import EgoTrainingEnv
 from policies.rl.vector_env import EgoVectorEnv
+from riskflow_env.cli_errors import run_script
 from riskflow_env.config import EnvConfig
-from riskflow_env.scenarios import shipped_bank
+from riskflow_env.scenarios import SPLITS, shipped_bank
 from riskflow_env.view import ScenePolicy
 from riskflow_env.wrappers import EgoEnv
 
@@ -69,13 +71,23 @@ class Options:
     --loop-device cpu`` compares the vector env on the GPU with the loop on the CPU"""
 
     def __post_init__(self) -> None:
+        lows = {"steps": 1, "rounds": 1, "k": 0, "guidance_steps": 0, "episode_steps": 1}
+        check_at_least(self, lows | {"threads": 1}, ("guidance_steps",), highs={"threads": 256})
+        for name in ("scenes",):
+            if not getattr(self, name) or min(getattr(self, name)) < 1:
+                raise ValueError(f"--{name.replace('_', '-')}: one or more ints >= 1, got "
+                                 f"{list(getattr(self, name))}")  # fmt: skip
+        check_choices(self, {"split": SPLITS})
+        check_device(self.device)
+        if self.loop_device is not None:
+            check_device(self.loop_device, "--loop-device")
         if not method_spec(self.method).uses_k:
             raise ValueError(f"--method: {self.method!r} is not an adversary (it has no K)")
 
 
 def _parse(argv: list[str] | None = None) -> Options:
     return parse_dataclass(
-        Options, argv, prog="ego_env_throughput.py", description=__doc__.split("\n")[0]
+        Options, argv, prog="ego_env_throughput.py", description=__doc__.split("\n")[0], debug=True
     )
 
 
@@ -166,4 +178,4 @@ def main(argv: list[str] | None = None) -> list[dict]:
 
 
 if __name__ == "__main__":
-    main()
+    run_script("ego_env_throughput.py", main)

@@ -22,7 +22,8 @@ from dataclasses import dataclass
 import torch
 from timing import interleaved_ms
 
-from policies.dataclass_cli import parse_dataclass
+from policies.cli_inputs import check_device
+from policies.dataclass_cli import check_at_least, parse_dataclass
 from policies.learned.config import ModelConfig
 from policies.learned.data import ActionNormalizer
 from policies.learned.generator import RiskFlowGenerator
@@ -30,6 +31,8 @@ from policies.learned.sampler import base_velocity
 from policies.learned.synthetic import synthetic_batch
 from policies.riskflow.meanflow import flow_matching_loss, meanflow_loss
 from policies.riskflow.time_sampler import TimeSampler
+from riskflow_env.cli_errors import run_script
+from riskflow_env.processes import MAX_THREADS
 
 NORMALIZER = ActionNormalizer(mean=(0.0, 0.0), std=(1.0, 0.03))  # synthetic-data scale
 
@@ -53,10 +56,19 @@ class Options:
     train_agents: int = 16
     """agent slots per training scene"""
 
+    def __post_init__(self) -> None:
+        check_at_least(self, {"repeats": 1, "warmup": 0, "threads": 0, "train_scenes": 1,
+                              "train_agents": 1}, highs={"threads": MAX_THREADS})  # fmt: skip
+        for name in ("agents",):
+            if not getattr(self, name) or min(getattr(self, name)) < 1:
+                raise ValueError(f"--{name.replace('_', '-')}: one or more ints >= 1, got "
+                                 f"{list(getattr(self, name))}")  # fmt: skip
+        check_device(self.device)
+
 
 def _parse(argv: list[str] | None = None) -> Options:
     return parse_dataclass(
-        Options, argv, prog="generator_speed.py", description=__doc__.split("\n")[0]
+        Options, argv, prog="generator_speed.py", description=__doc__.split("\n")[0], debug=True
     )
 
 
@@ -147,4 +159,4 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
 
 
 if __name__ == "__main__":
-    main()
+    run_script("generator_speed.py", main)

@@ -42,7 +42,8 @@ from methods import make_policy, raw_variant
 from timing import interleaved_ms, startup_runs, step_path
 
 import riskflow_env
-from policies.dataclass_cli import parse_dataclass
+from policies.cli_inputs import check_device
+from policies.dataclass_cli import check_at_least, parse_dataclass
 from policies.learned import compiled_plans
 from policies.learned.config import ModelConfig
 from policies.learned.data import ActionNormalizer
@@ -54,7 +55,9 @@ from policies.learned.window_types import collate_windows
 from policies.learned.windows import window_from_view
 from policies.registry import method_spec
 from policies.riskflow.policy import PHASES, RiskFlowAdversary
+from riskflow_env.cli_errors import run_script
 from riskflow_env.config import EnvConfig
+from riskflow_env.processes import MAX_THREADS
 from riskflow_env.scenarios import shipped_bank
 
 FALLBACK_NORMALIZER = ActionNormalizer(mean=(-0.11, -0.02), std=(1.09, 0.12))  # shipped-data scale
@@ -86,13 +89,14 @@ class Options:
     """measure the compiled loops' one-off start-up in fresh processes (cold and cached)"""
 
     def __post_init__(self) -> None:
-        if self.guidance_steps is not None and self.guidance_steps < 1:
-            raise ValueError(f"--guidance-steps must be >= 1, got {self.guidance_steps}")
+        lows = {"agents": 1, "k": 0, "guidance_steps": 1, "threads": 1, "repeats": 1, "warmup": 0}
+        check_at_least(self, lows, ("guidance_steps",), highs={"threads": MAX_THREADS})
+        check_device(self.device)
 
 
 def _parse(argv: list[str] | None = None) -> Options:
     return parse_dataclass(
-        Options, argv, prog="planning_speed.py", description=__doc__.split("\n")[0]
+        Options, argv, prog="planning_speed.py", description=__doc__.split("\n")[0], debug=True
     )
 
 
@@ -264,4 +268,4 @@ def startup_seconds(agents: int) -> dict[str, float]:
 
 
 if __name__ == "__main__":
-    main()
+    run_script("planning_speed.py", main)

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from policies.dataclass_cli import parse_dataclass
+from riskflow_env.cli_errors import run_script
 
 ROOT = Path(__file__).resolve().parents[1]
 ROWS = {
@@ -91,7 +92,9 @@ def run_row(name: str, options: Options, out: Path) -> dict:
 
 def main(argv: list[str] | None = None) -> list[dict]:
     """Print the table; returns its rows (``row``, ``fps``, ``decisions``, ``wall`` [s])."""
-    options = parse_dataclass(Options, argv, prog="ppo_throughput.py", description=__doc__)
+    options = parse_dataclass(
+        Options, argv, prog="ppo_throughput.py", description=__doc__, debug=True
+    )
     rows = []
     with tempfile.TemporaryDirectory() as folder:
         for index, name in enumerate(options.rows):
@@ -113,4 +116,4 @@ def main(argv: list[str] | None = None) -> list[dict]:
 
 
 if __name__ == "__main__":
-    main()
+    run_script("ppo_throughput.py", main)

@@ -26,7 +26,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from policies.dataclass_cli import parse_dataclass
+from policies.dataclass_cli import check_at_least, parse_dataclass
 from riskflow_env.cli_errors import run_script
 from riskflow_env.scenarios.map_cache import MapCache
 from riskflow_env.scenarios.safe_pickle import load_data_pickle
@@ -48,6 +48,9 @@ class Options:
     """timed loads per row of the per-scene table (the median is reported)"""
     index_scenes: int = 5000
     """summary entries of the index-only dataset whose opening is timed too (0: none)"""
+
+    def __post_init__(self) -> None:
+        check_at_least(self, {"copies": 1, "repeats": 1, "index_scenes": 0})
 
 
 def replicate(source: Dataset, copies: int, folder: Path) -> None:

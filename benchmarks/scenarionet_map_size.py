@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import shapely
 
-from policies.dataclass_cli import parse_dataclass
+from policies.dataclass_cli import check_at_least, check_between, parse_dataclass
 from riskflow_env.cli_errors import run_script
 from riskflow_env.scenarios.safe_pickle import load_data_pickle
 from riskflow_env.scenarios.scenarionet import scenario_from_description
@@ -47,6 +47,13 @@ class Options:
     """timed builds per row (the median is reported)"""
     files: tuple[str, ...] = ()
     """ScenarioNet pickles to measure too"""
+
+    def __post_init__(self) -> None:
+        check_at_least(self, {"vehicles": 1, "repeats": 1})
+        positive = ("area", "block", "segment", "vehicle_extent", "resolution")
+        check_between(self, dict.fromkeys(positive, (0.0, 1e5)))
+        if self.block > self.area or self.segment > self.block:
+            raise ValueError("--segment <= --block <= --area")
 
 
 def synthetic_city(options: Options, seed: int = 0) -> dict:

@@ -44,8 +44,10 @@ from timing import startup_runs, step_path
 from tqdm import tqdm
 
 import riskflow_env
+from policies.cli_inputs import check_device
 from policies.dataclass_cli import parse_dataclass
 from riskflow_env import batched, compiled
+from riskflow_env.cli_errors import run_script
 from riskflow_env.config import EnvConfig
 from riskflow_env.scenarios import HighwayTrafficSource, TrafficConfig, place_traffic
 
@@ -86,17 +88,36 @@ class Options:
 
 def _parse(argv: list[str] | None = None) -> Options:
     options = parse_dataclass(
-        Options, argv, prog="step_throughput.py", description=__doc__.split("\n")[0]
+        Options, argv, prog="step_throughput.py", description=__doc__.split("\n")[0], debug=True
     )
-    if options.backend not in ("numpy", "torch"):
-        raise SystemExit(f"--backend must be 'numpy' or 'torch', got {options.backend!r}")
-    if options.dtype not in ("float64", "float32"):
-        raise SystemExit(f"--dtype must be 'float64' or 'float32', got {options.dtype!r}")
-    if options.backend == "numpy" and options.device != "cpu":
-        raise SystemExit(f"--device {options.device} needs --backend torch")
-    if not options.paths or set(options.paths) - {"compiled", "reference"}:
-        raise SystemExit(f"--paths must name 'compiled' and/or 'reference', got {options.paths}")
+    error = usage_error(options)
+    if error:
+        raise SystemExit(f"step_throughput.py: error: {error}")
     return options
+
+
+def usage_error(options: Options) -> str | None:
+    """What is wrong with the options, in one line (None: nothing)."""
+    counts = {"vehicles": options.vehicles, "batch_agents": options.batch_agents,
+              "batch_scenes": options.batch_scenes}  # fmt: skip
+    for name, values in counts.items():
+        if not values or min(values) < 1 or max(values) > 1024:
+            return f"--{name.replace('_', '-')}: one or more ints in [1, 1024], got {values}"
+    if not (options.seconds > 0 and options.seconds < 3600) or options.rounds < 1:
+        return f"--seconds in (0, 3600) and --rounds >= 1, got {options.seconds}, {options.rounds}"
+    if options.backend not in ("numpy", "torch"):
+        return f"--backend must be 'numpy' or 'torch', got {options.backend!r}"
+    if options.dtype not in ("float64", "float32"):
+        return f"--dtype must be 'float64' or 'float32', got {options.dtype!r}"
+    if options.backend == "numpy" and options.device != "cpu":
+        return f"--device {options.device} needs --backend torch"
+    if not options.paths or set(options.paths) - {"compiled", "reference"}:
+        return f"--paths must name 'compiled' and/or 'reference', got {options.paths}"
+    try:
+        check_device(options.device)
+    except ValueError as err:
+        return str(err)
+    return None
 
 
 _STARTUP = """
@@ -353,4 +374,4 @@ def main(argv: list[str] | None = None) -> dict[str, list[dict]]:
 
 
 if __name__ == "__main__":
-    main()
+    run_script("step_throughput.py", main)
