@@ -33,7 +33,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from policies.dataclass_cli import parse_dataclass
+from policies.dataclass_cli import check_at_least, parse_dataclass
 from riskflow_env.cli_errors import run_script
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,6 +45,8 @@ ROWS = {
     "vector32-shards2": ["--vec-env", "batched", "--num-envs", "32", "--n-steps",
                                     "32", "--shards", "2"],
 }  # fmt: skip
+ROW_OPTIONS = {arg for row in ROWS.values() for arg in row if arg.startswith("--")}
+ROW_OPTIONS |= {"--total-timesteps", "--checkpoint-every", "--seed", "--out"}
 
 
 @dataclass(frozen=True)
@@ -61,11 +63,17 @@ class Options:
     """the runs' seed"""
 
     def __post_init__(self) -> None:
-        if self.decisions < 1:
-            raise ValueError(f"--decisions must be >= 1, got {self.decisions}")
+        check_at_least(self, {"decisions": 1, "seed": 0}, highs={"seed": 2**32 - 1})
         unknown = [row for row in self.rows if row not in ROWS]
         if unknown or not self.rows:
             raise ValueError(f"--rows must be some of {list(ROWS)}, got {list(self.rows)}")
+        try:
+            extra = shlex.split(self.extra)
+        except ValueError as error:
+            raise ValueError(f"--extra: {error}") from None
+        taken = sorted({arg.split("=")[0] for arg in extra} & set(ROW_OPTIONS))
+        if taken:
+            raise ValueError(f"--extra may not set {taken}: the rows and the benchmark set them")
 
 
 def run_row(name: str, options: Options, out: Path) -> dict:
