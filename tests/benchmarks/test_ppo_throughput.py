@@ -37,7 +37,9 @@ def test_prints_the_table(capsys):
     ("flags", "message"),
     [
         (["--rows", "nope"], "--rows must be some of"),
-        (["--decisions", "0"], "--decisions must be >= 1"),
+        (["--decisions", "0"], "--decisions must be an int >= 1"),
+        (["--extra=--vec-env dummy"], "--extra may not set ['--vec-env']"),
+        (["--extra", "'a"], "--extra: No closing quotation"),
     ],
 )
 def test_bad_options_name_the_flag(flags, message, capsys):
