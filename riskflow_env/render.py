@@ -4,19 +4,17 @@ Drawn with pygame-ce (installed with highway-env) on an off-screen ``pygame.Surf
 no display is needed for ``"rgb_array"``. ``"human"`` opens a ``pygame.display`` window
 paced at ``env.metadata["render_fps"]``. Nothing here runs unless the env renders.
 
-Layers, bottom up: the map (road grey, off-road green, anti-aliased edge taken from the
-SDF, lane centrelines faint), trails (the last ``trail_seconds`` of ``scene.history``),
-overlays (polylines pushed by a scene policy, e.g. planned trajectories), vehicles (boxes
-with a heading mark; ego orange with a white outline, others blue, done vehicles grey, so
-a pair frozen at a collision is grey with the red collision marks below while it stands;
-highlighted agents haloed in their overlay's colour), event markers (collisions: red
-outline and a ring between the pair; off-road: amber outline) and a text line: time, ego
-speed, collision events so far (a pair coming into contact, counted as the event log and
-the harness's ``collisions`` metric count them) and vehicles off the road now.
+Layers, bottom up: the map (road grey, off-road green, edge anti-aliased from the SDF,
+lane centrelines faint), trails (the last ``trail_seconds`` of ``scene.history``),
+overlays (polylines a scene policy pushes, e.g. plans), vehicles (boxes with a heading
+mark; ego orange outlined white, others blue, done ones grey: a pair frozen at a collision
+stands grey over its red marks; highlighted agents haloed in their overlay's colour),
+event markers (collision: red outline and a ring between the pair; off-road: amber) and a
+text line: time, ego speed, collision events so far (pairs coming into contact, as the
+event log and the harness's ``collisions`` count them) and vehicles off the road now.
 
 The view is north-up (world +x right, +y up), centred on the ego (``follow_ego``) or
-fitted to the whole map. The map layer is cached as a tile twice the view's size and
-rebuilt only when the view leaves it.
+fitted to the map; the map layer is a cached tile twice the view, rebuilt when left.
 """
 
 from __future__ import annotations
@@ -67,13 +65,13 @@ class RenderConfig:
     Attributes:
         width_px: image width [px], 16 to ``MAX_FRAME_PX`` (8192).
         height_px: image height [px], 16 to ``MAX_FRAME_PX``.
-        view_width: world width shown across ``width_px`` [m]; the height follows the
-            aspect ratio. Ignored when ``follow_ego`` is False.
+        view_width: world width across ``width_px`` [m] (the height follows the aspect
+            ratio); ignored when ``follow_ego`` is False.
         follow_ego: centre the view on the ego; when False, fit the whole map.
         trail_seconds: trail length [s], at most the history length (3 s).
         show_lanes: draw lane centrelines.
-        show_text: draw the status line (time, ego speed, event counts) and, when a
-            labelled overlay is on the frame, the legend (overlays and event marks).
+        show_text: draw the status line (time, ego speed, events) and the legend of the
+            labelled overlays on the frame.
     """
 
     width_px: int = 640
@@ -135,7 +133,6 @@ class SceneRenderer:
         self._window: pygame.Surface | None = None
         self._clock: pygame.time.Clock | None = None
 
-    # ------------------------------------------------------------------ hooks
     def reset(self, env: Any) -> None:
         """New episode: drop the previous episode's overlays, restart the collision count."""
         self.overlays.clear()
@@ -143,8 +140,7 @@ class SceneRenderer:
         self.collision_events = len(self._contacts)
 
     def record(self, env: Any) -> None:
-        """Called after every step: counts the collision events (trails come from
-        ``scene.history``)."""
+        """After every step: count the collision events (trails come from the history)."""
         contacts = contact_pairs(env.last_events.collisions)
         self.collision_events += len(contacts - self._contacts)
         self._contacts = contacts
@@ -168,8 +164,7 @@ class SceneRenderer:
             color: (3,) RGB for all agents or (A, 3) per agent, ints in [0, 255].
             highlight: slot indices or agent names to halo (e.g. the controllable set).
             width: line width [px], >= 1.
-            label: legend entry (in the first agent's colour) while the overlay has a
-                point to draw; empty: none.
+            label: legend entry (first agent's colour) while there is a point; "": none.
         """
         points = np.asarray(trajectories, dtype=np.float64)
         if points.ndim != 3 or points.shape[-1] != 2:
@@ -218,7 +213,6 @@ class SceneRenderer:
             pygame.display.quit()
             self._window = None
 
-    # ---------------------------------------------------------------- drawing
     def draw(self, env: Any) -> pygame.Surface:
         """Draw the scene of ``env`` (a ``RiskFlowParallelEnv``) onto the off-screen surface."""
         view, events, cfg = env.view(), env.last_events, self.config
