@@ -57,7 +57,7 @@ class Options(StressOptions):
 
     planner: str = "my_planner"
     """my_planner (this file's), a built-in name (idm, sampling_mpc, constant_velocity,
-    lane_keeping), package.module:object or path/to/file.py:object"""
+    lane_keeping, replay), package.module:object or path/to/file.py:object"""
 
 
 def main(options: Options):

@@ -134,6 +134,12 @@ class _DefaultsAsTyped(argparse.ArgumentDefaultsHelpFormatter):
             for block in blocks
         )
 
+    def _get_help_string(self, action: argparse.Action) -> str:
+        help_text = action.help or ""
+        if "(default:" in help_text:  # the field's docstring says it in words
+            return help_text
+        return super()._get_help_string(action)
+
     def _expand_help(self, action: argparse.Action) -> str:
         if isinstance(action.default, tuple):
             action = copy.copy(action)
