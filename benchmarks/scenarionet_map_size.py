@@ -52,8 +52,6 @@ class Options:
         check_at_least(self, {"vehicles": 1, "repeats": 1})
         positive = ("area", "block", "segment", "vehicle_extent", "resolution")
         check_between(self, dict.fromkeys(positive, (0.0, 1e5)))
-        if self.block > self.area or self.segment > self.block:
-            raise ValueError("--segment <= --block <= --area")
 
 
 def synthetic_city(options: Options, seed: int = 0) -> dict:
