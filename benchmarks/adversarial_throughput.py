@@ -40,7 +40,7 @@ from tqdm import tqdm
 
 import riskflow_env
 from policies.cli_inputs import check_device
-from policies.dataclass_cli import check_at_least, parse_dataclass
+from policies.dataclass_cli import check_at_least, check_sizes, parse_dataclass
 from policies.pipeline.batched import BatchedAdversary
 from policies.registry import DIFFUSION_STEPS_OPTION, METHODS, method_spec
 from riskflow_env.cli_errors import run_script
@@ -86,10 +86,7 @@ class Options:
         optional = ("guidance_steps", "diffusion_steps", "batched_threads")
         highs = {"threads": MAX_THREADS, "batched_threads": MAX_THREADS}
         check_at_least(self, lows, optional, highs=highs)
-        for name in ("scenes",):
-            if not getattr(self, name) or min(getattr(self, name)) < 1:
-                raise ValueError(f"--{name.replace('_', '-')}: one or more ints >= 1, got "
-                                 f"{list(getattr(self, name))}")  # fmt: skip
+        check_sizes(self, ("scenes",))
         check_device(self.device)
         if self.loop_device is not None:
             check_device(self.loop_device, "--loop-device")

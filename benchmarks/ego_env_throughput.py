@@ -31,7 +31,7 @@ from methods import make_policy
 from tqdm import tqdm
 
 from policies.cli_inputs import check_device
-from policies.dataclass_cli import check_at_least, check_choices, parse_dataclass
+from policies.dataclass_cli import check_at_least, check_choices, check_sizes, parse_dataclass
 from policies.registry import method_spec
 from policies.rl.envs import EgoTrainingEnv
 from policies.rl.vector_env import EgoVectorEnv
@@ -73,10 +73,7 @@ class Options:
     def __post_init__(self) -> None:
         lows = {"steps": 1, "rounds": 1, "k": 0, "guidance_steps": 0, "episode_steps": 1}
         check_at_least(self, lows | {"threads": 1}, ("guidance_steps",), highs={"threads": 256})
-        for name in ("scenes",):
-            if not getattr(self, name) or min(getattr(self, name)) < 1:
-                raise ValueError(f"--{name.replace('_', '-')}: one or more ints >= 1, got "
-                                 f"{list(getattr(self, name))}")  # fmt: skip
+        check_sizes(self, ("scenes",))
         check_choices(self, {"split": SPLITS})
         check_device(self.device)
         if self.loop_device is not None:

@@ -23,7 +23,7 @@ import torch
 from timing import interleaved_ms
 
 from policies.cli_inputs import check_device
-from policies.dataclass_cli import check_at_least, parse_dataclass
+from policies.dataclass_cli import check_at_least, check_sizes, parse_dataclass
 from policies.learned.config import ModelConfig
 from policies.learned.data import ActionNormalizer
 from policies.learned.generator import RiskFlowGenerator
@@ -59,10 +59,7 @@ class Options:
     def __post_init__(self) -> None:
         check_at_least(self, {"repeats": 1, "warmup": 0, "threads": 0, "train_scenes": 1,
                               "train_agents": 1}, highs={"threads": MAX_THREADS})  # fmt: skip
-        for name in ("agents",):
-            if not getattr(self, name) or min(getattr(self, name)) < 1:
-                raise ValueError(f"--{name.replace('_', '-')}: one or more ints >= 1, got "
-                                 f"{list(getattr(self, name))}")  # fmt: skip
+        check_sizes(self, ("agents",))
         check_device(self.device)
 
 

@@ -33,7 +33,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from policies.dataclass_cli import check_at_least, parse_dataclass
+from policies.dataclass_cli import check_at_least, parse_dataclass, passed_options
 from riskflow_env.cli_errors import run_script
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -67,13 +67,7 @@ class Options:
         unknown = [row for row in self.rows if row not in ROWS]
         if unknown or not self.rows:
             raise ValueError(f"--rows must be some of {list(ROWS)}, got {list(self.rows)}")
-        try:
-            extra = shlex.split(self.extra)
-        except ValueError as error:
-            raise ValueError(f"--extra: {error}") from None
-        taken = sorted({arg.split("=")[0] for arg in extra} & set(ROW_OPTIONS))
-        if taken:
-            raise ValueError(f"--extra may not set {taken}: the rows and the benchmark set them")
+        passed_options(self.extra, "--extra", ROW_OPTIONS, "the rows and the benchmark set them")
 
 
 def run_row(name: str, options: Options, out: Path) -> dict:

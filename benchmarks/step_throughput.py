@@ -45,7 +45,7 @@ from tqdm import tqdm
 
 import riskflow_env
 from policies.cli_inputs import check_device
-from policies.dataclass_cli import parse_dataclass
+from policies.dataclass_cli import check_sizes, parse_dataclass
 from riskflow_env import batched, compiled
 from riskflow_env.cli_errors import run_script
 from riskflow_env.config import EnvConfig
@@ -98,11 +98,10 @@ def _parse(argv: list[str] | None = None) -> Options:
 
 def usage_error(options: Options) -> str | None:
     """What is wrong with the options, in one line (None: nothing)."""
-    counts = {"vehicles": options.vehicles, "batch_agents": options.batch_agents,
-              "batch_scenes": options.batch_scenes}  # fmt: skip
-    for name, values in counts.items():
-        if not values or min(values) < 1 or max(values) > 1024:
-            return f"--{name.replace('_', '-')}: one or more ints in [1, 1024], got {values}"
+    try:
+        check_sizes(options, ("vehicles", "batch_agents", "batch_scenes"), 1, 1024)
+    except ValueError as err:
+        return str(err)
     if not (options.seconds > 0 and options.seconds < 3600) or options.rounds < 1:
         return f"--seconds in (0, 3600) and --rounds >= 1, got {options.seconds}, {options.rounds}"
     if options.backend not in ("numpy", "torch"):

@@ -55,7 +55,7 @@ from evaluate_ego import ppo_factory, run_options, spread_scenes
 from tqdm import tqdm
 
 from policies.cli_inputs import open_data, parse_seeds
-from policies.dataclass_cli import check_at_least, parse_dataclass
+from policies.dataclass_cli import check_at_least, parse_dataclass, passed_options
 from policies.rl.adversary import AdversaryStage, ScenePolicyConfig
 from policies.rl.evaluation import evaluate
 from policies.rl.paired import outcome_counts
@@ -124,13 +124,8 @@ class Options:
             parse_seeds(getattr(self, name), "--" + name.replace("_", "-"))
         check_at_least(self, dict.fromkeys(("scenes", "data_scenes", "episode_steps"), 1))
         check_output_folder(self.out, "--out")
-        try:
-            extra = shlex.split(self.train_args)
-        except ValueError as error:
-            raise ValueError(f"--train-args: {error}") from None
-        taken = sorted({arg.split("=")[0] for arg in extra} & set(EXPERIMENT_OPTIONS))
-        if taken:
-            raise ValueError(f"--train-args may not set {taken}: the experiment sets them")
+        why = "the experiment sets them"
+        passed_options(self.train_args, "--train-args", EXPERIMENT_OPTIONS, why)
 
 
 def train(options: Options, name: str, seed: int) -> Path:

@@ -34,10 +34,11 @@ import dataclasses
 import inspect
 import math
 import re
+import shlex
 import sys
 import textwrap
 import typing
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -192,6 +193,17 @@ def check_at_least(
         object.__setattr__(options, name, int(value))
 
 
+def check_sizes(options: Any, names: Sequence[str], low: int = 1, high: int | None = None) -> None:
+    """ValueError naming the flag of the first tuple field of ``options`` in ``names`` that
+    is empty or holds a value that is not an int in [``low``, ``high``] (e.g. the scene
+    counts a benchmark runs, ``--scenes 1 8 32``)."""
+    for name in names:
+        values = list(getattr(options, name))
+        if not values or not all(is_integer(v) and low <= v <= (high or v) for v in values):
+            span = f">= {low}" if high is None else f"in [{low}, {high}]"
+            raise ValueError(f"{flag_of(name)}: one or more ints {span}, got {values}")
+
+
 def check_between(
     options: Any, bounds: Mapping[str, tuple[float, float]], owner: str | None = None
 ) -> None:
@@ -211,6 +223,21 @@ def check_between(
                 else ""
             )
             raise ValueError(f"{_named(name, owner)} must be a finite number{span}, got {value!r}")
+
+
+def passed_options(text: str, option: str, reserved: Iterable[str], why: str) -> list[str]:
+    """The command-line words of ``text``, an option (``option``, e.g. ``--extra``) whose
+    value a script passes on to another command; ValueError naming ``option`` for text that
+    does not split (an open quote) or that sets one of the ``reserved`` flags, which the
+    script sets itself (``why`` says so)."""
+    try:
+        words = shlex.split(text)
+    except ValueError as error:
+        raise ValueError(f"{option}: {error}") from None
+    taken = sorted({word.split("=")[0] for word in words} & set(reserved))
+    if taken:
+        raise ValueError(f"{option} may not set {taken}: {why}")
+    return words
 
 
 def check_field_types(options: Any, owner: str | None = None) -> None:
