@@ -86,8 +86,8 @@ What it changes: docs/explanation/results.md, section 6."""
 LAMBDA_KEEP_MOVING = 10.0
 """[1/(m/s)^2] the weight of the attacker's speed floor (:data:`KEEP_MOVING`)."""
 HORIZONS = {"others": None, "ego": 30}
-"""[steps] the default ``T_g`` of ``L_adv`` and ``L_sep`` per target: the whole plan with
-``"others"`` (the paper's), 3 s with ``"ego"``. Attacking the ego over the whole 5 s plan,
+"""[steps] the default ``T_g`` of ``L_adv``, ``L_map`` and ``L_sep`` per target: the whole plan
+with ``"others"`` (the paper's), 3 s with ``"ego"``. Attacking the ego over the whole 5 s plan,
 the mean distance pulls the plan's tail toward where the ego will be long after the
 attacker could reach it: the steps bend the heading of the whole plan, the tail leaves
 the road, and the map term's gradient then outweighs the attack for the rest of the
@@ -105,8 +105,9 @@ class ObjectiveConfig:
         lambda_map: weight of ``L_map`` [1/m^2], >= 0. The default 20 keeps the guided
             vehicles' footprints on the road (<= 2% of their steps off it, attacking the
             ego, where 1 left 6%; docs/explanation/method.md).
-        horizon: ``T_g`` plan steps of ``L_adv`` and ``L_sep``; None: the target's
-            default (``HORIZONS``: the whole plan with ``"others"``, 3 s with ``"ego"``).
+        horizon: ``T_g`` plan steps of ``L_adv``, ``L_map`` and ``L_sep``; None: the
+            target's default (``HORIZONS``: the whole plan with ``"others"``, 3 s with
+            ``"ego"``).
         target: a :class:`Target` value, ``"others"`` (paper) or ``"ego"`` (stress testing).
         map_margin: footprint samples closer than this to the road edge are penalised [m].
         map_decay: ``w_t = map_decay ** t`` of ``L_map``, in (0, 1].
@@ -209,7 +210,11 @@ def map_term(scene, rows: Tensor, steps: int, config, scene_of_row: Tensor | Non
     """The :class:`MapTerm` of the controllable ``rows`` of ``scene`` (anything with
     ``drivable_map``, ``frame``, ``length`` and ``width``: a planning scene), or None when
     ``L_map`` is off (no map, or ``config.lambda_map == 0``); ``config`` has
-    ``lambda_map``, ``map_margin`` and ``map_decay`` (every guided method's config does).
+    ``lambda_map``, ``map_margin``, ``map_decay`` and ``resolved_horizon`` (every guided
+    method's config does). It scores the first ``T_g`` of the ``steps`` plan steps, the
+    horizon of the other terms: the plan's later steps are never executed (the plans are
+    made again every cycle), and scoring them pulled an attack back where a plan heading
+    for the ego would leave the road seconds after the horizon.
 
     Rows of several scenes (batched planning): ``scene.frame`` is (B, 3), the map a
     :class:`~riskflow_env.maps.MapStack` of the B scenes' maps (or one map they share), and
@@ -223,7 +228,10 @@ def map_term(scene, rows: Tensor, steps: int, config, scene_of_row: Tensor | Non
         if isinstance(drivable_map, MapStack):
             drivable_map = drivable_map.select(scene_of_row)
         frame = frame[scene_of_row] if frame.ndim == 2 else frame
-    return MapTerm(drivable_map, frame, length, width, steps, config.map_margin, config.map_decay)
+    return MapTerm(
+        drivable_map, frame, length, width, steps, config.map_margin, config.map_decay,
+        horizon=config.resolved_horizon,
+    )
 
 
 def map_loss(
@@ -267,6 +275,8 @@ class MapTerm:
         steps: plan steps T.
         margin: [m] added to the SDF before the penalty.
         decay: ``w_t = decay ** t``.
+        horizon: only the first ``horizon`` steps are scored (``w_t = 0`` after); None:
+            every step.
     """
 
     def __init__(
@@ -278,6 +288,7 @@ class MapTerm:
         steps: int,
         margin: float,
         decay: float,
+        horizon: int | None = None,
     ) -> None:
         frame = frame[None] if frame.ndim == 1 else frame  # (1 or C, 3)
         self.cos, self.sin = torch.cos(frame[:, 2:]), torch.sin(frame[:, 2:])  # (1 or C, 1)
@@ -288,7 +299,10 @@ class MapTerm:
         local = footprint_points(torch.stack([zero, zero], dim=-1), zero, length, width)
         self.along, self.across = local[:, None, :, 0], local[:, None, :, 1]
         self.map, self.margin = drivable_map, margin
-        self.weights = decay ** torch.arange(steps, device=frame.device, dtype=frame.dtype)
+        t = torch.arange(steps, device=frame.device, dtype=frame.dtype)
+        self.weights = decay**t
+        if horizon is not None:
+            self.weights[horizon:] = 0.0
 
     def __call__(self, trajectories: Tensor) -> Tensor:
         """Scalar ``L_map`` [m^2] of (C, T, 4) scene-frame states, differentiable with

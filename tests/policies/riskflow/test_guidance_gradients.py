@@ -132,6 +132,30 @@ def test_map_term_forgives_what_a_vehicle_is_off_the_road_now():
     assert torch.equal(term.rows(onto)[1], plain.rows(onto)[1])
 
 
+def test_map_term_scores_the_guidance_horizon_only():
+    """``map_term`` scores the first ``T_g`` steps, as ``L_adv`` and ``L_sep`` do: with
+    target ``"ego"`` (3 s) a plan off the road from step 30 on costs nothing, and the
+    whole plan is scored with ``"others"``."""
+    from types import SimpleNamespace
+
+    from policies.learned.guidance_losses import ObjectiveConfig, map_term
+
+    scene = SimpleNamespace(
+        drivable_map=ROAD, frame=torch.zeros(3, dtype=torch.float64),
+        length=torch.tensor([4.5]).double(), width=torch.tensor([2.0]).double(),
+    )  # fmt: skip
+    plan = torch.zeros(1, 50, 4, dtype=torch.float64)
+    plan[0, 30:, 1] = 20.0  # off the road from 3 s on
+    rows = torch.arange(1)
+    ego = map_term(scene, rows, 50, ObjectiveConfig(target="ego"))
+    others = map_term(scene, rows, 50, ObjectiveConfig(target="others"))
+    assert float(ego.rows(plan)[0]) == 0.0 and float(others.rows(plan)[0]) > 1.0
+    plan[0, 29, 1] = 20.0  # and at the horizon's last step
+    assert float(ego.rows(plan)[0]) > 1.0
+    _, gradient = ego.value_and_gradient(plan)
+    assert (gradient[:, 30:] == 0).all() and (gradient[:, 29] != 0).any()
+
+
 def _autograd_adversarial(xy, target_xy, horizon, target_valid):
     """Each row's ``L_adv`` by plain autograd ops (the reference of the closed form)."""
     targets = target_xy if target_xy.ndim == 4 else target_xy[None].expand(len(xy), -1, -1, -1)
