@@ -43,7 +43,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
-from riskflow_env.cli_errors import CommandLineParser, add_debug_flag, run_script
+from riskflow_env.cli_errors import (
+    CommandLineParser,
+    DefaultsHelpFormatter,
+    add_debug_flag,
+    run_script,
+)
 from riskflow_env.config import check_field_types as field_types
 from riskflow_env.config import is_integer, is_number
 
@@ -120,7 +125,7 @@ def dataclass_parser(
     return parser
 
 
-class _DefaultsAsTyped(argparse.ArgumentDefaultsHelpFormatter):
+class _DefaultsAsTyped(DefaultsHelpFormatter):
     """Each option's default in its help, a tuple's values as one types them: ``(default:
     0 1 2)``, not ``(default: (0, 1, 2))``. The description keeps its paragraphs and its
     indented blocks (a script's docstring: its command examples); prose is wrapped to the
@@ -136,9 +141,8 @@ class _DefaultsAsTyped(argparse.ArgumentDefaultsHelpFormatter):
         )
 
     def _get_help_string(self, action: argparse.Action) -> str:
-        help_text = action.help or ""
-        if "(default:" in help_text:  # the field's docstring says it in words
-            return help_text
+        if not action.required and "(default:" in (action.help or ""):  # said in words
+            return action.help
         return super()._get_help_string(action)
 
     def _expand_help(self, action: argparse.Action) -> str:

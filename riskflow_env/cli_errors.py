@@ -40,6 +40,17 @@ class CommandLineParser(argparse.ArgumentParser):
                      f"{self.prog}: error: {message}\n")  # fmt: skip
 
 
+class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """argparse's help with each option's default, and ``(required)`` for an option that
+    must be given, where argparse shows ``(default: None)``."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        help_text = action.help or ""
+        if action.required:
+            return help_text if "(required" in help_text else f"{help_text} (required)"
+        return super()._get_help_string(action)
+
+
 def add_debug_flag(parser: argparse.ArgumentParser) -> None:
     """Declare ``--debug`` on ``parser``."""
     parser.add_argument(

@@ -52,10 +52,12 @@ def _check(parser: argparse.ArgumentParser) -> None:
     for owner, action in _actions(parser):
         name = "/".join(action.option_strings) or action.dest
         assert action.help and action.help.strip(), f"{owner.prog} {name}: no help text"
-        if action.option_strings and not action.required:
+        if action.option_strings:
             shown = owner._get_formatter()._get_help_string(action)
             said = "%(default)" in shown or "(default:" in shown  # in words, once
-            assert said, f"{owner.prog} {name}: the default is not shown"
+            if action.required:  # no default: says so instead
+                said = "(required" in shown and "default" not in shown
+            assert said, f"{owner.prog} {name}: the default (or that it is required) is not shown"
 
 
 @pytest.mark.parametrize("relative", SCRIPTS)

@@ -23,7 +23,12 @@ from collections.abc import Sequence
 from policies.dataclass_cli import dataclass_parser
 from policies.evaluation.options import EvalOptions
 from policies.registry import method_list
-from riskflow_env.cli_errors import CommandLineParser, add_debug_flag, user_errors
+from riskflow_env.cli_errors import (
+    CommandLineParser,
+    DefaultsHelpFormatter,
+    add_debug_flag,
+    user_errors,
+)
 
 PROG = "riskflow-eval"
 
@@ -42,7 +47,7 @@ def parser() -> argparse.ArgumentParser:
 def report_parser() -> argparse.ArgumentParser:
     """The parser of ``riskflow-eval report``."""
     report = CommandLineParser(
-        prog=f"{PROG} report", formatter_class=argparse.ArgumentDefaultsHelpFormatter
+        prog=f"{PROG} report", formatter_class=DefaultsHelpFormatter
     )
     report.add_argument("--out", required=True, help="results folder of a riskflow-eval run")
     report.add_argument("--no-plots", action="store_true", help="tables only")

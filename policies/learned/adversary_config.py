@@ -51,8 +51,8 @@ class AdversaryConfig:
             (:class:`~policies.learned.guidance_losses.Target`).
         lambda_adv: weight of ``L_adv`` [1/m]; > 0 is more adversarial.
         lambda_map: weight of ``L_map`` [1/m^2], >= 0 (default: ``ObjectiveConfig``'s, 20).
-        guidance_horizon: ``T_g`` [steps] of ``L_adv``; None: the target's default (the
-            whole plan with ``"others"``, 3 s with ``"ego"``).
+        guidance_horizon: ``T_g`` [steps] of ``L_adv``, ``L_map`` and ``L_sep``; None: the
+            target's default (the whole plan with ``"others"``, 3 s with ``"ego"``).
         rank_threshold: risk above which a pair is an edge of the risk graph (ranking).
         seed: noise seed (the noise of cycle ``c`` of episode ``e`` comes from
             ``(seed, e, c)``).

@@ -231,7 +231,7 @@ def map_term(scene, rows: Tensor, steps: int, config, scene_of_row: Tensor | Non
     return MapTerm(
         drivable_map, frame, length, width, steps, config.map_margin, config.map_decay,
         horizon=config.resolved_horizon,
-    )
+    )  # fmt: skip
 
 
 def map_loss(

@@ -33,7 +33,7 @@ class LoopOptions:
     """training scenes: a folder written by `riskflow-data generate`, or a ScenarioNet dataset
     folder (recorded scenes, read one at a time with their tracks smoothed when the windows
     are cut); several folders (--data A B, or --data repeated) train on all their scenes
-    together (then --val-data is needed)"""
+    together (then --val-data is needed) (required, unless --recipe gives it)"""
     data_weights: tuple[float, ...] = ()
     """one per --data folder: its share of each epoch's windows is its weight over their sum
     (none: each folder's share of the windows)"""

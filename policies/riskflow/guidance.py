@@ -18,13 +18,14 @@ the actions stay inside the dynamics bounds; Adam by default, or the paper's pla
 
 ``L_adv`` is the mean distance over the guidance horizon to the nearest target (every
 present agent outside ``A_c``, or the ego only), ``L_map`` the decayed squared depth of
-the footprint samples off the drivable area; ``lambda_adv > 0`` is more adversarial (the
-paper's "-50" is ``+50`` here). A third term, ``lambda_sep * L_sep`` (weight 100 by
-default), keeps the guided vehicles of a scene apart from each other, so that they do not
-converge on one target as a swarm, and with target ``"ego"`` keeps the attacker clear of
-the vehicles that keep their unguided plans (held fixed), so that it does not strike a
-third vehicle on its way to the ego: ``L_sep`` is the summed squared penetration depth of
-those pairs of boxes over the guidance horizon (the avoidance steps' objective,
+the footprint samples off the drivable area over the same horizon; ``lambda_adv > 0`` is
+more adversarial (the paper's "-50" is ``+50`` here). A third term, ``lambda_sep *
+L_sep`` (weight 100 by default), keeps the guided vehicles of a scene apart from each
+other, so that they do not converge on one target as a swarm, and with target ``"ego"``
+keeps the attacker clear of the vehicles that keep their unguided plans (held fixed), so
+that it does not strike a third vehicle on its way to the ego: ``L_sep`` is the summed
+squared penetration depth of those pairs of boxes over the guidance horizon (the
+avoidance steps' objective,
 :func:`~policies.learned.plan_overlap.overlap_gradient`).
 The paper's objective has no such term (``lambda_sep=0``). With target ``"ego"`` the
 attacker also keeps moving: its planned speed over the horizon is held at ``min(its speed

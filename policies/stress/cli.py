@@ -29,7 +29,12 @@ from typing import Any
 from policies.dataclass_cli import dataclass_parser
 from policies.stress.planner_spec import check_spec
 from policies.stress.runner import StressOptions
-from riskflow_env.cli_errors import CommandLineParser, add_debug_flag, user_errors
+from riskflow_env.cli_errors import (
+    CommandLineParser,
+    DefaultsHelpFormatter,
+    add_debug_flag,
+    user_errors,
+)
 
 PROG = "riskflow-stress"
 FORMS = "a built-in name, package.module:object or path/to/file.py:object, as --planner"
@@ -109,7 +114,7 @@ def replay_parser() -> argparse.ArgumentParser:
         prog=f"{PROG} replay",
         description="Re-run a saved failure (closed loop: the same scene, adversary seed and "
         "options) with a planner, and say whether the failure recurs.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=DefaultsHelpFormatter,
     )
     replay.add_argument("file", help="a replay file (failures/*.npz of a run)")
     replay.add_argument(

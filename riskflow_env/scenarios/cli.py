@@ -43,7 +43,12 @@ from pathlib import Path
 import numpy as np
 
 from riskflow_env.atomic_files import write_text
-from riskflow_env.cli_errors import CommandLineParser, add_debug_flag, user_errors
+from riskflow_env.cli_errors import (
+    CommandLineParser,
+    DefaultsHelpFormatter,
+    add_debug_flag,
+    user_errors,
+)
 from riskflow_env.config import check_field_types, is_integer
 from riskflow_env.folder_lock import (
     FolderLock,
@@ -279,7 +284,7 @@ def share(text: str) -> float:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``riskflow-data`` parser (subcommands ``generate``, ``info`` and ``export``)."""
-    formatter = argparse.ArgumentDefaultsHelpFormatter
+    formatter = DefaultsHelpFormatter
     parser = CommandLineParser(
         prog="riskflow-data", description=__doc__.split("\n")[0], formatter_class=formatter
     )
