@@ -343,8 +343,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``riskflow-data`` console script."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    command = commands.choices[args.command]  # its usage errors name it
     if args.command == "info":
-        with user_errors(f"{parser.prog} info", args.debug):
+        with user_errors(command.prog, args.debug):
             info(args.directory)
         return 0
     if args.command == "export":
@@ -355,13 +357,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             try:
                 require_format(fmt)
             except ImportError as err:
-                parser.error(f"--format {fmt}: {err}")
+                command.error(f"--format {fmt}: {err}")
         try:
             check_output_folder(args.out, "--out")  # made once every input is read
         except ValueError as err:
-            parser.error(str(err))
+            command.error(str(err))
         files = list(dict.fromkeys(Path(file).resolve() for file in args.files))  # each once
-        with user_errors(f"{parser.prog} export", args.debug):
+        with user_errors(command.prog, args.debug):
             written = export_files(files, formats, args.out)
         print(f"riskflow-data: wrote {len(written)} file(s) into {args.out}")
         return 0
@@ -371,10 +373,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         options = GenerateOptions(**parsed | {"families": tuple(dict.fromkeys(args.families))})
     except ValueError as err:  # a flag's bound: a usage error naming the flag
         name = str(err).split(" ", 1)[0]
-        parser.error(f"--{name.replace('_', '-')}{str(err)[len(name) :]}")
-    output_folder(parser, args.out)
+        command.error(f"--{name.replace('_', '-')}{str(err)[len(name) :]}")
+    output_folder(command, args.out)
     kept = f"the scenes in {args.out} are kept: the same command resumes"
-    with user_errors(f"{parser.prog} generate", args.debug, kept):
+    with user_errors(command.prog, args.debug, kept):
         generate(options)
     return 0
 

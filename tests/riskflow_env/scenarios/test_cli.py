@@ -194,7 +194,8 @@ def test_out_that_is_a_file_is_a_usage_error(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["generate", "--families", "u-turn", "--scenes", "1", "--out", str(existing)])
     assert exit_info.value.code == 2
-    assert f"--out: {existing} exists and is not a folder" in capsys.readouterr().err
+    error = f"riskflow-data generate: error: --out: {existing} exists and is not a folder"
+    assert error in capsys.readouterr().err  # the subcommand named
     assert existing.read_text() == "keep me"
 
 
