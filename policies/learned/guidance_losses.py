@@ -36,6 +36,7 @@ from riskflow_env.maps import DrivableMap, MapStack
 
 __all__ = [
     "HUMAN_ACCEL",
+    "HUMAN_YAW_RATE",
     "KEEP_MOVING",
     "LAMBDA_KEEP_MOVING",
     "HORIZONS",
@@ -72,6 +73,11 @@ to); the dynamics allow braking at 8 m/s^2. With target ``"ego"``, output-space 
 keeps the attacker's acceleration and braking within it (brake-checks in front of the
 ego at 6.2-6.8 m/s^2 made attackers implausible); the avoidance steps' braking fallback
 brakes at most this hard (:func:`policies.learned.plan_avoidance.brake_to_clear`)."""
+HUMAN_YAW_RATE = 0.9241
+"""[rad/s] the p99 |yaw rate| of the same data (``HUMAN_BOUNDS``); the dynamics allow
+1 rad/s. With target ``"ego"``, guidance keeps the attacker's yaw rate within it as it
+keeps its acceleration within ``HUMAN_ACCEL`` (attackers that cut across a roundabout at
+0.96-0.99 rad/s were implausible)."""
 KEEP_MOVING = MIN_ATTACK_SPEED
 """[m/s] with target ``"ego"``, the attacker keeps moving: over the guidance horizon its
 guided plan's speed stays at ``min(its speed now, KEEP_MOVING)`` or above, by the penalty

@@ -49,6 +49,7 @@ from policies.learned.adam import Adam
 from policies.learned.data import Normalizer
 from policies.learned.guidance_losses import (
     HUMAN_ACCEL,
+    HUMAN_YAW_RATE,
     KEEP_MOVING,
     TARGETS,
     Target,
@@ -160,18 +161,20 @@ class _Objective:
         self.separation = separation_term(scene, rows, config, scene_of_row, *(bystanders or ()))
         attack_ego = config.target == Target.EGO
         self.accel_limit = HUMAN_ACCEL if attack_ego else math.inf
+        self.yaw_rate_limit = HUMAN_YAW_RATE if attack_ego else math.inf
         # attacking the ego, the attacker keeps moving (guidance_losses.KEEP_MOVING)
         self.floor = self.state[:, SPEED].clamp(max=KEEP_MOVING) if attack_ego else None
 
     def bounds(self) -> tuple[Tensor, Tensor]:
         """(C, T, 2) lower and upper bounds of ``u_c`` that keep the actions inside the
-        dynamics' accel and yaw-rate bounds (and, attacking the ego, the acceleration
-        within ``HUMAN_ACCEL``)."""
+        dynamics' accel and yaw-rate bounds (and, attacking the ego, within the human
+        ``HUMAN_ACCEL`` and ``HUMAN_YAW_RATE``)."""
         dyn = self.dynamics
         accel_min = max(dyn.accel_min, -self.accel_limit)
         accel_max = min(dyn.accel_max, self.accel_limit)
-        low = self.offset.new_tensor([accel_min, -dyn.yaw_rate_max])
-        high = self.offset.new_tensor([accel_max, dyn.yaw_rate_max])
+        yaw_rate = min(dyn.yaw_rate_max, self.yaw_rate_limit)
+        low = self.offset.new_tensor([accel_min, -yaw_rate])
+        high = self.offset.new_tensor([accel_max, yaw_rate])
         return (low - self.offset) / self.std, (high - self.offset) / self.std
 
     def actions(self, u_c: Tensor) -> Tensor:

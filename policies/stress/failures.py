@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from policies.harness import EGO, EpisodeRecord
+from policies.learned.guidance_losses import HUMAN_ACCEL, HUMAN_YAW_RATE
 from policies.stress.escape import Escape, EscapeSearch, Obstacles, find_escape
 from riskflow_env.config import DynamicsConfig
 from riskflow_env.dynamics import SPEED, YAW, wrap_angle
@@ -76,8 +77,9 @@ class KinematicBounds:
 # bank (``shipped_bank("train")``, highway-env IDM/MOBIL traffic: the kind of data the
 # shipped generator learned from); tests/policies/stress/test_failures.py re-measures them.
 HUMAN_BOUNDS = KinematicBounds(
-    accel=6.0, jerk=27.79, yaw_rate=0.9241, source="p99 of shipped_bank('train') futures"
-)
+    accel=HUMAN_ACCEL, jerk=27.79, yaw_rate=HUMAN_YAW_RATE,
+    source="p99 of shipped_bank('train') futures",
+)  # fmt: skip
 
 
 @dataclass(frozen=True)

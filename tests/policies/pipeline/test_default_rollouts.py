@@ -8,8 +8,9 @@ a pipeline of stages (and equal, bit for bit, to the rollouts after it on this m
 time (``policies.learned.ranking.ego_attacker``), again when its separation term began
 to keep the attacker clear of the bystanders (``policies.learned.plan_overlap``), and
 when its guidance horizon became 3 s and its braking was bounded by the human p99
-(``policies.learned.guidance_losses.HORIZONS``, ``HUMAN_ACCEL``), and when the attacker
-was kept moving (``KEEP_MOVING``).
+(``policies.learned.guidance_losses.HORIZONS``, ``HUMAN_ACCEL``), when the attacker
+was kept moving (``KEEP_MOVING``), and when the map term began to score the guidance
+horizon only and the attacker's yaw rate was bounded by the human p99 (``HUMAN_YAW_RATE``).
 A refactoring that changes an operation's order may move them by float rounding, which a
 closed loop amplifies; anything beyond 1 mm is a change of behaviour.
 

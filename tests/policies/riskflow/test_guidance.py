@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import policies.learned.guidance_losses as guidance_losses
-from policies.learned.guidance_losses import HORIZONS, HUMAN_ACCEL, KEEP_MOVING
+from policies.learned.guidance_losses import HORIZONS, HUMAN_ACCEL, HUMAN_YAW_RATE, KEEP_MOVING
 from policies.learned.plan_overlap import pair_separation
 from policies.learned.sampler import base_velocity, decode_plans, sample
 from policies.learned.synthetic import synthetic_batch
@@ -146,6 +146,22 @@ def test_attacker_of_the_ego_brakes_within_the_human_bound():
         braking[target] = -float(result.actions[1, :, 0].min())
     assert braking["ego"] == pytest.approx(HUMAN_ACCEL)
     assert braking["others"] == pytest.approx(-DEFAULT_CONFIG.accel_min)
+
+
+def test_attacker_of_the_ego_turns_within_the_human_bound():
+    """A car driving away beside a slow ego turns back toward it: attacking the ego its yaw
+    rate stays within ``HUMAN_YAW_RATE`` (the failure analysis's human bound); with the
+    paper's target the dynamics' bound (1 rad/s) is the limit."""
+    assert HUMAN_YAW_RATE == HUMAN_BOUNDS.yaw_rate < DEFAULT_CONFIG.yaw_rate_max
+    scene = make_scene([[0.0, 0.0, 6.0, 0.0], [0.0, 6.0, 6.0, 1.5]])
+    turning = {}
+    for target in ("ego", "others"):
+        config = GuidanceConfig(target=target, step_size=0.3, steps=60, lambda_map=0.0)
+        result = guide(scene, mask_of(2, [1]), NORMALIZER, config)
+        assert result.losses[-1, 0] < 0.9 * result.losses[0, 0]
+        turning[target] = float(result.actions[1, :, 1].abs().max())
+    assert turning["ego"] == pytest.approx(HUMAN_YAW_RATE)
+    assert turning["others"] == pytest.approx(DEFAULT_CONFIG.yaw_rate_max)
 
 
 def test_attacker_of_the_ego_keeps_moving(monkeypatch):
