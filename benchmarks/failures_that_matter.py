@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from policies.cli_inputs import check_seeds
 from policies.dataclass_cli import check_at_least, check_choices, run_main
+from policies.evaluation.options import parse_k
 from policies.harness import ClosedLoop
 from policies.learned.guidance_losses import TARGETS
 from policies.planners import PLANNERS, OraclePlanner, make_planner
@@ -77,8 +78,8 @@ class Options:
     """a ScenarioNet or .npz scene folder instead of the shipped bank"""
     seeds: tuple[int, ...] = (0,)
     """adversary noise seeds"""
-    k: int = 5
-    """size of the controllable set"""
+    k: str = "5"
+    """size of the controllable set: an int >= 0 or 'all'"""
     target: str = "ego"
     """what A_c is pulled toward"""
     steps: int = 100
@@ -91,8 +92,9 @@ class Options:
     """start the results file over"""
 
     def __post_init__(self) -> None:
-        lows = {"scenes": 1, "k": 0, "steps": 1, "longer_search": 0}
+        lows = {"scenes": 1, "steps": 1, "longer_search": 0}
         check_at_least(self, lows, optional=("scenes",))
+        object.__setattr__(self, "k", parse_k(str(self.k)))  # an int, or 'all'
         object.__setattr__(self, "seeds", check_seeds(self.seeds))
         check_choices(self, {"target": TARGETS})
         unknown = [p for p in self.planners if p != "oracle" and p not in PLANNERS]

@@ -54,3 +54,15 @@ def test_a_results_file_of_other_settings_is_not_resumed(tmp_path):
     assert '"steps": 20' in out.read_text()
     with pytest.raises(ValueError, match="--scenes 500: the shipped evaluation bank holds"):
         bench.scenes(bench.Options(scenes=500))
+
+
+def test_k_is_an_int_or_all():
+    """``--k all`` guides every vehicle (the other scripts take it); a bad value names --k."""
+    import pytest
+
+    bench = load_benchmark("failures_that_matter")
+    assert bench.Options(k="all").k == "all" and bench.Options(k="3").k == 3
+    assert bench.Options(k=3).settings()["k"] == 3  # the rows of earlier runs still resume
+    for bad in ("-1", "x", "2.5"):
+        with pytest.raises(ValueError, match="--k: expected an int >= 0 or 'all'"):
+            bench.Options(k=bad)
