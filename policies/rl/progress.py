@@ -16,7 +16,8 @@ class StepProgressBar(BaseCallback):
     """Counts ``model.num_timesteps`` (steps of all envs together) against ``total``.
 
     Args:
-        total: the ``total_timesteps`` given to ``learn``.
+        total: the ``total_timesteps`` given to ``learn`` (the bar shows the whole rollouts
+            that reach it: what ``learn`` runs).
         desc: the bar's label.
     """
 
@@ -26,7 +27,11 @@ class StepProgressBar(BaseCallback):
         self.bar: tqdm | None = None
 
     def _on_training_start(self) -> None:
-        self.bar = tqdm(total=self.total, desc=self.desc, unit="step", initial=self.num_timesteps)
+        # learn() collects whole rollouts (n_steps per env) until it reaches total, so an
+        # on-policy run ends at the first whole rollout past it
+        start, rollout = self.num_timesteps, getattr(self.model, "n_steps", 1) * self.model.n_envs
+        end = start + -(-max(self.total - start, 0) // rollout) * rollout
+        self.bar = tqdm(total=end, desc=self.desc, unit="step", initial=start)
 
     def _on_step(self) -> bool:
         self.bar.update(self.num_timesteps - self.bar.n)
