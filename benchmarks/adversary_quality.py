@@ -29,9 +29,11 @@ import numpy as np
 from methods import make_policy, with_raw
 from tqdm import tqdm
 
-from policies.dataclass_cli import check_at_least, parse_dataclass
+from policies.cli_inputs import check_seeds
+from policies.dataclass_cli import check_at_least, check_choices, parse_dataclass
 from policies.evaluation.options import parse_k, scene_names
 from policies.harness import ClosedLoop, EpisodeRecord, mean_summary, summarize
+from policies.learned.guidance_losses import TARGETS
 from policies.planners import IDMPlanner
 from policies.registry import method_options
 from riskflow_env.cli_errors import run_script
@@ -77,6 +79,8 @@ class Options:
 
     def __post_init__(self) -> None:
         check_at_least(self, {"scenes": 1})
+        check_seeds((self.seed,), "--seed")
+        check_choices(self, {"target": TARGETS})
         scene_names(None, self.scenes)  # --scenes beyond the shipped bank: named
         check_output_folder(self.out, "--out")
         ks = [parse_k(k) for k in self.ks.split(",")]

@@ -49,6 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 from methods import make_policy, with_raw
 
+from policies.cli_inputs import check_seeds
 from policies.dataclass_cli import parse_dataclass
 from policies.evaluation.rollout import rollout_record
 from policies.harness import ClosedLoop
@@ -307,6 +308,7 @@ class Options:
     def __post_init__(self) -> None:
         if self.scenes < 1:
             raise ValueError(f"--scenes must be >= 1, got {self.scenes}")
+        check_seeds((self.seed,), "--seed")
 
 
 PROG = "realism_diagnosis.py"  # the name in usage and error lines

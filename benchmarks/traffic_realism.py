@@ -59,6 +59,7 @@ from typing import Any
 import numpy as np
 from methods import with_raw
 
+from policies.cli_inputs import check_seeds
 from policies.dataclass_cli import parse_dataclass
 from policies.evaluation.options import SHIPPED, EvalOptions, Job, RunConfig
 from policies.evaluation.rollout import rollout_episode
@@ -153,6 +154,7 @@ class Options:
             raise ValueError(
                 f"--duration and --interval must be > 0, got {self.duration} and {self.interval}"
             )
+        object.__setattr__(self, "seeds", check_seeds(self.seeds))
         for path in self.checkpoint:
             if not Path(path).is_file():
                 raise ValueError(f"--checkpoint: no file {path}")

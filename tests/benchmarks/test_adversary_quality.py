@@ -50,6 +50,8 @@ def test_bad_options_name_the_flag(capsys):
         (["--scenes", "500"], "--scenes 500: the shipped evaluation bank holds only"),
         (["--ks", "5,5"], "--ks: each K once"),
         (["--out", __file__], "--out: "),
+        (["--seed", "-1"], "--seed must be one or more ints in [0, 2**32)"),
+        (["--target", "x"], "--target must be one of"),
     )
     for argv, flag in cases:
         with pytest.raises(SystemExit):

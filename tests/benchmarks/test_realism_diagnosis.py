@@ -32,9 +32,12 @@ def test_raw_adds_the_raw_generators_tables(diagnosis):
     assert all("| highway | 1 |" in part and "collision starts" in part for part in (default, raw))
 
 
-def test_bad_options(diagnosis):
+def test_bad_options(diagnosis, capsys):
     with pytest.raises(SystemExit):
         diagnosis.main(["--scenes", "0"])
+    with pytest.raises(SystemExit):
+        diagnosis.main(["--seed", "-1"])
+    assert "--seed must be one or more ints" in capsys.readouterr().err
 
 
 def test_at_rest_reach_of_a_plan_that_stays_and_one_that_creeps(diagnosis):

@@ -77,7 +77,14 @@ def test_log_contacts_count_the_logged_boxes(monkeypatch):
 
 
 @pytest.mark.parametrize(
-    "argv", [["--scenes", "0"], ["--duration", "0"], ["--checkpoint", "missing.pt"]]
+    "argv",
+    [
+        ["--scenes", "0"],
+        ["--duration", "0"],
+        ["--checkpoint", "missing.pt"],
+        ["--seeds", "-1"],
+        ["--seeds", "0", "0"],
+    ],
 )
 def test_bad_options(argv):
     with pytest.raises(SystemExit):
