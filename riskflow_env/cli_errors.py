@@ -46,8 +46,10 @@ class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
     def _get_help_string(self, action: argparse.Action) -> str:
         help_text = action.help or ""
-        if action.required:
-            return help_text if "(required" in help_text else f"{help_text} (required)"
+        if "(required" in help_text:  # said in words (a recipe may give it: not required)
+            return help_text
+        if action.required and action.option_strings:  # a positional is required anyway
+            return f"{help_text} (required)"
         return super()._get_help_string(action)
 
 

@@ -121,3 +121,22 @@ def test_a_description_keeps_its_command_examples_and_wraps_its_prose(monkeypatc
     body = text.split("Title line.")[1].split("options:")[0]
     prose_lines = [line for line in body.splitlines() if line.startswith("word")]
     assert len(prose_lines) > 1 and all(len(line) <= 60 for line in prose_lines)
+
+
+def test_an_option_a_recipe_may_give_says_so_once(capsys):
+    """``riskflow-train --help`` is printed while a recipe may still give ``--data``: the
+    option says it is required unless a recipe gives it, and shows no default."""
+    from policies.train import parse_options
+
+    with pytest.raises(SystemExit):
+        parse_options(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    data = text.split("--data DATA [DATA ...]")[-1].split("--data-weights")[0]
+    assert "(required, unless --recipe gives it)" in data and "default" not in data
+
+
+def test_positionals_are_not_marked_required():
+    """A positional must be given anyway: its help says what it is, not "(required)"."""
+    shown = " ".join(stress_replay_parser().format_help().split())
+    assert "a replay file (failures/*.npz of a run)" in shown
+    assert "of a run) (required)" not in shown

@@ -25,12 +25,11 @@ other, so that they do not converge on one target as a swarm, and with target ``
 keeps the attacker clear of the vehicles that keep their unguided plans (held fixed), so
 that it does not strike a third vehicle on its way to the ego: ``L_sep`` is the summed
 squared penetration depth of those pairs of boxes over the guidance horizon (the
-avoidance steps' objective,
-:func:`~policies.learned.plan_overlap.overlap_gradient`).
+avoidance steps' objective, :func:`~policies.learned.plan_overlap.overlap_gradient`).
 The paper's objective has no such term (``lambda_sep=0``). With target ``"ego"`` the
-attacker also keeps moving: its planned speed over the horizon is held at ``min(its speed
-now, 2 m/s)`` or above by a squared penalty (:data:`~policies.learned.guidance_losses.KEEP_MOVING`),
-and its acceleration within the human bound (``HUMAN_ACCEL``). docs/explanation/method.md
+attacker keeps moving (its planned speed is held at ``min(its speed now, 2 m/s)`` or above,
+:data:`~policies.learned.guidance_losses.KEEP_MOVING`), its acceleration and yaw rate within
+the human bounds (``HUMAN_ACCEL``, ``HUMAN_YAW_RATE``). docs/explanation/method.md
 ("Output-space guidance") has the terms, the sign convention and why the steps are Adam steps.
 """
 
