@@ -358,8 +358,8 @@ def _apply_recipe(
     """Set ``parser``'s defaults to the values of the ``--recipe`` in ``argv``, if any (a
     usage error naming the recipe when it cannot be read or does not fit ``cls``)."""
     required = [action for action in parser._actions if action.required]
-    for action in required:  # the recipe may give them
-        action.required = False
+    for action in required:  # the recipe may give them (--help still says they are needed)
+        action.required, action.recipe_may_give = False, True
     name = parser.parse_known_args(argv)[0].recipe
     for action in required:
         action.required = True

@@ -46,10 +46,9 @@ class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
     def _get_help_string(self, action: argparse.Action) -> str:
         help_text = action.help or ""
-        if "(required" in help_text:  # said in words (a recipe may give it: not required)
-            return help_text
-        if action.required and action.option_strings:  # a positional is required anyway
-            return f"{help_text} (required)"
+        # required, or only until a --recipe gives it; a positional is required anyway
+        if (action.required or getattr(action, "recipe_may_give", False)) and action.option_strings:
+            return help_text if "(required" in help_text else f"{help_text} (required)"
         return super()._get_help_string(action)
 
 
