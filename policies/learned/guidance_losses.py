@@ -212,15 +212,18 @@ def sum_per_scene(values: Tensor, scene_of_row: Tensor, num_scenes: int) -> Tens
     return total.index_add_(0, scene_of_row, values)
 
 
-def map_term(scene, rows: Tensor, steps: int, config, scene_of_row: Tensor | None = None):
+def map_term(
+    scene, rows: Tensor, steps: int, config, scene_of_row: Tensor | None = None, scored=None
+):
     """The :class:`MapTerm` of the controllable ``rows`` of ``scene`` (anything with
     ``drivable_map``, ``frame``, ``length`` and ``width``: a planning scene), or None when
     ``L_map`` is off (no map, or ``config.lambda_map == 0``); ``config`` has
     ``lambda_map``, ``map_margin``, ``map_decay`` and ``resolved_horizon`` (every guided
-    method's config does). It scores the first ``T_g`` of the ``steps`` plan steps, the
-    horizon of the other terms: the plan's later steps are never executed (the plans are
-    made again every cycle), and scoring them pulled an attack back where a plan heading
-    for the ego would leave the road seconds after the horizon.
+    method's config does). It scores the first ``scored`` of the ``steps`` plan steps;
+    None: the objective's ``T_g``, the horizon of the other terms (the plan's later steps
+    are never executed: the plans are made again every cycle, and scoring them pulled an
+    attack back where a plan heading for the ego would leave the road seconds after the
+    horizon).
 
     Rows of several scenes (batched planning): ``scene.frame`` is (B, 3), the map a
     :class:`~riskflow_env.maps.MapStack` of the B scenes' maps (or one map they share), and
@@ -236,7 +239,7 @@ def map_term(scene, rows: Tensor, steps: int, config, scene_of_row: Tensor | Non
         frame = frame[scene_of_row] if frame.ndim == 2 else frame
     return MapTerm(
         drivable_map, frame, length, width, steps, config.map_margin, config.map_decay,
-        horizon=config.resolved_horizon,
+        horizon=config.resolved_horizon if scored is None else scored,
     )  # fmt: skip
 
 

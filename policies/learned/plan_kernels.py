@@ -320,6 +320,8 @@ def _map_gradient(plan, frame, along, across, margin, weights, flat, grid, out):
     origin_x, origin_y, frame_yaw, cos_f, sin_f = frame[0], frame[1], frame[2], frame[3], frame[4]
     total = 0.0
     for t in range(plan.shape[0]):
+        if weights[t] == 0.0:  # past the horizon the term scores: its terms are 0
+            continue
         x_s, y_s = plan[t, 0], plan[t, 1]
         world_x = origin_x + cos_f * x_s - sin_f * y_s
         world_y = origin_y + sin_f * x_s + cos_f * y_s

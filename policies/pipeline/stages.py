@@ -27,7 +27,6 @@ scenes; ``policy`` supplies the model and the options. A method is its list of s
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Sequence
 from types import SimpleNamespace
@@ -156,10 +155,10 @@ def avoid(policy: PipelinePolicy, plans: PlanSet) -> PlanSet:
         drivable_map=plans.drivable_map, frame=observed.frame_tensor(),
     )  # fmt: skip
 
-    scored = dataclasses.replace(policy.guidance, horizon=OVERLAP_HORIZON)  # not T_g's
-
-    def map_term_of(rows: torch.Tensor):
-        return map_term(flat, rows, OVERLAP_HORIZON, scored, rows // num_agents)
+    def map_term_of(rows: torch.Tensor):  # every step of its own horizon, not T_g's
+        return map_term(
+            flat, rows, OVERLAP_HORIZON, policy.guidance, rows // num_agents, OVERLAP_HORIZON
+        )
 
     with torch.no_grad():
         u0, actions, trajectories = avoid_overlaps(
