@@ -39,7 +39,7 @@ _jit = numba.njit(cache=True, nogil=True)
 
 # SHA-256 of policies/learned/plan_kernels.py, whose pieces these kernels call: numba's
 # cache checks only this file's source, so editing that file must edit this one.
-PIECES_DIGEST = "94ddc0de54da1b17d7bad82f7339349a9f76c04063436780e7cb42cd19d8eb0a"
+PIECES_DIGEST = "d992bef8fe8b939946f3cbf9fdd9ce67a7673cd33fc172c9c770a7b928bba297"
 BETA1, BETA2, EPSILON = 0.9, 0.999, 1e-8  # torch.optim.Adam's defaults
 
 
