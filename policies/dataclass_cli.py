@@ -147,7 +147,9 @@ class _DefaultsAsTyped(DefaultsHelpFormatter):
 
     def _expand_help(self, action: argparse.Action) -> str:
         if isinstance(action.default, tuple):
+            help_text = self._get_help_string(action)  # of the default as it is: () is unset
             action = copy.copy(action)
+            action.help = help_text
             action.default = " ".join(str(value) for value in action.default) or "none"
         return super()._expand_help(action)
 

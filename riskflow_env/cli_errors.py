@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import re
 import signal
 import sys
 import threading
@@ -42,14 +43,25 @@ class CommandLineParser(argparse.ArgumentParser):
 
 class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
     """argparse's help with each option's default, and ``(required)`` for an option that
-    must be given, where argparse shows ``(default: None)``."""
+    must be given, where argparse shows ``(default: None)``.
+
+    A help text that ends by saying its default in words (``...; default: the shipped
+    bank``) shows it once, as ``(default: the shipped bank)``, where argparse would add
+    ``(default: None)`` (or ``()``) after it."""
 
     def _get_help_string(self, action: argparse.Action) -> str:
         help_text = action.help or ""
         # required, or only until a --recipe gives it; a positional is required anyway
         if (action.required or getattr(action, "recipe_may_give", False)) and action.option_strings:
             return help_text if "(required" in help_text else f"{help_text} (required)"
+        in_words = _DEFAULT_IN_WORDS.search(help_text)
+        unset = action.default is None or action.default in ((), [])  # nothing to show
+        if in_words and unset and action.option_strings:
+            return f"{help_text[: in_words.start()]} (default: {help_text[in_words.end() :]})"
         return super()._get_help_string(action)
+
+
+_DEFAULT_IN_WORDS = re.compile(r"[;,]\s+default:?\s+")  # "...; default: the shipped bank"
 
 
 def add_debug_flag(parser: argparse.ArgumentParser) -> None:

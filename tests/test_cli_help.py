@@ -4,6 +4,7 @@ that shows its default."""
 from __future__ import annotations
 
 import argparse
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -140,3 +141,30 @@ def test_positionals_are_not_marked_required():
     shown = " ".join(stress_replay_parser().format_help().split())
     assert "a replay file (failures/*.npz of a run)" in shown
     assert "of a run) (required)" not in shown
+
+
+
+DEFAULT_IN_WORDS = re.compile(r"(?:^|[;,:]\s)\s*default\b")  # "...; default: X", not "torch's default"
+
+
+def test_a_default_said_in_words_is_shown_once():
+    """An option whose help says its default in words (``...; default: the shipped
+    evaluation scenes``) shows it once, in argparse's form: not also ``(default: None)``."""
+    parsers = [build() for build in (eval_parser, stress_parser, stress_replay_parser)]
+    parsers += [train_parser(), data_parser()]
+    for relative in SCRIPTS:
+        if relative not in NEEDS_RL + NEEDS_TORCHRL:
+            parsers.append(_script_parser(relative))
+    for parser in parsers:
+        for owner, action in _actions(parser):
+            if not action.option_strings:
+                continue
+            shown = owner._get_formatter()._get_help_string(action)
+            words = shown.replace("(default: %(default)s)", "")
+            assert not (DEFAULT_IN_WORDS.search(words) and words != shown), (
+                f"{owner.prog} {action.option_strings[0]}: the default is said twice: {shown!r}"
+            )
+        rendered = " ".join(parser.format_help().split())
+        assert not re.search(r"default:[^()]*\(default:", rendered), parser.prog
+    shown = " ".join(eval_parser().format_help().split())
+    assert "(default: the shipped evaluation scenes)" in shown

@@ -68,10 +68,10 @@ class EvalOptions:
     """end an episode when the ego collides (default: full episodes, equal exposure)"""
     leave_when_log_ends: bool = False
     """a vehicle leaves the scene when its logged track ends, as the recorded ones do at
-    the map's exits (EnvConfig.leave_when_log_ends; Waymax's validity rule); default: every
+    the map's exits (EnvConfig.leave_when_log_ends; Waymax's validity rule); off: every
     vehicle stays for the whole episode"""
     diffusion_steps: int | None = None
-    """denoising steps of ctg / ctgpp / ccdiff: default all 100 (DDPM); fewer: DDIM"""
+    """denoising steps of ctg / ctgpp / ccdiff: fewer than 100 run DDIM; default: all 100 (DDPM)"""
     overrides: tuple[str, ...] = field(default=(), metadata={"flag": "--set"})
     """method options key=value or method.key=value (e.g. riskflow.guidance_steps=10)"""
     wosac: bool = True
