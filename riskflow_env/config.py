@@ -251,7 +251,10 @@ class RewardConfig:
 
     def __post_init__(self) -> None:
         _set_finite(self, ("target_speed", "speed", "collision", "offroad", "risk", "comfort"))
-        _require(self.target_speed > 0, "RewardConfig.target_speed must be > 0 m/s")
+        _require(
+            self.target_speed > 0,
+            f"RewardConfig.target_speed must be > 0 m/s, got {self.target_speed}",
+        )
 
 
 @dataclass(frozen=True)

@@ -144,7 +144,7 @@ def test_positionals_are_not_marked_required():
 
 
 
-DEFAULT_IN_WORDS = re.compile(r"(?:^|[;,:]\s)\s*default\b")  # "...; default: X", not "torch's default"
+DEFAULT_IN_WORDS = re.compile(r"(?:^|[;,:]\s)\s*default\b")  # "; default: X", not "its default"
 
 
 def test_a_default_said_in_words_is_shown_once():

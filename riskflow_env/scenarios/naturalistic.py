@@ -70,10 +70,14 @@ class SceneConfig:
             object.__setattr__(self, name, int(value))  # a numpy int as a Python one
         if not 0 <= self.warmup[0] <= self.warmup[1]:
             raise ValueError(f"SceneConfig.warmup must be 0 <= min <= max, got {self.warmup}")
-        if self.window_stride < 1 or self.max_agents < 1 or not 0 < self.ego_top <= 1:
-            raise ValueError("SceneConfig: window_stride, max_agents >= 1, ego_top in (0, 1]")
-        if not (self.radius > 0 and self.density_radius > 0 and self.map_resolution > 0):
-            raise ValueError("SceneConfig: radius, density_radius, map_resolution must be > 0")
+        for name in ("window_stride", "max_agents"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"SceneConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if not 0 < self.ego_top <= 1:
+            raise ValueError(f"SceneConfig.ego_top must be in (0, 1], got {self.ego_top}")
+        for name in ("radius", "density_radius", "map_resolution"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"SceneConfig.{name} must be > 0 [m], got {getattr(self, name)}")
 
     @property
     def window_steps(self) -> int:

@@ -86,7 +86,8 @@ class TrafficConfig:
         positive = ("time_headway", "min_gap", "radius", "map_resolution", "dt")
         _set_finite(self, positive)
         for name in positive:
-            _require(getattr(self, name) > 0, f"TrafficConfig.{name} must be > 0")
+            value = getattr(self, name)
+            _require(value > 0, f"TrafficConfig.{name} must be > 0, got {value}")
         _set_integer(self, "future_steps", 1)
 
 
