@@ -35,7 +35,10 @@ class SceneState:
         active: (..., A) bool, the vehicle is still controlled (present and not done). An
             inactive present vehicle stands still where it stopped: it stays an obstacle.
         last_action: (..., A, 2) float64, the action applied at the last step
-            (accel [m/s^2], yaw rate [rad/s]), zeros at reset.
+            (accel [m/s^2], yaw rate [rad/s]) clipped to the action bounds, zeros at reset
+            and for inactive slots. It is the command, not the motion: the speed bounds
+            and the turning radius act inside the dynamics, so a car at rest that is told
+            to brake keeps that braking here while its speed stays 0.
         step: number of env steps taken since reset: an int (the scenes of a batch step in
             lockstep), or a (B, 1) int array, one count per scene (scenes that reset on
             their own, :class:`~riskflow_env.scene_batch.SceneBatch`).
