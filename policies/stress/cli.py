@@ -98,6 +98,9 @@ def parser() -> argparse.ArgumentParser:
     return dataclass_parser(RunOptions, PROG, description, debug=True)
 
 
+COMPARE_OUT = "outputs/stress-compare"  # a plain run's default is outputs/stress
+
+
 def compare_parser() -> argparse.ArgumentParser:
     """The parser of ``riskflow-stress compare A B`` (the run's options but the planner)."""
     compare = dataclass_parser(
@@ -105,6 +108,12 @@ def compare_parser() -> argparse.ArgumentParser:
     )
     compare.add_argument("a", metavar="PLANNER_A", help=f"planner A: {FORMS}")
     compare.add_argument("b", metavar="PLANNER_B", help="planner B, in the same forms")
+    out = next(action for action in compare._actions if action.dest == "out")
+    out.help = (
+        "output folder: compare.md, compare.json and each planner's run in a-NAME/ and "
+        "b-NAME/ (summary.json, report.md, ...; other pairs' folders are kept)"
+    )
+    compare.set_defaults(out=COMPARE_OUT)
     return compare
 
 

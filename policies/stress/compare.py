@@ -24,7 +24,7 @@ import numpy as np
 
 from policies.planners import EgoPlanner
 from policies.statistics import paired_difference
-from policies.stress.planner_spec import check_spec
+from policies.stress.planner_spec import load_planner
 from policies.stress.stress_test import StressResult, riskflow_stress
 from riskflow_env.atomic_files import write_text
 from riskflow_env.scenarios import Scenario
@@ -60,9 +60,9 @@ def compare(
         are).
     """
     folder = None if out is None else Path(out)
-    for letter, planner in (("a", a), ("b", b)):  # a malformed b fails before a's run
+    for letter, planner in (("a", a), ("b", b)):  # a bad b fails before a's run
         if isinstance(planner, str):
-            check_spec(planner, letter)
+            load_planner(planner, argument=letter)  # the file or module, and its object
     runs, names = [], {}
     for letter, planner in (("a", a), ("b", b)):
         names[letter] = f"{letter}-{_safe(_label(planner))}"

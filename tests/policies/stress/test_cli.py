@@ -261,6 +261,14 @@ def test_compare_checks_both_planners_before_running_either(scenes_dir, tmp_path
     assert exit_info.value.code == 2
     assert "PLANNER_B 'nosuch': expected a built-in name" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # no episode of a ran
+    for b, error in (
+        ("nonexist.py:plan", "PLANNER_B 'nonexist.py:plan': no such file"),
+        ("policies.planners:no_such_planner", "has no attribute 'no_such_planner'"),
+    ):  # well formed, but nothing to load: found before a's episodes too
+        with pytest.raises(SystemExit) as exit_info:
+            main(["compare", "idm", b, "--data", str(scenes_dir), "--out", str(tmp_path)])
+        assert exit_info.value.code == 2 and error in capsys.readouterr().err
+        assert not any(tmp_path.iterdir())
     with pytest.raises(SystemExit) as exit_info:
         main(["compare", "idm"])
     assert exit_info.value.code == 2
