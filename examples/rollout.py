@@ -112,11 +112,10 @@ class Options:
         check_device(self.device)
         if not 0 <= self.lambda_map < float("inf"):
             raise ValueError(f"--lambda-map must be finite and >= 0, got {self.lambda_map}")
-        if self.avoid_steps < 0 or not 0 <= self.hold_distance < float("inf"):
-            raise ValueError(
-                f"--avoid-steps must be >= 0 and --hold-distance finite and >= 0, got "
-                f"{self.avoid_steps} and {self.hold_distance}"
-            )
+        if self.avoid_steps < 0:
+            raise ValueError(f"--avoid-steps must be >= 0, got {self.avoid_steps}")
+        if not 0 <= self.hold_distance < float("inf"):
+            raise ValueError(f"--hold-distance must be finite and >= 0, got {self.hold_distance}")
 
     @property
     def controllable(self) -> int | str:
@@ -167,7 +166,7 @@ def make_traffic(options: Options) -> RiskFlowAdversary | ReplayPolicy:
             hold_distance=options.hold_distance,
             lambda_map=options.lambda_map,
         )
-    except (CheckpointError, FileNotFoundError) as err:
+    except (CheckpointError, OSError) as err:  # a missing file, a folder, no permission
         raise ValueError(f"--checkpoint: {err}") from None
 
 

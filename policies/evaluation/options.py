@@ -49,7 +49,7 @@ class EvalOptions:
     k: tuple[str, ...] = ("5",)
     """controllable-set sizes K: ints >= 0 or 'all'"""
     interval: tuple[float, ...] = (0.5,)
-    """[s] planning intervals (multiples of the env dt, 0.1 s)"""
+    """[s] planning intervals (multiples of the env dt, 0.1 s, up to 5.2 s)"""
     scenes: int | None = None
     """number of scenes, the first ones of the source (not given: all of them; more than it
     holds is an error)"""

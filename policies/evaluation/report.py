@@ -258,7 +258,8 @@ def write_report(out: str | Path, plots: bool = True) -> Path:
     ]  # fmt: skip
     for table in tables:
         timing = f"Timing (rollouts of {duration} s; a cycle is one call that planned):"
-        lines += ["", f"## {table.title} ({table.scenes} scenes x seeds)", ""]
+        rollouts = f"{table.scenes} rollout{'' if table.scenes == 1 else 's'}"
+        lines += ["", f"## {table.title} ({rollouts} a method: scene x seed pairs)", ""]
         if table.left_out:
             counts = ", ".join(f"{label} {n}" for label, n in table.left_out.items())
             lines += [

@@ -49,7 +49,7 @@ class EpisodeSetup:
     target: str = "ego"
     """what A_c is pulled toward: 'ego' (stress testing) or 'others' (the paper's)"""
     planning_interval: float = 0.5
-    """time between re-plans of the adversary [s]"""
+    """time between re-plans of the adversary [s], a multiple of 0.1 s up to 5.2 s"""
     steps: int = 100
     """episode length [steps of 0.1 s]; an ego collision or off-road ends it earlier"""
     device: str = "cpu"

@@ -34,9 +34,9 @@ RATES = (
     ("ego_offroad_rate", "ego off the road (episodes)", "%"),
     ("attackers_at_impact", "guided vehicles within 5 m of the ego at impact", ""),
     ("progress", "distance the ego drove [m]", ""),
-    ("ego_collisions_per_km", "ego collisions per km driven (episodes with one)", ""),
+    ("ego_collisions_per_km", "episodes with an ego collision per km driven (n: them)", ""),
     ("attacked_rate", "episodes with a guided vehicle (target ego: an attacker)", "%"),
-    ("slow_ego_share", "share of the ego's steps below 2 m/s (no new attack)", "%"),
+    ("slow_ego_share", "share of the ego's steps below 2 m/s (no new attack; n: episodes)", "%"),
     ("time_to_first_ego_collision", "time to the first ego collision [s]", ""),
     ("attack_to_impact", "time from the attack's start to the impact [s]", ""),
 )
@@ -109,7 +109,7 @@ def title(summary: dict[str, Any]) -> tuple[str, str]:
     done = f" ({cause}: {stopped['episodes']} of {stopped['planned']})" if stopped else ""
     return (
         f"Stress test of {summary['planner']}",
-        f"{counted(summary['episodes'], 'episode')}{done}: {o['scenes']} scenes x seeds "
+        f"{counted(summary['episodes'], 'episode')}{done}: {counted(o['scenes'], 'scene')} x seeds "
         f"{seeds}; RiskFlow "
         f"K={o['k']}, target {o['target']}, re-plan every {o['planning_interval']} s, "
         f"{o['steps']} steps of 0.1 s",

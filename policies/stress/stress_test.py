@@ -313,7 +313,9 @@ class _Writer:
         with."""
         failed = sorted((e for e in episodes if e.analysed.failures), key=severity)
         rows = []
-        bar = tqdm(failed[:count], "drawing GIFs", unit="gif", disable=not progress, leave=False)
+        worst = failed[:count]
+        shown = progress and bool(worst)  # no empty bar when nothing failed
+        bar = tqdm(worst, "drawing GIFs", unit="gif", disable=not shown, leave=False)
         guarded = GuardedPlanner(planner)
         for episode in bar:
             gif = self.folder / "gifs" / f"{self.stem(episode)}.gif"

@@ -95,7 +95,7 @@ def test_rollout_warm_up_leaves_the_episode_as_it_is(checkpoint, tmp_path, monke
     [
         (["--video", "avi"], "--video must be one of"),
         (["--avoid-steps", "-1"], "--avoid-steps must be >= 0"),
-        (["--hold-distance", "-2"], "--hold-distance finite and >= 0"),
+        (["--hold-distance", "-2"], "--hold-distance must be finite and >= 0, got -2"),
         (["--lambda-map", "-1"], "--lambda-map must be finite and >= 0"),
         (["--planning-interval", "0.25"], "--planning-interval: 0.25 s is not a positive multiple"),
         (["--planning-interval", "nan"], "--planning-interval: nan s is not a positive multiple"),
@@ -107,6 +107,7 @@ def test_rollout_warm_up_leaves_the_episode_as_it_is(checkpoint, tmp_path, monke
         (["--device", "cdua"], "--device: 'cdua' is not a torch device"),
         (["--replay-mode", "open-loop"], "--replay-mode must be one of ('tracking', 'open_loop')"),
         (["--scenario", ""], "--scenario is empty: give a shipped bank index or a scenario file"),
+        (["--checkpoint", str(EXAMPLES), "--steps", "1"], "--checkpoint: "),  # a folder
     ],
 )
 def test_rollout_rejects_bad_options(argv, message, monkeypatch, capsys):

@@ -136,7 +136,7 @@ def test_report(tiny_run):
     out, _ = tiny_run
     path = write_report(out)
     text = path.read_text()
-    assert "## K=2, T=0.5 s (2 scenes x seeds)" in text
+    assert "## K=2, T=0.5 s (2 rollouts a method: scene x seed pairs)" in text
     assert "| riskflow[guidance_steps=2] | 2 |" in text and "| idm | 2 |" in text
     for name in ("cs_rs_T0.5.png", "speed.png"):
         assert (out / name).stat().st_size > 0
