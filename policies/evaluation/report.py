@@ -228,6 +228,8 @@ def write_report(out: str | Path, plots: bool = True) -> Path:
     """Write ``report.md`` (and the PNG plots) into the results folder ``out``."""
     if Path(out).exists() and not Path(out).is_dir():
         raise NotADirectoryError(f"--out {out} is a file, not a results folder")
+    if not Path(out).exists():
+        raise FileNotFoundError(f"--out {out}: no such folder (riskflow-eval --out writes one)")
     store = ResultsStore(out)
     rows = store.rows()
     if not rows:

@@ -286,7 +286,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The ``riskflow-data`` parser (subcommands ``generate``, ``info`` and ``export``)."""
     formatter = DefaultsHelpFormatter
     parser = CommandLineParser(
-        prog="riskflow-data", description=__doc__.split("\n")[0], formatter_class=formatter
+        prog="riskflow-data", description=__doc__.split("\n")[0].replace("``", ""), formatter_class=formatter
     )
     commands = parser.add_subparsers(dest="command", required=True)
     gen = commands.add_parser(
