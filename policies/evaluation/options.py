@@ -122,6 +122,11 @@ class EvalOptions:
         check_batch_scenes(self.batch_scenes, self.backend)
         object.__setattr__(self, "batch_scenes", int(self.batch_scenes))
         check_backend(self.backend, self.address)
+        if isinstance(self.ego, str) and ":" in self.ego:  # a spec riskflow-stress takes
+            raise ValueError(
+                f"--ego must be one of {tuple(PLANNERS)}, got {self.ego!r}: a planner of your "
+                "own runs with riskflow-stress --planner FILE.py:OBJECT"
+            )
         check_choices(self, {"ego": tuple(PLANNERS), "target": TARGETS})
         check_interval(self.duration, DT, None, "--duration")
         if self.duration / DT > MAX_EPISODE_STEPS:  # checked before anything is written

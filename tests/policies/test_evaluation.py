@@ -199,6 +199,7 @@ def test_report_command(tiny_run, capsys):
         (["--interval", "0.55"], "--interval: 0.55 s is not a positive multiple"),
         (["--interval", "9.0"], "--interval: 9.0 s exceeds the plan horizon"),
         (["--ego", "pilot"], "--ego must be one of"),
+        (["--ego", "my_planner.py:plan"], "own runs with riskflow-stress --planner"),
         (["--target", "all"], "--target must be one of"),
         (["--duration", "1.05"], "--duration"),
         (["--scenes", "0"], "--scenes must be an int >= 1, got 0"),
