@@ -285,8 +285,9 @@ def share(text: str) -> float:
 def build_parser() -> argparse.ArgumentParser:
     """The ``riskflow-data`` parser (subcommands ``generate``, ``info`` and ``export``)."""
     formatter = DefaultsHelpFormatter
+    description = __doc__.split("\n")[0].replace("``", "")  # the docstring's title, plain
     parser = CommandLineParser(
-        prog="riskflow-data", description=__doc__.split("\n")[0].replace("``", ""), formatter_class=formatter
+        prog="riskflow-data", description=description, formatter_class=formatter
     )
     commands = parser.add_subparsers(dest="command", required=True)
     gen = commands.add_parser(
