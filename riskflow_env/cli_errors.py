@@ -55,7 +55,8 @@ class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
         if (action.required or getattr(action, "recipe_may_give", False)) and action.option_strings:
             return help_text if "(required" in help_text else f"{help_text} (required)"
         in_words = _DEFAULT_IN_WORDS.search(help_text)
-        unset = action.default is None or action.default in ((), [])  # nothing to show
+        empty = isinstance(action.default, (tuple, list)) and not action.default
+        unset = action.default is None or empty  # nothing to show
         if in_words and unset and action.option_strings:
             return f"{help_text[: in_words.start()]} (default: {help_text[in_words.end() :]})"
         return super()._get_help_string(action)
