@@ -26,8 +26,8 @@ intervals over all (seed, scene) episodes), progress [m] and time to the first e
 collision [s] (bootstrap 95% intervals), as a Markdown table (``<out>/results.md``,
 printed), a plot (``<out>/results.png``) and JSON (``<out>/results.json``, with a
 per-run breakdown of the PPO rows), the trained-vs-untrained comparison on paired
-episodes (:mod:`policies.rl.paired`) and the runs' training curves
-(``<out>/training.png``).
+episodes (:mod:`policies.rl.paired`; with ``--paired``, each trained ego against each
+baseline too) and the runs' training curves (``<out>/training.png``).
 """
 
 from __future__ import annotations
@@ -101,7 +101,8 @@ class Options:
     'riskflow K=5 ego')"""
     paired: bool = False
     """evaluate every PPO run on the baselines' --seeds too (each seed x --episodes-per-run
-    ignored), so that every ego drives the same (scene, adversary seed) episodes"""
+    ignored), so that every ego drives the same (scene, adversary seed) episodes; the
+    report then pairs each trained ego with each baseline as well"""
     guidance_steps: int = 30
     """K_g of the adversarial traffic"""
     planning_interval: float = 0.5
@@ -267,7 +268,7 @@ def main(argv: list[str] | None = None) -> None:
         bar.set_postfix_str(label, refresh=False)
         bar.update()
 
-    results, per_run, paired, seeds_of = {}, {}, [], {}
+    results, per_run, paired, seeds_of, trained_of = {}, {}, [], {}, {}
     for chosen, initial in runs:
         seed, policy = run_options(chosen.run)
         seeds = [seed * 100 + i for i in range(options.episodes_per_run)]
@@ -283,6 +284,7 @@ def main(argv: list[str] | None = None) -> None:
             seeds_of[f"{name} (seed {seed})"] = seeds
         for traffic in traffics:
             trained, untrained = (records[name, traffic.label] for name in planners)
+            trained_of[chosen.run, traffic.label] = seed, trained
             for metric in PAIRED_OUTCOMES:
                 counts = paired_counts(trained, untrained, metric)
                 row = {"planner": options.label, "run": f"seed {seed}", "traffic": traffic.label}
@@ -290,6 +292,14 @@ def main(argv: list[str] | None = None) -> None:
     if baselines:
         results |= evaluate(baselines, traffics, scenes, baseline_seeds, config, progress=advance)
         seeds_of |= dict.fromkeys(baselines, baseline_seeds)
+    if options.paired:  # every trained ego against every baseline, on the same episodes
+        for (_, traffic), (seed, trained) in trained_of.items():
+            for name in baselines:
+                row = {"planner": f"{options.label} vs {name}", "run": f"seed {seed}"}
+                row |= {"traffic": traffic, "reference": name}
+                for metric in PAIRED_OUTCOMES:
+                    counts = paired_counts(trained, results[name, traffic], metric)
+                    paired.append(row | {"metric": metric, **counts})
     bar.close()
 
     summaries = {key: summarize_ego(episodes) for key, episodes in results.items()}
@@ -318,8 +328,13 @@ def write_report(
     order = sorted(summaries, key=lambda key: (key[1] != adversarial_label, key[1]))
     summaries = {key: summaries[key] for key in order}
     sections = [markdown_table(summaries)]
+    versus = [row for row in paired if "reference" in row]  # trained vs a baseline
+    paired = [row for row in paired if "reference" not in row]
     if paired:
         sections.append("Trained vs untrained, paired episodes:\n\n" + paired_table(paired))
+    if versus:
+        table = paired_table(versus, reference="baseline")
+        sections.append("Trained vs each baseline, paired episodes:\n\n" + table)
     if per_run:
         sections.append("Per run:\n\n" + markdown_table(per_run))
     text = "\n\n".join(sections)
@@ -328,7 +343,8 @@ def write_report(
     plot_summaries(summaries, out / "results.png")
     rows = [{"planner": p, "traffic": t, **s} for (p, t), s in summaries.items()]
     runs = [{"planner": p, "traffic": t, **s} for (p, t), s in per_run.items()]
-    content = {"summary": rows, "per_run": runs, "paired": paired, "mask_actions": mask_actions}
+    content = {"summary": rows, "per_run": runs, "paired": paired + versus}
+    content["mask_actions"] = mask_actions
     content["episodes"] = episodes
     write_text(out / "results.json", json.dumps(content, indent=1))
     print(text)

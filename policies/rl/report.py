@@ -58,10 +58,12 @@ def markdown_table(summaries: Summaries, metrics: tuple[str, ...] = tuple(METRIC
     return "\n".join(lines)
 
 
-def paired_table(rows: list[Mapping[str, Any]]) -> str:
-    """Trained vs untrained on paired episodes (:func:`~policies.rl.paired.paired_counts`
-    rows, one per run, traffic and outcome), per run and pooled over the runs ("all": the
-    counts summed), with :func:`~policies.statistics.paired_difference` for each."""
+def paired_table(rows: list[Mapping[str, Any]], reference: str = "untrained") -> str:
+    """Trained vs ``reference`` on paired episodes (:func:`~policies.rl.paired.paired_counts`
+    rows, one per run, traffic and outcome, with ``reference``'s counts as the
+    ``untrained`` ones: the untrained policy, or a baseline planner), per run and pooled
+    over the runs ("all": the counts summed), with
+    :func:`~policies.statistics.paired_difference` for each."""
     from policies.statistics import paired_difference
 
     table: dict[tuple, dict[str, Any]] = {}
@@ -71,10 +73,10 @@ def paired_table(rows: list[Mapping[str, Any]]) -> str:
         for name in COUNTS:
             total[name] = total.get(name, 0) + row[name]
     runs = Counter(key[:3] for key in table if key[3] != "all")
-    header = ["ego", "run", "traffic", "outcome", "untrained", "trained"]
+    header = ["ego", "run", "traffic", "outcome", reference, "trained"]
     header += [
-        "trained - untrained [95% CI]",
-        "only untrained / only trained",
+        f"trained - {reference} [95% CI]",
+        f"only {reference} / only trained",
         "McNemar p",
         "episodes",
     ]

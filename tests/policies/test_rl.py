@@ -324,7 +324,7 @@ def test_train_then_evaluate_tiny_budget(tmp_path):
     out = run(
         "evaluate_ego.py", "--runs", run_dir, "--scenes", "2", "--seeds", "0",
         "--episode-steps", "10", "--guidance-steps", "2", "--planning-interval", "1.0",
-        "--oracle", "--out", eval_dir, "--trust-model",
+        "--oracle", "--paired", "--out", eval_dir, "--trust-model",
     )  # fmt: skip
     results = json.loads((eval_dir / "results.json").read_text())
     rows = {(row["planner"], row["traffic"]) for row in results["summary"]}
@@ -343,6 +343,12 @@ def test_train_then_evaluate_tiny_budget(tmp_path):
     }
     assert all(row["n"] == 2 and row["run"] == "seed 3" for row in paired)
     assert "Trained vs untrained, paired episodes" in (eval_dir / "results.md").read_text()
+    versus = [row for row in paired if "reference" in row]  # --paired: each baseline too
+    assert {row["reference"] for row in versus} == set(planners[2:])
+    assert {row["planner"] for row in versus} == {f"ppo vs {name}" for name in planners[2:]}
+    text = (eval_dir / "results.md").read_text()
+    assert "Trained vs each baseline, paired episodes" in text
+    assert "| trained - baseline [95% CI] |" in text
     assert (eval_dir / "results.png").stat().st_size > 0
     assert (eval_dir / "training.png").stat().st_size > 0  # the run's training curves
     assert "| ppo | riskflow K=5 |" in (eval_dir / "results.md").read_text()
