@@ -268,7 +268,7 @@ def main(argv: list[str] | None = None) -> None:
         bar.set_postfix_str(label, refresh=False)
         bar.update()
 
-    results, per_run, paired, seeds_of, trained_of = {}, {}, [], {}, {}
+    results, per_run, paired, seeds_of, trained_eps = {}, {}, [], {}, []
     for chosen, initial in runs:
         seed, policy = run_options(chosen.run)
         seeds = [seed * 100 + i for i in range(options.episodes_per_run)]
@@ -284,7 +284,7 @@ def main(argv: list[str] | None = None) -> None:
             seeds_of[f"{name} (seed {seed})"] = seeds
         for traffic in traffics:
             trained, untrained = (records[name, traffic.label] for name in planners)
-            trained_of[chosen.run, traffic.label] = seed, trained
+            trained_eps.append((seed, traffic.label, trained))
             for metric in PAIRED_OUTCOMES:
                 counts = paired_counts(trained, untrained, metric)
                 row = {"planner": options.label, "run": f"seed {seed}", "traffic": traffic.label}
@@ -293,7 +293,7 @@ def main(argv: list[str] | None = None) -> None:
         results |= evaluate(baselines, traffics, scenes, baseline_seeds, config, progress=advance)
         seeds_of |= dict.fromkeys(baselines, baseline_seeds)
     if options.paired:  # every trained ego against every baseline, on the same episodes
-        for (_, traffic), (seed, trained) in trained_of.items():
+        for seed, traffic, trained in trained_eps:
             for name in baselines:
                 row = {"planner": f"{options.label} vs {name}", "run": f"seed {seed}"}
                 row |= {"traffic": traffic, "reference": name}

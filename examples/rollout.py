@@ -166,7 +166,7 @@ def make_traffic(options: Options) -> RiskFlowAdversary | ReplayPolicy:
             hold_distance=options.hold_distance,
             lambda_map=options.lambda_map,
         )
-    except (CheckpointError, OSError) as err:  # a missing file, a folder, no permission
+    except (CheckpointError, FileNotFoundError, IsADirectoryError) as err:  # no such file
         raise ValueError(f"--checkpoint: {err}") from None
 
 

@@ -41,6 +41,9 @@ class CommandLineParser(argparse.ArgumentParser):
                      f"{self.prog}: error: {message}\n")  # fmt: skip
 
 
+_DEFAULT_IN_WORDS = re.compile(r"[;,]\s+default:?\s+")  # "...; default: the shipped bank"
+
+
 class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
     """argparse's help with each option's default, and ``(required)`` for an option that
     must be given, where argparse shows ``(default: None)``.
@@ -60,9 +63,6 @@ class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
         if in_words and unset and action.option_strings:
             return f"{help_text[: in_words.start()]} (default: {help_text[in_words.end() :]})"
         return super()._get_help_string(action)
-
-
-_DEFAULT_IN_WORDS = re.compile(r"[;,]\s+default:?\s+")  # "...; default: the shipped bank"
 
 
 def add_debug_flag(parser: argparse.ArgumentParser) -> None:

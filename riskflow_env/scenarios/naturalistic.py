@@ -63,16 +63,14 @@ class SceneConfig:
 
     def __post_init__(self) -> None:
         check_field_types(self)
-        for name in ("history_steps", "future_steps", "candidate_windows", "max_attempts"):
+        counts = ("history_steps", "future_steps", "candidate_windows", "max_attempts")
+        for name in (*counts, "window_stride", "max_agents"):
             value = getattr(self, name)
             if not is_integer(value) or value < 1:
                 raise ValueError(f"SceneConfig.{name} must be an int >= 1, got {value!r}")
             object.__setattr__(self, name, int(value))  # a numpy int as a Python one
         if not 0 <= self.warmup[0] <= self.warmup[1]:
             raise ValueError(f"SceneConfig.warmup must be 0 <= min <= max, got {self.warmup}")
-        for name in ("window_stride", "max_agents"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"SceneConfig.{name} must be >= 1, got {getattr(self, name)}")
         if not 0 < self.ego_top <= 1:
             raise ValueError(f"SceneConfig.ego_top must be in (0, 1], got {self.ego_top}")
         for name in ("radius", "density_radius", "map_resolution"):
